@@ -1,0 +1,136 @@
+//! Writing campaign archives in the `skelid-campaign/1` layout (FORMATS.md §1), used by the
+//! simulator, the demo and the tests.
+//!
+//! Files are written under a temporary name and renamed into place when complete, so a
+//! crash never leaves a half-written archive where a finished one is expected.
+
+use std::path::{Path, PathBuf};
+
+use crate::h5util::{write_f64_attr, write_str_attr};
+use crate::ingest::{Quantity, RunKind};
+
+/// Format string stored in the root attribute `format`.
+pub const CAMPAIGN_FORMAT: &str = "skelid-campaign/1";
+
+/// An attribute value to write.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Attr {
+    /// Float attribute.
+    Num(f64),
+    /// String attribute.
+    Text(String),
+}
+
+/// One run to write.
+#[derive(Debug, Clone)]
+pub struct RunData {
+    /// Group path, e.g. `/runs/run_001`.
+    pub path: String,
+    /// Input channel, absent for free decays.
+    pub input: Option<Vec<f64>>,
+    /// Output channel.
+    pub output: Vec<f64>,
+    /// Sample rate, Hz (written as the run's `sample_rate` attribute).
+    pub sample_rate: f64,
+    /// Run kind.
+    pub kind: RunKind,
+    /// Input quantity (`None`: the kind's default).
+    pub input_quantity: Option<Quantity>,
+    /// Output quantity.
+    pub output_quantity: Quantity,
+    /// Further attributes (inertia, units, true parameters, ...).
+    pub attrs: Vec<(String, Attr)>,
+}
+
+/// Error writing an archive.
+#[derive(Debug, thiserror::Error)]
+#[error("{file}: cannot write campaign archive: {detail}")]
+pub struct WriteError {
+    /// Target file.
+    pub file: String,
+    /// What failed.
+    pub detail: String,
+}
+
+/// Writes a complete campaign archive atomically (temporary file, then rename).
+pub fn write_campaign(
+    path: &Path,
+    root_attrs: &[(String, Attr)],
+    runs: &[RunData],
+    compress: bool,
+) -> Result<(), WriteError> {
+    let err = |detail: String| WriteError {
+        file: path.display().to_string(),
+        detail,
+    };
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(|e| err(e.to_string()))?;
+    }
+    let tmp = tmp_path(path);
+    let result = (|| -> hdf5::Result<()> {
+        let file = hdf5::File::create(&tmp)?;
+        write_str_attr(&file, "format", CAMPAIGN_FORMAT)?;
+        for (k, v) in root_attrs {
+            write_attr(&file, k, v)?;
+        }
+        for run in runs {
+            let g = file
+                .create_group_builder()
+                .create_intermediate_group(true)
+                .create(run.path.trim_start_matches('/'))?;
+            write_f64_attr(&g, "sample_rate", run.sample_rate)?;
+            write_str_attr(&g, "kind", run.kind.as_str())?;
+            if let Some(q) = run.input_quantity {
+                write_str_attr(&g, "input_quantity", q.as_str())?;
+            }
+            write_str_attr(&g, "output_quantity", run.output_quantity.as_str())?;
+            for (k, v) in &run.attrs {
+                write_attr(&g, k, v)?;
+            }
+            if let Some(input) = &run.input {
+                write_signal(&g, "input", input, compress)?;
+            }
+            write_signal(&g, "output", &run.output, compress)?;
+        }
+        file.flush()?;
+        Ok(())
+    })();
+    if let Err(e) = result {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(err(e.to_string()));
+    }
+    std::fs::rename(&tmp, path).map_err(|e| err(e.to_string()))
+}
+
+fn tmp_path(path: &Path) -> PathBuf {
+    let mut name = path.file_name().unwrap_or_default().to_os_string();
+    name.push(".tmp");
+    path.with_file_name(name)
+}
+
+fn write_attr(loc: &hdf5::Location, name: &str, v: &Attr) -> hdf5::Result<()> {
+    match v {
+        Attr::Num(x) => write_f64_attr(loc, name, *x),
+        Attr::Text(s) => write_str_attr(loc, name, s),
+    }
+}
+
+/// Writes a float64 vector, chunked and gzip-compressed when asked (as real archives are).
+pub fn write_signal(
+    group: &hdf5::Group,
+    name: &str,
+    data: &[f64],
+    compress: bool,
+) -> hdf5::Result<()> {
+    let builder = group.new_dataset_builder().with_data(data);
+    if compress && data.len() >= 64 {
+        builder
+            .chunk(data.len().min(4096))
+            .shuffle()
+            .deflate(4)
+            .create(name)?;
+    } else {
+        builder.create(name)?;
+    }
+    Ok(())
+}

@@ -1,0 +1,326 @@
+//! `skelid inspect`: what is in a set of archives, and what is wrong with it.
+
+use std::path::PathBuf;
+
+use std::io::Read;
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use serde::{Deserialize, Serialize};
+
+use crate::ingest::{Archive, IngestError, IngestOptions, RunMeta};
+
+/// One run's line in the report.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RunReport {
+    /// Run path.
+    pub path: String,
+    /// Metadata when readable.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub meta: Option<RunMeta>,
+    /// `ok` or `error`.
+    pub status: String,
+    /// The problem, when there is one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    /// Machine-readable error kind.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error_kind: Option<String>,
+}
+
+/// One archive's part of the report.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ArchiveReport {
+    /// File as given.
+    pub file: String,
+    /// Runs found (empty when the file itself failed).
+    pub runs: Vec<RunReport>,
+    /// File-level problem.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    /// Machine-readable error kind.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error_kind: Option<String>,
+}
+
+impl ArchiveReport {
+    /// Number of problems (file-level and per run).
+    pub fn problems(&self) -> usize {
+        self.error.is_some() as usize + self.runs.iter().filter(|r| r.error.is_some()).count()
+    }
+}
+
+fn run_report(path: String, r: Result<RunMeta, IngestError>) -> RunReport {
+    match r {
+        Ok(meta) => RunReport {
+            path,
+            meta: Some(meta),
+            status: "ok".into(),
+            error: None,
+            error_kind: None,
+        },
+        Err(e) => RunReport {
+            path,
+            meta: None,
+            status: "error".into(),
+            error_kind: Some(e.kind().to_string()),
+            error: Some(e.to_string()),
+        },
+    }
+}
+
+/// Inspects one archive, reading every run's samples to check them.
+pub fn inspect_archive(path: &std::path::Path, options: &IngestOptions) -> ArchiveReport {
+    let file = path.display().to_string();
+    match Archive::open(path, options) {
+        Err(e) => ArchiveReport {
+            file,
+            runs: vec![],
+            error_kind: Some(e.kind().to_string()),
+            error: Some(e.to_string()),
+        },
+        Ok(archive) => {
+            let runs = archive
+                .runs
+                .iter()
+                .map(|entry| {
+                    let checked = entry
+                        .meta
+                        .clone()
+                        .and_then(|m| archive.load(&m).map(|run| run.meta));
+                    run_report(entry.path.clone(), checked)
+                })
+                .collect();
+            ArchiveReport {
+                file,
+                runs,
+                error: None,
+                error_kind: None,
+            }
+        }
+    }
+}
+
+/// Inspects many archives.
+pub fn inspect(paths: &[PathBuf], options: &IngestOptions) -> Vec<ArchiveReport> {
+    paths.iter().map(|p| inspect_archive(p, options)).collect()
+}
+
+/// The human-readable table.
+pub fn render_table(reports: &[ArchiveReport]) -> String {
+    use std::fmt::Write;
+    let mut s = String::new();
+    for rep in reports {
+        let _ = writeln!(s, "{}", rep.file);
+        if let Some(e) = &rep.error {
+            let _ = writeln!(s, "  ERROR {e}");
+            continue;
+        }
+        let w = rep
+            .runs
+            .iter()
+            .map(|r| r.path.len())
+            .max()
+            .unwrap_or(4)
+            .max(4);
+        let _ = writeln!(
+            s,
+            "  {:<w$}  {:>9}  {:>9}  {:>8}  {:<11}  {:<26}  attributes",
+            "run", "samples", "rate Hz", "dur s", "kind", "quantities (in -> out)"
+        );
+        for r in &rep.runs {
+            match &r.meta {
+                Some(m) => {
+                    let q = format!(
+                        "{} -> {}",
+                        m.input_quantity.map(|q| q.as_str()).unwrap_or("-"),
+                        m.output_quantity.as_str()
+                    );
+                    let mut attrs = Vec::new();
+                    if let Some(j) = m.inertia {
+                        attrs.push(format!("inertia={j}"));
+                    }
+                    if m.gravity_stiffness != 0.0 {
+                        attrs.push(format!("C={}", m.gravity_stiffness));
+                    }
+                    if let Some(u) = &m.units {
+                        attrs.push(format!("units={u}"));
+                    }
+                    if let Some(x) = &m.excitation {
+                        let short: String = x.chars().take(48).collect();
+                        attrs.push(format!("excitation=\"{short}\""));
+                    }
+                    let _ = writeln!(
+                        s,
+                        "  {:<w$}  {:>9}  {:>9.1}  {:>8.2}  {:<11}  {:<26}  {}",
+                        r.path,
+                        m.samples,
+                        m.sample_rate,
+                        m.duration,
+                        m.kind.as_str(),
+                        q,
+                        attrs.join(" ")
+                    );
+                }
+                None => {
+                    let _ = writeln!(
+                        s,
+                        "  {:<w$}  ERROR {}",
+                        r.path,
+                        r.error.as_deref().unwrap_or("")
+                    );
+                }
+            }
+        }
+        let ok = rep.runs.iter().filter(|r| r.error.is_none()).count();
+        let _ = writeln!(
+            s,
+            "  {} run(s), {} ok, {} with problems",
+            rep.runs.len(),
+            ok,
+            rep.runs.len() - ok
+        );
+    }
+    s
+}
+
+/// Hidden subcommand the isolated inspection runs in a child process.
+pub const PROBE_SUBCOMMAND: &str = "__inspect-one";
+
+/// Inspects each archive in a child process (`exe PROBE_SUBCOMMAND FILE ...`), so that a
+/// crash or hang inside libhdf5 on a corrupt file becomes an error naming that file
+/// instead of killing the whole batch. libhdf5 segfaults on some corrupted object headers,
+/// which no in-process error handling can catch. Children run in parallel.
+pub fn inspect_isolated(
+    exe: &Path,
+    paths: &[PathBuf],
+    options: &IngestOptions,
+    timeout: Duration,
+) -> Vec<ArchiveReport> {
+    use rayon::prelude::*;
+    paths
+        .par_iter()
+        .map(|p| probe_one(exe, p, options, timeout))
+        .collect()
+}
+
+/// The command-line flags that reproduce `options` in a child process.
+pub fn option_args(options: &IngestOptions) -> Vec<String> {
+    let mut args = vec![
+        "--input-name".to_string(),
+        options.input_name.clone(),
+        "--output-name".to_string(),
+        options.output_name.clone(),
+    ];
+    if let Some(fs) = options.sample_rate {
+        args.extend(["--sample-rate".to_string(), format!("{fs:e}")]);
+    }
+    if let Some(g) = &options.run_glob {
+        args.extend(["--run-glob".to_string(), g.as_str().to_string()]);
+    }
+    args
+}
+
+fn failed(file: String, detail: String) -> ArchiveReport {
+    let e = IngestError::Corrupt {
+        file: file.clone(),
+        run: None,
+        detail,
+    };
+    ArchiveReport {
+        file,
+        runs: vec![],
+        error_kind: Some(e.kind().to_string()),
+        error: Some(e.to_string()),
+    }
+}
+
+fn probe_one(exe: &Path, path: &Path, options: &IngestOptions, timeout: Duration) -> ArchiveReport {
+    let file = path.display().to_string();
+    let child = Command::new(exe)
+        .arg(PROBE_SUBCOMMAND)
+        .arg(path)
+        .args(option_args(options))
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn();
+    let mut child = match child {
+        Ok(c) => c,
+        // Cannot isolate (e.g. no executable): read in-process rather than not at all.
+        Err(_) => return inspect_archive(path, options),
+    };
+    let mut stdout = child.stdout.take().expect("piped stdout");
+    let mut stderr = child.stderr.take().expect("piped stderr");
+    let out_reader = std::thread::spawn(move || {
+        let mut buf = Vec::new();
+        let _ = stdout.read_to_end(&mut buf);
+        buf
+    });
+    let err_reader = std::thread::spawn(move || {
+        let mut buf = Vec::new();
+        let _ = stderr.read_to_end(&mut buf);
+        buf
+    });
+    let start = Instant::now();
+    let status = loop {
+        match child.try_wait() {
+            Ok(Some(status)) => break Some(status),
+            Ok(None) if start.elapsed() > timeout => {
+                let _ = child.kill();
+                let _ = child.wait();
+                break None;
+            }
+            Ok(None) => std::thread::sleep(Duration::from_millis(5)),
+            Err(_) => break None,
+        }
+    };
+    let out = out_reader.join().unwrap_or_default();
+    let err = err_reader.join().unwrap_or_default();
+    let Some(status) = status else {
+        return failed(
+            file,
+            format!(
+                "reading it did not finish within {} s; libhdf5 loops on some corrupt files",
+                timeout.as_secs()
+            ),
+        );
+    };
+    if let Ok(report) = serde_json::from_slice::<ArchiveReport>(&out) {
+        return report;
+    }
+    let how = match status.code() {
+        Some(c) => format!("exit status {c}"),
+        None => {
+            #[cfg(unix)]
+            {
+                use std::os::unix::process::ExitStatusExt;
+                format!("signal {}", status.signal().unwrap_or(0))
+            }
+            #[cfg(not(unix))]
+            {
+                "abnormal termination".to_string()
+            }
+        }
+    };
+    let tail: String = String::from_utf8_lossy(&err)
+        .chars()
+        .rev()
+        .take(300)
+        .collect::<Vec<_>>()
+        .into_iter()
+        .rev()
+        .collect();
+    failed(
+        file,
+        format!(
+            "libhdf5 crashed reading it ({how}){}",
+            if tail.trim().is_empty() {
+                String::new()
+            } else {
+                format!(": {}", tail.trim())
+            }
+        ),
+    )
+}

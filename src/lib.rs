@@ -1,0 +1,14 @@
+//! skelid — identification of non-linear joints (clearance, contact stiffness, viscous and
+//! dry friction) from vibration test campaigns with skeleton methods, and diagnosis of the
+//! gap between a rig's simulation model and its measurements.
+//!
+//! Pipeline stages, one module each: [`ingest`] (HDF5 campaigns in), [`simulate`] (the rig
+//! model under any drive), [`campaign`] (archives out), [`demo`] (the built-in campaign).
+
+pub mod campaign;
+pub mod demo;
+pub mod h5util;
+pub mod ingest;
+pub mod inspect;
+pub mod model;
+pub mod simulate;

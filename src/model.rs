@@ -1,0 +1,400 @@
+//! The rig model of FORMATS.md §2 (TOML): a single-DOF base-motion link with a dead-zone
+//! joint, and the vocabulary of effects beyond the nominal model.
+
+use std::fmt;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+/// Errors reading or checking a rig model.
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    /// File could not be read.
+    #[error("{file}: cannot read the rig model: {source}")]
+    Io {
+        file: String,
+        #[source]
+        source: std::io::Error,
+    },
+    /// TOML syntax or an unknown/missing key.
+    #[error("{file}: invalid rig model: {detail}")]
+    Parse { file: String, detail: String },
+    /// A value out of its physical range.
+    #[error("{file}: invalid rig model: {detail}")]
+    Invalid { file: String, detail: String },
+}
+
+/// J θ'' + c(θ'−φ') + k·D(θ−φ) − J·C·θ = 0 with D a dead zone of half-width clearance/2.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RigModel {
+    /// J, kg m² (or m, kg, for a force-input oscillator).
+    pub inertia: f64,
+    /// k, N m/rad: contact stiffness outside the clearance.
+    pub stiffness: f64,
+    /// c, N m s/rad: viscous damping on the relative velocity.
+    pub damping: f64,
+    /// Total free play 2δ, rad (0 = linear joint).
+    #[serde(default)]
+    pub clearance: f64,
+    /// C = mgL/J, 1/s².
+    #[serde(default)]
+    pub gravity_stiffness: f64,
+    /// Effects beyond the nominal model.
+    #[serde(default, skip_serializing_if = "Effects::is_empty")]
+    pub effects: Effects,
+}
+
+/// Parameter tables of the effect vocabulary; keys are part of the format contract.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Effects {
+    /// Dry friction on the relative velocity (stick–slip).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub coulomb_friction: Option<TorqueParam>,
+    /// Constant torque pressing the link onto one flank.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gravity_preload: Option<TorqueParam>,
+    /// Clearance centre shifted from z = 0.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub asymmetric_clearance: Option<OffsetParam>,
+    /// Contact law k·D + k3·D³.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cubic_stiffness: Option<CubicParam>,
+    /// Extra damping while in contact.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub contact_damping: Option<ContactDampingParam>,
+    /// Output encoder lag.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sensor_delay: Option<DelayParam>,
+    /// Encoder resolution of both channels.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub quantization: Option<StepParam>,
+}
+
+/// `{ torque = N m }`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TorqueParam {
+    /// N m.
+    pub torque: f64,
+}
+/// `{ offset = rad }`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OffsetParam {
+    /// rad.
+    pub offset: f64,
+}
+/// `{ k3 = N m/rad³ }`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CubicParam {
+    /// N m/rad³.
+    pub k3: f64,
+}
+/// `{ c_contact = N m s/rad }`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ContactDampingParam {
+    /// N m s/rad.
+    pub c_contact: f64,
+}
+/// `{ delay = s }`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DelayParam {
+    /// s.
+    pub delay: f64,
+}
+/// `{ step = rad }`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StepParam {
+    /// rad.
+    pub step: f64,
+}
+
+/// One effect of the vocabulary, each with exactly one parameter.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EffectKind {
+    /// Dry friction, parameter `torque`.
+    CoulombFriction,
+    /// Constant torque, parameter `torque`.
+    GravityPreload,
+    /// Clearance centre offset, parameter `offset`.
+    AsymmetricClearance,
+    /// Cubic contact stiffness, parameter `k3`.
+    CubicStiffness,
+    /// Damping in contact, parameter `c_contact`.
+    ContactDamping,
+    /// Output lag, parameter `delay`.
+    SensorDelay,
+    /// Encoder step, parameter `step`.
+    Quantization,
+}
+
+impl EffectKind {
+    /// Every effect, in the order of FORMATS.md.
+    pub const ALL: [EffectKind; 7] = [
+        EffectKind::CoulombFriction,
+        EffectKind::GravityPreload,
+        EffectKind::AsymmetricClearance,
+        EffectKind::CubicStiffness,
+        EffectKind::ContactDamping,
+        EffectKind::SensorDelay,
+        EffectKind::Quantization,
+    ];
+
+    /// Name in TOML and JSON.
+    pub fn name(self) -> &'static str {
+        match self {
+            EffectKind::CoulombFriction => "coulomb_friction",
+            EffectKind::GravityPreload => "gravity_preload",
+            EffectKind::AsymmetricClearance => "asymmetric_clearance",
+            EffectKind::CubicStiffness => "cubic_stiffness",
+            EffectKind::ContactDamping => "contact_damping",
+            EffectKind::SensorDelay => "sensor_delay",
+            EffectKind::Quantization => "quantization",
+        }
+    }
+
+    /// Name of its one parameter.
+    pub fn param(self) -> &'static str {
+        match self {
+            EffectKind::CoulombFriction | EffectKind::GravityPreload => "torque",
+            EffectKind::AsymmetricClearance => "offset",
+            EffectKind::CubicStiffness => "k3",
+            EffectKind::ContactDamping => "c_contact",
+            EffectKind::SensorDelay => "delay",
+            EffectKind::Quantization => "step",
+        }
+    }
+
+    /// Unit of its parameter.
+    pub fn unit(self) -> &'static str {
+        match self {
+            EffectKind::CoulombFriction | EffectKind::GravityPreload => "N m",
+            EffectKind::AsymmetricClearance | EffectKind::Quantization => "rad",
+            EffectKind::CubicStiffness => "N m/rad^3",
+            EffectKind::ContactDamping => "N m s/rad",
+            EffectKind::SensorDelay => "s",
+        }
+    }
+
+    /// Parses a vocabulary name.
+    pub fn parse(name: &str) -> Option<EffectKind> {
+        EffectKind::ALL.into_iter().find(|k| k.name() == name)
+    }
+}
+
+impl fmt::Display for EffectKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl Effects {
+    /// True when no effect is set.
+    pub fn is_empty(&self) -> bool {
+        EffectKind::ALL.iter().all(|&k| self.get(k).is_none())
+    }
+
+    /// The parameter of an effect, if present.
+    pub fn get(&self, kind: EffectKind) -> Option<f64> {
+        match kind {
+            EffectKind::CoulombFriction => self.coulomb_friction.map(|p| p.torque),
+            EffectKind::GravityPreload => self.gravity_preload.map(|p| p.torque),
+            EffectKind::AsymmetricClearance => self.asymmetric_clearance.map(|p| p.offset),
+            EffectKind::CubicStiffness => self.cubic_stiffness.map(|p| p.k3),
+            EffectKind::ContactDamping => self.contact_damping.map(|p| p.c_contact),
+            EffectKind::SensorDelay => self.sensor_delay.map(|p| p.delay),
+            EffectKind::Quantization => self.quantization.map(|p| p.step),
+        }
+    }
+
+    /// Sets (or with `None` removes) an effect.
+    pub fn set(&mut self, kind: EffectKind, value: Option<f64>) {
+        match kind {
+            EffectKind::CoulombFriction => {
+                self.coulomb_friction = value.map(|torque| TorqueParam { torque })
+            }
+            EffectKind::GravityPreload => {
+                self.gravity_preload = value.map(|torque| TorqueParam { torque })
+            }
+            EffectKind::AsymmetricClearance => {
+                self.asymmetric_clearance = value.map(|offset| OffsetParam { offset })
+            }
+            EffectKind::CubicStiffness => self.cubic_stiffness = value.map(|k3| CubicParam { k3 }),
+            EffectKind::ContactDamping => {
+                self.contact_damping = value.map(|c_contact| ContactDampingParam { c_contact })
+            }
+            EffectKind::SensorDelay => self.sensor_delay = value.map(|delay| DelayParam { delay }),
+            EffectKind::Quantization => self.quantization = value.map(|step| StepParam { step }),
+        }
+    }
+
+    /// The effects present, with their parameters.
+    pub fn present(&self) -> Vec<(EffectKind, f64)> {
+        EffectKind::ALL
+            .into_iter()
+            .filter_map(|k| self.get(k).map(|v| (k, v)))
+            .collect()
+    }
+}
+
+impl RigModel {
+    /// The paper's rig: J = 3.16 kg m², 1.5° total clearance, contact natural frequency ≈ 11 Hz.
+    pub fn paper() -> Self {
+        RigModel {
+            inertia: 3.16,
+            stiffness: 15_000.0,
+            damping: 13.0,
+            clearance: 0.0262,
+            gravity_stiffness: 0.0,
+            effects: Effects::default(),
+        }
+    }
+
+    /// Half-gap δ = clearance / 2, rad.
+    pub fn half_gap(&self) -> f64 {
+        0.5 * self.clearance
+    }
+
+    /// Natural frequency in contact, sqrt(k/J)/2π, Hz.
+    pub fn contact_frequency_hz(&self) -> f64 {
+        (self.stiffness / self.inertia).sqrt() / (2.0 * std::f64::consts::PI)
+    }
+
+    /// Parses TOML text; `origin` names the source in errors.
+    pub fn from_toml_str(text: &str, origin: &str) -> Result<Self, ModelError> {
+        let m: RigModel = toml::from_str(text).map_err(|e| ModelError::Parse {
+            file: origin.to_string(),
+            detail: e.to_string(),
+        })?;
+        m.validate().map_err(|detail| ModelError::Invalid {
+            file: origin.to_string(),
+            detail,
+        })?;
+        Ok(m)
+    }
+
+    /// Reads a TOML rig model file.
+    pub fn load(path: &Path) -> Result<Self, ModelError> {
+        let file = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| ModelError::Io {
+            file: file.clone(),
+            source,
+        })?;
+        Self::from_toml_str(&text, &file)
+    }
+
+    /// TOML text of this model.
+    pub fn to_toml(&self) -> String {
+        toml::to_string(self).expect("a rig model always serialises")
+    }
+
+    /// Checks physical ranges; the message says which key is wrong.
+    pub fn validate(&self) -> Result<(), String> {
+        let finite = |name: &str, v: f64| {
+            if v.is_finite() {
+                Ok(())
+            } else {
+                Err(format!("`{name}` must be a finite number, got {v}"))
+            }
+        };
+        finite("inertia", self.inertia)?;
+        finite("stiffness", self.stiffness)?;
+        finite("damping", self.damping)?;
+        finite("clearance", self.clearance)?;
+        finite("gravity_stiffness", self.gravity_stiffness)?;
+        if self.inertia <= 0.0 {
+            return Err(format!(
+                "`inertia` must be > 0 (kg m^2), got {}",
+                self.inertia
+            ));
+        }
+        if self.stiffness < 0.0 || self.damping < 0.0 || self.clearance < 0.0 {
+            return Err("`stiffness`, `damping` and `clearance` must be >= 0".into());
+        }
+        for (kind, v) in self.effects.present() {
+            finite(kind.param(), v)?;
+            let ok = match kind {
+                EffectKind::CoulombFriction
+                | EffectKind::ContactDamping
+                | EffectKind::SensorDelay => v >= 0.0,
+                EffectKind::Quantization => v > 0.0,
+                _ => true,
+            };
+            if !ok {
+                return Err(format!(
+                    "effect `{}`: `{}` = {v} is out of range (must be {})",
+                    kind.name(),
+                    kind.param(),
+                    if kind == EffectKind::Quantization {
+                        "> 0"
+                    } else {
+                        ">= 0"
+                    }
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn formats_example_parses_and_round_trips() {
+        let text = r#"
+inertia = 3.16
+stiffness = 15000.0
+damping = 13.0
+clearance = 0.0262
+gravity_stiffness = 0.0
+
+[effects]
+coulomb_friction = { torque = 2.5 }
+"#;
+        let m = RigModel::from_toml_str(text, "example").unwrap();
+        assert_eq!(m.effects.get(EffectKind::CoulombFriction), Some(2.5));
+        let back = RigModel::from_toml_str(&m.to_toml(), "round-trip").unwrap();
+        assert_eq!(m, back);
+    }
+
+    #[test]
+    fn unknown_keys_and_bad_values_are_rejected_with_the_key_named() {
+        let e =
+            RigModel::from_toml_str("inertia = 1\nstiffness = 1\ndamping = 0\nstifness = 2", "f")
+                .unwrap_err()
+                .to_string();
+        assert!(e.contains("stifness"), "{e}");
+        let e = RigModel::from_toml_str("inertia = -1\nstiffness = 1\ndamping = 0", "f")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("inertia"), "{e}");
+        let e = RigModel::from_toml_str(
+            "inertia = 1\nstiffness = 1\ndamping = 0\n[effects]\nquantization = { step = 0.0 }",
+            "f",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("quantization"), "{e}");
+    }
+
+    #[test]
+    fn every_effect_round_trips_through_set_and_get() {
+        let mut e = Effects::default();
+        for (i, k) in EffectKind::ALL.into_iter().enumerate() {
+            e.set(k, Some(i as f64 + 0.5));
+        }
+        for (i, k) in EffectKind::ALL.into_iter().enumerate() {
+            assert_eq!(e.get(k), Some(i as f64 + 0.5));
+            assert_eq!(EffectKind::parse(k.name()), Some(k));
+        }
+    }
+}

@@ -1,0 +1,822 @@
+//! Rig simulator: integrates the model of FORMATS.md §2 (every effect of the vocabulary)
+//! under a chirp, a stepped sine, a free decay or a given measured input, and applies the
+//! measurement chain (delay, noise, quantization).
+//!
+//! Integration is classical RK4 on a fixed sub-step, with **event location**: a step that
+//! crosses a clearance corner (|z − offset| = δ) or a zero of the relative velocity is cut
+//! at the event (Illinois root finding), so the non-smooth right-hand side is only ever
+//! integrated where it is smooth. Coulomb friction is a two-mode machine: in *slip* the
+//! friction torque is −F·sign(v) with the sign fixed for the whole mode; in *stick* the
+//! link moves with the base and the torque needed to hold it is checked against F.
+
+use rand::rngs::StdRng;
+use rand::SeedableRng;
+use rand_distr::{Distribution, Normal};
+use serde::Serialize;
+
+use crate::model::RigModel;
+
+const TAU: f64 = std::f64::consts::TAU;
+
+/// A value with its first two time derivatives: the excitations are written once as
+/// functions and differentiate themselves exactly.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Jet {
+    /// Value.
+    pub v: f64,
+    /// First derivative.
+    pub d1: f64,
+    /// Second derivative.
+    pub d2: f64,
+}
+
+impl Jet {
+    /// The independent variable t.
+    pub fn time(t: f64) -> Jet {
+        Jet {
+            v: t,
+            d1: 1.0,
+            d2: 0.0,
+        }
+    }
+    /// A constant.
+    pub fn constant(c: f64) -> Jet {
+        Jet {
+            v: c,
+            d1: 0.0,
+            d2: 0.0,
+        }
+    }
+    fn sin(self) -> Jet {
+        let (s, c) = self.v.sin_cos();
+        Jet {
+            v: s,
+            d1: c * self.d1,
+            d2: c * self.d2 - s * self.d1 * self.d1,
+        }
+    }
+    fn recip(self) -> Jet {
+        let r = 1.0 / self.v;
+        Jet {
+            v: r,
+            d1: -self.d1 * r * r,
+            d2: (2.0 * self.d1 * self.d1 * r - self.d2) * r * r,
+        }
+    }
+    fn sqrt(self) -> Jet {
+        let s = self.v.sqrt();
+        Jet {
+            v: s,
+            d1: 0.5 * self.d1 / s,
+            d2: 0.5 * self.d2 / s - 0.25 * self.d1 * self.d1 / (s * s * s),
+        }
+    }
+}
+
+impl std::ops::Add for Jet {
+    type Output = Jet;
+    fn add(self, o: Jet) -> Jet {
+        Jet {
+            v: self.v + o.v,
+            d1: self.d1 + o.d1,
+            d2: self.d2 + o.d2,
+        }
+    }
+}
+impl std::ops::Mul for Jet {
+    type Output = Jet;
+    fn mul(self, o: Jet) -> Jet {
+        Jet {
+            v: self.v * o.v,
+            d1: self.d1 * o.v + self.v * o.d1,
+            d2: self.d2 * o.v + 2.0 * self.d1 * o.d1 + self.v * o.d2,
+        }
+    }
+}
+impl std::ops::Mul<f64> for Jet {
+    type Output = Jet;
+    fn mul(self, k: f64) -> Jet {
+        Jet {
+            v: self.v * k,
+            d1: self.d1 * k,
+            d2: self.d2 * k,
+        }
+    }
+}
+
+/// Servo roll-off: amplitude gain 1/sqrt(1 + (f/f_r)^(2·order)) of the drive at frequency f.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
+pub struct Rolloff {
+    /// Corner frequency, Hz.
+    pub corner_hz: f64,
+    /// Butterworth-like order (1 or 2 are typical).
+    pub order: u32,
+}
+
+impl Rolloff {
+    fn gain(&self, f: Jet) -> Jet {
+        let u = f * (1.0 / self.corner_hz);
+        let mut p = Jet::constant(1.0);
+        for _ in 0..self.order {
+            p = p * u * u;
+        }
+        (p + Jet::constant(1.0)).sqrt().recip()
+    }
+}
+
+/// A drive signal (base angle, or force for the force variant) as a function of time.
+#[derive(Debug, Clone)]
+pub enum Excitation {
+    /// a(f(t))·sin(2π(f0 t + ½ r t²)), r = (f1 − f0)/T; after T it holds f1.
+    Chirp {
+        /// Start frequency, Hz.
+        f0: f64,
+        /// End frequency, Hz.
+        f1: f64,
+        /// Sweep duration, s.
+        duration: f64,
+        /// Amplitude (rad, m or N).
+        amplitude: f64,
+        /// Optional servo roll-off of the amplitude with frequency.
+        rolloff: Option<Rolloff>,
+    },
+    /// Phase-continuous sine held `dwell` seconds at each frequency in turn.
+    SteppedSine {
+        /// Frequencies, Hz.
+        freqs: Vec<f64>,
+        /// Dwell per step, s.
+        dwell: f64,
+        /// Amplitude.
+        amplitude: f64,
+    },
+    /// A measured signal, interpolated by cubic Hermite on 4th-order derivative estimates.
+    Sampled {
+        /// Samples.
+        samples: Vec<f64>,
+        /// Sample rate, Hz.
+        sample_rate: f64,
+        /// Derivative estimates at the samples (filled by [`Excitation::sampled`]).
+        slopes: Vec<f64>,
+    },
+    /// Zero for all time.
+    Zero,
+}
+
+impl Excitation {
+    /// A measured input signal; derivatives are estimated once here.
+    pub fn sampled(samples: Vec<f64>, sample_rate: f64) -> Excitation {
+        let slopes = derivative_4th(&samples, sample_rate);
+        Excitation::Sampled {
+            samples,
+            sample_rate,
+            slopes,
+        }
+    }
+
+    /// Value and derivatives at time t.
+    pub fn eval(&self, t: f64) -> Jet {
+        match self {
+            Excitation::Chirp {
+                f0,
+                f1,
+                duration,
+                amplitude,
+                rolloff,
+            } => {
+                let rate = (f1 - f0) / duration;
+                let (phase, freq) = if t <= *duration {
+                    let tj = Jet::time(t);
+                    (
+                        (tj * *f0 + tj * tj * (0.5 * rate)) * TAU,
+                        tj * rate + Jet::constant(*f0),
+                    )
+                } else {
+                    let p_end = f0 * duration + 0.5 * rate * duration * duration;
+                    let dt = Jet::time(t - duration);
+                    ((Jet::constant(p_end) + dt * *f1) * TAU, Jet::constant(*f1))
+                };
+                let gain = match rolloff {
+                    Some(r) => r.gain(freq),
+                    None => Jet::constant(1.0),
+                };
+                gain * phase.sin() * *amplitude
+            }
+            Excitation::SteppedSine {
+                freqs,
+                dwell,
+                amplitude,
+            } => {
+                if freqs.is_empty() || t < 0.0 {
+                    return Jet::constant(0.0);
+                }
+                let k = ((t / dwell) as usize).min(freqs.len() - 1);
+                let base_phase: f64 = freqs[..k].iter().map(|f| f * dwell).sum();
+                let tau = Jet::time(t - k as f64 * dwell);
+                ((Jet::constant(base_phase) + tau * freqs[k]) * TAU).sin() * *amplitude
+            }
+            Excitation::Sampled {
+                samples,
+                sample_rate,
+                slopes,
+            } => hermite(samples, slopes, *sample_rate, t),
+            Excitation::Zero => Jet::constant(0.0),
+        }
+    }
+}
+
+/// Cubic Hermite interpolation with its exact first and second derivative.
+fn hermite(y: &[f64], dy: &[f64], fs: f64, t: f64) -> Jet {
+    let n = y.len();
+    if n == 0 {
+        return Jet::constant(0.0);
+    }
+    let x = (t * fs).clamp(0.0, (n - 1) as f64);
+    let i = (x.floor() as usize).min(n.saturating_sub(2));
+    if n == 1 {
+        return Jet::constant(y[0]);
+    }
+    let s = x - i as f64;
+    let h = 1.0 / fs;
+    let (p0, p1, m0, m1) = (y[i], y[i + 1], dy[i] * h, dy[i + 1] * h);
+    let s2 = s * s;
+    let s3 = s2 * s;
+    let v = (2.0 * s3 - 3.0 * s2 + 1.0) * p0
+        + (s3 - 2.0 * s2 + s) * m0
+        + (-2.0 * s3 + 3.0 * s2) * p1
+        + (s3 - s2) * m1;
+    let d1 = (6.0 * s2 - 6.0 * s) * p0
+        + (3.0 * s2 - 4.0 * s + 1.0) * m0
+        + (-6.0 * s2 + 6.0 * s) * p1
+        + (3.0 * s2 - 2.0 * s) * m1;
+    let d2 = (12.0 * s - 6.0) * p0
+        + (6.0 * s - 4.0) * m0
+        + (-12.0 * s + 6.0) * p1
+        + (6.0 * s - 2.0) * m1;
+    Jet {
+        v,
+        d1: d1 / h,
+        d2: d2 / (h * h),
+    }
+}
+
+/// Derivative of uniformly sampled data: 4th-order central differences, one-sided at the ends.
+pub fn derivative_4th(y: &[f64], fs: f64) -> Vec<f64> {
+    let n = y.len();
+    let mut d = vec![0.0; n];
+    if n < 5 {
+        for i in 0..n {
+            let (a, b) = (i.saturating_sub(1), (i + 1).min(n - 1));
+            if b > a {
+                d[i] = (y[b] - y[a]) * fs / (b - a) as f64;
+            }
+        }
+        return d;
+    }
+    for i in 2..n - 2 {
+        d[i] = (y[i - 2] - 8.0 * y[i - 1] + 8.0 * y[i + 1] - y[i + 2]) * fs / 12.0;
+    }
+    // 4th-order one-sided stencils at the two first and last samples.
+    let fwd = |y: &[f64], i: usize| {
+        (-25.0 * y[i] + 48.0 * y[i + 1] - 36.0 * y[i + 2] + 16.0 * y[i + 3] - 3.0 * y[i + 4]) / 12.0
+    };
+    d[0] = fwd(y, 0) * fs;
+    d[1] = fwd(y, 1) * fs;
+    let rev: Vec<f64> = y[n - 5..].iter().rev().copied().collect();
+    d[n - 1] = -fwd(&rev, 0) * fs;
+    d[n - 2] = -(-3.0 * rev[0] - 10.0 * rev[1] + 18.0 * rev[2] - 6.0 * rev[3] + rev[4]) / 12.0 * fs;
+    d
+}
+
+/// How the rig is driven.
+#[derive(Debug, Clone)]
+pub enum Drive {
+    /// Base-motion rig: the excitation is the base angle φ(t) (FORMATS.md §2).
+    Base(Excitation),
+    /// Force variant m y'' + c y' + k·D(y) = f: the excitation is the force.
+    Force(Excitation),
+    /// Free decay from an initial offset of the link (base at rest).
+    Free {
+        /// Initial angle (displacement) of the link, released at rest.
+        initial_offset: f64,
+    },
+}
+
+/// Sampling and integration settings.
+#[derive(Debug, Clone)]
+pub struct SimSettings {
+    /// Output sample rate, Hz.
+    pub sample_rate: f64,
+    /// Duration, s.
+    pub duration: f64,
+    /// RK4 sub-steps per output sample.
+    pub substeps: usize,
+    /// Std of white noise added to the output channel (its units).
+    pub output_noise: f64,
+    /// Std of white noise added to the input channel.
+    pub input_noise: f64,
+    /// Noise seed.
+    pub seed: u64,
+}
+
+impl Default for SimSettings {
+    fn default() -> Self {
+        SimSettings {
+            sample_rate: 1000.0,
+            duration: 30.0,
+            substeps: 4,
+            output_noise: 0.0,
+            input_noise: 0.0,
+            seed: 1,
+        }
+    }
+}
+
+/// Result of a simulation, sampled at the output rate.
+#[derive(Debug, Clone)]
+pub struct SimOutput {
+    /// Sample times, s.
+    pub time: Vec<f64>,
+    /// Measured input channel (base angle or force; zeros for free decay).
+    pub input: Vec<f64>,
+    /// Measured output channel (absolute link angle / displacement).
+    pub output: Vec<f64>,
+    /// True (noise-free, undelayed) relative motion z = θ − φ.
+    pub relative: Vec<f64>,
+    /// True relative velocity.
+    pub relative_velocity: Vec<f64>,
+    /// 1 where the link is stuck to the base (Coulomb friction), else 0.
+    pub stuck: Vec<u8>,
+    /// Number of events located (corners, velocity zeros, stick breaks).
+    pub events: usize,
+}
+
+/// Integration state: link angle and velocity.
+#[derive(Debug, Clone, Copy)]
+struct State {
+    th: f64,
+    om: f64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Mode {
+    /// Friction torque −F·dir; dir is +1/−1 for the whole mode (0 when F = 0).
+    Slip { dir: f64 },
+    /// Link stuck to the base at relative offset z.
+    Stick { z: f64 },
+}
+
+/// The right-hand side of the rig equation, with every effect.
+struct Rig<'a> {
+    j: f64,
+    k: f64,
+    c: f64,
+    delta: f64,
+    gc: f64,
+    friction: f64,
+    preload: f64,
+    offset: f64,
+    k3: f64,
+    c_contact: f64,
+    drive: &'a Drive,
+}
+
+impl<'a> Rig<'a> {
+    fn new(model: &RigModel, drive: &'a Drive) -> Self {
+        let e = &model.effects;
+        let get = |k| e.get(k).unwrap_or(0.0);
+        use crate::model::EffectKind::*;
+        Rig {
+            j: model.inertia,
+            k: model.stiffness,
+            c: model.damping,
+            delta: model.half_gap(),
+            gc: model.gravity_stiffness,
+            friction: get(CoulombFriction),
+            preload: get(GravityPreload),
+            offset: get(AsymmetricClearance),
+            k3: get(CubicStiffness),
+            c_contact: get(ContactDamping),
+            drive,
+        }
+    }
+
+    /// Base angle and force at t.
+    fn inputs(&self, t: f64) -> (Jet, f64) {
+        match self.drive {
+            Drive::Base(e) => (e.eval(t), 0.0),
+            Drive::Force(e) => (Jet::constant(0.0), e.eval(t).v),
+            Drive::Free { .. } => (Jet::constant(0.0), 0.0),
+        }
+    }
+
+    /// Signed distance past the clearance flank: > 0 in contact.
+    fn corner(&self, z: f64) -> f64 {
+        (z - self.offset).abs() - self.delta
+    }
+
+    /// All torques on the link except Coulomb friction.
+    fn torque_no_friction(&self, t: f64, s: State) -> f64 {
+        let (phi, f_ext) = self.inputs(t);
+        let z = s.th - phi.v;
+        let v = s.om - phi.d1;
+        let zc = z - self.offset;
+        let pen = zc.abs() - self.delta;
+        let (spring, contact) = if pen > 0.0 {
+            let d = pen.copysign(zc);
+            (self.k * d + self.k3 * d * d * d, true)
+        } else {
+            (0.0, false)
+        };
+        let mut c = self.c;
+        if contact {
+            c += self.c_contact;
+        }
+        -c * v - spring + self.j * self.gc * s.th + self.preload + f_ext
+    }
+
+    fn deriv(&self, t: f64, s: State, dir: f64) -> State {
+        let torque = self.torque_no_friction(t, s) - self.friction * dir;
+        State {
+            th: s.om,
+            om: torque / self.j,
+        }
+    }
+
+    fn rk4(&self, t: f64, s: State, h: f64, dir: f64) -> State {
+        let add = |a: State, b: State, k: f64| State {
+            th: a.th + k * b.th,
+            om: a.om + k * b.om,
+        };
+        let k1 = self.deriv(t, s, dir);
+        let k2 = self.deriv(t + 0.5 * h, add(s, k1, 0.5 * h), dir);
+        let k3 = self.deriv(t + 0.5 * h, add(s, k2, 0.5 * h), dir);
+        let k4 = self.deriv(t + h, add(s, k3, h), dir);
+        State {
+            th: s.th + h / 6.0 * (k1.th + 2.0 * k2.th + 2.0 * k3.th + k4.th),
+            om: s.om + h / 6.0 * (k1.om + 2.0 * k2.om + 2.0 * k3.om + k4.om),
+        }
+    }
+
+    /// Relative position and velocity.
+    fn relative(&self, t: f64, s: State) -> (f64, f64) {
+        let (phi, _) = self.inputs(t);
+        (s.th - phi.v, s.om - phi.d1)
+    }
+
+    /// Friction torque needed to keep the link stuck at relative offset z at time t.
+    fn stick_torque(&self, t: f64, z: f64) -> f64 {
+        let (phi, _) = self.inputs(t);
+        let s = State {
+            th: phi.v + z,
+            om: phi.d1,
+        };
+        self.j * phi.d2 - self.torque_no_friction(t, s)
+    }
+
+    fn has_friction(&self) -> bool {
+        self.friction > 0.0
+    }
+}
+
+/// Illinois (modified regula falsi) root of g on [0, 1] with g(0)·g(1) < 0.
+fn locate(mut g: impl FnMut(f64) -> f64, g0: f64, g1: f64) -> f64 {
+    let (mut a, mut b, mut ga, mut gb) = (0.0, 1.0, g0, g1);
+    let mut side = 0;
+    for _ in 0..60 {
+        let x = (a * gb - b * ga) / (gb - ga);
+        let gx = g(x);
+        if gx == 0.0 || (b - a) < 1e-13 {
+            return x;
+        }
+        if gx.signum() == gb.signum() {
+            b = x;
+            gb = gx;
+            if side == 1 {
+                ga *= 0.5;
+            }
+            side = 1;
+        } else {
+            a = x;
+            ga = gx;
+            if side == -1 {
+                gb *= 0.5;
+            }
+            side = -1;
+        }
+    }
+    0.5 * (a + b)
+}
+
+/// Integrates the model under a drive and returns the measured channels.
+pub fn simulate(model: &RigModel, drive: &Drive, settings: &SimSettings) -> SimOutput {
+    let rig = Rig::new(model, drive);
+    let n = (settings.duration * settings.sample_rate).round() as usize;
+    let dt = 1.0 / settings.sample_rate;
+    let sub = settings.substeps.max(1);
+    let h = dt / sub as f64;
+
+    let mut s = match drive {
+        Drive::Free { initial_offset } => State {
+            th: *initial_offset,
+            om: 0.0,
+        },
+        _ => {
+            let (phi, _) = rig.inputs(0.0);
+            State {
+                th: phi.v,
+                om: phi.d1,
+            }
+        }
+    };
+    let mut mode = initial_mode(&rig, 0.0, s);
+    let mut events = 0usize;
+
+    let mut time = Vec::with_capacity(n);
+    let mut theta = Vec::with_capacity(n);
+    let mut omega = Vec::with_capacity(n);
+    let mut input = Vec::with_capacity(n);
+    let mut relative = Vec::with_capacity(n);
+    let mut relative_velocity = Vec::with_capacity(n);
+    let mut stuck = Vec::with_capacity(n);
+
+    let mut t = 0.0;
+    for i in 0..n {
+        let ti = i as f64 * dt;
+        // Advance from t to ti in sub-steps of at most h, cutting at events.
+        while t < ti - 1e-12 * dt {
+            let h_now = (ti - t).min(h);
+            let (t_new, s_new, mode_new, ev) = step(&rig, t, s, mode, h_now);
+            events += ev;
+            t = t_new;
+            s = s_new;
+            mode = mode_new;
+        }
+        let (phi, f_ext) = rig.inputs(ti);
+        let (z, v) = rig.relative(ti, s);
+        time.push(ti);
+        theta.push(s.th);
+        omega.push(s.om);
+        input.push(match drive {
+            Drive::Base(_) => phi.v,
+            Drive::Force(_) => f_ext,
+            Drive::Free { .. } => 0.0,
+        });
+        relative.push(z);
+        relative_velocity.push(v);
+        stuck.push(matches!(mode, Mode::Stick { .. }) as u8);
+    }
+
+    // Measurement chain: the output encoder lags, both channels are noisy and quantised.
+    let delay = model
+        .effects
+        .get(crate::model::EffectKind::SensorDelay)
+        .unwrap_or(0.0);
+    let mut output = if delay > 0.0 {
+        delayed(&theta, &omega, settings.sample_rate, delay)
+    } else {
+        theta.clone()
+    };
+    let mut input_meas = input;
+    let mut rng = StdRng::seed_from_u64(settings.seed);
+    add_noise(&mut output, settings.output_noise, &mut rng);
+    add_noise(&mut input_meas, settings.input_noise, &mut rng);
+    if let Some(q) = model.effects.get(crate::model::EffectKind::Quantization) {
+        if !matches!(drive, Drive::Force(_)) {
+            quantize(&mut input_meas, q);
+        }
+        quantize(&mut output, q);
+    }
+
+    SimOutput {
+        time,
+        input: input_meas,
+        output,
+        relative,
+        relative_velocity,
+        stuck,
+        events,
+    }
+}
+
+fn initial_mode(rig: &Rig, t: f64, s: State) -> Mode {
+    if !rig.has_friction() {
+        return Mode::Slip { dir: 0.0 };
+    }
+    let (z, v) = rig.relative(t, s);
+    if v.abs() < 1e-12 {
+        let need = rig.stick_torque(t, z);
+        if need.abs() <= rig.friction {
+            return Mode::Stick { z };
+        }
+        return Mode::Slip {
+            dir: -need.signum(),
+        };
+    }
+    Mode::Slip { dir: v.signum() }
+}
+
+/// One sub-step from t of length at most h; returns the new time, state, mode and events.
+fn step(rig: &Rig, t: f64, s: State, mode: Mode, h: f64) -> (f64, State, Mode, usize) {
+    match mode {
+        Mode::Stick { z } => {
+            let at = |tt: f64| {
+                let (phi, _) = rig.inputs(tt);
+                State {
+                    th: phi.v + z,
+                    om: phi.d1,
+                }
+            };
+            let g = |tt: f64| rig.stick_torque(tt, z).abs() - rig.friction;
+            let g0 = g(t);
+            let g1 = g(t + h);
+            if g1 <= 0.0 {
+                return (t + h, at(t + h), mode, 0);
+            }
+            // The holding torque exceeds F inside the step: break away there.
+            let x = if g0 >= 0.0 {
+                0.0
+            } else {
+                locate(|x| g(t + x * h), g0, g1)
+            };
+            let te = t + x * h;
+            let need = rig.stick_torque(te, z);
+            (
+                te,
+                at(te),
+                Mode::Slip {
+                    dir: -need.signum(),
+                },
+                1,
+            )
+        }
+        Mode::Slip { dir } => {
+            let s1 = rig.rk4(t, s, h, dir);
+            let (z0, v0) = rig.relative(t, s);
+            let (z1, v1) = rig.relative(t + h, s1);
+            let c0 = rig.corner(z0);
+            let c1 = rig.corner(z1);
+            let corner_hit = c0 != 0.0 && c0.signum() != c1.signum();
+            // Velocity reversal against the friction direction ends the slip mode.
+            let vel_hit = rig.has_friction() && dir != 0.0 && v1 * dir < 0.0;
+            if !corner_hit && !vel_hit {
+                return (t + h, s1, mode, 0);
+            }
+            let mut x_event = 1.0;
+            let mut which = 0; // 1 corner, 2 velocity
+            if corner_hit {
+                let x = locate(
+                    |x| {
+                        let sx = rig.rk4(t, s, x * h, dir);
+                        rig.corner(rig.relative(t + x * h, sx).0)
+                    },
+                    c0,
+                    c1,
+                );
+                x_event = x;
+                which = 1;
+            }
+            if vel_hit {
+                let v0d = v0 * dir;
+                let x = if v0d <= 0.0 {
+                    0.0
+                } else {
+                    locate(
+                        |x| {
+                            let sx = rig.rk4(t, s, x * h, dir);
+                            rig.relative(t + x * h, sx).1 * dir
+                        },
+                        v0d,
+                        v1 * dir,
+                    )
+                };
+                if x < x_event {
+                    x_event = x;
+                    which = 2;
+                }
+            }
+            // Never stall on a zero-length step at a grazing corner.
+            let x_event = x_event.max(1e-9);
+            let te = t + x_event * h;
+            let mut se = rig.rk4(t, s, x_event * h, dir);
+            if which == 2 {
+                let (phi, _) = rig.inputs(te);
+                se.om = phi.d1; // exactly zero relative velocity at the event
+                let z = se.th - phi.v;
+                let need = rig.stick_torque(te, z);
+                let mode = if need.abs() <= rig.friction {
+                    Mode::Stick { z }
+                } else {
+                    Mode::Slip {
+                        dir: -need.signum(),
+                    }
+                };
+                return (te, se, mode, 1);
+            }
+            (te, se, mode, 1)
+        }
+    }
+}
+
+/// θ(t − d) at every sample from the samples of θ and θ' (cubic Hermite).
+fn delayed(theta: &[f64], omega: &[f64], fs: f64, d: f64) -> Vec<f64> {
+    (0..theta.len())
+        .map(|i| {
+            let t = i as f64 / fs - d;
+            if t <= 0.0 {
+                theta[0]
+            } else {
+                hermite(theta, omega, fs, t).v
+            }
+        })
+        .collect()
+}
+
+fn add_noise(x: &mut [f64], std: f64, rng: &mut StdRng) {
+    if std > 0.0 {
+        let normal = Normal::new(0.0, std).expect("positive std");
+        for v in x.iter_mut() {
+            *v += normal.sample(rng);
+        }
+    }
+}
+
+fn quantize(x: &mut [f64], step: f64) {
+    for v in x.iter_mut() {
+        *v = (*v / step).round() * step;
+    }
+}
+
+/// Total mechanical energy ½Jθ'² + ½k·D² (+ ¼k3·D⁴) of an unforced rig at rest base.
+pub fn mechanical_energy(model: &RigModel, theta: f64, omega: f64) -> f64 {
+    let offset = model
+        .effects
+        .get(crate::model::EffectKind::AsymmetricClearance)
+        .unwrap_or(0.0);
+    let k3 = model
+        .effects
+        .get(crate::model::EffectKind::CubicStiffness)
+        .unwrap_or(0.0);
+    let zc = theta - offset;
+    let d = (zc.abs() - model.half_gap()).max(0.0);
+    0.5 * model.inertia * omega * omega + 0.5 * model.stiffness * d * d + 0.25 * k3 * d.powi(4)
+        - 0.5 * model.inertia * model.gravity_stiffness * theta * theta
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn jet_derivatives_match_finite_differences() {
+        let e = Excitation::Chirp {
+            f0: 0.5,
+            f1: 12.0,
+            duration: 30.0,
+            amplitude: 0.02,
+            rolloff: Some(Rolloff {
+                corner_hz: 5.0,
+                order: 2,
+            }),
+        };
+        for &t in &[0.3, 7.1, 15.0, 29.9, 31.0] {
+            let h = 1e-5;
+            let j = e.eval(t);
+            let d1 = (e.eval(t + h).v - e.eval(t - h).v) / (2.0 * h);
+            let d2 = (e.eval(t + h).d1 - e.eval(t - h).d1) / (2.0 * h);
+            assert!(
+                (j.d1 - d1).abs() < 1e-6 * (1.0 + d1.abs()),
+                "t={t} {} {}",
+                j.d1,
+                d1
+            );
+            assert!(
+                (j.d2 - d2).abs() < 1e-5 * (1.0 + d2.abs()),
+                "t={t} {} {}",
+                j.d2,
+                d2
+            );
+        }
+    }
+
+    #[test]
+    fn hermite_reproduces_a_sampled_sine_and_its_derivatives() {
+        let fs = 1000.0;
+        let f = 7.0;
+        let y: Vec<f64> = (0..2000).map(|i| (TAU * f * i as f64 / fs).sin()).collect();
+        let e = Excitation::sampled(y, fs);
+        let w = TAU * f;
+        let mut worst = [0.0f64; 3];
+        for k in 0..500 {
+            let t = 0.1 + k as f64 * 0.00237;
+            let j = e.eval(t);
+            worst[0] = worst[0].max((j.v - (w * t).sin()).abs());
+            worst[1] = worst[1].max((j.d1 - w * (w * t).cos()).abs() / w);
+            worst[2] = worst[2].max((j.d2 + w * w * (w * t).sin()).abs() / (w * w));
+        }
+        println!("hermite errors (value, d1/w, d2/w^2): {worst:?}");
+        assert!(
+            worst[0] < 1e-6 && worst[1] < 1e-4 && worst[2] < 0.02,
+            "{worst:?}"
+        );
+    }
+}
