@@ -158,6 +158,10 @@ struct SimulateArgs {
     /// Measured input: the run whose input channel drives the simulation.
     #[arg(long, value_name = "PATH")]
     measured_run: Option<String>,
+    /// Measured input: zero-phase low-pass cut-off as a fraction of Nyquist (1 = none),
+    /// so that encoder noise is not differentiated into the base acceleration.
+    #[arg(long, default_value_t = 0.1, value_name = "FRACTION")]
+    input_cutoff: f64,
     /// Output sample rate, Hz (a measured input keeps its own).
     #[arg(long, default_value_t = 1000.0)]
     sample_rate: f64,
@@ -269,7 +273,8 @@ fn cmd_simulate(a: SimulateArgs) -> Result<()> {
                 .with_context(|| format!("{run} is a free decay: it has no input channel"))?;
             fs = meta.sample_rate;
             duration = meta.duration;
-            Some(Excitation::sampled(input, fs))
+            let cutoff = a.input_cutoff * 0.5 * fs;
+            Some(Excitation::measured(&input, fs, cutoff))
         }
     };
     let drive = match (excitation, a.force_input) {

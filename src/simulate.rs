@@ -163,7 +163,8 @@ pub enum Excitation {
 }
 
 impl Excitation {
-    /// A measured input signal; derivatives are estimated once here.
+    /// A measured input signal, used as given; derivatives are estimated once here.
+    /// Noisy measurements should go through [`Excitation::measured`] instead.
     pub fn sampled(samples: Vec<f64>, sample_rate: f64) -> Excitation {
         let slopes = derivative_4th(&samples, sample_rate);
         Excitation::Sampled {
@@ -171,6 +172,16 @@ impl Excitation {
             sample_rate,
             slopes,
         }
+    }
+
+    /// A measured (noisy) input, band-limited to `cutoff_hz` by a zero-phase FFT low-pass
+    /// first: encoder noise differentiated twice would otherwise swamp the base
+    /// acceleration and make dry friction chatter between stick and slip at every step.
+    pub fn measured(samples: &[f64], sample_rate: f64, cutoff_hz: f64) -> Excitation {
+        Excitation::sampled(
+            lowpass_zero_phase(samples, sample_rate, cutoff_hz),
+            sample_rate,
+        )
     }
 
     /// Value and derivatives at time t.
@@ -259,15 +270,47 @@ fn hermite(y: &[f64], dy: &[f64], fs: f64, t: f64) -> Jet {
     }
 }
 
+/// Zero-phase low-pass by FFT with a raised-cosine roll-off from 0.8·fc to fc; the signal
+/// is mirrored (even extension) first so that its ends do not ring.
+pub fn lowpass_zero_phase(x: &[f64], fs: f64, cutoff_hz: f64) -> Vec<f64> {
+    use rustfft::{num_complex::Complex, FftPlanner};
+    let n = x.len();
+    if n < 4 || cutoff_hz <= 0.0 || cutoff_hz >= 0.5 * fs {
+        return x.to_vec();
+    }
+    let m = 2 * n;
+    let mut buf: Vec<Complex<f64>> = x
+        .iter()
+        .chain(x.iter().rev())
+        .map(|&v| Complex::new(v, 0.0))
+        .collect();
+    let mut planner = FftPlanner::new();
+    planner.plan_fft_forward(m).process(&mut buf);
+    let f_lo = 0.8 * cutoff_hz;
+    for (k, c) in buf.iter_mut().enumerate() {
+        let f = k.min(m - k) as f64 * fs / m as f64;
+        let g = if f <= f_lo {
+            1.0
+        } else if f >= cutoff_hz {
+            0.0
+        } else {
+            0.5 * (1.0 + (std::f64::consts::PI * (f - f_lo) / (cutoff_hz - f_lo)).cos())
+        };
+        *c *= g / m as f64;
+    }
+    planner.plan_fft_inverse(m).process(&mut buf);
+    buf[..n].iter().map(|c| c.re).collect()
+}
+
 /// Derivative of uniformly sampled data: 4th-order central differences, one-sided at the ends.
 pub fn derivative_4th(y: &[f64], fs: f64) -> Vec<f64> {
     let n = y.len();
     let mut d = vec![0.0; n];
     if n < 5 {
-        for i in 0..n {
+        for (i, di) in d.iter_mut().enumerate() {
             let (a, b) = (i.saturating_sub(1), (i + 1).min(n - 1));
             if b > a {
-                d[i] = (y[b] - y[a]) * fs / (b - a) as f64;
+                *di = (y[b] - y[a]) * fs / (b - a) as f64;
             }
         }
         return d;
@@ -542,10 +585,15 @@ pub fn simulate(model: &RigModel, drive: &Drive, settings: &SimSettings) -> SimO
     let mut t = 0.0;
     for i in 0..n {
         let ti = i as f64 * dt;
-        // Advance from t to ti in sub-steps of at most h, cutting at events.
+        // Advance from t to ti in sub-steps of at most h, cutting at events. Past
+        // MAX_EVENTS_PER_SAMPLE events in one sample interval (chattering of dry friction
+        // on a rough input), the rest of the interval is integrated without cutting.
+        let mut events_here = 0;
         while t < ti - 1e-12 * dt {
             let h_now = (ti - t).min(h);
-            let (t_new, s_new, mode_new, ev) = step(&rig, t, s, mode, h_now);
+            let cut = events_here < MAX_EVENTS_PER_SAMPLE;
+            let (t_new, s_new, mode_new, ev) = step(&rig, t, s, mode, h_now, cut);
+            events_here += ev;
             events += ev;
             t = t_new;
             s = s_new;
@@ -615,8 +663,23 @@ fn initial_mode(rig: &Rig, t: f64, s: State) -> Mode {
     Mode::Slip { dir: v.signum() }
 }
 
+/// Most events located within one output sample before the integrator stops cutting steps.
+const MAX_EVENTS_PER_SAMPLE: usize = 16;
+
 /// One sub-step from t of length at most h; returns the new time, state, mode and events.
-fn step(rig: &Rig, t: f64, s: State, mode: Mode, h: f64) -> (f64, State, Mode, usize) {
+/// With `cut` false, no event is located: the step is taken whole and friction follows the
+/// sign of the relative velocity at its end (a regularised fallback against chattering).
+fn step(rig: &Rig, t: f64, s: State, mode: Mode, h: f64, cut: bool) -> (f64, State, Mode, usize) {
+    if !cut {
+        let dir = match mode {
+            Mode::Slip { dir } => dir,
+            Mode::Stick { .. } => 0.0,
+        };
+        let s1 = rig.rk4(t, s, h, dir);
+        let v1 = rig.relative(t + h, s1).1;
+        let dir = if rig.has_friction() { v1.signum() } else { 0.0 };
+        return (t + h, s1, Mode::Slip { dir }, 0);
+    }
     match mode {
         Mode::Stick { z } => {
             let at = |tt: f64| {

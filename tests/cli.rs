@@ -1,0 +1,147 @@
+//! The command line as a user runs it: demo, simulate from a TOML model, inspect (table and
+//! JSON, exit status), and clear errors for wrong arguments.
+
+mod common;
+use common::*;
+
+use std::process::Command;
+
+fn skelid() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_skelid"))
+}
+
+#[test]
+fn demo_writes_the_campaign_with_its_truth_and_lists_it() {
+    let d = tmpdir();
+    let out = skelid()
+        .args(["demo", "--out"])
+        .arg(d.path())
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    println!("{text}");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(text.contains("/demo/paper_rig") && text.contains("with problems"));
+    let archive = d.path().join("demo_campaign.h5");
+    let f = hdf5::File::open(&archive).unwrap();
+    let g = f.group("demo/paper_rig").unwrap();
+    let clearance: f64 = g.attr("true_clearance").unwrap().read_scalar().unwrap();
+    assert_eq!(clearance, 0.0262);
+    for kind in skelid::model::EffectKind::ALL {
+        let g = f.group(&format!("demo/effects/{}", kind.name())).unwrap();
+        let attr = format!("true_{}_{}", kind.name(), kind.param());
+        let v: f64 = g.attr(&attr).unwrap().read_scalar().unwrap();
+        assert_eq!(v, skelid::demo::demo_effect_value(kind), "{attr}");
+    }
+    // The jump-down of the paper's run: relative motion collapses between 15 and 20 s.
+    let x: Vec<f64> = g_read(&f, "demo/paper_rig/input");
+    let y: Vec<f64> = g_read(&f, "demo/paper_rig/output");
+    let peak = |a: usize, b: usize| (a..b).map(|i| (y[i] - x[i]).abs()).fold(0.0, f64::max);
+    let before = peak(13_000, 15_000) / 0.0131;
+    let after = peak(20_000, 22_000) / 0.0131;
+    println!("paper rig: peak |z|/δ before the jump {before:.2}, after {after:.2}");
+    assert!(before > 1.5 && before < 2.5 && after < 0.7 * before);
+}
+
+fn g_read(f: &hdf5::File, path: &str) -> Vec<f64> {
+    f.dataset(path).unwrap().read_raw().unwrap()
+}
+
+#[test]
+fn simulate_from_a_toml_model_writes_an_archive_that_inspect_reads() {
+    let d = tmpdir();
+    let model = d.path().join("rig.toml");
+    std::fs::write(
+        &model,
+        "inertia = 3.16\nstiffness = 15000.0\ndamping = 13.0\nclearance = 0.0262\n\n[effects]\ncoulomb_friction = { torque = 2.5 }\n",
+    )
+    .unwrap();
+    let out_h5 = d.path().join("sim.h5");
+    let st = skelid()
+        .args(["simulate", "--model"])
+        .arg(&model)
+        .arg("--out")
+        .arg(&out_h5)
+        .args(["--duration", "5", "--noise", "1e-5", "--compress"])
+        .status()
+        .unwrap();
+    assert!(st.success());
+    // Stepped sine under a measured input taken from the first archive.
+    let out2 = d.path().join("measured.h5");
+    let st = skelid()
+        .args(["simulate", "--model"])
+        .arg(&model)
+        .arg("--out")
+        .arg(&out2)
+        .args(["--excitation", "measured", "--measured"])
+        .arg(&out_h5)
+        .args([
+            "--measured-run",
+            "/runs/run_001",
+            "--run-path",
+            "/replay/r1",
+        ])
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let out = skelid()
+        .args(["inspect", "--json"])
+        .arg(&out_h5)
+        .arg(&out2)
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let by_file = |name: &str| {
+        v.as_array()
+            .unwrap()
+            .iter()
+            .find(|r| r["file"].as_str().unwrap().ends_with(name))
+            .unwrap()
+            .clone()
+    };
+    assert_eq!(by_file("sim.h5")["runs"][0]["meta"]["samples"], 5000);
+    let replay = by_file("measured.h5");
+    assert_eq!(replay["runs"][0]["path"], "/replay/r1");
+    assert_eq!(replay["runs"][0]["meta"]["sample_rate"], 1000.0);
+}
+
+#[test]
+fn inspect_reports_problems_with_exit_status_one_and_bad_arguments_say_what_to_do() {
+    let d = tmpdir();
+    let bad = d.path().join("bad.h5");
+    std::fs::write(&bad, b"not hdf5 at all").unwrap();
+    let out = skelid().arg("inspect").arg(&bad).output().unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stdout).contains("not an HDF5 file"));
+    let out = skelid()
+        .args(["inspect", "/no/such/file.h5"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no such file"));
+    let model = d.path().join("rig.toml");
+    std::fs::write(&model, "inertia = 3.16\nstifness = 1\ndamping = 0\n").unwrap();
+    let out = skelid()
+        .args(["simulate", "--model"])
+        .arg(&model)
+        .args(["--out", "x.h5"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    println!("{err}");
+    assert_eq!(out.status.code(), Some(2));
+    assert!(err.contains("rig.toml") && err.contains("stifness"));
+    // A folder argument is searched for archives.
+    let out = skelid().arg("inspect").arg(d.path()).output().unwrap();
+    assert!(String::from_utf8_lossy(&out.stdout).contains("bad.h5"));
+}

@@ -1,0 +1,72 @@
+//! Builders of small HDF5 archives for the tests, written with the HDF5 library directly
+//! (not with skelid's writer), laid out the way other tools lay them out.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+
+use hdf5::types::VarLenUnicode;
+
+/// A sine of `n` samples, frequency f (cycles per sample rate fs).
+pub fn sine(n: usize, f: f64, fs: f64) -> Vec<f64> {
+    (0..n)
+        .map(|i| (std::f64::consts::TAU * f * i as f64 / fs).sin())
+        .collect()
+}
+
+/// Sets a string attribute.
+pub fn set_str(loc: &hdf5::Location, name: &str, v: &str) {
+    let v: VarLenUnicode = v.parse().unwrap();
+    loc.new_attr::<VarLenUnicode>()
+        .create(name)
+        .unwrap()
+        .write_scalar(&v)
+        .unwrap();
+}
+
+/// Sets a float attribute.
+pub fn set_f64(loc: &hdf5::Location, name: &str, v: f64) {
+    loc.new_attr::<f64>()
+        .create(name)
+        .unwrap()
+        .write_scalar(&v)
+        .unwrap();
+}
+
+/// Writes a 1-D float dataset.
+pub fn put(g: &hdf5::Group, name: &str, data: &[f64]) -> hdf5::Dataset {
+    g.new_dataset_builder()
+        .with_data(data)
+        .create(name)
+        .unwrap()
+}
+
+/// Creates (with parents) a group.
+pub fn group(f: &hdf5::File, path: &str) -> hdf5::Group {
+    f.create_group_builder()
+        .create_intermediate_group(true)
+        .create(path.trim_start_matches('/'))
+        .unwrap()
+}
+
+/// A valid base-motion run at `path` with 1000 samples at 1 kHz inherited from `/runs`.
+pub fn good_run(f: &hdf5::File, path: &str) {
+    let g = group(f, path);
+    put(&g, "input", &sine(1000, 5.0, 1000.0));
+    put(&g, "output", &sine(1000, 5.0, 1000.0));
+}
+
+/// A fresh temporary folder.
+pub fn tmpdir() -> tempfile::TempDir {
+    tempfile::tempdir().unwrap()
+}
+
+/// Path of a new file in `dir`.
+pub fn file_in(dir: &Path, name: &str) -> PathBuf {
+    dir.join(name)
+}
+
+/// The shared folder beside the repository, if this checkout has one.
+pub fn shared_real_data() -> Option<PathBuf> {
+    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/real");
+    p.is_dir().then_some(p)
+}
