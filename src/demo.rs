@@ -6,7 +6,7 @@
 use crate::campaign::{Attr, RunData};
 use crate::ingest::{Quantity, RunKind};
 use crate::model::{EffectKind, RigModel};
-use crate::simulate::{simulate, Drive, Excitation, Rolloff, SimSettings};
+use crate::simulate::{simulate, Drive, Excitation, Rolloff, SimOutput, SimSettings};
 
 /// Encoder noise of the demo (rad, std), about a 16-bit encoder's least count.
 pub const DEMO_NOISE: f64 = 2e-5;
@@ -138,7 +138,26 @@ pub fn simulate_case(case: &DemoCase) -> RunData {
         seed: case.seed,
     };
     let sim = simulate(&case.model, &case.drive, &settings);
-    let (kind, input, input_quantity) = match case.drive {
+    run_data(
+        &case.path,
+        &case.model,
+        &case.drive,
+        sim,
+        settings.sample_rate,
+        &case.description,
+    )
+}
+
+/// A simulation as a campaign run: kind and quantities from the drive, truth as attributes.
+pub fn run_data(
+    path: &str,
+    model: &RigModel,
+    drive: &Drive,
+    sim: SimOutput,
+    sample_rate: f64,
+    description: &str,
+) -> RunData {
+    let (kind, input, input_quantity) = match drive {
         Drive::Base(_) => (
             RunKind::BaseMotion,
             Some(sim.input),
@@ -148,14 +167,14 @@ pub fn simulate_case(case: &DemoCase) -> RunData {
         Drive::Free { .. } => (RunKind::Free, None, None),
     };
     RunData {
-        path: case.path.clone(),
+        path: path.to_string(),
         input,
         output: sim.output,
-        sample_rate: settings.sample_rate,
+        sample_rate,
         kind,
         input_quantity,
         output_quantity: Quantity::Displacement,
-        attrs: truth_attrs(&case.model, &case.description, kind),
+        attrs: truth_attrs(model, description, kind),
     }
 }
 

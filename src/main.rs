@@ -8,7 +8,7 @@ use clap::{Args, Parser, Subcommand, ValueEnum};
 use rayon::prelude::*;
 
 use skelid::campaign::{write_campaign, Attr, RunData};
-use skelid::ingest::{expand_inputs, Archive, IngestOptions, Quantity, RunKind};
+use skelid::ingest::{expand_inputs, Archive, IngestOptions};
 use skelid::model::RigModel;
 use skelid::simulate::{simulate, Drive, Excitation, Rolloff, SimSettings};
 use skelid::{demo, inspect};
@@ -293,26 +293,10 @@ fn cmd_simulate(a: SimulateArgs) -> Result<()> {
         seed: a.seed,
     };
     let sim = simulate(&model, &drive, &settings);
-    let (kind, input, input_quantity) = match drive {
-        Drive::Base(_) => (
-            RunKind::BaseMotion,
-            Some(sim.input),
-            Some(Quantity::Displacement),
-        ),
-        Drive::Force(_) => (RunKind::Force, Some(sim.input), Some(Quantity::Force)),
-        Drive::Free { .. } => (RunKind::Free, None, None),
-    };
+    let events = sim.events;
+    let samples = sim.time.len();
     let description = format!("skelid simulate of {}", a.model.display());
-    let run = RunData {
-        path: a.run_path.clone(),
-        input,
-        output: sim.output,
-        sample_rate: fs,
-        kind,
-        input_quantity,
-        output_quantity: Quantity::Displacement,
-        attrs: demo::truth_attrs(&model, &description, kind),
-    };
+    let run = demo::run_data(&a.run_path, &model, &drive, sim, fs, &description);
     let root = vec![(
         "generator".to_string(),
         Attr::Text(format!("skelid {}", env!("CARGO_PKG_VERSION"))),
@@ -322,9 +306,9 @@ fn cmd_simulate(a: SimulateArgs) -> Result<()> {
         "wrote {} run {} ({} samples at {} Hz, {} events located)",
         a.out.display(),
         a.run_path,
-        sim.time.len(),
+        samples,
         fs,
-        sim.events
+        events
     );
     Ok(())
 }
