@@ -470,13 +470,14 @@ impl Archive {
         let names = group
             .member_names()
             .map_err(|e| self.corrupt((depth > 0).then_some(path), e))?;
-        let has = |n: &str| names.iter().any(|m| m == n);
-        let has_input =
-            has(&self.options.input_name) && is_dataset(group, &self.options.input_name);
-        let has_output =
-            has(&self.options.output_name) && is_dataset(group, &self.options.output_name);
-        if has_output || has_input {
-            let meta = self.run_meta(group, path, has_input, has_output);
+        let has = |n: &str| names.iter().any(|m| m == n) && is_dataset(group, n);
+        let members = RunMembers {
+            input: has(&self.options.input_name),
+            output: has(&self.options.output_name),
+            time: has("time"),
+        };
+        if members.output || members.input {
+            let meta = self.run_meta(group, path, members);
             out.push(RunEntry {
                 path: path.to_string(),
                 meta,
@@ -512,8 +513,7 @@ impl Archive {
         &self,
         group: &Group,
         path: &str,
-        has_input: bool,
-        has_output: bool,
+        members: RunMembers,
     ) -> Result<RunMeta, IngestError> {
         let file = &self.file_name;
         let run = path.to_string();
@@ -535,7 +535,7 @@ impl Archive {
                 }
             },
         };
-        if !has_output {
+        if !members.output {
             return Err(IngestError::MissingOutput {
                 file: file.clone(),
                 run,
@@ -543,7 +543,7 @@ impl Archive {
                 output: self.options.output_name.clone(),
             });
         }
-        if !has_input && kind != RunKind::Free {
+        if !members.input && kind != RunKind::Free {
             return Err(IngestError::MissingInput {
                 file: file.clone(),
                 run,
@@ -615,7 +615,7 @@ impl Archive {
             .dataset(&self.options.output_name)
             .map_err(|e| self.corrupt(Some(path), e))?;
         let samples = self.signal_len(&output, path, &self.options.output_name)?;
-        if has_input && kind != RunKind::Free {
+        if members.input && kind != RunKind::Free {
             let input = group
                 .dataset(&self.options.input_name)
                 .map_err(|e| self.corrupt(Some(path), e))?;
@@ -631,7 +631,7 @@ impl Archive {
                 });
             }
         }
-        let sample_rate = self.sample_rate(group, path, &attrs, samples)?;
+        let sample_rate = self.sample_rate(group, path, &attrs, samples, members.time)?;
         if samples < MIN_SAMPLES {
             return Err(IngestError::TooShort {
                 file: file.clone(),
@@ -697,6 +697,7 @@ impl Archive {
         path: &str,
         attrs: &InheritedAttrs,
         samples: usize,
+        has_time: bool,
     ) -> Result<f64, IngestError> {
         let file = self.file_name.clone();
         let run = path.to_string();
@@ -716,12 +717,6 @@ impl Archive {
                 })
             }
         };
-        let has_time = group
-            .member_names()
-            .unwrap_or_default()
-            .iter()
-            .any(|n| n == "time")
-            && is_dataset(group, "time");
         if !has_time {
             return from_attr.ok_or(IngestError::MissingSampleRate { file, run });
         }
@@ -941,6 +936,14 @@ fn join_path(parent: &str, name: &str) -> String {
     }
 }
 
+/// Which of a run group's datasets exist, found once while walking the file.
+#[derive(Clone, Copy)]
+struct RunMembers {
+    input: bool,
+    output: bool,
+    time: bool,
+}
+
 #[derive(Default)]
 struct WalkStats {
     dataset_names: Vec<String>,
@@ -997,11 +1000,6 @@ impl InheritedAttrs {
     fn text(&self, name: &str) -> Option<String> {
         self.values.get(name).map(|v| v.to_string())
     }
-}
-
-/// Opens many archives; each yields its runs or its file-level error.
-pub fn open_all(paths: &[PathBuf], options: &IngestOptions) -> Vec<Result<Archive, IngestError>> {
-    paths.iter().map(|p| Archive::open(p, options)).collect()
 }
 
 /// Expands command-line arguments (files, folders searched recursively for `.h5`, `.hdf5`,

@@ -304,23 +304,14 @@ fn probe_one(exe: &Path, path: &Path, options: &IngestOptions, timeout: Duration
             }
         }
     };
-    let tail: String = String::from_utf8_lossy(&err)
-        .chars()
-        .rev()
-        .take(300)
-        .collect::<Vec<_>>()
-        .into_iter()
-        .rev()
-        .collect();
-    failed(
-        file,
-        format!(
-            "libhdf5 crashed reading it ({how}){}",
-            if tail.trim().is_empty() {
-                String::new()
-            } else {
-                format!(": {}", tail.trim())
-            }
-        ),
-    )
+    // The end of the child's stderr says where libhdf5 gave up, when it says anything.
+    let stderr = String::from_utf8_lossy(&err);
+    let stderr = stderr.trim();
+    let tail = &stderr[stderr.floor_char_boundary(stderr.len().saturating_sub(300))..];
+    let detail = if tail.is_empty() {
+        format!("libhdf5 crashed reading it ({how})")
+    } else {
+        format!("libhdf5 crashed reading it ({how}): {tail}")
+    };
+    failed(file, detail)
 }

@@ -238,14 +238,13 @@ impl Excitation {
 /// Cubic Hermite interpolation with its exact first and second derivative.
 fn hermite(y: &[f64], dy: &[f64], fs: f64, t: f64) -> Jet {
     let n = y.len();
-    if n == 0 {
-        return Jet::constant(0.0);
+    match n {
+        0 => return Jet::constant(0.0),
+        1 => return Jet::constant(y[0]),
+        _ => {}
     }
     let x = (t * fs).clamp(0.0, (n - 1) as f64);
-    let i = (x.floor() as usize).min(n.saturating_sub(2));
-    if n == 1 {
-        return Jet::constant(y[0]);
-    }
+    let i = (x.floor() as usize).min(n - 2);
     let s = x - i as f64;
     let h = 1.0 / fs;
     let (p0, p1, m0, m1) = (y[i], y[i + 1], dy[i] * h, dy[i + 1] * h);
@@ -600,7 +599,7 @@ pub fn simulate(model: &RigModel, drive: &Drive, settings: &SimSettings) -> SimO
             mode = mode_new;
         }
         let (phi, f_ext) = rig.inputs(ti);
-        let (z, v) = rig.relative(ti, s);
+        let (z, v) = (s.th - phi.v, s.om - phi.d1);
         time.push(ti);
         theta.push(s.th);
         omega.push(s.om);

@@ -70,7 +70,7 @@ fn simulate_from_a_toml_model_writes_an_archive_that_inspect_reads() {
         .status()
         .unwrap();
     assert!(st.success());
-    // Stepped sine under a measured input taken from the first archive.
+    // The input channel of the first archive replayed as a measured drive.
     let out2 = d.path().join("measured.h5");
     let st = skelid()
         .args(["simulate", "--model"])
