@@ -3,12 +3,19 @@
 //! gap between a rig's simulation model and its measurements.
 //!
 //! Pipeline stages, one module each: [`ingest`] (HDF5 campaigns in), [`simulate`] (the rig
-//! model under any drive), [`campaign`] (archives out), [`demo`] (the built-in campaign).
+//! model under any drive), [`campaign`] (archives out), [`demo`] (the built-in campaign),
+//! [`transform`] (Hilbert and wavelet transforms), [`ridge`], [`skeleton`] and [`track`]
+//! (instantaneous amplitude and frequency).
 
 pub mod campaign;
 pub mod demo;
+pub mod filter;
 pub mod h5util;
 pub mod ingest;
 pub mod inspect;
 pub mod model;
+pub mod ridge;
 pub mod simulate;
+pub mod skeleton;
+pub mod track;
+pub mod transform;

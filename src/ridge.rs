@@ -1,0 +1,165 @@
+//! Ridge search over a scalogram: a penalised dynamic-programming path through the scales,
+//! and the three-point parabola that refines a ridge between grid scales.
+
+/// Most-likely ridge through `scores` (time-major, `scales` values per time step, e.g.
+/// log|W|): maximises Σ score(k_j, j) − `penalty` Σ (k_j − k_{j−1})², with at most
+/// `max_jump` scale indices between consecutive steps. Returns one scale index per step.
+pub fn dp_ridge(scores: &[f32], scales: usize, penalty: f32, max_jump: usize) -> Vec<usize> {
+    assert!(scales > 0 && scores.len().is_multiple_of(scales));
+    let steps = scores.len() / scales;
+    if steps == 0 {
+        return Vec::new();
+    }
+    let mut acc: Vec<f32> = scores[..scales].to_vec();
+    let mut next = vec![0f32; scales];
+    let mut back = vec![0u32; steps * scales];
+    let jump_cost: Vec<f32> = (0..=max_jump).map(|d| penalty * (d * d) as f32).collect();
+    for j in 1..steps {
+        let row = &scores[j * scales..(j + 1) * scales];
+        let bp = &mut back[j * scales..(j + 1) * scales];
+        for k in 0..scales {
+            let lo = k.saturating_sub(max_jump);
+            let hi = (k + max_jump).min(scales - 1);
+            let mut best = f32::NEG_INFINITY;
+            let mut arg = k;
+            for (kp, &a) in acc.iter().enumerate().take(hi + 1).skip(lo) {
+                let v = a - jump_cost[k.abs_diff(kp)];
+                if v > best {
+                    best = v;
+                    arg = kp;
+                }
+            }
+            next[k] = row[k] + best;
+            bp[k] = arg as u32;
+        }
+        std::mem::swap(&mut acc, &mut next);
+    }
+    let mut k = acc
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(b.1))
+        .map(|(i, _)| i)
+        .unwrap_or(0);
+    let mut path = vec![0usize; steps];
+    for j in (0..steps).rev() {
+        path[j] = k;
+        k = back[j * scales + k] as usize;
+    }
+    path
+}
+
+/// The per-step argmax over scales (the usual "ridge" of other tools).
+pub fn argmax_ridge(scores: &[f32], scales: usize) -> Vec<usize> {
+    scores
+        .chunks(scales)
+        .map(|row| {
+            row.iter()
+                .enumerate()
+                .max_by(|a, b| a.1.total_cmp(b.1))
+                .map(|(i, _)| i)
+                .unwrap_or(0)
+        })
+        .collect()
+}
+
+/// Vertex of the parabola through three points with distinct abscissae; `None` unless the
+/// parabola opens downwards. Returns (x*, y*).
+pub fn parabola_peak(x: [f64; 3], y: [f64; 3]) -> Option<(f64, f64)> {
+    let (d0, d1) = (x[1] - x[0], x[2] - x[1]);
+    let s0 = (y[1] - y[0]) / d0;
+    let s1 = (y[2] - y[1]) / d1;
+    let curv = (s1 - s0) / (x[2] - x[0]); // the x² coefficient
+    if curv.partial_cmp(&0.0) != Some(std::cmp::Ordering::Less) {
+        return None;
+    }
+    // y = y1 + b (x − x1) + curv (x − x1)², with b the slope at x1.
+    let b = s0 + curv * d0;
+    let dx = -b / (2.0 * curv);
+    Some((x[1] + dx, y[1] + b * dx / 2.0))
+}
+
+/// Quadratic (Lagrange) interpolation through three points, evaluated at `t`.
+#[inline]
+pub fn lagrange3<T>(x: [f64; 3], y: [T; 3], t: f64) -> T
+where
+    T: Copy + std::ops::Mul<f64, Output = T> + std::ops::Add<Output = T>,
+{
+    let l0 = (t - x[1]) * (t - x[2]) / ((x[0] - x[1]) * (x[0] - x[2]));
+    let l1 = (t - x[0]) * (t - x[2]) / ((x[1] - x[0]) * (x[1] - x[2]));
+    let l2 = (t - x[0]) * (t - x[1]) / ((x[2] - x[0]) * (x[2] - x[1]));
+    y[0] * l0 + y[1] * l1 + y[2] * l2
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parabola_is_exact_for_a_parabola() {
+        let f = |x: f64| -3.0 * (x - 0.37).powi(2) + 2.0;
+        let x = [0.1, 0.3, 0.8];
+        let (xs, ys) = parabola_peak(x, [f(x[0]), f(x[1]), f(x[2])]).unwrap();
+        assert!((xs - 0.37).abs() < 1e-12 && (ys - 2.0).abs() < 1e-12);
+        assert!(parabola_peak([0.0, 1.0, 2.0], [0.0, 1.0, 2.0]).is_none());
+        let g = |x: f64| x * x - x + 1.0;
+        let v = lagrange3(x, [g(x[0]), g(x[1]), g(x[2])], 0.55);
+        assert!((v - g(0.55)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn dp_ridge_ignores_a_brief_stronger_distraction() {
+        // A ridge at scale 10 with a two-step spike at scale 40 that is stronger: argmax
+        // jumps, the penalised path does not.
+        let (scales, steps) = (50, 30);
+        let mut s = vec![-10f32; scales * steps];
+        for j in 0..steps {
+            s[j * scales + 10] = 0.0;
+            s[j * scales + 9] = -0.5;
+            s[j * scales + 11] = -0.5;
+        }
+        for j in [14, 15] {
+            s[j * scales + 40] = 2.0;
+        }
+        let path = dp_ridge(&s, scales, 0.05, 40);
+        assert!(path.iter().all(|&k| k == 10), "{path:?}");
+        let naive = argmax_ridge(&s, scales);
+        assert_eq!(naive[14], 40);
+    }
+
+    #[test]
+    fn dp_ridge_equals_brute_force_on_small_cases() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+        for _ in 0..50 {
+            let (scales, steps) = (4, 5);
+            let s: Vec<f32> = (0..scales * steps)
+                .map(|_| rng.random_range(-3.0..3.0))
+                .collect();
+            let pen = 0.3f32;
+            let path = dp_ridge(&s, scales, pen, scales);
+            let score = |p: &[usize]| {
+                let mut v = 0f32;
+                for j in 0..steps {
+                    v += s[j * scales + p[j]];
+                    if j > 0 {
+                        v -= pen * (p[j].abs_diff(p[j - 1]).pow(2)) as f32;
+                    }
+                }
+                v
+            };
+            let mut best = f32::NEG_INFINITY;
+            for code in 0..scales.pow(steps as u32) {
+                let mut c = code;
+                let p: Vec<usize> = (0..steps)
+                    .map(|_| {
+                        let k = c % scales;
+                        c /= scales;
+                        k
+                    })
+                    .collect();
+                best = best.max(score(&p));
+            }
+            assert!((score(&path) - best).abs() < 1e-4);
+        }
+    }
+}

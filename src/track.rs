@@ -1,0 +1,871 @@
+//! Instantaneous characteristics of one signal: envelope A(t), frequency f(t), phase φ(t)
+//! and the derivatives ForceVib needs, by the Hilbert transform or along a complex-Morlet
+//! wavelet ridge.
+//!
+//! The wavelet path (CPU backend):
+//! 1. one real FFT of the mean-removed, zero-padded record ([`Spectrum`]);
+//! 2. per scale, in parallel, the band-limited transform ([`ScalePlan`]) sampled on a coarse
+//!    grid (log-magnitude only, S × N/h values of 4 bytes) and a white-noise floor estimate;
+//! 3. a penalised dynamic-programming ridge on that grid, optionally pulled towards a
+//!    reference ridge (a forced response follows its excitation);
+//! 4. per scale the ridge visits, W, W′ and W″ (spectral derivatives), kept only around the
+//!    ridge, then per sample the three-scale parabola ([`skeleton::estimate`]);
+//! 5. the window's bias from decay and sweep removed by the local model
+//!    ([`skeleton::correct`]) on a grid of σ_t/4, interpolated in between;
+//! 6. samples flagged not valid: cone of influence, ridge at the edge of the scale range,
+//!    in-band SNR below `min_snr`, correction that did not converge or exceeded ×2.
+
+use std::f64::consts::PI;
+
+use num_complex::Complex64;
+use rayon::prelude::*;
+use thiserror::Error;
+
+use crate::filter::{local_line_weighted, local_slope, lowpass_zero_phase};
+use crate::ridge::{argmax_ridge, dp_ridge};
+use crate::skeleton::{self, Observation, ScaleValue};
+use crate::transform::band::{interpolate, Derivative, ScalePlan};
+use crate::transform::{hilbert, log_frequencies, Morlet, Spectrum};
+
+/// Shortest record either method accepts.
+pub const MIN_SAMPLES: usize = 64;
+
+/// Why a signal could not be tracked.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum TrackError {
+    /// Too few samples.
+    #[error("the signal has {samples} samples; tracking needs at least {MIN_SAMPLES}")]
+    TooShort {
+        /// Samples given.
+        samples: usize,
+    },
+    /// An option is out of range.
+    #[error("{0}")]
+    BadOption(String),
+    /// Nothing but a constant or non-finite values.
+    #[error("the signal has no oscillating content to track ({0})")]
+    NoSignal(String),
+}
+
+/// Which estimator of the instantaneous characteristics.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Method {
+    /// Complex-Morlet ridge and skeleton.
+    Wavelet,
+    /// Analytic signal by FFT.
+    Hilbert,
+}
+
+impl Method {
+    /// Name used in files and on the command line.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Method::Wavelet => "wavelet",
+            Method::Hilbert => "hilbert",
+        }
+    }
+}
+
+/// How the ridge is chosen at each time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RidgeSearch {
+    /// Penalised dynamic programming over the whole record.
+    Dynamic,
+    /// The largest |W| at each time (what most tools do; for comparison).
+    Argmax,
+}
+
+/// Options of the wavelet method.
+#[derive(Debug, Clone)]
+pub struct WaveletOptions {
+    /// Mother wavelet.
+    pub wavelet: Morlet,
+    /// Lowest analysis frequency (Hz); chosen from the spectrum when `None`.
+    pub fmin: Option<f64>,
+    /// Highest analysis frequency (Hz); chosen from the spectrum when `None`.
+    pub fmax: Option<f64>,
+    /// Number of log-spaced scales.
+    pub scales: usize,
+    /// Ridge search.
+    pub ridge: RidgeSearch,
+    /// Cost of moving the ridge by one frequency-resolution cell (σ_f/f) between grid steps,
+    /// in nepers of |W|.
+    pub penalty: f64,
+    /// Cost per squared resolution cell of leaving the reference ridge, when one is given.
+    pub guide_weight: f64,
+    /// Samples whose ridge magnitude is below this multiple of the in-band noise are not valid.
+    pub min_snr: f64,
+    /// Cone of influence: samples closer to an end than this many σ_t are not valid.
+    pub coi: f64,
+    /// Remove the window's bias from decay and sweep (the local-model correction).
+    pub correct: bool,
+    /// Below this in-band SNR, average ln A and f over a window that grows as (SNR)⁻²
+    /// (up to ±16 σ_t); 0 turns it off.
+    pub smooth_snr: f64,
+}
+
+impl Default for WaveletOptions {
+    fn default() -> Self {
+        Self {
+            wavelet: Morlet::default(),
+            fmin: None,
+            fmax: None,
+            scales: 64,
+            ridge: RidgeSearch::Dynamic,
+            penalty: 1.0,
+            guide_weight: 1.0,
+            min_snr: 10.0,
+            coi: 3.0,
+            correct: true,
+            smooth_snr: 100.0,
+        }
+    }
+}
+
+/// Options of the Hilbert method.
+#[derive(Debug, Clone, Default)]
+pub struct HilbertOptions {
+    /// Zero-phase low-pass of envelope, frequency and their derivatives, cut-off as a
+    /// fraction of the Nyquist frequency (the paper uses 0.0005–0.01); `None`: unfiltered.
+    pub cutoff: Option<f64>,
+}
+
+/// Instantaneous characteristics of one signal, one value per sample.
+#[derive(Debug, Clone)]
+pub struct Track {
+    /// Method that produced it.
+    pub method: Method,
+    /// Sample rate (Hz).
+    pub sample_rate: f64,
+    /// Envelope A (signal units).
+    pub amplitude: Vec<f64>,
+    /// Instantaneous frequency f = φ'/2π (Hz).
+    pub frequency: Vec<f64>,
+    /// Unwrapped phase φ (rad).
+    pub phase: Vec<f64>,
+    /// A' (units/s).
+    pub d_amplitude: Vec<f64>,
+    /// A'' (units/s²).
+    pub d2_amplitude: Vec<f64>,
+    /// f' (Hz/s); ω' = 2π f'.
+    pub d_frequency: Vec<f64>,
+    /// Trusted samples (not edge, not below the noise, ridge found).
+    pub valid: Vec<bool>,
+    /// Mean removed before the transform (the record's offset), signal units.
+    pub offset: f64,
+    /// Estimated white-noise standard deviation per sample (signal units).
+    pub noise: f64,
+    /// Analysis range (Hz) of the wavelet method; the whole band for Hilbert.
+    pub band: (f64, f64),
+}
+
+impl Track {
+    /// Number of samples.
+    pub fn len(&self) -> usize {
+        self.amplitude.len()
+    }
+    /// True for an empty track.
+    pub fn is_empty(&self) -> bool {
+        self.amplitude.is_empty()
+    }
+    /// Fraction of samples marked valid.
+    pub fn valid_fraction(&self) -> f64 {
+        self.valid.iter().filter(|&&v| v).count() as f64 / self.len().max(1) as f64
+    }
+    /// Times (s) of the samples.
+    pub fn time(&self) -> Vec<f64> {
+        (0..self.len())
+            .map(|i| i as f64 / self.sample_rate)
+            .collect()
+    }
+}
+
+fn check_signal(x: &[f64], fs: f64) -> Result<(), TrackError> {
+    if x.len() < MIN_SAMPLES {
+        return Err(TrackError::TooShort { samples: x.len() });
+    }
+    if !(fs.is_finite() && fs > 0.0) {
+        return Err(TrackError::BadOption(format!(
+            "sample rate {fs} Hz must be a positive number"
+        )));
+    }
+    if let Some(i) = x.iter().position(|v| !v.is_finite()) {
+        return Err(TrackError::NoSignal(format!(
+            "sample {i} is {}; remove or interpolate non-finite samples first",
+            x[i]
+        )));
+    }
+    Ok(())
+}
+
+/// Envelope, frequency and derivatives by the Hilbert transform.
+///
+/// Derivatives are spectral (z', z'' by FFT); with a cut-off they, A and f are low-passed by
+/// the same zero-phase filter. Valid: away from the ends by two periods of the median
+/// frequency (where the FFT's periodic extension distorts z).
+pub fn track_hilbert(x: &[f64], fs: f64, opt: &HilbertOptions) -> Result<Track, TrackError> {
+    check_signal(x, fs)?;
+    if let Some(c) = opt.cutoff {
+        if !(c > 0.0 && c < 1.0) {
+            return Err(TrackError::BadOption(format!(
+                "Hilbert cut-off {c} must be a fraction of Nyquist between 0 and 1 (e.g. 0.005)"
+            )));
+        }
+    }
+    let n = x.len();
+    let an = hilbert::analytic(x, fs);
+    let mut amplitude = Vec::with_capacity(n);
+    let mut frequency = Vec::with_capacity(n);
+    let mut d_amplitude = Vec::with_capacity(n);
+    let mut d2_amplitude = Vec::with_capacity(n);
+    let mut d_frequency = Vec::with_capacity(n);
+    for i in 0..n {
+        let z = an.z[i];
+        let a = z.norm();
+        if a == 0.0 {
+            amplitude.push(0.0);
+            frequency.push(0.0);
+            d_amplitude.push(0.0);
+            d2_amplitude.push(0.0);
+            d_frequency.push(0.0);
+            continue;
+        }
+        let r1 = an.dz[i] / z; // A'/A + jφ'
+        let r2 = an.d2z[i] / z; // A''/A − φ'² + j(2A'φ'/A + φ'')
+        let w = r1.im;
+        amplitude.push(a);
+        frequency.push(w / (2.0 * PI));
+        d_amplitude.push(a * r1.re);
+        d2_amplitude.push(a * (r2.re + w * w));
+        d_frequency.push((r2.im - 2.0 * r1.re * w) / (2.0 * PI));
+    }
+    let mut phase: Vec<f64> = an.z.iter().map(|z| z.arg()).collect();
+    unwrap_phase(&mut phase, &frequency, fs);
+    if let Some(c) = opt.cutoff {
+        for v in [
+            &mut amplitude,
+            &mut frequency,
+            &mut d_amplitude,
+            &mut d2_amplitude,
+            &mut d_frequency,
+        ] {
+            *v = lowpass_zero_phase(v, c);
+        }
+    }
+    let mut sorted: Vec<f64> = frequency.iter().map(|f| f.abs()).collect();
+    let mid = sorted.len() / 2;
+    let median_f = *sorted.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
+    let edge = if median_f > 0.0 {
+        ((2.0 * fs / median_f).ceil() as usize).min(n / 2)
+    } else {
+        n / 2
+    };
+    let valid = (0..n).map(|i| i >= edge && i + edge < n).collect();
+    let noise = hilbert_noise(x, fs);
+    Ok(Track {
+        method: Method::Hilbert,
+        sample_rate: fs,
+        amplitude,
+        frequency,
+        phase,
+        d_amplitude,
+        d2_amplitude,
+        d_frequency,
+        valid,
+        offset: an.mean,
+        noise,
+        band: (0.0, fs / 2.0),
+    })
+}
+
+fn hilbert_noise(x: &[f64], fs: f64) -> f64 {
+    Spectrum::new(x, fs, 0)
+        .white_noise_variance(fs / 4.0, fs / 2.0)
+        .unwrap_or(0.0)
+        .sqrt()
+}
+
+/// Makes a wrapped phase continuous, choosing at each step the branch closest to the
+/// advance predicted by the frequency.
+fn unwrap_phase(phase: &mut [f64], freq: &[f64], fs: f64) {
+    for i in 1..phase.len() {
+        let predicted = phase[i - 1] + PI * (freq[i - 1] + freq[i]) / fs;
+        let d = phase[i] - predicted;
+        phase[i] -= 2.0 * PI * ((d + PI) / (2.0 * PI)).floor();
+    }
+}
+
+/// Analysis band chosen from the record's spectrum: where the smoothed power stands above
+/// both 1e-4 of its peak and ten times the noise floor, widened by 25 %, no lower than the
+/// frequency whose cone of influence leaves half the record, no higher than 0.45 fs.
+pub fn default_band(x: &[f64], fs: f64, wavelet: &Morlet) -> Result<(f64, f64), TrackError> {
+    let spec = Spectrum::new(x, fs, 0);
+    let p: Vec<f64> = spec.bins.iter().map(|c| c.norm_sqr()).collect();
+    let w = (p.len() / 1024).max(1);
+    let mut smooth = vec![0.0; p.len()];
+    let mut acc = 0.0;
+    for i in 0..p.len() {
+        acc += p[i];
+        if i >= w {
+            acc -= p[i - w];
+        }
+        smooth[i] = acc / w.min(i + 1) as f64;
+    }
+    let peak = smooth.iter().cloned().fold(0.0, f64::max);
+    if peak <= 0.0 {
+        return Err(TrackError::NoSignal("the record is constant".into()));
+    }
+    let floor = spec
+        .white_noise_variance(fs / 4.0, fs / 2.0)
+        .map(|v| v * x.len() as f64)
+        .unwrap_or(0.0);
+    let thr = (peak * 1e-4).max(10.0 * floor);
+    let above: Vec<usize> = (1..smooth.len()).filter(|&m| smooth[m] > thr).collect();
+    let (Some(&lo), Some(&hi)) = (above.first(), above.last()) else {
+        return Err(TrackError::NoSignal(
+            "no part of the spectrum stands above the noise".into(),
+        ));
+    };
+    let duration = x.len() as f64 / fs;
+    let record_floor = 12.0 * wavelet.centre * (wavelet.bandwidth / 2.0).sqrt() / duration;
+    let fmin = (spec.bin_freq(lo.saturating_sub(w / 2).max(1)) / 1.25).max(record_floor);
+    let fmax = (spec.bin_freq(hi + w / 2) * 1.25).min(0.45 * fs);
+    if fmin >= fmax {
+        return Err(TrackError::NoSignal(format!(
+            "the signal's band (up to {:.3} Hz) lies below the lowest frequency a {duration:.1} s record can resolve ({record_floor:.3} Hz); give --fmin/--fmax or a narrower wavelet (--bandwidth)",
+            spec.bin_freq(hi)
+        )));
+    }
+    Ok((fmin, fmax))
+}
+
+/// Scale values W, W', W'' kept around the ridge for one scale and one stretch of time.
+struct Segment {
+    /// First decimated index held (may be negative: periodic).
+    first: isize,
+    w: Vec<Complex64>,
+    d1: Vec<Complex64>,
+    d2: Vec<Complex64>,
+    /// Samples (inclusive range) this segment serves.
+    samples: (usize, usize),
+}
+
+/// Everything kept for one scale after the second pass.
+struct ScaleData {
+    plan: ScalePlan,
+    step: f64,
+    segments: Vec<Segment>,
+}
+
+impl ScaleData {
+    fn segment(&self, n: usize) -> Option<&Segment> {
+        let i = self.segments.partition_point(|s| s.samples.1 < n);
+        self.segments.get(i).filter(|s| s.samples.0 <= n)
+    }
+
+    fn value(&self, spec: &Spectrum, n: usize) -> Option<ScaleValue> {
+        let seg = self.segment(n)?;
+        let x = n as f64 / self.step - seg.first as f64;
+        let w = interpolate(&seg.w, x);
+        let w1 = interpolate(&seg.d1, x);
+        let w2 = interpolate(&seg.d2, x);
+        let d1 = w1 / w;
+        Some(ScaleValue {
+            scale: self.plan.scale,
+            ln_amp: w.norm().max(1e-300).ln(),
+            phase: w.arg() + self.plan.carrier(spec, n as f64),
+            d1,
+            d2: w2 / w - d1 * d1,
+        })
+    }
+
+    fn magnitude(&self, n: usize) -> f64 {
+        self.segment(n)
+            .map(|seg| interpolate(&seg.w, n as f64 / self.step - seg.first as f64).norm())
+            .unwrap_or(0.0)
+    }
+}
+
+/// Envelope, frequency and derivatives along the complex-Morlet ridge of `x`.
+///
+/// `guide`, when given, is a reference frequency (Hz) per sample — typically the input
+/// channel's ridge — that the ridge is pulled towards.
+pub fn track_wavelet(
+    x: &[f64],
+    fs: f64,
+    opt: &WaveletOptions,
+    guide: Option<&[f64]>,
+) -> Result<Track, TrackError> {
+    check_signal(x, fs)?;
+    let wl = opt.wavelet;
+    wl.validate().map_err(TrackError::BadOption)?;
+    if opt.scales < 3 || opt.scales > 4096 {
+        return Err(TrackError::BadOption(format!(
+            "{} scales: use between 3 and 4096",
+            opt.scales
+        )));
+    }
+    if let Some(g) = guide {
+        if g.len() != x.len() {
+            return Err(TrackError::BadOption(format!(
+                "the reference ridge has {} samples, the signal {}",
+                g.len(),
+                x.len()
+            )));
+        }
+    }
+    let n = x.len();
+    let (fmin, fmax) = match (opt.fmin, opt.fmax) {
+        (Some(a), Some(b)) => (a, b),
+        (a, b) => {
+            let (da, db) = default_band(x, fs, &wl)?;
+            (a.unwrap_or(da), b.unwrap_or(db))
+        }
+    };
+    if !(fmin > 0.0 && fmax > fmin && fmax <= fs / 2.0) {
+        return Err(TrackError::BadOption(format!(
+            "frequency range {fmin}..{fmax} Hz must satisfy 0 < fmin < fmax ≤ fs/2 = {} Hz",
+            fs / 2.0
+        )));
+    }
+    let freqs = log_frequencies(fmin, fmax, opt.scales);
+    let s_count = freqs.len();
+    let pad = (wl.support(wl.scale_for(fmin), 1e-8) * fs).ceil() as usize;
+    let spec = Spectrum::new(x, fs, pad.min(4 * n));
+
+    // Pass 1: coarse log-magnitude grid and the noise floor.
+    let plans: Vec<ScalePlan> = freqs
+        .iter()
+        .map(|&f| ScalePlan::new(&spec, &wl, wl.scale_for(f), 2.0))
+        .collect();
+    let sigma_t_min = wl.time_sigma(wl.scale_for(fmax)) * fs;
+    let h = ((sigma_t_min / 2.0).floor() as usize)
+        .max(s_count.div_ceil(4))
+        .max(1);
+    let steps = (n - 1) / h + 1;
+    let columns: Vec<(Vec<f32>, Option<f64>)> = plans
+        .par_iter()
+        .map_init(Vec::new, |buf, plan| {
+            let dec = plan.evaluate(&spec, &wl, Derivative::Zero, buf);
+            let mut col: Vec<f32> = (0..steps)
+                .map(|j| dec.at((j * h) as f64).norm().max(1e-300).ln() as f32)
+                .collect();
+            let edge = opt.coi * wl.time_sigma(plan.scale) * fs;
+            let mut inner: Vec<f64> = (0..steps)
+                .filter(|&j| (j * h) as f64 >= edge && ((n - 1 - j * h) as f64) >= edge)
+                .map(|j| (2.0 * col[j] as f64).exp())
+                .collect();
+            let noise = if inner.len() >= 8 {
+                let mid = inner.len() / 2;
+                let med = *inner.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
+                Some(med / std::f64::consts::LN_2 / (n as f64 * plan.noise_gain(&spec, &wl)))
+            } else {
+                None
+            };
+            // Inside its cone of influence a long scale sees the record's onset or end (a
+            // broadband transient) rather than the signal: keep the ridge away from there.
+            let mask = edge;
+            let floor = col.iter().cloned().fold(f32::INFINITY, f32::min);
+            for (j, c) in col.iter_mut().enumerate() {
+                if ((j * h) as f64) < mask || ((n - 1 - j * h) as f64) < mask {
+                    *c = floor;
+                }
+            }
+            (col, noise)
+        })
+        .collect();
+    // White-noise floor: the lower of the quietest quarter of the scales (median over time)
+    // and the spectrum above the analysis band, where only noise should be left.
+    let mut per_scale: Vec<f64> = columns.iter().filter_map(|c| c.1).collect();
+    let from_scales = if per_scale.is_empty() {
+        f64::INFINITY
+    } else {
+        let q = per_scale.len() / 4;
+        *per_scale.select_nth_unstable_by(q, |a, b| a.total_cmp(b)).1
+    };
+    let from_spectrum = spec
+        .white_noise_variance(1.5 * fmax, fs / 2.0)
+        .unwrap_or(f64::INFINITY);
+    let noise_var = from_scales.min(from_spectrum);
+    let noise_var = if noise_var.is_finite() {
+        noise_var
+    } else {
+        0.0
+    };
+    let noise_w: Vec<f64> = plans
+        .iter()
+        .map(|p| (noise_var * n as f64 * p.noise_gain(&spec, &wl)).sqrt())
+        .collect();
+    let mut scores = vec![0f32; steps * s_count];
+    for (k, (col, _)) in columns.iter().enumerate() {
+        for j in 0..steps {
+            scores[j * s_count + k] = col[j];
+        }
+    }
+    drop(columns);
+
+    // Ridge on the grid.
+    let cell = (fmax / fmin).ln() / (s_count - 1) as f64 / wl.relative_resolution();
+    if let Some(g) = guide {
+        let ln_f: Vec<f64> = freqs.iter().map(|f| f.ln()).collect();
+        let r = wl.relative_resolution();
+        for j in 0..steps {
+            let gf = g[j * h];
+            if gf > 0.0 && gf.is_finite() {
+                let lg = gf.ln();
+                for k in 0..s_count {
+                    let d = (ln_f[k] - lg) / r;
+                    scores[j * s_count + k] -= (opt.guide_weight * d * d) as f32;
+                }
+            }
+        }
+    }
+    let path = match opt.ridge {
+        RidgeSearch::Dynamic => {
+            let max_jump = ((2.0 / cell).ceil() as usize).max(2);
+            dp_ridge(
+                &scores,
+                s_count,
+                (opt.penalty * cell * cell) as f32,
+                max_jump,
+            )
+        }
+        RidgeSearch::Argmax => argmax_ridge(&scores, s_count),
+    };
+    drop(scores);
+    let ridge_at = |i: usize| -> usize {
+        let j = i / h;
+        let u = (i % h) as f64 / h as f64;
+        let a = path[j] as f64;
+        let b = path[(j + 1).min(steps - 1)] as f64;
+        (a + u * (b - a)).round() as usize
+    };
+
+    // The parabola's three scales are about one resolution cell apart: adjacent scales of a
+    // dense grid differ too little in |W| for a noisy parabola to be well conditioned.
+    let d = 1;
+    // Pass 2: W, W', W'' for the scales within ±(d+1) of the ridge, kept where needed.
+    let mut wanted: Vec<Vec<(usize, usize)>> = vec![Vec::new(); s_count];
+    for i in 0..n {
+        let c = ridge_at(i).clamp(d, s_count - 1 - d);
+        let (lo, hi) = (c.saturating_sub(d + 1), (c + d + 1).min(s_count - 1));
+        for runs in &mut wanted[lo..=hi] {
+            match runs.last_mut() {
+                Some(r) if r.1 + 1 == i => r.1 = i,
+                _ => runs.push((i, i)),
+            }
+        }
+    }
+    let data: Vec<ScaleData> = plans
+        .into_par_iter()
+        .zip(wanted.into_par_iter())
+        .map_init(Vec::new, |buf, (plan, runs)| {
+            let step = plan.step(&spec);
+            if runs.is_empty() {
+                return ScaleData {
+                    plan,
+                    step,
+                    segments: Vec::new(),
+                };
+            }
+            let w = plan.evaluate(&spec, &wl, Derivative::Zero, buf).values;
+            let d1 = plan.evaluate(&spec, &wl, Derivative::First, buf).values;
+            let d2 = plan.evaluate(&spec, &wl, Derivative::Second, buf).values;
+            let m = w.len() as isize;
+            let take = |v: &[Complex64], a: isize, b: isize| -> Vec<Complex64> {
+                (a..=b).map(|i| v[i.rem_euclid(m) as usize]).collect()
+            };
+            let segments = runs
+                .iter()
+                .map(|&(s0, s1)| {
+                    let a = (s0 as f64 / step).floor() as isize - 2;
+                    let b = (s1 as f64 / step).floor() as isize + 3;
+                    Segment {
+                        first: a,
+                        w: take(&w, a, b),
+                        d1: take(&d1, a, b),
+                        d2: take(&d2, a, b),
+                        samples: (s0, s1),
+                    }
+                })
+                .collect();
+            ScaleData {
+                plan,
+                step,
+                segments,
+            }
+        })
+        .collect();
+
+    // Pass 3: per-sample three-scale estimate.
+    let per_sample: Vec<(Observation, usize, bool)> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let c = ridge_at(i).clamp(d, s_count - 1 - d);
+            let mut best = c;
+            let mut best_mag = data[c].magnitude(i);
+            for k in [c - 1, c + 1] {
+                if (d..s_count - d).contains(&k) {
+                    let m = data[k].magnitude(i);
+                    if m > best_mag {
+                        best_mag = m;
+                        best = k;
+                    }
+                }
+            }
+            let triple = [best - d, best, best + d];
+            let vals = triple.map(|k| data[k].value(&spec, i));
+            match vals {
+                [Some(a), Some(b), Some(c3)] => {
+                    let o = skeleton::estimate([a, b, c3]);
+                    let interior = best >= d && best + d < s_count;
+                    (o, best, interior && o.peaked)
+                }
+                _ => (
+                    Observation {
+                        ln_amp: f64::NEG_INFINITY,
+                        phase: 0.0,
+                        d1: Complex64::new(0.0, 2.0 * PI * freqs[best]),
+                        d2: Complex64::new(0.0, 0.0),
+                        scale: wl.scale_for(freqs[best]),
+                        peaked: false,
+                    },
+                    best,
+                    false,
+                ),
+            }
+        })
+        .collect();
+    drop(data);
+
+    // Bias correction on a grid of σ_t/4, interpolated in between.
+    let mut coarse = Vec::new();
+    let mut i = 0usize;
+    while i < n {
+        coarse.push(i);
+        let st = wl.time_sigma(per_sample[i].0.scale) * fs;
+        i += ((st / 4.0).floor() as usize).max(1);
+    }
+    if *coarse.last().unwrap() != n - 1 {
+        coarse.push(n - 1);
+    }
+    let fixes: Vec<Option<[f64; 5]>> = coarse
+        .par_iter()
+        .map(|&i| {
+            let (o, k, ok) = per_sample[i];
+            if !opt.correct {
+                return Some([0.0; 5]);
+            }
+            if !ok {
+                return None;
+            }
+            let scales = [k - d, k, k + d].map(|q| wl.scale_for(freqs[q]));
+            let st = wl.time_sigma(o.scale);
+            // A steady tone is estimated exactly; skip the solve where the model is that close.
+            if (o.decay() * st).abs() < 1e-4 && (o.sweep() * st * st).abs() < 1e-4 {
+                return Some([0.0; 5]);
+            }
+            let c = skeleton::correct(&wl, scales, &o);
+            (c.converged && c.ln_amp_shift.abs() < std::f64::consts::LN_2).then_some([
+                c.ln_amp_shift,
+                c.phase_shift,
+                c.model.decay - o.decay(),
+                c.model.freq - o.freq(),
+                c.model.sweep - o.sweep(),
+            ])
+        })
+        .collect();
+
+    // Interpolate the corrections; a failed solve invalidates the samples around it.
+    let mut fix = vec![[0.0f64; 5]; n];
+    let mut fix_ok = vec![true; n];
+    for w2 in 0..coarse.len().saturating_sub(1) {
+        let (a, b) = (coarse[w2], coarse[w2 + 1]);
+        let (fa, fb) = (fixes[w2], fixes[w2 + 1]);
+        for i in a..=b {
+            let u = if b > a {
+                (i - a) as f64 / (b - a) as f64
+            } else {
+                0.0
+            };
+            match (fa, fb) {
+                (Some(p), Some(q)) => {
+                    for c in 0..5 {
+                        fix[i][c] = p[c] + u * (q[c] - p[c]);
+                    }
+                }
+                _ => fix_ok[i] = false,
+            }
+        }
+    }
+    if coarse.len() == 1 {
+        fix_ok[0] = fixes[0].is_some();
+        fix[0] = fixes[0].unwrap_or([0.0; 5]);
+    }
+
+    // The sweep rate as the frequency track's own slope over ±σ_t: where the window saw a
+    // signal the local model cannot describe, it disagrees with the model's β.
+    let t_coarse: Vec<f64> = coarse.iter().map(|&i| i as f64 / fs).collect();
+    let f_coarse: Vec<f64> = coarse
+        .iter()
+        .map(|&i| per_sample[i].0.freq() + fix[i][3])
+        .collect();
+    let fslope_coarse: Vec<f64> = coarse
+        .par_iter()
+        .enumerate()
+        .map(|(c, &i)| {
+            let half = wl.time_sigma(per_sample[i].0.scale);
+            local_slope(&t_coarse, &f_coarse, t_coarse[c], half).unwrap_or(0.0)
+        })
+        .collect();
+    let fslope = spread(&coarse, &fslope_coarse, n);
+
+    let mut amplitude = vec![0.0; n];
+    let mut frequency = vec![0.0; n];
+    let mut phase = vec![0.0; n];
+    let mut decay = vec![0.0; n];
+    let mut sweep = vec![0.0; n];
+    let mut valid = vec![false; n];
+    for i in 0..n {
+        let (o, k, ok) = per_sample[i];
+        let f = fix[i];
+        amplitude[i] = (o.ln_amp + f[0]).exp();
+        phase[i] = o.phase + f[1];
+        decay[i] = o.decay() + f[2];
+        frequency[i] = o.freq() + f[3];
+        sweep[i] = o.sweep() + f[4];
+        let st = wl.time_sigma(o.scale);
+        let margin = st * (opt.coi + (decay[i] * st).abs()) * fs;
+        let inside = i as f64 >= margin && (n - 1 - i) as f64 >= margin;
+        // The window spans ±coi σ_t, over which a sweep moves the frequency by β coi σ_t:
+        // the model needs all of that inside the analysed band (and clear of DC).
+        let reach = sweep[i].abs().max(fslope[i].abs()) * opt.coi * st;
+        let in_band = frequency[i] - reach >= fmin && frequency[i] + reach <= fmax;
+        let inside = inside && in_band;
+        // A loose threshold first: the final one is applied after smoothing, so that noise
+        // which happens to lift a sample over it does not select that sample.
+        let audible = o.ln_amp.exp() >= 0.5 * opt.min_snr * noise_w[k];
+        valid[i] = ok && fix_ok[i] && inside && audible && frequency[i] > 0.0;
+    }
+    if opt.smooth_snr > 0.0 {
+        smooth_low_snr(
+            &coarse,
+            fs,
+            &mut amplitude,
+            &mut frequency,
+            &valid,
+            |i| {
+                let (o, k, _) = per_sample[i];
+                (wl.time_sigma(o.scale), o.ln_amp.exp() / noise_w[k])
+            },
+            opt.smooth_snr,
+        );
+    }
+    for i in 0..n {
+        valid[i] = valid[i] && amplitude[i] >= opt.min_snr * noise_w[per_sample[i].1];
+    }
+    unwrap_phase(&mut phase, &frequency, fs);
+
+    // A'' = A (σ² − σ'); σ' by a local least-squares slope over ±σ_t of the coarse grid.
+    let sigma_coarse: Vec<f64> = coarse.iter().map(|&i| decay[i]).collect();
+    let dsigma_coarse: Vec<f64> = coarse
+        .par_iter()
+        .enumerate()
+        .map(|(c, &i)| {
+            let half = wl.time_sigma(per_sample[i].0.scale);
+            local_slope(&t_coarse, &sigma_coarse, t_coarse[c], half).unwrap_or(0.0)
+        })
+        .collect();
+    let dsigma = spread(&coarse, &dsigma_coarse, n);
+    let d_amplitude: Vec<f64> = (0..n).map(|i| -decay[i] * amplitude[i]).collect();
+    let d2_amplitude: Vec<f64> = (0..n)
+        .map(|i| amplitude[i] * (decay[i] * decay[i] - dsigma[i]))
+        .collect();
+    Ok(Track {
+        method: Method::Wavelet,
+        sample_rate: fs,
+        amplitude,
+        frequency,
+        phase,
+        d_amplitude,
+        d2_amplitude,
+        d_frequency: sweep,
+        valid,
+        offset: spec.mean,
+        noise: noise_var.sqrt(),
+        band: (fmin, fmax),
+    })
+}
+
+/// Longest averaging window, in σ_t either side, that low-SNR smoothing may use.
+const MAX_SMOOTH: f64 = 16.0;
+
+/// Where the in-band SNR x is below `target`, replaces ln A and f by a weighted (SNR²)
+/// least-squares line over the valid coarse points within ±σ_t·min(16, (target/x)²): noise
+/// drops as the window grows, and a decay or a linear sweep (ln A and f linear in time) is
+/// not biased by it.
+fn smooth_low_snr(
+    coarse: &[usize],
+    fs: f64,
+    amplitude: &mut [f64],
+    frequency: &mut [f64],
+    valid: &[bool],
+    local: impl Fn(usize) -> (f64, f64) + Sync,
+    target: f64,
+) {
+    let n = amplitude.len();
+    let pts: Vec<usize> = coarse.iter().copied().filter(|&i| valid[i]).collect();
+    if pts.len() < 3 {
+        return;
+    }
+    let t: Vec<f64> = pts.iter().map(|&i| i as f64 / fs).collect();
+    let ln_a: Vec<f64> = pts.iter().map(|&i| amplitude[i].ln()).collect();
+    let f: Vec<f64> = pts.iter().map(|&i| frequency[i]).collect();
+    // ln Â and f̂ have variances ∝ 1/SNR²: weigh each point by SNR².
+    let w: Vec<f64> = pts.iter().map(|&i| local(i).1.powi(2)).collect();
+    let deltas: Vec<[f64; 2]> = pts
+        .par_iter()
+        .enumerate()
+        .map(|(c, &i)| {
+            let (st, snr) = local(i);
+            if snr >= target {
+                return [0.0; 2];
+            }
+            let half = st * (target / snr).powi(2).min(MAX_SMOOTH);
+            match (
+                local_line_weighted(&t, &ln_a, Some(&w), t[c], half),
+                local_line_weighted(&t, &f, Some(&w), t[c], half),
+            ) {
+                (Some((a, _)), Some((b, _))) => [a - ln_a[c], b - f[c]],
+                _ => [0.0; 2],
+            }
+        })
+        .collect();
+    let da = spread(&pts, &deltas.iter().map(|d| d[0]).collect::<Vec<_>>(), n);
+    let df = spread(&pts, &deltas.iter().map(|d| d[1]).collect::<Vec<_>>(), n);
+    for i in 0..n {
+        if valid[i] {
+            amplitude[i] *= da[i].exp();
+            frequency[i] += df[i];
+        }
+    }
+}
+
+/// Linear interpolation of values given at increasing sample indices `at` onto 0..n.
+fn spread(at: &[usize], v: &[f64], n: usize) -> Vec<f64> {
+    let mut out = vec![0.0; n];
+    for w in 0..at.len() {
+        let a = at[w];
+        let b = at.get(w + 1).copied().unwrap_or(a);
+        let (va, vb) = (v[w], v.get(w + 1).copied().unwrap_or(v[w]));
+        for (i, o) in out.iter_mut().enumerate().take(b.min(n - 1) + 1).skip(a) {
+            let u = if b > a {
+                (i - a) as f64 / (b - a) as f64
+            } else {
+                0.0
+            };
+            *o = va + u * (vb - va);
+        }
+    }
+    out
+}

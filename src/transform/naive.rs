@@ -1,0 +1,39 @@
+//! The plain full-length wavelet transform: one inverse FFT of the padded length per scale,
+//! every bin of the positive half kept. It is the reference the band-limited transform is
+//! tested against, and the baseline of `skelid bench --transform`.
+
+use num_complex::Complex64;
+
+use super::{complex_plan, Morlet, Spectrum};
+
+/// W(s, t) at every padded sample t = 0..L for one scale `s`.
+pub fn scale(spec: &Spectrum, wavelet: &Morlet, s: f64, buf: &mut Vec<Complex64>) {
+    let l = spec.padded_len;
+    buf.clear();
+    buf.resize(l, Complex64::new(0.0, 0.0));
+    let norm = 2.0 / l as f64;
+    for (m, b) in spec.bins.iter().enumerate().skip(1) {
+        buf[m] = b * (norm * wavelet.spectrum(s, spec.bin_freq(m)));
+    }
+    complex_plan(l, true).process(buf);
+}
+
+/// Per-sample argmax ridge over the full scalogram, streamed scale by scale so that only
+/// O(N) memory is held: returns (index of the maximising frequency, |W| there) per sample.
+pub fn argmax_ridge(spec: &Spectrum, wavelet: &Morlet, freqs: &[f64]) -> (Vec<usize>, Vec<f64>) {
+    let n = spec.samples;
+    let mut best = vec![0usize; n];
+    let mut peak = vec![f64::NEG_INFINITY; n];
+    let mut buf = Vec::new();
+    for (k, &f) in freqs.iter().enumerate() {
+        scale(spec, wavelet, wavelet.scale_for(f), &mut buf);
+        for t in 0..n {
+            let a = buf[t].norm();
+            if a > peak[t] {
+                peak[t] = a;
+                best[t] = k;
+            }
+        }
+    }
+    (best, peak)
+}
