@@ -102,7 +102,8 @@ pub fn write_campaign(
     std::fs::rename(&tmp, path).map_err(|e| err(e.to_string()))
 }
 
-fn tmp_path(path: &Path) -> PathBuf {
+/// Where a file is written before it is renamed into place (nothing half-written is left).
+pub fn tmp_path(path: &Path) -> PathBuf {
     let mut name = path.file_name().unwrap_or_default().to_os_string();
     name.push(".tmp");
     path.with_file_name(name)

@@ -7,6 +7,7 @@
 //! [`transform`] (Hilbert and wavelet transforms), [`ridge`], [`skeleton`] and [`track`]
 //! (instantaneous amplitude and frequency).
 
+pub mod bench;
 pub mod campaign;
 pub mod demo;
 pub mod filter;
@@ -14,6 +15,7 @@ pub mod h5util;
 pub mod ingest;
 pub mod inspect;
 pub mod model;
+pub mod report;
 pub mod ridge;
 pub mod simulate;
 pub mod skeleton;

@@ -32,6 +32,20 @@ enum Command {
     Simulate(SimulateArgs),
     /// Write the built-in demo campaign (the paper's rig plus one variant per effect) and list it.
     Demo(DemoArgs),
+    /// Instantaneous envelope, frequency and phase of one dataset, by the wavelet ridge or
+    /// the Hilbert transform; writes time, amplitude, frequency (Hz), valid (FORMATS.md §4).
+    Track(TrackArgs),
+    /// Benchmarks, each measured side by side in one run.
+    Bench(BenchArgs),
+    /// Internal: one benchmark measurement in this (child) process, printed as JSON.
+    #[command(name = "__bench-one", hide = true)]
+    BenchOne {
+        file: PathBuf,
+        #[arg(long, value_enum)]
+        variant: skelid::bench::Variant,
+        #[arg(long)]
+        scales: usize,
+    },
     /// Internal: inspect one archive in this (child) process and print JSON.
     #[command(name = "__inspect-one", hide = true)]
     InspectOne {
@@ -186,12 +200,105 @@ struct DemoArgs {
     out: PathBuf,
 }
 
+#[derive(Clone, Copy, ValueEnum)]
+enum MethodArg {
+    /// Complex-Morlet ridge and bias-corrected skeleton.
+    Wavelet,
+    /// Analytic signal by FFT (optionally low-passed with --cutoff).
+    Hilbert,
+}
+
+#[derive(Args)]
+struct TrackArgs {
+    /// Campaign archive (HDF5).
+    #[arg(value_name = "ARCHIVE")]
+    archive: PathBuf,
+    /// Dataset to track, e.g. /runs/run_001/output (a run group alone means its output).
+    #[arg(long, value_name = "PATH")]
+    dataset: String,
+    /// Estimator.
+    #[arg(long, value_enum, default_value = "wavelet")]
+    method: MethodArg,
+    /// Output file: HDF5, or CSV when the name ends in .csv.
+    #[arg(long, value_name = "FILE")]
+    out: PathBuf,
+    /// Lowest analysis frequency, Hz (default: from the spectrum and the record length).
+    #[arg(long, value_name = "HZ")]
+    fmin: Option<f64>,
+    /// Highest analysis frequency, Hz (default: from the spectrum).
+    #[arg(long, value_name = "HZ")]
+    fmax: Option<f64>,
+    /// Number of log-spaced scales between --fmin and --fmax.
+    #[arg(long, default_value_t = 64)]
+    scales: usize,
+    /// Morlet bandwidth f_b: larger is longer in time and finer in frequency.
+    #[arg(long, default_value_t = 1.0, value_name = "FB")]
+    bandwidth: f64,
+    /// Morlet centre frequency f_c.
+    #[arg(long, default_value_t = 1.0, value_name = "FC")]
+    centre: f64,
+    /// Samples whose ridge is below this multiple of the in-band noise are marked not valid.
+    #[arg(long, default_value_t = 10.0, value_name = "X")]
+    min_snr: f64,
+    /// Ridge by per-sample argmax instead of the penalised dynamic programme.
+    #[arg(long)]
+    argmax: bool,
+    /// Do not remove the window's decay/sweep bias (raw |W| and phase derivative).
+    #[arg(long)]
+    no_correction: bool,
+    /// Hilbert only: zero-phase low-pass of A and f, cut-off as a fraction of Nyquist
+    /// (the paper uses 0.0005-0.01).
+    #[arg(long, value_name = "FRACTION")]
+    cutoff: Option<f64>,
+    /// Wavelet only: a dataset of the same run whose ridge guides this one (e.g. the input).
+    #[arg(long, value_name = "PATH")]
+    reference: Option<String>,
+    #[command(flatten)]
+    ingest: IngestArgs,
+}
+
+#[derive(Args)]
+struct BenchArgs {
+    /// Our transform + ridge + skeleton against the plain full-length CWT + argmax ridge.
+    #[arg(long)]
+    transform: bool,
+    /// Record lengths as powers of two.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "14,17,20",
+        value_name = "LOG2N"
+    )]
+    log2_samples: Vec<u32>,
+    /// Scale counts.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "64,256",
+        value_name = "S"
+    )]
+    scales: Vec<usize>,
+    /// Print JSON rows instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Inspect(a) => cmd_inspect(a),
         Command::Simulate(a) => cmd_simulate(a).map(|_| ExitCode::SUCCESS),
         Command::Demo(a) => cmd_demo(a),
+        Command::Track(a) => cmd_track(a).map(|_| ExitCode::SUCCESS),
+        Command::Bench(a) => cmd_bench(a).map(|_| ExitCode::SUCCESS),
+        Command::BenchOne {
+            file,
+            variant,
+            scales,
+        } => skelid::bench::measure(&file, variant, scales).and_then(|m| {
+            println!("{}", serde_json::to_string(&m)?);
+            Ok(ExitCode::SUCCESS)
+        }),
         Command::InspectOne { file, ingest } => ingest.options().and_then(|o| {
             let report = inspect::inspect_archive(&file, &o);
             println!("{}", serde_json::to_string(&report)?);
@@ -348,4 +455,204 @@ fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
 
 fn self_exe() -> Result<PathBuf> {
     std::env::current_exe().context("cannot locate the skelid executable to isolate HDF5 reads")
+}
+
+/// Reads one dataset of an archive: the run is the dataset's parent group (or the path itself
+/// when it names a run, meaning its output).
+fn read_dataset(
+    archive: &Archive,
+    dataset: &str,
+    options: &IngestOptions,
+) -> Result<(Vec<f64>, f64)> {
+    let file = archive.file_name().to_string();
+    let dataset = format!("/{}", dataset.trim_start_matches('/'));
+    let (run_path, name) = match archive.runs.iter().find(|r| r.path == dataset) {
+        Some(_) => (dataset.clone(), options.output_name.clone()),
+        None => {
+            let (parent, name) = dataset.rsplit_once('/').unwrap_or(("", &dataset));
+            let parent = if parent.is_empty() { "/" } else { parent };
+            (parent.to_string(), name.to_string())
+        }
+    };
+    let entry = archive
+        .runs
+        .iter()
+        .find(|r| r.path == run_path)
+        .with_context(|| {
+            format!(
+                "{file}: {dataset} is not in a run group; `skelid inspect {file}` lists the runs"
+            )
+        })?;
+    let meta = entry.meta.clone()?;
+    let run = archive.load(&meta)?;
+    let x = if name == options.output_name {
+        run.output
+    } else if name == options.input_name {
+        run.input
+            .with_context(|| format!("{file}: {run_path} is a free decay without an input"))?
+    } else {
+        bail!(
+            "{file}: {dataset}: tracks are taken of a run's `{}` or `{}` dataset",
+            options.input_name,
+            options.output_name
+        );
+    };
+    Ok((x, meta.sample_rate))
+}
+
+fn cmd_track(a: TrackArgs) -> Result<()> {
+    use skelid::track::{
+        track_hilbert, track_wavelet, HilbertOptions, RidgeSearch, WaveletOptions,
+    };
+    let options = a.ingest.options()?;
+    let archive = Archive::open(&a.archive, &options)?;
+    let (x, fs) = read_dataset(&archive, &a.dataset, &options)?;
+    let track = match a.method {
+        MethodArg::Hilbert => track_hilbert(&x, fs, &HilbertOptions { cutoff: a.cutoff })?,
+        MethodArg::Wavelet => {
+            let opt = WaveletOptions {
+                wavelet: skelid::transform::Morlet {
+                    bandwidth: a.bandwidth,
+                    centre: a.centre,
+                },
+                fmin: a.fmin,
+                fmax: a.fmax,
+                scales: a.scales,
+                ridge: if a.argmax {
+                    RidgeSearch::Argmax
+                } else {
+                    RidgeSearch::Dynamic
+                },
+                min_snr: a.min_snr,
+                correct: !a.no_correction,
+                ..WaveletOptions::default()
+            };
+            let guide = match &a.reference {
+                Some(r) => {
+                    let (g, _) = read_dataset(&archive, r, &options)?;
+                    let gt = track_wavelet(&g, fs, &opt, None)
+                        .with_context(|| format!("tracking the reference {r}"))?;
+                    Some(gt.frequency)
+                }
+                None => None,
+            };
+            track_wavelet(&x, fs, &opt, guide.as_deref())?
+        }
+    };
+    skelid::report::write_track(
+        &a.out,
+        &track,
+        &format!("{}:{}", a.archive.display(), a.dataset),
+    )?;
+    let n = track.len();
+    let valid: Vec<usize> = (0..n).filter(|&i| track.valid[i]).collect();
+    let (fmin_v, fmax_v, amin, amax) = valid.iter().fold(
+        (f64::INFINITY, 0f64, f64::INFINITY, 0f64),
+        |(a0, a1, b0, b1), &i| {
+            (
+                a0.min(track.frequency[i]),
+                a1.max(track.frequency[i]),
+                b0.min(track.amplitude[i]),
+                b1.max(track.amplitude[i]),
+            )
+        },
+    );
+    println!(
+        "{} {}: {n} samples at {fs} Hz, method {}, band {:.3}-{:.3} Hz",
+        a.archive.display(),
+        a.dataset,
+        track.method.as_str(),
+        track.band.0,
+        track.band.1
+    );
+    println!(
+        "valid {:.1} % of samples; over them frequency {:.4}-{:.4} Hz, amplitude {:.4e}-{:.4e}",
+        100.0 * track.valid_fraction(),
+        fmin_v,
+        fmax_v,
+        amin,
+        amax
+    );
+    println!(
+        "offset removed {:.4e}, white-noise estimate {:.3e} per sample; wrote {}",
+        track.offset,
+        track.noise,
+        a.out.display()
+    );
+    Ok(())
+}
+
+fn cmd_bench(a: BenchArgs) -> Result<()> {
+    use skelid::bench::{write_bench_archive, Measurement, Variant};
+    if !a.transform {
+        bail!("choose a benchmark: --transform (the only one so far)");
+    }
+    let exe = std::env::current_exe().context("cannot find the skelid executable")?;
+    let dir = tempfile_dir()?;
+    if !a.json {
+        println!(
+            "transform benchmark: log sweep {:.1}-{:.1} Hz at {} Hz, HDF5 in, {} threads",
+            skelid::bench::BENCH_BAND.0,
+            skelid::bench::BENCH_BAND.1,
+            skelid::bench::BENCH_FS,
+            rayon::current_num_threads()
+        );
+        println!(
+            "{:>9} {:>7} | {:>10} {:>9} | {:>10} {:>9} | {:>7}",
+            "samples", "scales", "skelid s", "peak MiB", "naive s", "peak MiB", "speed-up"
+        );
+    }
+    for &p in &a.log2_samples {
+        let n = 1usize << p;
+        let file = dir.join(format!("bench_2e{p}.h5"));
+        write_bench_archive(&file, n)?;
+        for &s in &a.scales {
+            let run = |v: Variant| -> Result<Measurement> {
+                let name = match v {
+                    Variant::Fast => "fast",
+                    Variant::Naive => "naive",
+                };
+                let out = std::process::Command::new(&exe)
+                    .arg("__bench-one")
+                    .arg(&file)
+                    .args(["--variant", name, "--scales", &s.to_string()])
+                    .output()
+                    .context("cannot run the benchmark child process")?;
+                if !out.status.success() {
+                    bail!("{name} failed: {}", String::from_utf8_lossy(&out.stderr));
+                }
+                Ok(serde_json::from_slice(&out.stdout)?)
+            };
+            let fast = run(Variant::Fast)?;
+            let naive = run(Variant::Naive)?;
+            let ratio = naive.seconds / fast.seconds;
+            if a.json {
+                println!(
+                    "{}",
+                    serde_json::json!({"samples": n, "scales": s, "skelid": fast, "naive": naive, "speedup": ratio})
+                );
+            } else {
+                println!(
+                    "{:>9} {:>7} | {:>10.3} {:>9.1} | {:>10.3} {:>9.1} | {:>6.1}x",
+                    format!("2^{p}"),
+                    s,
+                    fast.seconds,
+                    fast.peak_mib,
+                    naive.seconds,
+                    naive.peak_mib,
+                    ratio
+                );
+            }
+        }
+        let _ = std::fs::remove_file(&file);
+    }
+    let _ = std::fs::remove_dir(&dir);
+    Ok(())
+}
+
+fn tempfile_dir() -> Result<PathBuf> {
+    let dir = std::env::temp_dir().join(format!("skelid-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)
+        .with_context(|| format!("cannot create scratch folder {}", dir.display()))?;
+    Ok(dir)
 }

@@ -48,6 +48,74 @@ pub fn dp_ridge(scores: &[f32], scales: usize, penalty: f32, max_jump: usize) ->
     path
 }
 
+/// [`dp_ridge`] without a jump limit, in O(scales) per step: the maximisation over the
+/// previous step is a quadratic-cost distance transform, done by Felzenszwalb and
+/// Huttenlocher's lower envelope of parabolas.
+pub fn dp_ridge_fast(scores: &[f32], scales: usize, penalty: f32) -> Vec<usize> {
+    assert!(scales > 0 && scores.len().is_multiple_of(scales) && penalty > 0.0);
+    let steps = scores.len() / scales;
+    if steps == 0 {
+        return Vec::new();
+    }
+    let lam = f64::from(penalty);
+    let mut acc: Vec<f64> = scores[..scales].iter().map(|&v| f64::from(v)).collect();
+    let mut back = vec![0u32; steps * scales];
+    let (mut v, mut z) = (vec![0usize; scales], vec![0f64; scales + 1]);
+    // Minimise g(k) = min_q (f(q) + λ (k − q)²) with f = −acc.
+    for j in 1..steps {
+        let f = |q: usize| -acc[q];
+        let mut top = 0usize;
+        v[0] = 0;
+        z[0] = f64::NEG_INFINITY;
+        z[1] = f64::INFINITY;
+        for q in 1..scales {
+            loop {
+                let p = v[top];
+                let s = ((f(q) + lam * (q * q) as f64) - (f(p) + lam * (p * p) as f64))
+                    / (2.0 * lam * (q as f64 - p as f64));
+                if s <= z[top] && top > 0 {
+                    top -= 1;
+                } else if s <= z[top] {
+                    // top == 0 and z[0] = −∞ cannot be beaten
+                    unreachable!();
+                } else {
+                    top += 1;
+                    v[top] = q;
+                    z[top] = s;
+                    z[top + 1] = f64::INFINITY;
+                    break;
+                }
+            }
+        }
+        let row = &scores[j * scales..(j + 1) * scales];
+        let bp = &mut back[j * scales..(j + 1) * scales];
+        let mut next = vec![0f64; scales];
+        let mut t = 0usize;
+        for k in 0..scales {
+            while z[t + 1] < k as f64 {
+                t += 1;
+            }
+            let q = v[t];
+            let d = k as f64 - q as f64;
+            next[k] = f64::from(row[k]) + acc[q] - lam * d * d;
+            bp[k] = q as u32;
+        }
+        acc = next;
+    }
+    let mut k = acc
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(b.1))
+        .map(|(i, _)| i)
+        .unwrap_or(0);
+    let mut path = vec![0usize; steps];
+    for j in (0..steps).rev() {
+        path[j] = k;
+        k = back[j * scales + k] as usize;
+    }
+    path
+}
+
 /// The per-step argmax over scales (the usual "ridge" of other tools).
 pub fn argmax_ridge(scores: &[f32], scales: usize) -> Vec<usize> {
     scores
@@ -124,6 +192,33 @@ mod tests {
         assert!(path.iter().all(|&k| k == 10), "{path:?}");
         let naive = argmax_ridge(&s, scales);
         assert_eq!(naive[14], 40);
+    }
+
+    #[test]
+    fn envelope_dp_equals_the_direct_one() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+        for _ in 0..20 {
+            let (scales, steps) = (37, 60);
+            let s: Vec<f32> = (0..scales * steps)
+                .map(|_| rng.random_range(-3.0..3.0))
+                .collect();
+            let a = dp_ridge(&s, scales, 0.07, scales);
+            let b = dp_ridge_fast(&s, scales, 0.07);
+            let score = |p: &[usize]| {
+                (0..steps)
+                    .map(|j| {
+                        s[j * scales + p[j]]
+                            - if j > 0 {
+                                0.07 * (p[j].abs_diff(p[j - 1]).pow(2)) as f32
+                            } else {
+                                0.0
+                            }
+                    })
+                    .sum::<f32>()
+            };
+            assert!((score(&a) - score(&b)).abs() < 1e-3);
+        }
     }
 
     #[test]

@@ -22,10 +22,15 @@ use rayon::prelude::*;
 use thiserror::Error;
 
 use crate::filter::{local_line_weighted, local_slope, lowpass_zero_phase};
-use crate::ridge::{argmax_ridge, dp_ridge};
+use crate::ridge::{argmax_ridge, dp_ridge_fast};
 use crate::skeleton::{self, Observation, ScaleValue};
 use crate::transform::band::{interpolate, Derivative, ScalePlan};
 use crate::transform::{hilbert, log_frequencies, Morlet, Spectrum};
+
+/// Decimated rate over pass band for the coarse ridge grid (|W| only, near the band centre).
+const PASS1_OVERSAMPLE: f64 = 1.0;
+/// Decimated rate over pass band for the values interpolated to every sample.
+const PASS2_OVERSAMPLE: f64 = 1.5;
 
 /// Shortest record either method accepts.
 pub const MIN_SAMPLES: usize = 64;
@@ -436,16 +441,18 @@ pub fn track_wavelet(
     // Pass 1: coarse log-magnitude grid and the noise floor.
     let plans: Vec<ScalePlan> = freqs
         .iter()
-        .map(|&f| ScalePlan::new(&spec, &wl, wl.scale_for(f), 2.0))
+        .map(|&f| ScalePlan::new(&spec, &wl, wl.scale_for(f), PASS1_OVERSAMPLE))
         .collect();
     let sigma_t_min = wl.time_sigma(wl.scale_for(fmax)) * fs;
     let h = ((sigma_t_min / 2.0).floor() as usize)
         .max(s_count.div_ceil(4))
         .max(1);
     let steps = (n - 1) / h + 1;
+    let gains: Vec<f64> = plans.par_iter().map(|p| p.noise_gain(&spec, &wl)).collect();
     let columns: Vec<(Vec<f32>, Option<f64>)> = plans
         .par_iter()
-        .map_init(Vec::new, |buf, plan| {
+        .zip(gains.par_iter())
+        .map_init(Vec::new, |buf, (plan, &gain)| {
             let dec = plan.evaluate(&spec, &wl, Derivative::Zero, buf);
             let mut col: Vec<f32> = (0..steps)
                 .map(|j| dec.at((j * h) as f64).norm().max(1e-300).ln() as f32)
@@ -458,7 +465,7 @@ pub fn track_wavelet(
             let noise = if inner.len() >= 8 {
                 let mid = inner.len() / 2;
                 let med = *inner.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
-                Some(med / std::f64::consts::LN_2 / (n as f64 * plan.noise_gain(&spec, &wl)))
+                Some(med / std::f64::consts::LN_2 / (n as f64 * gain))
             } else {
                 None
             };
@@ -492,9 +499,9 @@ pub fn track_wavelet(
     } else {
         0.0
     };
-    let noise_w: Vec<f64> = plans
+    let noise_w: Vec<f64> = gains
         .iter()
-        .map(|p| (noise_var * n as f64 * p.noise_gain(&spec, &wl)).sqrt())
+        .map(|g| (noise_var * n as f64 * g).sqrt())
         .collect();
     let mut scores = vec![0f32; steps * s_count];
     for (k, (col, _)) in columns.iter().enumerate() {
@@ -521,15 +528,7 @@ pub fn track_wavelet(
         }
     }
     let path = match opt.ridge {
-        RidgeSearch::Dynamic => {
-            let max_jump = ((2.0 / cell).ceil() as usize).max(2);
-            dp_ridge(
-                &scores,
-                s_count,
-                (opt.penalty * cell * cell) as f32,
-                max_jump,
-            )
-        }
+        RidgeSearch::Dynamic => dp_ridge_fast(&scores, s_count, (opt.penalty * cell * cell) as f32),
         RidgeSearch::Argmax => argmax_ridge(&scores, s_count),
     };
     drop(scores);
@@ -560,6 +559,7 @@ pub fn track_wavelet(
         .into_par_iter()
         .zip(wanted.into_par_iter())
         .map_init(Vec::new, |buf, (plan, runs)| {
+            let plan = ScalePlan::new(&spec, &wl, plan.scale, PASS2_OVERSAMPLE);
             let step = plan.step(&spec);
             if runs.is_empty() {
                 return ScaleData {
@@ -568,9 +568,9 @@ pub fn track_wavelet(
                     segments: Vec::new(),
                 };
             }
-            let w = plan.evaluate(&spec, &wl, Derivative::Zero, buf).values;
-            let d1 = plan.evaluate(&spec, &wl, Derivative::First, buf).values;
-            let d2 = plan.evaluate(&spec, &wl, Derivative::Second, buf).values;
+            let [w, d1, d2] = plan
+                .evaluate_with_derivatives(&spec, &wl, buf)
+                .map(|d| d.values);
             let m = w.len() as isize;
             let take = |v: &[Complex64], a: isize, b: isize| -> Vec<Complex64> {
                 (a..=b).map(|i| v[i.rem_euclid(m) as usize]).collect()

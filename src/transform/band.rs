@@ -12,7 +12,7 @@ use std::f64::consts::PI;
 
 use num_complex::Complex64;
 
-use super::{complex_plan, fast_len, Morlet, Spectrum, SPECTRUM_TOLERANCE};
+use super::{complex_plan, plan_len, Morlet, Spectrum, SPECTRUM_TOLERANCE};
 
 /// Which time derivative of W a call evaluates.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -40,19 +40,34 @@ pub struct ScalePlan {
 }
 
 impl ScalePlan {
-    /// Plans scale `s` for `spec`, with the decimated rate `oversample` × the pass band.
+    /// Plans scale `s` for `spec`, with the decimated rate `oversample` × the pass band,
+    /// demodulated by the wavelet's centre frequency (baseband content near zero).
     pub fn new(spec: &Spectrum, wavelet: &Morlet, s: f64, oversample: f64) -> ScalePlan {
+        Self::build(spec, wavelet, s, oversample, false)
+    }
+
+    /// Like [`ScalePlan::new`] but demodulated by the middle of the pass band, which needs
+    /// the shortest inverse FFT; values are then least accurate between grid points.
+    pub fn compact(spec: &Spectrum, wavelet: &Morlet, s: f64, oversample: f64) -> ScalePlan {
+        Self::build(spec, wavelet, s, oversample, true)
+    }
+
+    fn build(spec: &Spectrum, wavelet: &Morlet, s: f64, oversample: f64, mid: bool) -> ScalePlan {
         let l = spec.padded_len;
         let df = spec.sample_rate / l as f64;
         let (f_lo, f_hi) = wavelet.band(s, SPECTRUM_TOLERANCE);
         let lo = ((f_lo / df).ceil() as usize).max(1);
         let hi = ((f_hi / df).floor() as usize).min(l / 2);
         let freq = wavelet.centre / s;
-        let centre_bin = ((freq / df).round() as usize).clamp(lo, hi.max(lo));
+        let centre_bin = if mid {
+            (lo + hi.max(lo)) / 2
+        } else {
+            ((freq / df).round() as usize).clamp(lo, hi.max(lo))
+        };
         let width = if hi >= lo { hi - lo + 1 } else { 0 };
         let reach = (centre_bin - lo.min(centre_bin)).max(hi.saturating_sub(centre_bin));
         let need = ((width as f64 * oversample).ceil() as usize).max(2 * reach + 2);
-        let len = fast_len(need.max(16)).min(l);
+        let len = plan_len(need.max(16)).min(l);
         ScalePlan {
             scale: s,
             freq,
@@ -93,6 +108,49 @@ impl ScalePlan {
                 g * g
             })
             .sum()
+    }
+
+    /// Baseband values of W, W' and W'' at the decimated times (the wavelet's spectrum
+    /// evaluated once for the three).
+    pub fn evaluate_with_derivatives(
+        &self,
+        spec: &Spectrum,
+        wavelet: &Morlet,
+        buf: &mut Vec<Complex64>,
+    ) -> [Decimated; 3] {
+        let norm = 2.0 / spec.padded_len as f64;
+        let weighted: Vec<(usize, f64, Complex64)> = (self.lo..=self.hi.min(spec.bins.len() - 1))
+            .map(|m| {
+                let f = spec.bin_freq(m);
+                (
+                    m,
+                    f,
+                    spec.bins[m] * (norm * wavelet.spectrum(self.scale, f)),
+                )
+            })
+            .collect();
+        let m_len = self.len;
+        let plan = complex_plan(m_len, true);
+        let mut run = |order: i32| {
+            buf.clear();
+            buf.resize(m_len, Complex64::new(0.0, 0.0));
+            for &(m, f, v) in &weighted {
+                let v = match order {
+                    0 => v,
+                    1 => v * Complex64::new(0.0, 2.0 * PI * f),
+                    _ => v * (-(2.0 * PI * f).powi(2)),
+                };
+                let idx =
+                    (m as isize - self.centre_bin as isize).rem_euclid(m_len as isize) as usize;
+                buf[idx] += v;
+            }
+            plan.process(buf);
+            Decimated {
+                step: self.step(spec),
+                values: buf.clone(),
+            }
+        };
+        [run(0), run(1), run(2)]
     }
 
     /// Baseband values of W (or a time derivative) at the decimated times t_n = n L/M.
@@ -158,4 +216,69 @@ pub fn interpolate(v: &[Complex64], x: f64) -> Complex64 {
     let w2 = -(u + 1.0) * u * (u - 2.0) / 2.0;
     let w3 = (u + 1.0) * u * (u - 1.0) / 6.0;
     at(-1) * w0 + at(0) * w1 + at(1) * w2 + at(2) * w3
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::transform::naive;
+
+    /// W at a fractional padded time by the defining sum over every positive bin.
+    fn direct(spec: &Spectrum, w: &Morlet, s: f64, t: f64) -> Complex64 {
+        let l = spec.padded_len as f64;
+        spec.bins
+            .iter()
+            .enumerate()
+            .skip(1)
+            .map(|(m, b)| {
+                let g = 2.0 * w.spectrum(s, spec.bin_freq(m)) / l;
+                b * g * Complex64::from_polar(1.0, 2.0 * PI * m as f64 * t / l)
+            })
+            .sum()
+    }
+
+    #[test]
+    fn band_limited_values_equal_the_full_transform() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+        let fs = 200.0;
+        let x: Vec<f64> = (0..3001).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let spec = Spectrum::new(&x, fs, 400);
+        let scale_of = |peak: f64| {
+            spec.bins
+                .iter()
+                .skip(1)
+                .map(|b| b.norm())
+                .fold(peak, f64::max)
+        };
+        let big = scale_of(0.0);
+        for w in [
+            Morlet::default(),
+            Morlet {
+                bandwidth: 6.0,
+                centre: 1.5,
+            },
+        ] {
+            for f in [0.7, 3.0, 17.0, 60.0] {
+                let s = w.scale_for(f);
+                let plan = ScalePlan::new(&spec, &w, s, 2.0);
+                let mut buf = Vec::new();
+                let dec = plan.evaluate(&spec, &w, Derivative::Zero, &mut buf);
+                let mut full = Vec::new();
+                naive::scale(&spec, &w, s, &mut full);
+                for n in (0..plan.len).step_by((plan.len / 17).max(1)) {
+                    let t = n as f64 * dec.step;
+                    let ours = dec.values[n] * Complex64::from_polar(1.0, plan.carrier(&spec, t));
+                    let truth = direct(&spec, &w, s, t);
+                    assert!(
+                        (ours - truth).norm() < 1e-9 * big,
+                        "f={f} n={n}: {ours} vs {truth}"
+                    );
+                    if t.fract() == 0.0 {
+                        assert!((full[t as usize] - truth).norm() < 1e-9 * big);
+                    }
+                }
+            }
+        }
+    }
 }

@@ -216,6 +216,17 @@ pub fn fast_len(n: usize) -> usize {
     }
 }
 
+/// Smallest length ≥ `n` of the form 2^k or 3·2^k: few distinct lengths, so that the plans
+/// of hundreds of scales come from a handful of cached ones.
+pub fn plan_len(n: usize) -> usize {
+    let p = n.max(2).next_power_of_two();
+    if p.is_multiple_of(4) && 3 * (p / 4) >= n {
+        3 * (p / 4)
+    } else {
+        p
+    }
+}
+
 /// A complex FFT plan of length `len`, shared by all threads (plans are cached).
 pub fn complex_plan(len: usize, inverse: bool) -> Arc<dyn Fft<f64>> {
     static PLANNER: OnceLock<Mutex<FftPlanner<f64>>> = OnceLock::new();

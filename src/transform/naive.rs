@@ -37,3 +37,39 @@ pub fn argmax_ridge(spec: &Spectrum, wavelet: &Morlet, freqs: &[f64]) -> (Vec<us
     }
     (best, peak)
 }
+
+/// [`argmax_ridge`] with the scales shared among threads (each thread keeps its own O(N)
+/// maximum, merged at the end) — the fair multi-core baseline for benchmarks.
+pub fn argmax_ridge_parallel(
+    spec: &Spectrum,
+    wavelet: &Morlet,
+    freqs: &[f64],
+) -> (Vec<usize>, Vec<f64>) {
+    use rayon::prelude::*;
+    let n = spec.samples;
+    let empty = || (vec![0usize; n], vec![f64::NEG_INFINITY; n], Vec::new());
+    let (best, peak, _) = freqs
+        .par_iter()
+        .enumerate()
+        .fold(empty, |(mut best, mut peak, mut buf), (k, &f)| {
+            scale(spec, wavelet, wavelet.scale_for(f), &mut buf);
+            for t in 0..n {
+                let a = buf[t].norm();
+                if a > peak[t] {
+                    peak[t] = a;
+                    best[t] = k;
+                }
+            }
+            (best, peak, buf)
+        })
+        .reduce(empty, |(mut b1, mut p1, _), (b2, p2, _)| {
+            for t in 0..n {
+                if p2[t] > p1[t] || (p2[t] == p1[t] && b2[t] < b1[t]) {
+                    p1[t] = p2[t];
+                    b1[t] = b2[t];
+                }
+            }
+            (b1, p1, Vec::new())
+        });
+    (best, peak)
+}
