@@ -27,7 +27,7 @@ fn transform(c: &mut Criterion) {
                 let freqs = log_frequencies(BENCH_BAND.0, BENCH_BAND.1, scales);
                 b.iter(|| {
                     let spec = Spectrum::new(x, BENCH_FS, 8600);
-                    naive::argmax_ridge_parallel(&spec, &wl, &freqs)
+                    naive::argmax_ridge(&spec, &wl, &freqs)
                 })
             });
         }

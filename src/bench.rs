@@ -12,9 +12,9 @@ use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 
-use crate::campaign::{write_campaign, Attr, RunData};
-use crate::ingest::{Archive, IngestOptions, Quantity, RunKind};
-use crate::track::{track_wavelet, WaveletOptions};
+use crate::campaign::{write_campaign, Attr, RunData, WriteError};
+use crate::ingest::{Archive, IngestError, IngestOptions, Quantity, RunKind};
+use crate::track::{track_wavelet, TrackError, WaveletOptions};
 use crate::transform::{log_frequencies, naive, Morlet, Spectrum};
 
 /// Sample rate of the benchmark signal (Hz).
@@ -38,8 +38,22 @@ pub fn bench_signal(n: usize) -> Vec<f64> {
         .collect()
 }
 
+/// Why a benchmark measurement failed.
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    /// Writing the benchmark archive.
+    #[error(transparent)]
+    Write(#[from] WriteError),
+    /// Reading it back.
+    #[error(transparent)]
+    Ingest(#[from] IngestError),
+    /// Tracking it.
+    #[error(transparent)]
+    Track(#[from] TrackError),
+}
+
 /// Writes the benchmark signal as a one-run free-decay campaign.
-pub fn write_bench_archive(path: &Path, n: usize) -> anyhow::Result<()> {
+pub fn write_bench_archive(path: &Path, n: usize) -> Result<(), BenchError> {
     let run = RunData {
         path: "/bench/sweep".into(),
         sample_rate: BENCH_FS,
@@ -75,10 +89,10 @@ pub struct Measurement {
 }
 
 /// Runs one variant on the archive at `path` with `scales` scales (in this process).
-pub fn measure(path: &Path, variant: Variant, scales: usize) -> anyhow::Result<Measurement> {
+pub fn measure(path: &Path, variant: Variant, scales: usize) -> Result<Measurement, BenchError> {
     let start = Instant::now();
     let archive = Archive::open(path, &IngestOptions::default())?;
-    let meta = archive.runs[0].meta.clone()?;
+    let meta = archive.runs[0].meta.clone()?; // a written archive has its one run
     let run = archive.load(&meta)?;
     let x = run.output;
     let valid = match variant {
@@ -97,7 +111,7 @@ pub fn measure(path: &Path, variant: Variant, scales: usize) -> anyhow::Result<M
             let pad = (wl.support(wl.scale_for(BENCH_BAND.0), 1e-8) * BENCH_FS).ceil() as usize;
             let spec = Spectrum::new(&x, meta.sample_rate, pad);
             let freqs = log_frequencies(BENCH_BAND.0, BENCH_BAND.1, scales);
-            let (best, _) = naive::argmax_ridge_parallel(&spec, &wl, &freqs);
+            let (best, _) = naive::argmax_ridge(&spec, &wl, &freqs);
             std::hint::black_box(&best);
             1.0
         }

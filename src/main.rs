@@ -295,10 +295,12 @@ fn main() -> ExitCode {
             file,
             variant,
             scales,
-        } => skelid::bench::measure(&file, variant, scales).and_then(|m| {
-            println!("{}", serde_json::to_string(&m)?);
-            Ok(ExitCode::SUCCESS)
-        }),
+        } => skelid::bench::measure(&file, variant, scales)
+            .map_err(anyhow::Error::from)
+            .and_then(|m| {
+                println!("{}", serde_json::to_string(&m)?);
+                Ok(ExitCode::SUCCESS)
+            }),
         Command::InspectOne { file, ingest } => ingest.options().and_then(|o| {
             let report = inspect::inspect_archive(&file, &o);
             println!("{}", serde_json::to_string(&report)?);

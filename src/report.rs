@@ -1,5 +1,6 @@
 //! Output files for people and other programs: tracks (FORMATS.md §4).
 
+use std::borrow::Cow;
 use std::io::Write;
 use std::path::Path;
 
@@ -45,23 +46,25 @@ pub fn write_track(path: &Path, track: &Track, source: &str) -> Result<(), Repor
     std::fs::rename(&tmp, path).map_err(|e| err(e.to_string()))
 }
 
-fn columns(track: &Track) -> Vec<(&'static str, Vec<f64>)> {
+fn columns(track: &Track) -> Vec<(&'static str, Cow<'_, [f64]>)> {
     vec![
-        ("time", track.time()),
-        ("amplitude", track.amplitude.clone()),
-        ("frequency", track.frequency.clone()),
+        ("time", Cow::Owned(track.time())),
+        ("amplitude", Cow::Borrowed(&track.amplitude)),
+        ("frequency", Cow::Borrowed(&track.frequency)),
         (
             "valid",
-            track
-                .valid
-                .iter()
-                .map(|&v| f64::from(u8::from(v)))
-                .collect(),
+            Cow::Owned(
+                track
+                    .valid
+                    .iter()
+                    .map(|&v| f64::from(u8::from(v)))
+                    .collect(),
+            ),
         ),
-        ("phase", track.phase.clone()),
-        ("d_amplitude", track.d_amplitude.clone()),
-        ("d2_amplitude", track.d2_amplitude.clone()),
-        ("d_frequency", track.d_frequency.clone()),
+        ("phase", Cow::Borrowed(&track.phase)),
+        ("d_amplitude", Cow::Borrowed(&track.d_amplitude)),
+        ("d2_amplitude", Cow::Borrowed(&track.d2_amplitude)),
+        ("d_frequency", Cow::Borrowed(&track.d_frequency)),
     ]
 }
 

@@ -2,56 +2,12 @@
 //! and the three-point parabola that refines a ridge between grid scales.
 
 /// Most-likely ridge through `scores` (time-major, `scales` values per time step, e.g.
-/// log|W|): maximises Σ score(k_j, j) − `penalty` Σ (k_j − k_{j−1})², with at most
-/// `max_jump` scale indices between consecutive steps. Returns one scale index per step.
-pub fn dp_ridge(scores: &[f32], scales: usize, penalty: f32, max_jump: usize) -> Vec<usize> {
-    assert!(scales > 0 && scores.len().is_multiple_of(scales));
-    let steps = scores.len() / scales;
-    if steps == 0 {
-        return Vec::new();
-    }
-    let mut acc: Vec<f32> = scores[..scales].to_vec();
-    let mut next = vec![0f32; scales];
-    let mut back = vec![0u32; steps * scales];
-    let jump_cost: Vec<f32> = (0..=max_jump).map(|d| penalty * (d * d) as f32).collect();
-    for j in 1..steps {
-        let row = &scores[j * scales..(j + 1) * scales];
-        let bp = &mut back[j * scales..(j + 1) * scales];
-        for k in 0..scales {
-            let lo = k.saturating_sub(max_jump);
-            let hi = (k + max_jump).min(scales - 1);
-            let mut best = f32::NEG_INFINITY;
-            let mut arg = k;
-            for (kp, &a) in acc.iter().enumerate().take(hi + 1).skip(lo) {
-                let v = a - jump_cost[k.abs_diff(kp)];
-                if v > best {
-                    best = v;
-                    arg = kp;
-                }
-            }
-            next[k] = row[k] + best;
-            bp[k] = arg as u32;
-        }
-        std::mem::swap(&mut acc, &mut next);
-    }
-    let mut k = acc
-        .iter()
-        .enumerate()
-        .max_by(|a, b| a.1.total_cmp(b.1))
-        .map(|(i, _)| i)
-        .unwrap_or(0);
-    let mut path = vec![0usize; steps];
-    for j in (0..steps).rev() {
-        path[j] = k;
-        k = back[j * scales + k] as usize;
-    }
-    path
-}
-
-/// [`dp_ridge`] without a jump limit, in O(scales) per step: the maximisation over the
-/// previous step is a quadratic-cost distance transform, done by Felzenszwalb and
-/// Huttenlocher's lower envelope of parabolas.
-pub fn dp_ridge_fast(scores: &[f32], scales: usize, penalty: f32) -> Vec<usize> {
+/// log|W|): maximises Σ score(k_j, j) − `penalty` Σ (k_j − k_{j−1})². Returns one scale
+/// index per step.
+///
+/// The maximisation over the previous step is a quadratic-cost distance transform, done in
+/// O(scales) per step with Felzenszwalb and Huttenlocher's lower envelope of parabolas.
+pub fn dp_ridge(scores: &[f32], scales: usize, penalty: f32) -> Vec<usize> {
     assert!(scales > 0 && scores.len().is_multiple_of(scales) && penalty > 0.0);
     let steps = scores.len() / scales;
     if steps == 0 {
@@ -59,37 +15,34 @@ pub fn dp_ridge_fast(scores: &[f32], scales: usize, penalty: f32) -> Vec<usize> 
     }
     let lam = f64::from(penalty);
     let mut acc: Vec<f64> = scores[..scales].iter().map(|&v| f64::from(v)).collect();
+    let mut next = vec![0f64; scales];
     let mut back = vec![0u32; steps * scales];
+    // v: parabola vertices of the lower envelope of −acc(q) + λ(k − q)²; z: their bounds.
     let (mut v, mut z) = (vec![0usize; scales], vec![0f64; scales + 1]);
-    // Minimise g(k) = min_q (f(q) + λ (k − q)²) with f = −acc.
     for j in 1..steps {
-        let f = |q: usize| -acc[q];
+        let f = |q: usize| -acc[q] + lam * (q * q) as f64;
         let mut top = 0usize;
         v[0] = 0;
         z[0] = f64::NEG_INFINITY;
         z[1] = f64::INFINITY;
         for q in 1..scales {
+            let mut s;
             loop {
                 let p = v[top];
-                let s = ((f(q) + lam * (q * q) as f64) - (f(p) + lam * (p * p) as f64))
-                    / (2.0 * lam * (q as f64 - p as f64));
-                if s <= z[top] && top > 0 {
-                    top -= 1;
-                } else if s <= z[top] {
-                    // top == 0 and z[0] = −∞ cannot be beaten
-                    unreachable!();
-                } else {
-                    top += 1;
-                    v[top] = q;
-                    z[top] = s;
-                    z[top + 1] = f64::INFINITY;
+                s = (f(q) - f(p)) / (2.0 * lam * (q - p) as f64);
+                // z[0] = −∞, so the loop ends at the latest with top = 0.
+                if s > z[top] {
                     break;
                 }
+                top -= 1;
             }
+            top += 1;
+            v[top] = q;
+            z[top] = s;
+            z[top + 1] = f64::INFINITY;
         }
         let row = &scores[j * scales..(j + 1) * scales];
         let bp = &mut back[j * scales..(j + 1) * scales];
-        let mut next = vec![0f64; scales];
         let mut t = 0usize;
         for k in 0..scales {
             while z[t + 1] < k as f64 {
@@ -100,13 +53,16 @@ pub fn dp_ridge_fast(scores: &[f32], scales: usize, penalty: f32) -> Vec<usize> 
             next[k] = f64::from(row[k]) + acc[q] - lam * d * d;
             bp[k] = q as u32;
         }
-        acc = next;
+        std::mem::swap(&mut acc, &mut next);
     }
-    let mut k = acc
-        .iter()
-        .enumerate()
-        .max_by(|a, b| a.1.total_cmp(b.1))
-        .map(|(i, _)| i)
+    backtrack(&acc, &back, scales)
+}
+
+/// Follows the back-pointers from the best final score.
+fn backtrack<T: PartialOrd + Copy>(last: &[T], back: &[u32], scales: usize) -> Vec<usize> {
+    let steps = back.len() / scales;
+    let mut k = (0..last.len())
+        .reduce(|a, b| if last[b] > last[a] { b } else { a })
         .unwrap_or(0);
     let mut path = vec![0usize; steps];
     for j in (0..steps).rev() {
@@ -162,6 +118,24 @@ where
 mod tests {
     use super::*;
 
+    /// The direct O(scales²) programme, as the reference.
+    fn direct_dp(scores: &[f32], scales: usize, penalty: f32) -> Vec<usize> {
+        let steps = scores.len() / scales;
+        let mut acc: Vec<f32> = scores[..scales].to_vec();
+        let mut back = vec![0u32; steps * scales];
+        for j in 1..steps {
+            let prev = acc.clone();
+            for k in 0..scales {
+                let (arg, best) = (0..scales)
+                    .map(|q| (q, prev[q] - penalty * (k.abs_diff(q).pow(2)) as f32))
+                    .fold((0, f32::NEG_INFINITY), |a, b| if b.1 > a.1 { b } else { a });
+                acc[k] = scores[j * scales + k] + best;
+                back[j * scales + k] = arg as u32;
+            }
+        }
+        backtrack(&acc, &back, scales)
+    }
+
     #[test]
     fn parabola_is_exact_for_a_parabola() {
         let f = |x: f64| -3.0 * (x - 0.37).powi(2) + 2.0;
@@ -188,7 +162,7 @@ mod tests {
         for j in [14, 15] {
             s[j * scales + 40] = 2.0;
         }
-        let path = dp_ridge(&s, scales, 0.05, 40);
+        let path = dp_ridge(&s, scales, 0.05);
         assert!(path.iter().all(|&k| k == 10), "{path:?}");
         let naive = argmax_ridge(&s, scales);
         assert_eq!(naive[14], 40);
@@ -203,8 +177,8 @@ mod tests {
             let s: Vec<f32> = (0..scales * steps)
                 .map(|_| rng.random_range(-3.0..3.0))
                 .collect();
-            let a = dp_ridge(&s, scales, 0.07, scales);
-            let b = dp_ridge_fast(&s, scales, 0.07);
+            let a = direct_dp(&s, scales, 0.07);
+            let b = dp_ridge(&s, scales, 0.07);
             let score = |p: &[usize]| {
                 (0..steps)
                     .map(|j| {
@@ -231,7 +205,7 @@ mod tests {
                 .map(|_| rng.random_range(-3.0..3.0))
                 .collect();
             let pen = 0.3f32;
-            let path = dp_ridge(&s, scales, pen, scales);
+            let path = dp_ridge(&s, scales, pen);
             let score = |p: &[usize]| {
                 let mut v = 0f32;
                 for j in 0..steps {

@@ -22,9 +22,9 @@ use rayon::prelude::*;
 use thiserror::Error;
 
 use crate::filter::{local_line_weighted, local_slope, lowpass_zero_phase};
-use crate::ridge::{argmax_ridge, dp_ridge_fast};
+use crate::ridge::{argmax_ridge, dp_ridge};
 use crate::skeleton::{self, Observation, ScaleValue};
-use crate::transform::band::{interpolate, Derivative, ScalePlan};
+use crate::transform::band::{interpolate, ScalePlan};
 use crate::transform::{hilbert, log_frequencies, Morlet, Spectrum};
 
 /// Decimated rate over pass band for the coarse ridge grid (|W| only, near the band centre).
@@ -383,12 +383,6 @@ impl ScaleData {
             d2: w2 / w - d1 * d1,
         })
     }
-
-    fn magnitude(&self, n: usize) -> f64 {
-        self.segment(n)
-            .map(|seg| interpolate(&seg.w, n as f64 / self.step - seg.first as f64).norm())
-            .unwrap_or(0.0)
-    }
 }
 
 /// Envelope, frequency and derivatives along the complex-Morlet ridge of `x`.
@@ -453,7 +447,7 @@ pub fn track_wavelet(
         .par_iter()
         .zip(gains.par_iter())
         .map_init(Vec::new, |buf, (plan, &gain)| {
-            let dec = plan.evaluate(&spec, &wl, Derivative::Zero, buf);
+            let dec = plan.evaluate(&spec, &wl, buf);
             let mut col: Vec<f32> = (0..steps)
                 .map(|j| dec.at((j * h) as f64).norm().max(1e-300).ln() as f32)
                 .collect();
@@ -528,7 +522,7 @@ pub fn track_wavelet(
         }
     }
     let path = match opt.ridge {
-        RidgeSearch::Dynamic => dp_ridge_fast(&scores, s_count, (opt.penalty * cell * cell) as f32),
+        RidgeSearch::Dynamic => dp_ridge(&scores, s_count, (opt.penalty * cell * cell) as f32),
         RidgeSearch::Argmax => argmax_ridge(&scores, s_count),
     };
     drop(scores);
@@ -540,14 +534,12 @@ pub fn track_wavelet(
         (a + u * (b - a)).round() as usize
     };
 
-    // The parabola's three scales are about one resolution cell apart: adjacent scales of a
-    // dense grid differ too little in |W| for a noisy parabola to be well conditioned.
-    let d = 1;
-    // Pass 2: W, W', W'' for the scales within ±(d+1) of the ridge, kept where needed.
+    // Pass 2: W, W', W'' for the scales within ±2 of the ridge (the best of its three
+    // neighbours, and that one's neighbours for the parabola), kept where needed.
     let mut wanted: Vec<Vec<(usize, usize)>> = vec![Vec::new(); s_count];
     for i in 0..n {
-        let c = ridge_at(i).clamp(d, s_count - 1 - d);
-        let (lo, hi) = (c.saturating_sub(d + 1), (c + d + 1).min(s_count - 1));
+        let c = ridge_at(i).clamp(1, s_count - 2);
+        let (lo, hi) = (c.saturating_sub(2), (c + 2).min(s_count - 1));
         for runs in &mut wanted[lo..=hi] {
             match runs.last_mut() {
                 Some(r) if r.1 + 1 == i => r.1 = i,
@@ -597,29 +589,33 @@ pub fn track_wavelet(
         })
         .collect();
 
-    // Pass 3: per-sample three-scale estimate.
+    // Pass 3: per-sample three-scale estimate around the largest of the ridge's neighbours.
     let per_sample: Vec<(Observation, usize, bool)> = (0..n)
         .into_par_iter()
         .map(|i| {
-            let c = ridge_at(i).clamp(d, s_count - 1 - d);
-            let mut best = c;
-            let mut best_mag = data[c].magnitude(i);
-            for k in [c - 1, c + 1] {
-                if (d..s_count - d).contains(&k) {
-                    let m = data[k].magnitude(i);
-                    if m > best_mag {
-                        best_mag = m;
-                        best = k;
-                    }
+            let c = ridge_at(i).clamp(1, s_count - 2);
+            let at = |k: usize| data[k].value(&spec, i);
+            let near =
+                [c - 1, c, c + 1].map(|k| (k >= 1 && k + 1 < s_count).then(|| at(k)).flatten());
+            let best = near
+                .iter()
+                .enumerate()
+                .filter_map(|(p, v)| v.map(|v| (c - 1 + p, v.ln_amp)))
+                .max_by(|a, b| a.1.total_cmp(&b.1))
+                .map_or(c, |(k, _)| k);
+            // The triple reuses the values already interpolated.
+            let pick = |k: usize| {
+                let p = k as isize - (c as isize - 1);
+                if (0..3).contains(&p) {
+                    near[p as usize]
+                } else {
+                    at(k)
                 }
-            }
-            let triple = [best - d, best, best + d];
-            let vals = triple.map(|k| data[k].value(&spec, i));
-            match vals {
+            };
+            match [pick(best - 1), pick(best), pick(best + 1)] {
                 [Some(a), Some(b), Some(c3)] => {
                     let o = skeleton::estimate([a, b, c3]);
-                    let interior = best >= d && best + d < s_count;
-                    (o, best, interior && o.peaked)
+                    (o, best, o.peaked)
                 }
                 _ => (
                     Observation {
@@ -659,7 +655,7 @@ pub fn track_wavelet(
             if !ok {
                 return None;
             }
-            let scales = [k - d, k, k + d].map(|q| wl.scale_for(freqs[q]));
+            let scales = [k - 1, k, k + 1].map(|q| wl.scale_for(freqs[q]));
             let st = wl.time_sigma(o.scale);
             // A steady tone is estimated exactly; skip the solve where the model is that close.
             if (o.decay() * st).abs() < 1e-4 && (o.sweep() * st * st).abs() < 1e-4 {
@@ -677,48 +673,33 @@ pub fn track_wavelet(
         .collect();
 
     // Interpolate the corrections; a failed solve invalidates the samples around it.
-    let mut fix = vec![[0.0f64; 5]; n];
+    let fix: Vec<Vec<f64>> = (0..5)
+        .map(|c| {
+            let v: Vec<f64> = fixes.iter().map(|f| f.map_or(0.0, |f| f[c])).collect();
+            spread(&coarse, &v, n)
+        })
+        .collect();
     let mut fix_ok = vec![true; n];
-    for w2 in 0..coarse.len().saturating_sub(1) {
-        let (a, b) = (coarse[w2], coarse[w2 + 1]);
-        let (fa, fb) = (fixes[w2], fixes[w2 + 1]);
-        for i in a..=b {
-            let u = if b > a {
-                (i - a) as f64 / (b - a) as f64
-            } else {
-                0.0
-            };
-            match (fa, fb) {
-                (Some(p), Some(q)) => {
-                    for c in 0..5 {
-                        fix[i][c] = p[c] + u * (q[c] - p[c]);
-                    }
-                }
-                _ => fix_ok[i] = false,
-            }
+    for (w, f) in fixes.iter().enumerate() {
+        if f.is_none() {
+            let a = coarse[w.saturating_sub(1)];
+            let b = coarse.get(w + 1).copied().unwrap_or(n - 1);
+            fix_ok[a..=b].iter_mut().for_each(|v| *v = false);
         }
-    }
-    if coarse.len() == 1 {
-        fix_ok[0] = fixes[0].is_some();
-        fix[0] = fixes[0].unwrap_or([0.0; 5]);
     }
 
     // The sweep rate as the frequency track's own slope over ±σ_t: where the window saw a
     // signal the local model cannot describe, it disagrees with the model's β.
     let t_coarse: Vec<f64> = coarse.iter().map(|&i| i as f64 / fs).collect();
+    let half: Vec<f64> = coarse
+        .iter()
+        .map(|&i| wl.time_sigma(per_sample[i].0.scale))
+        .collect();
     let f_coarse: Vec<f64> = coarse
         .iter()
-        .map(|&i| per_sample[i].0.freq() + fix[i][3])
+        .map(|&i| per_sample[i].0.freq() + fix[3][i])
         .collect();
-    let fslope_coarse: Vec<f64> = coarse
-        .par_iter()
-        .enumerate()
-        .map(|(c, &i)| {
-            let half = wl.time_sigma(per_sample[i].0.scale);
-            local_slope(&t_coarse, &f_coarse, t_coarse[c], half).unwrap_or(0.0)
-        })
-        .collect();
-    let fslope = spread(&coarse, &fslope_coarse, n);
+    let fslope = spread(&coarse, &coarse_slope(&t_coarse, &f_coarse, &half), n);
 
     let mut amplitude = vec![0.0; n];
     let mut frequency = vec![0.0; n];
@@ -728,12 +709,11 @@ pub fn track_wavelet(
     let mut valid = vec![false; n];
     for i in 0..n {
         let (o, k, ok) = per_sample[i];
-        let f = fix[i];
-        amplitude[i] = (o.ln_amp + f[0]).exp();
-        phase[i] = o.phase + f[1];
-        decay[i] = o.decay() + f[2];
-        frequency[i] = o.freq() + f[3];
-        sweep[i] = o.sweep() + f[4];
+        amplitude[i] = (o.ln_amp + fix[0][i]).exp();
+        phase[i] = o.phase + fix[1][i];
+        decay[i] = o.decay() + fix[2][i];
+        frequency[i] = o.freq() + fix[3][i];
+        sweep[i] = o.sweep() + fix[4][i];
         let st = wl.time_sigma(o.scale);
         let margin = st * (opt.coi + (decay[i] * st).abs()) * fs;
         let inside = i as f64 >= margin && (n - 1 - i) as f64 >= margin;
@@ -768,15 +748,7 @@ pub fn track_wavelet(
 
     // A'' = A (σ² − σ'); σ' by a local least-squares slope over ±σ_t of the coarse grid.
     let sigma_coarse: Vec<f64> = coarse.iter().map(|&i| decay[i]).collect();
-    let dsigma_coarse: Vec<f64> = coarse
-        .par_iter()
-        .enumerate()
-        .map(|(c, &i)| {
-            let half = wl.time_sigma(per_sample[i].0.scale);
-            local_slope(&t_coarse, &sigma_coarse, t_coarse[c], half).unwrap_or(0.0)
-        })
-        .collect();
-    let dsigma = spread(&coarse, &dsigma_coarse, n);
+    let dsigma = spread(&coarse, &coarse_slope(&t_coarse, &sigma_coarse, &half), n);
     let d_amplitude: Vec<f64> = (0..n).map(|i| -decay[i] * amplitude[i]).collect();
     let d2_amplitude: Vec<f64> = (0..n)
         .map(|i| amplitude[i] * (decay[i] * decay[i] - dsigma[i]))
@@ -795,6 +767,15 @@ pub fn track_wavelet(
         noise: noise_var.sqrt(),
         band: (fmin, fmax),
     })
+}
+
+/// Slope of `y` at every coarse time by a least-squares line over ±`half` (0 where too few
+/// points fall in the window).
+fn coarse_slope(t: &[f64], y: &[f64], half: &[f64]) -> Vec<f64> {
+    (0..t.len())
+        .into_par_iter()
+        .map(|c| local_slope(t, y, t[c], half[c]).unwrap_or(0.0))
+        .collect()
 }
 
 /// Longest averaging window, in σ_t either side, that low-SNR smoothing may use.

@@ -14,17 +14,6 @@ use num_complex::Complex64;
 
 use super::{complex_plan, plan_len, Morlet, Spectrum, SPECTRUM_TOLERANCE};
 
-/// Which time derivative of W a call evaluates.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Derivative {
-    /// W itself.
-    Zero,
-    /// ∂W/∂t (1/s).
-    First,
-    /// ∂²W/∂t² (1/s²).
-    Second,
-}
-
 /// The bins and decimated length for one scale.
 #[derive(Debug, Clone)]
 pub struct ScalePlan {
@@ -43,27 +32,13 @@ impl ScalePlan {
     /// Plans scale `s` for `spec`, with the decimated rate `oversample` × the pass band,
     /// demodulated by the wavelet's centre frequency (baseband content near zero).
     pub fn new(spec: &Spectrum, wavelet: &Morlet, s: f64, oversample: f64) -> ScalePlan {
-        Self::build(spec, wavelet, s, oversample, false)
-    }
-
-    /// Like [`ScalePlan::new`] but demodulated by the middle of the pass band, which needs
-    /// the shortest inverse FFT; values are then least accurate between grid points.
-    pub fn compact(spec: &Spectrum, wavelet: &Morlet, s: f64, oversample: f64) -> ScalePlan {
-        Self::build(spec, wavelet, s, oversample, true)
-    }
-
-    fn build(spec: &Spectrum, wavelet: &Morlet, s: f64, oversample: f64, mid: bool) -> ScalePlan {
         let l = spec.padded_len;
         let df = spec.sample_rate / l as f64;
         let (f_lo, f_hi) = wavelet.band(s, SPECTRUM_TOLERANCE);
         let lo = ((f_lo / df).ceil() as usize).max(1);
         let hi = ((f_hi / df).floor() as usize).min(l / 2);
         let freq = wavelet.centre / s;
-        let centre_bin = if mid {
-            (lo + hi.max(lo)) / 2
-        } else {
-            ((freq / df).round() as usize).clamp(lo, hi.max(lo))
-        };
+        let centre_bin = ((freq / df).round() as usize).clamp(lo, hi.max(lo));
         let width = if hi >= lo { hi - lo + 1 } else { 0 };
         let reach = (centre_bin - lo.min(centre_bin)).max(hi.saturating_sub(centre_bin));
         let need = ((width as f64 * oversample).ceil() as usize).max(2 * reach + 2);
@@ -110,16 +85,32 @@ impl ScalePlan {
             .sum()
     }
 
-    /// Baseband values of W, W' and W'' at the decimated times (the wavelet's spectrum
-    /// evaluated once for the three).
+    /// Baseband values of W at the decimated times t_n = n L/M.
+    pub fn evaluate(
+        &self,
+        spec: &Spectrum,
+        wavelet: &Morlet,
+        buf: &mut Vec<Complex64>,
+    ) -> Decimated {
+        self.inverse(spec, &self.weighted(spec, wavelet), 0, buf)
+    }
+
+    /// Baseband values of W, ∂W/∂t (1/s) and ∂²W/∂t² (1/s²) at the decimated times (the
+    /// wavelet's spectrum evaluated once for the three).
     pub fn evaluate_with_derivatives(
         &self,
         spec: &Spectrum,
         wavelet: &Morlet,
         buf: &mut Vec<Complex64>,
     ) -> [Decimated; 3] {
+        let weighted = self.weighted(spec, wavelet);
+        [0, 1, 2].map(|order| self.inverse(spec, &weighted, order, buf))
+    }
+
+    /// (bin, frequency, 2 X Ψ / L) over the pass band.
+    fn weighted(&self, spec: &Spectrum, wavelet: &Morlet) -> Vec<(usize, f64, Complex64)> {
         let norm = 2.0 / spec.padded_len as f64;
-        let weighted: Vec<(usize, f64, Complex64)> = (self.lo..=self.hi.min(spec.bins.len() - 1))
+        (self.lo..=self.hi.min(spec.bins.len() - 1))
             .map(|m| {
                 let f = spec.bin_freq(m);
                 (
@@ -128,54 +119,23 @@ impl ScalePlan {
                     spec.bins[m] * (norm * wavelet.spectrum(self.scale, f)),
                 )
             })
-            .collect();
-        let m_len = self.len;
-        let plan = complex_plan(m_len, true);
-        let mut run = |order: i32| {
-            buf.clear();
-            buf.resize(m_len, Complex64::new(0.0, 0.0));
-            for &(m, f, v) in &weighted {
-                let v = match order {
-                    0 => v,
-                    1 => v * Complex64::new(0.0, 2.0 * PI * f),
-                    _ => v * (-(2.0 * PI * f).powi(2)),
-                };
-                let idx =
-                    (m as isize - self.centre_bin as isize).rem_euclid(m_len as isize) as usize;
-                buf[idx] += v;
-            }
-            plan.process(buf);
-            Decimated {
-                step: self.step(spec),
-                values: buf.clone(),
-            }
-        };
-        [run(0), run(1), run(2)]
+            .collect()
     }
 
-    /// Baseband values of W (or a time derivative) at the decimated times t_n = n L/M.
-    pub fn evaluate(
+    /// The demodulated inverse FFT of the weighted bins times (j2πf)^order.
+    fn inverse(
         &self,
         spec: &Spectrum,
-        wavelet: &Morlet,
-        derivative: Derivative,
+        weighted: &[(usize, f64, Complex64)],
+        order: i32,
         buf: &mut Vec<Complex64>,
     ) -> Decimated {
         let m_len = self.len;
         buf.clear();
         buf.resize(m_len, Complex64::new(0.0, 0.0));
-        let norm = 2.0 / spec.padded_len as f64;
-        for m in self.lo..=self.hi.min(spec.bins.len() - 1) {
-            let f = spec.bin_freq(m);
-            let g = norm * wavelet.spectrum(self.scale, f);
-            let v = spec.bins[m] * g;
-            let v = match derivative {
-                Derivative::Zero => v,
-                Derivative::First => v * Complex64::new(0.0, 2.0 * PI * f),
-                Derivative::Second => v * (-(2.0 * PI * f).powi(2)),
-            };
+        for &(m, f, v) in weighted {
             let idx = (m as isize - self.centre_bin as isize).rem_euclid(m_len as isize) as usize;
-            buf[idx] += v;
+            buf[idx] += v * Complex64::new(0.0, 2.0 * PI * f).powi(order);
         }
         complex_plan(m_len, true).process(buf);
         Decimated {
@@ -263,7 +223,7 @@ mod tests {
                 let s = w.scale_for(f);
                 let plan = ScalePlan::new(&spec, &w, s, 2.0);
                 let mut buf = Vec::new();
-                let dec = plan.evaluate(&spec, &w, Derivative::Zero, &mut buf);
+                let dec = plan.evaluate(&spec, &w, &mut buf);
                 let mut full = Vec::new();
                 naive::scale(&spec, &w, s, &mut full);
                 for n in (0..plan.len).step_by((plan.len / 17).max(1)) {

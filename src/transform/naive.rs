@@ -18,33 +18,10 @@ pub fn scale(spec: &Spectrum, wavelet: &Morlet, s: f64, buf: &mut Vec<Complex64>
     complex_plan(l, true).process(buf);
 }
 
-/// Per-sample argmax ridge over the full scalogram, streamed scale by scale so that only
-/// O(N) memory is held: returns (index of the maximising frequency, |W| there) per sample.
+/// Per-sample argmax ridge over the full scalogram: returns (index of the maximising
+/// frequency, |W| there) per sample. The scales are shared among threads, each keeping only
+/// its own O(N) maximum, merged at the end — the fair multi-core baseline for benchmarks.
 pub fn argmax_ridge(spec: &Spectrum, wavelet: &Morlet, freqs: &[f64]) -> (Vec<usize>, Vec<f64>) {
-    let n = spec.samples;
-    let mut best = vec![0usize; n];
-    let mut peak = vec![f64::NEG_INFINITY; n];
-    let mut buf = Vec::new();
-    for (k, &f) in freqs.iter().enumerate() {
-        scale(spec, wavelet, wavelet.scale_for(f), &mut buf);
-        for t in 0..n {
-            let a = buf[t].norm();
-            if a > peak[t] {
-                peak[t] = a;
-                best[t] = k;
-            }
-        }
-    }
-    (best, peak)
-}
-
-/// [`argmax_ridge`] with the scales shared among threads (each thread keeps its own O(N)
-/// maximum, merged at the end) — the fair multi-core baseline for benchmarks.
-pub fn argmax_ridge_parallel(
-    spec: &Spectrum,
-    wavelet: &Morlet,
-    freqs: &[f64],
-) -> (Vec<usize>, Vec<f64>) {
     use rayon::prelude::*;
     let n = spec.samples;
     let empty = || (vec![0usize; n], vec![f64::NEG_INFINITY; n], Vec::new());
