@@ -506,6 +506,17 @@ fn cmd_track(a: TrackArgs) -> Result<()> {
     use skelid::track::{
         track_hilbert, track_wavelet, HilbertOptions, RidgeSearch, WaveletOptions,
     };
+    match a.method {
+        MethodArg::Wavelet if a.cutoff.is_some() => {
+            bail!(
+                "--cutoff low-passes the Hilbert method's tracks; add --method hilbert or drop it"
+            )
+        }
+        MethodArg::Hilbert if a.reference.is_some() => {
+            bail!("--reference guides a wavelet ridge; the Hilbert method has none (use --method wavelet)")
+        }
+        _ => {}
+    }
     let options = a.ingest.options()?;
     let archive = Archive::open(&a.archive, &options)?;
     let (x, fs) = read_dataset(&archive, &a.dataset, &options)?;

@@ -241,4 +241,20 @@ fn track_writes_csv_and_hdf5_that_match_the_truth() {
         .unwrap();
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("skelid inspect"));
+    let mixed = skelid()
+        .arg("track")
+        .arg(&path)
+        .args([
+            "--dataset",
+            "/runs/hammer/output",
+            "--cutoff",
+            "0.01",
+            "--out",
+        ])
+        .arg(d.path().join("y.csv"))
+        .output()
+        .unwrap();
+    assert!(!mixed.status.success());
+    assert!(String::from_utf8_lossy(&mixed.stderr).contains("--method hilbert"));
+    assert!(!d.path().join("y.csv").exists());
 }
