@@ -8,7 +8,9 @@
 /// The maximisation over the previous step is a quadratic-cost distance transform, done in
 /// O(scales) per step with Felzenszwalb and Huttenlocher's lower envelope of parabolas.
 pub fn dp_ridge(scores: &[f32], scales: usize, penalty: f32) -> Vec<usize> {
-    assert!(scales > 0 && scores.len().is_multiple_of(scales) && penalty > 0.0);
+    assert!(
+        scales > 0 && scales <= 1 << 16 && scores.len().is_multiple_of(scales) && penalty > 0.0
+    );
     let steps = scores.len() / scales;
     if steps == 0 {
         return Vec::new();
@@ -16,11 +18,18 @@ pub fn dp_ridge(scores: &[f32], scales: usize, penalty: f32) -> Vec<usize> {
     let lam = f64::from(penalty);
     let mut acc: Vec<f64> = scores[..scales].iter().map(|&v| f64::from(v)).collect();
     let mut next = vec![0f64; scales];
-    let mut back = vec![0u32; steps * scales];
+    let mut back = vec![0u16; steps * scales];
     // v: parabola vertices of the lower envelope of −acc(q) + λ(k − q)²; z: their bounds.
     let (mut v, mut z) = (vec![0usize; scales], vec![0f64; scales + 1]);
+    // The serial hot loop: reciprocals and f(q) tabulated once rather than per comparison.
+    let recip: Vec<f64> = (0..scales)
+        .map(|d| 1.0 / (2.0 * lam * d.max(1) as f64))
+        .collect();
+    let mut f = vec![0f64; scales];
     for j in 1..steps {
-        let f = |q: usize| -acc[q] + lam * (q * q) as f64;
+        for (q, fq) in f.iter_mut().enumerate() {
+            *fq = -acc[q] + lam * (q * q) as f64;
+        }
         let mut top = 0usize;
         v[0] = 0;
         z[0] = f64::NEG_INFINITY;
@@ -29,7 +38,7 @@ pub fn dp_ridge(scores: &[f32], scales: usize, penalty: f32) -> Vec<usize> {
             let mut s;
             loop {
                 let p = v[top];
-                s = (f(q) - f(p)) / (2.0 * lam * (q - p) as f64);
+                s = (f[q] - f[p]) * recip[q - p];
                 // z[0] = −∞, so the loop ends at the latest with top = 0.
                 if s > z[top] {
                     break;
@@ -51,7 +60,7 @@ pub fn dp_ridge(scores: &[f32], scales: usize, penalty: f32) -> Vec<usize> {
             let q = v[t];
             let d = k as f64 - q as f64;
             next[k] = f64::from(row[k]) + acc[q] - lam * d * d;
-            bp[k] = q as u32;
+            bp[k] = q as u16;
         }
         std::mem::swap(&mut acc, &mut next);
     }
@@ -59,7 +68,7 @@ pub fn dp_ridge(scores: &[f32], scales: usize, penalty: f32) -> Vec<usize> {
 }
 
 /// Follows the back-pointers from the best final score.
-fn backtrack<T: PartialOrd + Copy>(last: &[T], back: &[u32], scales: usize) -> Vec<usize> {
+fn backtrack<T: PartialOrd + Copy>(last: &[T], back: &[u16], scales: usize) -> Vec<usize> {
     let steps = back.len() / scales;
     let mut k = (0..last.len())
         .reduce(|a, b| if last[b] > last[a] { b } else { a })
@@ -122,7 +131,7 @@ mod tests {
     fn direct_dp(scores: &[f32], scales: usize, penalty: f32) -> Vec<usize> {
         let steps = scores.len() / scales;
         let mut acc: Vec<f32> = scores[..scales].to_vec();
-        let mut back = vec![0u32; steps * scales];
+        let mut back = vec![0u16; steps * scales];
         for j in 1..steps {
             let prev = acc.clone();
             for k in 0..scales {
@@ -130,7 +139,7 @@ mod tests {
                     .map(|q| (q, prev[q] - penalty * (k.abs_diff(q).pow(2)) as f32))
                     .fold((0, f32::NEG_INFINITY), |a, b| if b.1 > a.1 { b } else { a });
                 acc[k] = scores[j * scales + k] + best;
-                back[j * scales + k] = arg as u32;
+                back[j * scales + k] = arg as u16;
             }
         }
         backtrack(&acc, &back, scales)

@@ -8,10 +8,11 @@
 //!    grid (log-magnitude only, S × N/h values of 4 bytes) and a white-noise floor estimate;
 //! 3. a penalised dynamic-programming ridge on that grid, optionally pulled towards a
 //!    reference ridge (a forced response follows its excitation);
-//! 4. per scale the ridge visits, W, W′ and W″ (spectral derivatives), kept only around the
-//!    ridge, then per sample the three-scale parabola ([`skeleton::estimate`]);
+//! 4. an estimation grid σ_t/8 apart at the ridge's scale; per scale the ridge visits, W,
+//!    W′ and W″ (spectral derivatives), kept only around the ridge, then per grid point the
+//!    three-scale parabola ([`skeleton::estimate`]);
 //! 5. the window's bias from decay and sweep removed by the local model
-//!    ([`skeleton::correct`]) on a grid of σ_t/4, interpolated in between;
+//!    ([`skeleton::correct`]) at every grid point, then interpolated to every sample;
 //! 6. samples flagged not valid: cone of influence, ridge at the edge of the scale range,
 //!    in-band SNR below `min_snr`, correction that did not converge or exceeded ×2.
 
@@ -29,8 +30,13 @@ use crate::transform::{hilbert, log_frequencies, Morlet, Spectrum};
 
 /// Decimated rate over pass band for the coarse ridge grid (|W| only, near the band centre).
 const PASS1_OVERSAMPLE: f64 = 1.0;
-/// Decimated rate over pass band for the values interpolated to every sample.
-const PASS2_OVERSAMPLE: f64 = 1.5;
+/// Relative level at which the coarse pass cuts the wavelet's spectrum (a third fewer bins
+/// than the exact passes; |W| to 1e-3 is ample for choosing a ridge and a noise floor).
+const PASS1_TOLERANCE: f64 = 1e-3;
+/// Decimated rate over pass band for the values interpolated to the estimation grid.
+const PASS2_OVERSAMPLE: f64 = 1.0;
+/// Estimation grid spacing as a fraction of the ridge scale's σ_t.
+const GRID_DIVISION: f64 = 8.0;
 
 /// Shortest record either method accepts.
 pub const MIN_SAMPLES: usize = 64;
@@ -245,7 +251,7 @@ pub fn track_hilbert(x: &[f64], fs: f64, opt: &HilbertOptions) -> Result<Track, 
         d_frequency.push((r2.im - 2.0 * r1.re * w) / (2.0 * PI));
     }
     let mut phase: Vec<f64> = an.z.iter().map(|z| z.arg()).collect();
-    unwrap_phase(&mut phase, &frequency, fs);
+    unwrap_phase(&mut phase, &frequency, |i| i as f64 / fs);
     if let Some(c) = opt.cutoff {
         for v in [
             &mut amplitude,
@@ -291,10 +297,11 @@ fn hilbert_noise(x: &[f64], fs: f64) -> f64 {
 }
 
 /// Makes a wrapped phase continuous, choosing at each step the branch closest to the
-/// advance predicted by the frequency.
-fn unwrap_phase(phase: &mut [f64], freq: &[f64], fs: f64) {
+/// advance predicted by the frequency; `time(i)` is point i's time (s).
+fn unwrap_phase(phase: &mut [f64], freq: &[f64], time: impl Fn(usize) -> f64) {
     for i in 1..phase.len() {
-        let predicted = phase[i - 1] + PI * (freq[i - 1] + freq[i]) / fs;
+        let dt = time(i) - time(i - 1);
+        let predicted = phase[i - 1] + PI * (freq[i - 1] + freq[i]) * dt;
         let d = phase[i] - predicted;
         phase[i] -= 2.0 * PI * ((d + PI) / (2.0 * PI)).floor();
     }
@@ -435,26 +442,37 @@ pub fn track_wavelet(
     // Pass 1: coarse log-magnitude grid and the noise floor.
     let plans: Vec<ScalePlan> = freqs
         .iter()
-        .map(|&f| ScalePlan::new(&spec, &wl, wl.scale_for(f), PASS1_OVERSAMPLE))
+        .map(|&f| {
+            let s = wl.scale_for(f);
+            ScalePlan::with_tolerance(&spec, &wl, s, PASS1_OVERSAMPLE, PASS1_TOLERANCE)
+        })
         .collect();
     let sigma_t_min = wl.time_sigma(wl.scale_for(fmax)) * fs;
     let h = ((sigma_t_min / 2.0).floor() as usize)
         .max(s_count.div_ceil(4))
         .max(1);
     let steps = (n - 1) / h + 1;
-    let gains: Vec<f64> = plans.par_iter().map(|p| p.noise_gain(&spec, &wl)).collect();
-    let columns: Vec<(Vec<f32>, Option<f64>)> = plans
+    let variance = spec.bins.iter().map(|b| b.norm_sqr()).sum::<f64>() * 2.0
+        / (n as f64 * spec.padded_len as f64);
+    let unit = 1.0 / variance.max(f64::MIN_POSITIVE);
+    let columns: Vec<(Vec<f32>, Option<f64>, f64)> = plans
         .par_iter()
-        .zip(gains.par_iter())
-        .map_init(Vec::new, |buf, (plan, &gain)| {
-            let dec = plan.evaluate(&spec, &wl, buf);
-            let mut col: Vec<f32> = (0..steps)
-                .map(|j| dec.at((j * h) as f64).norm().max(1e-300).ln() as f32)
+        .map_init(Vec::new, |buf, plan| {
+            let gain = plan.evaluate_into(&spec, &wl, buf);
+            let step = plan.step(&spec);
+            let power: Vec<f64> = (0..steps)
+                .map(|j| interpolate(buf, (j * h) as f64 / step).norm_sqr())
+                .collect();
+            // Scores in f32 relative to the record's power (a constant shift, which the
+            // ridge does not see); anything 380 dB down is floored.
+            let mut col: Vec<f32> = power
+                .iter()
+                .map(|&p| 0.5 * ((p * unit) as f32).max(f32::MIN_POSITIVE).ln())
                 .collect();
             let edge = opt.coi * wl.time_sigma(plan.scale) * fs;
             let mut inner: Vec<f64> = (0..steps)
                 .filter(|&j| (j * h) as f64 >= edge && ((n - 1 - j * h) as f64) >= edge)
-                .map(|j| (2.0 * col[j] as f64).exp())
+                .map(|j| power[j])
                 .collect();
             let noise = if inner.len() >= 8 {
                 let mid = inner.len() / 2;
@@ -465,14 +483,13 @@ pub fn track_wavelet(
             };
             // Inside its cone of influence a long scale sees the record's onset or end (a
             // broadband transient) rather than the signal: keep the ridge away from there.
-            let mask = edge;
             let floor = col.iter().cloned().fold(f32::INFINITY, f32::min);
             for (j, c) in col.iter_mut().enumerate() {
-                if ((j * h) as f64) < mask || ((n - 1 - j * h) as f64) < mask {
+                if ((j * h) as f64) < edge || ((n - 1 - j * h) as f64) < edge {
                     *c = floor;
                 }
             }
-            (col, noise)
+            (col, noise, gain)
         })
         .collect();
     // White-noise floor: the lower of the quietest quarter of the scales (median over time)
@@ -493,12 +510,12 @@ pub fn track_wavelet(
     } else {
         0.0
     };
-    let noise_w: Vec<f64> = gains
+    let noise_w: Vec<f64> = columns
         .iter()
-        .map(|g| (noise_var * n as f64 * g).sqrt())
+        .map(|c| (noise_var * n as f64 * c.2).sqrt())
         .collect();
     let mut scores = vec![0f32; steps * s_count];
-    for (k, (col, _)) in columns.iter().enumerate() {
+    for (k, (col, _, _)) in columns.iter().enumerate() {
         for j in 0..steps {
             scores[j * s_count + k] = col[j];
         }
@@ -534,15 +551,30 @@ pub fn track_wavelet(
         (a + u * (b - a)).round() as usize
     };
 
+    // The estimation grid: σ_t/GRID_DIVISION apart at the ridge's scale. Everything below
+    // is computed on it; the per-sample track is interpolated at the end.
+    let mut grid = Vec::new();
+    let mut i = 0usize;
+    while i < n {
+        grid.push(i);
+        let st = wl.time_sigma(wl.scale_for(freqs[ridge_at(i)])) * fs;
+        i += ((st / GRID_DIVISION).floor() as usize).max(1);
+    }
+    if *grid.last().expect("n ≥ 1") != n - 1 {
+        grid.push(n - 1);
+    }
+    let g_count = grid.len();
+
     // Pass 2: W, W', W'' for the scales within ±2 of the ridge (the best of its three
     // neighbours, and that one's neighbours for the parabola), kept where needed.
     let mut wanted: Vec<Vec<(usize, usize)>> = vec![Vec::new(); s_count];
-    for i in 0..n {
+    for (g, &i) in grid.iter().enumerate() {
         let c = ridge_at(i).clamp(1, s_count - 2);
         let (lo, hi) = (c.saturating_sub(2), (c + 2).min(s_count - 1));
+        let prev = g.checked_sub(1).map(|p| grid[p]);
         for runs in &mut wanted[lo..=hi] {
             match runs.last_mut() {
-                Some(r) if r.1 + 1 == i => r.1 = i,
+                Some(r) if Some(r.1) == prev => r.1 = i,
                 _ => runs.push((i, i)),
             }
         }
@@ -550,7 +582,7 @@ pub fn track_wavelet(
     let data: Vec<ScaleData> = plans
         .into_par_iter()
         .zip(wanted.into_par_iter())
-        .map_init(Vec::new, |buf, (plan, runs)| {
+        .map(|(plan, runs)| {
             let plan = ScalePlan::new(&spec, &wl, plan.scale, PASS2_OVERSAMPLE);
             let step = plan.step(&spec);
             if runs.is_empty() {
@@ -560,9 +592,7 @@ pub fn track_wavelet(
                     segments: Vec::new(),
                 };
             }
-            let [w, d1, d2] = plan
-                .evaluate_with_derivatives(&spec, &wl, buf)
-                .map(|d| d.values);
+            let [w, d1, d2] = plan.evaluate_with_derivatives(&spec, &wl).map(|d| d.values);
             let m = w.len() as isize;
             let take = |v: &[Complex64], a: isize, b: isize| -> Vec<Complex64> {
                 (a..=b).map(|i| v[i.rem_euclid(m) as usize]).collect()
@@ -589,10 +619,11 @@ pub fn track_wavelet(
         })
         .collect();
 
-    // Pass 3: per-sample three-scale estimate around the largest of the ridge's neighbours.
-    let per_sample: Vec<(Observation, usize, bool)> = (0..n)
-        .into_par_iter()
-        .map(|i| {
+    // Pass 3: per grid point, the three-scale estimate around the largest of the ridge's
+    // neighbours.
+    let obs: Vec<(Observation, usize, bool)> = grid
+        .par_iter()
+        .map(|&i| {
             let c = ridge_at(i).clamp(1, s_count - 2);
             let at = |k: usize| data[k].value(&spec, i);
             let near =
@@ -633,22 +664,13 @@ pub fn track_wavelet(
         })
         .collect();
     drop(data);
+    let offset = spec.mean;
+    drop(spec);
 
-    // Bias correction on a grid of σ_t/4, interpolated in between.
-    let mut coarse = Vec::new();
-    let mut i = 0usize;
-    while i < n {
-        coarse.push(i);
-        let st = wl.time_sigma(per_sample[i].0.scale) * fs;
-        i += ((st / 4.0).floor() as usize).max(1);
-    }
-    if *coarse.last().unwrap() != n - 1 {
-        coarse.push(n - 1);
-    }
-    let fixes: Vec<Option<[f64; 5]>> = coarse
+    // Bias correction at every grid point.
+    let fixes: Vec<Option<[f64; 5]>> = obs
         .par_iter()
-        .map(|&i| {
-            let (o, k, ok) = per_sample[i];
+        .map(|&(o, k, ok)| {
             if !opt.correct {
                 return Some([0.0; 5]);
             }
@@ -672,101 +694,116 @@ pub fn track_wavelet(
         })
         .collect();
 
-    // Interpolate the corrections; a failed solve invalidates the samples around it.
-    let fix: Vec<Vec<f64>> = (0..5)
-        .map(|c| {
-            let v: Vec<f64> = fixes.iter().map(|f| f.map_or(0.0, |f| f[c])).collect();
-            spread(&coarse, &v, n)
-        })
-        .collect();
-    let mut fix_ok = vec![true; n];
-    for (w, f) in fixes.iter().enumerate() {
+    let t: Vec<f64> = grid.iter().map(|&i| i as f64 / fs).collect();
+    let half: Vec<f64> = obs.iter().map(|o| wl.time_sigma(o.0.scale)).collect();
+    let fix = |g: usize, c: usize| fixes[g].map_or(0.0, |f| f[c]);
+    let mut ln_amp: Vec<f64> = (0..g_count).map(|g| obs[g].0.ln_amp + fix(g, 0)).collect();
+    let mut phase: Vec<f64> = (0..g_count).map(|g| obs[g].0.phase + fix(g, 1)).collect();
+    let decay: Vec<f64> = (0..g_count).map(|g| obs[g].0.decay() + fix(g, 2)).collect();
+    let mut frequency: Vec<f64> = (0..g_count).map(|g| obs[g].0.freq() + fix(g, 3)).collect();
+    let sweep: Vec<f64> = (0..g_count).map(|g| obs[g].0.sweep() + fix(g, 4)).collect();
+    // A failed solve invalidates the grid points around it.
+    let mut fix_ok = vec![true; g_count];
+    for (g, f) in fixes.iter().enumerate() {
         if f.is_none() {
-            let a = coarse[w.saturating_sub(1)];
-            let b = coarse.get(w + 1).copied().unwrap_or(n - 1);
-            fix_ok[a..=b].iter_mut().for_each(|v| *v = false);
+            let b = (g + 1).min(g_count - 1);
+            fix_ok[g.saturating_sub(1)..=b].fill(false);
         }
     }
 
     // The sweep rate as the frequency track's own slope over ±σ_t: where the window saw a
     // signal the local model cannot describe, it disagrees with the model's β.
-    let t_coarse: Vec<f64> = coarse.iter().map(|&i| i as f64 / fs).collect();
-    let half: Vec<f64> = coarse
-        .iter()
-        .map(|&i| wl.time_sigma(per_sample[i].0.scale))
+    let fslope = coarse_slope(&t, &frequency, &half);
+    let mut valid: Vec<bool> = (0..g_count)
+        .map(|g| {
+            let (o, k, ok) = obs[g];
+            let i = grid[g];
+            let st = half[g];
+            let margin = st * (opt.coi + (decay[g] * st).abs()) * fs;
+            let inside = i as f64 >= margin && (n - 1 - i) as f64 >= margin;
+            // The window spans ±coi σ_t, over which a sweep moves the frequency by β coi σ_t:
+            // the model needs all of that inside the analysed band (and clear of DC).
+            let reach = sweep[g].abs().max(fslope[g].abs()) * opt.coi * st;
+            let in_band = frequency[g] - reach >= fmin && frequency[g] + reach <= fmax;
+            // A loose threshold first: the final one is applied after smoothing, so that
+            // noise which happens to lift a point over it does not select that point.
+            let audible = o.ln_amp.exp() >= 0.5 * opt.min_snr * noise_w[k];
+            ok && fix_ok[g] && inside && in_band && audible && frequency[g] > 0.0
+        })
         .collect();
-    let f_coarse: Vec<f64> = coarse
-        .iter()
-        .map(|&i| per_sample[i].0.freq() + fix[3][i])
-        .collect();
-    let fslope = spread(&coarse, &coarse_slope(&t_coarse, &f_coarse, &half), n);
-
-    let mut amplitude = vec![0.0; n];
-    let mut frequency = vec![0.0; n];
-    let mut phase = vec![0.0; n];
-    let mut decay = vec![0.0; n];
-    let mut sweep = vec![0.0; n];
-    let mut valid = vec![false; n];
-    for i in 0..n {
-        let (o, k, ok) = per_sample[i];
-        amplitude[i] = (o.ln_amp + fix[0][i]).exp();
-        phase[i] = o.phase + fix[1][i];
-        decay[i] = o.decay() + fix[2][i];
-        frequency[i] = o.freq() + fix[3][i];
-        sweep[i] = o.sweep() + fix[4][i];
-        let st = wl.time_sigma(o.scale);
-        let margin = st * (opt.coi + (decay[i] * st).abs()) * fs;
-        let inside = i as f64 >= margin && (n - 1 - i) as f64 >= margin;
-        // The window spans ±coi σ_t, over which a sweep moves the frequency by β coi σ_t:
-        // the model needs all of that inside the analysed band (and clear of DC).
-        let reach = sweep[i].abs().max(fslope[i].abs()) * opt.coi * st;
-        let in_band = frequency[i] - reach >= fmin && frequency[i] + reach <= fmax;
-        let inside = inside && in_band;
-        // A loose threshold first: the final one is applied after smoothing, so that noise
-        // which happens to lift a sample over it does not select that sample.
-        let audible = o.ln_amp.exp() >= 0.5 * opt.min_snr * noise_w[k];
-        valid[i] = ok && fix_ok[i] && inside && audible && frequency[i] > 0.0;
-    }
     if opt.smooth_snr > 0.0 {
+        let snr: Vec<f64> = obs
+            .iter()
+            .map(|&(o, k, _)| o.ln_amp.exp() / noise_w[k])
+            .collect();
         smooth_low_snr(
-            &coarse,
-            fs,
-            &mut amplitude,
+            &t,
+            &half,
+            &snr,
+            &mut ln_amp,
             &mut frequency,
             &valid,
-            |i| {
-                let (o, k, _) = per_sample[i];
-                (wl.time_sigma(o.scale), o.ln_amp.exp() / noise_w[k])
-            },
             opt.smooth_snr,
         );
     }
-    for i in 0..n {
-        valid[i] = valid[i] && amplitude[i] >= opt.min_snr * noise_w[per_sample[i].1];
+    for g in 0..g_count {
+        valid[g] = valid[g] && ln_amp[g].exp() >= opt.min_snr * noise_w[obs[g].1];
     }
-    unwrap_phase(&mut phase, &frequency, fs);
+    unwrap_phase(&mut phase, &frequency, |g| t[g]);
+    // A'' = A (σ² − σ'); σ' by a local least-squares slope over ±σ_t of the grid.
+    let dsigma = coarse_slope(&t, &decay, &half);
 
-    // A'' = A (σ² − σ'); σ' by a local least-squares slope over ±σ_t of the coarse grid.
-    let sigma_coarse: Vec<f64> = coarse.iter().map(|&i| decay[i]).collect();
-    let dsigma = spread(&coarse, &coarse_slope(&t_coarse, &sigma_coarse, &half), n);
-    let d_amplitude: Vec<f64> = (0..n).map(|i| -decay[i] * amplitude[i]).collect();
-    let d2_amplitude: Vec<f64> = (0..n)
-        .map(|i| amplitude[i] * (decay[i] * decay[i] - dsigma[i]))
-        .collect();
-    Ok(Track {
+    // Per sample: ln A, f, σ, β, σ' linear between grid points (they vary over σ_t, the
+    // grid is σ_t/8), the phase cubic (Hermite, with 2πf as its slope at both ends).
+    let mut out = Track {
         method: Method::Wavelet,
         sample_rate: fs,
-        amplitude,
-        frequency,
-        phase,
-        d_amplitude,
-        d2_amplitude,
-        d_frequency: sweep,
-        valid,
-        offset: spec.mean,
+        amplitude: vec![0.0; n],
+        frequency: vec![0.0; n],
+        phase: vec![0.0; n],
+        d_amplitude: vec![0.0; n],
+        d2_amplitude: vec![0.0; n],
+        d_frequency: vec![0.0; n],
+        valid: vec![false; n],
+        offset,
         noise: noise_var.sqrt(),
         band: (fmin, fmax),
-    })
+    };
+    for g in 0..g_count {
+        let a = grid[g];
+        let b = grid.get(g + 1).copied().unwrap_or(a);
+        let gb = (g + 1).min(g_count - 1);
+        let span = (b - a).max(1) as f64;
+        let dt = span / fs;
+        let last = if g + 1 == g_count { a } else { b - 1 };
+        for i in a..=last {
+            let u = (i - a) as f64 / span;
+            let lerp = |v: &[f64]| v[g] + u * (v[gb] - v[g]);
+            let la = if ln_amp[g].is_finite() && ln_amp[gb].is_finite() {
+                lerp(&ln_amp)
+            } else if u < 0.5 {
+                ln_amp[g]
+            } else {
+                ln_amp[gb]
+            };
+            let amp = la.exp();
+            let sig = lerp(&decay);
+            let (u2, u3) = (u * u, u * u * u);
+            let w0 = 2.0 * PI * frequency[g] * dt;
+            let w1 = 2.0 * PI * frequency[gb] * dt;
+            out.amplitude[i] = amp;
+            out.frequency[i] = lerp(&frequency);
+            out.phase[i] = (2.0 * u3 - 3.0 * u2 + 1.0) * phase[g]
+                + (u3 - 2.0 * u2 + u) * w0
+                + (3.0 * u2 - 2.0 * u3) * phase[gb]
+                + (u3 - u2) * w1;
+            out.d_amplitude[i] = -sig * amp;
+            out.d2_amplitude[i] = amp * (sig * sig - lerp(&dsigma));
+            out.d_frequency[i] = lerp(&sweep);
+            out.valid[i] = valid[g] && valid[gb];
+        }
+    }
+    Ok(out)
 }
 
 /// Slope of `y` at every coarse time by a least-squares line over ±`half` (0 where too few
@@ -782,71 +819,48 @@ fn coarse_slope(t: &[f64], y: &[f64], half: &[f64]) -> Vec<f64> {
 const MAX_SMOOTH: f64 = 16.0;
 
 /// Where the in-band SNR x is below `target`, replaces ln A and f by a weighted (SNR²)
-/// least-squares line over the valid coarse points within ±σ_t·min(16, (target/x)²): noise
+/// least-squares line over the valid grid points within ±σ_t·min(16, (target/x)²): noise
 /// drops as the window grows, and a decay or a linear sweep (ln A and f linear in time) is
 /// not biased by it.
 fn smooth_low_snr(
-    coarse: &[usize],
-    fs: f64,
-    amplitude: &mut [f64],
+    t: &[f64],
+    sigma_t: &[f64],
+    snr: &[f64],
+    ln_amp: &mut [f64],
     frequency: &mut [f64],
     valid: &[bool],
-    local: impl Fn(usize) -> (f64, f64) + Sync,
     target: f64,
 ) {
-    let n = amplitude.len();
-    let pts: Vec<usize> = coarse.iter().copied().filter(|&i| valid[i]).collect();
+    let pts: Vec<usize> = (0..t.len()).filter(|&g| valid[g]).collect();
     if pts.len() < 3 {
         return;
     }
-    let t: Vec<f64> = pts.iter().map(|&i| i as f64 / fs).collect();
-    let ln_a: Vec<f64> = pts.iter().map(|&i| amplitude[i].ln()).collect();
-    let f: Vec<f64> = pts.iter().map(|&i| frequency[i]).collect();
+    let tv: Vec<f64> = pts.iter().map(|&g| t[g]).collect();
+    let ln_a: Vec<f64> = pts.iter().map(|&g| ln_amp[g]).collect();
+    let f: Vec<f64> = pts.iter().map(|&g| frequency[g]).collect();
     // ln Â and f̂ have variances ∝ 1/SNR²: weigh each point by SNR².
-    let w: Vec<f64> = pts.iter().map(|&i| local(i).1.powi(2)).collect();
-    let deltas: Vec<[f64; 2]> = pts
+    let w: Vec<f64> = pts.iter().map(|&g| snr[g].powi(2)).collect();
+    let smoothed: Vec<Option<(f64, f64)>> = pts
         .par_iter()
         .enumerate()
-        .map(|(c, &i)| {
-            let (st, snr) = local(i);
-            if snr >= target {
-                return [0.0; 2];
+        .map(|(c, &g)| {
+            if snr[g] >= target {
+                return None;
             }
-            let half = st * (target / snr).powi(2).min(MAX_SMOOTH);
+            let half = sigma_t[g] * (target / snr[g]).powi(2).min(MAX_SMOOTH);
             match (
-                local_line_weighted(&t, &ln_a, Some(&w), t[c], half),
-                local_line_weighted(&t, &f, Some(&w), t[c], half),
+                local_line_weighted(&tv, &ln_a, Some(&w), tv[c], half),
+                local_line_weighted(&tv, &f, Some(&w), tv[c], half),
             ) {
-                (Some((a, _)), Some((b, _))) => [a - ln_a[c], b - f[c]],
-                _ => [0.0; 2],
+                (Some((a, _)), Some((b, _))) => Some((a, b)),
+                _ => None,
             }
         })
         .collect();
-    let da = spread(&pts, &deltas.iter().map(|d| d[0]).collect::<Vec<_>>(), n);
-    let df = spread(&pts, &deltas.iter().map(|d| d[1]).collect::<Vec<_>>(), n);
-    for i in 0..n {
-        if valid[i] {
-            amplitude[i] *= da[i].exp();
-            frequency[i] += df[i];
+    for (&g, v) in pts.iter().zip(smoothed) {
+        if let Some((a, b)) = v {
+            ln_amp[g] = a;
+            frequency[g] = b;
         }
     }
-}
-
-/// Linear interpolation of values given at increasing sample indices `at` onto 0..n.
-fn spread(at: &[usize], v: &[f64], n: usize) -> Vec<f64> {
-    let mut out = vec![0.0; n];
-    for w in 0..at.len() {
-        let a = at[w];
-        let b = at.get(w + 1).copied().unwrap_or(a);
-        let (va, vb) = (v[w], v.get(w + 1).copied().unwrap_or(v[w]));
-        for (i, o) in out.iter_mut().enumerate().take(b.min(n - 1) + 1).skip(a) {
-            let u = if b > a {
-                (i - a) as f64 / (b - a) as f64
-            } else {
-                0.0
-            };
-            *o = va + u * (vb - va);
-        }
-    }
-    out
 }

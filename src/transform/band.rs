@@ -24,6 +24,8 @@ pub struct ScalePlan {
     lo: usize,
     hi: usize,
     centre_bin: usize,
+    /// Bin spacing of the padded spectrum (Hz).
+    bin_hz: f64,
     /// Decimated length M.
     pub len: usize,
 }
@@ -32,9 +34,22 @@ impl ScalePlan {
     /// Plans scale `s` for `spec`, with the decimated rate `oversample` × the pass band,
     /// demodulated by the wavelet's centre frequency (baseband content near zero).
     pub fn new(spec: &Spectrum, wavelet: &Morlet, s: f64, oversample: f64) -> ScalePlan {
+        Self::with_tolerance(spec, wavelet, s, oversample, SPECTRUM_TOLERANCE)
+    }
+
+    /// As [`new`](Self::new), with the pass band cut where Ψ falls below `tolerance`
+    /// instead of [`SPECTRUM_TOLERANCE`]: fewer bins for a coarse look (values then carry a
+    /// relative error of order `tolerance`).
+    pub fn with_tolerance(
+        spec: &Spectrum,
+        wavelet: &Morlet,
+        s: f64,
+        oversample: f64,
+        tolerance: f64,
+    ) -> ScalePlan {
         let l = spec.padded_len;
         let df = spec.sample_rate / l as f64;
-        let (f_lo, f_hi) = wavelet.band(s, SPECTRUM_TOLERANCE);
+        let (f_lo, f_hi) = wavelet.band(s, tolerance);
         let lo = ((f_lo / df).ceil() as usize).max(1);
         let hi = ((f_hi / df).floor() as usize).min(l / 2);
         let freq = wavelet.centre / s;
@@ -49,6 +64,7 @@ impl ScalePlan {
             lo,
             hi,
             centre_bin,
+            bin_hz: df,
             len,
         }
     }
@@ -76,72 +92,96 @@ impl ScalePlan {
     /// Σ_m (2Ψ/L)²: for white noise of variance σ² per sample over N samples, the variance
     /// of W at this scale is σ² N × this.
     pub fn noise_gain(&self, spec: &Spectrum, wavelet: &Morlet) -> f64 {
-        let l = spec.padded_len as f64;
-        (self.lo..=self.hi)
-            .map(|m| {
-                let g = 2.0 * wavelet.spectrum(self.scale, spec.bin_freq(m)) / l;
-                g * g
-            })
-            .sum()
+        Self::gain_of(spec, &self.weights(spec, wavelet))
     }
 
     /// Baseband values of W at the decimated times t_n = n L/M.
-    pub fn evaluate(
+    pub fn evaluate(&self, spec: &Spectrum, wavelet: &Morlet) -> Decimated {
+        let mut values = Vec::new();
+        let weighted = self.weighted(spec, &self.weights(spec, wavelet));
+        self.inverse(&weighted, 0, &mut values);
+        Decimated {
+            step: self.step(spec),
+            values,
+        }
+    }
+
+    /// The baseband values of W written into `buf` (reused across scales), and the noise
+    /// gain of [`noise_gain`](Self::noise_gain), from one evaluation of the spectrum.
+    pub fn evaluate_into(
         &self,
         spec: &Spectrum,
         wavelet: &Morlet,
         buf: &mut Vec<Complex64>,
-    ) -> Decimated {
-        self.inverse(spec, &self.weighted(spec, wavelet), 0, buf)
+    ) -> f64 {
+        let psi = self.weights(spec, wavelet);
+        self.inverse(&self.weighted(spec, &psi), 0, buf);
+        Self::gain_of(spec, &psi)
     }
 
     /// Baseband values of W, ∂W/∂t (1/s) and ∂²W/∂t² (1/s²) at the decimated times (the
     /// wavelet's spectrum evaluated once for the three).
-    pub fn evaluate_with_derivatives(
-        &self,
-        spec: &Spectrum,
-        wavelet: &Morlet,
-        buf: &mut Vec<Complex64>,
-    ) -> [Decimated; 3] {
-        let weighted = self.weighted(spec, wavelet);
-        [0, 1, 2].map(|order| self.inverse(spec, &weighted, order, buf))
+    pub fn evaluate_with_derivatives(&self, spec: &Spectrum, wavelet: &Morlet) -> [Decimated; 3] {
+        let weighted = self.weighted(spec, &self.weights(spec, wavelet));
+        [0, 1, 2].map(|order| {
+            let mut values = Vec::new();
+            self.inverse(&weighted, order, &mut values);
+            Decimated {
+                step: self.step(spec),
+                values,
+            }
+        })
     }
 
-    /// (bin, frequency, 2 X Ψ / L) over the pass band.
-    fn weighted(&self, spec: &Spectrum, wavelet: &Morlet) -> Vec<(usize, f64, Complex64)> {
+    /// Ψ(s f_m) over the pass band.
+    fn weights(&self, spec: &Spectrum, wavelet: &Morlet) -> Vec<f64> {
+        let hi = self.hi.min(spec.bins.len() - 1);
+        let mut psi = Vec::with_capacity(self.bins());
+        if hi >= self.lo {
+            let df = spec.sample_rate / spec.padded_len as f64;
+            wavelet.spectrum_run(self.scale, self.lo, df, hi - self.lo + 1, &mut psi);
+        }
+        psi
+    }
+
+    fn gain_of(spec: &Spectrum, psi: &[f64]) -> f64 {
+        let k = 2.0 / spec.padded_len as f64;
+        psi.iter().map(|g| (k * g) * (k * g)).sum()
+    }
+
+    /// 2 X Ψ / L over the pass band.
+    fn weighted(&self, spec: &Spectrum, psi: &[f64]) -> Vec<Complex64> {
         let norm = 2.0 / spec.padded_len as f64;
-        (self.lo..=self.hi.min(spec.bins.len() - 1))
-            .map(|m| {
-                let f = spec.bin_freq(m);
-                (
-                    m,
-                    f,
-                    spec.bins[m] * (norm * wavelet.spectrum(self.scale, f)),
-                )
-            })
+        spec.bins[self.lo..self.lo + psi.len()]
+            .iter()
+            .zip(psi)
+            .map(|(x, g)| x * (norm * g))
             .collect()
     }
 
-    /// The demodulated inverse FFT of the weighted bins times (j2πf)^order.
-    fn inverse(
-        &self,
-        spec: &Spectrum,
-        weighted: &[(usize, f64, Complex64)],
-        order: i32,
-        buf: &mut Vec<Complex64>,
-    ) -> Decimated {
+    /// The demodulated inverse FFT of the weighted bins times (j2πf)^order, into `out`.
+    fn inverse(&self, weighted: &[Complex64], order: i32, out: &mut Vec<Complex64>) {
         let m_len = self.len;
-        buf.clear();
-        buf.resize(m_len, Complex64::new(0.0, 0.0));
-        for &(m, f, v) in weighted {
-            let idx = (m as isize - self.centre_bin as isize).rem_euclid(m_len as isize) as usize;
-            buf[idx] += v * Complex64::new(0.0, 2.0 * PI * f).powi(order);
+        out.clear();
+        out.resize(m_len, Complex64::new(0.0, 0.0));
+        let df = self.bin_hz;
+        // Bin m lands at (m - c) mod M; a band wider than M folds onto itself (only when
+        // the plan is capped at the padded length, where the fold is the identity).
+        let mut idx =
+            (self.lo as isize - self.centre_bin as isize).rem_euclid(m_len as isize) as usize;
+        for (k, &v) in weighted.iter().enumerate() {
+            let omega = 2.0 * PI * df * (self.lo + k) as f64;
+            out[idx] += match order {
+                0 => v,
+                1 => Complex64::new(-omega * v.im, omega * v.re),
+                _ => v * (-omega * omega),
+            };
+            idx += 1;
+            if idx == m_len {
+                idx = 0;
+            }
         }
-        complex_plan(m_len, true).process(buf);
-        Decimated {
-            step: self.step(spec),
-            values: buf.clone(),
-        }
+        complex_plan(m_len, true).process(out);
     }
 }
 
@@ -185,6 +225,11 @@ mod tests {
 
     /// W at a fractional padded time by the defining sum over every positive bin.
     fn direct(spec: &Spectrum, w: &Morlet, s: f64, t: f64) -> Complex64 {
+        direct_derivative(spec, w, s, t, 0)
+    }
+
+    /// ∂^order W/∂t^order by the defining sum.
+    fn direct_derivative(spec: &Spectrum, w: &Morlet, s: f64, t: f64, order: i32) -> Complex64 {
         let l = spec.padded_len as f64;
         spec.bins
             .iter()
@@ -192,7 +237,8 @@ mod tests {
             .skip(1)
             .map(|(m, b)| {
                 let g = 2.0 * w.spectrum(s, spec.bin_freq(m)) / l;
-                b * g * Complex64::from_polar(1.0, 2.0 * PI * m as f64 * t / l)
+                let jw = Complex64::new(0.0, 2.0 * PI * spec.bin_freq(m)).powi(order);
+                b * g * jw * Complex64::from_polar(1.0, 2.0 * PI * m as f64 * t / l)
             })
             .sum()
     }
@@ -222,8 +268,17 @@ mod tests {
             for f in [0.7, 3.0, 17.0, 60.0] {
                 let s = w.scale_for(f);
                 let plan = ScalePlan::new(&spec, &w, s, 2.0);
+                let dec = plan.evaluate(&spec, &w);
+                let derivs = plan.evaluate_with_derivatives(&spec, &w);
+                assert_eq!(derivs[0].values, dec.values);
                 let mut buf = Vec::new();
-                let dec = plan.evaluate(&spec, &w, &mut buf);
+                let gain = plan.evaluate_into(&spec, &w, &mut buf);
+                assert_eq!(buf, dec.values);
+                let l = spec.padded_len as f64;
+                let direct_gain: f64 = (1..spec.bins.len())
+                    .map(|m| (2.0 * w.spectrum(s, spec.bin_freq(m)) / l).powi(2))
+                    .sum();
+                assert!((gain - direct_gain).abs() < 1e-9 * direct_gain);
                 let mut full = Vec::new();
                 naive::scale(&spec, &w, s, &mut full);
                 for n in (0..plan.len).step_by((plan.len / 17).max(1)) {
@@ -234,6 +289,13 @@ mod tests {
                         (ours - truth).norm() < 1e-9 * big,
                         "f={f} n={n}: {ours} vs {truth}"
                     );
+                    for order in [1, 2] {
+                        let d = derivs[order as usize].values[n]
+                            * Complex64::from_polar(1.0, plan.carrier(&spec, t));
+                        let truth = direct_derivative(&spec, &w, s, t, order);
+                        let unit = big * (2.0 * PI * 2.6 * f).powi(order);
+                        assert!((d - truth).norm() < 1e-9 * unit, "order {order}");
+                    }
                     if t.fract() == 0.0 {
                         assert!((full[t as usize] - truth).norm() < 1e-9 * big);
                     }
