@@ -5,13 +5,18 @@
 //! Pipeline stages, one module each: [`ingest`] (HDF5 campaigns in), [`simulate`] (the rig
 //! model under any drive), [`campaign`] (archives out), [`demo`] (the built-in campaign),
 //! [`transform`] (Hilbert and wavelet transforms), [`ridge`], [`skeleton`] and [`track`]
-//! (instantaneous amplitude and frequency).
+//! (instantaneous amplitude and frequency), [`forcevib`] (ω0²(t), h0(t)), [`fit`] (skeleton
+//! curves and physical parameters), [`identify`] (one run through all of it).
 
+pub mod batch;
 pub mod bench;
 pub mod campaign;
 pub mod demo;
 pub mod filter;
+pub mod fit;
+pub mod forcevib;
 pub mod h5util;
+pub mod identify;
 pub mod ingest;
 pub mod inspect;
 pub mod model;

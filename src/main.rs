@@ -30,8 +30,13 @@ enum Command {
     Inspect(InspectArgs),
     /// Simulate the rig model of a TOML file under a chosen drive and write a campaign archive.
     Simulate(SimulateArgs),
-    /// Write the built-in demo campaign (the paper's rig plus one variant per effect) and list it.
+    /// Simulate the built-in demo campaign (the paper's rig plus one variant per effect) and
+    /// identify it, printing true against identified parameters.
     Demo(DemoArgs),
+    /// Identify every run of campaign archives: ForceVib, skeleton curves, clearance,
+    /// stiffness, viscous and Coulomb damping; writes results.h5, summary.json and
+    /// summary.csv (FORMATS.md §3). Exit status 1 if any run failed.
+    Run(RunArgs),
     /// Instantaneous envelope, frequency and phase of one dataset, by the wavelet ridge or
     /// the Hilbert transform; writes time, amplitude, frequency (Hz), valid (FORMATS.md §4).
     Track(TrackArgs),
@@ -200,6 +205,66 @@ struct DemoArgs {
     out: PathBuf,
 }
 
+#[derive(Args)]
+struct RunArgs {
+    /// Campaign archives: files, folders (searched for .h5/.hdf5/.mat) or glob patterns.
+    #[arg(required = true, value_name = "ARCHIVE")]
+    archives: Vec<String>,
+    /// Output folder for results.h5, summary.json and summary.csv.
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Instantaneous characteristics by the wavelet ridge, the Hilbert transform, or both.
+    #[arg(long, value_enum, default_value = "both")]
+    method: RunMethod,
+    /// Wavelet: lowest analysis frequency, Hz (default: from each channel's spectrum).
+    #[arg(long, value_name = "HZ")]
+    fmin: Option<f64>,
+    /// Wavelet: highest analysis frequency, Hz (default: from each channel's spectrum).
+    #[arg(long, value_name = "HZ")]
+    fmax: Option<f64>,
+    /// Wavelet: number of log-spaced scales.
+    #[arg(long, default_value_t = 64)]
+    scales: usize,
+    /// Wavelet: Morlet bandwidth f_b.
+    #[arg(long, default_value_t = 1.0, value_name = "FB")]
+    bandwidth: f64,
+    /// Wavelet: Morlet centre frequency f_c.
+    #[arg(long, default_value_t = 1.0, value_name = "FC")]
+    centre: f64,
+    /// Hilbert: zero-phase low-pass cut-off as a fraction of Nyquist (the paper's 0.005).
+    #[arg(long, default_value_t = 0.005, value_name = "FRACTION")]
+    cutoff: f64,
+    /// Amplitude bins of the skeleton curves.
+    #[arg(long, default_value_t = 40)]
+    bins: usize,
+    /// Seconds allowed to open one archive (in a child process) before it is reported failed.
+    #[arg(long, default_value_t = 300, value_name = "S")]
+    timeout: u64,
+    #[command(flatten)]
+    ingest: IngestArgs,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum RunMethod {
+    /// Complex-Morlet ridge and bias-corrected skeleton.
+    Wavelet,
+    /// Analytic signal by FFT, low-passed with --cutoff.
+    Hilbert,
+    /// Both, side by side.
+    Both,
+}
+
+impl RunMethod {
+    fn methods(self) -> Vec<skelid::track::Method> {
+        use skelid::track::Method;
+        match self {
+            RunMethod::Wavelet => vec![Method::Wavelet],
+            RunMethod::Hilbert => vec![Method::Hilbert],
+            RunMethod::Both => vec![Method::Wavelet, Method::Hilbert],
+        }
+    }
+}
+
 #[derive(Clone, Copy, ValueEnum)]
 enum MethodArg {
     /// Complex-Morlet ridge and bias-corrected skeleton.
@@ -289,6 +354,7 @@ fn main() -> ExitCode {
         Command::Inspect(a) => cmd_inspect(a),
         Command::Simulate(a) => cmd_simulate(a).map(|_| ExitCode::SUCCESS),
         Command::Demo(a) => cmd_demo(a),
+        Command::Run(a) => cmd_run(a),
         Command::Track(a) => cmd_track(a).map(|_| ExitCode::SUCCESS),
         Command::Bench(a) => cmd_bench(a).map(|_| ExitCode::SUCCESS),
         Command::BenchOne {
@@ -449,10 +515,150 @@ fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
         ),
     )];
     write_campaign(&path, &root, &runs, true)?;
-    println!("wrote {}\n", path.display());
-    let reports = inspect::inspect(&[path], &IngestOptions::default());
-    print!("{}", inspect::render_table(&reports));
+    println!("wrote {}", path.display());
+    let summary = identify_with_progress(
+        std::slice::from_ref(&path),
+        &IngestOptions::default(),
+        &[
+            skelid::track::Method::Wavelet,
+            skelid::track::Method::Hilbert,
+        ],
+        &skelid::identify::IdentifyOptions::default(),
+        skelid::batch::Isolation::None,
+        &a.out,
+    )?;
+    let truth = |run: &str| -> Option<[f64; 4]> {
+        let c = cases.iter().find(|c| c.path == run)?;
+        let m = &c.model;
+        let friction = m.effects.coulomb_friction.map_or(0.0, |f| f.torque);
+        Some([
+            m.clearance,
+            (m.stiffness / m.inertia).sqrt() / std::f64::consts::TAU,
+            m.damping / m.inertia,
+            friction / m.inertia,
+        ])
+    };
+    println!("\nidentified (true) per run; clearance in rad (m for the force run):\n");
+    print!("{}", render_summary(&summary.rows, Some(&truth)));
+    println!(
+        "\nwrote {}, summary.json, summary.csv",
+        summary.results.display()
+    );
     Ok(ExitCode::SUCCESS)
+}
+
+fn cmd_run(a: RunArgs) -> Result<ExitCode> {
+    let ingest = a.ingest.options()?;
+    let files = expand_inputs(&a.archives).map_err(anyhow::Error::msg)?;
+    let mut options = skelid::identify::IdentifyOptions::default();
+    options.wavelet.fmin = a.fmin;
+    options.wavelet.fmax = a.fmax;
+    options.wavelet.scales = a.scales;
+    options.wavelet.wavelet = skelid::transform::Morlet {
+        bandwidth: a.bandwidth,
+        centre: a.centre,
+    };
+    options.hilbert_cutoff = Some(a.cutoff);
+    options.bins = a.bins;
+    let exe = self_exe()?;
+    let summary = identify_with_progress(
+        &files,
+        &ingest,
+        &a.method.methods(),
+        &options,
+        skelid::batch::Isolation::Child {
+            exe: &exe,
+            timeout: std::time::Duration::from_secs(a.timeout),
+        },
+        &a.out,
+    )?;
+    print!("{}", render_summary(&summary.rows, None));
+    println!(
+        "\n{} run(s), {} failed; wrote {}, summary.json, summary.csv",
+        summary.runs,
+        summary.failed_runs,
+        summary.results.display()
+    );
+    Ok(if summary.failed_runs > 0 {
+        ExitCode::from(1)
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
+fn identify_with_progress(
+    files: &[PathBuf],
+    ingest: &IngestOptions,
+    methods: &[skelid::track::Method],
+    options: &skelid::identify::IdentifyOptions,
+    isolation: skelid::batch::Isolation<'_>,
+    out: &std::path::Path,
+) -> Result<skelid::batch::BatchSummary> {
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template(
+            "identifying {bar:30} {pos}/{len} runs {elapsed} (eta {eta})",
+        )
+        .expect("static template"),
+    );
+    let progress = |done: usize, total: usize| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    };
+    let summary =
+        skelid::batch::run_campaigns(files, ingest, methods, options, isolation, out, &progress)?;
+    bar.finish_and_clear();
+    Ok(summary)
+}
+
+/// True clearance, f0 (Hz), c/J and F/J of a run, by its path.
+type Truth<'a> = &'a dyn Fn(&str) -> Option<[f64; 4]>;
+
+/// The summary as a table; with `truth`, the true values of each run beside them.
+fn render_summary(
+    rows: &[skelid::report::SummaryRow],
+    truth: Option<Truth<'_>>,
+) -> String {
+    let mut out = format!(
+        "{:<34} {:<8} {:<6} {:>20} {:>20} {:>17} {:>17}  {}\n",
+        "run",
+        "method",
+        "status",
+        "clearance",
+        "f0 = √(k/J)/2π Hz",
+        "viscous c/J 1/s",
+        "Coulomb F/J",
+        "notes"
+    );
+    let get = |r: &skelid::report::SummaryRow, k: &str| r.parameters.get(k).copied().flatten();
+    let fmt = |v: Option<f64>, t: Option<f64>, prec: usize| -> String {
+        match (v, t) {
+            (Some(v), Some(t)) => format!("{v:.prec$} ({t:.prec$})"),
+            (Some(v), None) => format!("{v:.prec$}"),
+            (None, Some(t)) => format!("- ({t:.prec$})"),
+            (None, None) => "-".into(),
+        }
+    };
+    for r in rows {
+        let t = truth.and_then(|f| f(&r.run));
+        let f0 = get(r, "stiffness").map(|k| k.max(0.0).sqrt() / std::f64::consts::TAU);
+        let notes = if r.status == "ok" {
+            r.warnings.clone()
+        } else {
+            r.error.clone()
+        };
+        out.push_str(&format!(
+            "{:<34} {:<8} {:<6} {:>20} {:>20} {:>17} {:>17}  {}\n",
+            r.run,
+            r.method,
+            r.status,
+            fmt(get(r, "clearance"), t.map(|t| t[0]), 4),
+            fmt(f0, t.map(|t| t[1]), 3),
+            fmt(get(r, "viscous_damping"), t.map(|t| t[2]), 3),
+            fmt(get(r, "coulomb_friction"), t.map(|t| t[3]), 3),
+            notes
+        ));
+    }
+    out
 }
 
 fn self_exe() -> Result<PathBuf> {

@@ -1,12 +1,15 @@
-//! Output files for people and other programs: tracks (FORMATS.md §4).
+//! Output files for people and other programs: tracks (FORMATS.md §4), identification
+//! results and summaries (FORMATS.md §3).
 
 use std::borrow::Cow;
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use crate::campaign::{tmp_path, write_signal};
+use crate::fit::{Bin, Estimate};
 use crate::h5util::{write_f64_attr, write_str_attr};
-use crate::track::Track;
+use crate::identify::Identification;
+use crate::track::{Method, Track};
 
 /// Why an output file could not be written.
 #[derive(Debug, thiserror::Error)]
@@ -108,4 +111,342 @@ fn write_hdf5(path: &Path, track: &Track, source: &str) -> hdf5::Result<()> {
         }
     }
     file.flush()
+}
+
+/// What `run` did with one run of an archive: per method the identification or its error.
+#[derive(Debug)]
+pub struct RunOutcome {
+    /// Run path in the archive.
+    pub path: String,
+    /// Archive file name.
+    pub source: String,
+    /// Sample rate (Hz), when the run could be read.
+    pub sample_rate: Option<f64>,
+    /// Samples, when the run could be read.
+    pub samples: usize,
+    /// Inertia attribute (J or m), when given.
+    pub inertia: Option<f64>,
+    /// Why the run could not be read at all.
+    pub error: Option<String>,
+    /// Per method: the result (or its error) and the seconds it took.
+    pub methods: Vec<(Method, Result<Identification, String>, f64)>,
+}
+
+impl RunOutcome {
+    /// `ok` when at least one method identified the run.
+    pub fn status(&self) -> &'static str {
+        if self.error.is_none() && self.methods.iter().any(|m| m.1.is_ok()) {
+            "ok"
+        } else {
+            "failed"
+        }
+    }
+
+    /// The run's error text: the read error, or every method's error.
+    pub fn error_text(&self) -> Option<String> {
+        if let Some(e) = &self.error {
+            return Some(e.clone());
+        }
+        let errs: Vec<String> = self
+            .methods
+            .iter()
+            .filter_map(|(m, r, _)| r.as_ref().err().map(|e| format!("{}: {e}", m.as_str())))
+            .collect();
+        (!errs.is_empty()).then(|| errs.join("; "))
+    }
+}
+
+/// `results.h5` being written: each run is added as soon as it is done, the file is renamed
+/// into place by [`finish`](Self::finish), so a crash leaves no half-written results.h5.
+pub struct ResultsWriter {
+    file: hdf5::File,
+    path: PathBuf,
+    tmp: PathBuf,
+}
+
+impl ResultsWriter {
+    /// Starts `<dir>/results.h5`.
+    pub fn create(dir: &Path) -> Result<ResultsWriter, ReportError> {
+        let path = dir.join("results.h5");
+        let err = |detail: String| ReportError {
+            file: path.display().to_string(),
+            detail,
+        };
+        std::fs::create_dir_all(dir).map_err(|e| err(e.to_string()))?;
+        let tmp = tmp_path(&path);
+        let file = hdf5::File::create(&tmp).map_err(|e| err(e.to_string()))?;
+        write_str_attr(&file, "format", "skelid-results/1").map_err(|e| err(e.to_string()))?;
+        write_str_attr(&file, "skelid_version", env!("CARGO_PKG_VERSION"))
+            .map_err(|e| err(e.to_string()))?;
+        Ok(ResultsWriter { file, path, tmp })
+    }
+
+    /// Adds one run (failed runs included, with their error).
+    pub fn write_run(&self, run: &RunOutcome) -> Result<(), ReportError> {
+        self.write_run_inner(run).map_err(|e| ReportError {
+            file: self.path.display().to_string(),
+            detail: format!("run {}: {e}", run.path),
+        })
+    }
+
+    fn write_run_inner(&self, run: &RunOutcome) -> hdf5::Result<()> {
+        let g = group_path(&self.file, &run.path)?;
+        write_str_attr(&g, "status", run.status())?;
+        if let Some(e) = run.error_text() {
+            write_str_attr(&g, "error", &e)?;
+        }
+        write_str_attr(&g, "backend", "cpu")?;
+        write_str_attr(&g, "source", &run.source)?;
+        if let Some(fs) = run.sample_rate {
+            write_f64_attr(&g, "sample_rate", fs)?;
+            let t: Vec<f64> = (0..run.samples).map(|i| i as f64 / fs).collect();
+            write_signal(&g, "time", &t, true)?;
+        }
+        for (method, result, seconds) in &run.methods {
+            let m = g.create_group(method.as_str())?;
+            write_f64_attr(&m, "seconds", *seconds)?;
+            match result {
+                Err(e) => {
+                    write_str_attr(&m, "status", "failed")?;
+                    write_str_attr(&m, "error", e)?;
+                }
+                Ok(id) => {
+                    write_str_attr(&m, "status", "ok")?;
+                    write_identification(&m, id, run.inertia)?;
+                }
+            }
+        }
+        self.file.flush()
+    }
+
+    /// Closes the file and renames it into place.
+    pub fn finish(self) -> Result<PathBuf, ReportError> {
+        let ResultsWriter { file, path, tmp } = self;
+        let err = |detail: String| ReportError {
+            file: path.display().to_string(),
+            detail,
+        };
+        file.flush().map_err(|e| err(e.to_string()))?;
+        drop(file);
+        std::fs::rename(&tmp, &path).map_err(|e| err(e.to_string()))?;
+        Ok(path)
+    }
+}
+
+/// Opens or creates the group at an absolute path, creating its parents.
+fn group_path(file: &hdf5::File, path: &str) -> hdf5::Result<hdf5::Group> {
+    let mut g = file.group("/")?;
+    for part in path.split('/').filter(|p| !p.is_empty()) {
+        g = match g.group(part) {
+            Ok(x) => x,
+            Err(_) => g.create_group(part)?,
+        };
+    }
+    Ok(g)
+}
+
+fn write_identification(
+    m: &hdf5::Group,
+    id: &Identification,
+    inertia: Option<f64>,
+) -> hdf5::Result<()> {
+    if let Some(inp) = &id.input {
+        write_signal(m, "input_amplitude", &inp.amplitude, true)?;
+        write_signal(m, "input_frequency", &inp.frequency, true)?;
+    }
+    write_signal(m, "response_amplitude", &id.response.amplitude, true)?;
+    write_signal(m, "response_frequency", &id.response.frequency, true)?;
+    write_signal(m, "stiffness", &id.modal.stiffness, true)?;
+    write_signal(m, "damping", &id.modal.damping, true)?;
+    let valid: Vec<u8> = id.used.iter().map(|&b| u8::from(b)).collect();
+    m.new_dataset_builder()
+        .with_data(&valid)
+        .chunk(valid.len().clamp(1, 4096))
+        .deflate(4)
+        .create("valid")?;
+    let sk = m.create_group("skeleton")?;
+    let col = |f: &dyn Fn(&Bin) -> f64| -> Vec<f64> { id.bins.iter().map(f).collect() };
+    write_signal(&sk, "amplitude", &col(&|b| b.amplitude), false)?;
+    write_signal(
+        &sk,
+        "natural_frequency",
+        &col(&|b| b.natural_frequency()),
+        false,
+    )?;
+    write_signal(&sk, "stiffness", &col(&|b| b.stiffness), false)?;
+    write_signal(
+        &sk,
+        "stiffness_spread",
+        &col(&|b| b.stiffness_spread),
+        false,
+    )?;
+    write_signal(
+        &sk,
+        "restoring_force",
+        &col(&|b| b.restoring_force()),
+        false,
+    )?;
+    write_signal(&sk, "velocity_amplitude", &col(&|b| b.velocity), false)?;
+    write_signal(&sk, "damping_force", &col(&|b| b.damping_force()), false)?;
+    write_signal(&sk, "damping_spread", &col(&|b| b.damping_spread), false)?;
+    write_signal(&sk, "count", &col(&|b| b.count as f64), false)?;
+    for (name, value) in parameters(id, inertia) {
+        write_f64_attr(m, name, value)?;
+    }
+    write_str_attr(m, "warnings", &id.warnings.join("\n"))?;
+    Ok(())
+}
+
+/// The fitted parameters under their FORMATS.md §3 names (NaN where not fitted), then the
+/// extras: amplitude range, mass used, contact stiffness in physical units.
+pub fn parameters(id: &Identification, inertia: Option<f64>) -> Vec<(&'static str, f64)> {
+    let nan = f64::NAN;
+    let split = |e: Option<Estimate>| e.map_or((nan, nan), |e| (e.value, e.stderr));
+    let (c, c_se) = split(id.clearance());
+    let (ce, ce_se) = split(id.clearance_extrapolated());
+    let (k, k_se) = split(id.dead_zone.map(|d| d.stiffness));
+    let (v, v_se) = split(id.damping.map(|d| d.0));
+    let (f, f_se) = split(id.damping.map(|d| d.1));
+    let (a_lo, a_hi) = id.amplitude_range().unwrap_or((nan, nan));
+    let mass = id.mass.map(|m| m.0).or(inertia);
+    vec![
+        ("clearance", c),
+        ("clearance_stderr", c_se),
+        ("clearance_extrapolated", ce),
+        ("clearance_extrapolated_stderr", ce_se),
+        ("stiffness", k),
+        ("stiffness_stderr", k_se),
+        ("viscous_damping", v),
+        ("viscous_damping_stderr", v_se),
+        ("coulomb_friction", f),
+        ("coulomb_friction_stderr", f_se),
+        ("amplitude_min", a_lo),
+        ("amplitude_max", a_hi),
+        ("inertia", mass.unwrap_or(nan)),
+        ("contact_stiffness", mass.map_or(nan, |m| m * k)),
+        (
+            "inertia_estimated",
+            id.mass.map_or(0.0, |m| f64::from(u8::from(m.1))),
+        ),
+    ]
+}
+
+/// One row of `summary.json` / `summary.csv`: a run × method.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct SummaryRow {
+    /// Run path.
+    pub run: String,
+    /// Archive file name.
+    pub source: String,
+    /// Method (empty when the run could not be read).
+    pub method: String,
+    /// `ok` or `failed`.
+    pub status: String,
+    /// Error text when failed.
+    pub error: String,
+    /// Fitted parameters and extras, FORMATS.md §3 names (null where not fitted).
+    #[serde(flatten)]
+    pub parameters: std::collections::BTreeMap<String, Option<f64>>,
+    /// Warnings, joined by "; ".
+    pub warnings: String,
+    /// Seconds spent on this method.
+    pub seconds: f64,
+}
+
+/// The summary rows of one run.
+pub fn summary_rows(run: &RunOutcome) -> Vec<SummaryRow> {
+    let base = |method: &str, status: &str, error: String, seconds: f64| SummaryRow {
+        run: run.path.clone(),
+        source: run.source.clone(),
+        method: method.into(),
+        status: status.into(),
+        error,
+        parameters: Default::default(),
+        warnings: String::new(),
+        seconds,
+    };
+    if let Some(e) = &run.error {
+        return vec![base("", "failed", e.clone(), 0.0)];
+    }
+    run.methods
+        .iter()
+        .map(|(m, r, secs)| match r {
+            Err(e) => base(m.as_str(), "failed", e.clone(), *secs),
+            Ok(id) => {
+                let mut row = base(m.as_str(), "ok", String::new(), *secs);
+                row.parameters = parameters(id, run.inertia)
+                    .into_iter()
+                    .map(|(k, v)| (k.to_string(), v.is_finite().then_some(v)))
+                    .collect();
+                row.warnings = id.warnings.join("; ");
+                row
+            }
+        })
+        .collect()
+}
+
+/// Writes `<dir>/summary.json` and `<dir>/summary.csv` (each atomically).
+pub fn write_summary(dir: &Path, rows: &[SummaryRow]) -> Result<(), ReportError> {
+    let json = serde_json::json!({"format": "skelid-summary/1", "rows": rows});
+    let text = serde_json::to_string_pretty(&json).map_err(|e| ReportError {
+        file: "summary.json".into(),
+        detail: e.to_string(),
+    })?;
+    write_atomic(&dir.join("summary.json"), text.as_bytes())?;
+    let names: Vec<&str> = PARAMETER_NAMES.to_vec();
+    let mut csv = String::from("run,source,method,status,");
+    csv.push_str(&names.join(","));
+    csv.push_str(",seconds,warnings,error\n");
+    let quote = |s: &str| format!("\"{}\"", s.replace('"', "\"\""));
+    for r in rows {
+        csv.push_str(&format!(
+            "{},{},{},{},",
+            quote(&r.run),
+            quote(&r.source),
+            r.method,
+            r.status
+        ));
+        for n in &names {
+            if let Some(Some(v)) = r.parameters.get(*n) {
+                csv.push_str(&format!("{v:.6e}"));
+            }
+            csv.push(',');
+        }
+        csv.push_str(&format!(
+            "{:.3},{},{}\n",
+            r.seconds,
+            quote(&r.warnings),
+            quote(&r.error)
+        ));
+    }
+    write_atomic(&dir.join("summary.csv"), csv.as_bytes())
+}
+
+/// Parameter columns of `summary.csv`, in order.
+pub const PARAMETER_NAMES: [&str; 15] = [
+    "clearance",
+    "clearance_stderr",
+    "clearance_extrapolated",
+    "clearance_extrapolated_stderr",
+    "stiffness",
+    "stiffness_stderr",
+    "viscous_damping",
+    "viscous_damping_stderr",
+    "coulomb_friction",
+    "coulomb_friction_stderr",
+    "amplitude_min",
+    "amplitude_max",
+    "inertia",
+    "contact_stiffness",
+    "inertia_estimated",
+];
+
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
+    let err = |detail: String| ReportError {
+        file: path.display().to_string(),
+        detail,
+    };
+    let tmp = tmp_path(path);
+    std::fs::write(&tmp, bytes).map_err(|e| err(e.to_string()))?;
+    std::fs::rename(&tmp, path).map_err(|e| err(e.to_string()))
 }

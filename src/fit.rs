@@ -1,0 +1,409 @@
+//! Skeleton curves and their fits: the backbone ω0(A), the restoring force A·ω0²(A) and the
+//! damping force 2h0·Aω binned over amplitude, then the dead-zone describing function
+//! (clearance, contact stiffness), the paper's linear extrapolation, and viscous + Coulomb
+//! damping (DESIGN.md, "Fitting the skeleton").
+
+use std::f64::consts::PI;
+
+/// One amplitude bin of the skeleton (medians over the samples that fell in it).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Bin {
+    /// Response amplitude A (signal units).
+    pub amplitude: f64,
+    /// ω0² (1/s²).
+    pub stiffness: f64,
+    /// Interquartile half-range of ω0² in the bin (1/s²).
+    pub stiffness_spread: f64,
+    /// 2 h0 (1/s).
+    pub damping: f64,
+    /// Interquartile half-range of 2 h0 (1/s).
+    pub damping_spread: f64,
+    /// Velocity amplitude A ω (units/s).
+    pub velocity: f64,
+    /// Samples in the bin.
+    pub count: usize,
+}
+
+impl Bin {
+    /// Natural frequency ω0/2π (Hz), 0 where ω0² ≤ 0.
+    pub fn natural_frequency(&self) -> f64 {
+        self.stiffness.max(0.0).sqrt() / (2.0 * PI)
+    }
+    /// Restoring force per unit inertia, A ω0².
+    pub fn restoring_force(&self) -> f64 {
+        self.amplitude * self.stiffness
+    }
+    /// Damping force per unit inertia, 2 h0 A ω.
+    pub fn damping_force(&self) -> f64 {
+        self.damping * self.velocity
+    }
+}
+
+/// Samples of the instantaneous characteristics that a skeleton is built from.
+#[derive(Debug, Clone, Copy)]
+pub struct Sample {
+    /// Response amplitude.
+    pub amplitude: f64,
+    /// Response angular frequency ω (rad/s).
+    pub omega: f64,
+    /// ω0² (1/s²).
+    pub stiffness: f64,
+    /// h0 (1/s).
+    pub damping: f64,
+}
+
+fn quartiles(v: &mut [f64]) -> (f64, f64, f64) {
+    v.sort_by(|a, b| a.total_cmp(b));
+    let q = |p: f64| v[((v.len() - 1) as f64 * p).round() as usize];
+    (q(0.25), q(0.5), q(0.75))
+}
+
+/// Bins the samples over log-amplitude: `bins` equal steps between the 0.5 % and 99.5 %
+/// amplitude quantiles; bins with fewer than `min_count` samples are dropped.
+pub fn skeleton(samples: &[Sample], bins: usize, min_count: usize) -> Vec<Bin> {
+    if samples.len() < min_count.max(2) || bins == 0 {
+        return Vec::new();
+    }
+    let mut amps: Vec<f64> = samples.iter().map(|s| s.amplitude).collect();
+    amps.sort_by(|a, b| a.total_cmp(b));
+    let at = |p: f64| amps[((amps.len() - 1) as f64 * p).round() as usize];
+    let (lo, hi) = (at(0.005).max(f64::MIN_POSITIVE), at(0.995));
+    if hi <= lo {
+        return Vec::new();
+    }
+    let step = (hi / lo).ln() / bins as f64;
+    let mut members: Vec<Vec<Sample>> = vec![Vec::new(); bins];
+    for s in samples {
+        if s.amplitude < lo || s.amplitude > hi {
+            continue;
+        }
+        let b = (((s.amplitude / lo).ln() / step) as usize).min(bins - 1);
+        members[b].push(*s);
+    }
+    members
+        .into_iter()
+        .filter(|m| m.len() >= min_count)
+        .map(|m| {
+            let mut a: Vec<f64> = m.iter().map(|s| s.amplitude).collect();
+            let mut k: Vec<f64> = m.iter().map(|s| s.stiffness).collect();
+            let mut d: Vec<f64> = m.iter().map(|s| 2.0 * s.damping).collect();
+            let mut v: Vec<f64> = m.iter().map(|s| s.amplitude * s.omega).collect();
+            let (_, am, _) = quartiles(&mut a);
+            let (k1, km, k3) = quartiles(&mut k);
+            let (d1, dm, d3) = quartiles(&mut d);
+            let (_, vm, _) = quartiles(&mut v);
+            Bin {
+                amplitude: am,
+                stiffness: km,
+                stiffness_spread: 0.5 * (k3 - k1),
+                damping: dm,
+                damping_spread: 0.5 * (d3 - d1),
+                velocity: vm,
+                count: m.len(),
+            }
+        })
+        .collect()
+}
+
+/// First-harmonic stiffness ratio of a dead zone of half-width δ at amplitude A:
+/// k_eq/k = 1 − (2/π)(asin r + r√(1 − r²)), r = δ/A (0 below the gap).
+pub fn dead_zone_ratio(delta: f64, amplitude: f64) -> f64 {
+    if amplitude <= delta {
+        return 0.0;
+    }
+    let r = delta / amplitude;
+    1.0 - (2.0 / PI) * (r.asin() + r * (1.0 - r * r).sqrt())
+}
+
+/// A fitted value with its standard error.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Estimate {
+    /// Value.
+    pub value: f64,
+    /// Standard error (NaN when it cannot be estimated).
+    pub stderr: f64,
+}
+
+/// The dead-zone fit: ω0²(A) = K·k_eq/k(δ, A).
+#[derive(Debug, Clone, Copy)]
+pub struct DeadZoneFit {
+    /// Half-gap δ (signal units).
+    pub half_gap: Estimate,
+    /// K = k/J (1/s²).
+    pub stiffness: Estimate,
+    /// RMS residual relative to the mean ω0².
+    pub residual: f64,
+}
+
+/// Weighted least squares of the dead-zone describing function to the backbone bins: δ by
+/// a bracketing search (K is linear once δ is fixed), errors from the Jacobian.
+pub fn fit_dead_zone(bins: &[Bin]) -> Option<DeadZoneFit> {
+    let pts: Vec<&Bin> = bins.iter().filter(|b| b.stiffness.is_finite()).collect();
+    if pts.len() < 3 {
+        return None;
+    }
+    let w: Vec<f64> = pts.iter().map(|b| b.count as f64).collect();
+    // Cost and the optimal K for a given δ.
+    let solve = |delta: f64| -> (f64, f64) {
+        let (mut sgy, mut sgg) = (0.0, 0.0);
+        for (b, wi) in pts.iter().zip(&w) {
+            let g = dead_zone_ratio(delta, b.amplitude);
+            sgy += wi * g * b.stiffness;
+            sgg += wi * g * g;
+        }
+        let k = if sgg > 0.0 { sgy / sgg } else { 0.0 };
+        let cost: f64 = pts
+            .iter()
+            .zip(&w)
+            .map(|(b, wi)| wi * (b.stiffness - k * dead_zone_ratio(delta, b.amplitude)).powi(2))
+            .sum();
+        (cost, k)
+    };
+    // Below δ the model is 0 (no contact): δ may lie anywhere under the largest amplitude.
+    let a_min = pts.iter().map(|b| b.amplitude).fold(0.0, f64::max);
+    // Coarse scan over δ ∈ [0, A_max), then golden-section refinement around the best.
+    let grid = 400;
+    let (mut best, mut best_cost) = (0.0, solve(0.0).0);
+    for i in 1..grid {
+        let d = a_min * i as f64 / grid as f64;
+        let c = solve(d).0;
+        if c < best_cost {
+            best = d;
+            best_cost = c;
+        }
+    }
+    let h = a_min / grid as f64;
+    let (mut lo, mut hi) = ((best - h).max(0.0), (best + h).min(a_min * (1.0 - 1e-9)));
+    let g = 0.5 * (5f64.sqrt() - 1.0);
+    for _ in 0..60 {
+        let x1 = hi - g * (hi - lo);
+        let x2 = lo + g * (hi - lo);
+        if solve(x1).0 < solve(x2).0 {
+            hi = x2;
+        } else {
+            lo = x1;
+        }
+    }
+    let delta = 0.5 * (lo + hi);
+    let (cost, k) = solve(delta);
+    // Gauss–Newton covariance: J = [∂f/∂K, ∂f/∂δ], σ² = cost/(n − 2) per unit weight.
+    let eps = 1e-6 * a_min.max(1e-12);
+    let mut jtj = [[0.0; 2]; 2];
+    for (b, wi) in pts.iter().zip(&w) {
+        let g = dead_zone_ratio(delta, b.amplitude);
+        let dg = (dead_zone_ratio(delta + eps, b.amplitude)
+            - dead_zone_ratio((delta - eps).max(0.0), b.amplitude))
+            / (delta + eps - (delta - eps).max(0.0));
+        let j = [g, k * dg];
+        for r in 0..2 {
+            for c in 0..2 {
+                jtj[r][c] += wi * j[r] * j[c];
+            }
+        }
+    }
+    let dof = (pts.len() as f64 - 2.0).max(1.0);
+    let s2 = cost / dof;
+    let det = jtj[0][0] * jtj[1][1] - jtj[0][1] * jtj[1][0];
+    let (se_k, se_d) = if det > 0.0 {
+        ((s2 * jtj[1][1] / det).sqrt(), (s2 * jtj[0][0] / det).sqrt())
+    } else {
+        (f64::NAN, f64::NAN)
+    };
+    let wsum: f64 = w.iter().sum();
+    let mean = pts
+        .iter()
+        .zip(&w)
+        .map(|(b, wi)| wi * b.stiffness)
+        .sum::<f64>()
+        / wsum;
+    Some(DeadZoneFit {
+        half_gap: Estimate {
+            value: delta,
+            stderr: se_d,
+        },
+        stiffness: Estimate {
+            value: k,
+            stderr: se_k,
+        },
+        residual: (cost / wsum).sqrt() / mean.abs().max(f64::MIN_POSITIVE),
+    })
+}
+
+/// Weighted straight line y = a + b x; returns (a, b) with standard errors.
+pub fn line(x: &[f64], y: &[f64], w: &[f64]) -> Option<(Estimate, Estimate)> {
+    let n = x.len();
+    if n < 3 {
+        return None;
+    }
+    let sw: f64 = w.iter().sum();
+    let xm = x.iter().zip(w).map(|(x, w)| x * w).sum::<f64>() / sw;
+    let ym = y.iter().zip(w).map(|(y, w)| y * w).sum::<f64>() / sw;
+    let (mut sxx, mut sxy) = (0.0, 0.0);
+    for i in 0..n {
+        sxx += w[i] * (x[i] - xm).powi(2);
+        sxy += w[i] * (x[i] - xm) * (y[i] - ym);
+    }
+    if sxx <= 0.0 {
+        return None;
+    }
+    let b = sxy / sxx;
+    let a = ym - b * xm;
+    let rss: f64 = (0..n).map(|i| w[i] * (y[i] - a - b * x[i]).powi(2)).sum();
+    let s2 = rss / (n as f64 - 2.0).max(1.0);
+    let se_b = (s2 / sxx).sqrt();
+    let se_a = (s2 * (1.0 / sw + xm * xm / sxx)).sqrt();
+    Some((
+        Estimate {
+            value: a,
+            stderr: se_a,
+        },
+        Estimate {
+            value: b,
+            stderr: se_b,
+        },
+    ))
+}
+
+/// The paper's clearance: the straight line through the restoring force A·ω0² over the upper
+/// half of the amplitude range covered, extrapolated to zero force; returns the intercept
+/// amplitude (a half-gap estimate; biased, see DESIGN.md) and the amplitudes fitted.
+pub fn extrapolated_half_gap(bins: &[Bin]) -> Option<(Estimate, (f64, f64))> {
+    let (lo, hi) = amplitude_range(bins)?;
+    let mid = 0.5 * (lo + hi);
+    let sel: Vec<&Bin> = bins.iter().filter(|b| b.amplitude >= mid).collect();
+    let x: Vec<f64> = sel.iter().map(|b| b.amplitude).collect();
+    let y: Vec<f64> = sel.iter().map(|b| b.restoring_force()).collect();
+    let w: Vec<f64> = sel.iter().map(|b| b.count as f64).collect();
+    let (a, b) = line(&x, &y, &w)?;
+    if b.value <= 0.0 {
+        return None;
+    }
+    // y = a + b A = 0 at A0 = −a/b; first-order error propagation.
+    let a0 = -a.value / b.value;
+    let se = ((a.stderr / b.value).powi(2) + (a0 * b.stderr / b.value).powi(2)).sqrt();
+    Some((
+        Estimate {
+            value: a0,
+            stderr: se,
+        },
+        (mid, hi),
+    ))
+}
+
+/// Smallest and largest bin amplitude.
+pub fn amplitude_range(bins: &[Bin]) -> Option<(f64, f64)> {
+    let lo = bins
+        .iter()
+        .map(|b| b.amplitude)
+        .fold(f64::INFINITY, f64::min);
+    let hi = bins.iter().map(|b| b.amplitude).fold(0.0, f64::max);
+    (lo.is_finite() && hi > lo).then_some((lo, hi))
+}
+
+/// Viscous + Coulomb damping: 2h0 = c/J + (4/π)(F/J)/(Aω), a line in 1/(Aω). Returns
+/// (c/J in 1/s, F/J in units/s²).
+pub fn fit_damping(bins: &[Bin]) -> Option<(Estimate, Estimate)> {
+    let sel: Vec<&Bin> = bins
+        .iter()
+        .filter(|b| b.velocity > 0.0 && b.damping.is_finite())
+        .collect();
+    let x: Vec<f64> = sel.iter().map(|b| 1.0 / b.velocity).collect();
+    let y: Vec<f64> = sel.iter().map(|b| b.damping).collect();
+    let w: Vec<f64> = sel.iter().map(|b| b.count as f64).collect();
+    let (a, b) = line(&x, &y, &w)?;
+    let f = PI / 4.0;
+    Some((
+        a,
+        Estimate {
+            value: b.value * f,
+            stderr: b.stderr * f,
+        },
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn bins_from(f: impl Fn(f64) -> (f64, f64, f64)) -> Vec<Bin> {
+        (0..40)
+            .map(|i| {
+                let a = 0.015 * (1.0 + i as f64 / 20.0);
+                let (k, d, v) = f(a);
+                Bin {
+                    amplitude: a,
+                    stiffness: k,
+                    stiffness_spread: 0.0,
+                    damping: d,
+                    damping_spread: 0.0,
+                    velocity: v,
+                    count: 10,
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn dead_zone_fit_recovers_an_exact_curve() {
+        let (k, delta) = (4747.0, 0.0131);
+        let bins = bins_from(|a| (k * dead_zone_ratio(delta, a), 0.0, 1.0));
+        let f = fit_dead_zone(&bins).unwrap();
+        assert!((f.half_gap.value - delta).abs() < 1e-6 * delta, "{f:?}");
+        assert!((f.stiffness.value - k).abs() < 1e-6 * k);
+    }
+
+    #[test]
+    fn extrapolation_is_biased_as_design_says() {
+        let (k, delta) = (4747.0, 0.01);
+        // A ∈ [5δ, 20δ]: intercept ≈ 1.27δ.
+        let bins: Vec<Bin> = (0..60)
+            .map(|i| {
+                let a = delta * (5.0 + 15.0 * i as f64 / 59.0);
+                Bin {
+                    amplitude: a,
+                    stiffness: k * dead_zone_ratio(delta, a),
+                    stiffness_spread: 0.0,
+                    damping: 0.0,
+                    damping_spread: 0.0,
+                    velocity: 1.0,
+                    count: 1,
+                }
+            })
+            .collect();
+        let (a0, _) = extrapolated_half_gap(&bins).unwrap();
+        let ratio = a0.value / delta;
+        assert!(ratio > 1.2 && ratio < 4.0 / PI + 1e-3, "{ratio}");
+    }
+
+    #[test]
+    fn damping_fit_separates_viscous_and_dry() {
+        let (c, fric) = (4.1, 0.8);
+        let bins = bins_from(|a| {
+            let v = a * 60.0;
+            (1.0, c + 4.0 * fric / (PI * v), v)
+        });
+        let (cv, fr) = fit_damping(&bins).unwrap();
+        assert!((cv.value - c).abs() < 1e-9 && (fr.value - fric).abs() < 1e-9);
+    }
+
+    #[test]
+    fn skeleton_bins_medians() {
+        let samples: Vec<Sample> = (0..1000)
+            .map(|i| Sample {
+                amplitude: 1.0 + i as f64 / 1000.0,
+                omega: 10.0,
+                stiffness: 100.0,
+                damping: 0.5,
+            })
+            .collect();
+        let b = skeleton(&samples, 10, 5);
+        assert_eq!(b.len(), 10);
+        for bin in &b {
+            assert_eq!(bin.stiffness, 100.0);
+            assert_eq!(bin.damping, 1.0);
+            assert!(
+                (bin.natural_frequency() - 10f64.sqrt() * 10f64.sqrt() / (2.0 * PI)).abs() < 1e-12
+            );
+        }
+    }
+}

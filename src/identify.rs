@@ -1,0 +1,256 @@
+//! One run through the identification: channels to displacement, instantaneous
+//! characteristics of input and response, ForceVib, skeleton, fits.
+
+use std::f64::consts::PI;
+
+use crate::fit::{self, Bin, DeadZoneFit, Estimate, Sample};
+use crate::forcevib::{self, Modal};
+use crate::ingest::{Quantity, Run, RunKind};
+use crate::track::{
+    default_band, track_hilbert, track_wavelet, HilbertOptions, Method, Track, TrackError,
+    WaveletOptions,
+};
+use crate::transform::Morlet;
+
+/// Why a run could not be identified.
+#[derive(Debug, thiserror::Error)]
+pub enum IdentifyError {
+    /// The run lacks something the identification needs.
+    #[error("{0}")]
+    Unusable(String),
+    /// A channel could not be tracked.
+    #[error("{channel} channel: {source}")]
+    Track {
+        /// Which channel.
+        channel: &'static str,
+        /// Why.
+        source: TrackError,
+    },
+    /// Too little valid data for a skeleton.
+    #[error("{0}")]
+    NoSkeleton(String),
+}
+
+/// Options of the identification.
+#[derive(Debug, Clone)]
+pub struct IdentifyOptions {
+    /// Wavelet method options (band chosen per channel unless given).
+    pub wavelet: WaveletOptions,
+    /// Hilbert low-pass cut-off (fraction of Nyquist); the paper's 0.005 by default.
+    pub hilbert_cutoff: Option<f64>,
+    /// Amplitude bins of the skeleton.
+    pub bins: usize,
+}
+
+impl Default for IdentifyOptions {
+    fn default() -> Self {
+        Self {
+            wavelet: WaveletOptions::default(),
+            hilbert_cutoff: Some(0.005),
+            bins: 40,
+        }
+    }
+}
+
+/// Everything one method found on one run.
+#[derive(Debug, Clone)]
+pub struct Identification {
+    /// Method used.
+    pub method: Method,
+    /// Input channel's track (none for a free decay).
+    pub input: Option<Track>,
+    /// The identified channel's track (z = y − x for base motion, y otherwise).
+    pub response: Track,
+    /// ω0²(t), h0(t).
+    pub modal: Modal,
+    /// Samples used for the skeleton.
+    pub used: Vec<bool>,
+    /// The skeleton.
+    pub bins: Vec<Bin>,
+    /// Dead-zone fit (half-gap and k/J).
+    pub dead_zone: Option<DeadZoneFit>,
+    /// The paper's extrapolated half-gap and the amplitude range it used.
+    pub extrapolated: Option<(Estimate, (f64, f64))>,
+    /// Viscous c/J (1/s) and Coulomb F/J (units/s²).
+    pub damping: Option<(Estimate, Estimate)>,
+    /// Mass or inertia used by ForceVib (force runs), and whether it was estimated.
+    pub mass: Option<(f64, bool)>,
+    /// Warnings for the user (partial skeleton, estimated mass, …).
+    pub warnings: Vec<String>,
+}
+
+impl Identification {
+    /// Total clearance 2δ from the exact fit.
+    pub fn clearance(&self) -> Option<Estimate> {
+        self.dead_zone.map(|f| Estimate {
+            value: 2.0 * f.half_gap.value,
+            stderr: 2.0 * f.half_gap.stderr,
+        })
+    }
+    /// Total clearance the paper's way (2 × the extrapolated intercept).
+    pub fn clearance_extrapolated(&self) -> Option<Estimate> {
+        self.extrapolated.map(|(e, _)| Estimate {
+            value: 2.0 * e.value,
+            stderr: 2.0 * e.stderr,
+        })
+    }
+    /// Amplitude range covered by the skeleton.
+    pub fn amplitude_range(&self) -> Option<(f64, f64)> {
+        fit::amplitude_range(&self.bins)
+    }
+}
+
+fn order(q: Quantity) -> u32 {
+    match q {
+        Quantity::Velocity => 1,
+        Quantity::Acceleration => 2,
+        _ => 0,
+    }
+}
+
+/// A channel as displacement: velocity and acceleration are integrated spectrally, with the
+/// high-pass at half the lowest frequency of the signal's own band.
+fn displacement(x: &[f64], fs: f64, q: Quantity) -> Result<Vec<f64>, IdentifyError> {
+    let k = order(q);
+    if k == 0 {
+        return Ok(x.to_vec());
+    }
+    let (fmin, _) = default_band(x, fs, &Morlet::default()).map_err(|e| IdentifyError::Track {
+        channel: "output",
+        source: e,
+    })?;
+    Ok(forcevib::integrate(x, fs, k, 0.5 * fmin))
+}
+
+fn track(
+    x: &[f64],
+    fs: f64,
+    method: Method,
+    opt: &IdentifyOptions,
+    guide: Option<&Track>,
+    channel: &'static str,
+) -> Result<Track, IdentifyError> {
+    let r = match method {
+        Method::Wavelet => {
+            track_wavelet(x, fs, &opt.wavelet, guide.map(|g| g.frequency.as_slice()))
+        }
+        Method::Hilbert => track_hilbert(
+            x,
+            fs,
+            &HilbertOptions {
+                cutoff: opt.hilbert_cutoff,
+            },
+        ),
+    };
+    r.map_err(|source| IdentifyError::Track { channel, source })
+}
+
+/// Identifies one loaded run with one method.
+pub fn identify(
+    run: &Run,
+    method: Method,
+    opt: &IdentifyOptions,
+) -> Result<Identification, IdentifyError> {
+    let meta = &run.meta;
+    let fs = meta.sample_rate;
+    let y = displacement(&run.output, fs, meta.output_quantity)?;
+    let mut warnings = Vec::new();
+    let (input, response, modal, mass) = match meta.kind {
+        RunKind::Free => {
+            let resp = track(&y, fs, method, opt, None, "output")?;
+            let modal = forcevib::free_decay(&resp);
+            (None, resp, modal, None)
+        }
+        RunKind::BaseMotion => {
+            let raw = run.input.as_ref().ok_or_else(|| {
+                IdentifyError::Unusable("a base-motion run needs an input dataset".into())
+            })?;
+            let q = meta.input_quantity.unwrap_or(Quantity::Displacement);
+            if q == Quantity::Force {
+                return Err(IdentifyError::Unusable(
+                    "input_quantity is force but kind is base_motion: set kind = \"force\"".into(),
+                ));
+            }
+            let x = displacement(raw, fs, q)?;
+            let z: Vec<f64> = y.iter().zip(&x).map(|(a, b)| a - b).collect();
+            let tx = track(&x, fs, method, opt, None, "input")?;
+            let tz = track(&z, fs, method, opt, Some(&tx), "relative motion")?;
+            let modal = forcevib::base_motion(&tx, &tz, meta.gravity_stiffness);
+            (Some(tx), tz, modal, None)
+        }
+        RunKind::Force => {
+            let f = run.input.as_ref().ok_or_else(|| {
+                IdentifyError::Unusable("a force run needs an input (force) dataset".into())
+            })?;
+            let tf = track(f, fs, method, opt, None, "input")?;
+            let ty = track(&y, fs, method, opt, Some(&tf), "output")?;
+            let (m, estimated) = match meta.inertia {
+                Some(m) => (m, false),
+                None => {
+                    let m = forcevib::estimate_mass(&tf, &ty).ok_or_else(|| {
+                        IdentifyError::Unusable(
+                            "no inertia attribute and the modal mass cannot be estimated from the data: set `inertia`".into(),
+                        )
+                    })?;
+                    warnings.push(format!(
+                        "no inertia attribute: modal mass estimated from the data as {m:.4e}"
+                    ));
+                    (m, true)
+                }
+            };
+            let modal = forcevib::force_input(&tf, &ty, m);
+            (Some(tf), ty, modal, Some((m, estimated)))
+        }
+    };
+    let n = response.amplitude.len();
+    let used: Vec<bool> = (0..n)
+        .map(|i| modal.valid[i] && modal.stiffness[i].is_finite())
+        .collect();
+    let samples: Vec<Sample> = (0..n)
+        .filter(|&i| used[i])
+        .map(|i| Sample {
+            amplitude: response.amplitude[i],
+            omega: 2.0 * PI * response.frequency[i],
+            stiffness: modal.stiffness[i],
+            damping: modal.damping[i],
+        })
+        .collect();
+    if samples.len() < 100 {
+        return Err(IdentifyError::NoSkeleton(format!(
+            "only {} valid samples of {n}: the response is too weak or too short to identify",
+            samples.len()
+        )));
+    }
+    let min_count = (samples.len() / (20 * opt.bins)).max(5);
+    let bins = fit::skeleton(&samples, opt.bins, min_count);
+    let dead_zone = fit::fit_dead_zone(&bins);
+    let extrapolated = fit::extrapolated_half_gap(&bins);
+    let damping = fit::fit_damping(&bins);
+    if let (Some(dz), Some((lo, hi))) = (dead_zone, fit::amplitude_range(&bins)) {
+        let d = dz.half_gap.value;
+        if d > 0.0 && hi < 2.0 * d {
+            warnings.push(format!(
+                "partial skeleton: amplitudes reach {:.2}× the half-gap only (the describing function's knee lies below 2×)",
+                hi / d
+            ));
+        }
+        if hi / lo < 1.3 {
+            warnings.push(format!(
+                "partial skeleton: the amplitude range covered is narrow ({lo:.3e} to {hi:.3e})"
+            ));
+        }
+    }
+    Ok(Identification {
+        method,
+        input,
+        response,
+        modal,
+        used,
+        bins,
+        dead_zone,
+        extrapolated,
+        damping,
+        mass,
+        warnings,
+    })
+}
