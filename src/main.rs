@@ -614,10 +614,7 @@ fn identify_with_progress(
 type Truth<'a> = &'a dyn Fn(&str) -> Option<[f64; 4]>;
 
 /// The summary as a table; with `truth`, the true values of each run beside them.
-fn render_summary(
-    rows: &[skelid::report::SummaryRow],
-    truth: Option<Truth<'_>>,
-) -> String {
+fn render_summary(rows: &[skelid::report::SummaryRow], truth: Option<Truth<'_>>) -> String {
     let mut out = format!(
         "{:<34} {:<8} {:<6} {:>20} {:>20} {:>17} {:>17}  {}\n",
         "run",

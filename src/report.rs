@@ -328,6 +328,13 @@ pub fn parameters(id: &Identification, inertia: Option<f64>) -> Vec<(&'static st
             "inertia_estimated",
             id.mass.map_or(0.0, |m| f64::from(u8::from(m.1))),
         ),
+        (
+            "natural_frequency_at_amplitude_max",
+            id.bins
+                .iter()
+                .max_by(|a, b| a.amplitude.total_cmp(&b.amplitude))
+                .map_or(nan, |b| b.natural_frequency()),
+        ),
     ]
 }
 
@@ -423,7 +430,7 @@ pub fn write_summary(dir: &Path, rows: &[SummaryRow]) -> Result<(), ReportError>
 }
 
 /// Parameter columns of `summary.csv`, in order.
-pub const PARAMETER_NAMES: [&str; 15] = [
+pub const PARAMETER_NAMES: [&str; 16] = [
     "clearance",
     "clearance_stderr",
     "clearance_extrapolated",
@@ -439,6 +446,7 @@ pub const PARAMETER_NAMES: [&str; 15] = [
     "inertia",
     "contact_stiffness",
     "inertia_estimated",
+    "natural_frequency_at_amplitude_max",
 ];
 
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {

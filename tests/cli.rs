@@ -25,7 +25,20 @@ fn demo_writes_the_campaign_with_its_truth_and_lists_it() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    assert!(text.contains("/demo/paper_rig") && text.contains("with problems"));
+    // The true-versus-identified table: every run, both methods.
+    assert!(text.contains("identified (true)"));
+    for c in skelid::demo::cases() {
+        assert!(text.contains(&c.path), "{} missing", c.path);
+    }
+    check_results(&d.path().join("results.h5"), "demo/paper_rig", true);
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.path().join("summary.json")).unwrap())
+            .unwrap();
+    let rows = summary["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 2 * skelid::demo::cases().len());
+    let csv = std::fs::read_to_string(d.path().join("summary.csv")).unwrap();
+    assert!(csv.starts_with("run,source,method,status,clearance,"));
+    assert_eq!(csv.lines().count(), rows.len() + 1);
     let archive = d.path().join("demo_campaign.h5");
     let f = hdf5::File::open(&archive).unwrap();
     let g = f.group("demo/paper_rig").unwrap();
@@ -45,6 +58,93 @@ fn demo_writes_the_campaign_with_its_truth_and_lists_it() {
     let after = peak(20_000, 22_000) / 0.0131;
     println!("paper rig: peak |z|/δ before the jump {before:.2}, after {after:.2}");
     assert!(before > 1.5 && before < 2.5 && after < 0.7 * before);
+}
+
+/// results.h5 carries the FORMATS.md §3 names for run `run`.
+fn check_results(path: &std::path::Path, run: &str, has_input: bool) {
+    let f = hdf5::File::open(path).unwrap();
+    let g = f.group(run).unwrap();
+    for a in ["status", "backend", "source"] {
+        assert!(g.attr(a).is_ok(), "{run}: attribute {a}");
+    }
+    assert!(g.dataset("time").is_ok());
+    let w = g.group("wavelet").unwrap();
+    let mut names = vec![
+        "response_amplitude",
+        "response_frequency",
+        "stiffness",
+        "damping",
+        "valid",
+    ];
+    if has_input {
+        names.extend(["input_amplitude", "input_frequency"]);
+    }
+    for d in names {
+        assert!(w.dataset(d).is_ok(), "{run}/wavelet/{d}");
+    }
+    for d in [
+        "amplitude",
+        "natural_frequency",
+        "restoring_force",
+        "velocity_amplitude",
+        "damping_force",
+    ] {
+        assert!(w.dataset(&format!("skeleton/{d}")).is_ok(), "skeleton/{d}");
+    }
+    for a in [
+        "clearance",
+        "clearance_extrapolated",
+        "stiffness",
+        "viscous_damping",
+        "coulomb_friction",
+        "clearance_stderr",
+        "stiffness_stderr",
+        "viscous_damping_stderr",
+        "coulomb_friction_stderr",
+    ] {
+        assert!(w.attr(a).is_ok(), "{run}/wavelet attribute {a}");
+    }
+}
+
+#[test]
+fn run_records_failed_runs_with_their_error() {
+    let d = tmpdir();
+    let archive = d.path().join("mixed.h5");
+    let good = skelid::demo::simulate_case(
+        skelid::demo::cases()
+            .iter()
+            .find(|c| c.path == "/demo/force_oscillator")
+            .unwrap(),
+    );
+    let mut flat = good.clone();
+    flat.path = "/runs/flat".into();
+    flat.output = vec![0.0; flat.output.len()];
+    skelid::campaign::write_campaign(&archive, &[], &[good, flat], false).unwrap();
+    let out = skelid()
+        .arg("run")
+        .arg(&archive)
+        .args(["--method", "wavelet", "--out"])
+        .arg(d.path().join("res"))
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    println!("{text}");
+    assert_eq!(
+        out.status.code(),
+        Some(1),
+        "a failed run makes the exit status 1"
+    );
+    check_results(
+        &d.path().join("res/results.h5"),
+        "demo/force_oscillator",
+        true,
+    );
+    let f = hdf5::File::open(d.path().join("res/results.h5")).unwrap();
+    let g = f.group("runs/flat").unwrap();
+    let status: hdf5::types::VarLenUnicode = g.attr("status").unwrap().read_scalar().unwrap();
+    let error: hdf5::types::VarLenUnicode = g.attr("error").unwrap().read_scalar().unwrap();
+    assert_eq!(status.as_str(), "failed");
+    assert!(error.as_str().contains("no oscillating content"), "{error}");
 }
 
 fn g_read(f: &hdf5::File, path: &str) -> Vec<f64> {
