@@ -63,15 +63,7 @@ pub fn run_campaigns(
         readable.clear();
         for (f, r) in files.iter().zip(reports) {
             match r.error {
-                Some(e) => outcomes_failed.push(RunOutcome {
-                    path: "/".into(),
-                    source: file_name(f),
-                    sample_rate: None,
-                    samples: 0,
-                    inertia: None,
-                    error: Some(format!("archive unreadable: {e}")),
-                    methods: Vec::new(),
-                }),
+                Some(e) => outcomes_failed.push(unreadable(f, &e)),
                 None => readable.push(f.clone()),
             }
         }
@@ -80,15 +72,7 @@ pub fn run_campaigns(
     for f in &readable {
         match Archive::open(f, ingest) {
             Ok(a) => archives.push(a),
-            Err(e) => outcomes_failed.push(RunOutcome {
-                path: "/".into(),
-                source: file_name(f),
-                sample_rate: None,
-                samples: 0,
-                inertia: None,
-                error: Some(format!("archive unreadable: {e}")),
-                methods: Vec::new(),
-            }),
+            Err(e) => outcomes_failed.push(unreadable(f, &e)),
         }
     }
     let jobs: Vec<(usize, usize)> = archives
@@ -119,15 +103,7 @@ pub fn run_campaigns(
             let archive = &archives[a];
             let entry = &archive.runs[r];
             let source = archive.file_name().to_string();
-            let mut outcome = RunOutcome {
-                path: entry.path.clone(),
-                source,
-                sample_rate: None,
-                samples: 0,
-                inertia: None,
-                error: None,
-                methods: Vec::new(),
-            };
+            let mut outcome = RunOutcome::new(entry.path.clone(), source);
             let run = entry
                 .meta
                 .as_ref()
@@ -167,6 +143,14 @@ pub fn run_campaigns(
         failed_runs,
         runs: total,
     })
+}
+
+/// The record of an archive that could not be opened: one failed "run" at its root.
+fn unreadable(file: &Path, error: &dyn std::fmt::Display) -> RunOutcome {
+    RunOutcome {
+        error: Some(format!("archive unreadable: {error}")),
+        ..RunOutcome::new("/".into(), file_name(file))
+    }
 }
 
 fn file_name(p: &Path) -> String {

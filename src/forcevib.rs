@@ -15,7 +15,7 @@ use std::f64::consts::PI;
 use num_complex::Complex64;
 
 use crate::track::Track;
-use crate::transform::{fast_len, real_plan};
+use crate::transform::{fast_len, real_inverse_plan, real_plan};
 
 /// Instantaneous modal characteristics of the identified channel.
 #[derive(Debug, Clone)]
@@ -115,19 +115,18 @@ pub fn free_decay(resp: &Track) -> Modal {
 /// valid samples (the least-squares slope of ω² + c against a). Exact for a linear
 /// oscillator; for a non-linear one it is the mass of its best linear fit.
 pub fn estimate_mass(force: &Track, resp: &Track) -> Option<f64> {
-    let unit = force_input(force, resp, 1.0);
-    // With m = 1: stiffness = (ω² + c) + a, damping irrelevant. Recover a and ω² + c.
-    let mut pts = Vec::new();
-    for i in 0..resp.amplitude.len() {
-        if !unit.valid[i] {
-            continue;
-        }
-        let q = analytic(force, i)[0] / analytic(resp, i)[0];
-        let w = 2.0 * PI * resp.frequency[i];
-        let r1 = resp.d_amplitude[i] / resp.amplitude[i];
-        let a = q.re - q.im * r1 / w;
-        pts.push((a, unit.stiffness[i] - a));
-    }
+    // With m = 1 the formula gives (ω² + c) + a; a is the mass term, so ω² + c = ω0²|ₘ₌₁ − a.
+    let pts: Vec<(f64, f64)> = (0..resp.amplitude.len())
+        .filter(|&i| usable(force, i) && usable(resp, i))
+        .filter_map(|i| {
+            let q = analytic(force, i)[0] / analytic(resp, i)[0];
+            let w = 2.0 * PI * resp.frequency[i];
+            let r1 = resp.d_amplitude[i] / resp.amplitude[i];
+            let a = q.re - q.im * r1 / w;
+            let (w0, _) = formulas(q, resp, i);
+            (w0.is_finite() && a.is_finite()).then_some((a, w0 - a))
+        })
+        .collect();
     if pts.len() < 10 {
         return None;
     }
@@ -190,7 +189,7 @@ pub fn integrate(x: &[f64], fs: f64, order: u32, f_cut: f64) -> Vec<f64> {
         let jw = Complex64::new(0.0, 2.0 * PI * f).powi(order as i32);
         *c = *c * gate / jw;
     }
-    let inv = realfft::RealFftPlanner::<f64>::new().plan_fft_inverse(len);
+    let inv = real_inverse_plan(len);
     let mut out = inv.make_output_vec();
     inv.process(&mut spec, &mut out)
         .expect("buffer sizes come from the plan");

@@ -110,15 +110,18 @@ fn order(q: Quantity) -> u32 {
 
 /// A channel as displacement: velocity and acceleration are integrated spectrally, with the
 /// high-pass at half the lowest frequency of the signal's own band.
-fn displacement(x: &[f64], fs: f64, q: Quantity) -> Result<Vec<f64>, IdentifyError> {
+fn displacement(
+    x: &[f64],
+    fs: f64,
+    q: Quantity,
+    channel: &'static str,
+) -> Result<Vec<f64>, IdentifyError> {
     let k = order(q);
     if k == 0 {
         return Ok(x.to_vec());
     }
-    let (fmin, _) = default_band(x, fs, &Morlet::default()).map_err(|e| IdentifyError::Track {
-        channel: "output",
-        source: e,
-    })?;
+    let (fmin, _) = default_band(x, fs, &Morlet::default())
+        .map_err(|source| IdentifyError::Track { channel, source })?;
     Ok(forcevib::integrate(x, fs, k, 0.5 * fmin))
 }
 
@@ -153,7 +156,7 @@ pub fn identify(
 ) -> Result<Identification, IdentifyError> {
     let meta = &run.meta;
     let fs = meta.sample_rate;
-    let y = displacement(&run.output, fs, meta.output_quantity)?;
+    let y = displacement(&run.output, fs, meta.output_quantity, "output")?;
     let mut warnings = Vec::new();
     let (input, response, modal, mass) = match meta.kind {
         RunKind::Free => {
@@ -171,7 +174,7 @@ pub fn identify(
                     "input_quantity is force but kind is base_motion: set kind = \"force\"".into(),
                 ));
             }
-            let x = displacement(raw, fs, q)?;
+            let x = displacement(raw, fs, q, "input")?;
             let z: Vec<f64> = y.iter().zip(&x).map(|(a, b)| a - b).collect();
             let tx = track(&x, fs, method, opt, None, "input")?;
             let tz = track(&z, fs, method, opt, Some(&tx), "relative motion")?;

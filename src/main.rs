@@ -216,21 +216,8 @@ struct RunArgs {
     /// Instantaneous characteristics by the wavelet ridge, the Hilbert transform, or both.
     #[arg(long, value_enum, default_value = "both")]
     method: RunMethod,
-    /// Wavelet: lowest analysis frequency, Hz (default: from each channel's spectrum).
-    #[arg(long, value_name = "HZ")]
-    fmin: Option<f64>,
-    /// Wavelet: highest analysis frequency, Hz (default: from each channel's spectrum).
-    #[arg(long, value_name = "HZ")]
-    fmax: Option<f64>,
-    /// Wavelet: number of log-spaced scales.
-    #[arg(long, default_value_t = 64)]
-    scales: usize,
-    /// Wavelet: Morlet bandwidth f_b.
-    #[arg(long, default_value_t = 1.0, value_name = "FB")]
-    bandwidth: f64,
-    /// Wavelet: Morlet centre frequency f_c.
-    #[arg(long, default_value_t = 1.0, value_name = "FC")]
-    centre: f64,
+    #[command(flatten)]
+    wavelet: WaveletArgs,
     /// Hilbert: zero-phase low-pass cut-off as a fraction of Nyquist (the paper's 0.005).
     #[arg(long, default_value_t = 0.005, value_name = "FRACTION")]
     cutoff: f64,
@@ -242,6 +229,42 @@ struct RunArgs {
     timeout: u64,
     #[command(flatten)]
     ingest: IngestArgs,
+}
+
+/// The wavelet method's analysis band and mother wavelet (shared by `track` and `run`).
+#[derive(Args, Clone)]
+struct WaveletArgs {
+    /// Wavelet: lowest analysis frequency, Hz (default: from the spectrum and the record length).
+    #[arg(long, value_name = "HZ")]
+    fmin: Option<f64>,
+    /// Wavelet: highest analysis frequency, Hz (default: from the spectrum).
+    #[arg(long, value_name = "HZ")]
+    fmax: Option<f64>,
+    /// Wavelet: number of log-spaced scales between --fmin and --fmax.
+    #[arg(long, default_value_t = 64)]
+    scales: usize,
+    /// Wavelet: Morlet bandwidth f_b; larger is longer in time and finer in frequency.
+    #[arg(long, default_value_t = 1.0, value_name = "FB")]
+    bandwidth: f64,
+    /// Wavelet: Morlet centre frequency f_c.
+    #[arg(long, default_value_t = 1.0, value_name = "FC")]
+    centre: f64,
+}
+
+impl WaveletArgs {
+    /// These settings on top of `base`.
+    fn apply(&self, base: skelid::track::WaveletOptions) -> skelid::track::WaveletOptions {
+        skelid::track::WaveletOptions {
+            wavelet: skelid::transform::Morlet {
+                bandwidth: self.bandwidth,
+                centre: self.centre,
+            },
+            fmin: self.fmin,
+            fmax: self.fmax,
+            scales: self.scales,
+            ..base
+        }
+    }
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -287,21 +310,8 @@ struct TrackArgs {
     /// Output file: HDF5, or CSV when the name ends in .csv.
     #[arg(long, value_name = "FILE")]
     out: PathBuf,
-    /// Lowest analysis frequency, Hz (default: from the spectrum and the record length).
-    #[arg(long, value_name = "HZ")]
-    fmin: Option<f64>,
-    /// Highest analysis frequency, Hz (default: from the spectrum).
-    #[arg(long, value_name = "HZ")]
-    fmax: Option<f64>,
-    /// Number of log-spaced scales between --fmin and --fmax.
-    #[arg(long, default_value_t = 64)]
-    scales: usize,
-    /// Morlet bandwidth f_b: larger is longer in time and finer in frequency.
-    #[arg(long, default_value_t = 1.0, value_name = "FB")]
-    bandwidth: f64,
-    /// Morlet centre frequency f_c.
-    #[arg(long, default_value_t = 1.0, value_name = "FC")]
-    centre: f64,
+    #[command(flatten)]
+    wavelet: WaveletArgs,
     /// Samples whose ridge is below this multiple of the in-band noise are marked not valid.
     #[arg(long, default_value_t = 10.0, value_name = "X")]
     min_snr: f64,
@@ -551,13 +561,7 @@ fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     let ingest = a.ingest.options()?;
     let files = expand_inputs(&a.archives).map_err(anyhow::Error::msg)?;
     let mut options = skelid::identify::IdentifyOptions::default();
-    options.wavelet.fmin = a.fmin;
-    options.wavelet.fmax = a.fmax;
-    options.wavelet.scales = a.scales;
-    options.wavelet.wavelet = skelid::transform::Morlet {
-        bandwidth: a.bandwidth,
-        centre: a.centre,
-    };
+    options.wavelet = a.wavelet.apply(options.wavelet);
     options.hilbert_cutoff = Some(a.cutoff);
     options.bins = a.bins;
     let exe = self_exe()?;
@@ -726,14 +730,7 @@ fn cmd_track(a: TrackArgs) -> Result<()> {
     let track = match a.method {
         MethodArg::Hilbert => track_hilbert(&x, fs, &HilbertOptions { cutoff: a.cutoff })?,
         MethodArg::Wavelet => {
-            let opt = WaveletOptions {
-                wavelet: skelid::transform::Morlet {
-                    bandwidth: a.bandwidth,
-                    centre: a.centre,
-                },
-                fmin: a.fmin,
-                fmax: a.fmax,
-                scales: a.scales,
+            let opt = a.wavelet.apply(WaveletOptions {
                 ridge: if a.argmax {
                     RidgeSearch::Argmax
                 } else {
@@ -742,7 +739,7 @@ fn cmd_track(a: TrackArgs) -> Result<()> {
                 min_snr: a.min_snr,
                 correct: !a.no_correction,
                 ..WaveletOptions::default()
-            };
+            });
             let guide = match &a.reference {
                 Some(r) => {
                     let (g, _) = read_dataset(&archive, r, &options)?;

@@ -133,6 +133,19 @@ pub struct RunOutcome {
 }
 
 impl RunOutcome {
+    /// A run not yet read: no data, no error, no method results.
+    pub fn new(path: String, source: String) -> RunOutcome {
+        RunOutcome {
+            path,
+            source,
+            sample_rate: None,
+            samples: 0,
+            inertia: None,
+            error: None,
+            methods: Vec::new(),
+        }
+    }
+
     /// `ok` when at least one method identified the run.
     pub fn status(&self) -> &'static str {
         if self.error.is_none() && self.methods.iter().any(|m| m.1.is_ok()) {
@@ -301,41 +314,39 @@ fn write_identification(
 /// extras: amplitude range, mass used, contact stiffness in physical units.
 pub fn parameters(id: &Identification, inertia: Option<f64>) -> Vec<(&'static str, f64)> {
     let nan = f64::NAN;
-    let split = |e: Option<Estimate>| e.map_or((nan, nan), |e| (e.value, e.stderr));
-    let (c, c_se) = split(id.clearance());
-    let (ce, ce_se) = split(id.clearance_extrapolated());
-    let (k, k_se) = split(id.dead_zone.map(|d| d.stiffness));
-    let (v, v_se) = split(id.damping.map(|d| d.0));
-    let (f, f_se) = split(id.damping.map(|d| d.1));
+    let split = |e: Option<Estimate>| e.map_or([nan, nan], |e| [e.value, e.stderr]);
+    let [c, c_se] = split(id.clearance());
+    let [ce, ce_se] = split(id.clearance_extrapolated());
+    let [k, k_se] = split(id.dead_zone.map(|d| d.stiffness));
+    let [v, v_se] = split(id.damping.map(|d| d.0));
+    let [f, f_se] = split(id.damping.map(|d| d.1));
     let (a_lo, a_hi) = id.amplitude_range().unwrap_or((nan, nan));
     let mass = id.mass.map(|m| m.0).or(inertia);
-    vec![
-        ("clearance", c),
-        ("clearance_stderr", c_se),
-        ("clearance_extrapolated", ce),
-        ("clearance_extrapolated_stderr", ce_se),
-        ("stiffness", k),
-        ("stiffness_stderr", k_se),
-        ("viscous_damping", v),
-        ("viscous_damping_stderr", v_se),
-        ("coulomb_friction", f),
-        ("coulomb_friction_stderr", f_se),
-        ("amplitude_min", a_lo),
-        ("amplitude_max", a_hi),
-        ("inertia", mass.unwrap_or(nan)),
-        ("contact_stiffness", mass.map_or(nan, |m| m * k)),
-        (
-            "inertia_estimated",
-            id.mass.map_or(0.0, |m| f64::from(u8::from(m.1))),
-        ),
-        (
-            "natural_frequency_at_amplitude_max",
-            id.bins
-                .iter()
-                .max_by(|a, b| a.amplitude.total_cmp(&b.amplitude))
-                .map_or(nan, |b| b.natural_frequency()),
-        ),
-    ]
+    let at_max = id
+        .bins
+        .iter()
+        .max_by(|a, b| a.amplitude.total_cmp(&b.amplitude))
+        .map_or(nan, |b| b.natural_frequency());
+    // In the order of PARAMETER_NAMES, which names them once for every output.
+    let values = [
+        c,
+        c_se,
+        ce,
+        ce_se,
+        k,
+        k_se,
+        v,
+        v_se,
+        f,
+        f_se,
+        a_lo,
+        a_hi,
+        mass.unwrap_or(nan),
+        mass.map_or(nan, |m| m * k),
+        id.mass.map_or(0.0, |m| f64::from(u8::from(m.1))),
+        at_max,
+    ];
+    PARAMETER_NAMES.into_iter().zip(values).collect()
 }
 
 /// One row of `summary.json` / `summary.csv`: a run × method.
@@ -400,7 +411,7 @@ pub fn write_summary(dir: &Path, rows: &[SummaryRow]) -> Result<(), ReportError>
         detail: e.to_string(),
     })?;
     write_atomic(&dir.join("summary.json"), text.as_bytes())?;
-    let names: Vec<&str> = PARAMETER_NAMES.to_vec();
+    let names = PARAMETER_NAMES;
     let mut csv = String::from("run,source,method,status,");
     csv.push_str(&names.join(","));
     csv.push_str(",seconds,warnings,error\n");
@@ -413,8 +424,8 @@ pub fn write_summary(dir: &Path, rows: &[SummaryRow]) -> Result<(), ReportError>
             r.method,
             r.status
         ));
-        for n in &names {
-            if let Some(Some(v)) = r.parameters.get(*n) {
+        for n in names {
+            if let Some(Some(v)) = r.parameters.get(n) {
                 csv.push_str(&format!("{v:.6e}"));
             }
             csv.push(',');
@@ -429,7 +440,8 @@ pub fn write_summary(dir: &Path, rows: &[SummaryRow]) -> Result<(), ReportError>
     write_atomic(&dir.join("summary.csv"), csv.as_bytes())
 }
 
-/// Parameter columns of `summary.csv`, in order.
+/// The fitted parameters (FORMATS.md §3 names) and extras, in the order of `summary.csv`'s
+/// columns; [`parameters`] gives their values.
 pub const PARAMETER_NAMES: [&str; 16] = [
     "clearance",
     "clearance_stderr",

@@ -178,10 +178,7 @@ impl Excitation {
     /// first: encoder noise differentiated twice would otherwise swamp the base
     /// acceleration and make dry friction chatter between stick and slip at every step.
     pub fn measured(samples: &[f64], sample_rate: f64, cutoff_hz: f64) -> Excitation {
-        Excitation::sampled(
-            lowpass_zero_phase(samples, sample_rate, cutoff_hz),
-            sample_rate,
-        )
+        Excitation::sampled(band_limit(samples, sample_rate, cutoff_hz), sample_rate)
     }
 
     /// Value and derivatives at time t.
@@ -270,9 +267,12 @@ fn hermite(y: &[f64], dy: &[f64], fs: f64, t: f64) -> Jet {
 }
 
 /// Zero-phase low-pass by FFT with a raised-cosine roll-off from 0.8·fc to fc; the signal
-/// is mirrored (even extension) first so that its ends do not ring.
-pub fn lowpass_zero_phase(x: &[f64], fs: f64, cutoff_hz: f64) -> Vec<f64> {
-    use rustfft::{num_complex::Complex, FftPlanner};
+/// is mirrored (even extension) first so that its ends do not ring. (Unlike
+/// [`crate::filter::lowpass_zero_phase`], a Butterworth, this one has a finite stop band:
+/// nothing above `cutoff_hz` reaches the integrator.)
+pub fn band_limit(x: &[f64], fs: f64, cutoff_hz: f64) -> Vec<f64> {
+    use crate::transform::complex_plan;
+    use rustfft::num_complex::Complex;
     let n = x.len();
     if n < 4 || cutoff_hz <= 0.0 || cutoff_hz >= 0.5 * fs {
         return x.to_vec();
@@ -283,8 +283,7 @@ pub fn lowpass_zero_phase(x: &[f64], fs: f64, cutoff_hz: f64) -> Vec<f64> {
         .chain(x.iter().rev())
         .map(|&v| Complex::new(v, 0.0))
         .collect();
-    let mut planner = FftPlanner::new();
-    planner.plan_fft_forward(m).process(&mut buf);
+    complex_plan(m, false).process(&mut buf);
     let f_lo = 0.8 * cutoff_hz;
     for (k, c) in buf.iter_mut().enumerate() {
         let f = k.min(m - k) as f64 * fs / m as f64;
@@ -297,7 +296,7 @@ pub fn lowpass_zero_phase(x: &[f64], fs: f64, cutoff_hz: f64) -> Vec<f64> {
         };
         *c *= g / m as f64;
     }
-    planner.plan_fft_inverse(m).process(&mut buf);
+    complex_plan(m, true).process(&mut buf);
     buf[..n].iter().map(|c| c.re).collect()
 }
 

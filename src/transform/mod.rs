@@ -280,17 +280,30 @@ pub fn complex_plan(len: usize, inverse: bool) -> Arc<dyn Fft<f64>> {
 
 /// A real-to-complex FFT plan of length `len`, cached.
 pub fn real_plan(len: usize) -> Arc<dyn realfft::RealToComplex<f64>> {
-    type Cache = HashMap<usize, Arc<dyn realfft::RealToComplex<f64>>>;
-    static PLANS: OnceLock<Mutex<(RealFftPlanner<f64>, Cache)>> = OnceLock::new();
-    let mut guard = PLANS
+    static PLANS: RealPlans<dyn realfft::RealToComplex<f64>> = OnceLock::new();
+    cached(&PLANS, len, |p| p.plan_fft_forward(len))
+}
+
+/// A complex-to-real (inverse) FFT plan of length `len`, cached.
+pub fn real_inverse_plan(len: usize) -> Arc<dyn realfft::ComplexToReal<f64>> {
+    static PLANS: RealPlans<dyn realfft::ComplexToReal<f64>> = OnceLock::new();
+    cached(&PLANS, len, |p| p.plan_fft_inverse(len))
+}
+
+/// A planner and the plans it made, by length.
+type RealPlans<T> = OnceLock<Mutex<(RealFftPlanner<f64>, HashMap<usize, Arc<T>>)>>;
+
+fn cached<T: ?Sized>(
+    plans: &RealPlans<T>,
+    len: usize,
+    make: impl FnOnce(&mut RealFftPlanner<f64>) -> Arc<T>,
+) -> Arc<T> {
+    let mut guard = plans
         .get_or_init(|| Mutex::new((RealFftPlanner::new(), HashMap::new())))
         .lock()
         .unwrap_or_else(|p| p.into_inner());
     let (planner, cache) = &mut *guard;
-    cache
-        .entry(len)
-        .or_insert_with(|| planner.plan_fft_forward(len))
-        .clone()
+    cache.entry(len).or_insert_with(|| make(planner)).clone()
 }
 
 #[cfg(test)]
