@@ -31,6 +31,10 @@ pub enum IdentifyError {
     NoSkeleton(String),
 }
 
+/// Amplitudes below this fraction of the half-gap are free play: the orbit model first
+/// touches at 8δ/π² ≈ 0.81δ.
+const FREE_PLAY: f64 = 0.7;
+
 /// Options of the identification.
 #[derive(Debug, Clone)]
 pub struct IdentifyOptions {
@@ -40,6 +44,12 @@ pub struct IdentifyOptions {
     pub hilbert_cutoff: Option<f64>,
     /// Amplitude bins of the skeleton.
     pub bins: usize,
+    /// Resonance band for the backbone fit of a non-linear joint: samples with
+    /// |ω/ω0 − 1| below this (README, "Identification").
+    pub resonance: f64,
+    /// Backbone curve of the dead-zone fit; `None` picks the periodic orbit for forced runs
+    /// and the describing function for free decays (README, "Identification").
+    pub backbone: Option<fit::BackboneModel>,
 }
 
 impl Default for IdentifyOptions {
@@ -48,6 +58,8 @@ impl Default for IdentifyOptions {
             wavelet: WaveletOptions::default(),
             hilbert_cutoff: Some(0.005),
             bins: 40,
+            resonance: 0.1,
+            backbone: None,
         }
     }
 }
@@ -67,8 +79,13 @@ pub struct Identification {
     pub used: Vec<bool>,
     /// The skeleton.
     pub bins: Vec<Bin>,
+    /// The skeleton of the samples at resonance (|ω/ω0 − 1| < `resonance`).
+    pub resonant_bins: Vec<Bin>,
     /// Dead-zone fit (half-gap and k/J).
     pub dead_zone: Option<DeadZoneFit>,
+    /// Whether the dead-zone fit used `resonant_bins` (a joint with free play) rather than
+    /// `bins` (a linear one).
+    pub fitted_at_resonance: bool,
     /// The paper's extrapolated half-gap and the amplitude range it used.
     pub extrapolated: Option<(Estimate, (f64, f64))>,
     /// Viscous c/J (1/s) and Coulomb F/J (units/s²).
@@ -209,15 +226,21 @@ pub fn identify(
     let used: Vec<bool> = (0..n)
         .map(|i| modal.valid[i] && modal.stiffness[i].is_finite())
         .collect();
-    let samples: Vec<Sample> = (0..n)
-        .filter(|&i| used[i])
-        .map(|i| Sample {
-            amplitude: response.amplitude[i],
-            omega: 2.0 * PI * response.frequency[i],
-            stiffness: modal.stiffness[i],
-            damping: modal.damping[i],
+    let resonant: Vec<bool> = (0..n)
+        .map(|i| {
+            used[i] && modal.stiffness[i] > 0.0 && {
+                let w = 2.0 * PI * response.frequency[i];
+                (w / modal.stiffness[i].sqrt() - 1.0).abs() < opt.resonance
+            }
         })
         .collect();
+    let sample = |i: usize| Sample {
+        amplitude: response.amplitude[i],
+        omega: 2.0 * PI * response.frequency[i],
+        stiffness: modal.stiffness[i],
+        damping: modal.damping[i],
+    };
+    let samples: Vec<Sample> = (0..n).filter(|&i| used[i]).map(sample).collect();
     if samples.len() < 100 {
         return Err(IdentifyError::NoSkeleton(format!(
             "only {} valid samples of {n}: the response is too weak or too short to identify",
@@ -226,14 +249,55 @@ pub fn identify(
     }
     let min_count = (samples.len() / (20 * opt.bins)).max(5);
     let bins = fit::skeleton(&samples, opt.bins, min_count);
-    let dead_zone = fit::fit_dead_zone(&bins);
-    let extrapolated = fit::extrapolated_half_gap(&bins);
-    let damping = fit::fit_damping(&bins);
+    // Forcing at resonance makes up each cycle's loss, so the motion is close to the free
+    // undamped orbit; a free decay loses speed over every flight through the gap, which
+    // moves its first harmonic towards the describing function (README).
+    let model = opt.backbone.unwrap_or(match meta.kind {
+        RunKind::Free => fit::BackboneModel::DescribingFunction,
+        _ => fit::BackboneModel::PeriodicOrbit,
+    });
+    let resonant_samples: Vec<Sample> = (0..n).filter(|&i| resonant[i]).map(sample).collect();
+    let resonant_bins = if resonant_samples.len() >= 100 {
+        let min_count = (resonant_samples.len() / (20 * opt.bins)).max(5);
+        fit::skeleton(&resonant_samples, opt.bins, min_count)
+    } else {
+        Vec::new()
+    };
+    let mut dead_zone = fit::fit_dead_zone(&bins, model);
+    let mut at_resonance = false;
+    // A joint with free play has a backbone only at resonance: off resonance (after a
+    // jump-down, say) the first-harmonic stiffness depends on the forcing. A linear joint
+    // has one ω0 everywhere, and the whole sweep estimates it better.
+    if let (Some(dz), Some((lo, _))) = (dead_zone, fit::amplitude_range(&bins)) {
+        if dz.half_gap.value > 0.01 * lo && resonant_bins.len() >= 3 {
+            if let Some(r) = fit::fit_dead_zone(&resonant_bins, model) {
+                dead_zone = Some(r);
+                at_resonance = true;
+            }
+        }
+    }
+    let fit_bins = if at_resonance { &resonant_bins } else { &bins };
+    let extrapolated = fit::extrapolated_half_gap(fit_bins);
+    // Damping from the free play (no restoring force, so ForceVib's h0 is exact whatever
+    // the forcing) and from the bins the backbone was fitted on; the off-resonance contact
+    // bins carry a quadrature part of the non-sinusoidal contact force.
+    let damping_bins: Vec<Bin> = match dead_zone {
+        Some(dz) if at_resonance => {
+            let d = dz.half_gap.value;
+            bins.iter()
+                .filter(|b| b.amplitude < FREE_PLAY * d)
+                .chain(fit_bins.iter().filter(|b| b.amplitude > d))
+                .copied()
+                .collect()
+        }
+        _ => bins.clone(),
+    };
+    let damping = fit::fit_damping(&damping_bins);
     if let (Some(dz), Some((lo, hi))) = (dead_zone, fit::amplitude_range(&bins)) {
         let d = dz.half_gap.value;
         if d > 0.0 && hi < 2.0 * d {
             warnings.push(format!(
-                "partial skeleton: amplitudes reach {:.2}× the half-gap only (the describing function's knee lies below 2×)",
+                "partial skeleton: amplitudes reach {:.2}× the half-gap only (the backbone bends most below 2×, so clearance and stiffness trade off)",
                 hi / d
             ));
         }
@@ -250,6 +314,8 @@ pub fn identify(
         modal,
         used,
         bins,
+        fitted_at_resonance: at_resonance,
+        resonant_bins,
         dead_zone,
         extrapolated,
         damping,

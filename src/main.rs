@@ -205,6 +205,14 @@ struct DemoArgs {
     out: PathBuf,
 }
 
+/// `--backbone` values.
+#[derive(Clone, Copy, ValueEnum)]
+enum BackboneArg {
+    Auto,
+    Orbit,
+    DescribingFunction,
+}
+
 #[derive(Args)]
 struct RunArgs {
     /// Campaign archives: files, folders (searched for .h5/.hdf5/.mat) or glob patterns.
@@ -224,6 +232,17 @@ struct RunArgs {
     /// Amplitude bins of the skeleton curves.
     #[arg(long, default_value_t = 40)]
     bins: usize,
+    /// Resonance band of the backbone fit for a joint with free play: only samples with
+    /// |ω/ω0 − 1| below this are fitted (off resonance, e.g. after a jump-down, the
+    /// first-harmonic stiffness of a clearance depends on the forcing).
+    #[arg(long, default_value_t = 0.1, value_name = "FRACTION")]
+    resonance: f64,
+    /// Backbone curve fitted to a joint with free play: `orbit` (the exact free periodic
+    /// orbit, right for forced runs and lightly damped decays), `describing-function`
+    /// (first harmonic of a sinusoid), or `auto` (orbit for forced runs, describing
+    /// function for free decays).
+    #[arg(long, value_enum, default_value = "auto")]
+    backbone: BackboneArg,
     /// Seconds allowed to open one archive (in a child process) before it is reported failed.
     #[arg(long, default_value_t = 300, value_name = "S")]
     timeout: u64,
@@ -564,6 +583,15 @@ fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     options.wavelet = a.wavelet.apply(options.wavelet);
     options.hilbert_cutoff = Some(a.cutoff);
     options.bins = a.bins;
+    if a.resonance.is_nan() || a.resonance <= 0.0 {
+        anyhow::bail!("--resonance must be a positive fraction (e.g. 0.1 for ±10 % around ω0)");
+    }
+    options.resonance = a.resonance;
+    options.backbone = match a.backbone {
+        BackboneArg::Auto => None,
+        BackboneArg::Orbit => Some(skelid::fit::BackboneModel::PeriodicOrbit),
+        BackboneArg::DescribingFunction => Some(skelid::fit::BackboneModel::DescribingFunction),
+    };
     let exe = self_exe()?;
     let summary = identify_with_progress(
         &files,

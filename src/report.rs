@@ -303,6 +303,33 @@ fn write_identification(
     write_signal(&sk, "damping_force", &col(&|b| b.damping_force()), false)?;
     write_signal(&sk, "damping_spread", &col(&|b| b.damping_spread), false)?;
     write_signal(&sk, "count", &col(&|b| b.count as f64), false)?;
+    // The bins the backbone was fitted on, when not the whole skeleton.
+    if id.fitted_at_resonance {
+        let rb = m.create_group("skeleton_resonant")?;
+        let col =
+            |f: &dyn Fn(&Bin) -> f64| -> Vec<f64> { id.resonant_bins.iter().map(f).collect() };
+        write_signal(&rb, "amplitude", &col(&|b| b.amplitude), false)?;
+        write_signal(
+            &rb,
+            "natural_frequency",
+            &col(&|b| b.natural_frequency()),
+            false,
+        )?;
+        write_signal(&rb, "stiffness", &col(&|b| b.stiffness), false)?;
+        write_signal(&rb, "count", &col(&|b| b.count as f64), false)?;
+    }
+    if let Some(dz) = &id.dead_zone {
+        write_str_attr(m, "backbone_model", dz.model.name())?;
+    }
+    write_str_attr(
+        m,
+        "backbone_bins",
+        if id.fitted_at_resonance {
+            "resonant"
+        } else {
+            "all"
+        },
+    )?;
     for (name, value) in parameters(id, inertia) {
         write_f64_attr(m, name, value)?;
     }

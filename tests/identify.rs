@@ -2,7 +2,7 @@
 //! on). Each test prints what it measured.
 
 use skelid::demo::{cases, simulate_case, DemoCase};
-use skelid::fit::dead_zone_ratio;
+use skelid::fit::{dead_zone_ratio, BackboneModel};
 use skelid::identify::{identify, Identification, IdentifyOptions};
 use skelid::ingest::{Run, RunMeta};
 use skelid::model::RigModel;
@@ -140,10 +140,50 @@ fn free_decay_backbone_follows_the_describing_function() {
     assert!(rel(dz.half_gap.value, delta) < 0.03 && rel(dz.stiffness.value, k) < 0.03);
 }
 
-/// The paper-like rig under its chirp. The issue asks for clearance and k/J within 3 %;
-/// measured today they are not (the chirp's near-gap response is far from the sinusoid
-/// the describing function assumes, see README), so this test asserts the measured level
-/// as a regression guard and prints the numbers.
+/// Close to the gap the motion is far from a sinusoid: a lightly damped free decay from
+/// 1.5δ follows the exact periodic orbit, not the describing function, and the orbit fit
+/// finds the clearance.
+#[test]
+fn near_gap_free_decay_follows_the_periodic_orbit() {
+    let mut c = case("/demo/free_decay");
+    c.model.damping = 0.5;
+    c.drive = skelid::simulate::Drive::Free {
+        initial_offset: 0.02,
+    };
+    let m = c.model.clone();
+    let (k, delta) = (m.stiffness / m.inertia, m.half_gap());
+    let run = run_of(&c, Some(m.inertia));
+    let fit = |b| {
+        let o = IdentifyOptions {
+            backbone: Some(b),
+            ..Default::default()
+        };
+        identify(&run, Method::Wavelet, &o).unwrap()
+    };
+    let orbit = fit(BackboneModel::PeriodicOrbit);
+    let df = fit(BackboneModel::DescribingFunction);
+    let (lo, hi) = orbit.amplitude_range().unwrap();
+    let err = |id: &Identification| {
+        let dz = id.dead_zone.unwrap();
+        (rel(dz.half_gap.value, delta), rel(dz.stiffness.value, k))
+    };
+    let (o, d) = (err(&orbit), err(&df));
+    println!(
+        "near-gap free decay (A = {:.2}δ..{:.2}δ): orbit fit clearance error {:.2} %, k/J {:.2} %; describing function {:.1} %, {:.1} %",
+        lo / delta,
+        hi / delta,
+        100.0 * o.0,
+        100.0 * o.1,
+        100.0 * d.0,
+        100.0 * d.1
+    );
+    assert!(o.0 < 0.01 && o.1 < 0.01);
+    assert!(d.0 > 0.05);
+}
+
+/// The paper-like rig under its chirp: clearance and k/J within 3 % (wavelet), the
+/// Hilbert method's errors printed beside them, and the paper's extrapolated clearance
+/// showing its bias (an intercept between about 1.1δ and 4δ/π) while the exact fit does not.
 #[test]
 fn paper_rig_clearance_stiffness_and_friction() {
     let mut plain = case("/demo/paper_rig");
@@ -155,10 +195,12 @@ fn paper_rig_clearance_stiffness_and_friction() {
         let dz = id.dead_zone.unwrap();
         let ext = id.extrapolated.map(|e| e.0.value / delta);
         format!(
-            "{name}: clearance error {:+.1} %, k/J error {:+.1} %, extrapolated intercept {} δ",
+            "{name}: clearance error {:+.1} %, k/J error {:+.1} %, extrapolated intercept {} δ, amplitudes fitted {}",
             100.0 * (dz.half_gap.value - delta) / delta,
             100.0 * (dz.stiffness.value - k) / k,
-            ext.map_or("-".into(), |e| format!("{e:.3}"))
+            ext.map_or("-".into(), |e| format!("{e:.3}")),
+            id.extrapolated
+                .map_or("-".into(), |(_, (a, b))| format!("{:.2}δ..{:.2}δ", a / delta, b / delta))
         )
     };
     println!("paper-like rig (no friction): {}", report("wavelet", &w));
@@ -166,8 +208,16 @@ fn paper_rig_clearance_stiffness_and_friction() {
         println!("paper-like rig (no friction): {}", report("hilbert", h));
     }
     let dz = w.dead_zone.unwrap();
-    assert!(rel(dz.half_gap.value, delta) < 0.30);
-    assert!(rel(dz.stiffness.value, k) < 0.40);
+    assert!(w.fitted_at_resonance);
+    assert!(rel(dz.half_gap.value, delta) < 0.03);
+    assert!(rel(dz.stiffness.value, k) < 0.03);
+    let intercept = w.extrapolated.unwrap().0.value / delta;
+    assert!(
+        (1.05..=4.0 / std::f64::consts::PI + 0.01).contains(&intercept),
+        "{intercept}"
+    );
+    // The bias is the extrapolation's, not the data's: the exact fit is 3 % close.
+    assert!(rel(intercept * delta, delta) > 3.0 * rel(dz.half_gap.value, delta));
 
     let c = case("/demo/paper_rig");
     let m = &c.model;
@@ -183,5 +233,5 @@ fn paper_rig_clearance_stiffness_and_friction() {
         100.0 * (cv.value - viscous) / viscous
     );
     assert!(rel(fr.value, friction) < 0.15);
-    assert!(rel(cv.value, viscous) < 0.6);
+    assert!(rel(cv.value, viscous) < 0.25);
 }
