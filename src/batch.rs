@@ -1,8 +1,17 @@
-//! `skelid run`: every run of every archive through the identification, in parallel, each
-//! result written to `results.h5` as soon as it is done, failed runs recorded with their
-//! error, then the summaries.
+//! `skelid run`: every run of every archive through the identification, in parallel.
+//! Each finished run is committed to the output folder's journal at once (see
+//! [`crate::journal`]), so a batch killed at any moment loses only the runs in flight, and
+//! the same command run again skips what is committed. `--shard K/N` takes a stable share
+//! of the runs; [`merge`] joins the shards' folders.
+//!
+//! libhdf5 is not thread-safe: the hdf5 crate serialises every call behind one global lock,
+//! so reads and journal writes from the rayon workers queue there while the transforms and
+//! fits of other runs proceed in parallel. Memory: a worker holds one run (its samples and
+//! tracks) at a time, so peak memory is about `threads × one run`, not the campaign size.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
@@ -11,22 +20,65 @@ use rayon::prelude::*;
 use crate::identify::{identify, IdentifyOptions};
 use crate::ingest::{Archive, IngestOptions};
 use crate::inspect::inspect_isolated;
-use crate::report::{
-    summary_rows, write_summary, ReportError, ResultsWriter, RunOutcome, SummaryRow,
-};
+use crate::journal::{failed_key, run_key, settings_fingerprint, Entry, Journal, RUNS_DIR};
+use crate::report::{write_summary, ReportError, RunOutcome, SummaryRow};
 use crate::track::Method;
 
-/// What a batch produced.
-#[derive(Debug)]
-pub struct BatchSummary {
-    /// One row per run × method (failed runs included).
-    pub rows: Vec<SummaryRow>,
-    /// `results.h5` path.
-    pub results: PathBuf,
-    /// Runs that failed entirely.
-    pub failed_runs: usize,
-    /// Runs seen.
-    pub runs: usize,
+/// Why a batch or a merge could not go on.
+#[derive(Debug, thiserror::Error)]
+pub enum BatchError {
+    /// Writing an output failed.
+    #[error(transparent)]
+    Report(#[from] ReportError),
+    /// A merge found outputs that do not fit together.
+    #[error("cannot merge: {0}")]
+    Merge(String),
+}
+
+/// A share of the runs: the K-th of N (1-based).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Shard {
+    /// K, 1..=N.
+    pub index: usize,
+    /// N.
+    pub count: usize,
+}
+
+impl Shard {
+    /// Parses `K/N`.
+    pub fn parse(s: &str) -> Result<Shard, String> {
+        let (k, n) = s
+            .split_once('/')
+            .ok_or_else(|| format!("--shard takes K/N (e.g. 2/8), not {s:?}"))?;
+        let k: usize = k
+            .trim()
+            .parse()
+            .map_err(|_| format!("bad K in --shard {s}"))?;
+        let n: usize = n
+            .trim()
+            .parse()
+            .map_err(|_| format!("bad N in --shard {s}"))?;
+        if n == 0 || k == 0 || k > n {
+            return Err(format!("--shard {s}: K must be between 1 and N"));
+        }
+        Ok(Shard { index: k, count: n })
+    }
+
+    /// Whether this shard takes the run `path` of the archive named `source`: a hash of
+    /// the two, so the split does not depend on the order the archives were given in.
+    pub fn takes(&self, source: &str, path: &str) -> bool {
+        // The archive's file name, not the path it was given by.
+        let name = crate::journal::base_name(source);
+        let h = blake3::hash(format!("{name}\0{path}").as_bytes());
+        let v = u64::from_le_bytes(h.as_bytes()[..8].try_into().expect("8 bytes"));
+        (v % self.count as u64) as usize == self.index - 1
+    }
+}
+
+impl std::fmt::Display for Shard {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}/{}", self.index, self.count)
+    }
 }
 
 /// How the archives are opened.
@@ -43,27 +95,99 @@ pub enum Isolation<'a> {
     },
 }
 
-/// Identifies every run of `files` with `methods`, writing `out/results.h5`,
-/// `out/summary.json` and `out/summary.csv`. `progress` is called after each run with
-/// (done, total).
+/// Everything a batch is told besides its inputs and output folder.
+pub struct BatchOptions<'a> {
+    /// Methods, in order.
+    pub methods: Vec<Method>,
+    /// Identification options.
+    pub identify: IdentifyOptions,
+    /// How archives are opened.
+    pub isolation: Isolation<'a>,
+    /// Only this share of the runs.
+    pub shard: Option<Shard>,
+    /// Redo runs already committed.
+    pub force: bool,
+}
+
+/// Where a batch stands, for progress displays.
+#[derive(Debug, Clone, Copy, Default, serde::Serialize)]
+pub struct Progress {
+    /// Runs finished (identified now, or found committed).
+    pub done: usize,
+    /// Runs in this batch (this shard's).
+    pub total: usize,
+    /// Of `done`, found committed by an earlier invocation and skipped.
+    pub skipped: usize,
+    /// Of `done`, failed.
+    pub failed: usize,
+}
+
+/// What a batch produced.
+#[derive(Debug)]
+pub struct BatchSummary {
+    /// One row per run × method (failed runs included).
+    pub rows: Vec<SummaryRow>,
+    /// `results.h5` path.
+    pub results: PathBuf,
+    /// Runs that failed entirely.
+    pub failed_runs: usize,
+    /// Runs in this batch.
+    pub runs: usize,
+    /// Runs skipped because an earlier invocation had committed them.
+    pub skipped: usize,
+}
+
+/// The output folder's record of a batch: what was asked and which runs it holds.
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+pub struct Manifest {
+    /// `skelid-batch/1`.
+    pub format: String,
+    /// Settings fingerprint (version, methods, options).
+    pub settings: String,
+    /// The shard, when the batch was one.
+    pub shard: Option<Shard>,
+    /// Runs seen in the inputs before sharding (unreadable archives count one each).
+    pub runs_in_inputs: usize,
+    /// The runs of this folder.
+    pub runs: Vec<ManifestRun>,
+}
+
+/// One run of a manifest.
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+pub struct ManifestRun {
+    /// Archive file name.
+    pub source: String,
+    /// Run path.
+    pub path: String,
+    /// Journal key.
+    pub key: String,
+    /// `ok` or `failed`.
+    pub status: String,
+}
+
+/// Manifest file name in an output folder.
+pub const MANIFEST: &str = "manifest.json";
+
+/// Identifies every run of `files` (this shard's share), skipping runs committed by an
+/// earlier invocation unless `force`, and writes `out/results.h5`, `out/summary.json`,
+/// `out/summary.csv` and `out/manifest.json`. `progress` is called after each run.
 pub fn run_campaigns(
     files: &[PathBuf],
     ingest: &IngestOptions,
-    methods: &[Method],
-    options: &IdentifyOptions,
-    isolation: Isolation<'_>,
+    opt: &BatchOptions<'_>,
     out: &Path,
-    progress: &(dyn Fn(usize, usize) + Sync),
-) -> Result<BatchSummary, ReportError> {
-    let writer = Mutex::new(ResultsWriter::create(out)?);
-    let mut outcomes_failed: Vec<RunOutcome> = Vec::new();
+    progress: &(dyn Fn(Progress) + Sync),
+) -> Result<BatchSummary, BatchError> {
+    let journal = Journal::open(out)?;
+    let settings = settings_fingerprint(&opt.methods, &opt.identify);
+    let mut unreadable_archives: Vec<RunOutcome> = Vec::new();
     let mut readable: Vec<PathBuf> = files.to_vec();
-    if let Isolation::Child { exe, timeout } = isolation {
+    if let Isolation::Child { exe, timeout } = opt.isolation {
         let reports = inspect_isolated(exe, files, ingest, timeout);
         readable.clear();
         for (f, r) in files.iter().zip(reports) {
             match r.error {
-                Some(e) => outcomes_failed.push(unreadable(f, &e)),
+                Some(e) => unreadable_archives.push(unreadable(f, &e)),
                 None => readable.push(f.clone()),
             }
         }
@@ -72,84 +196,361 @@ pub fn run_campaigns(
     for f in &readable {
         match Archive::open(f, ingest) {
             Ok(a) => archives.push(a),
-            Err(e) => outcomes_failed.push(unreadable(f, &e)),
+            Err(e) => unreadable_archives.push(unreadable(f, &e)),
         }
     }
-    let jobs: Vec<(usize, usize)> = archives
+    let all_jobs: Vec<(usize, usize)> = archives
         .iter()
         .enumerate()
         .flat_map(|(a, ar)| (0..ar.runs.len()).map(move |r| (a, r)))
         .collect();
-    let total = jobs.len() + outcomes_failed.len();
-    let done = std::sync::atomic::AtomicUsize::new(0);
-    let rows = Mutex::new(Vec::new());
-    let write = |o: RunOutcome| -> Result<(), ReportError> {
-        let r = writer
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .write_run(&o);
-        rows.lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .push((o.status() == "failed", summary_rows(&o)));
-        let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-        progress(d, total);
-        r
+    let runs_in_inputs = all_jobs.len() + unreadable_archives.len();
+    let takes = |source: &str, path: &str| opt.shard.is_none_or(|s| s.takes(source, path));
+    let jobs: Vec<(usize, usize)> = all_jobs
+        .into_iter()
+        .filter(|&(a, r)| takes(archives[a].file_name(), &archives[a].runs[r].path))
+        .collect();
+    unreadable_archives.retain(|o| takes(&o.source, &o.path));
+    let total = jobs.len() + unreadable_archives.len();
+    let (done, skipped, failed) = (
+        AtomicUsize::new(0),
+        AtomicUsize::new(0),
+        AtomicUsize::new(0),
+    );
+    let entries = Mutex::new(Vec::with_capacity(total));
+    let log = Mutex::new(Log::open(out)?);
+    log.lock().unwrap_or_else(|p| p.into_inner()).line(&format!(
+        "start: {} archive(s), {total} run(s){}, settings {settings}{}",
+        files.len(),
+        opt.shard
+            .map_or(String::new(), |s| format!(" in shard {s}")),
+        if opt.force { ", --force" } else { "" }
+    ));
+    let finish = |e: Entry, was_skipped: bool| {
+        log.lock().unwrap_or_else(|p| p.into_inner()).line(&format!(
+            "{} {}:{} {}{}",
+            if was_skipped {
+                "skipped (committed earlier)"
+            } else {
+                "done"
+            },
+            e.source,
+            e.path,
+            if e.failed { "failed" } else { "ok" },
+            e.rows
+                .iter()
+                .filter(|r| !r.error.is_empty())
+                .map(|r| format!(" [{}: {}]", r.method, r.error))
+                .collect::<String>()
+        ));
+        if was_skipped {
+            skipped.fetch_add(1, Ordering::Relaxed);
+        }
+        if e.failed {
+            failed.fetch_add(1, Ordering::Relaxed);
+        }
+        entries.lock().unwrap_or_else(|p| p.into_inner()).push(e);
+        let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+        progress(Progress {
+            done: d,
+            total,
+            skipped: skipped.load(Ordering::Relaxed),
+            failed: failed.load(Ordering::Relaxed),
+        });
     };
-    for o in outcomes_failed {
-        write(o)?;
+    for o in &unreadable_archives {
+        let key = failed_key(
+            &o.source,
+            &o.path,
+            &o.error_text().unwrap_or_default(),
+            &settings,
+        );
+        let e = match journal.lookup(&key).filter(|_| !opt.force) {
+            Some(e) => (e, true),
+            None => (journal.commit(&key, o)?, false),
+        };
+        finish(e.0, e.1);
     }
     jobs.par_iter()
-        .map(|&(a, r)| {
+        .map(|&(a, r)| -> Result<(), BatchError> {
             let archive = &archives[a];
             let entry = &archive.runs[r];
             let source = archive.file_name().to_string();
-            let mut outcome = RunOutcome::new(entry.path.clone(), source);
+            let mut outcome = RunOutcome::new(entry.path.clone(), source.clone());
             let run = entry
                 .meta
                 .as_ref()
                 .map_err(|e| e.to_string())
                 .and_then(|m| archive.load(m).map_err(|e| e.to_string()));
+            let key = match &run {
+                Ok(run) => run_key(run, &source, &settings),
+                Err(e) => failed_key(&source, &entry.path, e, &settings),
+            };
+            if !opt.force {
+                if let Some(e) = journal.lookup(&key) {
+                    finish(e, true);
+                    return Ok(());
+                }
+            }
             match run {
                 Err(e) => outcome.error = Some(e),
                 Ok(run) => {
                     outcome.sample_rate = Some(run.meta.sample_rate);
                     outcome.samples = run.output.len();
                     outcome.inertia = run.meta.inertia;
-                    for &m in methods {
+                    for &m in &opt.methods {
                         let t0 = Instant::now();
-                        let r = identify(&run, m, options).map_err(|e| e.to_string());
-                        outcome.methods.push((m, r, t0.elapsed().as_secs_f64()));
+                        outcome.methods.push((
+                            m,
+                            identify_guarded(&run, m, &opt.identify),
+                            t0.elapsed().as_secs_f64(),
+                        ));
                     }
                 }
             }
-            write(outcome)
+            finish(journal.commit(&key, &outcome)?, false);
+            Ok(())
         })
-        .collect::<Result<Vec<()>, ReportError>>()?;
-    let results = writer
-        .into_inner()
-        .unwrap_or_else(|p| p.into_inner())
-        .finish()?;
-    let mut collected = rows.into_inner().unwrap_or_else(|p| p.into_inner());
-    collected.sort_by(|a, b| {
-        let key = |r: &Vec<SummaryRow>| r.first().map(|x| (x.source.clone(), x.run.clone()));
-        key(&a.1).cmp(&key(&b.1))
-    });
-    let failed_runs = collected.iter().filter(|r| r.0).count();
-    let rows: Vec<SummaryRow> = collected.into_iter().flat_map(|r| r.1).collect();
-    write_summary(out, &rows)?;
+        .collect::<Result<Vec<()>, BatchError>>()?;
+    let mut entries = entries.into_inner().unwrap_or_else(|p| p.into_inner());
+    entries.sort_by(|a, b| (&a.source, &a.path).cmp(&(&b.source, &b.path)));
+    let manifest = Manifest {
+        format: "skelid-batch/1".into(),
+        settings,
+        shard: opt.shard,
+        runs_in_inputs,
+        runs: entries.iter().map(manifest_run).collect(),
+    };
+    let (results, rows, failed_runs) = write_outputs(&journal, out, &entries, &manifest)?;
+    log.lock().unwrap_or_else(|p| p.into_inner()).line(&format!(
+        "end: {total} run(s), {failed_runs} failed, {} skipped; wrote {}",
+        skipped.load(Ordering::Relaxed),
+        results.display()
+    ));
     Ok(BatchSummary {
         rows,
         results,
         failed_runs,
         runs: total,
+        skipped: skipped.into_inner(),
     })
 }
 
-/// The record of an archive that could not be opened: one failed "run" at its root.
+/// One method on one run, with a panic inside any stage turned into that run's error.
+fn identify_guarded(
+    run: &crate::ingest::Run,
+    method: Method,
+    options: &IdentifyOptions,
+) -> Result<crate::identify::Identification, String> {
+    guarded(|| identify(run, method, options).map_err(|e| e.to_string()))
+}
+
+/// Runs `f`, turning a panic into an error that names it.
+pub fn guarded<T>(f: impl FnOnce() -> Result<T, String>) -> Result<T, String> {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
+        Ok(r) => r,
+        Err(p) => {
+            let msg = p
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| p.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "unknown panic".into());
+            Err(format!(
+                "internal error (panic) in the identification: {msg}"
+            ))
+        }
+    }
+}
+
+fn manifest_run(e: &Entry) -> ManifestRun {
+    ManifestRun {
+        source: e.source.clone(),
+        path: e.path.clone(),
+        key: e.key.clone(),
+        status: if e.failed { "failed" } else { "ok" }.into(),
+    }
+}
+
+/// results.h5, the summaries and the manifest of a folder's entries.
+fn write_outputs(
+    journal: &Journal,
+    out: &Path,
+    entries: &[Entry],
+    manifest: &Manifest,
+) -> Result<(PathBuf, Vec<SummaryRow>, usize), BatchError> {
+    let results = journal.assemble(out, entries)?;
+    let rows: Vec<SummaryRow> = entries.iter().flat_map(|e| e.rows.clone()).collect();
+    write_summary(out, &rows)?;
+    let text = serde_json::to_string_pretty(manifest).map_err(|e| ReportError {
+        file: MANIFEST.into(),
+        detail: e.to_string(),
+    })?;
+    crate::report::write_atomic(&out.join(MANIFEST), text.as_bytes())?;
+    Ok((results, rows, entries.iter().filter(|e| e.failed).count()))
+}
+
+/// Joins the output folders of the shards of one batch into `out`: refuses folders made
+/// with different settings, a shard given twice or missing, a run present in two shards,
+/// or a shard whose runs are not all committed.
+pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<BatchSummary, BatchError> {
+    let bad = |m: String| BatchError::Merge(m);
+    let mut manifests = Vec::new();
+    for d in dirs {
+        let f = d.join(MANIFEST);
+        let text = std::fs::read_to_string(&f).map_err(|e| {
+            bad(format!(
+                "{}: {e} (is {} the output folder of a finished `skelid run`?)",
+                f.display(),
+                d.display()
+            ))
+        })?;
+        let m: Manifest = serde_json::from_str(&text)
+            .map_err(|e| bad(format!("{}: not a skelid manifest: {e}", f.display())))?;
+        manifests.push((d.clone(), m));
+    }
+    let Some((_, first)) = manifests.first() else {
+        return Err(bad("no folders given".into()));
+    };
+    let settings = first.settings.clone();
+    let count = first.shard.map_or(1, |s| s.count);
+    let mut seen_shards = BTreeMap::new();
+    for (d, m) in &manifests {
+        if m.settings != settings {
+            return Err(bad(format!(
+                "{} was made with other settings (skelid version, methods or options) than {}",
+                d.display(),
+                manifests[0].0.display()
+            )));
+        }
+        if m.runs_in_inputs != first.runs_in_inputs {
+            return Err(bad(format!(
+                "{} saw {} runs in its inputs, {} saw {}: the shards were not given the same archives",
+                d.display(),
+                m.runs_in_inputs,
+                manifests[0].0.display(),
+                first.runs_in_inputs
+            )));
+        }
+        let s = m.shard.unwrap_or(Shard { index: 1, count: 1 });
+        if s.count != count {
+            return Err(bad(format!(
+                "{} is shard {s}, others are of {count}",
+                d.display()
+            )));
+        }
+        if let Some(other) = seen_shards.insert(s.index, d.clone()) {
+            return Err(bad(format!(
+                "shard {s} is given twice: {} and {}",
+                other.display(),
+                d.display()
+            )));
+        }
+    }
+    let missing: Vec<String> = (1..=count)
+        .filter(|k| !seen_shards.contains_key(k))
+        .map(|k| format!("{k}/{count}"))
+        .collect();
+    if !missing.is_empty() {
+        return Err(bad(format!(
+            "shard(s) {} missing: run them (or pass their folders) before merging",
+            missing.join(", ")
+        )));
+    }
+    let journal = Journal::open(out)?;
+    let mut owner: BTreeMap<(String, String), PathBuf> = BTreeMap::new();
+    let mut entries = Vec::new();
+    for (d, m) in &manifests {
+        let src = Journal::open(d)?;
+        for r in &m.runs {
+            if let Some(other) = owner.insert((r.source.clone(), r.path.clone()), d.clone()) {
+                return Err(bad(format!(
+                    "run {} of {} is in both {} and {}",
+                    r.path,
+                    r.source,
+                    other.display(),
+                    d.display()
+                )));
+            }
+            let e = src.lookup(&r.key).ok_or_else(|| {
+                bad(format!(
+                    "{}: run {} is listed but its file {}/{}.h5 is missing or unreadable",
+                    d.display(),
+                    r.path,
+                    RUNS_DIR,
+                    r.key
+                ))
+            })?;
+            let dst = journal.file(&r.key);
+            if !dst.exists() {
+                std::fs::copy(src.file(&r.key), &dst).map_err(|e| ReportError {
+                    file: dst.display().to_string(),
+                    detail: e.to_string(),
+                })?;
+            }
+            entries.push(e);
+        }
+    }
+    if entries.len() != first.runs_in_inputs {
+        return Err(bad(format!(
+            "the shards hold {} runs but their inputs had {}",
+            entries.len(),
+            first.runs_in_inputs
+        )));
+    }
+    entries.sort_by(|a, b| (&a.source, &a.path).cmp(&(&b.source, &b.path)));
+    let manifest = Manifest {
+        format: "skelid-batch/1".into(),
+        settings,
+        shard: None,
+        runs_in_inputs: first.runs_in_inputs,
+        runs: entries.iter().map(manifest_run).collect(),
+    };
+    let (results, rows, failed_runs) = write_outputs(&journal, out, &entries, &manifest)?;
+    Ok(BatchSummary {
+        rows,
+        results,
+        failed_runs,
+        runs: entries.len(),
+        skipped: 0,
+    })
+}
+
+/// `<out>/skelid.log`: one line per event, appended, with seconds since the Unix epoch.
+struct Log {
+    file: std::fs::File,
+}
+
+impl Log {
+    fn open(out: &Path) -> Result<Log, ReportError> {
+        let path = out.join("skelid.log");
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&path)
+            .map_err(|e| ReportError {
+                file: path.display().to_string(),
+                detail: e.to_string(),
+            })?;
+        Ok(Log { file })
+    }
+
+    fn line(&mut self, text: &str) {
+        use std::io::Write;
+        let t = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0.0, |d| d.as_secs_f64());
+        // A log line that cannot be written must not stop the batch.
+        let _ = writeln!(self.file, "{t:.3} {text}");
+    }
+}
+
+/// The record of an archive that could not be opened: one failed entry under
+/// `/_unreadable/<file name>`.
 fn unreadable(file: &Path, error: &dyn std::fmt::Display) -> RunOutcome {
+    let name = file_name(file);
     RunOutcome {
         error: Some(format!("archive unreadable: {error}")),
-        ..RunOutcome::new("/".into(), file_name(file))
+        ..RunOutcome::new(format!("/_unreadable/{}", name.replace('/', "_")), name)
     }
 }
 
@@ -157,4 +558,46 @@ fn file_name(p: &Path) -> String {
     p.file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| p.display().to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_panic_becomes_the_runs_error() {
+        let r: Result<(), String> = guarded(|| panic!("index out of bounds"));
+        let e = r.unwrap_err();
+        assert!(
+            e.contains("panic") && e.contains("index out of bounds"),
+            "{e}"
+        );
+        assert_eq!(guarded(|| Ok::<_, String>(3)), Ok(3));
+    }
+
+    #[test]
+    fn shards_partition_the_runs_whatever_the_order() {
+        let runs: Vec<(String, String)> = (0..300)
+            .map(|i| (format!("/data/c{}.h5", i % 7), format!("/runs/run_{i:03}")))
+            .collect();
+        let n = 3;
+        let mut counts = [0; 3];
+        for (src, path) in &runs {
+            let owners: Vec<usize> = (1..=n)
+                .filter(|&k| Shard { index: k, count: n }.takes(src, path))
+                .collect();
+            assert_eq!(owners.len(), 1);
+            counts[owners[0] - 1] += 1;
+            // The folder the archive was given from does not matter.
+            let moved = src.replace("/data/", "/elsewhere/");
+            assert!(Shard {
+                index: owners[0],
+                count: n
+            }
+            .takes(&moved, path));
+        }
+        assert!(counts.iter().all(|&c| c > 70), "{counts:?}");
+        assert!(Shard::parse("0/3").is_err() && Shard::parse("4/3").is_err());
+        assert_eq!(Shard::parse("2/3"), Ok(Shard { index: 2, count: 3 }));
+    }
 }

@@ -6,7 +6,8 @@
 //! model under any drive), [`campaign`] (archives out), [`demo`] (the built-in campaign),
 //! [`transform`] (Hilbert and wavelet transforms), [`ridge`], [`skeleton`] and [`track`]
 //! (instantaneous amplitude and frequency), [`forcevib`] (ω0²(t), h0(t)), [`fit`] (skeleton
-//! curves and physical parameters), [`identify`] (one run through all of it).
+//! curves and physical parameters), [`identify`] (one run through all of it), [`batch`] and
+//! [`journal`] (many runs, crash-safe and resumable), [`report`] (results out).
 
 pub mod batch;
 pub mod bench;
@@ -19,6 +20,7 @@ pub mod h5util;
 pub mod identify;
 pub mod ingest;
 pub mod inspect;
+pub mod journal;
 pub mod model;
 pub mod report;
 pub mod ridge;

@@ -37,6 +37,10 @@ enum Command {
     /// stiffness, viscous and Coulomb damping; writes results.h5, summary.json and
     /// summary.csv (FORMATS.md §3). Exit status 1 if any run failed.
     Run(RunArgs),
+    /// Join the output folders of the shards of one `skelid run --shard K/N` into one
+    /// folder (results.h5, summaries, manifest), refusing missing or doubled shards, runs in
+    /// two shards and folders made with other settings.
+    Merge(MergeArgs),
     /// Instantaneous envelope, frequency and phase of one dataset, by the wavelet ridge or
     /// the Hilbert transform; writes time, amplitude, frequency (Hz), valid (FORMATS.md §4).
     Track(TrackArgs),
@@ -205,6 +209,32 @@ struct DemoArgs {
     out: PathBuf,
 }
 
+#[derive(Args)]
+struct MergeArgs {
+    /// Output folders of `skelid run --shard K/N`, one per shard.
+    #[arg(required = true, value_name = "DIR")]
+    dirs: Vec<PathBuf>,
+    /// Folder for the joined results.
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+}
+
+fn cmd_merge(a: MergeArgs) -> Result<ExitCode> {
+    let summary = skelid::batch::merge(&a.dirs, &a.out)?;
+    println!(
+        "merged {} folder(s): {} run(s), {} failed; wrote {}, summary.json, summary.csv, manifest.json",
+        a.dirs.len(),
+        summary.runs,
+        summary.failed_runs,
+        summary.results.display()
+    );
+    Ok(if summary.failed_runs > 0 {
+        ExitCode::from(1)
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
 /// `--backbone` values.
 #[derive(Clone, Copy, ValueEnum)]
 enum BackboneArg {
@@ -243,6 +273,22 @@ struct RunArgs {
     /// function for free decays).
     #[arg(long, value_enum, default_value = "auto")]
     backbone: BackboneArg,
+    /// Take only the K-th of N shares of the runs (e.g. 3/8), for N copies of skelid on a
+    /// scheduler (a Slurm array). The share depends on each run's archive name and path,
+    /// not on the order of the inputs; join the N output folders with `skelid merge`.
+    #[arg(long, value_name = "K/N")]
+    shard: Option<String>,
+    /// Redo every run, even those already committed in DIR by an earlier invocation with
+    /// the same data and settings (which are otherwise skipped).
+    #[arg(long)]
+    force: bool,
+    /// No progress bar and no result table (the log is still written to DIR/skelid.log).
+    #[arg(long, short)]
+    quiet: bool,
+    /// Progress as one JSON object per finished run on stderr (done, total, skipped,
+    /// failed, elapsed_s), for schedulers and dashboards.
+    #[arg(long)]
+    json_progress: bool,
     /// Seconds allowed to open one archive (in a child process) before it is reported failed.
     #[arg(long, default_value_t = 300, value_name = "S")]
     timeout: u64,
@@ -384,6 +430,7 @@ fn main() -> ExitCode {
         Command::Simulate(a) => cmd_simulate(a).map(|_| ExitCode::SUCCESS),
         Command::Demo(a) => cmd_demo(a),
         Command::Run(a) => cmd_run(a),
+        Command::Merge(a) => cmd_merge(a),
         Command::Track(a) => cmd_track(a).map(|_| ExitCode::SUCCESS),
         Command::Bench(a) => cmd_bench(a).map(|_| ExitCode::SUCCESS),
         Command::BenchOne {
@@ -545,16 +592,23 @@ fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
     )];
     write_campaign(&path, &root, &runs, true)?;
     println!("wrote {}", path.display());
-    let summary = identify_with_progress(
-        std::slice::from_ref(&path),
-        &IngestOptions::default(),
-        &[
+    // The demo archive is rewritten every time: identify it afresh, never from the journal.
+    let options = skelid::batch::BatchOptions {
+        methods: vec![
             skelid::track::Method::Wavelet,
             skelid::track::Method::Hilbert,
         ],
-        &skelid::identify::IdentifyOptions::default(),
-        skelid::batch::Isolation::None,
+        identify: skelid::identify::IdentifyOptions::default(),
+        isolation: skelid::batch::Isolation::None,
+        shard: None,
+        force: true,
+    };
+    let summary = identify_with_progress(
+        std::slice::from_ref(&path),
+        &IngestOptions::default(),
+        &options,
         &a.out,
+        ProgressMode::Bar,
     )?;
     let truth = |run: &str| -> Option<[f64; 4]> {
         let c = cases.iter().find(|c| c.path == run)?;
@@ -593,22 +647,38 @@ fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         BackboneArg::DescribingFunction => Some(skelid::fit::BackboneModel::DescribingFunction),
     };
     let exe = self_exe()?;
-    let summary = identify_with_progress(
-        &files,
-        &ingest,
-        &a.method.methods(),
-        &options,
-        skelid::batch::Isolation::Child {
+    let shard = a
+        .shard
+        .as_deref()
+        .map(skelid::batch::Shard::parse)
+        .transpose()
+        .map_err(anyhow::Error::msg)?;
+    let batch = skelid::batch::BatchOptions {
+        methods: a.method.methods(),
+        identify: options,
+        isolation: skelid::batch::Isolation::Child {
             exe: &exe,
             timeout: std::time::Duration::from_secs(a.timeout),
         },
-        &a.out,
-    )?;
-    print!("{}", render_summary(&summary.rows, None));
+        shard,
+        force: a.force,
+    };
+    let mode = if a.json_progress {
+        ProgressMode::Json
+    } else if a.quiet {
+        ProgressMode::Quiet
+    } else {
+        ProgressMode::Bar
+    };
+    let summary = identify_with_progress(&files, &ingest, &batch, &a.out, mode)?;
+    if !a.quiet && !a.json_progress {
+        print!("{}", render_summary(&summary.rows, None));
+    }
     println!(
-        "\n{} run(s), {} failed; wrote {}, summary.json, summary.csv",
+        "\n{} run(s), {} failed, {} already done earlier (skipped); wrote {}, summary.json, summary.csv, manifest.json, skelid.log",
         summary.runs,
         summary.failed_runs,
+        summary.skipped,
         summary.results.display()
     );
     Ok(if summary.failed_runs > 0 {
@@ -618,26 +688,55 @@ fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     })
 }
 
+/// How a batch reports progress on the terminal.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum ProgressMode {
+    /// An indicatif bar on stderr (hidden when stderr is not a terminal).
+    Bar,
+    /// Nothing.
+    Quiet,
+    /// One JSON object per finished run on stderr, for schedulers.
+    Json,
+}
+
 fn identify_with_progress(
     files: &[PathBuf],
     ingest: &IngestOptions,
-    methods: &[skelid::track::Method],
-    options: &skelid::identify::IdentifyOptions,
-    isolation: skelid::batch::Isolation<'_>,
+    options: &skelid::batch::BatchOptions<'_>,
     out: &std::path::Path,
+    mode: ProgressMode,
 ) -> Result<skelid::batch::BatchSummary> {
-    let bar = indicatif::ProgressBar::new(0).with_style(
+    let bar = match mode {
+        ProgressMode::Bar => indicatif::ProgressBar::new(0),
+        _ => indicatif::ProgressBar::hidden(),
+    }
+    .with_style(
         indicatif::ProgressStyle::with_template(
-            "identifying {bar:30} {pos}/{len} runs {elapsed} (eta {eta})",
+            "identifying {bar:30} {pos}/{len} runs, {per_sec}, {elapsed} (eta {eta}) {msg}",
         )
         .expect("static template"),
     );
-    let progress = |done: usize, total: usize| {
-        bar.set_length(total as u64);
-        bar.set_position(done as u64);
+    let started = std::time::Instant::now();
+    let progress = |p: skelid::batch::Progress| {
+        bar.set_length(p.total as u64);
+        bar.set_position(p.done as u64);
+        bar.set_message(format!(
+            "{} failed{}",
+            p.failed,
+            if p.skipped > 0 {
+                format!(", {} already done", p.skipped)
+            } else {
+                String::new()
+            }
+        ));
+        if mode == ProgressMode::Json {
+            let mut v = serde_json::to_value(p).unwrap_or_default();
+            v["elapsed_s"] = serde_json::json!(started.elapsed().as_secs_f64());
+            eprintln!("{v}");
+        }
     };
-    let summary =
-        skelid::batch::run_campaigns(files, ingest, methods, options, isolation, out, &progress)?;
+    let summary = skelid::batch::run_campaigns(files, ingest, options, out, &progress)
+        .with_context(|| format!("batch into {}", out.display()))?;
     bar.finish_and_clear();
     Ok(summary)
 }

@@ -180,18 +180,71 @@ pub struct ResultsWriter {
 impl ResultsWriter {
     /// Starts `<dir>/results.h5`.
     pub fn create(dir: &Path) -> Result<ResultsWriter, ReportError> {
-        let path = dir.join("results.h5");
+        Self::create_at(&dir.join("results.h5"))
+    }
+
+    /// Starts a results file at `path` (written as `path.tmp` until [`finish`](Self::finish)).
+    pub fn create_at(path: &Path) -> Result<ResultsWriter, ReportError> {
+        let path = path.to_path_buf();
         let err = |detail: String| ReportError {
             file: path.display().to_string(),
             detail,
         };
-        std::fs::create_dir_all(dir).map_err(|e| err(e.to_string()))?;
+        if let Some(dir) = path.parent() {
+            std::fs::create_dir_all(dir).map_err(|e| err(e.to_string()))?;
+        }
         let tmp = tmp_path(&path);
         let file = hdf5::File::create(&tmp).map_err(|e| err(e.to_string()))?;
         write_str_attr(&file, "format", "skelid-results/1").map_err(|e| err(e.to_string()))?;
         write_str_attr(&file, "skelid_version", env!("CARGO_PKG_VERSION"))
             .map_err(|e| err(e.to_string()))?;
         Ok(ResultsWriter { file, path, tmp })
+    }
+
+    /// Sets a string attribute on the file's root.
+    pub fn set_root_attr(&self, name: &str, value: &str) -> Result<(), ReportError> {
+        write_str_attr(&self.file, name, value).map_err(|e| ReportError {
+            file: self.path.display().to_string(),
+            detail: e.to_string(),
+        })
+    }
+
+    /// Copies the group `src_path` of the results file `src` to `dst_path` here, whole
+    /// (datasets, attributes, sub-groups), with libhdf5's object copy.
+    pub fn copy_run_from(
+        &self,
+        src: &Path,
+        src_path: &str,
+        dst_path: &str,
+    ) -> Result<(), ReportError> {
+        let err = |detail: String| ReportError {
+            file: self.path.display().to_string(),
+            detail: format!("copying {src_path} from {}: {detail}", src.display()),
+        };
+        let source = hdf5::File::open(src).map_err(|e| err(e.to_string()))?;
+        let (parent, name) = match dst_path.trim_end_matches('/').rsplit_once('/') {
+            Some((p, n)) if !n.is_empty() => (p, n),
+            _ => return Err(err("a run path must name a group below the root".into())),
+        };
+        let parent = group_path(&self.file, parent).map_err(|e| err(e.to_string()))?;
+        let c = |s: &str| std::ffi::CString::new(s).map_err(|e| err(e.to_string()));
+        let (src_name, dst_name) = (c(src_path)?, c(name)?);
+        // The hdf5 crate serialises every libhdf5 call behind one lock; a raw call must
+        // take the same lock.
+        let status = hdf5::sync::sync(|| unsafe {
+            hdf5_sys::h5o::H5Ocopy(
+                source.id(),
+                src_name.as_ptr(),
+                parent.id(),
+                dst_name.as_ptr(),
+                hdf5_sys::h5p::H5P_DEFAULT,
+                hdf5_sys::h5p::H5P_DEFAULT,
+            )
+        });
+        if status < 0 {
+            return Err(err("H5Ocopy failed".into()));
+        }
+        Ok(())
     }
 
     /// Adds one run (failed runs included, with their error).
@@ -377,7 +430,7 @@ pub fn parameters(id: &Identification, inertia: Option<f64>) -> Vec<(&'static st
 }
 
 /// One row of `summary.json` / `summary.csv`: a run × method.
-#[derive(Debug, Clone, serde::Serialize)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct SummaryRow {
     /// Run path.
     pub run: String,
@@ -488,7 +541,8 @@ pub const PARAMETER_NAMES: [&str; 16] = [
     "natural_frequency_at_amplitude_max",
 ];
 
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
+/// Writes a file through a temporary file renamed into place.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
     let err = |detail: String| ReportError {
         file: path.display().to_string(),
         detail,

@@ -1,0 +1,254 @@
+//! `skelid run` as an overnight batch: killed with SIGKILL several times and resumed, it
+//! ends with exactly the results of an uninterrupted run; three shards run as separate
+//! processes and merged equal one unsharded run; merge refuses what does not fit.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Duration;
+
+fn skelid() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_skelid"))
+}
+
+/// A campaign folder: the demo archive under three names (33 runs).
+fn campaign(dir: &Path) -> PathBuf {
+    let demo = dir.join("demo");
+    let st = skelid()
+        .args(["demo", "--out"])
+        .arg(&demo)
+        .output()
+        .expect("run skelid demo");
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    let c = dir.join("campaign");
+    std::fs::create_dir_all(&c).unwrap();
+    for name in ["a.h5", "b.h5", "c.h5"] {
+        std::fs::copy(demo.join("demo_campaign.h5"), c.join(name)).unwrap();
+    }
+    c
+}
+
+fn run(args: &[&str], inputs: &Path, out: &Path) -> std::process::Output {
+    skelid()
+        .arg("run")
+        .arg(inputs)
+        .arg("--out")
+        .arg(out)
+        .args(["--quiet"])
+        .args(args)
+        .output()
+        .expect("run skelid run")
+}
+
+/// summary.json rows without the timings, sorted: what must be identical.
+fn rows(out: &Path) -> Vec<serde_json::Value> {
+    let text = std::fs::read_to_string(out.join("summary.json")).expect("summary.json");
+    let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let mut rows: Vec<serde_json::Value> = v["rows"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .cloned()
+        .map(|mut r| {
+            r.as_object_mut().unwrap().remove("seconds");
+            // The archive's folder differs between outputs; its name does not.
+            let src = r["source"].as_str().unwrap().to_string();
+            r["source"] = Path::new(&src)
+                .file_name()
+                .unwrap()
+                .to_str()
+                .unwrap()
+                .into();
+            r
+        })
+        .collect();
+    rows.sort_by_key(|r| format!("{}{}{}", r["source"], r["run"], r["method"]));
+    rows
+}
+
+/// Rows equal field by field; numbers to 1e-12 relative. The same run identified twice can
+/// differ in the last bit (the order of parallel floating-point work), nothing more.
+fn assert_same_rows(a: &[serde_json::Value], b: &[serde_json::Value]) {
+    assert_eq!(a.len(), b.len());
+    for (x, y) in a.iter().zip(b) {
+        let (x, y) = (x.as_object().unwrap(), y.as_object().unwrap());
+        assert_eq!(x.keys().collect::<Vec<_>>(), y.keys().collect::<Vec<_>>());
+        for (k, v) in x {
+            let w = &y[k];
+            match (v.as_f64(), w.as_f64()) {
+                (Some(p), Some(q)) => assert!(
+                    (p - q).abs() <= 1e-12 * p.abs().max(q.abs()).max(1e-300),
+                    "{k}: {p} vs {q} in {x:?}"
+                ),
+                _ => assert_eq!(v, w, "{k} in {x:?}"),
+            }
+        }
+    }
+}
+
+/// Every run group of results.h5 with its status and one fitted value.
+fn results(out: &Path) -> Vec<(String, String, Option<f64>)> {
+    let f = hdf5::File::open(out.join("results.h5")).expect("results.h5 readable");
+    let mut v = Vec::new();
+    fn walk(g: &hdf5::Group, path: String, v: &mut Vec<(String, String, Option<f64>)>) {
+        if let Ok(a) = g.attr("status") {
+            let s: hdf5::types::VarLenUnicode = a.read_scalar().unwrap();
+            let c = g
+                .group("wavelet")
+                .ok()
+                .and_then(|w| w.attr("clearance").ok())
+                .and_then(|a| a.read_scalar::<f64>().ok());
+            v.push((path, s.to_string(), c));
+            return;
+        }
+        for name in g.member_names().unwrap() {
+            if let Ok(sub) = g.group(&name) {
+                walk(&sub, format!("{path}/{name}"), v);
+            }
+        }
+    }
+    walk(&f.group("/").unwrap(), String::new(), &mut v);
+    v.sort_by(|a, b| a.0.cmp(&b.0));
+    v
+}
+
+fn assert_same_results(a: &[(String, String, Option<f64>)], b: &[(String, String, Option<f64>)]) {
+    assert_eq!(a.len(), b.len());
+    for (x, y) in a.iter().zip(b) {
+        assert_eq!((&x.0, &x.1), (&y.0, &y.1));
+        match (x.2, y.2) {
+            (Some(p), Some(q)) => {
+                assert!((p - q).abs() <= 1e-12 * p.abs().max(q.abs()).max(1e-300))
+            }
+            (p, q) => assert_eq!(p, q),
+        }
+    }
+}
+
+#[test]
+fn killed_batches_resume_to_the_uninterrupted_result() {
+    let tmp = tempfile::tempdir().unwrap();
+    let inputs = campaign(tmp.path());
+    let clean = tmp.path().join("clean");
+    let o = run(&[], &inputs, &clean);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let expected_rows = rows(&clean);
+    let expected = results(&clean);
+    assert_eq!(expected.len(), 33, "{expected:?}");
+
+    let out = tmp.path().join("killed");
+    let mut committed = Vec::new();
+    for delay_ms in [700u64, 1100, 1500, 1900] {
+        let mut child = skelid()
+            .arg("run")
+            .arg(&inputs)
+            .arg("--out")
+            .arg(&out)
+            .arg("--quiet")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(Duration::from_millis(delay_ms));
+        child.kill().unwrap(); // SIGKILL
+        child.wait().unwrap();
+        // Whatever was visible is whole: committed run files and, if present, results.h5.
+        let n = std::fs::read_dir(out.join("runs"))
+            .map(|d| {
+                d.filter(|e| {
+                    e.as_ref()
+                        .is_ok_and(|e| e.path().extension().is_some_and(|x| x == "h5"))
+                })
+                .count()
+            })
+            .unwrap_or(0);
+        committed.push(n);
+        if out.join("results.h5").exists() {
+            results(&out);
+        }
+    }
+    println!("runs committed after each SIGKILL: {committed:?} of 33");
+    assert!(
+        committed.iter().any(|&n| n > 0 && n < 33),
+        "no kill landed mid-batch: {committed:?}"
+    );
+    let o = run(&[], &inputs, &out);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(said.contains("already done earlier"), "{said}");
+    assert_same_rows(&rows(&out), &expected_rows);
+    assert_same_results(&results(&out), &expected);
+
+    // A second rerun does nothing new; --force redoes all, to the same result.
+    let o = run(&[], &inputs, &out);
+    assert!(String::from_utf8_lossy(&o.stdout).contains("33 already done"));
+    let o = run(&["--force"], &inputs, &out);
+    assert!(String::from_utf8_lossy(&o.stdout).contains(" 0 already done"));
+    assert_same_rows(&rows(&out), &expected_rows);
+}
+
+#[test]
+fn three_shards_merged_equal_one_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    let inputs = campaign(tmp.path());
+    let whole = tmp.path().join("whole");
+    assert!(run(&["--method", "wavelet"], &inputs, &whole)
+        .status
+        .success());
+    let shards: Vec<PathBuf> = (1..=3)
+        .map(|k| tmp.path().join(format!("shard{k}")))
+        .collect();
+    let children: Vec<_> = shards
+        .iter()
+        .enumerate()
+        .map(|(i, dir)| {
+            skelid()
+                .arg("run")
+                .arg(&inputs)
+                .arg("--out")
+                .arg(dir)
+                .args(["--quiet", "--method", "wavelet", "--shard"])
+                .arg(format!("{}/3", i + 1))
+                .output()
+                .unwrap()
+        })
+        .collect();
+    let sizes: Vec<usize> = shards.iter().map(|d| results(d).len()).collect();
+    for c in &children {
+        assert!(c.status.success(), "{}", String::from_utf8_lossy(&c.stderr));
+    }
+    println!("shard sizes: {sizes:?}");
+    assert_eq!(sizes.iter().sum::<usize>(), 33);
+    assert!(sizes.iter().all(|&s| s > 0));
+
+    let merged = tmp.path().join("merged");
+    let m = skelid()
+        .arg("merge")
+        .args(&shards)
+        .arg("--out")
+        .arg(&merged)
+        .output()
+        .unwrap();
+    assert!(m.status.success(), "{}", String::from_utf8_lossy(&m.stderr));
+    assert_same_rows(&rows(&merged), &rows(&whole));
+    assert_same_results(&results(&merged), &results(&whole));
+
+    // A missing shard, a shard given twice, an unsharded folder among shards: refused.
+    let refuse = |dirs: &[&PathBuf], what: &str| {
+        let m = skelid()
+            .arg("merge")
+            .args(dirs)
+            .arg("--out")
+            .arg(tmp.path().join("refused"))
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&m.stderr);
+        assert!(!m.status.success() && err.contains(what), "{err}");
+    };
+    refuse(&[&shards[0], &shards[1]], "3/3 missing");
+    refuse(&[&shards[0], &shards[1], &shards[1]], "given twice");
+    refuse(&[&shards[0], &shards[1], &whole], "others are of 3");
+}
