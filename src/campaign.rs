@@ -128,7 +128,7 @@ pub fn write_signal(
         builder
             .chunk(data.len().min(4096))
             .shuffle()
-            .deflate(4)
+            .deflate(1)
             .create(name)?;
     } else {
         builder.create(name)?;

@@ -215,10 +215,15 @@ pub fn fit_dead_zone(bins: &[Bin], model: BackboneModel) -> Option<DeadZoneFit> 
         return None;
     }
     // Inverse-variance weights (the median's variance goes as spread²/count), floored so
-    // that a bin of identical samples cannot take over: a bin where the estimate scatters
+    // that a bin of near-identical samples cannot take over: a bin where the estimate scatters
     // (noise-dominated low amplitudes, a transient) counts for little.
-    let mut mags: Vec<f64> = pts.iter().map(|b| b.stiffness.abs()).collect();
-    let floor = 1e-3 * quartiles(&mut mags).1.max(f64::MIN_POSITIVE);
+    // The floor is 1 % of the largest |ω0²|: the near-zero free-play bins of a clearance
+    // have tiny spreads and must not outweigh the contact bins that carry K and δ.
+    let floor = 1e-2
+        * pts
+            .iter()
+            .map(|b| b.stiffness.abs())
+            .fold(f64::MIN_POSITIVE, f64::max);
     let w: Vec<f64> = pts
         .iter()
         .map(|b| b.count as f64 / (b.stiffness_spread.powi(2) + floor * floor))
@@ -231,7 +236,8 @@ pub fn fit_dead_zone(bins: &[Bin], model: BackboneModel) -> Option<DeadZoneFit> 
             sgy += wi * g * b.stiffness;
             sgg += wi * g * g;
         }
-        let k = if sgg > 0.0 { sgy / sgg } else { 0.0 };
+        // A contact stiffness is positive.
+        let k = if sgg > 0.0 { (sgy / sgg).max(0.0) } else { 0.0 };
         let cost: f64 = pts
             .iter()
             .zip(&w)
