@@ -165,6 +165,34 @@ pub struct ManifestRun {
     pub status: String,
 }
 
+impl Manifest {
+    /// The manifest of a folder holding `entries`, which it puts in (archive, path) order
+    /// for every output.
+    fn new(
+        settings: String,
+        shard: Option<Shard>,
+        runs_in_inputs: usize,
+        entries: &mut [Entry],
+    ) -> Manifest {
+        entries.sort_by(|a, b| (&a.source, &a.path).cmp(&(&b.source, &b.path)));
+        Manifest {
+            format: "skelid-batch/1".into(),
+            settings,
+            shard,
+            runs_in_inputs,
+            runs: entries
+                .iter()
+                .map(|e| ManifestRun {
+                    source: e.source.clone(),
+                    path: e.path.clone(),
+                    key: e.key.clone(),
+                    status: if e.failed { "failed" } else { "ok" }.into(),
+                })
+                .collect(),
+        }
+    }
+}
+
 /// Manifest file name in an output folder.
 pub const MANIFEST: &str = "manifest.json";
 
@@ -265,11 +293,10 @@ pub fn run_campaigns(
             &o.error_text().unwrap_or_default(),
             &settings,
         );
-        let e = match journal.lookup(&key).filter(|_| !opt.force) {
-            Some(e) => (e, true),
-            None => (journal.commit(&key, o)?, false),
-        };
-        finish(e.0, e.1);
+        match journal.lookup(&key).filter(|_| !opt.force) {
+            Some(e) => finish(e, true),
+            None => finish(journal.commit(&key, o)?, false),
+        }
     }
     jobs.par_iter()
         .map(|&(a, r)| -> Result<(), BatchError> {
@@ -313,14 +340,7 @@ pub fn run_campaigns(
         })
         .collect::<Result<Vec<()>, BatchError>>()?;
     let mut entries = entries.into_inner().unwrap_or_else(|p| p.into_inner());
-    entries.sort_by(|a, b| (&a.source, &a.path).cmp(&(&b.source, &b.path)));
-    let manifest = Manifest {
-        format: "skelid-batch/1".into(),
-        settings,
-        shard: opt.shard,
-        runs_in_inputs,
-        runs: entries.iter().map(manifest_run).collect(),
-    };
+    let manifest = Manifest::new(settings, opt.shard, runs_in_inputs, &mut entries);
     let (results, rows, failed_runs) = write_outputs(&journal, out, &entries, &manifest)?;
     log.lock().unwrap_or_else(|p| p.into_inner()).line(&format!(
         "end: {total} run(s), {failed_runs} failed, {} skipped; wrote {}",
@@ -359,15 +379,6 @@ pub fn guarded<T>(f: impl FnOnce() -> Result<T, String>) -> Result<T, String> {
                 "internal error (panic) in the identification: {msg}"
             ))
         }
-    }
-}
-
-fn manifest_run(e: &Entry) -> ManifestRun {
-    ManifestRun {
-        source: e.source.clone(),
-        path: e.path.clone(),
-        key: e.key.clone(),
-        status: if e.failed { "failed" } else { "ok" }.into(),
     }
 }
 
@@ -497,14 +508,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<BatchSummary, BatchError> {
             first.runs_in_inputs
         )));
     }
-    entries.sort_by(|a, b| (&a.source, &a.path).cmp(&(&b.source, &b.path)));
-    let manifest = Manifest {
-        format: "skelid-batch/1".into(),
-        settings,
-        shard: None,
-        runs_in_inputs: first.runs_in_inputs,
-        runs: entries.iter().map(manifest_run).collect(),
-    };
+    let manifest = Manifest::new(settings, None, first.runs_in_inputs, &mut entries);
     let (results, rows, failed_runs) = write_outputs(&journal, out, &entries, &manifest)?;
     Ok(BatchSummary {
         rows,

@@ -152,6 +152,21 @@ pub fn dead_zone_orbit_ratio(delta: f64, amplitude: f64) -> f64 {
     (1.0 - u) * (1.0 - u)
 }
 
+/// Weights of binned medians (value, interquartile spread, count): inverse variance, as the
+/// median's variance goes as spread²/count, so bins where the estimate scatters (noise at
+/// low amplitude, a transient) count for little. The spread is floored at 1 % of the
+/// largest |value|, so that bins of near-identical samples (the near-zero free play of a
+/// clearance in a noise-free record) cannot outweigh the rest.
+fn inverse_variance_weights(bins: impl Iterator<Item = (f64, f64, usize)> + Clone) -> Vec<f64> {
+    let floor = 1e-2
+        * bins
+            .clone()
+            .map(|b| b.0.abs())
+            .fold(f64::MIN_POSITIVE, f64::max);
+    bins.map(|(_, spread, n)| n as f64 / (spread * spread + floor * floor))
+        .collect()
+}
+
 /// A fitted value with its standard error.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Estimate {
@@ -214,20 +229,10 @@ pub fn fit_dead_zone(bins: &[Bin], model: BackboneModel) -> Option<DeadZoneFit> 
     if pts.len() < 3 {
         return None;
     }
-    // Inverse-variance weights (the median's variance goes as spread²/count), floored so
-    // that a bin of near-identical samples cannot take over: a bin where the estimate scatters
-    // (noise-dominated low amplitudes, a transient) counts for little.
-    // The floor is 1 % of the largest |ω0²|: the near-zero free-play bins of a clearance
-    // have tiny spreads and must not outweigh the contact bins that carry K and δ.
-    let floor = 1e-2
-        * pts
-            .iter()
-            .map(|b| b.stiffness.abs())
-            .fold(f64::MIN_POSITIVE, f64::max);
-    let w: Vec<f64> = pts
-        .iter()
-        .map(|b| b.count as f64 / (b.stiffness_spread.powi(2) + floor * floor))
-        .collect();
+    let w = inverse_variance_weights(
+        pts.iter()
+            .map(|b| (b.stiffness, b.stiffness_spread, b.count)),
+    );
     // Cost and the optimal K for a given δ.
     let solve = |delta: f64| -> (f64, f64) {
         let (mut sgy, mut sgg) = (0.0, 0.0);
@@ -397,14 +402,7 @@ pub fn fit_damping(bins: &[Bin]) -> Option<(Estimate, Estimate)> {
         .collect();
     let x: Vec<f64> = sel.iter().map(|b| 1.0 / b.velocity).collect();
     let y: Vec<f64> = sel.iter().map(|b| b.damping).collect();
-    // Inverse-variance weights as in the dead-zone fit: off-resonance bins where h0
-    // scatters widely count for little.
-    let mut mags: Vec<f64> = y.iter().map(|v| v.abs()).collect();
-    let floor = 1e-3 * quartiles(&mut mags).1.max(f64::MIN_POSITIVE);
-    let w: Vec<f64> = sel
-        .iter()
-        .map(|b| b.count as f64 / (b.damping_spread.powi(2) + floor * floor))
-        .collect();
+    let w = inverse_variance_weights(sel.iter().map(|b| (b.damping, b.damping_spread, b.count)));
     let (a, b) = line(&x, &y, &w)?;
     let f = PI / 4.0;
     Some((

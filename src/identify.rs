@@ -247,8 +247,9 @@ pub fn identify(
             samples.len()
         )));
     }
-    let min_count = (samples.len() / (20 * opt.bins)).max(5);
-    let bins = fit::skeleton(&samples, opt.bins, min_count);
+    // A bin needs 1/20 of its even share of the samples (at least 5) to be kept.
+    let skeleton = |v: &[Sample]| fit::skeleton(v, opt.bins, (v.len() / (20 * opt.bins)).max(5));
+    let bins = skeleton(&samples);
     // Forcing at resonance makes up each cycle's loss, so the motion is close to the free
     // undamped orbit; a free decay loses speed over every flight through the gap, which
     // moves its first harmonic towards the describing function (README).
@@ -258,8 +259,7 @@ pub fn identify(
     });
     let resonant_samples: Vec<Sample> = (0..n).filter(|&i| resonant[i]).map(sample).collect();
     let resonant_bins = if resonant_samples.len() >= 100 {
-        let min_count = (resonant_samples.len() / (20 * opt.bins)).max(5);
-        fit::skeleton(&resonant_samples, opt.bins, min_count)
+        skeleton(&resonant_samples)
     } else {
         Vec::new()
     };

@@ -228,11 +228,16 @@ fn cmd_merge(a: MergeArgs) -> Result<ExitCode> {
         summary.failed_runs,
         summary.results.display()
     );
-    Ok(if summary.failed_runs > 0 {
+    Ok(exit_status(&summary))
+}
+
+/// 1 when any run failed, so that schedulers see it.
+fn exit_status(summary: &skelid::batch::BatchSummary) -> ExitCode {
+    if summary.failed_runs > 0 {
         ExitCode::from(1)
     } else {
         ExitCode::SUCCESS
-    })
+    }
 }
 
 /// `--backbone` values.
@@ -681,11 +686,7 @@ fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         summary.skipped,
         summary.results.display()
     );
-    Ok(if summary.failed_runs > 0 {
-        ExitCode::from(1)
-    } else {
-        ExitCode::SUCCESS
-    })
+    Ok(exit_status(&summary))
 }
 
 /// How a batch reports progress on the terminal.

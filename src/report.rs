@@ -169,8 +169,9 @@ impl RunOutcome {
     }
 }
 
-/// `results.h5` being written: each run is added as soon as it is done, the file is renamed
-/// into place by [`finish`](Self::finish), so a crash leaves no half-written results.h5.
+/// A results file being written (`results.h5`, or one run's journal file): written as
+/// `<path>.tmp` and renamed into place by [`finish`](Self::finish), so a crash never leaves
+/// a half-written one visible.
 pub struct ResultsWriter {
     file: hdf5::File,
     path: PathBuf,
@@ -311,6 +312,29 @@ fn group_path(file: &hdf5::File, path: &str) -> hdf5::Result<hdf5::Group> {
     Ok(g)
 }
 
+/// One column of a skeleton, read off a bin.
+type BinColumn = fn(&Bin) -> f64;
+
+/// One skeleton's columns (FORMATS.md §3 names plus stiffness, spreads and counts).
+fn write_bins(g: &hdf5::Group, bins: &[Bin]) -> hdf5::Result<()> {
+    let columns: [(&str, BinColumn); 9] = [
+        ("amplitude", |b| b.amplitude),
+        ("natural_frequency", |b| b.natural_frequency()),
+        ("stiffness", |b| b.stiffness),
+        ("stiffness_spread", |b| b.stiffness_spread),
+        ("restoring_force", |b| b.restoring_force()),
+        ("velocity_amplitude", |b| b.velocity),
+        ("damping_force", |b| b.damping_force()),
+        ("damping_spread", |b| b.damping_spread),
+        ("count", |b| b.count as f64),
+    ];
+    for (name, f) in columns {
+        let v: Vec<f64> = bins.iter().map(f).collect();
+        write_signal(g, name, &v, false)?;
+    }
+    Ok(())
+}
+
 fn write_identification(
     m: &hdf5::Group,
     id: &Identification,
@@ -330,46 +354,10 @@ fn write_identification(
         .chunk(valid.len().clamp(1, 4096))
         .deflate(4)
         .create("valid")?;
-    let sk = m.create_group("skeleton")?;
-    let col = |f: &dyn Fn(&Bin) -> f64| -> Vec<f64> { id.bins.iter().map(f).collect() };
-    write_signal(&sk, "amplitude", &col(&|b| b.amplitude), false)?;
-    write_signal(
-        &sk,
-        "natural_frequency",
-        &col(&|b| b.natural_frequency()),
-        false,
-    )?;
-    write_signal(&sk, "stiffness", &col(&|b| b.stiffness), false)?;
-    write_signal(
-        &sk,
-        "stiffness_spread",
-        &col(&|b| b.stiffness_spread),
-        false,
-    )?;
-    write_signal(
-        &sk,
-        "restoring_force",
-        &col(&|b| b.restoring_force()),
-        false,
-    )?;
-    write_signal(&sk, "velocity_amplitude", &col(&|b| b.velocity), false)?;
-    write_signal(&sk, "damping_force", &col(&|b| b.damping_force()), false)?;
-    write_signal(&sk, "damping_spread", &col(&|b| b.damping_spread), false)?;
-    write_signal(&sk, "count", &col(&|b| b.count as f64), false)?;
+    write_bins(&m.create_group("skeleton")?, &id.bins)?;
     // The bins the backbone was fitted on, when not the whole skeleton.
     if id.fitted_at_resonance {
-        let rb = m.create_group("skeleton_resonant")?;
-        let col =
-            |f: &dyn Fn(&Bin) -> f64| -> Vec<f64> { id.resonant_bins.iter().map(f).collect() };
-        write_signal(&rb, "amplitude", &col(&|b| b.amplitude), false)?;
-        write_signal(
-            &rb,
-            "natural_frequency",
-            &col(&|b| b.natural_frequency()),
-            false,
-        )?;
-        write_signal(&rb, "stiffness", &col(&|b| b.stiffness), false)?;
-        write_signal(&rb, "count", &col(&|b| b.count as f64), false)?;
+        write_bins(&m.create_group("skeleton_resonant")?, &id.resonant_bins)?;
     }
     if let Some(dz) = &id.dead_zone {
         write_str_attr(m, "backbone_model", dz.model.name())?;
