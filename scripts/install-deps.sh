@@ -3,9 +3,10 @@
 #   libhdf5-dev + pkg-config  -> the HDF5 binding (hdf5-metno) links against Debian's libhdf5
 #   libvulkan1 + mesa-vulkan-drivers -> wgpu's Vulkan backend; lavapipe is the software GPU CI tests on
 #   vulkan-tools              -> `vulkaninfo --summary` for diagnosing adapters
+#   chromium                  -> the headless browser the report test opens report.html in
 # Safe to run repeatedly. Uses sudo only when not already root.
 set -euo pipefail
-pkgs=(libhdf5-dev pkg-config libvulkan1 mesa-vulkan-drivers vulkan-tools)
+pkgs=(libhdf5-dev pkg-config libvulkan1 mesa-vulkan-drivers vulkan-tools chromium)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

@@ -21,7 +21,7 @@ use crate::identify::{identify, IdentifyOptions};
 use crate::ingest::{Archive, IngestOptions};
 use crate::inspect::inspect_isolated;
 use crate::journal::{failed_key, run_key, settings_fingerprint, Entry, Journal, RUNS_DIR};
-use crate::report::{write_summary, ReportError, RunOutcome, SummaryRow};
+use crate::report::{html, write_summary, ReportError, RunOutcome, SummaryRow};
 use crate::track::Method;
 
 /// Why a batch or a merge could not go on.
@@ -33,6 +33,14 @@ pub enum BatchError {
     /// A merge found outputs that do not fit together.
     #[error("cannot merge: {0}")]
     Merge(String),
+    /// The worker threads asked for (`--jobs`) could not be started.
+    #[error("cannot start {jobs} worker thread(s): {detail}")]
+    Threads {
+        /// Threads asked for.
+        jobs: usize,
+        /// The system's reason.
+        detail: String,
+    },
 }
 
 /// A share of the runs: the K-th of N (1-based).
@@ -107,6 +115,11 @@ pub struct BatchOptions<'a> {
     pub shard: Option<Shard>,
     /// Redo runs already committed.
     pub force: bool,
+    /// Runs identified at once (threads); `None`: one per core. Memory in use is about
+    /// this many times one run's working set, whatever the campaign's size.
+    pub jobs: Option<usize>,
+    /// Runs drawn in full in report.html (the table always lists every run).
+    pub report_runs: usize,
 }
 
 /// Where a batch stands, for progress displays.
@@ -298,50 +311,64 @@ pub fn run_campaigns(
             None => finish(journal.commit(&key, o)?, false),
         }
     }
-    jobs.par_iter()
-        .map(|&(a, r)| -> Result<(), BatchError> {
-            let archive = &archives[a];
-            let entry = &archive.runs[r];
-            let source = archive.file_name().to_string();
-            let mut outcome = RunOutcome::new(entry.path.clone(), source.clone());
-            let run = entry
-                .meta
-                .as_ref()
-                .map_err(|e| e.to_string())
-                .and_then(|m| archive.load(m).map_err(|e| e.to_string()));
-            let key = match &run {
-                Ok(run) => run_key(run, &source, &settings),
-                Err(e) => failed_key(&source, &entry.path, e, &settings),
-            };
-            if !opt.force {
-                if let Some(e) = journal.lookup(&key) {
-                    finish(e, true);
-                    return Ok(());
-                }
-            }
-            match run {
-                Err(e) => outcome.error = Some(e),
-                Ok(run) => {
-                    outcome.sample_rate = Some(run.meta.sample_rate);
-                    outcome.samples = run.output.len();
-                    outcome.inertia = run.meta.inertia;
-                    for &m in &opt.methods {
-                        let t0 = Instant::now();
-                        outcome.methods.push((
-                            m,
-                            identify_guarded(&run, m, &opt.identify),
-                            t0.elapsed().as_secs_f64(),
-                        ));
+    let identify_all = || {
+        jobs.par_iter()
+            .map(|&(a, r)| -> Result<(), BatchError> {
+                let archive = &archives[a];
+                let entry = &archive.runs[r];
+                let source = archive.file_name().to_string();
+                let mut outcome = RunOutcome::new(entry.path.clone(), source.clone());
+                let run = entry
+                    .meta
+                    .as_ref()
+                    .map_err(|e| e.to_string())
+                    .and_then(|m| archive.load(m).map_err(|e| e.to_string()));
+                let key = match &run {
+                    Ok(run) => run_key(run, &source, &settings),
+                    Err(e) => failed_key(&source, &entry.path, e, &settings),
+                };
+                if !opt.force {
+                    if let Some(e) = journal.lookup(&key) {
+                        finish(e, true);
+                        return Ok(());
                     }
                 }
-            }
-            finish(journal.commit(&key, &outcome)?, false);
-            Ok(())
-        })
-        .collect::<Result<Vec<()>, BatchError>>()?;
+                match run {
+                    Err(e) => outcome.error = Some(e),
+                    Ok(run) => {
+                        outcome.sample_rate = Some(run.meta.sample_rate);
+                        outcome.samples = run.output.len();
+                        outcome.inertia = run.meta.inertia;
+                        for &m in &opt.methods {
+                            let t0 = Instant::now();
+                            outcome.methods.push((
+                                m,
+                                identify_guarded(&run, m, &opt.identify),
+                                t0.elapsed().as_secs_f64(),
+                            ));
+                        }
+                    }
+                }
+                finish(journal.commit(&key, &outcome)?, false);
+                Ok(())
+            })
+            .collect::<Result<Vec<()>, BatchError>>()
+    };
+    match opt.jobs {
+        None => identify_all()?,
+        Some(n) => rayon::ThreadPoolBuilder::new()
+            .num_threads(n.max(1))
+            .build()
+            .map_err(|e| BatchError::Threads {
+                jobs: n,
+                detail: e.to_string(),
+            })?
+            .install(identify_all)?,
+    };
     let mut entries = entries.into_inner().unwrap_or_else(|p| p.into_inner());
     let manifest = Manifest::new(settings, opt.shard, runs_in_inputs, &mut entries);
-    let (results, rows, failed_runs) = write_outputs(&journal, out, &entries, &manifest)?;
+    let (results, rows, failed_runs) =
+        write_outputs(&journal, out, &entries, &manifest, opt.report_runs)?;
     log.lock().unwrap_or_else(|p| p.into_inner()).line(&format!(
         "end: {total} run(s), {failed_runs} failed, {} skipped; wrote {}",
         skipped.load(Ordering::Relaxed),
@@ -382,16 +409,33 @@ pub fn guarded<T>(f: impl FnOnce() -> Result<T, String>) -> Result<T, String> {
     }
 }
 
-/// results.h5, the summaries and the manifest of a folder's entries.
+/// results.h5, the summaries, report.html (the first `report_runs` runs drawn) and the
+/// manifest of a folder's entries.
 fn write_outputs(
     journal: &Journal,
     out: &Path,
     entries: &[Entry],
     manifest: &Manifest,
+    report_runs: usize,
 ) -> Result<(PathBuf, Vec<SummaryRow>, usize), BatchError> {
     let results = journal.assemble(out, entries)?;
     let rows: Vec<SummaryRow> = entries.iter().flat_map(|e| e.rows.clone()).collect();
     write_summary(out, &rows)?;
+    let drawn = entries.len().min(report_runs);
+    let title = std::fs::canonicalize(out).unwrap_or_else(|_| out.to_path_buf());
+    html::write_report(
+        out,
+        &html::ReportPage {
+            title: &title.display().to_string(),
+            settings: &manifest.settings,
+            rows: &rows,
+            runs: entries[..drawn]
+                .iter()
+                .map(|e| html::read_run(&journal.file(&e.key), &e.path))
+                .collect(),
+            omitted: entries.len() - drawn,
+        },
+    )?;
     let text = serde_json::to_string_pretty(manifest).map_err(|e| ReportError {
         file: MANIFEST.into(),
         detail: e.to_string(),
@@ -400,10 +444,11 @@ fn write_outputs(
     Ok((results, rows, entries.iter().filter(|e| e.failed).count()))
 }
 
-/// Joins the output folders of the shards of one batch into `out`: refuses folders made
+/// Joins the output folders of the shards of one batch into `out` (drawing the first
+/// `report_runs` runs in its report.html): refuses folders made
 /// with different settings, a shard given twice or missing, a run present in two shards,
 /// or a shard whose runs are not all committed.
-pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<BatchSummary, BatchError> {
+pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSummary, BatchError> {
     let bad = |m: String| BatchError::Merge(m);
     let mut manifests = Vec::new();
     for d in dirs {
@@ -509,7 +554,8 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<BatchSummary, BatchError> {
         )));
     }
     let manifest = Manifest::new(settings, None, first.runs_in_inputs, &mut entries);
-    let (results, rows, failed_runs) = write_outputs(&journal, out, &entries, &manifest)?;
+    let (results, rows, failed_runs) =
+        write_outputs(&journal, out, &entries, &manifest, report_runs)?;
     Ok(BatchSummary {
         rows,
         results,

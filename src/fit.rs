@@ -200,6 +200,15 @@ impl BackboneModel {
             BackboneModel::PeriodicOrbit => amplitude * PI * PI / 8.0,
         }
     }
+    /// The model a `backbone_model` name stands for.
+    pub fn from_name(name: &str) -> Option<BackboneModel> {
+        [
+            BackboneModel::DescribingFunction,
+            BackboneModel::PeriodicOrbit,
+        ]
+        .into_iter()
+        .find(|m| m.name() == name)
+    }
     /// Name written to the results (`backbone_model`).
     pub fn name(self) -> &'static str {
         match self {

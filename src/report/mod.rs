@@ -1,6 +1,8 @@
 //! Output files for people and other programs: tracks (FORMATS.md §4), identification
 //! results and summaries (FORMATS.md §3).
 
+pub mod html;
+
 use std::borrow::Cow;
 use std::io::Write;
 use std::path::{Path, PathBuf};

@@ -1,0 +1,913 @@
+//! `report.html`: one self-contained page per output folder. It holds the campaign summary
+//! (a sortable table of every run × method) and, per run, the paper's Figs. 10–13: the
+//! envelope and frequency tracks of both methods, the backbone with the fitted dead-zone
+//! curve, and the restoring and damping forces against amplitude.
+//!
+//! Plots are inline SVG drawn with plotters; their text is SVG `<text>`, laid out by the
+//! browser. The page therefore reads offline and needs no fonts on the machine that writes
+//! it. A small script on the page checks itself on load: it counts the plots and confirms
+//! each one was drawn, records script errors, and writes the outcome to the `<body>`'s
+//! `data-check` attribute, which the headless-browser test reads back.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use plotters::prelude::*;
+
+use super::{write_atomic, ReportError, SummaryRow};
+use crate::fit::BackboneModel;
+use crate::h5util::{read_attr, AttrValue};
+
+/// Points a time track is reduced to: enough for a plot 560 pixels wide.
+const TRACK_POINTS: usize = 400;
+/// Size of one plot (pixels).
+const PLOT_SIZE: (u32, u32) = (560, 300);
+/// Points along a fitted curve.
+const CURVE_POINTS: usize = 160;
+
+/// One skeleton (backbone and force curves binned over amplitude), as stored in results.h5.
+#[derive(Debug, Clone, Default)]
+pub struct Skeleton {
+    /// Response amplitude of each bin.
+    pub amplitude: Vec<f64>,
+    /// Natural frequency (Hz).
+    pub natural_frequency: Vec<f64>,
+    /// Restoring force per unit inertia, A·ω0².
+    pub restoring_force: Vec<f64>,
+    /// Velocity amplitude A·ω.
+    pub velocity_amplitude: Vec<f64>,
+    /// Damping force per unit inertia, 2h0·A·ω.
+    pub damping_force: Vec<f64>,
+}
+
+/// Fitted parameters of one method, enough to draw the model's curves.
+#[derive(Debug, Clone, Copy)]
+pub struct Fitted {
+    /// Backbone curve the fit used.
+    pub model: BackboneModel,
+    /// Half the total clearance.
+    pub half_gap: f64,
+    /// k/J (1/s²).
+    pub stiffness: f64,
+    /// c/J (1/s); NaN when not fitted.
+    pub viscous: f64,
+    /// F/J (units/s²); NaN when not fitted.
+    pub coulomb: f64,
+}
+
+/// One method's curves of one run, read back from a results file.
+#[derive(Debug, Clone)]
+pub struct MethodPlots {
+    /// `wavelet` or `hilbert`.
+    pub method: String,
+    /// The method's error, when it failed.
+    pub error: Option<String>,
+    /// Time (s) of the reduced track.
+    pub time: Vec<f64>,
+    /// Response envelope, reduced; NaN where no sample was valid.
+    pub amplitude: Vec<f64>,
+    /// Response frequency (Hz), reduced; NaN where no sample was valid.
+    pub frequency: Vec<f64>,
+    /// The skeleton over all bins.
+    pub skeleton: Skeleton,
+    /// The fitted model, when the dead-zone fit succeeded.
+    pub fitted: Option<Fitted>,
+}
+
+/// Everything the page shows of one run.
+#[derive(Debug, Clone)]
+pub struct RunPlots {
+    /// Run path (as in results.h5).
+    pub path: String,
+    /// Archive file name.
+    pub source: String,
+    /// `ok` or `failed`.
+    pub status: String,
+    /// The run's error, when it failed.
+    pub error: Option<String>,
+    /// One entry per method present.
+    pub methods: Vec<MethodPlots>,
+}
+
+/// Reads the plot data of the run at `group` of the results file `file` (a run's journal
+/// file or results.h5).
+pub fn read_run(file: &Path, group: &str) -> Result<RunPlots, String> {
+    let f = hdf5::File::open(file).map_err(|e| format!("{}: {e}", file.display()))?;
+    let g = f
+        .group(group)
+        .map_err(|e| format!("{}: {group}: {e}", file.display()))?;
+    let time: Vec<f64> = g
+        .dataset("time")
+        .and_then(|d| d.read_raw())
+        .unwrap_or_default();
+    let mut methods = Vec::new();
+    for name in ["wavelet", "hilbert"] {
+        let Ok(m) = g.group(name) else { continue };
+        methods.push(read_method(&m, name, &time));
+    }
+    Ok(RunPlots {
+        path: group.to_string(),
+        source: text_attr(&g, "source").unwrap_or_default(),
+        status: text_attr(&g, "status").unwrap_or_else(|| "failed".into()),
+        error: text_attr(&g, "error"),
+        methods,
+    })
+}
+
+fn text_attr(loc: &hdf5::Location, name: &str) -> Option<String> {
+    match read_attr(&loc.attr(name).ok()?).ok()? {
+        AttrValue::Text(s) => Some(s),
+        _ => None,
+    }
+}
+
+fn num_attr(loc: &hdf5::Location, name: &str) -> f64 {
+    match loc.attr(name).ok().and_then(|a| read_attr(&a).ok()) {
+        Some(AttrValue::Number(x)) => x,
+        _ => f64::NAN,
+    }
+}
+
+fn read_method(m: &hdf5::Group, name: &str, time: &[f64]) -> MethodPlots {
+    let data = |n: &str| -> Vec<f64> {
+        m.dataset(n)
+            .and_then(|d| d.read_raw::<f64>())
+            .unwrap_or_default()
+    };
+    let valid: Vec<u8> = m
+        .dataset("valid")
+        .and_then(|d| d.read_raw())
+        .unwrap_or_default();
+    let (t, amplitude) = reduce(time, &data("response_amplitude"), &valid);
+    let (_, frequency) = reduce(time, &data("response_frequency"), &valid);
+    let skeleton = m
+        .group("skeleton")
+        .map(|s| {
+            let col = |n: &str| s.dataset(n).and_then(|d| d.read_raw()).unwrap_or_default();
+            Skeleton {
+                amplitude: col("amplitude"),
+                natural_frequency: col("natural_frequency"),
+                restoring_force: col("restoring_force"),
+                velocity_amplitude: col("velocity_amplitude"),
+                damping_force: col("damping_force"),
+            }
+        })
+        .unwrap_or_default();
+    let model = text_attr(m, "backbone_model").and_then(|s| BackboneModel::from_name(&s));
+    let (clearance, stiffness) = (num_attr(m, "clearance"), num_attr(m, "stiffness"));
+    let fitted = model
+        .filter(|_| clearance.is_finite() && stiffness.is_finite())
+        .map(|model| Fitted {
+            model,
+            half_gap: 0.5 * clearance,
+            stiffness,
+            viscous: num_attr(m, "viscous_damping"),
+            coulomb: num_attr(m, "coulomb_friction"),
+        });
+    let error = (text_attr(m, "status").as_deref() == Some("failed"))
+        .then(|| text_attr(m, "error").unwrap_or_default());
+    MethodPlots {
+        method: name.to_string(),
+        error,
+        time: t,
+        amplitude,
+        frequency,
+        skeleton,
+        fitted,
+    }
+}
+
+/// Reduces a track to at most [`TRACK_POINTS`] points: the mean over each block of the
+/// valid samples, NaN for a block with none (so the plotted line breaks there).
+fn reduce(time: &[f64], y: &[f64], valid: &[u8]) -> (Vec<f64>, Vec<f64>) {
+    let n = time.len().min(y.len());
+    if n == 0 {
+        return (Vec::new(), Vec::new());
+    }
+    let block = n.div_ceil(TRACK_POINTS);
+    let ok = |i: usize| valid.get(i).is_none_or(|&v| v != 0) && y[i].is_finite();
+    (0..n)
+        .step_by(block)
+        .map(|start| {
+            let end = (start + block).min(n);
+            let t = 0.5 * (time[start] + time[end - 1]);
+            let (sum, count) = (start..end)
+                .filter(|&i| ok(i))
+                .fold((0.0, 0usize), |(s, c), i| (s + y[i], c + 1));
+            (
+                t,
+                if count > 0 {
+                    sum / count as f64
+                } else {
+                    f64::NAN
+                },
+            )
+        })
+        .unzip()
+}
+
+/// How a series is drawn.
+#[derive(Clone, Copy)]
+enum Mark {
+    Line,
+    Points,
+}
+
+/// One series of a plot.
+struct Series<'a> {
+    color: RGBColor,
+    /// Line width (pixels).
+    width: u32,
+    mark: Mark,
+    x: &'a [f64],
+    y: &'a [f64],
+}
+
+/// Colour of each method, the same in every plot and in the legend.
+fn method_color(method: &str) -> RGBColor {
+    match method {
+        "wavelet" => RGBColor(31, 119, 180),
+        "hilbert" => RGBColor(230, 110, 10),
+        _ => RGBColor(90, 90, 90),
+    }
+}
+
+/// Colour of a method's fitted model curve: darker than its points.
+fn fit_color(method: &str) -> RGBColor {
+    let RGBColor(r, g, b) = method_color(method);
+    RGBColor(r / 2, g / 2, b / 2)
+}
+
+/// A number in at most about four significant digits, for axis labels and table cells.
+fn short(v: f64) -> String {
+    if !v.is_finite() {
+        return String::new();
+    }
+    if v == 0.0 {
+        return "0".into();
+    }
+    let mag = v.abs().log10().floor();
+    if (-3.0..5.0).contains(&mag) {
+        let decimals = (3.0 - mag).max(0.0) as usize;
+        let s = format!("{v:.decimals$}");
+        if s.contains('.') {
+            s.trim_end_matches('0').trim_end_matches('.').to_string()
+        } else {
+            s
+        }
+    } else {
+        format!("{v:.3e}")
+    }
+}
+
+/// The finite range of some values, padded by 5 % (or ±1 around a single value).
+fn range<'a>(values: impl Iterator<Item = &'a f64>) -> Option<(f64, f64)> {
+    let (lo, hi) = values
+        .filter(|v| v.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+            (l.min(v), h.max(v))
+        });
+    if lo > hi {
+        return None;
+    }
+    let pad = if hi > lo {
+        0.05 * (hi - lo)
+    } else {
+        (0.1 * lo.abs()).max(1e-12)
+    };
+    Some((lo - pad, hi + pad))
+}
+
+/// The y range of a plot whose outliers would flatten what matters (the Hilbert method's
+/// frequency at its edges, skeleton bins of a few samples): the values within three
+/// interquartile ranges of the quartiles, then padded like [`range`].
+fn fenced_range<'a>(values: impl Iterator<Item = &'a f64>) -> Option<(f64, f64)> {
+    let mut v: Vec<f64> = values.copied().filter(|v| v.is_finite()).collect();
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let q = |p: f64| v[((v.len() - 1) as f64 * p).round() as usize];
+    let (q1, q3) = (q(0.25), q(0.75));
+    let (lo, hi) = (q1 - 3.0 * (q3 - q1), q3 + 3.0 * (q3 - q1));
+    range(v.iter().filter(|&&x| x >= lo && x <= hi))
+}
+
+/// How a plot's y axis is scaled.
+#[derive(Clone, Copy, PartialEq)]
+enum YAxis {
+    /// Every value shown.
+    Full,
+    /// Outliers left outside the axes ([`fenced_range`]) and not drawn.
+    Fenced,
+}
+
+/// One plot as an SVG string; `None` when no series has a finite point.
+fn svg_plot(
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    y_axis: YAxis,
+    series: &[Series],
+) -> Option<String> {
+    let finite = |s: &&Series| {
+        s.x.iter()
+            .zip(s.y)
+            .any(|(x, y)| x.is_finite() && y.is_finite())
+    };
+    let drawn: Vec<&Series> = series.iter().filter(finite).collect();
+    if drawn.is_empty() {
+        return None;
+    }
+    let xr = range(drawn.iter().flat_map(|s| s.x.iter()))?;
+    let ys = drawn.iter().flat_map(|s| s.y.iter());
+    let yr = match y_axis {
+        YAxis::Full => range(ys)?,
+        YAxis::Fenced => fenced_range(ys)?,
+    };
+    let inside = |p: &(f64, f64)| p.0.is_finite() && p.1 >= yr.0 && p.1 <= yr.1;
+    let mut svg = String::new();
+    let result = (|| -> Result<(), Box<dyn std::error::Error>> {
+        let root = SVGBackend::with_string(&mut svg, PLOT_SIZE).into_drawing_area();
+        root.fill(&WHITE)?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, ("sans-serif", 16))
+            .margin(10)
+            .x_label_area_size(40)
+            .y_label_area_size(64)
+            .build_cartesian_2d(xr.0..xr.1, yr.0..yr.1)?;
+        chart
+            .configure_mesh()
+            .x_desc(x_label)
+            .y_desc(y_label)
+            .x_labels(6)
+            .y_labels(6)
+            .x_label_formatter(&|v| short(*v))
+            .y_label_formatter(&|v| short(*v))
+            .light_line_style(RGBColor(240, 240, 240))
+            .draw()?;
+        for s in &drawn {
+            let pts = s.x.iter().zip(s.y).map(|(&x, &y)| (x, y));
+            match s.mark {
+                Mark::Line => {
+                    // One polyline per run of finite points: a gap breaks the line.
+                    let mut segment: Vec<(f64, f64)> = Vec::new();
+                    for p in pts.chain(std::iter::once((f64::NAN, f64::NAN))) {
+                        if inside(&p) {
+                            segment.push(p);
+                        } else if !segment.is_empty() {
+                            chart.draw_series(LineSeries::new(
+                                std::mem::take(&mut segment),
+                                s.color.stroke_width(s.width),
+                            ))?;
+                        }
+                    }
+                }
+                Mark::Points => {
+                    chart.draw_series(
+                        pts.filter(inside)
+                            .map(|p| Circle::new(p, 3, s.color.stroke_width(1))),
+                    )?;
+                }
+            }
+        }
+        root.present()?;
+        Ok(())
+    })();
+    result.ok().map(|_| svg)
+}
+
+/// A fitted model's curves, drawn over a method's skeleton.
+struct Curves {
+    amplitude: Vec<f64>,
+    /// Natural frequency (Hz) along `amplitude`.
+    frequency: Vec<f64>,
+    /// Restoring force A·ω0² along `amplitude`.
+    restoring: Vec<f64>,
+    /// Velocity amplitudes (empty when the damping was not fitted).
+    velocity: Vec<f64>,
+    /// Damping force along `velocity`.
+    damping: Vec<f64>,
+}
+
+/// `n` points from `lo` to `hi`.
+fn grid(lo: f64, hi: f64, n: usize) -> Vec<f64> {
+    (0..n)
+        .map(|i| lo + (hi - lo) * i as f64 / (n - 1) as f64)
+        .collect()
+}
+
+/// The curves of a method's fit over the range of its skeleton; `None` without a fit.
+fn model_curves(m: &MethodPlots) -> Option<Curves> {
+    let fit = m.fitted?;
+    let (lo, hi) = range(m.skeleton.amplitude.iter())?;
+    let amplitude = grid(lo.max(0.0), hi, CURVE_POINTS);
+    let w2: Vec<f64> = amplitude
+        .iter()
+        .map(|&a| fit.stiffness * fit.model.ratio(fit.half_gap, a))
+        .collect();
+    let frequency = w2
+        .iter()
+        .map(|w| w.max(0.0).sqrt() / (2.0 * std::f64::consts::PI))
+        .collect();
+    let restoring = amplitude.iter().zip(&w2).map(|(a, w)| a * w).collect();
+    let (velocity, damping) = match range(m.skeleton.velocity_amplitude.iter()) {
+        Some((lo, hi)) if fit.viscous.is_finite() && fit.coulomb.is_finite() => {
+            let v = grid(lo.max(0.0), hi, CURVE_POINTS);
+            let d = v
+                .iter()
+                .map(|v| fit.viscous * v + 4.0 / std::f64::consts::PI * fit.coulomb)
+                .collect();
+            (v, d)
+        }
+        _ => (Vec::new(), Vec::new()),
+    };
+    Some(Curves {
+        amplitude,
+        frequency,
+        restoring,
+        velocity,
+        damping,
+    })
+}
+
+/// The plots of one run: tracks, backbone, restoring force, damping force.
+fn run_figures(run: &RunPlots) -> Vec<String> {
+    // Hilbert first, so that the wavelet (the more accurate method) is drawn on top.
+    let mut ms: Vec<&MethodPlots> = run.methods.iter().collect();
+    ms.sort_by_key(|m| m.method == "wavelet");
+    let mut figs = Vec::new();
+    let tracks = |y: fn(&MethodPlots) -> &Vec<f64>| -> Vec<Series> {
+        ms.iter()
+            .map(|m| Series {
+                color: method_color(&m.method),
+                width: if m.method == "wavelet" { 2 } else { 1 },
+                mark: Mark::Line,
+                x: &m.time,
+                y: y(m),
+            })
+            .collect()
+    };
+    figs.extend(svg_plot(
+        "Response envelope",
+        "time (s)",
+        "amplitude",
+        YAxis::Full,
+        &tracks(|m| &m.amplitude),
+    ));
+    figs.extend(svg_plot(
+        "Response frequency",
+        "time (s)",
+        "frequency (Hz)",
+        YAxis::Fenced,
+        &tracks(|m| &m.frequency),
+    ));
+    // The fitted model over each method's skeleton amplitudes, and its damping line
+    // 2h0·Aω = (c/J)·V + (4/π)·F/J over the velocity amplitudes V.
+    let curves: Vec<Option<Curves>> = ms.iter().map(|m| model_curves(m)).collect();
+    let with_fit = |pick: fn(&Skeleton) -> (&Vec<f64>, &Vec<f64>),
+                    curve: fn(&Curves) -> (&Vec<f64>, &Vec<f64>)| {
+        let mut s = Vec::new();
+        for (m, c) in ms.iter().zip(&curves) {
+            let (x, y) = pick(&m.skeleton);
+            s.push(Series {
+                color: method_color(&m.method),
+                width: 1,
+                mark: Mark::Points,
+                x,
+                y,
+            });
+            if let Some((x, y)) = c.as_ref().map(curve).filter(|(x, _)| !x.is_empty()) {
+                s.push(Series {
+                    color: fit_color(&m.method),
+                    width: 2,
+                    mark: Mark::Line,
+                    x,
+                    y,
+                });
+            }
+        }
+        s
+    };
+    figs.extend(svg_plot(
+        "Backbone: skeleton (circles) and fitted dead zone (line)",
+        "response amplitude",
+        "natural frequency (Hz)",
+        YAxis::Fenced,
+        &with_fit(
+            |s| (&s.amplitude, &s.natural_frequency),
+            |c| (&c.amplitude, &c.frequency),
+        ),
+    ));
+    figs.extend(svg_plot(
+        "Restoring force per unit inertia",
+        "response amplitude",
+        "A·ω0² (units/s²)",
+        YAxis::Fenced,
+        &with_fit(
+            |s| (&s.amplitude, &s.restoring_force),
+            |c| (&c.amplitude, &c.restoring),
+        ),
+    ));
+    figs.extend(svg_plot(
+        "Damping force per unit inertia: viscous + Coulomb fit",
+        "velocity amplitude A·ω (units/s)",
+        "2h0·A·ω (units/s²)",
+        YAxis::Fenced,
+        &with_fit(
+            |s| (&s.velocity_amplitude, &s.damping_force),
+            |c| (&c.velocity, &c.damping),
+        ),
+    ));
+    figs
+}
+
+/// Escapes text for HTML.
+fn esc(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
+}
+
+/// What goes on the page beyond the runs themselves.
+pub struct ReportPage<'a> {
+    /// Heading (the output folder).
+    pub title: &'a str,
+    /// The settings fingerprint of the batch.
+    pub settings: &'a str,
+    /// Every summary row (run × method), in the manifest's order.
+    pub rows: &'a [SummaryRow],
+    /// The runs drawn in full, in order; an `Err` is shown as the reason a run has no plots.
+    pub runs: Vec<Result<RunPlots, String>>,
+    /// Runs in `rows` not drawn (beyond the `--report-runs` limit).
+    pub omitted: usize,
+}
+
+/// Table columns beyond run/source/method/status: (parameter, header with units).
+const TABLE_COLUMNS: [(&str, &str); 6] = [
+    ("clearance", "clearance (total, signal units)"),
+    ("stiffness", "k/J (1/s²)"),
+    ("viscous_damping", "c/J (1/s)"),
+    ("coulomb_friction", "F/J (units/s²)"),
+    ("contact_stiffness", "k (N·m/rad or N/m)"),
+    (
+        "natural_frequency_at_amplitude_max",
+        "f at largest amplitude (Hz)",
+    ),
+];
+
+/// Writes `<out>/report.html` (atomically) and returns its path.
+pub fn write_report(out: &Path, page: &ReportPage) -> Result<PathBuf, ReportError> {
+    let path = out.join("report.html");
+    write_atomic(&path, render(page).as_bytes())?;
+    Ok(path)
+}
+
+/// The page's HTML.
+pub fn render(page: &ReportPage) -> String {
+    let mut body = String::new();
+    let mut plots = 0usize;
+    let runs_total = {
+        let mut seen: Vec<(&str, &str)> = page
+            .rows
+            .iter()
+            .map(|r| (r.source.as_str(), r.run.as_str()))
+            .collect();
+        seen.dedup();
+        seen.len()
+    };
+    let failed_rows = page.rows.iter().filter(|r| r.status != "ok").count();
+    let _ = write!(
+        body,
+        "<h1>skelid report</h1>\n<p class=\"meta\">{} · {} run(s), {} row(s) (run × method), \
+         {} failed · settings <code>{}</code> · skelid {}</p>\n",
+        esc(page.title),
+        runs_total,
+        page.rows.len(),
+        failed_rows,
+        esc(page.settings),
+        env!("CARGO_PKG_VERSION")
+    );
+    body.push_str(&legend());
+    // Campaign overview: the identified clearance and stiffness of every row.
+    body.push_str("<h2>Campaign</h2>\n<div class=\"plots\">\n");
+    for (param, label) in [
+        ("clearance", "clearance (total)"),
+        ("stiffness", "k/J (1/s²)"),
+    ] {
+        let per_method = |method: &str| -> (Vec<f64>, Vec<f64>) {
+            page.rows
+                .iter()
+                .enumerate()
+                .filter(|(_, r)| r.method == method)
+                .map(|(i, r)| {
+                    let v = r.parameters.get(param).copied().flatten();
+                    (i as f64, v.unwrap_or(f64::NAN))
+                })
+                .unzip()
+        };
+        let (w, h) = (per_method("wavelet"), per_method("hilbert"));
+        let series = [
+            Series {
+                color: method_color("wavelet"),
+                width: 1,
+                mark: Mark::Points,
+                x: &w.0,
+                y: &w.1,
+            },
+            Series {
+                color: method_color("hilbert"),
+                width: 1,
+                mark: Mark::Points,
+                x: &h.0,
+                y: &h.1,
+            },
+        ];
+        if let Some(svg) = svg_plot(
+            &format!("Identified {label} per row of the table"),
+            "row",
+            label,
+            YAxis::Fenced,
+            &series,
+        ) {
+            plots += 1;
+            let _ = writeln!(body, "<figure class=\"plot\">{svg}</figure>");
+        }
+    }
+    body.push_str("</div>\n");
+    body.push_str(&table(page));
+    body.push_str("<h2>Runs</h2>\n");
+    if page.omitted > 0 {
+        let _ = writeln!(
+            body,
+            "<p class=\"note\">{} more run(s) are in the table but not drawn; raise \
+             <code>--report-runs</code> to draw them.</p>",
+            page.omitted
+        );
+    }
+    for (i, run) in page.runs.iter().enumerate() {
+        let _ = writeln!(body, "<section id=\"run-{i}\">");
+        match run {
+            Err(e) => {
+                let _ = writeln!(
+                    body,
+                    "<h3>run {i}</h3><p class=\"error\">could not read its results: {}</p>",
+                    esc(e)
+                );
+            }
+            Ok(run) => {
+                let _ = writeln!(
+                    body,
+                    "<h3>{} <small>{} · {}</small></h3>",
+                    esc(&run.path),
+                    esc(&run.source),
+                    esc(&run.status)
+                );
+                if let Some(e) = &run.error {
+                    let _ = writeln!(body, "<p class=\"error\">{}</p>", esc(e));
+                }
+                for m in &run.methods {
+                    let _ = writeln!(body, "<p>{}</p>", fitted_line(m));
+                }
+                let figs = run_figures(run);
+                if !figs.is_empty() {
+                    body.push_str("<div class=\"plots\">\n");
+                    for svg in &figs {
+                        plots += 1;
+                        let _ = writeln!(body, "<figure class=\"plot\">{svg}</figure>");
+                    }
+                    body.push_str("</div>\n");
+                }
+            }
+        }
+        body.push_str("</section>\n");
+    }
+    format!(
+        "<!doctype html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n\
+         <title>skelid report — {title}</title>\n<script>{ERRORS_JS}</script>\n\
+         <style>{CSS}</style>\n</head>\n<body data-plots=\"{plots}\">\n{body}\
+         <script>{PAGE_JS}</script>\n</body>\n</html>\n",
+        title = esc(page.title)
+    )
+}
+
+/// The method colours, explained once for every plot.
+fn legend() -> String {
+    let swatch = |m: &str| {
+        let RGBColor(r, g, b) = method_color(m);
+        let RGBColor(fr, fg, fb) = fit_color(m);
+        format!(
+            "<span class=\"key\"><span style=\"background:rgb({r},{g},{b})\"></span>{m} \
+             <span style=\"background:rgb({fr},{fg},{fb})\"></span>{m} fit</span>"
+        )
+    };
+    format!(
+        "<p class=\"legend\">{} {} — tracks are lines, skeleton bins are circles, fitted \
+         models are dark lines. Amplitudes are in the run's signal units (rad or m), forces \
+         per unit inertia. Frequency and force axes leave out outliers (beyond three \
+         interquartile ranges), which are then not drawn.</p>\n",
+        swatch("wavelet"),
+        swatch("hilbert")
+    )
+}
+
+/// One method's fitted parameters or error, as one line of text.
+fn fitted_line(m: &MethodPlots) -> String {
+    let name = format!(
+        "<b style=\"color:{}\">{}</b>",
+        css(method_color(&m.method)),
+        m.method
+    );
+    if let Some(e) = &m.error {
+        return format!("{name}: <span class=\"error\">failed: {}</span>", esc(e));
+    }
+    match &m.fitted {
+        None => format!("{name}: no dead-zone fit"),
+        Some(f) => format!(
+            "{name}: clearance {} · k/J {} 1/s² · c/J {} 1/s · F/J {} units/s² · backbone {}",
+            short(2.0 * f.half_gap),
+            short(f.stiffness),
+            short(f.viscous),
+            short(f.coulomb),
+            f.model.name()
+        ),
+    }
+}
+
+fn css(c: RGBColor) -> String {
+    format!("rgb({},{},{})", c.0, c.1, c.2)
+}
+
+/// The sortable summary table: one row per run × method.
+fn table(page: &ReportPage) -> String {
+    let mut t = String::from(
+        "<h2>Summary</h2>\n<p class=\"note\">Click a column header to sort.</p>\n\
+         <table class=\"sortable\" id=\"summary\">\n<thead><tr><th>run</th><th>archive</th>\
+         <th>method</th><th>status</th>",
+    );
+    for (_, header) in TABLE_COLUMNS {
+        let _ = write!(t, "<th>{}</th>", esc(header));
+    }
+    t.push_str("<th>seconds</th><th>error / warnings</th></tr></thead>\n<tbody>\n");
+    let drawn: Vec<(&str, &str)> = page
+        .runs
+        .iter()
+        .filter_map(|r| r.as_ref().ok())
+        .map(|r| (r.source.as_str(), r.path.as_str()))
+        .collect();
+    for r in page.rows {
+        let anchor = drawn.iter().position(|&(s, p)| {
+            s == r.source && (p == r.run || p.starts_with(&format!("{}@", r.run)))
+        });
+        let run = match anchor {
+            Some(i) => format!("<a href=\"#run-{i}\">{}</a>", esc(&r.run)),
+            None => esc(&r.run),
+        };
+        let _ = write!(
+            t,
+            "<tr class=\"{}\"><td>{run}</td><td>{}</td><td>{}</td><td>{}</td>",
+            esc(&r.status),
+            esc(&r.source),
+            esc(&r.method),
+            esc(&r.status)
+        );
+        for (name, _) in TABLE_COLUMNS {
+            match r.parameters.get(name).copied().flatten() {
+                Some(v) => {
+                    let _ = write!(t, "<td data-v=\"{v:e}\">{}</td>", short(v));
+                }
+                None => t.push_str("<td></td>"),
+            }
+        }
+        let note = if r.error.is_empty() {
+            &r.warnings
+        } else {
+            &r.error
+        };
+        // Long notes are cut in the cell; the whole text is the cell's tooltip.
+        let cut: String = note.chars().take(80).collect();
+        let more = if cut.len() < note.len() { "…" } else { "" };
+        let _ = writeln!(
+            t,
+            "<td data-v=\"{s:e}\">{s:.2}</td><td class=\"text\" title=\"{}\">{}{more}</td></tr>",
+            esc(note),
+            esc(&cut),
+            s = r.seconds
+        );
+    }
+    t.push_str("</tbody>\n</table>\n");
+    t
+}
+
+const CSS: &str = "body{font-family:sans-serif;margin:1.5em;color:#222}\
+h3 small{font-weight:normal;color:#666}\
+table{border-collapse:collapse;font-size:0.85em}\
+th,td{border:1px solid #ccc;padding:2px 6px;text-align:right}\
+td.text,td:first-child,td:nth-child(2),td:nth-child(3){text-align:left}\
+td.text{min-width:24em}\
+th{cursor:pointer;background:#f2f2f2;position:sticky;top:0}\
+tr.failed td{background:#fde8e8}\
+.error{color:#b00}.note,.meta{color:#555}\
+.plots{display:flex;flex-wrap:wrap;gap:8px}\
+figure.plot{margin:0}\
+.legend .key span{display:inline-block;width:12px;height:12px;margin:0 4px 0 10px}\
+section{border-top:1px solid #ddd;margin-top:1em}";
+
+/// Runs first, in `<head>`: collects every script error on the page.
+const ERRORS_JS: &str =
+    "window.skelidErrors=[];window.addEventListener('error',function(e){skelidErrors.push(String(e.message));});";
+
+/// Column sorting, and the self-check the headless-browser test reads from `data-check`.
+const PAGE_JS: &str = r#"
+document.querySelectorAll('table.sortable th').forEach(function(th, col) {
+  th.addEventListener('click', function() {
+    var body = th.closest('table').tBodies[0];
+    var rows = Array.prototype.slice.call(body.rows);
+    var asc = th.dataset.order !== 'asc';
+    th.dataset.order = asc ? 'asc' : 'desc';
+    var key = function(r) {
+      var c = r.cells[col], t = c.dataset.v !== undefined ? c.dataset.v : c.textContent;
+      var n = parseFloat(t);
+      return isNaN(n) ? t : n;
+    };
+    rows.sort(function(a, b) {
+      var x = key(a), y = key(b);
+      var d = (typeof x === 'number' && typeof y === 'number') ? x - y
+            : String(x).localeCompare(String(y));
+      return asc ? d : -d;
+    });
+    rows.forEach(function(r) { body.appendChild(r); });
+  });
+});
+window.addEventListener('load', function() {
+  var svgs = document.querySelectorAll('figure.plot svg'), drawn = 0;
+  svgs.forEach(function(s) {
+    var b = s.getBBox();
+    var marks = s.querySelectorAll('polyline, circle, path, line').length;
+    if (b.width > 0 && b.height > 0 && marks > 0) drawn++;
+  });
+  document.body.setAttribute('data-check', 'expected=' + document.body.dataset.plots +
+    ' found=' + svgs.length + ' drawn=' + drawn + ' errors=' + skelidErrors.length +
+    (skelidErrors.length ? ' first-error=' + skelidErrors[0] : ''));
+});
+"#;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reduce_averages_valid_samples_and_breaks_on_gaps() {
+        let n = 4 * TRACK_POINTS;
+        let t: Vec<f64> = (0..n).map(|i| i as f64).collect();
+        let y: Vec<f64> = (0..n).map(|i| i as f64 * 2.0).collect();
+        let mut valid = vec![1u8; n];
+        valid[..8].iter_mut().for_each(|v| *v = 0);
+        let (rt, ry) = reduce(&t, &y, &valid);
+        assert_eq!(rt.len(), TRACK_POINTS);
+        assert!(ry[0].is_nan() && ry[1].is_nan());
+        // Block 2 holds samples 8..12: mean of 16, 18, 20, 22.
+        assert_eq!(ry[2], 19.0);
+        assert_eq!(rt[2], 9.5);
+    }
+
+    #[test]
+    fn short_numbers() {
+        assert_eq!(short(0.0262), "0.0262");
+        assert_eq!(short(4746.8), "4747");
+        assert_eq!(short(1.5e-6), "1.500e-6");
+        assert_eq!(short(f64::NAN), "");
+    }
+
+    #[test]
+    fn plot_skips_empty_and_draws_finite() {
+        let x = [0.0, 1.0, 2.0, 3.0, 4.0];
+        let nan = [f64::NAN; 5];
+        let empty = Series {
+            color: RED,
+            width: 1,
+            mark: Mark::Line,
+            x: &x,
+            y: &nan,
+        };
+        assert!(svg_plot("t", "x", "y", YAxis::Full, &[empty]).is_none());
+        let y = [1.0, 2.0, f64::NAN, 3.0, 4.0];
+        let line = Series {
+            color: RED,
+            width: 1,
+            mark: Mark::Line,
+            x: &x,
+            y: &y,
+        };
+        let svg = svg_plot("t", "x", "y", YAxis::Full, &[line]).unwrap();
+        assert!(svg.starts_with("<svg"));
+        // A gap splits the line: two polylines, not one through the gap.
+        assert!(svg.matches("<polyline").count() >= 2, "{svg}");
+    }
+
+    #[test]
+    fn html_escapes_run_names() {
+        assert_eq!(esc("<a&\"b\">"), "&lt;a&amp;&quot;b&quot;&gt;");
+    }
+}
