@@ -16,6 +16,7 @@ pub mod demo;
 pub mod filter;
 pub mod fit;
 pub mod forcevib;
+pub mod gpu;
 pub mod h5util;
 pub mod identify;
 pub mod ingest;

@@ -235,6 +235,9 @@ fn three_shards_merged_equal_one_run() {
     assert!(m.status.success(), "{}", String::from_utf8_lossy(&m.stderr));
     assert_same_rows(&rows(&merged), &rows(&whole));
     assert_same_results(&results(&merged), &results(&whole));
+    // The merged folder's report lists every run of every shard.
+    let page = std::fs::read_to_string(merged.join("report.html")).unwrap();
+    assert_eq!(page.matches("<tr class=").count(), rows(&whole).len());
 
     // A missing shard, a shard given twice, an unsharded folder among shards: refused.
     let refuse = |dirs: &[&PathBuf], what: &str| {

@@ -1,0 +1,294 @@
+//! Host side of `shaders/fft.wgsl`: batched complex FFTs of any length 2^a·3^b·5^c (the
+//! lengths [`plan_len`](crate::transform::plan_len) chooses), in f32, one dispatch per
+//! radix pass, ping-ponging between two buffers. Lengths beyond one workgroup need no
+//! special case: every pass reads and writes global memory.
+
+use std::collections::HashMap;
+use std::sync::Mutex;
+
+use num_complex::Complex32;
+
+use super::{Gpu, GpuError};
+
+/// The shader's `Pass` uniform, declared once here for the host.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct PassParams {
+    n: u32,
+    radix: u32,
+    ns: u32,
+    batch: u32,
+    inverse: u32,
+    _pad: [u32; 3],
+}
+
+/// Invocations per workgroup (the shader's `@workgroup_size`).
+const WORKGROUP: u32 = 64;
+
+/// The radices of a length, largest passes first (4 before 2: fewer passes); `None` when
+/// the length has a prime factor above 5.
+pub fn radices(n: usize) -> Option<Vec<u32>> {
+    if n < 2 {
+        return (n == 1).then(Vec::new);
+    }
+    let mut rest = n;
+    let mut out = Vec::new();
+    for r in [5, 3, 4, 2] {
+        while rest.is_multiple_of(r) {
+            out.push(r as u32);
+            rest /= r;
+        }
+    }
+    (rest == 1).then_some(out)
+}
+
+/// Which of the two buffers given to [`FftStage::encode`] holds the result.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Holder {
+    /// The first (`data`).
+    Data,
+    /// The second (`scratch`).
+    Scratch,
+}
+
+/// The compiled FFT pass and the root tables of the lengths used so far.
+pub struct FftStage {
+    pipeline: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+    roots: Mutex<HashMap<usize, wgpu::Buffer>>,
+}
+
+impl FftStage {
+    /// Compiles the shader and declares its bindings: the pass's parameters (uniform), the
+    /// source and destination of the pass, and the root table.
+    pub fn new(gpu: &Gpu) -> FftStage {
+        let device = &gpu.device;
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("fft.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(include_str!("../../shaders/fft.wgsl").into()),
+        });
+        let entry = |binding: u32, ty: wgpu::BufferBindingType| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer {
+                ty,
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        };
+        let read = wgpu::BufferBindingType::Storage { read_only: true };
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("fft"),
+            entries: &[
+                entry(0, wgpu::BufferBindingType::Uniform),
+                entry(1, read),
+                entry(2, wgpu::BufferBindingType::Storage { read_only: false }),
+                entry(3, read),
+            ],
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("fft"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some("fft"),
+            layout: Some(&pipeline_layout),
+            module: &module,
+            entry_point: Some("stockham_pass"),
+            compilation_options: Default::default(),
+            cache: None,
+        });
+        FftStage {
+            pipeline,
+            layout,
+            roots: Mutex::new(HashMap::new()),
+        }
+    }
+
+    /// e^{-j2πm/n}, m < n, computed in f64 and stored in f32, one table per length.
+    fn roots(&self, gpu: &Gpu, n: usize) -> wgpu::Buffer {
+        let mut cache = self.roots.lock().unwrap_or_else(|p| p.into_inner());
+        cache
+            .entry(n)
+            .or_insert_with(|| {
+                let table: Vec<[f32; 2]> = (0..n)
+                    .map(|m| {
+                        let a = -2.0 * std::f64::consts::PI * m as f64 / n as f64;
+                        [a.cos() as f32, a.sin() as f32]
+                    })
+                    .collect();
+                gpu.upload("fft roots", &table)
+            })
+            .clone()
+    }
+
+    /// Records the passes that transform `batch` sequences of length `n`, held back to back
+    /// in `data`, using `scratch` (as large) for the ping-pong; returns which buffer holds
+    /// the result.
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode(
+        &self,
+        gpu: &Gpu,
+        encoder: &mut wgpu::CommandEncoder,
+        n: usize,
+        batch: usize,
+        inverse: bool,
+        data: &wgpu::Buffer,
+        scratch: &wgpu::Buffer,
+    ) -> Result<Holder, GpuError> {
+        let plan = radices(n).ok_or_else(|| {
+            GpuError::Unsupported(format!(
+                "FFT length {n} has a prime factor above 5; the GPU FFT takes 2^a·3^b·5^c"
+            ))
+        })?;
+        let bytes = (n * batch * 8) as u64;
+        if bytes > gpu.max_binding() {
+            return Err(GpuError::TooLarge {
+                what: format!("{batch} FFT(s) of length {n}"),
+                need: bytes,
+                limit: gpu.max_binding(),
+            });
+        }
+        let roots = self.roots(gpu, n);
+        let (mut from, mut to) = (data, scratch);
+        let mut ns = 1usize;
+        for &r in &plan {
+            let params = PassParams {
+                n: n as u32,
+                radix: r,
+                ns: ns as u32,
+                batch: batch as u32,
+                inverse: u32::from(inverse),
+                _pad: [0; 3],
+            };
+            let uniform = {
+                use wgpu::util::DeviceExt;
+                gpu.device
+                    .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                        label: Some("fft pass"),
+                        contents: bytemuck::bytes_of(&params),
+                        usage: wgpu::BufferUsages::UNIFORM,
+                    })
+            };
+            let bind = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("fft pass"),
+                layout: &self.layout,
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: uniform.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 1,
+                        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                            buffer: from,
+                            offset: 0,
+                            size: wgpu::BufferSize::new(bytes),
+                        }),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 2,
+                        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                            buffer: to,
+                            offset: 0,
+                            size: wgpu::BufferSize::new(bytes),
+                        }),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 3,
+                        resource: roots.as_entire_binding(),
+                    },
+                ],
+            });
+            let invocations = (n / r as usize * batch) as u64;
+            let (x, y) = workgroups(invocations, gpu.limits.max_compute_workgroups_per_dimension);
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("fft pass"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.pipeline);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(x, y, 1);
+            drop(pass);
+            std::mem::swap(&mut from, &mut to);
+            ns *= r as usize;
+        }
+        Ok(if std::ptr::eq(from, data) {
+            Holder::Data
+        } else {
+            Holder::Scratch
+        })
+    }
+
+    /// Transforms host data in place: `data` holds `data.len() / n` sequences of length
+    /// `n` back to back. Uploads, runs and reads back; for tests and benchmarks.
+    pub fn transform(
+        &self,
+        gpu: &Gpu,
+        data: &mut [Complex32],
+        n: usize,
+        inverse: bool,
+    ) -> Result<(), GpuError> {
+        if n == 0 || !data.len().is_multiple_of(n) {
+            return Err(GpuError::Unsupported(format!(
+                "{} values are not a whole number of length-{n} transforms",
+                data.len()
+            )));
+        }
+        let flat: Vec<[f32; 2]> = data.iter().map(|c| [c.re, c.im]).collect();
+        let a = gpu.upload("fft data", &flat);
+        let b = gpu.storage("fft scratch", (flat.len() * 8) as u64);
+        let mut enc = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("fft") });
+        let holder = self.encode(gpu, &mut enc, n, data.len() / n, inverse, &a, &b)?;
+        gpu.queue.submit([enc.finish()]);
+        let out: Vec<[f32; 2]> = gpu.download(
+            match holder {
+                Holder::Data => &a,
+                Holder::Scratch => &b,
+            },
+            flat.len(),
+        )?;
+        for (d, o) in data.iter_mut().zip(out) {
+            *d = Complex32::new(o[0], o[1]);
+        }
+        Ok(())
+    }
+}
+
+/// A 2-D grid of workgroups covering `invocations` (one dimension holds at most `max`).
+fn workgroups(invocations: u64, max: u32) -> (u32, u32) {
+    let groups = invocations.div_ceil(u64::from(WORKGROUP)).max(1);
+    let x = groups.min(u64::from(max));
+    let y = groups.div_ceil(x);
+    (x as u32, y as u32)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn radices_cover_the_plan_lengths() {
+        assert_eq!(radices(1), Some(vec![]));
+        assert_eq!(radices(8), Some(vec![4, 2]));
+        assert_eq!(radices(1152), Some(vec![3, 3, 4, 4, 4, 2]));
+        assert_eq!(radices(7), None);
+        for n in 16..5000 {
+            let m = crate::transform::plan_len(n);
+            let r = radices(m).unwrap();
+            assert_eq!(r.iter().map(|&x| x as usize).product::<usize>(), m);
+        }
+    }
+
+    #[test]
+    fn workgroup_grid_covers_every_invocation() {
+        assert_eq!(workgroups(1, 65535), (1, 1));
+        assert_eq!(workgroups(64 * 65535, 65535), (65535, 1));
+        let (x, y) = workgroups(64 * 65535 + 1, 65535);
+        assert!(u64::from(x) * u64::from(y) * 64 > 64 * 65535);
+    }
+}

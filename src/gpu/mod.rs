@@ -1,0 +1,219 @@
+//! The GPU backend's device: one wgpu adapter and device (Vulkan; software adapters such as
+//! Mesa's lavapipe included), its limits, and the errors that send a batch back to the CPU.
+//!
+//! Each compute stage is its own WGSL file in `shaders/` with a small typed host wrapper in
+//! a submodule here ([`fft`]); the wrapper declares the stage's buffers and bind layout
+//! next to the shader that uses them.
+
+pub mod fft;
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+/// Why the GPU could not do (or finish) a piece of work. Every variant is a cue for the CPU
+/// fallback; the text says what the user can do about it.
+#[derive(Debug, thiserror::Error)]
+pub enum GpuError {
+    /// No adapter at all (no Vulkan driver, or none that wgpu accepts).
+    #[error(
+        "no GPU adapter found ({0}); install a Vulkan driver (scripts/install-deps.sh installs \
+         Mesa's lavapipe, a software one) or use --backend cpu"
+    )]
+    NoAdapter(String),
+    /// The adapter refused to open a device.
+    #[error("the GPU adapter {adapter} refused a device: {detail}")]
+    Device {
+        /// Adapter name.
+        adapter: String,
+        /// wgpu's reason.
+        detail: String,
+    },
+    /// The device was lost, or a submission failed validation, mid-work.
+    #[error("the GPU device failed during the work: {0}")]
+    Lost(String),
+    /// One piece of work does not fit the adapter's limits even alone.
+    #[error("{what} needs {need} bytes in one buffer; this adapter allows {limit}")]
+    TooLarge {
+        /// What was being placed.
+        what: String,
+        /// Bytes needed.
+        need: u64,
+        /// The adapter's limit.
+        limit: u64,
+    },
+    /// A request the stage cannot serve (e.g. an FFT length with a prime factor above 5).
+    #[error("{0}")]
+    Unsupported(String),
+}
+
+/// An open GPU device and what is known about it.
+pub struct Gpu {
+    /// The device.
+    pub device: wgpu::Device,
+    /// Its queue.
+    pub queue: wgpu::Queue,
+    /// The limits the device was opened with (the adapter's own).
+    pub limits: wgpu::Limits,
+    info: wgpu::AdapterInfo,
+    /// Set by the device-lost callback and by validation errors.
+    failed: Arc<AtomicBool>,
+    failure: Arc<std::sync::Mutex<String>>,
+}
+
+impl Gpu {
+    /// Opens the best adapter wgpu finds (high performance preferred; a software adapter
+    /// is accepted), with the adapter's own limits so that batches can be sized to them.
+    pub fn new() -> Result<Gpu, GpuError> {
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            force_fallback_adapter: false,
+            compatible_surface: None,
+            // The real limits: batches are sized to them.
+            apply_limit_buckets: false,
+        }))
+        .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+        let info = adapter.get_info();
+        let limits = adapter.limits();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("skelid"),
+            required_features: wgpu::Features::empty(),
+            required_limits: limits.clone(),
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::Device {
+            adapter: info.name.clone(),
+            detail: e.to_string(),
+        })?;
+        let failed = Arc::new(AtomicBool::new(false));
+        let failure = Arc::new(std::sync::Mutex::new(String::new()));
+        {
+            let (failed, failure) = (failed.clone(), failure.clone());
+            device.set_device_lost_callback(move |reason, message| {
+                failed.store(true, Ordering::SeqCst);
+                *failure.lock().unwrap_or_else(|p| p.into_inner()) =
+                    format!("device lost ({reason:?}): {message}");
+            });
+        }
+        {
+            let (failed, failure) = (failed.clone(), failure.clone());
+            device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
+                failed.store(true, Ordering::SeqCst);
+                *failure.lock().unwrap_or_else(|p| p.into_inner()) = e.to_string();
+            }));
+        }
+        Ok(Gpu {
+            device,
+            queue,
+            limits,
+            info,
+            failed,
+            failure,
+        })
+    }
+
+    /// The adapter's name and kind, e.g. `llvmpipe (LLVM 15.0.6, 256 bits) (Cpu, Vulkan)`.
+    pub fn adapter_name(&self) -> String {
+        format!(
+            "{} ({:?}, {:?})",
+            self.info.name, self.info.device_type, self.info.backend
+        )
+    }
+
+    /// Whether the adapter is a software rasteriser (lavapipe): right, but not fast.
+    pub fn is_software(&self) -> bool {
+        self.info.device_type == wgpu::DeviceType::Cpu
+    }
+
+    /// The largest buffer one storage binding may hold (bytes).
+    pub fn max_binding(&self) -> u64 {
+        self.limits
+            .max_storage_buffer_binding_size
+            .min(self.limits.max_buffer_size)
+    }
+
+    /// `Err` when the device was lost or a submission failed since it was opened.
+    pub fn check(&self) -> Result<(), GpuError> {
+        if self.failed.load(Ordering::SeqCst) {
+            return Err(GpuError::Lost(
+                self.failure
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .clone(),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Waits for all submitted work.
+    pub fn wait(&self) -> Result<(), GpuError> {
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Lost(e.to_string()))?;
+        self.check()
+    }
+
+    /// A storage buffer initialised with `data`.
+    pub fn upload<T: bytemuck::Pod>(&self, label: &str, data: &[T]) -> wgpu::Buffer {
+        use wgpu::util::DeviceExt;
+        self.device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: bytemuck::cast_slice(data),
+                usage: wgpu::BufferUsages::STORAGE
+                    | wgpu::BufferUsages::COPY_SRC
+                    | wgpu::BufferUsages::COPY_DST,
+            })
+    }
+
+    /// An uninitialised storage buffer of `bytes` bytes.
+    pub fn storage(&self, label: &str, bytes: u64) -> wgpu::Buffer {
+        self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: bytes.max(4),
+            usage: wgpu::BufferUsages::STORAGE
+                | wgpu::BufferUsages::COPY_SRC
+                | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        })
+    }
+
+    /// Copies `count` elements of `buffer` back to the host (waits for the GPU).
+    pub fn download<T: bytemuck::Pod>(
+        &self,
+        buffer: &wgpu::Buffer,
+        count: usize,
+    ) -> Result<Vec<T>, GpuError> {
+        let bytes = (count * std::mem::size_of::<T>()) as u64;
+        if bytes == 0 {
+            return Ok(Vec::new());
+        }
+        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("download"),
+            size: bytes,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+        enc.copy_buffer_to_buffer(buffer, 0, &staging, 0, bytes);
+        self.queue.submit([enc.finish()]);
+        let (tx, rx) = std::sync::mpsc::channel();
+        staging.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send(r);
+        });
+        self.wait()?;
+        rx.recv()
+            .map_err(|e| GpuError::Lost(e.to_string()))?
+            .map_err(|e| GpuError::Lost(e.to_string()))?;
+        let view = staging
+            .get_mapped_range(..)
+            .map_err(|e| GpuError::Lost(e.to_string()))?;
+        let out = bytemuck::cast_slice(&view).to_vec();
+        drop(view);
+        staging.unmap();
+        Ok(out)
+    }
+}
