@@ -77,3 +77,99 @@ fn gpu_fft_refuses_lengths_it_cannot_plan() {
     let e = stage.transform(&gpu, &mut x, 7, false).unwrap_err();
     assert!(e.to_string().contains("prime factor above 5"), "{e}");
 }
+
+/// The first pass of the wavelet track, CPU path: each scale's baseband by the CPU plan,
+/// interpolated to the coarse grid (as `track::track_wavelet` does).
+fn cpu_power(
+    spec: &skelid::transform::Spectrum,
+    plans: &[skelid::transform::band::ScalePlan],
+    w: &skelid::transform::Morlet,
+    h: usize,
+    steps: usize,
+) -> Vec<f64> {
+    let mut out = Vec::new();
+    let mut buf = Vec::new();
+    for p in plans {
+        p.evaluate_into(spec, w, &mut buf);
+        let step = p.step(spec);
+        out.extend(
+            (0..steps).map(|j| {
+                skelid::transform::band::interpolate(&buf, (j * h) as f64 / step).norm_sqr()
+            }),
+        );
+    }
+    out
+}
+
+#[test]
+fn gpu_scales_match_the_cpu_first_pass_for_a_batch_of_runs() {
+    use skelid::gpu::scales::{RunScales, ScaleStage};
+    use skelid::transform::{band::ScalePlan, log_frequencies, Morlet, Spectrum};
+    let gpu = gpu();
+    let stage = ScaleStage::new(&gpu);
+    let w = Morlet::default();
+    let fs = 1000.0;
+    // A chirp, a decaying sine with noise, and a short record: three lengths (none a power
+    // of two), decimated lengths of every radix mix.
+    let mut rng = rand::rngs::StdRng::seed_from_u64(9);
+    let signals: Vec<Vec<f64>> = vec![
+        (0..30_000)
+            .map(|i| {
+                let t = i as f64 / fs;
+                (2.0 * std::f64::consts::PI * (0.5 * t + 0.2 * t * t)).sin()
+                    * (1.0 + 0.5 * t / 30.0)
+            })
+            .collect(),
+        (0..12_345)
+            .map(|i| {
+                let t = i as f64 / fs;
+                (-0.3 * t).exp() * (2.0 * std::f64::consts::PI * 8.0 * t).sin()
+                    + 0.01 * rng.random_range(-1.0..1.0)
+            })
+            .collect(),
+        (0..3001)
+            .map(|i| (2.0 * std::f64::consts::PI * 40.0 * i as f64 / fs).cos())
+            .collect(),
+    ];
+    let bands = [(0.3, 15.0), (2.0, 30.0), (10.0, 200.0)];
+    let mut setups = Vec::new();
+    for (x, &(fmin, fmax)) in signals.iter().zip(&bands) {
+        let pad = (w.support(w.scale_for(fmin), 1e-8) * fs).ceil() as usize;
+        let spec = Spectrum::new(x, fs, pad.min(4 * x.len()));
+        let plans: Vec<ScalePlan> = log_frequencies(fmin, fmax, 96)
+            .iter()
+            .map(|&f| ScalePlan::with_tolerance(&spec, &w, w.scale_for(f), 1.0, 1e-3))
+            .collect();
+        let h = 17;
+        let steps = (x.len() - 1) / h + 1;
+        setups.push((spec, plans, h, steps));
+    }
+    let runs: Vec<RunScales> = setups
+        .iter()
+        .map(|(spec, plans, h, steps)| RunScales {
+            spectrum: spec,
+            plans,
+            h: *h,
+            steps: *steps,
+        })
+        .collect();
+    let ours = stage.coarse_power(&gpu, &w, &runs).unwrap();
+    let mut worst: f64 = 0.0;
+    for ((spec, plans, h, steps), gpu_p) in setups.iter().zip(&ours) {
+        let cpu_p = cpu_power(spec, plans, &w, *h, *steps);
+        assert_eq!(gpu_p.len(), cpu_p.len());
+        for k in 0..plans.len() {
+            let col = k * steps..(k + 1) * steps;
+            let peak = cpu_p[col.clone()].iter().cloned().fold(0.0, f64::max);
+            for i in col {
+                // Envelope |W| compared where it is at least 1 % of the scale's peak.
+                if cpu_p[i] >= 1e-4 * peak {
+                    let e = (f64::from(gpu_p[i]).sqrt() - cpu_p[i].sqrt()).abs() / cpu_p[i].sqrt();
+                    worst = worst.max(e);
+                }
+            }
+        }
+    }
+    println!("coarse |W|, GPU against CPU: worst relative difference {worst:.2e}");
+    assert!(worst < 1e-4, "{worst:e}");
+}

@@ -125,8 +125,8 @@ impl FftStage {
     }
 
     /// Records the passes that transform `batch` sequences of length `n`, held back to back
-    /// in `data`, using `scratch` (as large) for the ping-pong; returns which buffer holds
-    /// the result.
+    /// in `data` from element `offset` on (a multiple of [`offset_alignment`]), using the
+    /// same range of `scratch` for the ping-pong; returns which buffer holds the result.
     #[allow(clippy::too_many_arguments)]
     pub fn encode(
         &self,
@@ -137,6 +137,7 @@ impl FftStage {
         inverse: bool,
         data: &wgpu::Buffer,
         scratch: &wgpu::Buffer,
+        offset: usize,
     ) -> Result<Holder, GpuError> {
         let plan = radices(n).ok_or_else(|| {
             GpuError::Unsupported(format!(
@@ -184,7 +185,7 @@ impl FftStage {
                         binding: 1,
                         resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
                             buffer: from,
-                            offset: 0,
+                            offset: (offset * 8) as u64,
                             size: wgpu::BufferSize::new(bytes),
                         }),
                     },
@@ -192,7 +193,7 @@ impl FftStage {
                         binding: 2,
                         resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
                             buffer: to,
-                            offset: 0,
+                            offset: (offset * 8) as u64,
                             size: wgpu::BufferSize::new(bytes),
                         }),
                     },
@@ -243,7 +244,7 @@ impl FftStage {
         let mut enc = gpu
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("fft") });
-        let holder = self.encode(gpu, &mut enc, n, data.len() / n, inverse, &a, &b)?;
+        let holder = self.encode(gpu, &mut enc, n, data.len() / n, inverse, &a, &b, 0)?;
         gpu.queue.submit([enc.finish()]);
         let out: Vec<[f32; 2]> = gpu.download(
             match holder {
@@ -257,6 +258,13 @@ impl FftStage {
         }
         Ok(())
     }
+}
+
+/// Elements (complex f32) that a sub-range bound for [`FftStage::encode`] must start on.
+pub fn offset_alignment(gpu: &Gpu) -> usize {
+    (gpu.limits.min_storage_buffer_offset_alignment as usize)
+        .div_ceil(8)
+        .max(1)
 }
 
 /// A 2-D grid of workgroups covering `invocations` (one dimension holds at most `max`).

@@ -69,6 +69,11 @@ impl ScalePlan {
         }
     }
 
+    /// The pass band's first and last bins and the demodulation bin (lo, hi, c).
+    pub fn band(&self) -> (usize, usize, usize) {
+        (self.lo, self.hi, self.centre_bin)
+    }
+
     /// Padded samples between consecutive decimated values, L / M.
     pub fn step(&self, spec: &Spectrum) -> f64 {
         spec.padded_len as f64 / self.len as f64

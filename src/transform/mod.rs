@@ -143,7 +143,7 @@ impl Morlet {
 const ANCHOR: usize = 256;
 
 /// Where the low-frequency taper of [`Morlet::spectrum`] ends, as a fraction of f_c/s.
-const TAPER: f64 = 0.3;
+pub const TAPER: f64 = 0.3;
 
 /// C^∞ step from 0 at u = 0 to 1 at u = 1.
 #[inline]

@@ -1,0 +1,287 @@
+//! Host side of `shaders/scales.wgsl`: the coarse |W|² grid of every scale of a batch of
+//! runs in one submission — pass band scattered from each run's spectrum, batched inverse
+//! FFTs (one group per decimated length), interpolation to the coarse time grid — read
+//! back as f32 power per scale and step. This is the first pass of the wavelet track
+//! (`track::track_wavelet`), which the CPU evaluates scale by scale.
+
+use std::collections::HashMap;
+
+use super::fft::{offset_alignment, FftStage, Holder};
+use super::{Gpu, GpuError};
+use crate::transform::{band::ScalePlan, Morlet, Spectrum, TAPER};
+
+/// The shader's `Item`: one run × one scale.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Item {
+    spec: u32,
+    lo: u32,
+    hi: u32,
+    centre: u32,
+    m: u32,
+    data: u32,
+    power: u32,
+    positions: u32,
+    steps: u32,
+    scale: f32,
+    df: f32,
+    norm: f32,
+}
+
+/// The shader's `Wavelet` uniform.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct WaveletParams {
+    bandwidth: f32,
+    centre: f32,
+    taper: f32,
+    items: u32,
+}
+
+/// One run's share of a batch: its spectrum, the plans of its scales, and its coarse grid
+/// (every `h`-th sample, `steps` of them).
+pub struct RunScales<'a> {
+    /// The run's padded spectrum.
+    pub spectrum: &'a Spectrum,
+    /// One plan per scale.
+    pub plans: &'a [ScalePlan],
+    /// Samples between coarse steps.
+    pub h: usize,
+    /// Coarse steps.
+    pub steps: usize,
+}
+
+/// The compiled stage: scatter and power pipelines, their shared bind layout, and the FFT.
+pub struct ScaleStage {
+    fft: FftStage,
+    scatter: wgpu::ComputePipeline,
+    power: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+}
+
+impl ScaleStage {
+    /// Compiles `scales.wgsl` and declares its bindings: wavelet (uniform), items, spectrum,
+    /// data, power, and the interpolation positions (index, fraction).
+    pub fn new(gpu: &Gpu) -> ScaleStage {
+        let device = &gpu.device;
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("scales.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(include_str!("../../shaders/scales.wgsl").into()),
+        });
+        let entry = |binding: u32, ty: wgpu::BufferBindingType| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer {
+                ty,
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        };
+        let read = wgpu::BufferBindingType::Storage { read_only: true };
+        let write = wgpu::BufferBindingType::Storage { read_only: false };
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("scales"),
+            entries: &[
+                entry(0, wgpu::BufferBindingType::Uniform),
+                entry(1, read),
+                entry(2, read),
+                entry(3, write),
+                entry(4, write),
+                entry(5, read),
+                entry(6, read),
+            ],
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("scales"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let pipeline = |entry: &str| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: Some(&pipeline_layout),
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        };
+        ScaleStage {
+            fft: FftStage::new(gpu),
+            scatter: pipeline("scatter"),
+            power: pipeline("power_grid"),
+            layout,
+        }
+    }
+
+    /// |W|² on each run's coarse grid: per run, scale-major (`[k · steps + j]`), the
+    /// values `track`'s first pass interpolates from the band-limited baseband. All runs
+    /// go in one submission; split a campaign into batches that fit the adapter first.
+    pub fn coarse_power(
+        &self,
+        gpu: &Gpu,
+        wavelet: &Morlet,
+        runs: &[RunScales],
+    ) -> Result<Vec<Vec<f32>>, GpuError> {
+        let align = offset_alignment(gpu);
+        // Spectra back to back.
+        let mut spectrum: Vec<[f32; 2]> = Vec::new();
+        let mut spec_offset = Vec::with_capacity(runs.len());
+        for r in runs {
+            spec_offset.push(spectrum.len() as u32);
+            spectrum.extend(r.spectrum.bins.iter().map(|c| [c.re as f32, c.im as f32]));
+        }
+        // Items grouped by FFT length, each group starting on an aligned offset.
+        let mut order: Vec<(usize, usize)> = runs
+            .iter()
+            .enumerate()
+            .flat_map(|(r, run)| (0..run.plans.len()).map(move |k| (r, k)))
+            .collect();
+        order.sort_by_key(|&(r, k)| runs[r].plans[k].len);
+        let mut power_offset = Vec::with_capacity(runs.len());
+        let mut power_len = 0usize;
+        for r in runs {
+            power_offset.push(power_len);
+            power_len += r.plans.len() * r.steps;
+        }
+        let mut index: Vec<u32> = Vec::new();
+        let mut frac: Vec<f32> = Vec::new();
+        let mut tables: HashMap<(usize, usize, usize, usize), u32> = HashMap::new();
+        let mut items = Vec::with_capacity(order.len());
+        let mut groups: Vec<(usize, usize, usize)> = Vec::new(); // (length, offset, count)
+        let mut data_len = 0usize;
+        for &(r, k) in &order {
+            let run = &runs[r];
+            let plan = &run.plans[k];
+            let m = plan.len;
+            match groups.last_mut() {
+                Some(g) if g.0 == m => g.2 += 1,
+                _ => {
+                    data_len = data_len.div_ceil(align) * align;
+                    groups.push((m, data_len, 1));
+                }
+            }
+            let l = run.spectrum.padded_len;
+            let positions = *tables.entry((m, l, run.h, run.steps)).or_insert_with(|| {
+                let at = index.len() as u32;
+                for j in 0..run.steps {
+                    let x = (j * run.h) as f64 * m as f64 / l as f64;
+                    let i = x.floor();
+                    index.push((i as usize % m) as u32);
+                    frac.push((x - i) as f32);
+                }
+                at
+            });
+            let (lo, hi, centre) = plan.band();
+            let spec = run.spectrum;
+            items.push(Item {
+                spec: spec_offset[r],
+                lo: lo as u32,
+                hi: hi.min(spec.bins.len() - 1) as u32,
+                centre: centre as u32,
+                m: m as u32,
+                data: data_len as u32,
+                power: (power_offset[r] + k * run.steps) as u32,
+                positions,
+                steps: run.steps as u32,
+                scale: plan.scale as f32,
+                df: (spec.sample_rate / l as f64) as f32,
+                norm: (2.0 / l as f64) as f32,
+            });
+            data_len += m;
+        }
+        let data_bytes = (data_len * 8) as u64;
+        if data_bytes > gpu.max_binding() {
+            return Err(GpuError::TooLarge {
+                what: format!("the scales of {} run(s)", runs.len()),
+                need: data_bytes,
+                limit: gpu.max_binding(),
+            });
+        }
+        let max_rows = gpu.limits.max_compute_workgroups_per_dimension as usize;
+        if items.len() > max_rows {
+            return Err(GpuError::TooLarge {
+                what: format!("{} run × scale items in one dispatch", items.len()),
+                need: items.len() as u64,
+                limit: max_rows as u64,
+            });
+        }
+        let params = WaveletParams {
+            bandwidth: wavelet.bandwidth as f32,
+            centre: wavelet.centre as f32,
+            taper: TAPER as f32,
+            items: items.len() as u32,
+        };
+        let uniform = {
+            use wgpu::util::DeviceExt;
+            gpu.device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("wavelet"),
+                    contents: bytemuck::bytes_of(&params),
+                    usage: wgpu::BufferUsages::UNIFORM,
+                })
+        };
+        let items_buf = gpu.upload("items", &items);
+        let spectrum_buf = gpu.upload("spectra", &spectrum);
+        let data = gpu.storage("scales", data_bytes);
+        let scratch = gpu.storage("scales scratch", data_bytes);
+        let power = gpu.storage("power", (power_len * 4) as u64);
+        let index_buf = gpu.upload("positions", &index);
+        let frac_buf = gpu.upload("fractions", &frac);
+        let bind = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("scales"),
+            layout: &self.layout,
+            entries: &[
+                &uniform,
+                &items_buf,
+                &spectrum_buf,
+                &data,
+                &power,
+                &index_buf,
+                &frac_buf,
+            ]
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry {
+                binding: i as u32,
+                resource: b.as_entire_binding(),
+            })
+            .collect::<Vec<_>>(),
+        });
+        let mut enc = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("scales"),
+            });
+        let longest = groups.iter().map(|g| g.0).max().unwrap_or(1);
+        let dispatch = |enc: &mut wgpu::CommandEncoder, pipeline, width: usize| {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("scales"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(width.div_ceil(64) as u32, items.len() as u32, 1);
+        };
+        dispatch(&mut enc, &self.scatter, longest);
+        for &(m, offset, count) in &groups {
+            let holder = self
+                .fft
+                .encode(gpu, &mut enc, m, count, true, &data, &scratch, offset)?;
+            if holder == Holder::Scratch {
+                let bytes = (offset * 8) as u64;
+                enc.copy_buffer_to_buffer(&scratch, bytes, &data, bytes, (m * count * 8) as u64);
+            }
+        }
+        let steps = runs.iter().map(|r| r.steps).max().unwrap_or(1);
+        dispatch(&mut enc, &self.power, steps);
+        gpu.queue.submit([enc.finish()]);
+        let all: Vec<f32> = gpu.download(&power, power_len)?;
+        Ok(runs
+            .iter()
+            .zip(&power_offset)
+            .map(|(r, &o)| all[o..o + r.plans.len() * r.steps].to_vec())
+            .collect())
+    }
+}
