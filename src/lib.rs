@@ -7,7 +7,8 @@
 //! [`transform`] (Hilbert and wavelet transforms), [`ridge`], [`skeleton`] and [`track`]
 //! (instantaneous amplitude and frequency), [`forcevib`] (ω0²(t), h0(t)), [`fit`] (skeleton
 //! curves and physical parameters), [`identify`] (one run through all of it), [`batch`] and
-//! [`journal`] (many runs, crash-safe and resumable), [`report`] (results out).
+//! [`journal`] (many runs, crash-safe and resumable), [`report`] (results and report.html
+//! out), [`gpu`] (the WGSL compute stages of the GPU backend).
 
 pub mod batch;
 pub mod bench;
