@@ -62,46 +62,15 @@ impl FftStage {
     /// Compiles the shader and declares its bindings: the pass's parameters (uniform), the
     /// source and destination of the pass, and the root table.
     pub fn new(gpu: &Gpu) -> FftStage {
-        let device = &gpu.device;
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("fft.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(include_str!("../../shaders/fft.wgsl").into()),
-        });
-        let entry = |binding: u32, ty: wgpu::BufferBindingType| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer {
-                ty,
-                has_dynamic_offset: false,
-                min_binding_size: None,
-            },
-            count: None,
-        };
-        let read = wgpu::BufferBindingType::Storage { read_only: true };
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("fft"),
-            entries: &[
-                entry(0, wgpu::BufferBindingType::Uniform),
-                entry(1, read),
-                entry(2, wgpu::BufferBindingType::Storage { read_only: false }),
-                entry(3, read),
-            ],
-        });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("fft"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
-        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("fft"),
-            layout: Some(&pipeline_layout),
-            module: &module,
-            entry_point: Some("stockham_pass"),
-            compilation_options: Default::default(),
-            cache: None,
-        });
+        use super::Binding::{Read, Uniform, Write};
+        let (layout, mut pipelines) = gpu.stage(
+            "fft.wgsl",
+            include_str!("../../shaders/fft.wgsl"),
+            &[Uniform, Read, Write, Read],
+            &["stockham_pass"],
+        );
         FftStage {
-            pipeline,
+            pipeline: pipelines.pop().expect("one entry point"),
             layout,
             roots: Mutex::new(HashMap::new()),
         }

@@ -63,54 +63,19 @@ impl ScaleStage {
     /// Compiles `scales.wgsl` and declares its bindings: wavelet (uniform), items, spectrum,
     /// data, power, and the interpolation positions (index, fraction).
     pub fn new(gpu: &Gpu) -> ScaleStage {
-        let device = &gpu.device;
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("scales.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(include_str!("../../shaders/scales.wgsl").into()),
-        });
-        let entry = |binding: u32, ty: wgpu::BufferBindingType| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer {
-                ty,
-                has_dynamic_offset: false,
-                min_binding_size: None,
-            },
-            count: None,
-        };
-        let read = wgpu::BufferBindingType::Storage { read_only: true };
-        let write = wgpu::BufferBindingType::Storage { read_only: false };
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("scales"),
-            entries: &[
-                entry(0, wgpu::BufferBindingType::Uniform),
-                entry(1, read),
-                entry(2, read),
-                entry(3, write),
-                entry(4, write),
-                entry(5, read),
-                entry(6, read),
-            ],
-        });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("scales"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
-        let pipeline = |entry: &str| {
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(entry),
-                layout: Some(&pipeline_layout),
-                module: &module,
-                entry_point: Some(entry),
-                compilation_options: Default::default(),
-                cache: None,
-            })
-        };
+        use super::Binding::{Read, Uniform, Write};
+        let (layout, mut pipelines) = gpu.stage(
+            "scales.wgsl",
+            include_str!("../../shaders/scales.wgsl"),
+            &[Uniform, Read, Read, Write, Write, Read, Read],
+            &["scatter", "power_grid"],
+        );
+        let power = pipelines.pop().expect("two entry points");
+        let scatter = pipelines.pop().expect("two entry points");
         ScaleStage {
             fft: FftStage::new(gpu),
-            scatter: pipeline("scatter"),
-            power: pipeline("power_grid"),
+            scatter,
+            power,
             layout,
         }
     }
