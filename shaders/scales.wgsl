@@ -28,7 +28,7 @@ struct Wavelet {
     bandwidth: f32,
     centre: f32,
     taper: f32,     // Ψ is brought to 0 below taper·centre/s by a C∞ step
-    items: u32,
+    _pad: u32,
 };
 
 @group(0) @binding(0) var<uniform> wavelet: Wavelet;

@@ -80,8 +80,8 @@ fn browser_check(page: &Path) -> Option<String> {
     Some(rest[..rest.find('"').unwrap()].to_string())
 }
 
-#[test]
-fn report_lists_every_run_draws_every_plot_and_opens_in_chromium() {
+/// A folder holding the demo campaign and its outputs (report.html included).
+fn demo() -> tempfile::TempDir {
     let d = tempfile::tempdir().unwrap();
     let out = skelid()
         .args(["demo", "--out"])
@@ -93,6 +93,12 @@ fn report_lists_every_run_draws_every_plot_and_opens_in_chromium() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
+    d
+}
+
+#[test]
+fn report_lists_every_run_draws_every_plot_and_opens_in_chromium() {
+    let d = demo();
     let page = d.path().join("report.html");
     let html = std::fs::read_to_string(&page).unwrap();
 
@@ -114,6 +120,14 @@ fn report_lists_every_run_draws_every_plot_and_opens_in_chromium() {
     }
     // Every run drawn (the demo draws all), every one of them identified by some method.
     assert_eq!(html.matches("<section id=\"run-").count(), runs);
+    // Each run's rows link to its own section (two rows per run: both methods).
+    for i in 0..runs {
+        assert_eq!(
+            html.matches(&format!("<a href=\"#run-{i}\">")).count(),
+            2,
+            "run {i}"
+        );
+    }
     let expected = CAMPAIGN_PLOTS + PLOTS_PER_RUN * runs;
     assert!(
         html.contains(&format!("data-plots=\"{expected}\"")),
@@ -132,6 +146,7 @@ fn report_lists_every_run_draws_every_plot_and_opens_in_chromium() {
     }
 
     if let Some(check) = browser_check(&page) {
+        println!("Chromium's self-check of report.html: {check}");
         assert_eq!(
             check,
             format!("expected={expected} found={expected} drawn={expected} errors=0"),
@@ -142,13 +157,7 @@ fn report_lists_every_run_draws_every_plot_and_opens_in_chromium() {
 
 #[test]
 fn report_runs_limits_the_drawn_runs_but_not_the_table() {
-    let d = tempfile::tempdir().unwrap();
-    let out = skelid()
-        .args(["demo", "--out"])
-        .arg(d.path())
-        .output()
-        .unwrap();
-    assert!(out.status.success());
+    let d = demo();
     let again = d.path().join("again");
     let out = skelid()
         .arg("run")

@@ -122,6 +122,14 @@ impl FftStage {
             });
         }
         let roots = self.roots(gpu, n);
+        // This batch's range of either buffer.
+        let range = |buffer| {
+            wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                buffer,
+                offset: (offset * 8) as u64,
+                size: wgpu::BufferSize::new(bytes),
+            })
+        };
         let (mut from, mut to) = (data, scratch);
         let mut ns = 1usize;
         for &r in &plan {
@@ -152,19 +160,11 @@ impl FftStage {
                     },
                     wgpu::BindGroupEntry {
                         binding: 1,
-                        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                            buffer: from,
-                            offset: (offset * 8) as u64,
-                            size: wgpu::BufferSize::new(bytes),
-                        }),
+                        resource: range(from),
                     },
                     wgpu::BindGroupEntry {
                         binding: 2,
-                        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                            buffer: to,
-                            offset: (offset * 8) as u64,
-                            size: wgpu::BufferSize::new(bytes),
-                        }),
+                        resource: range(to),
                     },
                     wgpu::BindGroupEntry {
                         binding: 3,

@@ -8,8 +8,7 @@
 pub mod fft;
 pub mod scales;
 
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 /// Why the GPU could not do (or finish) a piece of work. Every variant is a cue for the CPU
 /// fallback; the text says what the user can do about it.
@@ -67,9 +66,8 @@ pub struct Gpu {
     /// The limits the device was opened with (the adapter's own).
     pub limits: wgpu::Limits,
     info: wgpu::AdapterInfo,
-    /// Set by the device-lost callback and by validation errors.
-    failed: Arc<AtomicBool>,
-    failure: Arc<std::sync::Mutex<String>>,
+    /// The first failure reported by the device-lost callback or a validation error.
+    failure: Arc<Mutex<Option<String>>>,
 }
 
 impl Gpu {
@@ -98,29 +96,27 @@ impl Gpu {
             adapter: info.name.clone(),
             detail: e.to_string(),
         })?;
-        let failed = Arc::new(AtomicBool::new(false));
-        let failure = Arc::new(std::sync::Mutex::new(String::new()));
-        {
-            let (failed, failure) = (failed.clone(), failure.clone());
-            device.set_device_lost_callback(move |reason, message| {
-                failed.store(true, Ordering::SeqCst);
-                *failure.lock().unwrap_or_else(|p| p.into_inner()) =
-                    format!("device lost ({reason:?}): {message}");
-            });
-        }
-        {
-            let (failed, failure) = (failed.clone(), failure.clone());
-            device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
-                failed.store(true, Ordering::SeqCst);
-                *failure.lock().unwrap_or_else(|p| p.into_inner()) = e.to_string();
-            }));
-        }
+        let failure: Arc<Mutex<Option<String>>> = Arc::default();
+        let record = |failure: &Arc<Mutex<Option<String>>>| {
+            let failure = failure.clone();
+            move |text: String| {
+                failure
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .get_or_insert(text);
+            }
+        };
+        let lost = record(&failure);
+        device.set_device_lost_callback(move |reason, message| {
+            lost(format!("device lost ({reason:?}): {message}"))
+        });
+        let invalid = record(&failure);
+        device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| invalid(e.to_string())));
         Ok(Gpu {
             device,
             queue,
             limits,
             info,
-            failed,
             failure,
         })
     }
@@ -147,15 +143,15 @@ impl Gpu {
 
     /// `Err` when the device was lost or a submission failed since it was opened.
     pub fn check(&self) -> Result<(), GpuError> {
-        if self.failed.load(Ordering::SeqCst) {
-            return Err(GpuError::Lost(
-                self.failure
-                    .lock()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .clone(),
-            ));
+        match self
+            .failure
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+        {
+            Some(text) => Err(GpuError::Lost(text)),
+            None => Ok(()),
         }
-        Ok(())
     }
 
     /// Waits for all submitted work.

@@ -35,7 +35,8 @@ struct WaveletParams {
     bandwidth: f32,
     centre: f32,
     taper: f32,
-    items: u32,
+    /// A uniform's size is a multiple of 16 bytes.
+    _pad: u32,
 }
 
 /// One run's share of a batch: its spectrum, the plans of its scales, and its coarse grid
@@ -176,7 +177,7 @@ impl ScaleStage {
             bandwidth: wavelet.bandwidth as f32,
             centre: wavelet.centre as f32,
             taper: TAPER as f32,
-            items: items.len() as u32,
+            _pad: 0,
         };
         let uniform = {
             use wgpu::util::DeviceExt;

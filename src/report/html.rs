@@ -750,17 +750,19 @@ fn table(page: &ReportPage) -> String {
         let _ = write!(t, "<th>{}</th>", esc(header));
     }
     t.push_str("<th>seconds</th><th>error / warnings</th></tr></thead>\n<tbody>\n");
-    let drawn: Vec<(&str, &str)> = page
+    // Section index of each drawn run, by (archive, run path) as the rows name them.
+    let drawn: std::collections::HashMap<(&str, &str), usize> = page
         .runs
         .iter()
-        .filter_map(|r| r.as_ref().ok())
-        .map(|r| (r.source.as_str(), r.path.as_str()))
+        .enumerate()
+        .filter_map(|(i, r)| {
+            r.as_ref()
+                .ok()
+                .map(|r| ((r.source.as_str(), r.path.as_str()), i))
+        })
         .collect();
     for r in page.rows {
-        let anchor = drawn.iter().position(|&(s, p)| {
-            s == r.source && (p == r.run || p.starts_with(&format!("{}@", r.run)))
-        });
-        let run = match anchor {
+        let run = match drawn.get(&(r.source.as_str(), r.run.as_str())) {
             Some(i) => format!("<a href=\"#run-{i}\">{}</a>", esc(&r.run)),
             None => esc(&r.run),
         };
