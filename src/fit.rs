@@ -130,25 +130,33 @@ pub fn dead_zone_orbit_ratio(delta: f64, amplitude: f64) -> f64 {
     if target <= 8.0 / (PI * PI) {
         return 0.0;
     }
-    // A1/δ falls monotonically in u from ∞ (u → 0) to 8/π² (u → 1): bisection.
-    let h = |u: f64| 8.0 * (0.5 * PI * u).sin() / (PI * PI * u * u * (2.0 - u));
+    // A1/δ falls monotonically in u from ∞ (u → 0) to 8/π² (u → 1). The fit evaluates this
+    // for every bin at hundreds of trial gaps, so: Newton on ln(A1/δ), which is smooth and
+    // convex enough to converge in a few steps, kept inside a shrinking bisection bracket.
+    let ln_target = target.ln();
+    let ln_h =
+        |u: f64| (8.0 / (PI * PI)).ln() + (0.5 * PI * u).sin().ln() - 2.0 * u.ln() - (2.0 - u).ln();
+    let d_ln_h = |u: f64| 0.5 * PI / (0.5 * PI * u).tan() - 2.0 / u + 1.0 / (2.0 - u);
     let (mut lo, mut hi) = (0.0f64, 1.0f64);
-    // Large amplitudes: u ≈ 2/(π A1/δ); start the bracket there to keep full precision.
-    if target > 4.0 {
-        hi = (4.0 / (PI * target)).min(1.0);
-    }
-    for _ in 0..64 {
-        let mid = 0.5 * (lo + hi);
-        if mid <= lo || mid >= hi {
+    // Large amplitudes: u ≈ 2/(π A1/δ), which is also the starting point.
+    let mut u = (2.0 / (PI * target)).min(0.5);
+    for _ in 0..100 {
+        let f = ln_h(u) - ln_target;
+        if f > 0.0 {
+            lo = u;
+        } else {
+            hi = u;
+        }
+        let mut next = u - f / d_ln_h(u);
+        if !(next > lo && next < hi) {
+            next = 0.5 * (lo + hi);
+        }
+        if (next - u).abs() <= 1e-15 * u || hi - lo <= 1e-15 {
+            u = next;
             break;
         }
-        if h(mid) > target {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
+        u = next;
     }
-    let u = 0.5 * (lo + hi);
     (1.0 - u) * (1.0 - u)
 }
 
@@ -242,20 +250,24 @@ pub fn fit_dead_zone(bins: &[Bin], model: BackboneModel) -> Option<DeadZoneFit> 
         pts.iter()
             .map(|b| (b.stiffness, b.stiffness_spread, b.count)),
     );
-    // Cost and the optimal K for a given δ.
+    // Cost and the optimal K for a given δ, with one model evaluation per bin.
     let solve = |delta: f64| -> (f64, f64) {
+        let g: Vec<f64> = pts
+            .iter()
+            .map(|b| model.ratio(delta, b.amplitude))
+            .collect();
         let (mut sgy, mut sgg) = (0.0, 0.0);
-        for (b, wi) in pts.iter().zip(&w) {
-            let g = model.ratio(delta, b.amplitude);
-            sgy += wi * g * b.stiffness;
-            sgg += wi * g * g;
+        for ((b, wi), gi) in pts.iter().zip(&w).zip(&g) {
+            sgy += wi * gi * b.stiffness;
+            sgg += wi * gi * gi;
         }
         // A contact stiffness is positive.
         let k = if sgg > 0.0 { (sgy / sgg).max(0.0) } else { 0.0 };
         let cost: f64 = pts
             .iter()
             .zip(&w)
-            .map(|(b, wi)| wi * (b.stiffness - k * model.ratio(delta, b.amplitude)).powi(2))
+            .zip(&g)
+            .map(|((b, wi), gi)| wi * (b.stiffness - k * gi).powi(2))
             .sum();
         (cost, k)
     };
@@ -492,6 +504,45 @@ mod tests {
         // Far from the gap the orbit and the describing function agree.
         let (o, d) = (dead_zone_orbit_ratio(1.0, 50.0), dead_zone_ratio(1.0, 50.0));
         assert!((o - d).abs() < 1e-5, "{o} {d}");
+    }
+
+    /// The bisection the Newton solve replaced, as its reference.
+    fn orbit_ratio_by_bisection(delta: f64, amplitude: f64) -> f64 {
+        let target = amplitude / delta;
+        if target <= 8.0 / (PI * PI) {
+            return 0.0;
+        }
+        let h = |u: f64| 8.0 * (0.5 * PI * u).sin() / (PI * PI * u * u * (2.0 - u));
+        let (mut lo, mut hi) = (0.0f64, 1.0f64);
+        for _ in 0..200 {
+            let mid = 0.5 * (lo + hi);
+            if mid <= lo || mid >= hi {
+                break;
+            }
+            if h(mid) > target {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        let u = 0.5 * (lo + hi);
+        (1.0 - u) * (1.0 - u)
+    }
+
+    #[test]
+    fn orbit_ratio_newton_equals_bisection() {
+        let threshold = 8.0 / (PI * PI);
+        let mut worst = 0f64;
+        for i in 0..20_000 {
+            // From just above the contact threshold to 10⁶ times the gap, log-spaced.
+            let a = threshold * (1.0 + 1e-9) * (1e6f64 / threshold).powf(i as f64 / 19_999.0);
+            let (x, y) = (
+                dead_zone_orbit_ratio(1.0, a),
+                orbit_ratio_by_bisection(1.0, a),
+            );
+            worst = worst.max((x - y).abs());
+        }
+        assert!(worst < 1e-12, "worst difference {worst:e}");
     }
 
     #[test]
