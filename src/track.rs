@@ -168,6 +168,8 @@ pub struct Track {
     pub noise: f64,
     /// Analysis range (Hz) of the wavelet method; the whole band for Hilbert.
     pub band: (f64, f64),
+    /// Backend that evaluated the all-scale transform and the ridge: `cpu` or `gpu`.
+    pub backend: &'static str,
 }
 
 impl Track {
@@ -286,6 +288,7 @@ pub fn track_hilbert(x: &[f64], fs: f64, opt: &HilbertOptions) -> Result<Track, 
         offset: an.mean,
         noise,
         band: (0.0, fs / 2.0),
+        backend: "cpu",
     })
 }
 
@@ -402,408 +405,558 @@ pub fn track_wavelet(
     opt: &WaveletOptions,
     guide: Option<&[f64]>,
 ) -> Result<Track, TrackError> {
-    check_signal(x, fs)?;
-    let wl = opt.wavelet;
-    wl.validate().map_err(TrackError::BadOption)?;
-    if opt.scales < 3 || opt.scales > 4096 {
-        return Err(TrackError::BadOption(format!(
-            "{} scales: use between 3 and 4096",
-            opt.scales
-        )));
-    }
-    if let Some(g) = guide {
-        if g.len() != x.len() {
+    let prep = WaveletPrep::new(x, fs, opt, guide)?;
+    let ridge = prep.coarse_ridge();
+    Ok(prep.finish(ridge, "cpu"))
+}
+
+/// A wavelet track set up to its first pass: the spectrum, the scales and their band
+/// plans, and the coarse grid. The first pass (all scales, then the ridge) is what a
+/// backend evaluates — [`coarse_ridge`](Self::coarse_ridge) on the CPU, `gpu::ridge` on
+/// a GPU for many runs at once; [`finish`](Self::finish) does the rest on the CPU.
+pub struct WaveletPrep<'a> {
+    x: &'a [f64],
+    fs: f64,
+    opt: WaveletOptions,
+    guide: Option<&'a [f64]>,
+    fmin: f64,
+    fmax: f64,
+    /// Analysed frequencies (Hz), one per scale, log-spaced.
+    pub freqs: Vec<f64>,
+    /// The record's padded spectrum.
+    pub spec: Spectrum,
+    /// First-pass band plan per scale.
+    pub plans: Vec<ScalePlan>,
+    /// Samples between coarse steps.
+    pub h: usize,
+    /// Coarse steps.
+    pub steps: usize,
+    /// 1/(mean power of the record): ridge scores are log-power relative to it.
+    pub unit: f64,
+}
+
+/// What the first pass finds: the ridge on the coarse grid and the noise level per scale.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CoarseRidge {
+    /// Scale index of the ridge at every coarse step.
+    pub path: Vec<usize>,
+    /// Median coarse |W|² inside the cone of influence, per scale (`None` with fewer than 8
+    /// coarse steps there): the white-noise floor estimate.
+    pub median_power: Vec<Option<f64>>,
+}
+
+impl<'a> WaveletPrep<'a> {
+    /// Checks the signal and options, chooses the band and scales, and takes the spectrum.
+    pub fn new(
+        x: &'a [f64],
+        fs: f64,
+        opt: &WaveletOptions,
+        guide: Option<&'a [f64]>,
+    ) -> Result<WaveletPrep<'a>, TrackError> {
+        check_signal(x, fs)?;
+        let wl = opt.wavelet;
+        wl.validate().map_err(TrackError::BadOption)?;
+        if opt.scales < 3 || opt.scales > 4096 {
             return Err(TrackError::BadOption(format!(
-                "the reference ridge has {} samples, the signal {}",
-                g.len(),
-                x.len()
+                "{} scales: use between 3 and 4096",
+                opt.scales
             )));
         }
-    }
-    let n = x.len();
-    let (fmin, fmax) = match (opt.fmin, opt.fmax) {
-        (Some(a), Some(b)) => (a, b),
-        (a, b) => {
-            let (da, db) = default_band(x, fs, &wl)?;
-            (a.unwrap_or(da), b.unwrap_or(db))
+        if let Some(g) = guide {
+            if g.len() != x.len() {
+                return Err(TrackError::BadOption(format!(
+                    "the reference ridge has {} samples, the signal {}",
+                    g.len(),
+                    x.len()
+                )));
+            }
         }
-    };
-    if !(fmin > 0.0 && fmax > fmin && fmax <= fs / 2.0) {
-        return Err(TrackError::BadOption(format!(
-            "frequency range {fmin}..{fmax} Hz must satisfy 0 < fmin < fmax ≤ fs/2 = {} Hz",
-            fs / 2.0
-        )));
-    }
-    let freqs = log_frequencies(fmin, fmax, opt.scales);
-    let s_count = freqs.len();
-    let pad = (wl.support(wl.scale_for(fmin), 1e-8) * fs).ceil() as usize;
-    let spec = Spectrum::new(x, fs, pad.min(4 * n));
-
-    // Pass 1: coarse log-magnitude grid and the noise floor.
-    let plans: Vec<ScalePlan> = freqs
-        .iter()
-        .map(|&f| {
-            let s = wl.scale_for(f);
-            ScalePlan::with_tolerance(&spec, &wl, s, PASS1_OVERSAMPLE, PASS1_TOLERANCE)
+        let n = x.len();
+        let (fmin, fmax) = match (opt.fmin, opt.fmax) {
+            (Some(a), Some(b)) => (a, b),
+            (a, b) => {
+                let (da, db) = default_band(x, fs, &wl)?;
+                (a.unwrap_or(da), b.unwrap_or(db))
+            }
+        };
+        if !(fmin > 0.0 && fmax > fmin && fmax <= fs / 2.0) {
+            return Err(TrackError::BadOption(format!(
+                "frequency range {fmin}..{fmax} Hz must satisfy 0 < fmin < fmax ≤ fs/2 = {} Hz",
+                fs / 2.0
+            )));
+        }
+        let freqs = log_frequencies(fmin, fmax, opt.scales);
+        let s_count = freqs.len();
+        let pad = (wl.support(wl.scale_for(fmin), 1e-8) * fs).ceil() as usize;
+        let spec = Spectrum::new(x, fs, pad.min(4 * n));
+        let plans: Vec<ScalePlan> = freqs
+            .iter()
+            .map(|&f| {
+                let s = wl.scale_for(f);
+                ScalePlan::with_tolerance(&spec, &wl, s, PASS1_OVERSAMPLE, PASS1_TOLERANCE)
+            })
+            .collect();
+        let sigma_t_min = wl.time_sigma(wl.scale_for(fmax)) * fs;
+        let h = ((sigma_t_min / 2.0).floor() as usize)
+            .max(s_count.div_ceil(4))
+            .max(1);
+        let steps = (n - 1) / h + 1;
+        let variance = spec.bins.iter().map(|b| b.norm_sqr()).sum::<f64>() * 2.0
+            / (n as f64 * spec.padded_len as f64);
+        Ok(WaveletPrep {
+            x,
+            fs,
+            opt: opt.clone(),
+            guide,
+            fmin,
+            fmax,
+            freqs,
+            spec,
+            plans,
+            h,
+            steps,
+            unit: 1.0 / variance.max(f64::MIN_POSITIVE),
         })
-        .collect();
-    let sigma_t_min = wl.time_sigma(wl.scale_for(fmax)) * fs;
-    let h = ((sigma_t_min / 2.0).floor() as usize)
-        .max(s_count.div_ceil(4))
-        .max(1);
-    let steps = (n - 1) / h + 1;
-    let variance = spec.bins.iter().map(|b| b.norm_sqr()).sum::<f64>() * 2.0
-        / (n as f64 * spec.padded_len as f64);
-    let unit = 1.0 / variance.max(f64::MIN_POSITIVE);
-    let columns: Vec<(Vec<f32>, Option<f64>, f64)> = plans
-        .par_iter()
-        .map_init(Vec::new, |buf, plan| {
-            let gain = plan.evaluate_into(&spec, &wl, buf);
-            let step = plan.step(&spec);
-            let power: Vec<f64> = (0..steps)
-                .map(|j| interpolate(buf, (j * h) as f64 / step).norm_sqr())
-                .collect();
-            // Scores in f32 relative to the record's power (a constant shift, which the
-            // ridge does not see); anything 380 dB down is floored.
-            let mut col: Vec<f32> = power
-                .iter()
-                .map(|&p| 0.5 * ((p * unit) as f32).max(f32::MIN_POSITIVE).ln())
-                .collect();
-            let edge = opt.coi * wl.time_sigma(plan.scale) * fs;
-            let mut inner: Vec<f64> = (0..steps)
-                .filter(|&j| (j * h) as f64 >= edge && ((n - 1 - j * h) as f64) >= edge)
-                .map(|j| power[j])
-                .collect();
-            let noise = if inner.len() >= 8 {
-                let mid = inner.len() / 2;
-                let med = *inner.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
-                Some(med / std::f64::consts::LN_2 / (n as f64 * gain))
-            } else {
-                None
-            };
-            // Inside its cone of influence a long scale sees the record's onset or end (a
-            // broadband transient) rather than the signal: keep the ridge away from there.
-            let floor = col.iter().cloned().fold(f32::INFINITY, f32::min);
-            for (j, c) in col.iter_mut().enumerate() {
-                if ((j * h) as f64) < edge || ((n - 1 - j * h) as f64) < edge {
-                    *c = floor;
+    }
+
+    /// Coarse steps inside scale `k`'s cone of influence (an inclusive range; empty when
+    /// `first > last`): outside it a long scale sees the record's onset or end.
+    pub fn inner_steps(&self, k: usize) -> (usize, usize) {
+        let wl = self.opt.wavelet;
+        let n = self.x.len();
+        let edge = self.opt.coi * wl.time_sigma(self.plans[k].scale) * self.fs;
+        let inside =
+            |j: usize| (j * self.h) as f64 >= edge && ((n - 1 - j * self.h) as f64) >= edge;
+        let first = (0..self.steps).find(|&j| inside(j)).unwrap_or(self.steps);
+        let last = (0..self.steps).rev().find(|&j| inside(j)).unwrap_or(0);
+        (first, last)
+    }
+
+    /// ln f − ln g over the wavelet's relative resolution, per scale, at coarse step `j`,
+    /// when the guide has a usable frequency there: the guide's pull is weight × that².
+    pub fn guide_at(&self, j: usize) -> Option<f64> {
+        let g = self.guide?[j * self.h];
+        (g > 0.0 && g.is_finite()).then(|| g.ln())
+    }
+
+    /// The ridge penalty per squared scale step (the DP's λ).
+    pub fn penalty(&self) -> f32 {
+        let cell = (self.fmax / self.fmin).ln()
+            / (self.freqs.len() - 1) as f64
+            / self.opt.wavelet.relative_resolution();
+        (self.opt.penalty * cell * cell) as f32
+    }
+
+    /// Weight of the guide's pull and the wavelet's relative resolution.
+    pub fn guide_weight(&self) -> (f64, f64) {
+        (
+            self.opt.guide_weight,
+            self.opt.wavelet.relative_resolution(),
+        )
+    }
+
+    /// Whether the ridge is the penalised path (else the per-step argmax).
+    pub fn dynamic_ridge(&self) -> bool {
+        self.opt.ridge == RidgeSearch::Dynamic
+    }
+
+    /// The wavelet analysed with.
+    pub fn wavelet(&self) -> Morlet {
+        self.opt.wavelet
+    }
+
+    /// Record length (samples).
+    pub fn len(&self) -> usize {
+        self.x.len()
+    }
+
+    /// Always false: a prepared record has at least `MIN_SAMPLES` samples.
+    pub fn is_empty(&self) -> bool {
+        self.x.is_empty()
+    }
+
+    /// The first pass on the CPU: per scale, in parallel, the band-limited transform on the
+    /// coarse grid, then the ridge through the log-power scores.
+    pub fn coarse_ridge(&self) -> CoarseRidge {
+        let wl = self.opt.wavelet;
+        let (steps, h, s_count) = (self.steps, self.h, self.freqs.len());
+        let columns: Vec<(Vec<f32>, Option<f64>)> = self
+            .plans
+            .par_iter()
+            .enumerate()
+            .map_init(Vec::new, |buf, (k, plan)| {
+                plan.evaluate_into(&self.spec, &wl, buf);
+                let step = plan.step(&self.spec);
+                let power: Vec<f64> = (0..steps)
+                    .map(|j| interpolate(buf, (j * h) as f64 / step).norm_sqr())
+                    .collect();
+                // Scores in f32 relative to the record's power (a constant shift, which the
+                // ridge does not see); anything 380 dB down is floored.
+                let mut col: Vec<f32> = power
+                    .iter()
+                    .map(|&p| 0.5 * ((p * self.unit) as f32).max(f32::MIN_POSITIVE).ln())
+                    .collect();
+                let (first, last) = self.inner_steps(k);
+                let median = if last + 1 >= first + 8 {
+                    let mut inner = power[first..=last].to_vec();
+                    let mid = inner.len() / 2;
+                    Some(*inner.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1)
+                } else {
+                    None
+                };
+                // Inside its cone of influence a long scale sees the record's onset or end
+                // (a broadband transient) rather than the signal: keep the ridge away.
+                let floor = col.iter().cloned().fold(f32::INFINITY, f32::min);
+                for (j, c) in col.iter_mut().enumerate() {
+                    if j < first || j > last {
+                        *c = floor;
+                    }
+                }
+                (col, median)
+            })
+            .collect();
+        let mut scores = vec![0f32; steps * s_count];
+        for (k, (col, _)) in columns.iter().enumerate() {
+            for j in 0..steps {
+                scores[j * s_count + k] = col[j];
+            }
+        }
+        if self.guide.is_some() {
+            let ln_f: Vec<f64> = self.freqs.iter().map(|f| f.ln()).collect();
+            let (weight, r) = self.guide_weight();
+            for j in 0..steps {
+                if let Some(lg) = self.guide_at(j) {
+                    for k in 0..s_count {
+                        let d = (ln_f[k] - lg) / r;
+                        scores[j * s_count + k] -= (weight * d * d) as f32;
+                    }
                 }
             }
-            (col, noise, gain)
-        })
-        .collect();
-    // White-noise floor: the lower of the quietest quarter of the scales (median over time)
-    // and the spectrum above the analysis band, where only noise should be left.
-    let mut per_scale: Vec<f64> = columns.iter().filter_map(|c| c.1).collect();
-    let from_scales = if per_scale.is_empty() {
-        f64::INFINITY
-    } else {
-        let q = per_scale.len() / 4;
-        *per_scale.select_nth_unstable_by(q, |a, b| a.total_cmp(b)).1
-    };
-    let from_spectrum = spec
-        .white_noise_variance(1.5 * fmax, fs / 2.0)
-        .unwrap_or(f64::INFINITY);
-    let noise_var = from_scales.min(from_spectrum);
-    let noise_var = if noise_var.is_finite() {
-        noise_var
-    } else {
-        0.0
-    };
-    let noise_w: Vec<f64> = columns
-        .iter()
-        .map(|c| (noise_var * n as f64 * c.2).sqrt())
-        .collect();
-    let mut scores = vec![0f32; steps * s_count];
-    for (k, (col, _, _)) in columns.iter().enumerate() {
-        for j in 0..steps {
-            scores[j * s_count + k] = col[j];
+        }
+        let path = if self.dynamic_ridge() {
+            dp_ridge(&scores, s_count, self.penalty())
+        } else {
+            argmax_ridge(&scores, s_count)
+        };
+        CoarseRidge {
+            path,
+            median_power: columns.into_iter().map(|c| c.1).collect(),
         }
     }
-    drop(columns);
 
-    // Ridge on the grid.
-    let cell = (fmax / fmin).ln() / (s_count - 1) as f64 / wl.relative_resolution();
-    if let Some(g) = guide {
-        let ln_f: Vec<f64> = freqs.iter().map(|f| f.ln()).collect();
-        let r = wl.relative_resolution();
-        for j in 0..steps {
-            let gf = g[j * h];
-            if gf > 0.0 && gf.is_finite() {
-                let lg = gf.ln();
-                for k in 0..s_count {
-                    let d = (ln_f[k] - lg) / r;
-                    scores[j * s_count + k] -= (opt.guide_weight * d * d) as f32;
+    /// Everything after the first pass, on the CPU: the estimation grid, W, W′, W″ at the
+    /// scales around the ridge, the three-scale estimates, the bias correction, validity,
+    /// and the per-sample track. `backend` names who computed `ridge`.
+    pub fn finish(self, ridge: CoarseRidge, backend: &'static str) -> Track {
+        let WaveletPrep {
+            x,
+            fs,
+            opt,
+            fmin,
+            fmax,
+            freqs,
+            spec,
+            plans,
+            h,
+            steps,
+            ..
+        } = self;
+        let opt = &opt;
+        let wl = opt.wavelet;
+        let n = x.len();
+        let s_count = freqs.len();
+        let path = ridge.path;
+        // White-noise floor: the lower of the quietest quarter of the scales (median over
+        // time) and the spectrum above the analysis band, where only noise should be left.
+        let gains: Vec<f64> = plans.iter().map(|p| p.noise_gain(&spec, &wl)).collect();
+        let mut per_scale: Vec<f64> = ridge
+            .median_power
+            .iter()
+            .zip(&gains)
+            .filter_map(|(m, g)| m.map(|m| m / std::f64::consts::LN_2 / (n as f64 * g)))
+            .collect();
+        let from_scales = if per_scale.is_empty() {
+            f64::INFINITY
+        } else {
+            let q = per_scale.len() / 4;
+            *per_scale.select_nth_unstable_by(q, |a, b| a.total_cmp(b)).1
+        };
+        let from_spectrum = spec
+            .white_noise_variance(1.5 * fmax, fs / 2.0)
+            .unwrap_or(f64::INFINITY);
+        let noise_var = from_scales.min(from_spectrum);
+        let noise_var = if noise_var.is_finite() {
+            noise_var
+        } else {
+            0.0
+        };
+        let noise_w: Vec<f64> = gains
+            .iter()
+            .map(|g| (noise_var * n as f64 * g).sqrt())
+            .collect();
+        let ridge_at = |i: usize| -> usize {
+            let j = i / h;
+            let u = (i % h) as f64 / h as f64;
+            let a = path[j] as f64;
+            let b = path[(j + 1).min(steps - 1)] as f64;
+            (a + u * (b - a)).round() as usize
+        };
+
+        // The estimation grid: σ_t/GRID_DIVISION apart at the ridge's scale. Everything below
+        // is computed on it; the per-sample track is interpolated at the end.
+        let mut grid = Vec::new();
+        let mut i = 0usize;
+        while i < n {
+            grid.push(i);
+            let st = wl.time_sigma(wl.scale_for(freqs[ridge_at(i)])) * fs;
+            i += ((st / GRID_DIVISION).floor() as usize).max(1);
+        }
+        if *grid.last().expect("n ≥ 1") != n - 1 {
+            grid.push(n - 1);
+        }
+        let g_count = grid.len();
+
+        // Pass 2: W, W', W'' for the scales within ±2 of the ridge (the best of its three
+        // neighbours, and that one's neighbours for the parabola), kept where needed.
+        let mut wanted: Vec<Vec<(usize, usize)>> = vec![Vec::new(); s_count];
+        for (g, &i) in grid.iter().enumerate() {
+            let c = ridge_at(i).clamp(1, s_count - 2);
+            let (lo, hi) = (c.saturating_sub(2), (c + 2).min(s_count - 1));
+            let prev = g.checked_sub(1).map(|p| grid[p]);
+            for runs in &mut wanted[lo..=hi] {
+                match runs.last_mut() {
+                    Some(r) if Some(r.1) == prev => r.1 = i,
+                    _ => runs.push((i, i)),
                 }
             }
         }
-    }
-    let path = match opt.ridge {
-        RidgeSearch::Dynamic => dp_ridge(&scores, s_count, (opt.penalty * cell * cell) as f32),
-        RidgeSearch::Argmax => argmax_ridge(&scores, s_count),
-    };
-    drop(scores);
-    let ridge_at = |i: usize| -> usize {
-        let j = i / h;
-        let u = (i % h) as f64 / h as f64;
-        let a = path[j] as f64;
-        let b = path[(j + 1).min(steps - 1)] as f64;
-        (a + u * (b - a)).round() as usize
-    };
-
-    // The estimation grid: σ_t/GRID_DIVISION apart at the ridge's scale. Everything below
-    // is computed on it; the per-sample track is interpolated at the end.
-    let mut grid = Vec::new();
-    let mut i = 0usize;
-    while i < n {
-        grid.push(i);
-        let st = wl.time_sigma(wl.scale_for(freqs[ridge_at(i)])) * fs;
-        i += ((st / GRID_DIVISION).floor() as usize).max(1);
-    }
-    if *grid.last().expect("n ≥ 1") != n - 1 {
-        grid.push(n - 1);
-    }
-    let g_count = grid.len();
-
-    // Pass 2: W, W', W'' for the scales within ±2 of the ridge (the best of its three
-    // neighbours, and that one's neighbours for the parabola), kept where needed.
-    let mut wanted: Vec<Vec<(usize, usize)>> = vec![Vec::new(); s_count];
-    for (g, &i) in grid.iter().enumerate() {
-        let c = ridge_at(i).clamp(1, s_count - 2);
-        let (lo, hi) = (c.saturating_sub(2), (c + 2).min(s_count - 1));
-        let prev = g.checked_sub(1).map(|p| grid[p]);
-        for runs in &mut wanted[lo..=hi] {
-            match runs.last_mut() {
-                Some(r) if Some(r.1) == prev => r.1 = i,
-                _ => runs.push((i, i)),
-            }
-        }
-    }
-    let data: Vec<ScaleData> = plans
-        .into_par_iter()
-        .zip(wanted.into_par_iter())
-        .map(|(plan, runs)| {
-            let plan = ScalePlan::new(&spec, &wl, plan.scale, PASS2_OVERSAMPLE);
-            let step = plan.step(&spec);
-            if runs.is_empty() {
-                return ScaleData {
+        let data: Vec<ScaleData> = plans
+            .into_par_iter()
+            .zip(wanted.into_par_iter())
+            .map(|(plan, runs)| {
+                let plan = ScalePlan::new(&spec, &wl, plan.scale, PASS2_OVERSAMPLE);
+                let step = plan.step(&spec);
+                if runs.is_empty() {
+                    return ScaleData {
+                        plan,
+                        step,
+                        segments: Vec::new(),
+                    };
+                }
+                let [w, d1, d2] = plan.evaluate_with_derivatives(&spec, &wl).map(|d| d.values);
+                let m = w.len() as isize;
+                let take = |v: &[Complex64], a: isize, b: isize| -> Vec<Complex64> {
+                    (a..=b).map(|i| v[i.rem_euclid(m) as usize]).collect()
+                };
+                let segments = runs
+                    .iter()
+                    .map(|&(s0, s1)| {
+                        let a = (s0 as f64 / step).floor() as isize - 2;
+                        let b = (s1 as f64 / step).floor() as isize + 3;
+                        Segment {
+                            first: a,
+                            w: take(&w, a, b),
+                            d1: take(&d1, a, b),
+                            d2: take(&d2, a, b),
+                            samples: (s0, s1),
+                        }
+                    })
+                    .collect();
+                ScaleData {
                     plan,
                     step,
-                    segments: Vec::new(),
-                };
-            }
-            let [w, d1, d2] = plan.evaluate_with_derivatives(&spec, &wl).map(|d| d.values);
-            let m = w.len() as isize;
-            let take = |v: &[Complex64], a: isize, b: isize| -> Vec<Complex64> {
-                (a..=b).map(|i| v[i.rem_euclid(m) as usize]).collect()
-            };
-            let segments = runs
-                .iter()
-                .map(|&(s0, s1)| {
-                    let a = (s0 as f64 / step).floor() as isize - 2;
-                    let b = (s1 as f64 / step).floor() as isize + 3;
-                    Segment {
-                        first: a,
-                        w: take(&w, a, b),
-                        d1: take(&d1, a, b),
-                        d2: take(&d2, a, b),
-                        samples: (s0, s1),
-                    }
-                })
-                .collect();
-            ScaleData {
-                plan,
-                step,
-                segments,
-            }
-        })
-        .collect();
-
-    // Pass 3: per grid point, the three-scale estimate around the largest of the ridge's
-    // neighbours.
-    let obs: Vec<(Observation, usize, bool)> = grid
-        .par_iter()
-        .map(|&i| {
-            let c = ridge_at(i).clamp(1, s_count - 2);
-            let at = |k: usize| data[k].value(&spec, i);
-            let near =
-                [c - 1, c, c + 1].map(|k| (k >= 1 && k + 1 < s_count).then(|| at(k)).flatten());
-            let best = near
-                .iter()
-                .enumerate()
-                .filter_map(|(p, v)| v.map(|v| (c - 1 + p, v.ln_amp)))
-                .max_by(|a, b| a.1.total_cmp(&b.1))
-                .map_or(c, |(k, _)| k);
-            // The triple reuses the values already interpolated.
-            let pick = |k: usize| {
-                let p = k as isize - (c as isize - 1);
-                if (0..3).contains(&p) {
-                    near[p as usize]
-                } else {
-                    at(k)
+                    segments,
                 }
-            };
-            match [pick(best - 1), pick(best), pick(best + 1)] {
-                [Some(a), Some(b), Some(c3)] => {
-                    let o = skeleton::estimate([a, b, c3]);
-                    (o, best, o.peaked)
-                }
-                _ => (
-                    Observation {
-                        ln_amp: f64::NEG_INFINITY,
-                        phase: 0.0,
-                        d1: Complex64::new(0.0, 2.0 * PI * freqs[best]),
-                        d2: Complex64::new(0.0, 0.0),
-                        scale: wl.scale_for(freqs[best]),
-                        peaked: false,
-                    },
-                    best,
-                    false,
-                ),
-            }
-        })
-        .collect();
-    drop(data);
-    let offset = spec.mean;
-    drop(spec);
-
-    // Bias correction at every grid point.
-    let fixes: Vec<Option<[f64; 5]>> = obs
-        .par_iter()
-        .map(|&(o, k, ok)| {
-            if !opt.correct {
-                return Some([0.0; 5]);
-            }
-            if !ok {
-                return None;
-            }
-            let scales = [k - 1, k, k + 1].map(|q| wl.scale_for(freqs[q]));
-            let st = wl.time_sigma(o.scale);
-            // A steady tone is estimated exactly; skip the solve where the model is that close.
-            if (o.decay() * st).abs() < 1e-4 && (o.sweep() * st * st).abs() < 1e-4 {
-                return Some([0.0; 5]);
-            }
-            let c = skeleton::correct(&wl, scales, &o);
-            (c.converged && c.ln_amp_shift.abs() < std::f64::consts::LN_2).then_some([
-                c.ln_amp_shift,
-                c.phase_shift,
-                c.model.decay - o.decay(),
-                c.model.freq - o.freq(),
-                c.model.sweep - o.sweep(),
-            ])
-        })
-        .collect();
-
-    let t: Vec<f64> = grid.iter().map(|&i| i as f64 / fs).collect();
-    let half: Vec<f64> = obs.iter().map(|o| wl.time_sigma(o.0.scale)).collect();
-    let fix = |g: usize, c: usize| fixes[g].map_or(0.0, |f| f[c]);
-    let mut ln_amp: Vec<f64> = (0..g_count).map(|g| obs[g].0.ln_amp + fix(g, 0)).collect();
-    let mut phase: Vec<f64> = (0..g_count).map(|g| obs[g].0.phase + fix(g, 1)).collect();
-    let decay: Vec<f64> = (0..g_count).map(|g| obs[g].0.decay() + fix(g, 2)).collect();
-    let mut frequency: Vec<f64> = (0..g_count).map(|g| obs[g].0.freq() + fix(g, 3)).collect();
-    let sweep: Vec<f64> = (0..g_count).map(|g| obs[g].0.sweep() + fix(g, 4)).collect();
-    // A failed solve invalidates the grid points around it.
-    let mut fix_ok = vec![true; g_count];
-    for (g, f) in fixes.iter().enumerate() {
-        if f.is_none() {
-            let b = (g + 1).min(g_count - 1);
-            fix_ok[g.saturating_sub(1)..=b].fill(false);
-        }
-    }
-
-    // The sweep rate as the frequency track's own slope over ±σ_t: where the window saw a
-    // signal the local model cannot describe, it disagrees with the model's β.
-    let fslope = coarse_slope(&t, &frequency, &half);
-    let mut valid: Vec<bool> = (0..g_count)
-        .map(|g| {
-            let (o, k, ok) = obs[g];
-            let i = grid[g];
-            let st = half[g];
-            let margin = st * (opt.coi + (decay[g] * st).abs()) * fs;
-            let inside = i as f64 >= margin && (n - 1 - i) as f64 >= margin;
-            // The window spans ±coi σ_t, over which a sweep moves the frequency by β coi σ_t:
-            // the model needs all of that inside the analysed band (and clear of DC).
-            let reach = sweep[g].abs().max(fslope[g].abs()) * opt.coi * st;
-            let in_band = frequency[g] - reach >= fmin && frequency[g] + reach <= fmax;
-            // A loose threshold first: the final one is applied after smoothing, so that
-            // noise which happens to lift a point over it does not select that point.
-            let audible = o.ln_amp.exp() >= 0.5 * opt.min_snr * noise_w[k];
-            ok && fix_ok[g] && inside && in_band && audible && frequency[g] > 0.0
-        })
-        .collect();
-    if opt.smooth_snr > 0.0 {
-        let snr: Vec<f64> = obs
-            .iter()
-            .map(|&(o, k, _)| o.ln_amp.exp() / noise_w[k])
+            })
             .collect();
-        smooth_low_snr(
-            &t,
-            &half,
-            &snr,
-            &mut ln_amp,
-            &mut frequency,
-            &valid,
-            opt.smooth_snr,
-        );
-    }
-    for g in 0..g_count {
-        valid[g] = valid[g] && ln_amp[g].exp() >= opt.min_snr * noise_w[obs[g].1];
-    }
-    unwrap_phase(&mut phase, &frequency, |g| t[g]);
-    // A'' = A (σ² − σ'); σ' by a local least-squares slope over ±σ_t of the grid.
-    let dsigma = coarse_slope(&t, &decay, &half);
 
-    // Per sample: ln A, f, σ, β, σ' linear between grid points (they vary over σ_t, the
-    // grid is σ_t/8), the phase cubic (Hermite, with 2πf as its slope at both ends).
-    let mut out = Track {
-        method: Method::Wavelet,
-        sample_rate: fs,
-        amplitude: vec![0.0; n],
-        frequency: vec![0.0; n],
-        phase: vec![0.0; n],
-        d_amplitude: vec![0.0; n],
-        d2_amplitude: vec![0.0; n],
-        d_frequency: vec![0.0; n],
-        valid: vec![false; n],
-        offset,
-        noise: noise_var.sqrt(),
-        band: (fmin, fmax),
-    };
-    for g in 0..g_count {
-        let a = grid[g];
-        let b = grid.get(g + 1).copied().unwrap_or(a);
-        let gb = (g + 1).min(g_count - 1);
-        let span = (b - a).max(1) as f64;
-        let dt = span / fs;
-        let last = if g + 1 == g_count { a } else { b - 1 };
-        for i in a..=last {
-            let u = (i - a) as f64 / span;
-            let lerp = |v: &[f64]| v[g] + u * (v[gb] - v[g]);
-            let la = if ln_amp[g].is_finite() && ln_amp[gb].is_finite() {
-                lerp(&ln_amp)
-            } else if u < 0.5 {
-                ln_amp[g]
-            } else {
-                ln_amp[gb]
-            };
-            let amp = la.exp();
-            let sig = lerp(&decay);
-            let (u2, u3) = (u * u, u * u * u);
-            let w0 = 2.0 * PI * frequency[g] * dt;
-            let w1 = 2.0 * PI * frequency[gb] * dt;
-            out.amplitude[i] = amp;
-            out.frequency[i] = lerp(&frequency);
-            out.phase[i] = (2.0 * u3 - 3.0 * u2 + 1.0) * phase[g]
-                + (u3 - 2.0 * u2 + u) * w0
-                + (3.0 * u2 - 2.0 * u3) * phase[gb]
-                + (u3 - u2) * w1;
-            out.d_amplitude[i] = -sig * amp;
-            out.d2_amplitude[i] = amp * (sig * sig - lerp(&dsigma));
-            out.d_frequency[i] = lerp(&sweep);
-            out.valid[i] = valid[g] && valid[gb];
+        // Pass 3: per grid point, the three-scale estimate around the largest of the ridge's
+        // neighbours.
+        let obs: Vec<(Observation, usize, bool)> = grid
+            .par_iter()
+            .map(|&i| {
+                let c = ridge_at(i).clamp(1, s_count - 2);
+                let at = |k: usize| data[k].value(&spec, i);
+                let near =
+                    [c - 1, c, c + 1].map(|k| (k >= 1 && k + 1 < s_count).then(|| at(k)).flatten());
+                let best = near
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(p, v)| v.map(|v| (c - 1 + p, v.ln_amp)))
+                    .max_by(|a, b| a.1.total_cmp(&b.1))
+                    .map_or(c, |(k, _)| k);
+                // The triple reuses the values already interpolated.
+                let pick = |k: usize| {
+                    let p = k as isize - (c as isize - 1);
+                    if (0..3).contains(&p) {
+                        near[p as usize]
+                    } else {
+                        at(k)
+                    }
+                };
+                match [pick(best - 1), pick(best), pick(best + 1)] {
+                    [Some(a), Some(b), Some(c3)] => {
+                        let o = skeleton::estimate([a, b, c3]);
+                        (o, best, o.peaked)
+                    }
+                    _ => (
+                        Observation {
+                            ln_amp: f64::NEG_INFINITY,
+                            phase: 0.0,
+                            d1: Complex64::new(0.0, 2.0 * PI * freqs[best]),
+                            d2: Complex64::new(0.0, 0.0),
+                            scale: wl.scale_for(freqs[best]),
+                            peaked: false,
+                        },
+                        best,
+                        false,
+                    ),
+                }
+            })
+            .collect();
+        drop(data);
+        let offset = spec.mean;
+        drop(spec);
+
+        // Bias correction at every grid point.
+        let fixes: Vec<Option<[f64; 5]>> = obs
+            .par_iter()
+            .map(|&(o, k, ok)| {
+                if !opt.correct {
+                    return Some([0.0; 5]);
+                }
+                if !ok {
+                    return None;
+                }
+                let scales = [k - 1, k, k + 1].map(|q| wl.scale_for(freqs[q]));
+                let st = wl.time_sigma(o.scale);
+                // A steady tone is estimated exactly; skip the solve where the model is that close.
+                if (o.decay() * st).abs() < 1e-4 && (o.sweep() * st * st).abs() < 1e-4 {
+                    return Some([0.0; 5]);
+                }
+                let c = skeleton::correct(&wl, scales, &o);
+                (c.converged && c.ln_amp_shift.abs() < std::f64::consts::LN_2).then_some([
+                    c.ln_amp_shift,
+                    c.phase_shift,
+                    c.model.decay - o.decay(),
+                    c.model.freq - o.freq(),
+                    c.model.sweep - o.sweep(),
+                ])
+            })
+            .collect();
+
+        let t: Vec<f64> = grid.iter().map(|&i| i as f64 / fs).collect();
+        let half: Vec<f64> = obs.iter().map(|o| wl.time_sigma(o.0.scale)).collect();
+        let fix = |g: usize, c: usize| fixes[g].map_or(0.0, |f| f[c]);
+        let mut ln_amp: Vec<f64> = (0..g_count).map(|g| obs[g].0.ln_amp + fix(g, 0)).collect();
+        let mut phase: Vec<f64> = (0..g_count).map(|g| obs[g].0.phase + fix(g, 1)).collect();
+        let decay: Vec<f64> = (0..g_count).map(|g| obs[g].0.decay() + fix(g, 2)).collect();
+        let mut frequency: Vec<f64> = (0..g_count).map(|g| obs[g].0.freq() + fix(g, 3)).collect();
+        let sweep: Vec<f64> = (0..g_count).map(|g| obs[g].0.sweep() + fix(g, 4)).collect();
+        // A failed solve invalidates the grid points around it.
+        let mut fix_ok = vec![true; g_count];
+        for (g, f) in fixes.iter().enumerate() {
+            if f.is_none() {
+                let b = (g + 1).min(g_count - 1);
+                fix_ok[g.saturating_sub(1)..=b].fill(false);
+            }
         }
+
+        // The sweep rate as the frequency track's own slope over ±σ_t: where the window saw a
+        // signal the local model cannot describe, it disagrees with the model's β.
+        let fslope = coarse_slope(&t, &frequency, &half);
+        let mut valid: Vec<bool> = (0..g_count)
+            .map(|g| {
+                let (o, k, ok) = obs[g];
+                let i = grid[g];
+                let st = half[g];
+                let margin = st * (opt.coi + (decay[g] * st).abs()) * fs;
+                let inside = i as f64 >= margin && (n - 1 - i) as f64 >= margin;
+                // The window spans ±coi σ_t, over which a sweep moves the frequency by β coi σ_t:
+                // the model needs all of that inside the analysed band (and clear of DC).
+                let reach = sweep[g].abs().max(fslope[g].abs()) * opt.coi * st;
+                let in_band = frequency[g] - reach >= fmin && frequency[g] + reach <= fmax;
+                // A loose threshold first: the final one is applied after smoothing, so that
+                // noise which happens to lift a point over it does not select that point.
+                let audible = o.ln_amp.exp() >= 0.5 * opt.min_snr * noise_w[k];
+                ok && fix_ok[g] && inside && in_band && audible && frequency[g] > 0.0
+            })
+            .collect();
+        if opt.smooth_snr > 0.0 {
+            let snr: Vec<f64> = obs
+                .iter()
+                .map(|&(o, k, _)| o.ln_amp.exp() / noise_w[k])
+                .collect();
+            smooth_low_snr(
+                &t,
+                &half,
+                &snr,
+                &mut ln_amp,
+                &mut frequency,
+                &valid,
+                opt.smooth_snr,
+            );
+        }
+        for g in 0..g_count {
+            valid[g] = valid[g] && ln_amp[g].exp() >= opt.min_snr * noise_w[obs[g].1];
+        }
+        unwrap_phase(&mut phase, &frequency, |g| t[g]);
+        // A'' = A (σ² − σ'); σ' by a local least-squares slope over ±σ_t of the grid.
+        let dsigma = coarse_slope(&t, &decay, &half);
+
+        // Per sample: ln A, f, σ, β, σ' linear between grid points (they vary over σ_t, the
+        // grid is σ_t/8), the phase cubic (Hermite, with 2πf as its slope at both ends).
+        let mut out = Track {
+            method: Method::Wavelet,
+            sample_rate: fs,
+            amplitude: vec![0.0; n],
+            frequency: vec![0.0; n],
+            phase: vec![0.0; n],
+            d_amplitude: vec![0.0; n],
+            d2_amplitude: vec![0.0; n],
+            d_frequency: vec![0.0; n],
+            valid: vec![false; n],
+            offset,
+            noise: noise_var.sqrt(),
+            band: (fmin, fmax),
+            backend,
+        };
+        for g in 0..g_count {
+            let a = grid[g];
+            let b = grid.get(g + 1).copied().unwrap_or(a);
+            let gb = (g + 1).min(g_count - 1);
+            let span = (b - a).max(1) as f64;
+            let dt = span / fs;
+            let last = if g + 1 == g_count { a } else { b - 1 };
+            for i in a..=last {
+                let u = (i - a) as f64 / span;
+                let lerp = |v: &[f64]| v[g] + u * (v[gb] - v[g]);
+                let la = if ln_amp[g].is_finite() && ln_amp[gb].is_finite() {
+                    lerp(&ln_amp)
+                } else if u < 0.5 {
+                    ln_amp[g]
+                } else {
+                    ln_amp[gb]
+                };
+                let amp = la.exp();
+                let sig = lerp(&decay);
+                let (u2, u3) = (u * u, u * u * u);
+                let w0 = 2.0 * PI * frequency[g] * dt;
+                let w1 = 2.0 * PI * frequency[gb] * dt;
+                out.amplitude[i] = amp;
+                out.frequency[i] = lerp(&frequency);
+                out.phase[i] = (2.0 * u3 - 3.0 * u2 + 1.0) * phase[g]
+                    + (u3 - 2.0 * u2 + u) * w0
+                    + (3.0 * u2 - 2.0 * u3) * phase[gb]
+                    + (u3 - u2) * w1;
+                out.d_amplitude[i] = -sig * amp;
+                out.d2_amplitude[i] = amp * (sig * sig - lerp(&dsigma));
+                out.d_frequency[i] = lerp(&sweep);
+                out.valid[i] = valid[g] && valid[gb];
+            }
+        }
+        out
     }
-    Ok(out)
 }
 
 /// Slope of `y` at every coarse time by a least-squares line over ±`half` (0 where too few

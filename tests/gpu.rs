@@ -173,3 +173,95 @@ fn gpu_scales_match_the_cpu_first_pass_for_a_batch_of_runs() {
     println!("coarse |W|, GPU against CPU: worst relative difference {worst:.2e}");
     assert!(worst < 1e-4, "{worst:e}");
 }
+
+/// Paper-like test signals: a chirp through a resonance with noise (guided by its own
+/// excitation's frequency), a decaying tone, and a short two-tone record.
+fn ridge_signals() -> Vec<(Vec<f64>, Option<Vec<f64>>)> {
+    use std::f64::consts::PI;
+    let fs = 1000.0;
+    let mut rng = rand::rngs::StdRng::seed_from_u64(4);
+    let chirp_f = |t: f64| 2.0 + 0.3 * t;
+    let chirp: Vec<f64> = (0..30_000)
+        .map(|i| {
+            let t = i as f64 / fs;
+            let a = 1.0 + 4.0 * (-((chirp_f(t) - 8.0) / 1.0).powi(2)).exp();
+            a * (2.0 * PI * (2.0 * t + 0.15 * t * t)).sin() + 0.05 * rng.random_range(-1.0..1.0)
+        })
+        .collect();
+    let guide: Vec<f64> = (0..30_000).map(|i| chirp_f(i as f64 / fs)).collect();
+    let decay: Vec<f64> = (0..12_345)
+        .map(|i| {
+            let t = i as f64 / fs;
+            (-0.3 * t).exp() * (2.0 * PI * 8.0 * t).sin() + 0.01 * rng.random_range(-1.0..1.0)
+        })
+        .collect();
+    let short: Vec<f64> = (0..3001)
+        .map(|i| {
+            let t = i as f64 / fs;
+            (2.0 * PI * 40.0 * t).cos() + 0.2 * (2.0 * PI * 90.0 * t).cos()
+        })
+        .collect();
+    vec![(chirp, Some(guide)), (decay, None), (short, None)]
+}
+
+#[test]
+fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
+    use skelid::gpu::ridge::FirstPass;
+    use skelid::track::{RidgeSearch, WaveletOptions, WaveletPrep};
+    let gpu = gpu();
+    let stage = FirstPass::new(&gpu);
+    let signals = ridge_signals();
+    // 128 scales: the programme runs in several chunks per run (lavapipe's loop limit);
+    // 700 scales: many chunks and more than one scale per invocation.
+    for (search, scales) in [
+        (RidgeSearch::Dynamic, 128),
+        (RidgeSearch::Argmax, 64),
+        (RidgeSearch::Dynamic, 700),
+    ] {
+        let opt = WaveletOptions {
+            scales,
+            ridge: search,
+            ..Default::default()
+        };
+        let preps: Vec<WaveletPrep> = signals
+            .iter()
+            .map(|(x, g)| WaveletPrep::new(x, 1000.0, &opt, g.as_deref()).unwrap())
+            .collect();
+        let refs: Vec<&WaveletPrep> = preps.iter().collect();
+        let ours = stage.coarse_ridges(&gpu, &refs).unwrap();
+        for (p, o) in preps.iter().zip(&ours) {
+            let cpu = p.coarse_ridge();
+            let differ = cpu.path.iter().zip(&o.path).filter(|(a, b)| a != b).count();
+            let off = cpu
+                .path
+                .iter()
+                .zip(&o.path)
+                .map(|(&a, &b)| a.abs_diff(b))
+                .max()
+                .unwrap_or(0);
+            let worst_median = cpu
+                .median_power
+                .iter()
+                .zip(&o.median_power)
+                .map(|(a, b)| match (a, b) {
+                    (Some(a), Some(b)) => (a - b).abs() / a,
+                    (None, None) => 0.0,
+                    _ => f64::INFINITY,
+                })
+                .fold(0.0, f64::max);
+            println!(
+                "{search:?}, {scales} scales, {} samples, {} steps: path differs at {differ} \
+                 steps (by ≤ {off} scales), medians within {worst_median:.1e}",
+                p.len(),
+                p.steps
+            );
+            assert!(
+                differ * 100 <= cpu.path.len(),
+                "{differ} of {}",
+                cpu.path.len()
+            );
+            assert!(off <= 1, "{off}");
+            assert!(worst_median < 1e-3, "{worst_median:e}");
+        }
+    }
+}

@@ -6,6 +6,7 @@
 //! next to the shader that uses them.
 
 pub mod fft;
+pub mod ridge;
 pub mod scales;
 
 use std::sync::{Arc, Mutex};

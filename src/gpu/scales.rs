@@ -90,6 +90,30 @@ impl ScaleStage {
         wavelet: &Morlet,
         runs: &[RunScales],
     ) -> Result<Vec<Vec<f32>>, GpuError> {
+        let mut enc = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("scales"),
+            });
+        let grid = self.encode(gpu, &mut enc, wavelet, runs)?;
+        gpu.queue.submit([enc.finish()]);
+        let all: Vec<f32> = gpu.download(&grid.power, grid.len)?;
+        Ok(runs
+            .iter()
+            .zip(&grid.offsets)
+            .map(|(r, &o)| all[o..o + r.plans.len() * r.steps].to_vec())
+            .collect())
+    }
+
+    /// Records the work of [`coarse_power`](Self::coarse_power) into `enc`, leaving the
+    /// power grid on the GPU for the next stage (the ridge).
+    pub fn encode(
+        &self,
+        gpu: &Gpu,
+        enc: &mut wgpu::CommandEncoder,
+        wavelet: &Morlet,
+        runs: &[RunScales],
+    ) -> Result<PowerGrid, GpuError> {
         let align = offset_alignment(gpu);
         // Spectra back to back.
         let mut spectrum: Vec<[f32; 2]> = Vec::new();
@@ -215,11 +239,6 @@ impl ScaleStage {
             })
             .collect::<Vec<_>>(),
         });
-        let mut enc = gpu
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("scales"),
-            });
         let longest = groups.iter().map(|g| g.0).max().unwrap_or(1);
         let dispatch = |enc: &mut wgpu::CommandEncoder, pipeline, width: usize| {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
@@ -230,24 +249,32 @@ impl ScaleStage {
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(width.div_ceil(64) as u32, items.len() as u32, 1);
         };
-        dispatch(&mut enc, &self.scatter, longest);
+        dispatch(enc, &self.scatter, longest);
         for &(m, offset, count) in &groups {
             let holder = self
                 .fft
-                .encode(gpu, &mut enc, m, count, true, &data, &scratch, offset)?;
+                .encode(gpu, enc, m, count, true, &data, &scratch, offset)?;
             if holder == Holder::Scratch {
                 let bytes = (offset * 8) as u64;
                 enc.copy_buffer_to_buffer(&scratch, bytes, &data, bytes, (m * count * 8) as u64);
             }
         }
         let steps = runs.iter().map(|r| r.steps).max().unwrap_or(1);
-        dispatch(&mut enc, &self.power, steps);
-        gpu.queue.submit([enc.finish()]);
-        let all: Vec<f32> = gpu.download(&power, power_len)?;
-        Ok(runs
-            .iter()
-            .zip(&power_offset)
-            .map(|(r, &o)| all[o..o + r.plans.len() * r.steps].to_vec())
-            .collect())
+        dispatch(enc, &self.power, steps);
+        Ok(PowerGrid {
+            power,
+            offsets: power_offset,
+            len: power_len,
+        })
     }
+}
+
+/// A batch's coarse |W|² on the GPU: runs back to back, each scale-major.
+pub struct PowerGrid {
+    /// The values (f32).
+    pub power: wgpu::Buffer,
+    /// Where each run's values start.
+    pub offsets: Vec<usize>,
+    /// Values in all.
+    pub len: usize,
 }

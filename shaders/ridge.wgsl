@@ -1,0 +1,259 @@
+// Ridge search for a batch of runs (host: src/gpu/ridge.rs), on the coarse |W|² grid that
+// scales.wgsl leaves on the GPU (per run, scale-major: power[run.power + k·steps + j]).
+//
+// `stats`: one workgroup per run × scale: the column's lowest score (given to the steps
+// outside the scale's cone of influence, as src/track.rs does) and the median power inside
+// the cone (the noise floor), by a 32-step radix selection on the bits of non-negative f32
+// values, which sort as their u32 patterns.
+//
+// `ridge_steps`: one workgroup per run: the penalised dynamic programme of src/ridge.rs,
+// maximising Σ score(k_j, j) − λ Σ (k_j − k_{j−1})², the O(S²) maximum per step spread over
+// the workgroup, accumulated scores in workgroup memory (shifted by their value at scale 0
+// every step, so that f32 keeps its precision over thousands of steps), back-pointers in
+// global memory. `backtrack` then follows the back-pointers. Only the path and the
+// statistics go back to the host.
+//
+// Both work on one chunk of steps per dispatch (the `chunk` uniform), carrying the scores
+// (`accum`) or the path from one chunk to the next: Mesa's lavapipe ends any loop nest
+// after 65 535 iterations in all (gallivm's loop limiter), and a real GPU's watchdog
+// dislikes long dispatches. The host sizes chunks to stay under that limit.
+
+struct Run {
+    power: u32,        // offset of the run's power grid
+    steps: u32,        // coarse steps
+    scales: u32,       // scales S (≤ MAX_SCALES)
+    back: u32,         // offset of its steps × S back-pointers
+    path: u32,         // offset of its path (one scale index per step)
+    guide: u32,        // offset of its guide (one (ln f, usable) per step)
+    info: u32,         // offset of its per-scale ScaleInfo and statistics
+    flags: u32,        // bit 0: guided; bit 1: penalised path (else per-step argmax)
+    unit: f32,         // 1 / mean power of the record
+    penalty: f32,      // λ per squared scale step
+    guide_weight: f32, // weight of the guide's pull
+    resolution: f32,   // wavelet's relative frequency resolution
+};
+
+struct ScaleInfo {
+    first: u32,        // first coarse step inside the cone of influence
+    last: u32,         // last one (first > last: none)
+    mid: u32,          // rank of the median among the inner steps
+    ln_f: f32,         // ln of the scale's frequency (Hz)
+};
+
+struct Chunk {
+    first: u32,        // first step of this dispatch
+    last: u32,         // one past its last step
+    _pad0: u32,
+    _pad1: u32,
+};
+
+@group(0) @binding(0) var<storage, read> runs: array<Run>;
+@group(0) @binding(1) var<storage, read> info: array<ScaleInfo>;
+@group(0) @binding(2) var<storage, read> power: array<f32>;
+@group(0) @binding(3) var<storage, read> guide: array<vec2<f32>>;
+@group(0) @binding(4) var<storage, read_write> stats: array<vec2<f32>>;
+@group(0) @binding(5) var<storage, read_write> back: array<u32>;
+@group(0) @binding(6) var<storage, read_write> path: array<u32>;
+@group(0) @binding(7) var<uniform> chunk: Chunk;
+@group(0) @binding(8) var<storage, read_write> accum: array<f32>;
+
+const WG: u32 = 256u;
+const MAX_SCALES: u32 = 1024u;
+const MIN_POSITIVE: f32 = 1.17549435e-38;
+const BIG: f32 = 3.40282e38;
+
+var<workgroup> lowest: array<f32, WG>;
+var<workgroup> below: atomic<u32>;
+var<workgroup> which: array<u32, WG>;
+var<workgroup> acc: array<f32, MAX_SCALES>;
+var<workgroup> nxt: array<f32, MAX_SCALES>;
+
+// track.rs' score: half the log of the power relative to the record's, floored 380 dB down.
+fn log_score(p: f32, unit: f32) -> f32 {
+    return 0.5 * log(max(p * unit, MIN_POSITIVE));
+}
+
+@compute @workgroup_size(256)
+fn column_stats(@builtin(workgroup_id) wid: vec3<u32>,
+                @builtin(local_invocation_index) lid: u32) {
+    let run = runs[wid.y];
+    let k = wid.x;
+    if (k >= run.scales) {
+        return;
+    }
+    let si = info[run.info + k];
+    let base = run.power + k * run.steps;
+    var lo = BIG;
+    for (var j = lid; j < run.steps; j += WG) {
+        lo = min(lo, power[base + j]);
+    }
+    lowest[lid] = lo;
+    workgroupBarrier();
+    for (var w = WG / 2u; w > 0u; w = w >> 1u) {
+        if (lid < w) {
+            lowest[lid] = min(lowest[lid], lowest[lid + w]);
+        }
+        workgroupBarrier();
+    }
+    let floor_score = log_score(lowest[0], run.unit);
+    // The largest bit pattern t with #{v < t} ≤ mid is the mid-th smallest value.
+    var ans = 0u;
+    if (si.last + 1u >= si.first + 8u) {
+        for (var bit = 31i; bit >= 0i; bit = bit - 1i) {
+            let cand = ans | (1u << u32(bit));
+            if (lid == 0u) {
+                atomicStore(&below, 0u);
+            }
+            workgroupBarrier();
+            var c = 0u;
+            for (var j = si.first + lid; j <= si.last; j += WG) {
+                if (bitcast<u32>(power[base + j]) < cand) {
+                    c += 1u;
+                }
+            }
+            atomicAdd(&below, c);
+            let total = workgroupUniformLoad(&below);
+            if (total <= si.mid) {
+                ans = cand;
+            }
+            // Everyone has read the count before it is reset.
+            workgroupBarrier();
+        }
+    }
+    if (lid == 0u) {
+        stats[run.info + k] = vec2<f32>(floor_score, bitcast<f32>(ans));
+    }
+}
+
+fn score(run: Run, k: u32, j: u32) -> f32 {
+    let si = info[run.info + k];
+    var v: f32;
+    if (j < si.first || j > si.last) {
+        v = stats[run.info + k].x;
+    } else {
+        v = log_score(power[run.power + k * run.steps + j], run.unit);
+    }
+    if ((run.flags & 1u) != 0u) {
+        let g = guide[run.guide + j];
+        if (g.y > 0.5) {
+            let d = (si.ln_f - g.x) / run.resolution;
+            v = v - run.guide_weight * d * d;
+        }
+    }
+    return v;
+}
+
+@compute @workgroup_size(256)
+fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
+               @builtin(local_invocation_index) lid: u32) {
+    let run = runs[wid.x];
+    let s = run.scales;
+    let end = min(chunk.last, run.steps);
+    if (chunk.first >= end) {
+        return;
+    }
+    if ((run.flags & 2u) == 0u) {
+        // Per-step argmax (the first maximum): one step per invocation, no programme.
+        for (var j = chunk.first + lid; j < end; j += WG) {
+            var best = -BIG;
+            var arg = 0u;
+            for (var k = 0u; k < s; k += 1u) {
+                let v = score(run, k, j);
+                if (v > best) {
+                    best = v;
+                    arg = k;
+                }
+            }
+            path[run.path + j] = arg;
+        }
+        return;
+    }
+    var start = chunk.first;
+    if (start == 0u) {
+        for (var k = lid; k < s; k += WG) {
+            acc[k] = score(run, k, 0u);
+        }
+        start = 1u;
+    } else {
+        for (var k = lid; k < s; k += WG) {
+            acc[k] = accum[run.info + k];
+        }
+    }
+    workgroupBarrier();
+    for (var j = start; j < end; j += 1u) {
+        for (var k = lid; k < s; k += WG) {
+            var best = -BIG;
+            var arg = 0u;
+            for (var q = 0u; q < s; q += 1u) {
+                let d = f32(k) - f32(q);
+                let v = acc[q] - run.penalty * d * d;
+                if (v > best) {
+                    best = v;
+                    arg = q;
+                }
+            }
+            nxt[k] = score(run, k, j) + best;
+            back[run.back + j * s + k] = arg;
+        }
+        workgroupBarrier();
+        let shift = workgroupUniformLoad(&nxt[0]);
+        for (var k = lid; k < s; k += WG) {
+            acc[k] = nxt[k] - shift;
+        }
+        workgroupBarrier();
+    }
+    for (var k = lid; k < s; k += WG) {
+        accum[run.info + k] = acc[k];
+    }
+}
+
+@compute @workgroup_size(256)
+fn backtrack(@builtin(workgroup_id) wid: vec3<u32>,
+             @builtin(local_invocation_index) lid: u32) {
+    let run = runs[wid.x];
+    let s = run.scales;
+    let end = min(chunk.last, run.steps);
+    if (chunk.first >= end || (run.flags & 2u) == 0u) {
+        return;
+    }
+    var k = 0u;
+    if (end == run.steps) {
+        // The chunk with the final step starts from the best final score (the first, on
+        // ties, as src/ridge.rs), found by a tree reduction.
+        var best = -BIG;
+        var arg = 0u;
+        for (var q = lid; q < s; q += WG) {
+            let v = accum[run.info + q];
+            if (v > best) {
+                best = v;
+                arg = q;
+            }
+        }
+        lowest[lid] = best;
+        which[lid] = arg;
+        workgroupBarrier();
+        for (var w = WG / 2u; w > 0u; w = w >> 1u) {
+            if (lid < w) {
+                let v = lowest[lid + w];
+                let i = which[lid + w];
+                if (v > lowest[lid] || (v == lowest[lid] && i < which[lid])) {
+                    lowest[lid] = v;
+                    which[lid] = i;
+                }
+            }
+            workgroupBarrier();
+        }
+        k = workgroupUniformLoad(&which[0]);
+    } else {
+        // The later chunk has written the path from `end` on.
+        k = back[run.back + end * s + path[run.path + end]];
+    }
+    if (lid == 0u) {
+        for (var j = end; j > chunk.first; j -= 1u) {
+            path[run.path + j - 1u] = k;
+            if (j > 1u) {
+                k = back[run.back + (j - 1u) * s + k];
+            }
+        }
+    }
+}

@@ -1,0 +1,330 @@
+//! Host side of `shaders/ridge.wgsl`, and the wavelet track's whole first pass on the GPU
+//! for a batch of runs: the scales of [`super::scales`], then per scale the floor score and
+//! the median power, then the penalised ridge — one submission, and only the paths and the
+//! per-scale medians read back (a few kB per run, never the scalogram).
+
+use super::scales::{RunScales, ScaleStage};
+use super::{Gpu, GpuError};
+use crate::track::{CoarseRidge, WaveletPrep};
+
+/// Most scales the ridge programme holds in workgroup memory (the shader's `MAX_SCALES`).
+pub const MAX_SCALES: usize = 1024;
+
+/// The shader's `Run`.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct RunParams {
+    power: u32,
+    steps: u32,
+    scales: u32,
+    back: u32,
+    path: u32,
+    guide: u32,
+    info: u32,
+    flags: u32,
+    unit: f32,
+    penalty: f32,
+    guide_weight: f32,
+    resolution: f32,
+}
+
+/// The shader's `ScaleInfo`.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ScaleInfo {
+    first: u32,
+    last: u32,
+    mid: u32,
+    ln_f: f32,
+}
+
+/// The shader's `Chunk` uniform: the steps of one dispatch.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Chunk {
+    first: u32,
+    last: u32,
+    _pad: [u32; 2],
+}
+
+/// Loop iterations one invocation may run in a dispatch: lavapipe (gallivm) ends a loop
+/// nest after 65 535, whatever the shader says; this leaves room for the bookkeeping.
+const LOOP_BUDGET: usize = 60_000;
+
+/// Most coarse steps per run: the median's radix selection loops 32 × steps/256 times.
+pub const MAX_STEPS: usize = 1 << 18;
+
+/// The compiled ridge stage.
+pub struct RidgeStage {
+    stats: wgpu::ComputePipeline,
+    steps: wgpu::ComputePipeline,
+    backtrack: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+}
+
+/// The first pass of the wavelet track, scales and ridge, on one device.
+pub struct FirstPass {
+    scales: ScaleStage,
+    ridge: RidgeStage,
+}
+
+impl FirstPass {
+    /// Compiles both stages.
+    pub fn new(gpu: &Gpu) -> FirstPass {
+        FirstPass {
+            scales: ScaleStage::new(gpu),
+            ridge: RidgeStage::new(gpu),
+        }
+    }
+
+    /// The coarse ridge and noise medians of every run, in one submission. All runs must
+    /// use the same wavelet; size the batch with [`batch_bytes`] first.
+    pub fn coarse_ridges(
+        &self,
+        gpu: &Gpu,
+        preps: &[&WaveletPrep],
+    ) -> Result<Vec<CoarseRidge>, GpuError> {
+        let Some(first) = preps.first() else {
+            return Ok(Vec::new());
+        };
+        let wavelet = first.wavelet();
+        if let Some(p) = preps.iter().find(|p| p.wavelet() != wavelet) {
+            return Err(GpuError::Unsupported(format!(
+                "one GPU batch holds one wavelet; got {:?} and {:?}",
+                wavelet,
+                p.wavelet()
+            )));
+        }
+        if let Some(p) = preps.iter().find(|p| p.steps > MAX_STEPS) {
+            return Err(GpuError::Unsupported(format!(
+                "{} coarse steps: the GPU ridge takes at most {MAX_STEPS} (a record of about \
+                 {} samples at this resolution); use the CPU backend for it",
+                p.steps,
+                MAX_STEPS * p.h
+            )));
+        }
+        if let Some(p) = preps.iter().find(|p| p.freqs.len() > MAX_SCALES) {
+            return Err(GpuError::Unsupported(format!(
+                "{} scales: the GPU ridge holds at most {MAX_SCALES}",
+                p.freqs.len()
+            )));
+        }
+        let runs: Vec<RunScales> = preps
+            .iter()
+            .map(|p| RunScales {
+                spectrum: &p.spec,
+                plans: &p.plans,
+                h: p.h,
+                steps: p.steps,
+            })
+            .collect();
+        let mut enc = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("first pass"),
+            });
+        let grid = self.scales.encode(gpu, &mut enc, &wavelet, &runs)?;
+        let out = self
+            .ridge
+            .encode(gpu, &mut enc, &grid.power, &grid.offsets, preps)?;
+        gpu.queue.submit([enc.finish()]);
+        let paths: Vec<u32> = gpu.download(&out.path, out.path_len)?;
+        let stats: Vec<[f32; 2]> = gpu.download(&out.stats, out.stats_len)?;
+        Ok(preps
+            .iter()
+            .enumerate()
+            .map(|(r, p)| {
+                let (po, so) = (out.path_at[r], out.info_at[r]);
+                CoarseRidge {
+                    path: paths[po..po + p.steps]
+                        .iter()
+                        .map(|&k| k as usize)
+                        .collect(),
+                    median_power: (0..p.freqs.len())
+                        .map(|k| {
+                            let (a, b) = p.inner_steps(k);
+                            (b + 1 >= a + 8).then(|| f64::from(stats[so + k][1]))
+                        })
+                        .collect(),
+                }
+            })
+            .collect())
+    }
+}
+
+/// Bytes of the largest single GPU buffer one run's first pass needs: its decimated scales
+/// (8 bytes a value) or its back-pointers (4 bytes per step and scale).
+pub fn batch_bytes(prep: &WaveletPrep) -> u64 {
+    let scales: u64 = prep.plans.iter().map(|p| p.len as u64 * 8).sum();
+    let back = (prep.steps * prep.freqs.len()) as u64 * 4;
+    scales.max(back)
+}
+
+/// The ridge stage's outputs, on the GPU.
+struct RidgeOut {
+    path: wgpu::Buffer,
+    path_len: usize,
+    path_at: Vec<usize>,
+    stats: wgpu::Buffer,
+    stats_len: usize,
+    info_at: Vec<usize>,
+}
+
+impl RidgeStage {
+    /// Compiles `ridge.wgsl` and declares its bindings: runs, scale info, power, guide,
+    /// statistics, back-pointers, paths, the chunk, and the scores carried between chunks.
+    pub fn new(gpu: &Gpu) -> RidgeStage {
+        use super::Binding::{Read, Uniform, Write};
+        let (layout, pipelines) = gpu.stage(
+            "ridge.wgsl",
+            include_str!("../../shaders/ridge.wgsl"),
+            &[Read, Read, Read, Read, Write, Write, Write, Uniform, Write],
+            &["column_stats", "ridge_steps", "backtrack"],
+        );
+        let [stats, steps, backtrack]: [wgpu::ComputePipeline; 3] =
+            pipelines.try_into().expect("three entry points");
+        RidgeStage {
+            stats,
+            steps,
+            backtrack,
+            layout,
+        }
+    }
+
+    fn encode(
+        &self,
+        gpu: &Gpu,
+        enc: &mut wgpu::CommandEncoder,
+        power: &wgpu::Buffer,
+        power_at: &[usize],
+        preps: &[&WaveletPrep],
+    ) -> Result<RidgeOut, GpuError> {
+        let mut params = Vec::with_capacity(preps.len());
+        let mut info = Vec::new();
+        let mut guide: Vec<[f32; 2]> = Vec::new();
+        let (mut back_len, mut path_len) = (0usize, 0usize);
+        let (mut path_at, mut info_at) = (Vec::new(), Vec::new());
+        for (p, &at) in preps.iter().zip(power_at) {
+            let s = p.freqs.len();
+            let guided = (0..p.steps).any(|j| p.guide_at(j).is_some());
+            let (weight, resolution) = p.guide_weight();
+            params.push(RunParams {
+                power: at as u32,
+                steps: p.steps as u32,
+                scales: s as u32,
+                back: back_len as u32,
+                path: path_len as u32,
+                guide: guide.len() as u32,
+                info: info.len() as u32,
+                flags: u32::from(guided) | (u32::from(p.dynamic_ridge()) << 1),
+                unit: p.unit as f32,
+                penalty: p.penalty(),
+                guide_weight: weight as f32,
+                resolution: resolution as f32,
+            });
+            path_at.push(path_len);
+            info_at.push(info.len());
+            for k in 0..s {
+                let (first, last) = p.inner_steps(k);
+                info.push(ScaleInfo {
+                    first: first as u32,
+                    last: last as u32,
+                    mid: ((last + 1).saturating_sub(first) / 2) as u32,
+                    ln_f: p.freqs[k].ln() as f32,
+                });
+            }
+            if guided {
+                guide.extend((0..p.steps).map(|j| match p.guide_at(j) {
+                    Some(lg) => [lg as f32, 1.0],
+                    None => [0.0, 0.0],
+                }));
+            }
+            back_len += p.steps * s;
+            path_len += p.steps;
+        }
+        let back_bytes = back_len as u64 * 4;
+        if back_bytes > gpu.max_binding() {
+            return Err(GpuError::TooLarge {
+                what: format!("the ridge back-pointers of {} run(s)", preps.len()),
+                need: back_bytes,
+                limit: gpu.max_binding(),
+            });
+        }
+        if guide.is_empty() {
+            guide.push([0.0, 0.0]);
+        }
+        let runs_buf = gpu.upload("ridge runs", &params);
+        let info_buf = gpu.upload("scale info", &info);
+        let guide_buf = gpu.upload("guide", &guide);
+        let stats = gpu.storage("column stats", (info.len() * 8) as u64);
+        let back = gpu.storage("back-pointers", back_bytes);
+        let path = gpu.storage("paths", (path_len * 4) as u64);
+        let accum = gpu.storage("carried scores", (info.len() * 4) as u64);
+        let max_scales = preps.iter().map(|p| p.freqs.len()).max().unwrap_or(1);
+        let max_steps = preps.iter().map(|p| p.steps).max().unwrap_or(1);
+        // An invocation holds ⌈S/256⌉ scales and scans S predecessors for each, per step.
+        let per_step = max_scales.div_ceil(256) * (max_scales + 2) + 4;
+        let per_chunk = (LOOP_BUDGET / per_step).max(1);
+        let bind = |chunk: &wgpu::Buffer| {
+            gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("ridge"),
+                layout: &self.layout,
+                entries: &[
+                    &runs_buf, &info_buf, power, &guide_buf, &stats, &back, &path, chunk, &accum,
+                ]
+                .iter()
+                .enumerate()
+                .map(|(i, b)| wgpu::BindGroupEntry {
+                    binding: i as u32,
+                    resource: b.as_entire_binding(),
+                })
+                .collect::<Vec<_>>(),
+            })
+        };
+        let chunks: Vec<wgpu::BindGroup> = (0..max_steps.div_ceil(per_chunk))
+            .map(|c| {
+                use wgpu::util::DeviceExt;
+                let range = Chunk {
+                    first: (c * per_chunk) as u32,
+                    last: ((c + 1) * per_chunk).min(max_steps) as u32,
+                    _pad: [0; 2],
+                };
+                bind(
+                    &gpu.device
+                        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                            label: Some("chunk"),
+                            contents: bytemuck::bytes_of(&range),
+                            usage: wgpu::BufferUsages::UNIFORM,
+                        }),
+                )
+            })
+            .collect();
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("ridge"),
+            timestamp_writes: None,
+        });
+        // Each dispatch sees the previous one's writes (WebGPU orders them).
+        pass.set_pipeline(&self.stats);
+        pass.set_bind_group(0, &chunks[0], &[]);
+        pass.dispatch_workgroups(max_scales as u32, preps.len() as u32, 1);
+        pass.set_pipeline(&self.steps);
+        for b in &chunks {
+            pass.set_bind_group(0, b, &[]);
+            pass.dispatch_workgroups(preps.len() as u32, 1, 1);
+        }
+        pass.set_pipeline(&self.backtrack);
+        for b in chunks.iter().rev() {
+            pass.set_bind_group(0, b, &[]);
+            pass.dispatch_workgroups(preps.len() as u32, 1, 1);
+        }
+        drop(pass);
+        Ok(RidgeOut {
+            path,
+            path_len,
+            path_at,
+            stats,
+            stats_len: info.len(),
+            info_at,
+        })
+    }
+}
