@@ -17,7 +17,8 @@ use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 
-use crate::identify::{identify, IdentifyOptions};
+use crate::backend::Backend;
+use crate::identify::{identify_on, IdentifyOptions};
 use crate::ingest::{Archive, IngestOptions};
 use crate::inspect::inspect_isolated;
 use crate::journal::{failed_key, run_key, settings_fingerprint, Entry, Journal, RUNS_DIR};
@@ -120,7 +121,13 @@ pub struct BatchOptions<'a> {
     pub jobs: Option<usize>,
     /// Runs drawn in full in report.html (the table always lists every run).
     pub report_runs: usize,
+    /// Where the wavelet transform's first pass runs.
+    pub backend: &'a Backend,
 }
+
+/// Runs in flight by default on a GPU backend: the signals of concurrent runs share one
+/// GPU submission, so more runs than cores keep the device fed (about 12 MB each).
+pub const GPU_JOBS: usize = 32;
 
 /// Where a batch stands, for progress displays.
 #[derive(Debug, Clone, Copy, Default, serde::Serialize)]
@@ -343,7 +350,7 @@ pub fn run_campaigns(
                             let t0 = Instant::now();
                             outcome.methods.push((
                                 m,
-                                identify_guarded(&run, m, &opt.identify),
+                                identify_guarded(&run, m, &opt.identify, opt.backend),
                                 t0.elapsed().as_secs_f64(),
                             ));
                         }
@@ -354,7 +361,11 @@ pub fn run_campaigns(
             })
             .collect::<Result<Vec<()>, BatchError>>()
     };
-    match opt.jobs {
+    let jobs = opt.jobs.or(opt
+        .backend
+        .is_gpu()
+        .then(|| GPU_JOBS.max(std::thread::available_parallelism().map_or(1, |n| n.get()))));
+    match jobs {
         None => identify_all()?,
         Some(n) => rayon::ThreadPoolBuilder::new()
             .num_threads(n.max(1))
@@ -388,8 +399,9 @@ fn identify_guarded(
     run: &crate::ingest::Run,
     method: Method,
     options: &IdentifyOptions,
+    backend: &Backend,
 ) -> Result<crate::identify::Identification, String> {
-    guarded(|| identify(run, method, options).map_err(|e| e.to_string()))
+    guarded(|| identify_on(run, method, options, backend).map_err(|e| e.to_string()))
 }
 
 /// Runs `f`, turning a panic into an error that names it.

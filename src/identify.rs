@@ -3,12 +3,12 @@
 
 use std::f64::consts::PI;
 
+use crate::backend::Backend;
 use crate::fit::{self, Bin, DeadZoneFit, Estimate, Sample};
 use crate::forcevib::{self, Modal};
 use crate::ingest::{Quantity, Run, RunKind};
 use crate::track::{
-    default_band, track_hilbert, track_wavelet, HilbertOptions, Method, Track, TrackError,
-    WaveletOptions,
+    default_band, track_hilbert, HilbertOptions, Method, Track, TrackError, WaveletOptions,
 };
 use crate::transform::Morlet;
 
@@ -142,17 +142,25 @@ fn displacement(
     Ok(forcevib::integrate(x, fs, k, 0.5 * fmin))
 }
 
+/// What one identification works with: its options and the backend of the transform.
+struct Ctx<'a> {
+    opt: &'a IdentifyOptions,
+    backend: &'a Backend,
+}
+
 fn track(
     x: &[f64],
     fs: f64,
     method: Method,
-    opt: &IdentifyOptions,
+    ctx: &Ctx,
     guide: Option<&Track>,
     channel: &'static str,
 ) -> Result<Track, IdentifyError> {
+    let opt = ctx.opt;
     let r = match method {
         Method::Wavelet => {
-            track_wavelet(x, fs, &opt.wavelet, guide.map(|g| g.frequency.as_slice()))
+            ctx.backend
+                .track_wavelet(x, fs, &opt.wavelet, guide.map(|g| g.frequency.as_slice()))
         }
         Method::Hilbert => track_hilbert(
             x,
@@ -165,19 +173,31 @@ fn track(
     r.map_err(|source| IdentifyError::Track { channel, source })
 }
 
-/// Identifies one loaded run with one method.
+/// Identifies one loaded run with one method (transforms on the CPU).
 pub fn identify(
     run: &Run,
     method: Method,
     opt: &IdentifyOptions,
 ) -> Result<Identification, IdentifyError> {
+    identify_on(run, method, opt, &Backend::cpu())
+}
+
+/// Identifies one loaded run with one method, the wavelet transform's first pass on
+/// `backend`.
+pub fn identify_on(
+    run: &Run,
+    method: Method,
+    opt: &IdentifyOptions,
+    backend: &Backend,
+) -> Result<Identification, IdentifyError> {
+    let ctx = Ctx { opt, backend };
     let meta = &run.meta;
     let fs = meta.sample_rate;
     let y = displacement(&run.output, fs, meta.output_quantity, "output")?;
     let mut warnings = Vec::new();
     let (input, response, modal, mass) = match meta.kind {
         RunKind::Free => {
-            let resp = track(&y, fs, method, opt, None, "output")?;
+            let resp = track(&y, fs, method, &ctx, None, "output")?;
             let modal = forcevib::free_decay(&resp);
             (None, resp, modal, None)
         }
@@ -193,8 +213,8 @@ pub fn identify(
             }
             let x = displacement(raw, fs, q, "input")?;
             let z: Vec<f64> = y.iter().zip(&x).map(|(a, b)| a - b).collect();
-            let tx = track(&x, fs, method, opt, None, "input")?;
-            let tz = track(&z, fs, method, opt, Some(&tx), "relative motion")?;
+            let tx = track(&x, fs, method, &ctx, None, "input")?;
+            let tz = track(&z, fs, method, &ctx, Some(&tx), "relative motion")?;
             let modal = forcevib::base_motion(&tx, &tz, meta.gravity_stiffness);
             (Some(tx), tz, modal, None)
         }
@@ -202,8 +222,8 @@ pub fn identify(
             let f = run.input.as_ref().ok_or_else(|| {
                 IdentifyError::Unusable("a force run needs an input (force) dataset".into())
             })?;
-            let tf = track(f, fs, method, opt, None, "input")?;
-            let ty = track(&y, fs, method, opt, Some(&tf), "output")?;
+            let tf = track(f, fs, method, &ctx, None, "input")?;
+            let ty = track(&y, fs, method, &ctx, Some(&tf), "output")?;
             let (m, estimated) = match meta.inertia {
                 Some(m) => (m, false),
                 None => {

@@ -8,8 +8,10 @@
 //! (instantaneous amplitude and frequency), [`forcevib`] (ω0²(t), h0(t)), [`fit`] (skeleton
 //! curves and physical parameters), [`identify`] (one run through all of it), [`batch`] and
 //! [`journal`] (many runs, crash-safe and resumable), [`report`] (results and report.html
-//! out), [`gpu`] (the WGSL compute stages of the GPU backend).
+//! out), [`gpu`] (the WGSL compute stages of the GPU backend), [`backend`] (the one place the
+//! CPU or GPU backend is chosen).
 
+pub mod backend;
 pub mod batch;
 pub mod bench;
 pub mod campaign;

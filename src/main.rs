@@ -308,11 +308,14 @@ struct RunArgs {
     /// Seconds allowed to open one archive (in a child process) before it is reported failed.
     #[arg(long, default_value_t = 300, value_name = "S")]
     timeout: u64,
-    /// Runs identified at once (default: one per core). Memory grows with N, not with the
-    /// number of runs: each run in flight adds its working set (measured: about 12 MB for
-    /// 30,000 samples with both methods, on about 75 MB of base). Lower it for long records.
+    /// Runs identified at once (default: one per core; 32 on a GPU backend, whose batches
+    /// gather the signals of the runs in flight). Memory grows with N, not with the number
+    /// of runs: each run in flight adds its working set (measured: about 12 MB for 30,000
+    /// samples with both methods, on about 75 MB of base). Lower it for long records.
     #[arg(long, short, value_name = "N")]
     jobs: Option<usize>,
+    #[command(flatten)]
+    backend: BackendArgs,
     #[command(flatten)]
     report: ReportArgs,
     #[command(flatten)]
@@ -417,15 +420,163 @@ struct TrackArgs {
     #[arg(long, value_name = "PATH")]
     reference: Option<String>,
     #[command(flatten)]
+    backend: BackendArgs,
+    #[command(flatten)]
     ingest: IngestArgs,
+}
+
+#[derive(Args, Clone, Copy)]
+struct BackendArgs {
+    /// Where the wavelet transform's first pass (the band-limited Morlet transform at every
+    /// scale and the ridge search) runs. `auto`: a hardware GPU when wgpu opens one, else
+    /// the CPU (a software adapter such as lavapipe is passed over: it is slower than the
+    /// CPU backend). `gpu`: any adapter, lavapipe included, or an error when none opens.
+    /// `cpu`: rustfft and rayon only. A signal the GPU cannot take (beyond the adapter's
+    /// limits, or a device lost mid-batch) is done on the CPU with a warning; results.h5
+    /// records per run which backend did the work.
+    #[arg(long, value_enum, default_value = "auto", value_name = "BACKEND")]
+    backend: skelid::backend::BackendChoice,
+}
+
+impl BackendArgs {
+    /// Opens the backend, saying on stderr what `auto` chose and why.
+    fn open(self) -> Result<skelid::backend::Backend> {
+        let b = skelid::backend::Backend::open(self.backend).with_context(|| {
+            "--backend gpu: no GPU could be opened (use --backend auto to fall back to the CPU)"
+        })?;
+        for w in b.notes().iter().chain(&b.warnings()) {
+            eprintln!("note: {w}");
+        }
+        if let Some(a) = b.adapter() {
+            eprintln!("GPU backend: {a}");
+        }
+        Ok(b)
+    }
+}
+
+/// `skelid bench ARCHIVE...`: both backends on the same signals, with their agreement.
+fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
+    use skelid::backend::{Backend, BackendChoice};
+    let scales = a
+        .scales
+        .as_ref()
+        .and_then(|s| s.first().copied())
+        .unwrap_or(128);
+    let ingest = a.ingest.options()?;
+    let files = expand_inputs(&a.archives).map_err(anyhow::Error::msg)?;
+    let mut signals = Vec::new();
+    let mut runs = 0usize;
+    for f in &files {
+        let archive = Archive::open(f, &ingest)
+            .with_context(|| format!("cannot read {} for the benchmark", f.display()))?;
+        for (path, run) in archive.load_all() {
+            let run = run.with_context(|| format!("{}: run {path}", f.display()))?;
+            let fs = run.meta.sample_rate;
+            runs += 1;
+            if let Some(x) = run.input {
+                signals.push((x, fs));
+            }
+            signals.push((run.output, fs));
+        }
+    }
+    if signals.is_empty() {
+        bail!("no runs in {}", a.archives.join(" "));
+    }
+    let mut opened: Vec<(&str, Backend)> = Vec::new();
+    for b in &a.backend {
+        match b {
+            BenchBackend::Cpu if !opened.iter().any(|o| o.0 == "cpu") => {
+                opened.push(("cpu", Backend::cpu()))
+            }
+            BenchBackend::Gpu if !opened.iter().any(|o| o.0 == "gpu") => opened.push((
+                "gpu",
+                Backend::open(BackendChoice::Gpu).context(
+                    "--backend gpu: no GPU could be opened (bench only the CPU with --backend cpu)",
+                )?,
+            )),
+            _ => {}
+        }
+    }
+    let opt = skelid::track::WaveletOptions {
+        scales,
+        ..Default::default()
+    };
+    let samples: usize = signals.iter().map(|s| s.0.len()).sum();
+    println!(
+        "backend benchmark: {runs} run(s), {} signal(s), {samples} samples, {scales} scales, \
+         wavelet track (first pass on the backend, the rest on {} CPU threads), median of {}",
+        signals.len(),
+        rayon::current_num_threads(),
+        a.repeat.max(1)
+    );
+    let backends: Vec<(&str, &Backend)> = opened.iter().map(|(n, b)| (*n, b)).collect();
+    let mut result =
+        skelid::bench::backends::compare(&signals, runs, &opt, &backends, a.repeat, |stage| {
+            eprintln!("  {stage}")
+        });
+    result.archives = files.iter().map(|f| f.display().to_string()).collect();
+    println!(
+        "\n{:>7} {:>10} {:>10} {:>16} {:>9}  adapter",
+        "backend", "median s", "runs/s", "samples·scales/s", "fallback"
+    );
+    for t in &result.backends {
+        println!(
+            "{:>7} {:>10.3} {:>10.2} {:>16.3e} {:>9}  {}",
+            t.backend,
+            t.median_s,
+            t.runs_per_s,
+            t.samples_scales_per_s,
+            t.fallbacks,
+            t.adapter.as_deref().unwrap_or("-")
+        );
+    }
+    if let Some(r) = result.gpu_speedup {
+        println!("\nGPU speed-up over the CPU (median time ratio): {r:.2}x");
+    }
+    if let Some(g) = &result.agreement {
+        println!(
+            "agreement over {} track(s), {} samples valid in both: envelope within {:.1e} \
+             (relative), frequency within {:.1e} Hz, valid in one only: {} samples",
+            g.tracks, g.valid_samples, g.envelope_rel, g.frequency_hz, g.mask_samples
+        );
+    }
+    for (_, b) in &opened {
+        report_fallbacks(b);
+    }
+    std::fs::write(&a.out, serde_json::to_string_pretty(&result)? + "\n")
+        .with_context(|| format!("cannot write {}", a.out.display()))?;
+    println!("wrote {}", a.out.display());
+    Ok(())
+}
+
+/// Prints the backend's fallback warnings gathered during the work.
+fn report_fallbacks(b: &skelid::backend::Backend) {
+    for w in b.warnings() {
+        eprintln!("warning: {w}");
+    }
 }
 
 #[derive(Args)]
 struct BenchArgs {
-    /// Our transform + ridge + skeleton against the plain full-length CWT + argmax ridge.
+    /// Campaign archives (files, folders or globs): time the wavelet track of every channel
+    /// of every run on each backend of --backend, side by side in this process.
+    #[arg(value_name = "ARCHIVE")]
+    archives: Vec<String>,
+    /// Backends to compare on the archives, comma-separated (`gpu` takes any adapter,
+    /// lavapipe included).
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "cpu,gpu")]
+    backend: Vec<BenchBackend>,
+    /// Timed repetitions per backend after one warm-up; the median is reported.
+    #[arg(long, default_value_t = 3, value_name = "N")]
+    repeat: usize,
+    /// Where the archive benchmark's figures are written as JSON (`skelid-bench/1`).
+    #[arg(long, default_value = "skelid-bench.json", value_name = "FILE")]
+    out: PathBuf,
+    /// Our transform + ridge + skeleton against the plain full-length CWT + argmax ridge
+    /// (synthetic log sweeps, no archive needed).
     #[arg(long)]
     transform: bool,
-    /// Record lengths as powers of two.
+    /// --transform: record lengths as powers of two.
     #[arg(
         long,
         value_delimiter = ',',
@@ -433,17 +584,22 @@ struct BenchArgs {
         value_name = "LOG2N"
     )]
     log2_samples: Vec<u32>,
-    /// Scale counts.
-    #[arg(
-        long,
-        value_delimiter = ',',
-        default_value = "64,256",
-        value_name = "S"
-    )]
-    scales: Vec<usize>,
-    /// Print JSON rows instead of a table.
+    /// Scale counts (default: 64,256 for --transform; 128 for archives, of which only
+    /// the first count is used).
+    #[arg(long, value_delimiter = ',', value_name = "S")]
+    scales: Option<Vec<usize>>,
+    /// --transform: print JSON rows instead of a table.
     #[arg(long)]
     json: bool,
+    #[command(flatten)]
+    ingest: IngestArgs,
+}
+
+/// A backend `skelid bench` can time.
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum BenchBackend {
+    Cpu,
+    Gpu,
 }
 
 fn main() -> ExitCode {
@@ -616,6 +772,10 @@ fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
     write_campaign(&path, &root, &runs, true)?;
     println!("wrote {}", path.display());
     // The demo archive is rewritten every time: identify it afresh, never from the journal.
+    let backend = BackendArgs {
+        backend: skelid::backend::BackendChoice::Auto,
+    }
+    .open()?;
     let options = skelid::batch::BatchOptions {
         methods: vec![
             skelid::track::Method::Wavelet,
@@ -627,6 +787,7 @@ fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
         force: true,
         jobs: None,
         report_runs: usize::MAX,
+        backend: &backend,
     };
     let summary = identify_with_progress(
         std::slice::from_ref(&path),
@@ -678,6 +839,7 @@ fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         .map(skelid::batch::Shard::parse)
         .transpose()
         .map_err(anyhow::Error::msg)?;
+    let backend = a.backend.open()?;
     let batch = skelid::batch::BatchOptions {
         methods: a.method.methods(),
         identify: options,
@@ -689,6 +851,7 @@ fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         force: a.force,
         jobs: a.jobs,
         report_runs: a.report.report_runs,
+        backend: &backend,
     };
     let mode = if a.json_progress {
         ProgressMode::Json
@@ -698,6 +861,7 @@ fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         ProgressMode::Bar
     };
     let summary = identify_with_progress(&files, &ingest, &batch, &a.out, mode)?;
+    report_fallbacks(&backend);
     if !a.quiet && !a.json_progress {
         print!("{}", render_summary(&summary.rows, None));
     }
@@ -860,9 +1024,7 @@ fn read_dataset(
 }
 
 fn cmd_track(a: TrackArgs) -> Result<()> {
-    use skelid::track::{
-        track_hilbert, track_wavelet, HilbertOptions, RidgeSearch, WaveletOptions,
-    };
+    use skelid::track::{track_hilbert, HilbertOptions, RidgeSearch, WaveletOptions};
     match a.method {
         MethodArg::Wavelet if a.cutoff.is_some() => {
             bail!(
@@ -875,6 +1037,7 @@ fn cmd_track(a: TrackArgs) -> Result<()> {
         _ => {}
     }
     let options = a.ingest.options()?;
+    let backend = a.backend.open()?;
     let archive = Archive::open(&a.archive, &options)?;
     let (x, fs) = read_dataset(&archive, &a.dataset, &options)?;
     let track = match a.method {
@@ -893,15 +1056,17 @@ fn cmd_track(a: TrackArgs) -> Result<()> {
             let guide = match &a.reference {
                 Some(r) => {
                     let (g, _) = read_dataset(&archive, r, &options)?;
-                    let gt = track_wavelet(&g, fs, &opt, None)
+                    let gt = backend
+                        .track_wavelet(&g, fs, &opt, None)
                         .with_context(|| format!("tracking the reference {r}"))?;
                     Some(gt.frequency)
                 }
                 None => None,
             };
-            track_wavelet(&x, fs, &opt, guide.as_deref())?
+            backend.track_wavelet(&x, fs, &opt, guide.as_deref())?
         }
     };
+    report_fallbacks(&backend);
     skelid::report::write_track(
         &a.out,
         &track,
@@ -921,12 +1086,13 @@ fn cmd_track(a: TrackArgs) -> Result<()> {
         },
     );
     println!(
-        "{} {}: {n} samples at {fs} Hz, method {}, band {:.3}-{:.3} Hz",
+        "{} {}: {n} samples at {fs} Hz, method {}, band {:.3}-{:.3} Hz, backend {}",
         a.archive.display(),
         a.dataset,
         track.method.as_str(),
         track.band.0,
-        track.band.1
+        track.band.1,
+        track.backend
     );
     println!(
         "valid {:.1} % of samples; over them frequency {:.4}-{:.4} Hz, amplitude {:.4e}-{:.4e}",
@@ -947,9 +1113,19 @@ fn cmd_track(a: TrackArgs) -> Result<()> {
 
 fn cmd_bench(a: BenchArgs) -> Result<()> {
     use skelid::bench::{write_bench_archive, Measurement, Variant};
-    if !a.transform {
-        bail!("choose a benchmark: --transform (the only one so far)");
+    if !a.archives.is_empty() {
+        if a.transform {
+            bail!("--transform uses its own synthetic signals: drop it, or the archives");
+        }
+        return cmd_bench_backends(&a);
     }
+    if !a.transform {
+        bail!(
+            "choose a benchmark: campaign archives to compare the backends on (e.g. \
+             `skelid bench demo-out/demo_campaign.h5`), or --transform"
+        );
+    }
+    let scales = a.scales.clone().unwrap_or_else(|| vec![64, 256]);
     let exe = std::env::current_exe().context("cannot find the skelid executable")?;
     let dir = tempfile_dir()?;
     if !a.json {
@@ -969,7 +1145,7 @@ fn cmd_bench(a: BenchArgs) -> Result<()> {
         let n = 1usize << p;
         let file = dir.join(format!("bench_2e{p}.h5"));
         write_bench_archive(&file, n)?;
-        for &s in &a.scales {
+        for &s in &scales {
             let run = |v: Variant| -> Result<Measurement> {
                 let name = match v {
                     Variant::Fast => "fast",

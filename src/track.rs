@@ -414,11 +414,12 @@ pub fn track_wavelet(
 /// plans, and the coarse grid. The first pass (all scales, then the ridge) is what a
 /// backend evaluates — [`coarse_ridge`](Self::coarse_ridge) on the CPU, `gpu::ridge` on
 /// a GPU for many runs at once; [`finish`](Self::finish) does the rest on the CPU.
-pub struct WaveletPrep<'a> {
-    x: &'a [f64],
+pub struct WaveletPrep {
+    n: usize,
     fs: f64,
     opt: WaveletOptions,
-    guide: Option<&'a [f64]>,
+    /// ln of the guide's frequency at each coarse step (NaN where it has none).
+    guide: Option<Vec<f64>>,
     fmin: f64,
     fmax: f64,
     /// Analysed frequencies (Hz), one per scale, log-spaced.
@@ -445,14 +446,14 @@ pub struct CoarseRidge {
     pub median_power: Vec<Option<f64>>,
 }
 
-impl<'a> WaveletPrep<'a> {
+impl WaveletPrep {
     /// Checks the signal and options, chooses the band and scales, and takes the spectrum.
     pub fn new(
-        x: &'a [f64],
+        x: &[f64],
         fs: f64,
         opt: &WaveletOptions,
-        guide: Option<&'a [f64]>,
-    ) -> Result<WaveletPrep<'a>, TrackError> {
+        guide: Option<&[f64]>,
+    ) -> Result<WaveletPrep, TrackError> {
         check_signal(x, fs)?;
         let wl = opt.wavelet;
         wl.validate().map_err(TrackError::BadOption)?;
@@ -503,8 +504,20 @@ impl<'a> WaveletPrep<'a> {
         let steps = (n - 1) / h + 1;
         let variance = spec.bins.iter().map(|b| b.norm_sqr()).sum::<f64>() * 2.0
             / (n as f64 * spec.padded_len as f64);
+        let guide = guide.map(|g| {
+            (0..steps)
+                .map(|j| {
+                    let f = g[j * h];
+                    if f > 0.0 && f.is_finite() {
+                        f.ln()
+                    } else {
+                        f64::NAN
+                    }
+                })
+                .collect()
+        });
         Ok(WaveletPrep {
-            x,
+            n,
             fs,
             opt: opt.clone(),
             guide,
@@ -523,7 +536,7 @@ impl<'a> WaveletPrep<'a> {
     /// `first > last`): outside it a long scale sees the record's onset or end.
     pub fn inner_steps(&self, k: usize) -> (usize, usize) {
         let wl = self.opt.wavelet;
-        let n = self.x.len();
+        let n = self.n;
         let edge = self.opt.coi * wl.time_sigma(self.plans[k].scale) * self.fs;
         let inside =
             |j: usize| (j * self.h) as f64 >= edge && ((n - 1 - j * self.h) as f64) >= edge;
@@ -535,8 +548,8 @@ impl<'a> WaveletPrep<'a> {
     /// ln f − ln g over the wavelet's relative resolution, per scale, at coarse step `j`,
     /// when the guide has a usable frequency there: the guide's pull is weight × that².
     pub fn guide_at(&self, j: usize) -> Option<f64> {
-        let g = self.guide?[j * self.h];
-        (g > 0.0 && g.is_finite()).then(|| g.ln())
+        let g = self.guide.as_ref()?[j];
+        (!g.is_nan()).then_some(g)
     }
 
     /// The ridge penalty per squared scale step (the DP's λ).
@@ -567,12 +580,12 @@ impl<'a> WaveletPrep<'a> {
 
     /// Record length (samples).
     pub fn len(&self) -> usize {
-        self.x.len()
+        self.n
     }
 
     /// Always false: a prepared record has at least `MIN_SAMPLES` samples.
     pub fn is_empty(&self) -> bool {
-        self.x.is_empty()
+        self.n == 0
     }
 
     /// The first pass on the CPU: per scale, in parallel, the band-limited transform on the
@@ -649,7 +662,7 @@ impl<'a> WaveletPrep<'a> {
     /// and the per-sample track. `backend` names who computed `ridge`.
     pub fn finish(self, ridge: CoarseRidge, backend: &'static str) -> Track {
         let WaveletPrep {
-            x,
+            n,
             fs,
             opt,
             fmin,
@@ -663,7 +676,6 @@ impl<'a> WaveletPrep<'a> {
         } = self;
         let opt = &opt;
         let wl = opt.wavelet;
-        let n = x.len();
         let s_count = freqs.len();
         let path = ridge.path;
         // White-noise floor: the lower of the quietest quarter of the scales (median over

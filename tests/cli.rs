@@ -358,3 +358,149 @@ fn track_writes_csv_and_hdf5_that_match_the_truth() {
     assert!(String::from_utf8_lossy(&mixed.stderr).contains("--method hilbert"));
     assert!(!d.path().join("y.csv").exists());
 }
+
+/// A demo archive to run on (written by `skelid demo`, which also identifies it).
+fn demo_archive(d: &std::path::Path) -> std::path::PathBuf {
+    let out = skelid().args(["demo", "--out"]).arg(d).output().unwrap();
+    assert!(out.status.success());
+    d.join("demo_campaign.h5")
+}
+
+/// No adapter at all: wgpu told to use Vulkan only, with a driver list that does not exist.
+fn without_gpu(c: &mut Command) -> &mut Command {
+    c.env("VK_ICD_FILENAMES", "/nonexistent/icd.json")
+        .env("VK_DRIVER_FILES", "/nonexistent/icd.json")
+        .env("WGPU_BACKEND", "vulkan")
+}
+
+#[test]
+fn backend_gpu_without_an_adapter_is_an_error_and_auto_falls_back() {
+    let d = tmpdir();
+    let archive = demo_archive(d.path());
+    let track = |backend: &str| {
+        let mut c = skelid();
+        c.args(["track"])
+            .arg(&archive)
+            .args(["--dataset", "/demo/linear", "--backend", backend, "--out"])
+            .arg(d.path().join(format!("{backend}.csv")));
+        without_gpu(&mut c).output().unwrap()
+    };
+    let forced = track("gpu");
+    let err = String::from_utf8_lossy(&forced.stderr);
+    println!("{err}");
+    assert!(!forced.status.success());
+    assert!(err.contains("no GPU adapter found") && err.contains("--backend cpu"));
+    let auto = track("auto");
+    let err = String::from_utf8_lossy(&auto.stderr);
+    assert!(auto.status.success(), "{err}");
+    assert!(
+        err.contains("GPU backend unavailable, using the CPU"),
+        "{err}"
+    );
+    assert!(String::from_utf8_lossy(&auto.stdout).contains("backend cpu"));
+}
+
+#[test]
+fn a_device_lost_mid_batch_falls_back_to_the_cpu_and_records_it() {
+    let d = tmpdir();
+    let archive = demo_archive(d.path());
+    let run = |backend: &str, fail: Option<&str>| {
+        let out = d
+            .path()
+            .join(format!("out-{backend}-{}", fail.unwrap_or("none")));
+        let mut c = skelid();
+        c.arg("run")
+            .arg(&archive)
+            .args([
+                "--method",
+                "wavelet",
+                "--quiet",
+                "--backend",
+                backend,
+                "--out",
+            ])
+            .arg(&out);
+        if let Some(n) = fail {
+            c.env("SKELID_GPU_FAIL_AFTER", n);
+        }
+        let o = c.output().unwrap();
+        (out, o)
+    };
+    let (cpu_out, o) = run("cpu", None);
+    assert!(o.status.success());
+    // Two runs' worth of GPU submissions, then the device is "lost".
+    let (gpu_out, o) = run("gpu", Some("2"));
+    let err = String::from_utf8_lossy(&o.stderr);
+    println!("{err}");
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("simulated device loss"), "{err}");
+    let backends: Vec<String> = skelid::demo::cases()
+        .iter()
+        .map(|c| {
+            let f = hdf5::File::open(gpu_out.join("results.h5")).unwrap();
+            let v: hdf5::types::VarLenUnicode = f
+                .group(&c.path)
+                .unwrap()
+                .attr("backend")
+                .unwrap()
+                .read_scalar()
+                .unwrap();
+            v.as_str().to_string()
+        })
+        .collect();
+    println!("{backends:?}");
+    assert!(backends.iter().any(|b| b == "gpu") && backends.iter().any(|b| b == "cpu"));
+    // Whichever backend did each run, the results are the CPU's.
+    let rows = |dir: &std::path::Path| -> Vec<serde_json::Value> {
+        let s: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).unwrap())
+                .unwrap();
+        s["rows"].as_array().unwrap().clone()
+    };
+    for (a, b) in rows(&cpu_out).iter().zip(rows(&gpu_out).iter()) {
+        assert_eq!(a["run"], b["run"]);
+        let (x, y) = (a["stiffness"].as_f64(), b["stiffness"].as_f64());
+        if let (Some(x), Some(y)) = (x, y) {
+            assert!((x - y).abs() <= 1e-3 * x.abs(), "{}: {x} vs {y}", a["run"]);
+        }
+    }
+}
+
+#[test]
+fn bench_compares_the_backends_on_the_demo_campaign() {
+    let d = tmpdir();
+    let archive = demo_archive(d.path());
+    let json = d.path().join("bench.json");
+    let out = skelid()
+        .arg("bench")
+        .arg(&archive)
+        .args(["--repeat", "1", "--out"])
+        .arg(&json)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    println!("{text}");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(text.contains("GPU speed-up over the CPU") && text.contains("agreement over 21"));
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(v["format"], "skelid-bench/1");
+    assert_eq!(v["runs"], 11);
+    let b = v["backends"].as_array().unwrap();
+    assert_eq!(
+        (b[0]["backend"].as_str(), b[1]["backend"].as_str()),
+        (Some("cpu"), Some("gpu"))
+    );
+    assert!(b[1]["adapter"].as_str().is_some_and(|a| !a.is_empty()));
+    assert_eq!(b[1]["fallbacks"], 0);
+    assert!(v["gpu_speedup"].as_f64().unwrap() > 0.0);
+    // The agreement: envelope ≤ 1e-4 relative, frequency ≤ 1e-3 Hz.
+    let g = &v["agreement"];
+    assert!(g["envelope_rel"].as_f64().unwrap() <= 1e-4, "{g}");
+    assert!(g["frequency_hz"].as_f64().unwrap() <= 1e-3, "{g}");
+    assert!(g["mask_samples"].as_u64().unwrap() <= 21 * 8, "{g}");
+}

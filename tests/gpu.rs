@@ -265,3 +265,54 @@ fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
         }
     }
 }
+
+#[test]
+fn gpu_and_cpu_backends_give_the_same_tracks() {
+    use skelid::backend::{Backend, BackendChoice};
+    use skelid::track::WaveletOptions;
+    let gpu = Backend::open(BackendChoice::Gpu).unwrap_or_else(|e| panic!("{e}"));
+    let cpu = Backend::cpu();
+    let signals = ridge_signals();
+    // Lengths 30 000, 12 345 and 3001 (none a power of two; every decimated FFT length
+    // runs the multi-pass Stockham programme) and a 2^17 chirp; batches of 1 and of 4.
+    let long: Vec<f64> = (0..1 << 17)
+        .map(|i| {
+            let t = i as f64 / 1000.0;
+            (2.0 * std::f64::consts::PI * (1.0 * t + 0.05 * t * t)).sin()
+        })
+        .collect();
+    let mut all: Vec<skelid::backend::Signal> = signals
+        .iter()
+        .map(|(x, g)| (x.as_slice(), 1000.0, g.as_deref()))
+        .collect();
+    all.push((&long, 1000.0, None));
+    let opt = WaveletOptions {
+        scales: 128,
+        ..Default::default()
+    };
+    let reference = cpu.track_many(&all, &opt);
+    let batched = gpu.track_many(&all, &opt);
+    let alone: Vec<_> = all
+        .iter()
+        .map(|&(x, fs, g)| gpu.track_wavelet(x, fs, &opt, g))
+        .collect();
+    assert!(gpu.warnings().is_empty(), "{:?}", gpu.warnings());
+    for (k, r) in reference.iter().enumerate() {
+        let r = r.as_ref().unwrap();
+        for (how, ours) in [("batch of 4", &batched[k]), ("alone", &alone[k])] {
+            let ours = ours.as_ref().unwrap();
+            assert_eq!(ours.backend, "gpu");
+            let mut a = skelid::bench::backends::Agreement::default();
+            a.add(r, ours);
+            let (env, freq, mask) = (a.envelope_rel, a.frequency_hz, a.mask_samples);
+            println!(
+                "{} samples, {how}: envelope within {env:.1e}, frequency within {freq:.1e} Hz, \
+                 valid mask differs at {mask} samples",
+                r.len()
+            );
+            assert!(env <= 1e-4, "{env:e}");
+            assert!(freq <= 1e-3, "{freq:e}");
+            assert!(mask <= 8, "{mask}");
+        }
+    }
+}

@@ -3,6 +3,7 @@
 //! the median power, then the penalised ridge — one submission, and only the paths and the
 //! per-scale medians read back (a few kB per run, never the scalogram).
 
+use super::fft::radices;
 use super::scales::{RunScales, ScaleStage};
 use super::{Gpu, GpuError};
 use crate::track::{CoarseRidge, WaveletPrep};
@@ -95,19 +96,8 @@ impl FirstPass {
                 p.wavelet()
             )));
         }
-        if let Some(p) = preps.iter().find(|p| p.steps > MAX_STEPS) {
-            return Err(GpuError::Unsupported(format!(
-                "{} coarse steps: the GPU ridge takes at most {MAX_STEPS} (a record of about \
-                 {} samples at this resolution); use the CPU backend for it",
-                p.steps,
-                MAX_STEPS * p.h
-            )));
-        }
-        if let Some(p) = preps.iter().find(|p| p.freqs.len() > MAX_SCALES) {
-            return Err(GpuError::Unsupported(format!(
-                "{} scales: the GPU ridge holds at most {MAX_SCALES}",
-                p.freqs.len()
-            )));
+        for p in preps {
+            self.check(gpu, p)?;
         }
         let runs: Vec<RunScales> = preps
             .iter()
@@ -149,6 +139,43 @@ impl FirstPass {
                 }
             })
             .collect())
+    }
+}
+
+impl FirstPass {
+    /// Whether this device can take `prep` at all (alone in a batch): scales, steps, the
+    /// FFT lengths and the largest buffer within what the shaders and adapter allow.
+    pub fn check(&self, gpu: &Gpu, prep: &WaveletPrep) -> Result<(), GpuError> {
+        if prep.freqs.len() > MAX_SCALES {
+            return Err(GpuError::Unsupported(format!(
+                "{} scales: the GPU ridge holds at most {MAX_SCALES}",
+                prep.freqs.len()
+            )));
+        }
+        if prep.steps > MAX_STEPS {
+            return Err(GpuError::Unsupported(format!(
+                "{} coarse steps: the GPU ridge takes at most {MAX_STEPS} (a record of about \
+                 {} samples at this resolution)",
+                prep.steps,
+                MAX_STEPS * prep.h
+            )));
+        }
+        if let Some(p) = prep.plans.iter().find(|p| radices(p.len).is_none()) {
+            return Err(GpuError::Unsupported(format!(
+                "FFT length {} has a prime factor above 5",
+                p.len
+            )));
+        }
+        // The scales and their FFT scratch are two buffers of this size.
+        let need = batch_bytes(prep);
+        if need > gpu.max_binding() {
+            return Err(GpuError::TooLarge {
+                what: format!("a record of {} samples", prep.len()),
+                need,
+                limit: gpu.max_binding(),
+            });
+        }
+        Ok(())
     }
 }
 

@@ -135,6 +135,22 @@ pub struct RunOutcome {
 }
 
 impl RunOutcome {
+    /// `gpu` when the GPU did the transform's first pass of every wavelet track of this
+    /// run, else `cpu` (the Hilbert method, the CPU backend, or a fallback).
+    pub fn backend(&self) -> &'static str {
+        let mut tracks = self
+            .methods
+            .iter()
+            .filter_map(|(m, r, _)| (*m == Method::Wavelet).then_some(r.as_ref().ok()?))
+            .flat_map(|id| id.input.iter().chain(std::iter::once(&id.response)))
+            .peekable();
+        if tracks.peek().is_some() && tracks.all(|t| t.backend == "gpu") {
+            "gpu"
+        } else {
+            "cpu"
+        }
+    }
+
     /// A run not yet read: no data, no error, no method results.
     pub fn new(path: String, source: String) -> RunOutcome {
         RunOutcome {
@@ -264,7 +280,7 @@ impl ResultsWriter {
         if let Some(e) = run.error_text() {
             write_str_attr(&g, "error", &e)?;
         }
-        write_str_attr(&g, "backend", "cpu")?;
+        write_str_attr(&g, "backend", run.backend())?;
         write_str_attr(&g, "source", &run.source)?;
         if let Some(fs) = run.sample_rate {
             write_f64_attr(&g, "sample_rate", fs)?;

@@ -1,8 +1,11 @@
 //! `skelid bench --transform`: our band-limited transform + ridge + skeleton against the
-//! plain full-length CWT + argmax ridge, HDF5 in, on the same signal, in one run.
+//! plain full-length CWT + argmax ridge, HDF5 in, on the same signal, in one run; and
+//! `skelid bench ARCHIVE --backend cpu,gpu` ([`backends`]): the two backends side by side.
 //!
 //! Each measurement runs in its own child process (`skelid __bench-one`) so that its peak
 //! resident memory (VmHWM) is its own.
+
+pub mod backends;
 
 use std::f64::consts::PI;
 use std::path::Path;

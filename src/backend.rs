@@ -1,0 +1,402 @@
+//! The one place where the CPU or GPU backend is chosen (`--backend auto|cpu|gpu`).
+//!
+//! The backend evaluates the wavelet track's first pass — the band-limited Morlet transform
+//! at every scale and the ridge search ([`WaveletPrep::coarse_ridge`]) — for each signal;
+//! everything after it (the refinement at the ridge's scales, the bias correction, ForceVib,
+//! fits) is the shared CPU stage. On a GPU, signals tracked at the same time by different
+//! worker threads are gathered into one submission by a dispatcher thread that owns the
+//! device: a worker hands over its prepared signal and waits for its ridge. When the GPU
+//! cannot serve a signal (no adapter, a failed or lost device, a signal beyond the adapter's
+//! limits), that signal's first pass runs on the CPU, a warning is kept, and the track
+//! records `backend = "cpu"`.
+
+use std::sync::mpsc::{self, Receiver, Sender};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use crate::gpu::ridge::{batch_bytes, FirstPass};
+use crate::gpu::{Gpu, GpuError};
+use crate::track::{CoarseRidge, Track, TrackError, WaveletOptions, WaveletPrep};
+
+/// Which backend the user asked for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BackendChoice {
+    /// A hardware GPU when one opens, else the CPU. A software adapter (lavapipe) is
+    /// slower than the CPU backend on the same cores, so `auto` passes it over.
+    #[default]
+    Auto,
+    /// The CPU (rustfft + rayon).
+    Cpu,
+    /// The GPU, or an error when none opens.
+    Gpu,
+}
+
+/// How long the dispatcher waits for more signals once one has arrived.
+const LINGER: Duration = Duration::from_millis(4);
+
+/// Most signals in one submission.
+const MAX_BATCH: usize = 256;
+
+/// Test hook: pretend the device is lost after this many submissions (the value of the
+/// environment variable `SKELID_GPU_FAIL_AFTER`), to exercise the mid-batch fallback.
+const FAIL_AFTER_ENV: &str = "SKELID_GPU_FAIL_AFTER";
+
+/// The chosen backend, shared by all worker threads.
+pub struct Backend {
+    gpu: Option<GpuService>,
+    warnings: Arc<Mutex<Warnings>>,
+}
+
+#[derive(Default)]
+struct Warnings {
+    notes: Vec<String>,
+    first: Vec<String>,
+    count: usize,
+}
+
+/// One signal to track: samples, sample rate (Hz), and the guide's frequency per sample.
+pub type Signal<'a> = (&'a [f64], f64, Option<&'a [f64]>);
+
+/// A signal after its first pass: on the GPU (its ridge, or why not), or `None` for the CPU.
+type Passed = (WaveletPrep, Option<Result<CoarseRidge, GpuError>>);
+
+/// The dispatcher's answer to one request: its tag, its signal back, and the ridge.
+type Answer = (usize, WaveletPrep, Result<CoarseRidge, GpuError>);
+
+/// One signal handed to the dispatcher, and where its answer goes.
+struct Request {
+    tag: usize,
+    prep: WaveletPrep,
+    reply: Sender<Answer>,
+}
+
+struct GpuService {
+    adapter: String,
+    software: bool,
+    queue: Mutex<Sender<Request>>,
+}
+
+impl Backend {
+    /// The CPU backend.
+    pub fn cpu() -> Backend {
+        Backend {
+            gpu: None,
+            warnings: Arc::default(),
+        }
+    }
+
+    /// Opens the backend asked for. `Auto` never fails: without a usable GPU it is the CPU,
+    /// and [`warnings`](Self::warnings) says why. `Gpu` fails with the reason instead.
+    pub fn open(choice: BackendChoice) -> Result<Backend, GpuError> {
+        match choice {
+            BackendChoice::Cpu => Ok(Backend::cpu()),
+            BackendChoice::Gpu => Backend::start_gpu(),
+            BackendChoice::Auto => Ok(match Backend::start_gpu() {
+                Ok(b) if !b.is_software() => b,
+                Ok(b) => {
+                    let cpu = Backend::cpu();
+                    cpu.note(format!(
+                        "only a software GPU adapter was found ({}): using the CPU backend, \
+                         which is faster; --backend gpu uses the adapter anyway",
+                        b.adapter().unwrap_or("?")
+                    ));
+                    cpu
+                }
+                Err(e) => {
+                    let cpu = Backend::cpu();
+                    cpu.warn(format!("GPU backend unavailable, using the CPU: {e}"));
+                    cpu
+                }
+            }),
+        }
+    }
+
+    fn start_gpu() -> Result<Backend, GpuError> {
+        let fail_after = std::env::var(FAIL_AFTER_ENV)
+            .ok()
+            .and_then(|v| v.parse::<usize>().ok());
+        let (tx, rx) = mpsc::channel::<Request>();
+        let (ready_tx, ready_rx) = mpsc::channel();
+        // The device lives on the dispatcher thread; it ends when the last sender is dropped.
+        std::thread::Builder::new()
+            .name("skelid-gpu".into())
+            .spawn(move || {
+                let opened = Gpu::new().map(|gpu| {
+                    let pass = FirstPass::new(&gpu);
+                    (gpu, pass)
+                });
+                match opened {
+                    Ok((gpu, pass)) => {
+                        let _ = ready_tx.send(Ok((gpu.adapter_name(), gpu.is_software())));
+                        dispatch(&gpu, &pass, rx, fail_after);
+                    }
+                    Err(e) => {
+                        let _ = ready_tx.send(Err(e));
+                    }
+                }
+            })
+            .map_err(|e| GpuError::Device {
+                adapter: "-".into(),
+                detail: format!("cannot start the GPU thread: {e}"),
+            })?;
+        let (adapter, software) = ready_rx.recv().map_err(|_| {
+            GpuError::Lost("the GPU thread ended while opening the device".into())
+        })??;
+        Ok(Backend {
+            gpu: Some(GpuService {
+                adapter,
+                software,
+                queue: Mutex::new(tx),
+            }),
+            warnings: Arc::default(),
+        })
+    }
+
+    /// `gpu` or `cpu`: what was opened (a GPU backend may still fall back per signal).
+    pub fn name(&self) -> &'static str {
+        if self.gpu.is_some() {
+            "gpu"
+        } else {
+            "cpu"
+        }
+    }
+
+    /// Whether a GPU device is open.
+    pub fn is_gpu(&self) -> bool {
+        self.gpu.is_some()
+    }
+
+    /// The GPU adapter's name and kind, when one is open.
+    pub fn adapter(&self) -> Option<&str> {
+        self.gpu.as_ref().map(|g| g.adapter.as_str())
+    }
+
+    /// Whether the open adapter is a software one (lavapipe).
+    pub fn is_software(&self) -> bool {
+        self.gpu.as_ref().is_some_and(|g| g.software)
+    }
+
+    /// Why `auto` chose the CPU although an adapter exists (a software one), if it did.
+    pub fn notes(&self) -> Vec<String> {
+        self.warnings
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .notes
+            .clone()
+    }
+
+    fn note(&self, text: String) {
+        self.warnings
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .notes
+            .push(text);
+    }
+
+    /// Warnings so far (the GPU unavailable, signals that fell back to the CPU): the first
+    /// few in full, then how many more.
+    pub fn warnings(&self) -> Vec<String> {
+        let w = self.warnings.lock().unwrap_or_else(|p| p.into_inner());
+        let mut out = w.first.clone();
+        if w.count > w.first.len() {
+            out.push(format!(
+                "… and {} more GPU fallback warning(s)",
+                w.count - w.first.len()
+            ));
+        }
+        out
+    }
+
+    fn warn(&self, text: String) {
+        let mut w = self.warnings.lock().unwrap_or_else(|p| p.into_inner());
+        w.count += 1;
+        if w.first.len() < 5 {
+            w.first.push(text);
+        }
+    }
+
+    /// The wavelet track of one signal (see [`crate::track::track_wavelet`]), its first
+    /// pass on this backend. Blocks while the GPU batch it joins is computed.
+    pub fn track_wavelet(
+        &self,
+        x: &[f64],
+        fs: f64,
+        opt: &WaveletOptions,
+        guide: Option<&[f64]>,
+    ) -> Result<Track, TrackError> {
+        let prep = WaveletPrep::new(x, fs, opt, guide)?;
+        let mut answers = self.first_passes(vec![prep]);
+        let (prep, ridge) = answers.pop().expect("one answer per signal");
+        Ok(self.finish(prep, ridge))
+    }
+
+    /// The wavelet tracks of many signals, all with the same options, in order: prepared
+    /// in parallel, first passes submitted together (in batches sized to the adapter),
+    /// finished in parallel. For benchmarks and commands that hold all their signals.
+    pub fn track_many(
+        &self,
+        signals: &[Signal],
+        opt: &WaveletOptions,
+    ) -> Vec<Result<Track, TrackError>> {
+        use rayon::prelude::*;
+        let mut out = Vec::with_capacity(signals.len());
+        // A bounded number of prepared spectra in memory at once.
+        for group in signals.chunks(MAX_BATCH) {
+            let preps: Vec<Result<WaveletPrep, TrackError>> = group
+                .par_iter()
+                .map(|&(x, fs, g)| WaveletPrep::new(x, fs, opt, g))
+                .collect();
+            let mut ok = Vec::new();
+            let mut slots: Vec<Option<Result<Track, TrackError>>> = Vec::new();
+            for p in preps {
+                match p {
+                    Ok(p) => {
+                        ok.push(p);
+                        slots.push(None);
+                    }
+                    Err(e) => slots.push(Some(Err(e))),
+                }
+            }
+            let mut tracks = self
+                .first_passes(ok)
+                .into_par_iter()
+                .map(|(prep, ridge)| self.finish(prep, ridge))
+                .collect::<Vec<Track>>()
+                .into_iter();
+            out.extend(slots.into_iter().map(|s| {
+                s.unwrap_or_else(|| Ok(tracks.next().expect("one track per prepared signal")))
+            }));
+        }
+        out
+    }
+
+    /// The first passes of `preps`, in order: on the GPU when one is open (a signal it
+    /// cannot serve comes back with the reason), else `None` for the CPU to do.
+    fn first_passes(&self, preps: Vec<WaveletPrep>) -> Vec<Passed> {
+        let Some(service) = &self.gpu else {
+            return preps.into_iter().map(|p| (p, None)).collect();
+        };
+        let count = preps.len();
+        let (reply, answers) = mpsc::channel();
+        let mut out: Vec<Option<Passed>> = (0..count).map(|_| None).collect();
+        {
+            let queue = service.queue.lock().unwrap_or_else(|p| p.into_inner());
+            for (tag, prep) in preps.into_iter().enumerate() {
+                let request = Request {
+                    tag,
+                    prep,
+                    reply: reply.clone(),
+                };
+                if let Err(mpsc::SendError(r)) = queue.send(request) {
+                    let gone = GpuError::Lost("the GPU thread has ended".into());
+                    out[r.tag] = Some((r.prep, Some(Err(gone))));
+                }
+            }
+        }
+        drop(reply);
+        for (tag, prep, result) in answers.iter() {
+            out[tag] = Some((prep, Some(result)));
+        }
+        out.into_iter()
+            .map(|o| o.expect("the GPU thread answers every request it takes"))
+            .collect()
+    }
+
+    /// The rest of a track after its first pass; the CPU does a first pass the GPU did not.
+    fn finish(&self, prep: WaveletPrep, ridge: Option<Result<CoarseRidge, GpuError>>) -> Track {
+        match ridge {
+            Some(Ok(ridge)) => prep.finish(ridge, "gpu"),
+            Some(Err(e)) => {
+                self.warn(format!(
+                    "GPU first pass failed, signal done on the CPU: {e}"
+                ));
+                let ridge = prep.coarse_ridge();
+                prep.finish(ridge, "cpu")
+            }
+            None => {
+                let ridge = prep.coarse_ridge();
+                prep.finish(ridge, "cpu")
+            }
+        }
+    }
+}
+
+/// The dispatcher: gathers requests for up to `LINGER` after the first, splits them into
+/// submissions that fit the adapter, and answers each request.
+fn dispatch(gpu: &Gpu, pass: &FirstPass, rx: Receiver<Request>, fail_after: Option<usize>) {
+    let mut submissions = 0usize;
+    let mut dead: Option<String> = None;
+    // Half the largest binding, so that the scales and their FFT scratch both fit.
+    let budget = gpu.max_binding() / 2;
+    while let Ok(first) = rx.recv() {
+        let mut batch = vec![first];
+        let deadline = Instant::now() + LINGER;
+        while batch.len() < MAX_BATCH {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match rx.recv_timeout(left) {
+                Ok(r) => batch.push(r),
+                Err(_) => break,
+            }
+        }
+        // A signal beyond the adapter's limits goes back alone, not with its batch.
+        let mut kept = Vec::with_capacity(batch.len());
+        for r in batch {
+            match pass.check(gpu, &r.prep) {
+                Ok(()) => kept.push(r),
+                Err(e) => {
+                    let _ = r.reply.send((r.tag, r.prep, Err(e)));
+                }
+            }
+        }
+        let mut batch = kept;
+        // Greedy split: one wavelet per submission, the bytes of each within the budget.
+        while !batch.is_empty() {
+            let wavelet = batch[0].prep.wavelet();
+            let mut take = Vec::new();
+            let mut rest = Vec::new();
+            let mut bytes = 0u64;
+            for r in batch.drain(..) {
+                let b = batch_bytes(&r.prep);
+                if r.prep.wavelet() == wavelet && (take.is_empty() || bytes + b <= budget) {
+                    bytes += b;
+                    take.push(r);
+                } else {
+                    rest.push(r);
+                }
+            }
+            batch = rest;
+            let result = match &dead {
+                Some(why) => Err(GpuError::Lost(why.clone())),
+                None if fail_after.is_some_and(|n| submissions >= n) => Err(GpuError::Lost(
+                    format!("simulated device loss ({FAIL_AFTER_ENV})"),
+                )),
+                None => {
+                    let preps: Vec<&WaveletPrep> = take.iter().map(|r| &r.prep).collect();
+                    pass.coarse_ridges(gpu, &preps)
+                }
+            };
+            submissions += 1;
+            match result {
+                Ok(ridges) => {
+                    for (r, ridge) in take.into_iter().zip(ridges) {
+                        let _ = r.reply.send((r.tag, r.prep, Ok(ridge)));
+                    }
+                }
+                Err(e) => {
+                    // A lost device stays lost: later work goes straight to the CPU.
+                    if let GpuError::Lost(why) = &e {
+                        dead.get_or_insert_with(|| why.clone());
+                    }
+                    for r in take {
+                        let err = match &e {
+                            GpuError::Lost(why) => GpuError::Lost(why.clone()),
+                            other => GpuError::Unsupported(other.to_string()),
+                        };
+                        let _ = r.reply.send((r.tag, r.prep, Err(err)));
+                    }
+                }
+            }
+        }
+    }
+}

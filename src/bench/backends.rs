@@ -1,0 +1,166 @@
+//! `skelid bench ARCHIVE... --backend cpu,gpu --repeat N`: the wavelet tracks of every
+//! channel of every run, timed on each backend in one process (a warm-up, then the median
+//! of N repetitions), with the agreement of their results.
+
+use std::time::Instant;
+
+use serde::Serialize;
+
+use crate::backend::{Backend, Signal};
+use crate::track::{Track, WaveletOptions};
+
+/// One backend's timings.
+#[derive(Debug, Clone, Serialize)]
+pub struct BackendTiming {
+    /// `cpu` or `gpu`.
+    pub backend: String,
+    /// GPU adapter name and kind (none for the CPU).
+    pub adapter: Option<String>,
+    /// Wall time of each timed repetition (s).
+    pub seconds: Vec<f64>,
+    /// Their median (s).
+    pub median_s: f64,
+    /// Runs per second at the median.
+    pub runs_per_s: f64,
+    /// Samples × scales transformed per second at the median.
+    pub samples_scales_per_s: f64,
+    /// Tracks whose first pass fell back to the CPU (0 on the CPU backend).
+    pub fallbacks: usize,
+}
+
+/// How far two backends' tracks of the same signals differ, over samples valid in both.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct Agreement {
+    /// Largest |A₁ − A₂| / A₁.
+    pub envelope_rel: f64,
+    /// Largest |f₁ − f₂| (Hz).
+    pub frequency_hz: f64,
+    /// Samples valid in one track only, over all tracks.
+    pub mask_samples: usize,
+    /// Samples valid in both, over all tracks.
+    pub valid_samples: usize,
+    /// Tracks compared.
+    pub tracks: usize,
+}
+
+impl Agreement {
+    /// Adds one pair of tracks of the same signal.
+    pub fn add(&mut self, a: &Track, b: &Track) {
+        self.tracks += 1;
+        for i in 0..a.len().min(b.len()) {
+            match (a.valid[i], b.valid[i]) {
+                (true, true) => {
+                    self.valid_samples += 1;
+                    let e = (a.amplitude[i] - b.amplitude[i]).abs() / a.amplitude[i];
+                    self.envelope_rel = self.envelope_rel.max(e);
+                    self.frequency_hz = self
+                        .frequency_hz
+                        .max((a.frequency[i] - b.frequency[i]).abs());
+                }
+                (false, false) => {}
+                _ => self.mask_samples += 1,
+            }
+        }
+    }
+}
+
+/// The whole comparison, as printed and written to JSON (`skelid-bench/1`).
+#[derive(Debug, Clone, Serialize)]
+pub struct BackendBench {
+    /// `skelid-bench/1`.
+    pub format: String,
+    /// Archives read.
+    pub archives: Vec<String>,
+    /// Runs read.
+    pub runs: usize,
+    /// Signals tracked per repetition (every run's input and output channels).
+    pub signals: usize,
+    /// Samples over all signals.
+    pub samples: usize,
+    /// Scales per signal.
+    pub scales: usize,
+    /// Timed repetitions per backend.
+    pub repeat: usize,
+    /// Per backend, in the order asked.
+    pub backends: Vec<BackendTiming>,
+    /// Median CPU time over median GPU time, when both ran.
+    pub gpu_speedup: Option<f64>,
+    /// CPU against GPU tracks, when both ran.
+    pub agreement: Option<Agreement>,
+}
+
+/// Times `backends` (name, backend) on `signals` (samples, sample rate), `runs` runs' worth.
+pub fn compare(
+    signals: &[(Vec<f64>, f64)],
+    runs: usize,
+    opt: &WaveletOptions,
+    backends: &[(&str, &Backend)],
+    repeat: usize,
+    mut progress: impl FnMut(&str),
+) -> BackendBench {
+    let refs: Vec<Signal> = signals
+        .iter()
+        .map(|(x, fs)| (x.as_slice(), *fs, None))
+        .collect();
+    let samples: usize = signals.iter().map(|s| s.0.len()).sum();
+    let mut timings = Vec::new();
+    let mut last: Vec<Vec<Option<Track>>> = Vec::new();
+    for &(name, backend) in backends {
+        progress(&format!("{name}: warm-up"));
+        // Warm-up: plans, pipelines and the device's first submission, on a few signals.
+        let warm = &refs[..refs.len().min(8)];
+        let _ = backend.track_many(warm, opt);
+        let mut seconds = Vec::new();
+        let mut tracks = Vec::new();
+        for r in 0..repeat.max(1) {
+            progress(&format!("{name}: repetition {}/{}", r + 1, repeat.max(1)));
+            let t0 = Instant::now();
+            let out = backend.track_many(&refs, opt);
+            seconds.push(t0.elapsed().as_secs_f64());
+            tracks = out.into_iter().map(Result::ok).collect();
+        }
+        let fallbacks = tracks
+            .iter()
+            .flatten()
+            .filter(|t| backend.is_gpu() && t.backend != "gpu")
+            .count();
+        let mut sorted = seconds.clone();
+        sorted.sort_by(f64::total_cmp);
+        let median = sorted[sorted.len() / 2];
+        timings.push(BackendTiming {
+            backend: name.to_string(),
+            adapter: backend.adapter().map(str::to_string),
+            seconds,
+            median_s: median,
+            runs_per_s: runs as f64 / median,
+            samples_scales_per_s: (samples * opt.scales) as f64 / median,
+            fallbacks,
+        });
+        last.push(tracks);
+    }
+    let find = |n: &str| timings.iter().position(|t| t.backend == n);
+    let (gpu_speedup, agreement) = match (find("cpu"), find("gpu")) {
+        (Some(c), Some(g)) => {
+            let mut a = Agreement::default();
+            for (x, y) in last[c].iter().zip(&last[g]) {
+                if let (Some(x), Some(y)) = (x, y) {
+                    a.add(x, y);
+                }
+            }
+            (Some(timings[c].median_s / timings[g].median_s), Some(a))
+        }
+        _ => (None, None),
+    };
+    BackendBench {
+        format: "skelid-bench/1".into(),
+        archives: Vec::new(),
+        runs,
+        signals: signals.len(),
+        samples,
+        scales: opt.scales,
+        repeat: repeat.max(1),
+        backends: timings,
+        gpu_speedup,
+        agreement,
+    }
+}
