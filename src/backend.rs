@@ -74,7 +74,19 @@ struct Request {
 struct GpuService {
     adapter: String,
     software: bool,
-    queue: Mutex<Sender<Request>>,
+    queue: Mutex<Option<Sender<Request>>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Drop for GpuService {
+    /// Closes the queue and waits for the dispatcher to release the device: a device torn
+    /// down while the process exits can crash the driver.
+    fn drop(&mut self) {
+        self.queue.lock().unwrap_or_else(|p| p.into_inner()).take();
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
 }
 
 impl Backend {
@@ -92,23 +104,25 @@ impl Backend {
         match choice {
             BackendChoice::Cpu => Ok(Backend::cpu()),
             BackendChoice::Gpu => Backend::start_gpu(),
-            BackendChoice::Auto => Ok(match Backend::start_gpu() {
-                Ok(b) if !b.is_software() => b,
-                Ok(b) => {
+            BackendChoice::Auto => {
+                // Look at the adapter before opening a device on it.
+                let opened = match Gpu::probe() {
+                    Ok((name, true)) => Err(Ok(name)),
+                    Ok((_, false)) => Backend::start_gpu().map_err(Err),
+                    Err(e) => Err(Err(e)),
+                };
+                Ok(opened.unwrap_or_else(|why| {
                     let cpu = Backend::cpu();
-                    cpu.note(format!(
-                        "only a software GPU adapter was found ({}): using the CPU backend, \
-                         which is faster; --backend gpu uses the adapter anyway",
-                        b.adapter().unwrap_or("?")
-                    ));
+                    match why {
+                        Ok(software) => cpu.note(format!(
+                            "only a software GPU adapter was found ({software}): using the \
+                             CPU backend, which is faster; --backend gpu uses the adapter anyway"
+                        )),
+                        Err(e) => cpu.warn(format!("GPU backend unavailable, using the CPU: {e}")),
+                    }
                     cpu
-                }
-                Err(e) => {
-                    let cpu = Backend::cpu();
-                    cpu.warn(format!("GPU backend unavailable, using the CPU: {e}"));
-                    cpu
-                }
-            }),
+                }))
+            }
         }
     }
 
@@ -119,7 +133,7 @@ impl Backend {
         let (tx, rx) = mpsc::channel::<Request>();
         let (ready_tx, ready_rx) = mpsc::channel();
         // The device lives on the dispatcher thread; it ends when the last sender is dropped.
-        std::thread::Builder::new()
+        let thread = std::thread::Builder::new()
             .name("skelid-gpu".into())
             .spawn(move || {
                 let opened = Gpu::new().map(|gpu| {
@@ -140,14 +154,23 @@ impl Backend {
                 adapter: "-".into(),
                 detail: format!("cannot start the GPU thread: {e}"),
             })?;
-        let (adapter, software) = ready_rx.recv().map_err(|_| {
-            GpuError::Lost("the GPU thread ended while opening the device".into())
-        })??;
+        let ready = ready_rx
+            .recv()
+            .map_err(|_| GpuError::Lost("the GPU thread ended while opening the device".into()))
+            .and_then(|r| r);
+        let (adapter, software) = match ready {
+            Ok(a) => a,
+            Err(e) => {
+                let _ = thread.join();
+                return Err(e);
+            }
+        };
         Ok(Backend {
             gpu: Some(GpuService {
                 adapter,
                 software,
-                queue: Mutex::new(tx),
+                queue: Mutex::new(Some(tx)),
+                thread: Some(thread),
             }),
             warnings: Arc::default(),
         })
@@ -225,7 +248,21 @@ impl Backend {
         opt: &WaveletOptions,
         guide: Option<&[f64]>,
     ) -> Result<Track, TrackError> {
-        let prep = WaveletPrep::new(x, fs, opt, guide)?;
+        self.track_wavelet_keeping(x, fs, opt, guide, false)
+    }
+
+    /// [`track_wavelet`](Self::track_wavelet), keeping the first pass's |W| grid in the
+    /// track when `keep_scalogram` (read back from the GPU only then).
+    pub fn track_wavelet_keeping(
+        &self,
+        x: &[f64],
+        fs: f64,
+        opt: &WaveletOptions,
+        guide: Option<&[f64]>,
+        keep_scalogram: bool,
+    ) -> Result<Track, TrackError> {
+        let mut prep = WaveletPrep::new(x, fs, opt, guide)?;
+        prep.keep_scalogram = keep_scalogram;
         let mut answers = self.first_passes(vec![prep]);
         let (prep, ridge) = answers.pop().expect("one answer per signal");
         Ok(self.finish(prep, ridge))
@@ -288,7 +325,11 @@ impl Backend {
                     prep,
                     reply: reply.clone(),
                 };
-                if let Err(mpsc::SendError(r)) = queue.send(request) {
+                let sent = match queue.as_ref() {
+                    Some(q) => q.send(request),
+                    None => Err(mpsc::SendError(request)),
+                };
+                if let Err(mpsc::SendError(r)) = sent {
                     let gone = GpuError::Lost("the GPU thread has ended".into());
                     out[r.tag] = Some((r.prep, Some(Err(gone))));
                 }

@@ -224,6 +224,7 @@ mod tests {
             noise: 0.0,
             band: (0.0, fs / 2.0),
             backend: "cpu",
+            scalogram: None,
         }
     }
 

@@ -419,6 +419,11 @@ struct TrackArgs {
     /// Wavelet only: a dataset of the same run whose ridge guides this one (e.g. the input).
     #[arg(long, value_name = "PATH")]
     reference: Option<String>,
+    /// Wavelet only: also write the first pass's |W| on its coarse grid (datasets
+    /// `scalogram`, scales × steps, with `scalogram_frequency` in Hz and `scalogram_time` in
+    /// s) to the HDF5 output; on a GPU this is the only time the scalogram is read back.
+    #[arg(long)]
+    keep_scalogram: bool,
     #[command(flatten)]
     backend: BackendArgs,
     #[command(flatten)]
@@ -1034,6 +1039,16 @@ fn cmd_track(a: TrackArgs) -> Result<()> {
         MethodArg::Hilbert if a.reference.is_some() => {
             bail!("--reference guides a wavelet ridge; the Hilbert method has none (use --method wavelet)")
         }
+        MethodArg::Hilbert if a.keep_scalogram => {
+            bail!("--keep-scalogram keeps the wavelet transform; add --method wavelet")
+        }
+        _ if a.keep_scalogram
+            && a.out
+                .extension()
+                .is_some_and(|e| e.eq_ignore_ascii_case("csv")) =>
+        {
+            bail!("--keep-scalogram needs an HDF5 output (a 2-D dataset); name --out FILE.h5")
+        }
         _ => {}
     }
     let options = a.ingest.options()?;
@@ -1063,7 +1078,7 @@ fn cmd_track(a: TrackArgs) -> Result<()> {
                 }
                 None => None,
             };
-            backend.track_wavelet(&x, fs, &opt, guide.as_deref())?
+            backend.track_wavelet_keeping(&x, fs, &opt, guide.as_deref(), a.keep_scalogram)?
         }
     };
     report_fallbacks(&backend);

@@ -170,6 +170,19 @@ pub struct Track {
     pub band: (f64, f64),
     /// Backend that evaluated the all-scale transform and the ridge: `cpu` or `gpu`.
     pub backend: &'static str,
+    /// The first pass's |W| on its coarse grid, when asked for (`--keep-scalogram`).
+    pub scalogram: Option<Scalogram>,
+}
+
+/// |W| of every scale on the first pass's coarse time grid.
+#[derive(Debug, Clone)]
+pub struct Scalogram {
+    /// Frequency of each scale (Hz).
+    pub frequency: Vec<f64>,
+    /// Time of each coarse step (s).
+    pub time: Vec<f64>,
+    /// |W| (signal units), scale-major: `[k · time.len() + j]`.
+    pub magnitude: Vec<f32>,
 }
 
 impl Track {
@@ -289,6 +302,7 @@ pub fn track_hilbert(x: &[f64], fs: f64, opt: &HilbertOptions) -> Result<Track, 
         noise,
         band: (0.0, fs / 2.0),
         backend: "cpu",
+        scalogram: None,
     })
 }
 
@@ -434,6 +448,8 @@ pub struct WaveletPrep {
     pub steps: usize,
     /// 1/(mean power of the record): ridge scores are log-power relative to it.
     pub unit: f64,
+    /// Keep the first pass's |W| grid in the track (costs S × steps × 4 bytes).
+    pub keep_scalogram: bool,
 }
 
 /// What the first pass finds: the ridge on the coarse grid and the noise level per scale.
@@ -444,6 +460,8 @@ pub struct CoarseRidge {
     /// Median coarse |W|² inside the cone of influence, per scale (`None` with fewer than 8
     /// coarse steps there): the white-noise floor estimate.
     pub median_power: Vec<Option<f64>>,
+    /// Coarse |W|², scale-major, when the prepared signal asked to keep its scalogram.
+    pub power: Option<Vec<f32>>,
 }
 
 impl WaveletPrep {
@@ -529,6 +547,7 @@ impl WaveletPrep {
             h,
             steps,
             unit: 1.0 / variance.max(f64::MIN_POSITIVE),
+            keep_scalogram: false,
         })
     }
 
@@ -593,7 +612,7 @@ impl WaveletPrep {
     pub fn coarse_ridge(&self) -> CoarseRidge {
         let wl = self.opt.wavelet;
         let (steps, h, s_count) = (self.steps, self.h, self.freqs.len());
-        let columns: Vec<(Vec<f32>, Option<f64>)> = self
+        let columns: Vec<(Vec<f32>, Option<f64>, Vec<f32>)> = self
             .plans
             .par_iter()
             .enumerate()
@@ -625,11 +644,16 @@ impl WaveletPrep {
                         *c = floor;
                     }
                 }
-                (col, median)
+                let kept = if self.keep_scalogram {
+                    power.iter().map(|&p| p as f32).collect()
+                } else {
+                    Vec::new()
+                };
+                (col, median, kept)
             })
             .collect();
         let mut scores = vec![0f32; steps * s_count];
-        for (k, (col, _)) in columns.iter().enumerate() {
+        for (k, (col, _, _)) in columns.iter().enumerate() {
             for j in 0..steps {
                 scores[j * s_count + k] = col[j];
             }
@@ -651,9 +675,13 @@ impl WaveletPrep {
         } else {
             argmax_ridge(&scores, s_count)
         };
+        let power = self
+            .keep_scalogram
+            .then(|| columns.iter().flat_map(|c| c.2.iter().copied()).collect());
         CoarseRidge {
             path,
             median_power: columns.into_iter().map(|c| c.1).collect(),
+            power,
         }
     }
 
@@ -661,6 +689,13 @@ impl WaveletPrep {
     /// scales around the ridge, the three-scale estimates, the bias correction, validity,
     /// and the per-sample track. `backend` names who computed `ridge`.
     pub fn finish(self, ridge: CoarseRidge, backend: &'static str) -> Track {
+        let scalogram = ridge.power.as_ref().map(|p| Scalogram {
+            frequency: self.freqs.clone(),
+            time: (0..self.steps)
+                .map(|j| (j * self.h) as f64 / self.fs)
+                .collect(),
+            magnitude: p.iter().map(|v| v.max(0.0).sqrt()).collect(),
+        });
         let WaveletPrep {
             n,
             fs,
@@ -932,6 +967,7 @@ impl WaveletPrep {
             noise: noise_var.sqrt(),
             band: (fmin, fmax),
             backend,
+            scalogram,
         };
         for g in 0..g_count {
             let a = grid[g];

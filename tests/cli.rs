@@ -504,3 +504,127 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
     assert!(g["frequency_hz"].as_f64().unwrap() <= 1e-3, "{g}");
     assert!(g["mask_samples"].as_u64().unwrap() <= 21 * 8, "{g}");
 }
+
+#[test]
+fn a_record_larger_than_one_gpu_binding_is_split_across_parts() {
+    let d = tmpdir();
+    let archive = demo_archive(d.path());
+    // Pretend the adapter binds 600 000 bytes at most: the run's 256 decimated scales
+    // (about 1 MB) need two parts, while its spectrum and ridge grid still fit.
+    let cap = 600_000usize;
+    let f = hdf5::File::open(&archive).unwrap();
+    let x: Vec<f64> = f.dataset("demo/linear/output").unwrap().read_raw().unwrap();
+    let opt = skelid::track::WaveletOptions {
+        scales: 256,
+        ..Default::default()
+    };
+    let prep = skelid::track::WaveletPrep::new(&x, 1000.0, &opt, None).unwrap();
+    let scales: usize = prep.plans.iter().map(|p| p.len * 8).sum();
+    assert!(scales > cap && prep.steps * 256 * 4 < cap && prep.spec.bins.len() * 8 < cap);
+    let track = |backend: &str| {
+        let out = d.path().join(format!("{backend}.csv"));
+        let o = skelid()
+            .arg("track")
+            .arg(&archive)
+            .args([
+                "--dataset",
+                "/demo/linear",
+                "--scales",
+                "256",
+                "--backend",
+                backend,
+            ])
+            .arg("--out")
+            .arg(&out)
+            .env("SKELID_GPU_MAX_BINDING", cap.to_string())
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(o.status.success(), "{err}");
+        assert!(!err.contains("warning"), "{err}");
+        assert!(String::from_utf8_lossy(&o.stdout).contains(&format!("backend {backend}")));
+        std::fs::read_to_string(out).unwrap()
+    };
+    let (cpu, gpu) = (track("cpu"), track("gpu"));
+    let mut worst = (0f64, 0f64);
+    for (a, b) in cpu.lines().skip(1).zip(gpu.lines().skip(1)) {
+        let p = |l: &str| -> Vec<f64> { l.split(',').map(|v| v.parse().unwrap()).collect() };
+        let (a, b) = (p(a), p(b));
+        if a[3] == 1.0 && b[3] == 1.0 {
+            worst.0 = worst.0.max((a[1] - b[1]).abs() / a[1]);
+            worst.1 = worst.1.max((a[2] - b[2]).abs());
+        }
+    }
+    println!(
+        "split record: envelope within {:.1e}, frequency within {:.1e} Hz",
+        worst.0, worst.1
+    );
+    assert!(worst.0 <= 1e-4 && worst.1 <= 1e-3, "{worst:?}");
+}
+
+#[test]
+fn keep_scalogram_writes_the_coarse_transform_on_both_backends() {
+    let d = tmpdir();
+    let archive = demo_archive(d.path());
+    let read = |backend: &str| {
+        let out = d.path().join(format!("sc-{backend}.h5"));
+        let o = skelid()
+            .arg("track")
+            .arg(&archive)
+            .args(["--dataset", "/demo/force_oscillator", "--keep-scalogram"])
+            .args(["--backend", backend, "--out"])
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let f = hdf5::File::open(&out).unwrap();
+        let sc = f.dataset("scalogram").unwrap();
+        let shape = sc.shape();
+        let w: Vec<f32> = sc.read_raw().unwrap();
+        let freq: Vec<f64> = f
+            .dataset("scalogram_frequency")
+            .unwrap()
+            .read_raw()
+            .unwrap();
+        let time: Vec<f64> = f.dataset("scalogram_time").unwrap().read_raw().unwrap();
+        assert_eq!(shape, vec![freq.len(), time.len()]);
+        let ridge: Vec<f64> = f.dataset("frequency").unwrap().read_raw().unwrap();
+        (w, freq, time, ridge)
+    };
+    let (cpu, freq, time, ridge) = read("cpu");
+    let (gpu, _, _, _) = read("gpu");
+    let peak = cpu.iter().cloned().fold(0f32, f32::max);
+    let worst = cpu
+        .iter()
+        .zip(&gpu)
+        .filter(|(a, _)| **a >= 0.01 * peak)
+        .map(|(a, b)| ((a - b) / a).abs())
+        .fold(0f32, f32::max);
+    println!(
+        "scalogram {} × {}: GPU within {worst:.1e} of the CPU",
+        freq.len(),
+        time.len()
+    );
+    assert!(worst < 1e-4, "{worst}");
+    // Mid-record, |W| peaks within a scale step of the track's frequency.
+    let j = time.len() / 2;
+    let k = (0..freq.len())
+        .max_by(|&a, &b| cpu[a * time.len() + j].total_cmp(&cpu[b * time.len() + j]))
+        .unwrap();
+    let f = ridge[(time[j] * 1000.0).round() as usize];
+    let step = (freq[1] / freq[0]).ln();
+    assert!(
+        (freq[k] / f).ln().abs() <= 1.5 * step,
+        "peak {} Hz, ridge {f} Hz",
+        freq[k]
+    );
+    let csv = skelid()
+        .arg("track")
+        .arg(&archive)
+        .args(["--dataset", "/demo/linear", "--keep-scalogram", "--out"])
+        .arg(d.path().join("x.csv"))
+        .output()
+        .unwrap();
+    assert!(!csv.status.success());
+    assert!(String::from_utf8_lossy(&csv.stderr).contains("needs an HDF5 output"));
+}

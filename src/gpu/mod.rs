@@ -67,24 +67,41 @@ pub struct Gpu {
     /// The limits the device was opened with (the adapter's own).
     pub limits: wgpu::Limits,
     info: wgpu::AdapterInfo,
+    /// A lower binding limit to pretend (`SKELID_GPU_MAX_BINDING`, bytes), so that tests can
+    /// exercise batches and records larger than one binding on any adapter.
+    binding_cap: Option<u64>,
     /// The first failure reported by the device-lost callback or a validation error.
     failure: Arc<Mutex<Option<String>>>,
 }
 
 impl Gpu {
-    /// Opens the best adapter wgpu finds (high performance preferred; a software adapter
-    /// is accepted), with the adapter's own limits so that batches can be sized to them.
-    pub fn new() -> Result<Gpu, GpuError> {
+    /// The adapter [`new`](Self::new) would open, without opening a device: its name and
+    /// whether it is a software one.
+    pub fn probe() -> Result<(String, bool), GpuError> {
+        let info = Self::adapter()?.get_info();
+        Ok((
+            format!("{} ({:?}, {:?})", info.name, info.device_type, info.backend),
+            info.device_type == wgpu::DeviceType::Cpu,
+        ))
+    }
+
+    fn adapter() -> Result<wgpu::Adapter, GpuError> {
         let instance =
             wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
-        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+        pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
             power_preference: wgpu::PowerPreference::HighPerformance,
             force_fallback_adapter: false,
             compatible_surface: None,
             // The real limits: batches are sized to them.
             apply_limit_buckets: false,
         }))
-        .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+        .map_err(|e| GpuError::NoAdapter(e.to_string()))
+    }
+
+    /// Opens the best adapter wgpu finds (high performance preferred; a software adapter
+    /// is accepted), with the adapter's own limits so that batches can be sized to them.
+    pub fn new() -> Result<Gpu, GpuError> {
+        let adapter = Self::adapter()?;
         let info = adapter.get_info();
         let limits = adapter.limits();
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
@@ -118,6 +135,9 @@ impl Gpu {
             queue,
             limits,
             info,
+            binding_cap: std::env::var("SKELID_GPU_MAX_BINDING")
+                .ok()
+                .and_then(|v| v.parse().ok()),
             failure,
         })
     }
@@ -140,6 +160,7 @@ impl Gpu {
         self.limits
             .max_storage_buffer_binding_size
             .min(self.limits.max_buffer_size)
+            .min(self.binding_cap.unwrap_or(u64::MAX))
     }
 
     /// `Err` when the device was lost or a submission failed since it was opened.

@@ -119,6 +119,12 @@ impl FirstPass {
             .encode(gpu, &mut enc, &grid.power, &grid.offsets, preps)?;
         gpu.queue.submit([enc.finish()]);
         let paths: Vec<u32> = gpu.download(&out.path, out.path_len)?;
+        // The scalogram is read back only when a signal asks for it.
+        let power: Option<Vec<f32>> = if preps.iter().any(|p| p.keep_scalogram) {
+            Some(gpu.download(&grid.power, grid.len)?)
+        } else {
+            None
+        };
         let stats: Vec<[f32; 2]> = gpu.download(&out.stats, out.stats_len)?;
         Ok(preps
             .iter()
@@ -136,6 +142,10 @@ impl FirstPass {
                             (b + 1 >= a + 8).then(|| f64::from(stats[so + k][1]))
                         })
                         .collect(),
+                    power: power.as_ref().filter(|_| p.keep_scalogram).map(|all| {
+                        let at = grid.offsets[r];
+                        all[at..at + p.freqs.len() * p.steps].to_vec()
+                    }),
                 }
             })
             .collect())
@@ -166,25 +176,34 @@ impl FirstPass {
                 p.len
             )));
         }
-        // The scales and their FFT scratch are two buffers of this size.
-        let need = batch_bytes(prep);
-        if need > gpu.max_binding() {
-            return Err(GpuError::TooLarge {
-                what: format!("a record of {} samples", prep.len()),
-                need,
-                limit: gpu.max_binding(),
-            });
+        // The scales are split into parts that fit a binding, but one scale, the spectrum,
+        // the power grid and the back-pointers each need one.
+        let longest = prep.plans.iter().map(|p| p.len).max().unwrap_or(0) as u64 * 8;
+        for (what, need) in [
+            ("one decimated scale", longest + 8 * 256),
+            ("the spectrum", prep.spec.bins.len() as u64 * 8),
+            ("the ridge grid", (prep.steps * prep.freqs.len()) as u64 * 4),
+        ] {
+            if need > gpu.max_binding() {
+                return Err(GpuError::TooLarge {
+                    what: format!("{what} of a record of {} samples", prep.len()),
+                    need,
+                    limit: gpu.max_binding(),
+                });
+            }
         }
         Ok(())
     }
 }
 
-/// Bytes of the largest single GPU buffer one run's first pass needs: its decimated scales
-/// (8 bytes a value) or its back-pointers (4 bytes per step and scale).
+/// GPU memory one run's first pass takes in the largest of its buffers — its decimated
+/// scales (8 bytes a value), its back-pointers (4 bytes per step and scale) or its spectrum
+/// — for sizing batches.
 pub fn batch_bytes(prep: &WaveletPrep) -> u64 {
     let scales: u64 = prep.plans.iter().map(|p| p.len as u64 * 8).sum();
     let back = (prep.steps * prep.freqs.len()) as u64 * 4;
-    scales.max(back)
+    let spectrum = prep.spec.bins.len() as u64 * 8;
+    scales.max(back).max(spectrum)
 }
 
 /// The ridge stage's outputs, on the GPU.

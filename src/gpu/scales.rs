@@ -106,7 +106,10 @@ impl ScaleStage {
     }
 
     /// Records the work of [`coarse_power`](Self::coarse_power) into `enc`, leaving the
-    /// power grid on the GPU for the next stage (the ridge).
+    /// power grid on the GPU for the next stage (the ridge). The run × scale items are
+    /// split into parts whose decimated scales fit one storage binding, so a batch — or a
+    /// single record — larger than the adapter's binding limit still runs; only one scale
+    /// alone must fit.
     pub fn encode(
         &self,
         gpu: &Gpu,
@@ -115,6 +118,7 @@ impl ScaleStage {
         runs: &[RunScales],
     ) -> Result<PowerGrid, GpuError> {
         let align = offset_alignment(gpu);
+        let limit = gpu.max_binding();
         // Spectra back to back.
         let mut spectrum: Vec<[f32; 2]> = Vec::new();
         let mut spec_offset = Vec::with_capacity(runs.len());
@@ -122,26 +126,103 @@ impl ScaleStage {
             spec_offset.push(spectrum.len() as u32);
             spectrum.extend(r.spectrum.bins.iter().map(|c| [c.re as f32, c.im as f32]));
         }
-        // Items grouped by FFT length, each group starting on an aligned offset.
-        let mut order: Vec<(usize, usize)> = runs
-            .iter()
-            .enumerate()
-            .flat_map(|(r, run)| (0..run.plans.len()).map(move |k| (r, k)))
-            .collect();
-        order.sort_by_key(|&(r, k)| runs[r].plans[k].len);
         let mut power_offset = Vec::with_capacity(runs.len());
         let mut power_len = 0usize;
         for r in runs {
             power_offset.push(power_len);
             power_len += r.plans.len() * r.steps;
         }
+        for (what, bytes) in [
+            ("the spectra", spectrum.len() as u64 * 8),
+            ("the coarse power grid", power_len as u64 * 4),
+        ] {
+            if bytes > limit {
+                return Err(GpuError::TooLarge {
+                    what: format!("{what} of {} run(s)", runs.len()),
+                    need: bytes,
+                    limit,
+                });
+            }
+        }
+        // Items by FFT length; consecutive items form a part while their scales fit.
+        let mut order: Vec<(usize, usize)> = runs
+            .iter()
+            .enumerate()
+            .flat_map(|(r, run)| (0..run.plans.len()).map(move |k| (r, k)))
+            .collect();
+        order.sort_by_key(|&(r, k)| runs[r].plans[k].len);
+        let mut parts: Vec<Vec<(usize, usize)>> = Vec::new();
+        let mut used = 0u64;
+        for &(r, k) in &order {
+            let m = runs[r].plans[k].len;
+            let bytes = (m.div_ceil(align) * align) as u64 * 8;
+            if bytes > limit {
+                return Err(GpuError::TooLarge {
+                    what: format!("one scale of {m} decimated values"),
+                    need: bytes,
+                    limit,
+                });
+            }
+            match parts.last_mut() {
+                Some(p) if used + bytes <= limit => p.push((r, k)),
+                _ => {
+                    parts.push(vec![(r, k)]);
+                    used = 0;
+                }
+            }
+            used += bytes;
+        }
+        let params = WaveletParams {
+            bandwidth: wavelet.bandwidth as f32,
+            centre: wavelet.centre as f32,
+            taper: TAPER as f32,
+            _pad: 0,
+        };
+        let uniform = {
+            use wgpu::util::DeviceExt;
+            gpu.device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("wavelet"),
+                    contents: bytemuck::bytes_of(&params),
+                    usage: wgpu::BufferUsages::UNIFORM,
+                })
+        };
+        let spectrum_buf = gpu.upload("spectra", &spectrum);
+        let power = gpu.storage("power", (power_len * 4) as u64);
+        let shared = Shared {
+            uniform: &uniform,
+            spectrum: &spectrum_buf,
+            power: &power,
+            spec_offset: &spec_offset,
+            power_offset: &power_offset,
+        };
+        for part in &parts {
+            self.encode_part(gpu, enc, runs, part, &shared)?;
+        }
+        Ok(PowerGrid {
+            power,
+            offsets: power_offset,
+            len: power_len,
+        })
+    }
+
+    /// One part's items: scatter, inverse FFTs grouped by length, interpolation.
+    fn encode_part(
+        &self,
+        gpu: &Gpu,
+        enc: &mut wgpu::CommandEncoder,
+        runs: &[RunScales],
+        part: &[(usize, usize)],
+        shared: &Shared,
+    ) -> Result<(), GpuError> {
+        let align = offset_alignment(gpu);
         let mut index: Vec<u32> = Vec::new();
         let mut frac: Vec<f32> = Vec::new();
         let mut tables: HashMap<(usize, usize, usize, usize), u32> = HashMap::new();
-        let mut items = Vec::with_capacity(order.len());
+        let mut items = Vec::with_capacity(part.len());
         let mut groups: Vec<(usize, usize, usize)> = Vec::new(); // (length, offset, count)
         let mut data_len = 0usize;
-        for &(r, k) in &order {
+        for &(r, k) in part {
             let run = &runs[r];
             let plan = &run.plans[k];
             let m = plan.len;
@@ -166,13 +247,13 @@ impl ScaleStage {
             let (lo, hi, centre) = plan.band();
             let spec = run.spectrum;
             items.push(Item {
-                spec: spec_offset[r],
+                spec: shared.spec_offset[r],
                 lo: lo as u32,
                 hi: hi.min(spec.bins.len() - 1) as u32,
                 centre: centre as u32,
                 m: m as u32,
                 data: data_len as u32,
-                power: (power_offset[r] + k * run.steps) as u32,
+                power: (shared.power_offset[r] + k * run.steps) as u32,
                 positions,
                 steps: run.steps as u32,
                 scale: plan.scale as f32,
@@ -182,13 +263,6 @@ impl ScaleStage {
             data_len += m;
         }
         let data_bytes = (data_len * 8) as u64;
-        if data_bytes > gpu.max_binding() {
-            return Err(GpuError::TooLarge {
-                what: format!("the scales of {} run(s)", runs.len()),
-                need: data_bytes,
-                limit: gpu.max_binding(),
-            });
-        }
         let max_rows = gpu.limits.max_compute_workgroups_per_dimension as usize;
         if items.len() > max_rows {
             return Err(GpuError::TooLarge {
@@ -197,37 +271,20 @@ impl ScaleStage {
                 limit: max_rows as u64,
             });
         }
-        let params = WaveletParams {
-            bandwidth: wavelet.bandwidth as f32,
-            centre: wavelet.centre as f32,
-            taper: TAPER as f32,
-            _pad: 0,
-        };
-        let uniform = {
-            use wgpu::util::DeviceExt;
-            gpu.device
-                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some("wavelet"),
-                    contents: bytemuck::bytes_of(&params),
-                    usage: wgpu::BufferUsages::UNIFORM,
-                })
-        };
         let items_buf = gpu.upload("items", &items);
-        let spectrum_buf = gpu.upload("spectra", &spectrum);
         let data = gpu.storage("scales", data_bytes);
         let scratch = gpu.storage("scales scratch", data_bytes);
-        let power = gpu.storage("power", (power_len * 4) as u64);
         let index_buf = gpu.upload("positions", &index);
         let frac_buf = gpu.upload("fractions", &frac);
         let bind = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("scales"),
             layout: &self.layout,
             entries: &[
-                &uniform,
+                shared.uniform,
                 &items_buf,
-                &spectrum_buf,
+                shared.spectrum,
                 &data,
-                &power,
+                shared.power,
                 &index_buf,
                 &frac_buf,
             ]
@@ -259,14 +316,19 @@ impl ScaleStage {
                 enc.copy_buffer_to_buffer(&scratch, bytes, &data, bytes, (m * count * 8) as u64);
             }
         }
-        let steps = runs.iter().map(|r| r.steps).max().unwrap_or(1);
+        let steps = part.iter().map(|&(r, _)| runs[r].steps).max().unwrap_or(1);
         dispatch(enc, &self.power, steps);
-        Ok(PowerGrid {
-            power,
-            offsets: power_offset,
-            len: power_len,
-        })
+        Ok(())
     }
+}
+
+/// Buffers every part of a batch shares.
+struct Shared<'a> {
+    uniform: &'a wgpu::Buffer,
+    spectrum: &'a wgpu::Buffer,
+    power: &'a wgpu::Buffer,
+    spec_offset: &'a [u32],
+    power_offset: &'a [usize],
 }
 
 /// A batch's coarse |W|² on the GPU: runs back to back, each scale-major.

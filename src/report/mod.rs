@@ -112,6 +112,14 @@ fn write_hdf5(path: &Path, track: &Track, source: &str) -> hdf5::Result<()> {
             write_signal(&file, name, &v, false)?;
         }
     }
+    if let Some(sc) = &track.scalogram {
+        file.new_dataset::<f32>()
+            .shape((sc.frequency.len(), sc.time.len()))
+            .create("scalogram")?
+            .write_raw(&sc.magnitude)?;
+        write_signal(&file, "scalogram_frequency", &sc.frequency, false)?;
+        write_signal(&file, "scalogram_time", &sc.time, false)?;
+    }
     file.flush()
 }
 
