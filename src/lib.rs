@@ -19,6 +19,7 @@ pub mod demo;
 pub mod filter;
 pub mod fit;
 pub mod forcevib;
+pub mod gap;
 pub mod gpu;
 pub mod h5util;
 pub mod identify;
