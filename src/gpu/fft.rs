@@ -141,15 +141,7 @@ impl FftStage {
                 inverse: u32::from(inverse),
                 _pad: [0; 3],
             };
-            let uniform = {
-                use wgpu::util::DeviceExt;
-                gpu.device
-                    .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                        label: Some("fft pass"),
-                        contents: bytemuck::bytes_of(&params),
-                        usage: wgpu::BufferUsages::UNIFORM,
-                    })
-            };
+            let uniform = gpu.uniform("fft pass", &params);
             let bind = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("fft pass"),
                 layout: &self.layout,

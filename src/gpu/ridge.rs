@@ -312,37 +312,22 @@ impl RidgeStage {
         let per_step = max_scales.div_ceil(256) * (max_scales + 2) + 4;
         let per_chunk = (LOOP_BUDGET / per_step).max(1);
         let bind = |chunk: &wgpu::Buffer| {
-            gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("ridge"),
-                layout: &self.layout,
-                entries: &[
+            gpu.bind(
+                "ridge",
+                &self.layout,
+                &[
                     &runs_buf, &info_buf, power, &guide_buf, &stats, &back, &path, chunk, &accum,
-                ]
-                .iter()
-                .enumerate()
-                .map(|(i, b)| wgpu::BindGroupEntry {
-                    binding: i as u32,
-                    resource: b.as_entire_binding(),
-                })
-                .collect::<Vec<_>>(),
-            })
+                ],
+            )
         };
         let chunks: Vec<wgpu::BindGroup> = (0..max_steps.div_ceil(per_chunk))
             .map(|c| {
-                use wgpu::util::DeviceExt;
                 let range = Chunk {
                     first: (c * per_chunk) as u32,
                     last: ((c + 1) * per_chunk).min(max_steps) as u32,
                     _pad: [0; 2],
                 };
-                bind(
-                    &gpu.device
-                        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                            label: Some("chunk"),
-                            contents: bytemuck::bytes_of(&range),
-                            usage: wgpu::BufferUsages::UNIFORM,
-                        }),
-                )
+                bind(&gpu.uniform("chunk", &range))
             })
             .collect();
         let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {

@@ -178,15 +178,7 @@ impl ScaleStage {
             taper: TAPER as f32,
             _pad: 0,
         };
-        let uniform = {
-            use wgpu::util::DeviceExt;
-            gpu.device
-                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some("wavelet"),
-                    contents: bytemuck::bytes_of(&params),
-                    usage: wgpu::BufferUsages::UNIFORM,
-                })
-        };
+        let uniform = gpu.uniform("wavelet", &params);
         let spectrum_buf = gpu.upload("spectra", &spectrum);
         let power = gpu.storage("power", (power_len * 4) as u64);
         let shared = Shared {
@@ -276,10 +268,10 @@ impl ScaleStage {
         let scratch = gpu.storage("scales scratch", data_bytes);
         let index_buf = gpu.upload("positions", &index);
         let frac_buf = gpu.upload("fractions", &frac);
-        let bind = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("scales"),
-            layout: &self.layout,
-            entries: &[
+        let bind = gpu.bind(
+            "scales",
+            &self.layout,
+            &[
                 shared.uniform,
                 &items_buf,
                 shared.spectrum,
@@ -287,15 +279,8 @@ impl ScaleStage {
                 shared.power,
                 &index_buf,
                 &frac_buf,
-            ]
-            .iter()
-            .enumerate()
-            .map(|(i, b)| wgpu::BindGroupEntry {
-                binding: i as u32,
-                resource: b.as_entire_binding(),
-            })
-            .collect::<Vec<_>>(),
-        });
+            ],
+        );
         let longest = groups.iter().map(|g| g.0).max().unwrap_or(1);
         let dispatch = |enc: &mut wgpu::CommandEncoder, pipeline, width: usize| {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
