@@ -48,6 +48,13 @@ pub struct Backend {
     warnings: Arc<Mutex<Warnings>>,
 }
 
+/// What the dispatcher has done, for the user's summary.
+#[derive(Default)]
+struct Stats {
+    submissions: std::sync::atomic::AtomicUsize,
+    signals: std::sync::atomic::AtomicUsize,
+}
+
 #[derive(Default)]
 struct Warnings {
     notes: Vec<String>,
@@ -74,6 +81,8 @@ struct Request {
 struct GpuService {
     adapter: String,
     software: bool,
+    /// Submissions made and signals they carried (successful ones).
+    stats: Arc<Stats>,
     queue: Mutex<Option<Sender<Request>>>,
     thread: Option<std::thread::JoinHandle<()>>,
 }
@@ -132,6 +141,8 @@ impl Backend {
             .and_then(|v| v.parse::<usize>().ok());
         let (tx, rx) = mpsc::channel::<Request>();
         let (ready_tx, ready_rx) = mpsc::channel();
+        let stats = Arc::new(Stats::default());
+        let counted = stats.clone();
         // The device lives on the dispatcher thread; it ends when the last sender is dropped.
         let thread = std::thread::Builder::new()
             .name("skelid-gpu".into())
@@ -143,7 +154,7 @@ impl Backend {
                 match opened {
                     Ok((gpu, pass)) => {
                         let _ = ready_tx.send(Ok((gpu.adapter_name(), gpu.is_software())));
-                        dispatch(&gpu, &pass, rx, fail_after);
+                        dispatch(&gpu, &pass, rx, fail_after, &counted);
                     }
                     Err(e) => {
                         let _ = ready_tx.send(Err(e));
@@ -169,6 +180,7 @@ impl Backend {
             gpu: Some(GpuService {
                 adapter,
                 software,
+                stats,
                 queue: Mutex::new(Some(tx)),
                 thread: Some(thread),
             }),
@@ -193,6 +205,17 @@ impl Backend {
     /// The GPU adapter's name and kind, when one is open.
     pub fn adapter(&self) -> Option<&str> {
         self.gpu.as_ref().map(|g| g.adapter.as_str())
+    }
+
+    /// Signals the GPU has done and the submissions they took, when a GPU is open.
+    pub fn gpu_work(&self) -> Option<(usize, usize)> {
+        use std::sync::atomic::Ordering::Relaxed;
+        self.gpu.as_ref().map(|g| {
+            (
+                g.stats.signals.load(Relaxed),
+                g.stats.submissions.load(Relaxed),
+            )
+        })
     }
 
     /// Whether the open adapter is a software one (lavapipe).
@@ -365,7 +388,13 @@ impl Backend {
 
 /// The dispatcher: gathers requests for up to `LINGER` after the first, splits them into
 /// submissions that fit the adapter, and answers each request.
-fn dispatch(gpu: &Gpu, pass: &FirstPass, rx: Receiver<Request>, fail_after: Option<usize>) {
+fn dispatch(
+    gpu: &Gpu,
+    pass: &FirstPass,
+    rx: Receiver<Request>,
+    fail_after: Option<usize>,
+    stats: &Stats,
+) {
     let mut submissions = 0usize;
     let mut dead: Option<String> = None;
     // Half the largest binding, so that the scales and their FFT scratch both fit.
@@ -420,6 +449,9 @@ fn dispatch(gpu: &Gpu, pass: &FirstPass, rx: Receiver<Request>, fail_after: Opti
             submissions += 1;
             match result {
                 Ok(ridges) => {
+                    use std::sync::atomic::Ordering::Relaxed;
+                    stats.submissions.fetch_add(1, Relaxed);
+                    stats.signals.fetch_add(ridges.len(), Relaxed);
                     for (r, ridge) in take.into_iter().zip(ridges) {
                         let _ = r.reply.send((r.tag, r.prep, Ok(ridge)));
                     }

@@ -554,8 +554,15 @@ fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
     Ok(())
 }
 
-/// Prints the backend's fallback warnings gathered during the work.
+/// Prints the backend's fallback warnings gathered during the work, and how the GPU's work
+/// was batched.
 fn report_fallbacks(b: &skelid::backend::Backend) {
+    if let Some((signals, submissions)) = b.gpu_work() {
+        eprintln!(
+            "GPU backend: {signals} signal(s) in {submissions} submission(s) ({:.1} per submission)",
+            signals as f64 / submissions.max(1) as f64
+        );
+    }
     for w in b.warnings() {
         eprintln!("warning: {w}");
     }

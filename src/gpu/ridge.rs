@@ -52,6 +52,10 @@ struct Chunk {
 /// nest after 65 535, whatever the shader says; this leaves room for the bookkeeping.
 const LOOP_BUDGET: usize = 60_000;
 
+/// Workgroup memory the ridge shader declares: two score rows of `MAX_SCALES` f32 and
+/// two reduction arrays of 256 plus a counter.
+const WORKGROUP_BYTES: u32 = (2 * MAX_SCALES as u32 + 2 * 256 + 1) * 4;
+
 /// Most coarse steps per run: the median's radix selection loops 32 × steps/256 times.
 pub const MAX_STEPS: usize = 1 << 18;
 
@@ -156,6 +160,17 @@ impl FirstPass {
     /// Whether this device can take `prep` at all (alone in a batch): scales, steps, the
     /// FFT lengths and the largest buffer within what the shaders and adapter allow.
     pub fn check(&self, gpu: &Gpu, prep: &WaveletPrep) -> Result<(), GpuError> {
+        let limits = &gpu.limits;
+        if limits.max_compute_workgroup_storage_size < WORKGROUP_BYTES
+            || limits.max_compute_invocations_per_workgroup < 256
+        {
+            return Err(GpuError::Unsupported(format!(
+                "the adapter allows {} bytes of workgroup memory and {} invocations per \
+                 workgroup; the ridge shader needs {WORKGROUP_BYTES} and 256",
+                limits.max_compute_workgroup_storage_size,
+                limits.max_compute_invocations_per_workgroup
+            )));
+        }
         if prep.freqs.len() > MAX_SCALES {
             return Err(GpuError::Unsupported(format!(
                 "{} scales: the GPU ridge holds at most {MAX_SCALES}",
