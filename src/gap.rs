@@ -15,7 +15,11 @@
 //! the RMS of the domains present, `sqrt((g_time² + g_backbone² + g_damping²) / 3)`.
 
 use crate::fit::Bin;
-use crate::identify::Identification;
+use crate::identify::{identify, Identification, IdentifyOptions};
+use crate::ingest::Run;
+use crate::model::RigModel;
+use crate::simulate::{simulate, Drive, Excitation, SimSettings};
+use crate::track::Method;
 
 /// Time windows the time domain is split into for the regions.
 const TIME_WINDOWS: usize = 8;
@@ -236,6 +240,180 @@ fn backbone_errors(meas: &[Bin], sim: &[Bin], m: &Identification, damping: bool)
     Errors { terms, regions }
 }
 
+/// Low-pass applied to a measured input before it drives the simulation, as a fraction of
+/// the Nyquist frequency (encoder noise differentiated twice would swamp the base
+/// acceleration).
+pub const INPUT_CUTOFF: f64 = 0.1;
+
+/// Why a gap could not be computed.
+#[derive(Debug, thiserror::Error)]
+pub enum GapError {
+    /// The run cannot drive a base-motion simulation.
+    #[error("{0}")]
+    Unusable(String),
+    /// The simulated response could not be identified.
+    #[error("the model's simulated response could not be identified: {0}")]
+    Simulated(String),
+}
+
+/// The model simulated under `measured`'s own input, identified like the measurement.
+pub fn simulate_like(measured: &Run, model: &RigModel) -> Result<Identification, GapError> {
+    let input = measured.input.as_ref().ok_or_else(|| {
+        GapError::Unusable("the run has no input channel to drive the model with".into())
+    })?;
+    let fs = measured.meta.sample_rate;
+    let drive = Drive::Base(Excitation::measured(input, fs, INPUT_CUTOFF * fs / 2.0));
+    let settings = SimSettings {
+        sample_rate: fs,
+        duration: input.len() as f64 / fs,
+        ..SimSettings::default()
+    };
+    let out = simulate(model, &drive, &settings);
+    let mut run = measured.clone();
+    run.input = Some(out.input);
+    run.output = out.output;
+    identify(&run, Method::Wavelet, &IdentifyOptions::default())
+        .map_err(|e| GapError::Simulated(e.to_string()))
+}
+
+/// The gap of `model` against the identified measurement (`f64::INFINITY` when the
+/// simulated response cannot be identified: a model that far off is simply bad).
+pub fn model_gap(measured: &Run, identified: &Identification, model: &RigModel) -> f64 {
+    simulate_like(measured, model).map_or(f64::INFINITY, |s| gap(identified, &s).total)
+}
+
+/// The baseline: the model's own parameters — stiffness, damping, clearance, gravity
+/// stiffness; the inertia stays — refitted to the measured run by minimising the gap, so
+/// that a mis-set parameter is never taken for a missing effect. Returns the refitted
+/// model, its gap, and the gap evaluations it took.
+pub fn refit_baseline(
+    measured: &Run,
+    identified: &Identification,
+    nominal: &RigModel,
+    evaluations: usize,
+) -> (RigModel, f64, usize) {
+    // Positive parameters by their logarithm relative to the nominal; the gravity
+    // stiffness (either sign) in units of the contact stiffness over the inertia / 100.
+    let k_scale = 0.01 * nominal.stiffness / nominal.inertia;
+    let apply = |x: &[f64]| -> RigModel {
+        let mut m = nominal.clone();
+        m.stiffness = nominal.stiffness * x[0].exp();
+        m.damping = nominal.damping.max(1e-9) * x[1].exp();
+        m.clearance = nominal.clearance * x[2].exp();
+        m.gravity_stiffness = nominal.gravity_stiffness + k_scale * x[3];
+        m
+    };
+    let mut count = 0usize;
+    let mut cost = |x: &[f64]| {
+        count += 1;
+        model_gap(measured, identified, &apply(x))
+    };
+    // Start from the nominal model or from what the identification found, whichever is
+    // closer: the skeleton fit is near the truth when the nominal values are far off.
+    let mut start = vec![0.0; 4];
+    let start_gap = cost(&start);
+    if let Some(dz) = identified.dead_zone {
+        let j = nominal.inertia;
+        let ln = |v: f64, nom: f64| {
+            if v > 0.0 && nom > 0.0 {
+                (v / nom).ln()
+            } else {
+                0.0
+            }
+        };
+        let c = identified
+            .damping
+            .map_or(nominal.damping, |(c, _)| c.value * j);
+        let x = vec![
+            ln(dz.stiffness.value * j, nominal.stiffness),
+            ln(c, nominal.damping),
+            ln(2.0 * dz.half_gap.value, nominal.clearance),
+            0.0,
+        ];
+        if cost(&x) < start_gap {
+            start = x;
+        }
+    }
+    let mut simplex: Vec<Vec<f64>> = vec![start.clone()];
+    for d in 0..4 {
+        if d == 2 && nominal.clearance <= 0.0 {
+            continue;
+        }
+        let mut v = start.clone();
+        v[d] += 0.1;
+        simplex.push(v);
+    }
+    let (best, g) = nelder_mead(&mut cost, simplex, evaluations, 1e-3);
+    (apply(&best), g, count)
+}
+
+/// Minimises `f` from the initial `simplex` (n + 1 points of any dimension ≥ n) by Nelder
+/// and Mead's method (standard coefficients), for at most `budget` evaluations or until the
+/// simplex's values agree within `tol`. Returns the best point and its value.
+pub fn nelder_mead(
+    f: &mut impl FnMut(&[f64]) -> f64,
+    simplex: Vec<Vec<f64>>,
+    budget: usize,
+    tol: f64,
+) -> (Vec<f64>, f64) {
+    let mut pts: Vec<(Vec<f64>, f64)> = simplex
+        .into_iter()
+        .map(|x| {
+            let v = f(&x);
+            (x, v)
+        })
+        .collect();
+    let mut used = pts.len();
+    let dim = pts[0].0.len();
+    let combine = |a: &[f64], b: &[f64], t: f64| -> Vec<f64> {
+        a.iter().zip(b).map(|(a, b)| a + t * (b - a)).collect()
+    };
+    while used < budget {
+        pts.sort_by(|a, b| a.1.total_cmp(&b.1));
+        let (lo, hi) = (pts[0].1, pts[pts.len() - 1].1);
+        if (hi - lo).abs() <= tol * lo.abs().max(1e-12) {
+            break;
+        }
+        let n = pts.len() - 1;
+        let centroid: Vec<f64> = (0..dim)
+            .map(|d| pts[..n].iter().map(|p| p.0[d]).sum::<f64>() / n as f64)
+            .collect();
+        let worst = pts[n].clone();
+        let reflected = combine(&centroid, &worst.0, -1.0);
+        let fr = f(&reflected);
+        used += 1;
+        if fr < pts[0].1 {
+            let expanded = combine(&centroid, &worst.0, -2.0);
+            let fe = f(&expanded);
+            used += 1;
+            pts[n] = if fe < fr {
+                (expanded, fe)
+            } else {
+                (reflected, fr)
+            };
+        } else if fr < pts[n - 1].1 {
+            pts[n] = (reflected, fr);
+        } else {
+            let contracted = combine(&centroid, &worst.0, 0.5);
+            let fc = f(&contracted);
+            used += 1;
+            if fc < worst.1 {
+                pts[n] = (contracted, fc);
+            } else {
+                // Shrink towards the best point.
+                let best = pts[0].0.clone();
+                for p in pts.iter_mut().skip(1) {
+                    p.0 = combine(&best, &p.0, 0.5);
+                    p.1 = f(&p.0);
+                    used += 1;
+                }
+            }
+        }
+    }
+    pts.sort_by(|a, b| a.1.total_cmp(&b.1));
+    pts.swap_remove(0)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -251,6 +429,17 @@ mod tests {
             velocity: a * k.sqrt(),
             count: 10,
         }
+    }
+
+    #[test]
+    fn nelder_mead_finds_the_minimum_of_a_rosenbrock_valley() {
+        let mut f = |x: &[f64]| (1.0 - x[0]).powi(2) + 100.0 * (x[1] - x[0] * x[0]).powi(2);
+        let simplex = vec![vec![-1.2, 1.0], vec![-1.0, 1.0], vec![-1.2, 1.2]];
+        let (x, v) = nelder_mead(&mut f, simplex, 2000, 1e-14);
+        assert!(
+            (x[0] - 1.0).abs() < 1e-3 && (x[1] - 1.0).abs() < 2e-3,
+            "{x:?} {v}"
+        );
     }
 
     #[test]

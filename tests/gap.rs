@@ -101,3 +101,41 @@ fn the_gap_sees_where_a_model_is_wrong() {
     let top = g_stiff.regions.iter().find(|r| r.domain == "time").unwrap();
     assert!(top.t0 <= 17.0 && top.t1 >= 15.0, "{top:?}");
 }
+
+#[test]
+fn the_baseline_refit_recovers_mis_set_parameters() {
+    use skelid::gap::{model_gap, refit_baseline};
+    let c = cases()
+        .into_iter()
+        .find(|c| c.path == "/demo/paper_rig")
+        .unwrap();
+    let rd = simulate_case(&c);
+    let measured = run(&c.path, rd.input.unwrap(), rd.output, &c.model);
+    let m = identified(&measured);
+    // The rig as its owner wrote it down: stiffness 20 % high, clearance 15 % low; the
+    // friction is part of this model (the refit must not need an effect to close the gap).
+    let mut nominal = c.model.clone();
+    nominal.stiffness *= 1.2;
+    nominal.clearance *= 0.85;
+    let t0 = std::time::Instant::now();
+    let nominal_gap = model_gap(&measured, &m, &nominal);
+    let (fitted, baseline_gap, evaluations) = refit_baseline(&measured, &m, &nominal, 200);
+    println!(
+        "nominal gap {nominal_gap:.4}, baseline gap {baseline_gap:.4} after {evaluations} \
+         evaluations ({:.1} s): k {:.0} (true {:.0}), c {:.2} (true {:.2}), clearance {:.5} \
+         (true {:.5})",
+        t0.elapsed().as_secs_f64(),
+        fitted.stiffness,
+        c.model.stiffness,
+        fitted.damping,
+        c.model.damping,
+        fitted.clearance,
+        c.model.clearance
+    );
+    assert!(
+        baseline_gap < 0.25 * nominal_gap,
+        "{baseline_gap} vs {nominal_gap}"
+    );
+    assert!((fitted.stiffness / c.model.stiffness - 1.0).abs() < 0.05);
+    assert!((fitted.clearance / c.model.clearance - 1.0).abs() < 0.05);
+}
