@@ -411,14 +411,10 @@ fn a_device_lost_mid_batch_falls_back_to_the_cpu_and_records_it() {
         let mut c = skelid();
         c.arg("run")
             .arg(&archive)
-            .args([
-                "--method",
-                "wavelet",
-                "--quiet",
-                "--backend",
-                backend,
-                "--out",
-            ])
+            .args(["--method", "wavelet", "--quiet", "--backend", backend])
+            // One run at a time: its input, then its response, are the two submissions
+            // before the "loss", so the first run is wholly on the GPU and the rest not.
+            .args(["--jobs", "1", "--out"])
             .arg(&out);
         if let Some(n) = fail {
             c.env("SKELID_GPU_FAIL_AFTER", n);
@@ -428,7 +424,7 @@ fn a_device_lost_mid_batch_falls_back_to_the_cpu_and_records_it() {
     };
     let (cpu_out, o) = run("cpu", None);
     assert!(o.status.success());
-    // Two runs' worth of GPU submissions, then the device is "lost".
+    // Two GPU submissions (one run's two signals), then the device is "lost".
     let (gpu_out, o) = run("gpu", Some("2"));
     let err = String::from_utf8_lossy(&o.stderr);
     println!("{err}");
