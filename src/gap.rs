@@ -17,7 +17,7 @@
 use crate::fit::Bin;
 use crate::identify::{identify, Identification, IdentifyOptions};
 use crate::ingest::Run;
-use crate::model::RigModel;
+use crate::model::{EffectKind, RigModel};
 use crate::simulate::{simulate, Drive, Excitation, SimSettings};
 use crate::track::Method;
 
@@ -341,6 +341,88 @@ pub fn refit_baseline(
         }
         let mut v = start.clone();
         v[d] += 0.1;
+        simplex.push(v);
+    }
+    let (best, g) = nelder_mead(&mut cost, simplex, evaluations, 1e-3);
+    (apply(&best), g, count)
+}
+
+/// A starting value for `kind`'s parameter on `model`, from the identification where it
+/// says something (the Coulomb level of the damping fit) and otherwise a small fraction of
+/// the model's own scales. The fit moves it; only its order of magnitude matters.
+pub fn effect_start(kind: EffectKind, model: &RigModel, identified: &Identification) -> f64 {
+    let half = (0.5 * model.clearance).max(1e-6);
+    match kind {
+        EffectKind::CoulombFriction => identified
+            .damping
+            .map(|(_, f)| f.value * model.inertia)
+            .filter(|f| *f > 0.0)
+            .unwrap_or(0.01 * model.stiffness * half),
+        EffectKind::GravityPreload => 0.1 * model.stiffness * half,
+        EffectKind::AsymmetricClearance => 0.1 * half,
+        EffectKind::CubicStiffness => 0.1 * model.stiffness / (half * half),
+        EffectKind::ContactDamping => model.damping.max(1e-6),
+        EffectKind::SensorDelay => 0.002,
+        EffectKind::Quantization => 0.02 * half,
+    }
+}
+
+/// One candidate: `kind` added to `base` (the baseline model) and fitted together with the
+/// model's own parameters by the same simplex on the gap. Returns the model with the
+/// effect, its gap, and the evaluations taken.
+pub fn fit_effect(
+    measured: &Run,
+    identified: &Identification,
+    base: &RigModel,
+    kind: EffectKind,
+    evaluations: usize,
+) -> (RigModel, f64, usize) {
+    let start = effect_start(kind, base, identified);
+    let k_scale = 0.01 * base.stiffness / base.inertia;
+    let apply = |x: &[f64]| -> RigModel {
+        let mut m = base.clone();
+        m.stiffness = base.stiffness * x[0].exp();
+        m.damping = base.damping.max(1e-9) * x[1].exp();
+        m.clearance = base.clearance * x[2].exp();
+        m.gravity_stiffness = base.gravity_stiffness + k_scale * x[3];
+        // Delay and quantization step cannot be negative: their parameter goes by its log.
+        let v = match kind {
+            EffectKind::SensorDelay | EffectKind::Quantization => start * x[4].exp(),
+            _ => start * x[4],
+        };
+        m.effects.set(kind, Some(v));
+        m
+    };
+    let mut count = 0usize;
+    let mut cost = |x: &[f64]| {
+        count += 1;
+        model_gap(measured, identified, &apply(x))
+    };
+    // Dry friction trades off against viscous damping: the baseline, without friction, has
+    // put all of it into c. Start c where the skeleton's damping fit separated the two.
+    let c0 = match (kind, identified.damping) {
+        (EffectKind::CoulombFriction, Some((c, _))) if c.value > 0.0 && base.damping > 0.0 => {
+            (c.value * base.inertia / base.damping).ln()
+        }
+        _ => 0.0,
+    };
+    let first = vec![
+        0.0,
+        c0,
+        0.0,
+        0.0,
+        match kind {
+            EffectKind::SensorDelay | EffectKind::Quantization => 0.0,
+            _ => 1.0,
+        },
+    ];
+    let mut simplex = vec![first.clone()];
+    for d in 0..5 {
+        if d == 2 && base.clearance <= 0.0 {
+            continue;
+        }
+        let mut v = first.clone();
+        v[d] += if d == 4 { 0.5 } else { 0.1 };
         simplex.push(v);
     }
     let (best, g) = nelder_mead(&mut cost, simplex, evaluations, 1e-3);
