@@ -36,7 +36,7 @@ struct Run {
 struct ScaleInfo {
     first: u32,        // first coarse step inside the cone of influence
     last: u32,         // last one (first > last: none)
-    mid: u32,          // rank of the median among the inner steps
+    mid: u32,          // rank of the median among the inner steps (NO_MEDIAN: none)
     ln_f: f32,         // ln of the scale's frequency (Hz)
 };
 
@@ -61,6 +61,7 @@ const WG: u32 = 256u;
 const MAX_SCALES: u32 = 1024u;
 const MIN_POSITIVE: f32 = 1.17549435e-38;
 const BIG: f32 = 3.40282e38;
+const NO_MEDIAN: u32 = 0xffffffffu;
 
 var<workgroup> lowest: array<f32, WG>;
 var<workgroup> below: atomic<u32>;
@@ -98,7 +99,7 @@ fn column_stats(@builtin(workgroup_id) wid: vec3<u32>,
     let floor_score = log_score(lowest[0], run.unit);
     // The largest bit pattern t with #{v < t} ≤ mid is the mid-th smallest value.
     var ans = 0u;
-    if (si.last + 1u >= si.first + 8u) {
+    if (si.mid != NO_MEDIAN) {
         for (var bit = 31i; bit >= 0i; bit = bit - 1i) {
             let cand = ans | (1u << u32(bit));
             if (lid == 0u) {

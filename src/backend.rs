@@ -45,7 +45,7 @@ const FAIL_AFTER_ENV: &str = "SKELID_GPU_FAIL_AFTER";
 /// The chosen backend, shared by all worker threads.
 pub struct Backend {
     gpu: Option<GpuService>,
-    warnings: Arc<Mutex<Warnings>>,
+    warnings: Mutex<Warnings>,
 }
 
 /// What the dispatcher has done, for the user's summary.
@@ -80,7 +80,6 @@ struct Request {
 
 struct GpuService {
     adapter: String,
-    software: bool,
     /// Submissions made and signals they carried (successful ones).
     stats: Arc<Stats>,
     queue: Mutex<Option<Sender<Request>>>,
@@ -103,7 +102,7 @@ impl Backend {
     pub fn cpu() -> Backend {
         Backend {
             gpu: None,
-            warnings: Arc::default(),
+            warnings: Mutex::default(),
         }
     }
 
@@ -147,13 +146,13 @@ impl Backend {
         let thread = std::thread::Builder::new()
             .name("skelid-gpu".into())
             .spawn(move || {
-                let opened = Gpu::new().map(|gpu| {
-                    let pass = FirstPass::new(&gpu);
-                    (gpu, pass)
+                let opened = Gpu::new().and_then(|gpu| {
+                    let pass = FirstPass::new(&gpu)?;
+                    Ok((gpu, pass))
                 });
                 match opened {
                     Ok((gpu, pass)) => {
-                        let _ = ready_tx.send(Ok((gpu.adapter_name(), gpu.is_software())));
+                        let _ = ready_tx.send(Ok(gpu.adapter_name()));
                         dispatch(&gpu, &pass, rx, fail_after, &counted);
                     }
                     Err(e) => {
@@ -169,7 +168,7 @@ impl Backend {
             .recv()
             .map_err(|_| GpuError::Lost("the GPU thread ended while opening the device".into()))
             .and_then(|r| r);
-        let (adapter, software) = match ready {
+        let adapter = match ready {
             Ok(a) => a,
             Err(e) => {
                 let _ = thread.join();
@@ -179,22 +178,12 @@ impl Backend {
         Ok(Backend {
             gpu: Some(GpuService {
                 adapter,
-                software,
                 stats,
                 queue: Mutex::new(Some(tx)),
                 thread: Some(thread),
             }),
-            warnings: Arc::default(),
+            warnings: Mutex::default(),
         })
-    }
-
-    /// `gpu` or `cpu`: what was opened (a GPU backend may still fall back per signal).
-    pub fn name(&self) -> &'static str {
-        if self.gpu.is_some() {
-            "gpu"
-        } else {
-            "cpu"
-        }
     }
 
     /// Whether a GPU device is open.
@@ -216,11 +205,6 @@ impl Backend {
                 g.stats.submissions.load(Relaxed),
             )
         })
-    }
-
-    /// Whether the open adapter is a software one (lavapipe).
-    pub fn is_software(&self) -> bool {
-        self.gpu.as_ref().is_some_and(|g| g.software)
     }
 
     /// Why `auto` chose the CPU although an adapter exists (a software one), if it did.
@@ -370,19 +354,14 @@ impl Backend {
     /// The rest of a track after its first pass; the CPU does a first pass the GPU did not.
     fn finish(&self, prep: WaveletPrep, ridge: Option<Result<CoarseRidge, GpuError>>) -> Track {
         match ridge {
-            Some(Ok(ridge)) => prep.finish(ridge, "gpu"),
-            Some(Err(e)) => {
-                self.warn(format!(
-                    "GPU first pass failed, signal done on the CPU: {e}"
-                ));
-                let ridge = prep.coarse_ridge();
-                prep.finish(ridge, "cpu")
-            }
-            None => {
-                let ridge = prep.coarse_ridge();
-                prep.finish(ridge, "cpu")
-            }
+            Some(Ok(ridge)) => return prep.finish(ridge, "gpu"),
+            Some(Err(e)) => self.warn(format!(
+                "GPU first pass failed, signal done on the CPU: {e}"
+            )),
+            None => {}
         }
+        let ridge = prep.coarse_ridge();
+        prep.finish(ridge, "cpu")
     }
 }
 
@@ -397,7 +376,9 @@ fn dispatch(
 ) {
     let mut submissions = 0usize;
     let mut dead: Option<String> = None;
-    // Half the largest binding, so that the scales and their FFT scratch both fit.
+    // A submission's runs together within half the largest binding: their spectra, power
+    // grids and back-pointers each share one binding, and the decimated scales (split into
+    // parts by the scales stage) take two buffers of that size with their FFT scratch.
     let budget = gpu.max_binding() / 2;
     while let Ok(first) = rx.recv() {
         let mut batch = vec![first];

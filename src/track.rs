@@ -35,6 +35,9 @@ const PASS1_OVERSAMPLE: f64 = 1.0;
 const PASS1_TOLERANCE: f64 = 1e-3;
 /// Decimated rate over pass band for the values interpolated to the estimation grid.
 const PASS2_OVERSAMPLE: f64 = 1.0;
+/// Fewest coarse steps inside a scale's cone of influence for their median to estimate
+/// that scale's noise floor.
+const MIN_NOISE_STEPS: usize = 8;
 /// Estimation grid spacing as a fraction of the ridge scale's σ_t.
 const GRID_DIVISION: f64 = 8.0;
 
@@ -457,8 +460,8 @@ pub struct WaveletPrep {
 pub struct CoarseRidge {
     /// Scale index of the ridge at every coarse step.
     pub path: Vec<usize>,
-    /// Median coarse |W|² inside the cone of influence, per scale (`None` with fewer than 8
-    /// coarse steps there): the white-noise floor estimate.
+    /// Median coarse |W|² inside the cone of influence, per scale (`None` where
+    /// [`WaveletPrep::noise_steps`] has none): the white-noise floor estimate.
     pub median_power: Vec<Option<f64>>,
     /// Coarse |W|², scale-major, when the prepared signal asked to keep its scalogram.
     pub power: Option<Vec<f32>>,
@@ -564,6 +567,13 @@ impl WaveletPrep {
         (first, last)
     }
 
+    /// The coarse steps whose median power estimates scale `k`'s noise floor: its inner
+    /// steps, when there are at least `MIN_NOISE_STEPS` of them.
+    pub fn noise_steps(&self, k: usize) -> Option<(usize, usize)> {
+        let (first, last) = self.inner_steps(k);
+        (last + 1 >= first + MIN_NOISE_STEPS).then_some((first, last))
+    }
+
     /// ln f − ln g over the wavelet's relative resolution, per scale, at coarse step `j`,
     /// when the guide has a usable frequency there: the guide's pull is weight × that².
     pub fn guide_at(&self, j: usize) -> Option<f64> {
@@ -628,14 +638,12 @@ impl WaveletPrep {
                     .iter()
                     .map(|&p| 0.5 * ((p * self.unit) as f32).max(f32::MIN_POSITIVE).ln())
                     .collect();
-                let (first, last) = self.inner_steps(k);
-                let median = if last + 1 >= first + 8 {
+                let median = self.noise_steps(k).map(|(first, last)| {
                     let mut inner = power[first..=last].to_vec();
                     let mid = inner.len() / 2;
-                    Some(*inner.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1)
-                } else {
-                    None
-                };
+                    *inner.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1
+                });
+                let (first, last) = self.inner_steps(k);
                 // Inside its cone of influence a long scale sees the record's onset or end
                 // (a broadband transient) rather than the signal: keep the ridge away.
                 let floor = col.iter().cloned().fold(f32::INFINITY, f32::min);

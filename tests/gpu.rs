@@ -209,7 +209,7 @@ fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
     use skelid::gpu::ridge::FirstPass;
     use skelid::track::{RidgeSearch, WaveletOptions, WaveletPrep};
     let gpu = gpu();
-    let stage = FirstPass::new(&gpu);
+    let stage = FirstPass::new(&gpu).unwrap();
     let signals = ridge_signals();
     // 128 scales: the programme runs in several chunks per run (lavapipe's loop limit);
     // 700 scales: many chunks and more than one scale per invocation.

@@ -98,6 +98,7 @@ pub fn compare(
     repeat: usize,
     mut progress: impl FnMut(&str),
 ) -> BackendBench {
+    let repeat = repeat.max(1);
     let refs: Vec<Signal> = signals
         .iter()
         .map(|(x, fs)| (x.as_slice(), *fs, None))
@@ -112,8 +113,8 @@ pub fn compare(
         let _ = backend.track_many(warm, opt);
         let mut seconds = Vec::new();
         let mut tracks = Vec::new();
-        for r in 0..repeat.max(1) {
-            progress(&format!("{name}: repetition {}/{}", r + 1, repeat.max(1)));
+        for r in 0..repeat {
+            progress(&format!("{name}: repetition {}/{repeat}", r + 1));
             let t0 = Instant::now();
             let out = backend.track_many(&refs, opt);
             seconds.push(t0.elapsed().as_secs_f64());
@@ -158,7 +159,7 @@ pub fn compare(
         signals: signals.len(),
         samples,
         scales: opt.scales,
-        repeat: repeat.max(1),
+        repeat,
         backends: timings,
         gpu_speedup,
         agreement,

@@ -47,6 +47,11 @@ pub enum GpuError {
     Unsupported(String),
 }
 
+/// An adapter's name, kind and graphics backend, as the user reads it.
+fn describe(info: &wgpu::AdapterInfo) -> String {
+    format!("{} ({:?}, {:?})", info.name, info.device_type, info.backend)
+}
+
 /// How a stage's shader sees one of its buffers.
 #[derive(Debug, Clone, Copy)]
 pub enum Binding {
@@ -79,10 +84,7 @@ impl Gpu {
     /// whether it is a software one.
     pub fn probe() -> Result<(String, bool), GpuError> {
         let info = Self::adapter()?.get_info();
-        Ok((
-            format!("{} ({:?}, {:?})", info.name, info.device_type, info.backend),
-            info.device_type == wgpu::DeviceType::Cpu,
-        ))
+        Ok((describe(&info), info.device_type == wgpu::DeviceType::Cpu))
     }
 
     fn adapter() -> Result<wgpu::Adapter, GpuError> {
@@ -144,15 +146,7 @@ impl Gpu {
 
     /// The adapter's name and kind, e.g. `llvmpipe (LLVM 15.0.6, 256 bits) (Cpu, Vulkan)`.
     pub fn adapter_name(&self) -> String {
-        format!(
-            "{} ({:?}, {:?})",
-            self.info.name, self.info.device_type, self.info.backend
-        )
-    }
-
-    /// Whether the adapter is a software rasteriser (lavapipe): right, but not fast.
-    pub fn is_software(&self) -> bool {
-        self.info.device_type == wgpu::DeviceType::Cpu
+        describe(&self.info)
     }
 
     /// The largest buffer one storage binding may hold (bytes).

@@ -29,6 +29,9 @@ struct RunParams {
     resolution: f32,
 }
 
+/// The shader's `NO_MEDIAN`: a scale whose noise floor is not estimated.
+const NO_MEDIAN: u32 = u32::MAX;
+
 /// The shader's `ScaleInfo`.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -74,12 +77,24 @@ pub struct FirstPass {
 }
 
 impl FirstPass {
-    /// Compiles both stages.
-    pub fn new(gpu: &Gpu) -> FirstPass {
-        FirstPass {
+    /// Compiles both stages, once the device is known to hold the ridge shader's workgroup.
+    pub fn new(gpu: &Gpu) -> Result<FirstPass, GpuError> {
+        let limits = &gpu.limits;
+        if limits.max_compute_workgroup_storage_size < WORKGROUP_BYTES
+            || limits.max_compute_invocations_per_workgroup < 256
+        {
+            return Err(GpuError::Unsupported(format!(
+                "the adapter {} allows {} bytes of workgroup memory and {} invocations per \
+                 workgroup; the ridge shader needs {WORKGROUP_BYTES} and 256 (use --backend cpu)",
+                gpu.adapter_name(),
+                limits.max_compute_workgroup_storage_size,
+                limits.max_compute_invocations_per_workgroup
+            )));
+        }
+        Ok(FirstPass {
             scales: ScaleStage::new(gpu),
             ridge: RidgeStage::new(gpu),
-        }
+        })
     }
 
     /// The coarse ridge and noise medians of every run, in one submission. All runs must
@@ -141,10 +156,7 @@ impl FirstPass {
                         .map(|&k| k as usize)
                         .collect(),
                     median_power: (0..p.freqs.len())
-                        .map(|k| {
-                            let (a, b) = p.inner_steps(k);
-                            (b + 1 >= a + 8).then(|| f64::from(stats[so + k][1]))
-                        })
+                        .map(|k| p.noise_steps(k).map(|_| f64::from(stats[so + k][1])))
                         .collect(),
                     power: power.as_ref().filter(|_| p.keep_scalogram).map(|all| {
                         let at = grid.offsets[r];
@@ -154,23 +166,10 @@ impl FirstPass {
             })
             .collect())
     }
-}
 
-impl FirstPass {
     /// Whether this device can take `prep` at all (alone in a batch): scales, steps, the
     /// FFT lengths and the largest buffer within what the shaders and adapter allow.
     pub fn check(&self, gpu: &Gpu, prep: &WaveletPrep) -> Result<(), GpuError> {
-        let limits = &gpu.limits;
-        if limits.max_compute_workgroup_storage_size < WORKGROUP_BYTES
-            || limits.max_compute_invocations_per_workgroup < 256
-        {
-            return Err(GpuError::Unsupported(format!(
-                "the adapter allows {} bytes of workgroup memory and {} invocations per \
-                 workgroup; the ridge shader needs {WORKGROUP_BYTES} and 256",
-                limits.max_compute_workgroup_storage_size,
-                limits.max_compute_invocations_per_workgroup
-            )));
-        }
         if prep.freqs.len() > MAX_SCALES {
             return Err(GpuError::Unsupported(format!(
                 "{} scales: the GPU ridge holds at most {MAX_SCALES}",
@@ -290,7 +289,9 @@ impl RidgeStage {
                 info.push(ScaleInfo {
                     first: first as u32,
                     last: last as u32,
-                    mid: ((last + 1).saturating_sub(first) / 2) as u32,
+                    mid: p
+                        .noise_steps(k)
+                        .map_or(NO_MEDIAN, |(a, b)| ((b + 1 - a) / 2) as u32),
                     ln_f: p.freqs[k].ln() as f32,
                 });
             }
