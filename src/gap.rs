@@ -18,7 +18,7 @@ use crate::fit::Bin;
 use crate::identify::{identify, Identification, IdentifyOptions};
 use crate::ingest::Run;
 use crate::model::{EffectKind, RigModel};
-use crate::simulate::{simulate, Drive, Excitation, SimSettings};
+use crate::simulate::{simulate, Drive, Excitation, SimSettings, MEASURED_INPUT_CUTOFF};
 use crate::track::Method;
 
 /// Time windows the time domain is split into for the regions.
@@ -240,11 +240,6 @@ fn backbone_errors(meas: &[Bin], sim: &[Bin], m: &Identification, damping: bool)
     Errors { terms, regions }
 }
 
-/// Low-pass applied to a measured input before it drives the simulation, as a fraction of
-/// the Nyquist frequency (encoder noise differentiated twice would swamp the base
-/// acceleration).
-pub const INPUT_CUTOFF: f64 = 0.1;
-
 /// Why a gap could not be computed.
 #[derive(Debug, thiserror::Error)]
 pub enum GapError {
@@ -262,7 +257,11 @@ pub fn simulate_like(measured: &Run, model: &RigModel) -> Result<Identification,
         GapError::Unusable("the run has no input channel to drive the model with".into())
     })?;
     let fs = measured.meta.sample_rate;
-    let drive = Drive::Base(Excitation::measured(input, fs, INPUT_CUTOFF * fs / 2.0));
+    let drive = Drive::Base(Excitation::measured(
+        input,
+        fs,
+        MEASURED_INPUT_CUTOFF * fs / 2.0,
+    ));
     let settings = SimSettings {
         sample_rate: fs,
         duration: input.len() as f64 / fs,
@@ -282,6 +281,92 @@ pub fn model_gap(measured: &Run, identified: &Identification, model: &RigModel) 
     simulate_like(measured, model).map_or(f64::INFINITY, |s| gap(identified, &s).total)
 }
 
+/// The coordinates the simplex moves in: the model's own parameters relative to `base`
+/// (stiffness, damping and clearance by their logarithms; the gravity stiffness, of either
+/// sign, in units of 1 % of k/J) and, for a candidate, the effect's parameter in units of
+/// its starting value (by its logarithm for those that cannot be negative).
+struct Coordinates<'a> {
+    base: &'a RigModel,
+    effect: Option<(EffectKind, f64)>,
+}
+
+impl Coordinates<'_> {
+    fn model(&self, x: &[f64]) -> RigModel {
+        let b = self.base;
+        let mut m = b.clone();
+        m.stiffness = b.stiffness * x[0].exp();
+        m.damping = b.damping.max(1e-9) * x[1].exp();
+        m.clearance = b.clearance * x[2].exp();
+        m.gravity_stiffness = b.gravity_stiffness + 0.01 * b.stiffness / b.inertia * x[3];
+        if let Some((kind, start)) = self.effect {
+            let v = if by_log(kind) {
+                start * x[4].exp()
+            } else {
+                start * x[4]
+            };
+            m.effects.set(kind, Some(v));
+        }
+        m
+    }
+
+    /// The point of `base` itself (with the effect at its starting value).
+    fn origin(&self) -> Vec<f64> {
+        match self.effect {
+            None => vec![0.0; 4],
+            Some((kind, _)) => vec![0.0, 0.0, 0.0, 0.0, if by_log(kind) { 0.0 } else { 1.0 }],
+        }
+    }
+
+    /// A simplex around `x`: a step of 0.1 in each log parameter, 0.5 in the effect's.
+    /// Without a clearance its coordinate is left out.
+    fn simplex(&self, x: &[f64]) -> Vec<Vec<f64>> {
+        let mut simplex = vec![x.to_vec()];
+        for d in 0..x.len() {
+            if d == 2 && self.base.clearance <= 0.0 {
+                continue;
+            }
+            let mut v = x.to_vec();
+            v[d] += if d == 4 { 0.5 } else { 0.1 };
+            simplex.push(v);
+        }
+        simplex
+    }
+
+    /// Minimises the gap from `start`; returns the model, its gap and the evaluations.
+    fn fit(
+        &self,
+        measured: &Run,
+        identified: &Identification,
+        start: Vec<f64>,
+        evaluations: usize,
+        spent: usize,
+    ) -> (RigModel, f64, usize) {
+        let mut count = spent;
+        let mut cost = |x: &[f64]| {
+            count += 1;
+            model_gap(measured, identified, &self.model(x))
+        };
+        let simplex = self.simplex(&start);
+        let (best, g) = nelder_mead(&mut cost, simplex, evaluations, 1e-3);
+        (self.model(&best), g, count)
+    }
+}
+
+/// Effect parameters that cannot be negative (a delay, a quantisation step) move by their
+/// logarithm.
+fn by_log(kind: EffectKind) -> bool {
+    matches!(kind, EffectKind::SensorDelay | EffectKind::Quantization)
+}
+
+/// `ln(v / nominal)`, or 0 where either is not positive.
+fn log_ratio(v: f64, nominal: f64) -> f64 {
+    if v > 0.0 && nominal > 0.0 {
+        (v / nominal).ln()
+    } else {
+        0.0
+    }
+}
+
 /// The baseline: the model's own parameters — stiffness, damping, clearance, gravity
 /// stiffness; the inertia stays — refitted to the measured run by minimising the gap, so
 /// that a mis-set parameter is never taken for a missing effect. Returns the refitted
@@ -292,59 +377,32 @@ pub fn refit_baseline(
     nominal: &RigModel,
     evaluations: usize,
 ) -> (RigModel, f64, usize) {
-    // Positive parameters by their logarithm relative to the nominal; the gravity
-    // stiffness (either sign) in units of the contact stiffness over the inertia / 100.
-    let k_scale = 0.01 * nominal.stiffness / nominal.inertia;
-    let apply = |x: &[f64]| -> RigModel {
-        let mut m = nominal.clone();
-        m.stiffness = nominal.stiffness * x[0].exp();
-        m.damping = nominal.damping.max(1e-9) * x[1].exp();
-        m.clearance = nominal.clearance * x[2].exp();
-        m.gravity_stiffness = nominal.gravity_stiffness + k_scale * x[3];
-        m
+    let coords = Coordinates {
+        base: nominal,
+        effect: None,
     };
-    let mut count = 0usize;
-    let mut cost = |x: &[f64]| {
-        count += 1;
-        model_gap(measured, identified, &apply(x))
-    };
+    let gap_of = |x: &[f64]| model_gap(measured, identified, &coords.model(x));
     // Start from the nominal model or from what the identification found, whichever is
     // closer: the skeleton fit is near the truth when the nominal values are far off.
-    let mut start = vec![0.0; 4];
-    let start_gap = cost(&start);
+    let mut start = coords.origin();
+    let mut spent = 1;
     if let Some(dz) = identified.dead_zone {
         let j = nominal.inertia;
-        let ln = |v: f64, nom: f64| {
-            if v > 0.0 && nom > 0.0 {
-                (v / nom).ln()
-            } else {
-                0.0
-            }
-        };
         let c = identified
             .damping
             .map_or(nominal.damping, |(c, _)| c.value * j);
-        let x = vec![
-            ln(dz.stiffness.value * j, nominal.stiffness),
-            ln(c, nominal.damping),
-            ln(2.0 * dz.half_gap.value, nominal.clearance),
+        let found = vec![
+            log_ratio(dz.stiffness.value * j, nominal.stiffness),
+            log_ratio(c, nominal.damping),
+            log_ratio(2.0 * dz.half_gap.value, nominal.clearance),
             0.0,
         ];
-        if cost(&x) < start_gap {
-            start = x;
+        spent += 1;
+        if gap_of(&found) < gap_of(&start) {
+            start = found;
         }
     }
-    let mut simplex: Vec<Vec<f64>> = vec![start.clone()];
-    for d in 0..4 {
-        if d == 2 && nominal.clearance <= 0.0 {
-            continue;
-        }
-        let mut v = start.clone();
-        v[d] += 0.1;
-        simplex.push(v);
-    }
-    let (best, g) = nelder_mead(&mut cost, simplex, evaluations, 1e-3);
-    (apply(&best), g, count)
+    coords.fit(measured, identified, start, evaluations, spent)
 }
 
 /// A starting value for `kind`'s parameter on `model`, from the identification where it
@@ -377,56 +435,17 @@ pub fn fit_effect(
     kind: EffectKind,
     evaluations: usize,
 ) -> (RigModel, f64, usize) {
-    let start = effect_start(kind, base, identified);
-    let k_scale = 0.01 * base.stiffness / base.inertia;
-    let apply = |x: &[f64]| -> RigModel {
-        let mut m = base.clone();
-        m.stiffness = base.stiffness * x[0].exp();
-        m.damping = base.damping.max(1e-9) * x[1].exp();
-        m.clearance = base.clearance * x[2].exp();
-        m.gravity_stiffness = base.gravity_stiffness + k_scale * x[3];
-        // Delay and quantization step cannot be negative: their parameter goes by its log.
-        let v = match kind {
-            EffectKind::SensorDelay | EffectKind::Quantization => start * x[4].exp(),
-            _ => start * x[4],
-        };
-        m.effects.set(kind, Some(v));
-        m
+    let coords = Coordinates {
+        base,
+        effect: Some((kind, effect_start(kind, base, identified))),
     };
-    let mut count = 0usize;
-    let mut cost = |x: &[f64]| {
-        count += 1;
-        model_gap(measured, identified, &apply(x))
-    };
+    let mut start = coords.origin();
     // Dry friction trades off against viscous damping: the baseline, without friction, has
     // put all of it into c. Start c where the skeleton's damping fit separated the two.
-    let c0 = match (kind, identified.damping) {
-        (EffectKind::CoulombFriction, Some((c, _))) if c.value > 0.0 && base.damping > 0.0 => {
-            (c.value * base.inertia / base.damping).ln()
-        }
-        _ => 0.0,
-    };
-    let first = vec![
-        0.0,
-        c0,
-        0.0,
-        0.0,
-        match kind {
-            EffectKind::SensorDelay | EffectKind::Quantization => 0.0,
-            _ => 1.0,
-        },
-    ];
-    let mut simplex = vec![first.clone()];
-    for d in 0..5 {
-        if d == 2 && base.clearance <= 0.0 {
-            continue;
-        }
-        let mut v = first.clone();
-        v[d] += if d == 4 { 0.5 } else { 0.1 };
-        simplex.push(v);
+    if let (EffectKind::CoulombFriction, Some((c, _))) = (kind, identified.damping) {
+        start[1] = log_ratio(c.value * base.inertia, base.damping);
     }
-    let (best, g) = nelder_mead(&mut cost, simplex, evaluations, 1e-3);
-    (apply(&best), g, count)
+    coords.fit(measured, identified, start, evaluations, 0)
 }
 
 /// Minimises `f` from the initial `simplex` (n + 1 points of any dimension ≥ n) by Nelder

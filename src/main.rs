@@ -183,7 +183,7 @@ struct SimulateArgs {
     measured_run: Option<String>,
     /// Measured input: zero-phase low-pass cut-off as a fraction of Nyquist (1 = none),
     /// so that encoder noise is not differentiated into the base acceleration.
-    #[arg(long, default_value_t = 0.1, value_name = "FRACTION")]
+    #[arg(long, default_value_t = skelid::simulate::MEASURED_INPUT_CUTOFF, value_name = "FRACTION")]
     input_cutoff: f64,
     /// Output sample rate, Hz (a measured input keeps its own).
     #[arg(long, default_value_t = 1000.0)]

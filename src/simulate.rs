@@ -162,6 +162,10 @@ pub enum Excitation {
     Zero,
 }
 
+/// Default low-pass of a measured input before it drives a simulation, as a fraction of
+/// the Nyquist frequency (`simulate --input-cutoff`, and `gap`).
+pub const MEASURED_INPUT_CUTOFF: f64 = 0.1;
+
 impl Excitation {
     /// A measured input signal, used as given; derivatives are estimated once here.
     /// Noisy measurements should go through [`Excitation::measured`] instead.

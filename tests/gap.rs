@@ -5,11 +5,10 @@
 //! others (a wrong stiffness also moves the jump-down, which the time domain sees first).
 
 use skelid::demo::{cases, simulate_case};
-use skelid::gap::gap;
+use skelid::gap::{gap, simulate_like};
 use skelid::identify::{identify, Identification, IdentifyOptions};
 use skelid::ingest::{Run, RunMeta};
 use skelid::model::RigModel;
-use skelid::simulate::{simulate, Drive, Excitation, SimSettings};
 use skelid::track::Method;
 
 fn run(path: &str, input: Vec<f64>, output: Vec<f64>, m: &RigModel) -> Run {
@@ -43,20 +42,9 @@ fn identified(r: &Run) -> Identification {
     identify(r, Method::Wavelet, &IdentifyOptions::default()).unwrap()
 }
 
-/// The model simulated under the measured run's input, identified.
-fn simulated(measured: &Run, model: &RigModel) -> Identification {
-    let input = measured.input.as_ref().unwrap();
-    let drive = Drive::Base(Excitation::measured(input, 1000.0, 0.1 * 500.0));
-    let settings = SimSettings {
-        duration: input.len() as f64 / 1000.0,
-        ..SimSettings::default()
-    };
-    let out = simulate(model, &drive, &settings);
-    identified(&run("/sim", out.input, out.output, model))
-}
-
-#[test]
-fn the_gap_sees_where_a_model_is_wrong() {
+/// The demo's paper rig (friction included, encoder noise on) as a measured run: its true
+/// model, the run, and the run identified.
+fn paper_rig() -> (RigModel, Run, Identification) {
     let c = cases()
         .into_iter()
         .find(|c| c.path == "/demo/paper_rig")
@@ -64,7 +52,17 @@ fn the_gap_sees_where_a_model_is_wrong() {
     let rd = simulate_case(&c);
     let measured = run(&c.path, rd.input.unwrap(), rd.output, &c.model);
     let m = identified(&measured);
-    let truth = c.model.clone();
+    (c.model, measured, m)
+}
+
+/// The model simulated under the measured run's input, identified.
+fn simulated(measured: &Run, model: &RigModel) -> Identification {
+    simulate_like(measured, model).unwrap()
+}
+
+#[test]
+fn the_gap_sees_where_a_model_is_wrong() {
+    let (truth, measured, m) = paper_rig();
     let mut stiff = truth.clone();
     stiff.stiffness *= 1.3;
     let mut damped = truth.clone();
@@ -105,16 +103,10 @@ fn the_gap_sees_where_a_model_is_wrong() {
 #[test]
 fn the_baseline_refit_recovers_mis_set_parameters() {
     use skelid::gap::{model_gap, refit_baseline};
-    let c = cases()
-        .into_iter()
-        .find(|c| c.path == "/demo/paper_rig")
-        .unwrap();
-    let rd = simulate_case(&c);
-    let measured = run(&c.path, rd.input.unwrap(), rd.output, &c.model);
-    let m = identified(&measured);
+    let (truth, measured, m) = paper_rig();
     // The rig as its owner wrote it down: stiffness 20 % high, clearance 15 % low; the
     // friction is part of this model (the refit must not need an effect to close the gap).
-    let mut nominal = c.model.clone();
+    let mut nominal = truth.clone();
     nominal.stiffness *= 1.2;
     nominal.clearance *= 0.85;
     let t0 = std::time::Instant::now();
@@ -126,33 +118,27 @@ fn the_baseline_refit_recovers_mis_set_parameters() {
          (true {:.5})",
         t0.elapsed().as_secs_f64(),
         fitted.stiffness,
-        c.model.stiffness,
+        truth.stiffness,
         fitted.damping,
-        c.model.damping,
+        truth.damping,
         fitted.clearance,
-        c.model.clearance
+        truth.clearance
     );
     assert!(
         baseline_gap < 0.25 * nominal_gap,
         "{baseline_gap} vs {nominal_gap}"
     );
-    assert!((fitted.stiffness / c.model.stiffness - 1.0).abs() < 0.05);
-    assert!((fitted.clearance / c.model.clearance - 1.0).abs() < 0.05);
+    assert!((fitted.stiffness / truth.stiffness - 1.0).abs() < 0.05);
+    assert!((fitted.clearance / truth.clearance - 1.0).abs() < 0.05);
 }
 
 #[test]
 fn the_missing_effect_closes_the_gap_and_a_wrong_one_does_not() {
     use skelid::gap::{fit_effect, refit_baseline};
     use skelid::model::EffectKind;
-    let c = cases()
-        .into_iter()
-        .find(|c| c.path == "/demo/paper_rig")
-        .unwrap();
-    let rd = simulate_case(&c);
-    let measured = run(&c.path, rd.input.unwrap(), rd.output, &c.model);
-    let m = identified(&measured);
+    let (truth, measured, m) = paper_rig();
     // The rig has dry friction (2.5 N m); its model does not.
-    let mut nominal = c.model.clone();
+    let mut nominal = truth.clone();
     nominal.effects.set(EffectKind::CoulombFriction, None);
     let (base, baseline_gap, _) = refit_baseline(&measured, &m, &nominal, 150);
     let (with_friction, friction_gap, _) =
