@@ -360,10 +360,20 @@ fn track_writes_csv_and_hdf5_that_match_the_truth() {
 }
 
 /// A demo archive to run on (written by `skelid demo`, which also identifies it).
-fn demo_archive(d: &std::path::Path) -> std::path::PathBuf {
-    let out = skelid().args(["demo", "--out"]).arg(d).output().unwrap();
-    assert!(out.status.success());
-    d.join("demo_campaign.h5")
+/// The demo campaign, written once for all the tests of this file that read it (in
+/// cargo's scratch folder for integration tests; each test writes its outputs elsewhere).
+fn demo_archive() -> &'static std::path::Path {
+    static ARCHIVE: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
+    ARCHIVE.get_or_init(|| {
+        let d = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("cli-demo");
+        let out = skelid().args(["demo", "--out"]).arg(&d).output().unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        d.join("demo_campaign.h5")
+    })
 }
 
 /// No adapter at all: wgpu told to use Vulkan only, with a driver list that does not exist.
@@ -376,11 +386,11 @@ fn without_gpu(c: &mut Command) -> &mut Command {
 #[test]
 fn backend_gpu_without_an_adapter_is_an_error_and_auto_falls_back() {
     let d = tmpdir();
-    let archive = demo_archive(d.path());
+    let archive = demo_archive();
     let track = |backend: &str| {
         let mut c = skelid();
         c.args(["track"])
-            .arg(&archive)
+            .arg(archive)
             .args(["--dataset", "/demo/linear", "--backend", backend, "--out"])
             .arg(d.path().join(format!("{backend}.csv")));
         without_gpu(&mut c).output().unwrap()
@@ -403,14 +413,14 @@ fn backend_gpu_without_an_adapter_is_an_error_and_auto_falls_back() {
 #[test]
 fn a_device_lost_mid_batch_falls_back_to_the_cpu_and_records_it() {
     let d = tmpdir();
-    let archive = demo_archive(d.path());
+    let archive = demo_archive();
     let run = |backend: &str, fail: Option<&str>| {
         let out = d
             .path()
             .join(format!("out-{backend}-{}", fail.unwrap_or("none")));
         let mut c = skelid();
         c.arg("run")
-            .arg(&archive)
+            .arg(archive)
             .args(["--method", "wavelet", "--quiet", "--backend", backend])
             // One run at a time: its input, then its response, are the two submissions
             // before the "loss", so the first run is wholly on the GPU and the rest not.
@@ -465,11 +475,11 @@ fn a_device_lost_mid_batch_falls_back_to_the_cpu_and_records_it() {
 #[test]
 fn bench_compares_the_backends_on_the_demo_campaign() {
     let d = tmpdir();
-    let archive = demo_archive(d.path());
+    let archive = demo_archive();
     let json = d.path().join("bench.json");
     let out = skelid()
         .arg("bench")
-        .arg(&archive)
+        .arg(archive)
         .args(["--repeat", "1", "--out"])
         .arg(&json)
         .output()
@@ -504,11 +514,11 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
 #[test]
 fn a_record_larger_than_one_gpu_binding_is_split_across_parts() {
     let d = tmpdir();
-    let archive = demo_archive(d.path());
+    let archive = demo_archive();
     // Pretend the adapter binds 600 000 bytes at most: the run's 256 decimated scales
     // (about 1 MB) need two parts, while its spectrum and ridge grid still fit.
     let cap = 600_000usize;
-    let f = hdf5::File::open(&archive).unwrap();
+    let f = hdf5::File::open(archive).unwrap();
     let x: Vec<f64> = f.dataset("demo/linear/output").unwrap().read_raw().unwrap();
     let opt = skelid::track::WaveletOptions {
         scales: 256,
@@ -521,7 +531,7 @@ fn a_record_larger_than_one_gpu_binding_is_split_across_parts() {
         let out = d.path().join(format!("{backend}.csv"));
         let o = skelid()
             .arg("track")
-            .arg(&archive)
+            .arg(archive)
             .args([
                 "--dataset",
                 "/demo/linear",
@@ -561,12 +571,12 @@ fn a_record_larger_than_one_gpu_binding_is_split_across_parts() {
 #[test]
 fn keep_scalogram_writes_the_coarse_transform_on_both_backends() {
     let d = tmpdir();
-    let archive = demo_archive(d.path());
+    let archive = demo_archive();
     let read = |backend: &str| {
         let out = d.path().join(format!("sc-{backend}.h5"));
         let o = skelid()
             .arg("track")
-            .arg(&archive)
+            .arg(archive)
             .args(["--dataset", "/demo/force_oscillator", "--keep-scalogram"])
             .args(["--backend", backend, "--out"])
             .arg(&out)
@@ -616,7 +626,7 @@ fn keep_scalogram_writes_the_coarse_transform_on_both_backends() {
     );
     let csv = skelid()
         .arg("track")
-        .arg(&archive)
+        .arg(archive)
         .args(["--dataset", "/demo/linear", "--keep-scalogram", "--out"])
         .arg(d.path().join("x.csv"))
         .output()
