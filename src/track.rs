@@ -382,6 +382,15 @@ struct Segment {
     samples: (usize, usize),
 }
 
+/// One scale's first pass on the CPU: its ridge scores, noise median, kept |W|² (when a
+/// scalogram is kept) and noise gain.
+struct Column {
+    score: Vec<f32>,
+    median: Option<f64>,
+    power: Vec<f32>,
+    gain: f64,
+}
+
 /// Everything kept for one scale after the second pass.
 struct ScaleData {
     plan: ScalePlan,
@@ -465,6 +474,9 @@ pub struct CoarseRidge {
     pub median_power: Vec<Option<f64>>,
     /// Coarse |W|², scale-major, when the prepared signal asked to keep its scalogram.
     pub power: Option<Vec<f32>>,
+    /// Noise gain per scale ([`ScalePlan::noise_gain`]): W's variance per unit of white
+    /// noise variance and sample.
+    pub gains: Vec<f64>,
 }
 
 impl WaveletPrep {
@@ -622,12 +634,12 @@ impl WaveletPrep {
     pub fn coarse_ridge(&self) -> CoarseRidge {
         let wl = self.opt.wavelet;
         let (steps, h, s_count) = (self.steps, self.h, self.freqs.len());
-        let columns: Vec<(Vec<f32>, Option<f64>, Vec<f32>)> = self
+        let columns: Vec<Column> = self
             .plans
             .par_iter()
             .enumerate()
             .map_init(Vec::new, |buf, (k, plan)| {
-                plan.evaluate_into(&self.spec, &wl, buf);
+                let gain = plan.evaluate_into(&self.spec, &wl, buf);
                 let step = plan.step(&self.spec);
                 let power: Vec<f64> = (0..steps)
                     .map(|j| interpolate(buf, (j * h) as f64 / step).norm_sqr())
@@ -657,13 +669,18 @@ impl WaveletPrep {
                 } else {
                     Vec::new()
                 };
-                (col, median, kept)
+                Column {
+                    score: col,
+                    median,
+                    power: kept,
+                    gain,
+                }
             })
             .collect();
         let mut scores = vec![0f32; steps * s_count];
-        for (k, (col, _, _)) in columns.iter().enumerate() {
+        for (k, col) in columns.iter().enumerate() {
             for j in 0..steps {
-                scores[j * s_count + k] = col[j];
+                scores[j * s_count + k] = col.score[j];
             }
         }
         if self.guide.is_some() {
@@ -683,13 +700,17 @@ impl WaveletPrep {
         } else {
             argmax_ridge(&scores, s_count)
         };
-        let power = self
-            .keep_scalogram
-            .then(|| columns.iter().flat_map(|c| c.2.iter().copied()).collect());
+        let power = self.keep_scalogram.then(|| {
+            columns
+                .iter()
+                .flat_map(|c| c.power.iter().copied())
+                .collect()
+        });
         CoarseRidge {
             path,
-            median_power: columns.into_iter().map(|c| c.1).collect(),
+            median_power: columns.iter().map(|c| c.median).collect(),
             power,
+            gains: columns.iter().map(|c| c.gain).collect(),
         }
     }
 
@@ -723,7 +744,7 @@ impl WaveletPrep {
         let path = ridge.path;
         // White-noise floor: the lower of the quietest quarter of the scales (median over
         // time) and the spectrum above the analysis band, where only noise should be left.
-        let gains: Vec<f64> = plans.iter().map(|p| p.noise_gain(&spec, &wl)).collect();
+        let gains = ridge.gains;
         let mut per_scale: Vec<f64> = ridge
             .median_power
             .iter()

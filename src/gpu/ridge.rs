@@ -158,6 +158,11 @@ impl FirstPass {
                     median_power: (0..p.freqs.len())
                         .map(|k| p.noise_steps(k).map(|_| f64::from(stats[so + k][1])))
                         .collect(),
+                    gains: p
+                        .plans
+                        .iter()
+                        .map(|plan| plan.noise_gain(&p.spec, &wavelet))
+                        .collect(),
                     power: power.as_ref().filter(|_| p.keep_scalogram).map(|all| {
                         let at = grid.offsets[r];
                         all[at..at + p.freqs.len() * p.steps].to_vec()
