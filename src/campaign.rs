@@ -42,6 +42,49 @@ pub struct RunData {
     pub attrs: Vec<(String, Attr)>,
 }
 
+impl RunData {
+    /// The run as ingest would read it back from an archive, without the round trip
+    /// through a file (the inertia and gravity stiffness taken from the attributes).
+    pub fn into_run(self) -> crate::ingest::Run {
+        let num = |name: &str| {
+            self.attrs.iter().find_map(|(k, v)| match v {
+                Attr::Num(x) if k == name => Some(*x),
+                _ => None,
+            })
+        };
+        let attributes = self
+            .attrs
+            .iter()
+            .map(|(k, v)| {
+                let text = match v {
+                    Attr::Num(x) => x.to_string(),
+                    Attr::Text(t) => t.clone(),
+                };
+                (k.clone(), text)
+            })
+            .collect();
+        let n = self.output.len();
+        crate::ingest::Run {
+            meta: crate::ingest::RunMeta {
+                path: self.path.clone(),
+                samples: n,
+                sample_rate: self.sample_rate,
+                duration: n as f64 / self.sample_rate,
+                kind: self.kind,
+                input_quantity: self.input_quantity,
+                output_quantity: self.output_quantity,
+                inertia: num("inertia"),
+                gravity_stiffness: num("gravity_stiffness").unwrap_or(0.0),
+                units: None,
+                excitation: None,
+                attributes,
+            },
+            input: self.input,
+            output: self.output,
+        }
+    }
+}
+
 /// Error writing an archive.
 #[derive(Debug, thiserror::Error)]
 #[error("{file}: cannot write campaign archive: {detail}")]

@@ -44,6 +44,12 @@ enum Command {
     /// Instantaneous envelope, frequency and phase of one dataset, by the wavelet ridge or
     /// the Hilbert transform; writes time, amplitude, frequency (Hz), valid (FORMATS.md §4).
     Track(TrackArgs),
+    /// Why a rig's simulation does not match its measurements: simulates the model under each
+    /// run's measured input, refits its own parameters, tries every unmodelled effect of the
+    /// vocabulary on alternate time blocks and scores it on the withheld ones; writes
+    /// gap.json (FORMATS.md §5), RIG.fitted.toml and gap.html. `--self-check` measures how
+    /// often it names the right effect on simulated rigs.
+    Gap(GapArgs),
     /// Benchmarks, each measured side by side in one run.
     Bench(BenchArgs),
     /// Internal: one benchmark measurement in this (child) process, printed as JSON.
@@ -62,6 +68,61 @@ enum Command {
         #[command(flatten)]
         ingest: IngestArgs,
     },
+}
+
+/// Options of `skelid gap`.
+#[derive(Args)]
+struct GapArgs {
+    /// Rig model to compare with the measurements (TOML, FORMATS.md §2). Its inertia is
+    /// held (unless --fit-inertia); stiffness, damping, clearance and gravity stiffness are
+    /// refitted before any effect is tried.
+    #[arg(long, value_name = "RIG.toml", required_unless_present = "self_check")]
+    model: Option<PathBuf>,
+    /// Campaign archive with the measured base-motion runs (input = base angle, output =
+    /// link angle).
+    #[arg(value_name = "ARCHIVE", required_unless_present = "self_check")]
+    archive: Option<PathBuf>,
+    /// Run group to diagnose (repeatable); every base-motion run of the archive by default.
+    #[arg(long = "run", value_name = "PATH")]
+    runs: Vec<String>,
+    /// Output folder: gap.json, gap.html, the fitted model(s); self-check.json with
+    /// --self-check.
+    #[arg(long, default_value = "skelid-gap", value_name = "DIR")]
+    out: PathBuf,
+    /// Length of the alternate time blocks (s): fits see the even ones, gaps are scored on
+    /// the odd ones.
+    #[arg(long, default_value_t = 2.0, value_name = "SECONDS")]
+    holdout_block: f64,
+    /// Simulations spent refitting the model's own parameters.
+    #[arg(long, default_value_t = 150, value_name = "N")]
+    baseline_evaluations: usize,
+    /// Simulations per refined candidate (and per pair of effects).
+    #[arg(long, default_value_t = 60, value_name = "N")]
+    candidate_evaluations: usize,
+    /// Candidates refined by the simplex after every effect's coarse scan.
+    #[arg(long, default_value_t = 3, value_name = "N")]
+    refine: usize,
+    /// Never try pairs of effects.
+    #[arg(long)]
+    no_pairs: bool,
+    /// Refit the inertia too (held at the model's value otherwise).
+    #[arg(long)]
+    fit_inertia: bool,
+    /// Effects to try, comma-separated (default: the whole vocabulary).
+    #[arg(long, value_delimiter = ',', value_name = "EFFECT,...")]
+    effects: Vec<String>,
+    /// Instead of diagnosing an archive, measure the diagnosis on simulated rigs that hide
+    /// one effect (or none) from their model; prints a confusion matrix.
+    #[arg(long)]
+    self_check: bool,
+    /// Self-check cases (the seven effects and none in turn).
+    #[arg(long, default_value_t = 40, value_name = "N", requires = "self_check")]
+    cases: usize,
+    /// Self-check seed.
+    #[arg(long, default_value_t = 1, value_name = "S", requires = "self_check")]
+    seed: u64,
+    #[command(flatten)]
+    ingest: IngestArgs,
 }
 
 /// Options for archives laid out differently from the skelid-campaign/1 format.
@@ -623,6 +684,7 @@ fn main() -> ExitCode {
         Command::Run(a) => cmd_run(a),
         Command::Merge(a) => cmd_merge(a),
         Command::Track(a) => cmd_track(a).map(|_| ExitCode::SUCCESS),
+        Command::Gap(a) => cmd_gap(a),
         Command::Bench(a) => cmd_bench(a).map(|_| ExitCode::SUCCESS),
         Command::BenchOne {
             file,
@@ -1216,4 +1278,227 @@ fn tempfile_dir() -> Result<PathBuf> {
     std::fs::create_dir_all(&dir)
         .with_context(|| format!("cannot create scratch folder {}", dir.display()))?;
     Ok(dir)
+}
+
+fn gap_search_options(a: &GapArgs) -> Result<skelid::gap::SearchOptions> {
+    use skelid::model::EffectKind;
+    if !a.holdout_block.is_finite() || a.holdout_block <= 0.0 {
+        bail!("--holdout-block must be a positive number of seconds");
+    }
+    let effects = if a.effects.is_empty() {
+        EffectKind::ALL.to_vec()
+    } else {
+        a.effects
+            .iter()
+            .map(|e| {
+                EffectKind::parse(e).with_context(|| {
+                    format!(
+                        "--effects: unknown effect `{e}`; the vocabulary is {}",
+                        EffectKind::ALL.map(|k| k.name()).join(", ")
+                    )
+                })
+            })
+            .collect::<Result<_>>()?
+    };
+    Ok(skelid::gap::SearchOptions {
+        blocks: skelid::gap::Blocks {
+            seconds: a.holdout_block,
+        },
+        baseline_evaluations: a.baseline_evaluations.max(10),
+        refine: a.refine,
+        candidate_evaluations: a.candidate_evaluations.max(5),
+        pairs: !a.no_pairs,
+        fit_inertia: a.fit_inertia,
+        effects,
+    })
+}
+
+fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
+    use skelid::gap::search::Reference;
+    use skelid::ingest::RunKind;
+    use skelid::report::gap as out;
+    let opt = gap_search_options(&a)?;
+    std::fs::create_dir_all(&a.out)
+        .with_context(|| format!("cannot create the output folder {}", a.out.display()))?;
+    if a.self_check {
+        return gap_self_check(&a, &opt);
+    }
+    let (Some(model_path), Some(archive_path)) = (&a.model, &a.archive) else {
+        bail!("give --model RIG.toml and an ARCHIVE (or --self-check)");
+    };
+    let model = RigModel::load(model_path)?;
+    let ingest = a.ingest.options()?;
+    let archive = Archive::open(archive_path, &ingest)?;
+    let mut chosen = Vec::new();
+    for entry in &archive.runs {
+        let wanted = a.runs.is_empty() || a.runs.iter().any(|r| r == &entry.path);
+        if !wanted {
+            continue;
+        }
+        let meta = entry
+            .meta
+            .as_ref()
+            .map_err(|e| anyhow::anyhow!("{}: {e}", entry.path))?;
+        if meta.kind != RunKind::BaseMotion {
+            if a.runs.is_empty() {
+                eprintln!(
+                    "note: {} skipped: a {} run (the gap simulates base-motion runs)",
+                    entry.path,
+                    meta.kind.as_str()
+                );
+                continue;
+            }
+            bail!("{}: a {} run; skelid gap simulates the model under a measured base motion, so it needs kind = \"base_motion\"", entry.path, meta.kind.as_str());
+        }
+        chosen.push(meta.clone());
+    }
+    for r in &a.runs {
+        if !archive.runs.iter().any(|e| &e.path == r) {
+            bail!(
+                "{}: no run {r} (list the runs with `skelid inspect {}`)",
+                archive_path.display(),
+                archive_path.display()
+            );
+        }
+    }
+    if chosen.is_empty() {
+        bail!("{}: no base-motion run to diagnose", archive_path.display());
+    }
+    let several = chosen.len() > 1;
+    let mut reports = Vec::new();
+    let mut failed = 0;
+    for meta in &chosen {
+        eprintln!(
+            "{}: refitting the model, then {} effects ...",
+            meta.path,
+            opt.effects.len()
+        );
+        let result = (|| -> Result<out::GapRun> {
+            let run = archive.load(meta)?;
+            let reference = Reference::new(&run, opt.blocks)?;
+            let d = skelid::gap::diagnose(&reference, &model, &opt)?;
+            Ok(out::GapRun::new(&reference, d)?)
+        })();
+        match result {
+            Ok(r) => {
+                let d = &r.diagnosis;
+                println!(
+                    "{}: verdict {} · held-out gap nominal {:.4} → baseline {:.4}{} · {} simulations, {:.1} s",
+                    d.run,
+                    d.verdict_name(),
+                    d.nominal_score.holdout,
+                    d.baseline.score.holdout,
+                    d.verdict.map_or(String::new(), |i| {
+                        let c = &d.candidates[i];
+                        format!(" → {:.4} with {} (shrink {:.0} %)", c.score.holdout, c.name(), 100.0 * c.shrink)
+                    }),
+                    d.evaluations,
+                    d.seconds
+                );
+                for c in d.candidates.iter().take(3) {
+                    let p: Vec<String> = c
+                        .params()
+                        .iter()
+                        .map(|(k, v)| format!("{k} = {v:.4e}"))
+                        .collect();
+                    println!(
+                        "    {:<40} held-out gap {:.4}  shrink {:>4.0} %  {}",
+                        c.name(),
+                        c.score.holdout,
+                        100.0 * c.shrink,
+                        p.join(", ")
+                    );
+                }
+                let path = out::fitted_model_path(&a.out, model_path, &d.run, several);
+                out::write_fitted_model(&path, &r)?;
+                out::check_fitted(&path)
+                    .map_err(|e| anyhow::anyhow!("the fitted model does not read back: {e}"))?;
+                reports.push(r);
+            }
+            Err(e) => {
+                failed += 1;
+                eprintln!("error: {}: {e:#}", meta.path);
+            }
+        }
+    }
+    let settings = serde_json::json!({
+        "model": model_path.display().to_string(),
+        "archive": archive_path.display().to_string(),
+        "holdout": format!("alternate {} s blocks: fits on the even ones (from t = 0), gaps scored on the odd ones", a.holdout_block),
+        "baseline_evaluations": opt.baseline_evaluations,
+        "candidate_evaluations": opt.candidate_evaluations,
+        "refine": opt.refine,
+        "pairs": opt.pairs,
+        "fit_inertia": opt.fit_inertia,
+        "min_shrink": skelid::gap::search::MIN_SHRINK,
+        "min_drop": skelid::gap::search::MIN_DROP,
+    });
+    let json = out::write_gap_json(&a.out, &reports, settings)?;
+    let page = out::write_gap_page(&a.out, &archive_path.display().to_string(), &reports)?;
+    println!(
+        "wrote {}, {} and the fitted model(s) in {}",
+        json.display(),
+        page.display(),
+        a.out.display()
+    );
+    Ok(if failed > 0 {
+        ExitCode::from(1)
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
+fn gap_self_check(a: &GapArgs, opt: &skelid::gap::SearchOptions) -> Result<ExitCode> {
+    use skelid::gap::selfcheck;
+    let cases = selfcheck::cases(a.cases, a.seed);
+    eprintln!(
+        "self-check: {} cases (seed {}), paper's rig under its chirp with encoder noise, one effect (or none) hidden from a model whose parameters are ~{:.0} % off",
+        cases.len(),
+        a.seed,
+        100.0 * selfcheck::NOMINAL_ERROR
+    );
+    let bar = indicatif::ProgressBar::new(cases.len() as u64).with_style(
+        indicatif::ProgressStyle::with_template(
+            "{bar:30} {pos}/{len} cases, {elapsed} elapsed, ~{eta} left",
+        )
+        .expect("a valid template"),
+    );
+    let mut outcomes = Vec::new();
+    let mut errors = Vec::new();
+    let mut lines = Vec::new();
+    for c in &cases {
+        match selfcheck::run_case(c, opt) {
+            Ok(o) => {
+                let line = format!(
+                    "case {:>3}: {:<22} {:>10.4e} → {:<22} {}",
+                    c.index,
+                    o.truth(),
+                    c.value,
+                    o.verdict,
+                    if o.right() { "right" } else { "WRONG" }
+                );
+                bar.println(&line);
+                lines.push(serde_json::json!({
+                    "case": c.index, "effect": o.truth(), "value": c.value, "verdict": o.verdict,
+                    "right": o.right(), "shrink": o.shrink, "param_error": o.param_error,
+                    "baseline_gap": o.diagnosis.baseline.score.holdout,
+                    "seconds": o.diagnosis.seconds, "simulations": o.diagnosis.evaluations,
+                }));
+                outcomes.push(o);
+            }
+            Err(e) => {
+                bar.println(format!("case {:>3}: error: {e}", c.index));
+                errors.push(format!("case {}: {e}", c.index));
+            }
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let summary = selfcheck::summarize(&outcomes, errors);
+    println!("\n{summary}");
+    let path = a.out.join("self-check.json");
+    let doc = serde_json::json!({"format": "skelid-gap-self-check/1", "seed": a.seed, "summary": summary, "cases": lines});
+    skelid::report::write_atomic(&path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
+    println!("wrote {}", path.display());
+    Ok(ExitCode::SUCCESS)
 }

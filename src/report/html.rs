@@ -179,7 +179,7 @@ fn read_method(m: &hdf5::Group, name: &str, time: &[f64]) -> MethodPlots {
 
 /// Reduces a track to at most [`TRACK_POINTS`] points: the mean over each block of the
 /// valid samples, NaN for a block with none (so the plotted line breaks there).
-fn reduce(time: &[f64], y: &[f64], valid: &[u8]) -> (Vec<f64>, Vec<f64>) {
+pub(crate) fn reduce(time: &[f64], y: &[f64], valid: &[u8]) -> (Vec<f64>, Vec<f64>) {
     let n = time.len().min(y.len());
     if n == 0 {
         return (Vec::new(), Vec::new());
@@ -208,19 +208,19 @@ fn reduce(time: &[f64], y: &[f64], valid: &[u8]) -> (Vec<f64>, Vec<f64>) {
 
 /// How a series is drawn.
 #[derive(Clone, Copy)]
-enum Mark {
+pub(crate) enum Mark {
     Line,
     Points,
 }
 
 /// One series of a plot.
-struct Series<'a> {
-    color: RGBColor,
+pub(crate) struct Series<'a> {
+    pub(crate) color: RGBColor,
     /// Line width (pixels).
-    width: u32,
-    mark: Mark,
-    x: &'a [f64],
-    y: &'a [f64],
+    pub(crate) width: u32,
+    pub(crate) mark: Mark,
+    pub(crate) x: &'a [f64],
+    pub(crate) y: &'a [f64],
 }
 
 /// Colour of each method, the same in every plot and in the legend.
@@ -295,7 +295,7 @@ fn fenced_range<'a>(values: impl Iterator<Item = &'a f64>) -> Option<(f64, f64)>
 
 /// How a plot's y axis is scaled.
 #[derive(Clone, Copy, PartialEq)]
-enum YAxis {
+pub(crate) enum YAxis {
     /// Every value shown.
     Full,
     /// Outliers left outside the axes ([`fenced_range`]) and not drawn.
@@ -303,7 +303,7 @@ enum YAxis {
 }
 
 /// One plot as an SVG string; `None` when no series has a finite point.
-fn svg_plot(
+pub(crate) fn svg_plot(
     title: &str,
     x_label: &str,
     y_label: &str,
@@ -523,7 +523,7 @@ fn run_figures(run: &RunPlots) -> Vec<String> {
 }
 
 /// Escapes text for HTML.
-fn esc(s: &str) -> String {
+pub(crate) fn esc(s: &str) -> String {
     s.replace('&', "&amp;")
         .replace('<', "&lt;")
         .replace('>', "&gt;")

@@ -1,6 +1,7 @@
 //! Output files for people and other programs: tracks (FORMATS.md §4), identification
 //! results and summaries (FORMATS.md §3).
 
+pub mod gap;
 pub mod html;
 
 use std::borrow::Cow;

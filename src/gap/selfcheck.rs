@@ -1,0 +1,358 @@
+//! `skelid gap --self-check`: how often the diagnosis names the right effect. Each case is
+//! a paper-like rig simulated with one effect of the vocabulary (or none) that the model
+//! handed to the diagnosis lacks, with encoder noise and a few percent of error in the
+//! model's own parameters; the diagnosis runs blind and its verdict is scored.
+
+use std::collections::BTreeMap;
+use std::fmt;
+
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, Normal};
+
+use super::search::{diagnose, Diagnosis, Reference, SearchOptions};
+use super::GapError;
+use crate::demo::{demo_effect_value, paper_chirp, run_data, DEMO_NOISE};
+use crate::model::{EffectKind, RigModel};
+use crate::simulate::{simulate, Drive, SimSettings};
+
+/// The parameter of a case's effect is the demo's value times a factor drawn log-uniformly
+/// from [1/RANGE, RANGE].
+pub const RANGE: f64 = 2.0;
+/// Standard deviation of the relative error put into each of the model's stiffness, damping
+/// and clearance (clipped at twice this).
+pub const NOMINAL_ERROR: f64 = 0.03;
+
+/// One self-check case: the truth, and the model the diagnosis is given.
+#[derive(Debug, Clone)]
+pub struct Case {
+    /// Case number.
+    pub index: usize,
+    /// The effect in the data, `None` for an effect-free case.
+    pub effect: Option<EffectKind>,
+    /// Its parameter.
+    pub value: f64,
+    /// The rig that made the data.
+    pub truth: RigModel,
+    /// The model the diagnosis starts from (no effect, parameters a few percent off).
+    pub nominal: RigModel,
+    /// Noise seed of the simulation.
+    pub seed: u64,
+}
+
+/// `n` cases from `seed`: the eight classes (seven effects and none) in turn, so that any
+/// eight consecutive cases hold one of each.
+pub fn cases(n: usize, seed: u64) -> Vec<Case> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let normal = Normal::new(0.0, NOMINAL_ERROR).expect("a positive deviation");
+    (0..n)
+        .map(|index| {
+            let effect = EffectKind::ALL.get(index % 8).copied();
+            let factor = (rng.random_range(-1.0..1.0) * RANGE.ln()).exp();
+            let value = effect.map_or(0.0, |k| demo_effect_value(k) * factor);
+            let mut truth = RigModel::paper();
+            if let Some(k) = effect {
+                truth.effects.set(k, Some(value));
+            }
+            let mut err = || {
+                let e: f64 = normal.sample(&mut rng);
+                1.0 + e.clamp(-2.0 * NOMINAL_ERROR, 2.0 * NOMINAL_ERROR)
+            };
+            let mut nominal = RigModel::paper();
+            nominal.stiffness *= err();
+            nominal.damping *= err();
+            nominal.clearance *= err();
+            Case {
+                index,
+                effect,
+                value,
+                truth,
+                nominal,
+                seed: rng.random(),
+            }
+        })
+        .collect()
+}
+
+/// What the diagnosis made of one case.
+#[derive(Debug, Clone)]
+pub struct Outcome {
+    /// The case.
+    pub case: Case,
+    /// The verdict (`none`, an effect, or `a+b`).
+    pub verdict: String,
+    /// Held-out shrink of the verdict (None when `none`).
+    pub shrink: Option<f64>,
+    /// |fitted| / |true| − 1 of the effect's parameter when the verdict is right (signs
+    /// of a preload or an offset mirror each other's response and are not identified).
+    pub param_error: Option<f64>,
+    /// The diagnosis.
+    pub diagnosis: Diagnosis,
+}
+
+impl Outcome {
+    /// The true class's name.
+    pub fn truth(&self) -> &'static str {
+        self.case.effect.map_or("none", EffectKind::name)
+    }
+    /// Whether the verdict names the true effect (or `none` for an effect-free case).
+    pub fn right(&self) -> bool {
+        self.verdict == self.truth()
+    }
+}
+
+/// Simulates `case` (the paper's chirp, 30 s at 1 kHz, the demo's encoder noise) and
+/// diagnoses it blind.
+pub fn run_case(case: &Case, opt: &SearchOptions) -> Result<Outcome, GapError> {
+    let drive = Drive::Base(paper_chirp());
+    let settings = SimSettings {
+        sample_rate: 1000.0,
+        duration: 30.0,
+        substeps: 4,
+        output_noise: DEMO_NOISE,
+        input_noise: DEMO_NOISE,
+        seed: case.seed,
+    };
+    let sim = simulate(&case.truth, &drive, &settings);
+    let path = format!("/self_check/case_{:03}", case.index);
+    let run = run_data(&path, &case.truth, &drive, sim, 1000.0, "self-check case").into_run();
+    let reference = Reference::new(&run, opt.blocks)?;
+    let diagnosis = diagnose(&reference, &case.nominal, opt)?;
+    let verdict = diagnosis.verdict_name();
+    let chosen = diagnosis.verdict.map(|i| &diagnosis.candidates[i]);
+    let shrink = chosen.map(|c| c.shrink);
+    let param_error = match (case.effect, chosen) {
+        (Some(k), Some(c)) if c.effects.len() == 1 && c.effects[0].0 == k => {
+            Some(c.effects[0].1.abs() / case.value.abs() - 1.0)
+        }
+        _ => None,
+    };
+    Ok(Outcome {
+        case: case.clone(),
+        verdict,
+        shrink,
+        param_error,
+        diagnosis,
+    })
+}
+
+/// The self-check's figures.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Summary {
+    /// Cases run.
+    pub cases: usize,
+    /// Cases that failed outright (their errors).
+    pub errors: Vec<String>,
+    /// truth → verdict → count.
+    pub confusion: BTreeMap<String, BTreeMap<String, usize>>,
+    /// Right verdicts over cases with an effect.
+    pub top1: f64,
+    /// Per effect: right verdicts over its cases.
+    pub per_effect: BTreeMap<String, f64>,
+    /// Effect-free cases given an effect, over effect-free cases.
+    pub false_alarms: f64,
+    /// Median held-out shrink where the verdict is right.
+    pub median_shrink: Option<f64>,
+    /// Median |relative error| of the effect parameter where the verdict is right.
+    pub median_param_error: Option<f64>,
+    /// Median wall time per case (s).
+    pub median_seconds: f64,
+    /// Median simulations per case.
+    pub median_evaluations: f64,
+}
+
+fn median(mut v: Vec<f64>) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(|a, b| a.total_cmp(b));
+    let n = v.len();
+    Some(if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    })
+}
+
+/// Sums up outcomes (and the errors of cases that could not be diagnosed).
+pub fn summarize(outcomes: &[Outcome], errors: Vec<String>) -> Summary {
+    let mut confusion: BTreeMap<String, BTreeMap<String, usize>> = BTreeMap::new();
+    for o in outcomes {
+        *confusion
+            .entry(o.truth().to_string())
+            .or_default()
+            .entry(o.verdict.clone())
+            .or_default() += 1;
+    }
+    let with: Vec<&Outcome> = outcomes
+        .iter()
+        .filter(|o| o.case.effect.is_some())
+        .collect();
+    let free: Vec<&Outcome> = outcomes
+        .iter()
+        .filter(|o| o.case.effect.is_none())
+        .collect();
+    let rate = |v: &[&Outcome], f: &dyn Fn(&Outcome) -> bool| {
+        if v.is_empty() {
+            0.0
+        } else {
+            v.iter().filter(|o| f(o)).count() as f64 / v.len() as f64
+        }
+    };
+    let per_effect = EffectKind::ALL
+        .iter()
+        .filter_map(|k| {
+            let of: Vec<&Outcome> = with
+                .iter()
+                .copied()
+                .filter(|o| o.case.effect == Some(*k))
+                .collect();
+            (!of.is_empty()).then(|| (k.name().to_string(), rate(&of, &|o| o.right())))
+        })
+        .collect();
+    let right: Vec<&Outcome> = with.iter().copied().filter(|o| o.right()).collect();
+    Summary {
+        cases: outcomes.len() + errors.len(),
+        errors,
+        confusion,
+        top1: rate(&with, &|o| o.right()),
+        per_effect,
+        false_alarms: rate(&free, &|o| o.verdict != "none"),
+        median_shrink: median(right.iter().filter_map(|o| o.shrink).collect()),
+        median_param_error: median(
+            right
+                .iter()
+                .filter_map(|o| o.param_error.map(f64::abs))
+                .collect(),
+        ),
+        median_seconds: median(outcomes.iter().map(|o| o.diagnosis.seconds).collect())
+            .unwrap_or(0.0),
+        median_evaluations: median(
+            outcomes
+                .iter()
+                .map(|o| o.diagnosis.evaluations as f64)
+                .collect(),
+        )
+        .unwrap_or(0.0),
+    }
+}
+
+/// A short column label for an effect or `none`.
+fn short(name: &str) -> String {
+    name.split('+')
+        .map(|p| match p {
+            "coulomb_friction" => "fric",
+            "gravity_preload" => "prel",
+            "asymmetric_clearance" => "asym",
+            "cubic_stiffness" => "cubic",
+            "contact_damping" => "cdamp",
+            "sensor_delay" => "delay",
+            "quantization" => "quant",
+            other => other,
+        })
+        .collect::<Vec<_>>()
+        .join("+")
+}
+
+impl fmt::Display for Summary {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let rows: Vec<&str> = EffectKind::ALL
+            .iter()
+            .map(|k| k.name())
+            .chain(["none"])
+            .filter(|r| self.confusion.contains_key(*r))
+            .collect();
+        let mut cols: Vec<String> = EffectKind::ALL
+            .iter()
+            .map(|k| k.name().to_string())
+            .collect();
+        cols.push("none".into());
+        for v in self.confusion.values().flat_map(|m| m.keys()) {
+            if !cols.contains(v) {
+                cols.push(v.clone());
+            }
+        }
+        writeln!(
+            f,
+            "confusion matrix (rows: effect in the data; columns: verdict)"
+        )?;
+        write!(f, "{:<22}", "")?;
+        for c in &cols {
+            write!(f, "{:>7}", short(c))?;
+        }
+        writeln!(f)?;
+        for r in rows {
+            write!(f, "{r:<22}")?;
+            for c in &cols {
+                let n = self.confusion[r].get(c).copied().unwrap_or(0);
+                if n == 0 {
+                    write!(f, "{:>7}", ".")?;
+                } else {
+                    write!(f, "{n:>7}")?;
+                }
+            }
+            writeln!(f)?;
+        }
+        writeln!(f)?;
+        writeln!(
+            f,
+            "top-1 accuracy (cases with an effect): {:.0} %",
+            100.0 * self.top1
+        )?;
+        for (k, v) in &self.per_effect {
+            writeln!(f, "  {k:<22} {:.0} %", 100.0 * v)?;
+        }
+        writeln!(
+            f,
+            "false alarms (effect-free cases):     {:.0} %",
+            100.0 * self.false_alarms
+        )?;
+        match self.median_shrink {
+            Some(s) => writeln!(
+                f,
+                "median held-out shrink (right verdicts): {:.0} %",
+                100.0 * s
+            )?,
+            None => writeln!(f, "median held-out shrink: no right verdict")?,
+        }
+        if let Some(e) = self.median_param_error {
+            writeln!(
+                f,
+                "median effect-parameter error (right verdicts): {:.0} %",
+                100.0 * e
+            )?;
+        }
+        writeln!(
+            f,
+            "cost: median {:.1} s and {:.0} simulations per run",
+            self.median_seconds, self.median_evaluations
+        )?;
+        for e in &self.errors {
+            writeln!(f, "error: {e}")?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cases_cycle_through_every_class_with_parameters_in_range() {
+        let c = cases(16, 7);
+        for (i, case) in c.iter().enumerate() {
+            assert_eq!(case.effect, EffectKind::ALL.get(i % 8).copied());
+            if let Some(k) = case.effect {
+                let f = case.value / demo_effect_value(k);
+                assert!((1.0 / RANGE..=RANGE).contains(&f), "{f}");
+                assert_eq!(case.truth.effects.present(), vec![(k, case.value)]);
+            }
+            assert!(case.nominal.effects.is_empty());
+            let e = case.nominal.stiffness / case.truth.stiffness - 1.0;
+            assert!(e.abs() <= 2.0 * NOMINAL_ERROR + 1e-12, "{e}");
+        }
+        // Deterministic in the seed.
+        assert_eq!(cases(16, 7)[5].value, c[5].value);
+    }
+}

@@ -1,0 +1,380 @@
+//! The outputs of `skelid gap`: `gap.json` (FORMATS.md §5), the fitted model
+//! (`RIG.fitted.toml`, the rig file with the verdict's effect under `[effects]`) and
+//! `gap.html`, a page of plots — measured against nominal against fitted: the
+//! relative-motion envelope over time, the backbone and the damping force — linked from
+//! `report.html` when the output folder has one.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use plotters::style::RGBColor;
+use serde_json::{json, Value};
+
+use super::html::{esc, reduce, svg_plot, Mark, Series, YAxis};
+use super::{write_atomic, ReportError};
+use crate::gap::search::{signature, Reference, Score};
+use crate::gap::{Diagnosis, Gap, GapError};
+use crate::identify::Identification;
+use crate::model::RigModel;
+
+/// Format string of gap.json.
+pub const GAP_FORMAT: &str = "skelid-gap/1";
+
+/// One run's diagnosis with the whole-run gaps and identifications of the models it names.
+pub struct GapRun {
+    /// The diagnosis.
+    pub diagnosis: Diagnosis,
+    /// The measurement's identification.
+    pub measured: Identification,
+    /// Nominal, baseline and fitted model over the whole run: gap and identification.
+    pub models: [(Gap, Identification); 3],
+}
+
+impl GapRun {
+    /// Simulates the nominal, baseline and fitted models over the whole run.
+    pub fn new(reference: &Reference, diagnosis: Diagnosis) -> Result<GapRun, GapError> {
+        let [a, b, c] = [
+            &diagnosis.nominal,
+            &diagnosis.baseline.model,
+            diagnosis.fitted_model(),
+        ];
+        let ((na, nb), nc) = rayon::join(
+            || rayon::join(|| reference.whole(a), || reference.whole(b)),
+            || reference.whole(c),
+        );
+        // A nominal model too far off to identify is drawn from the baseline's instead.
+        let nb = nb?;
+        let na = na.unwrap_or_else(|_| nb.clone());
+        Ok(GapRun {
+            measured: reference.identified.clone(),
+            models: [na, nb, nc?],
+            diagnosis,
+        })
+    }
+}
+
+/// A finite number, or JSON null.
+fn num(v: f64) -> Value {
+    if v.is_finite() {
+        json!(v)
+    } else {
+        Value::Null
+    }
+}
+
+fn domains(d: [Option<f64>; 3]) -> Value {
+    json!({
+        "time": d[0].map_or(Value::Null, num),
+        "backbone": d[1].map_or(Value::Null, num),
+        "damping": d[2].map_or(Value::Null, num),
+    })
+}
+
+fn score_json(s: &Score) -> Value {
+    json!({"gap_fit": num(s.fit), "gap_holdout": num(s.holdout), "domains": domains(s.domains)})
+}
+
+/// The JSON of one run (FORMATS.md §5, plus the extra keys the README lists).
+pub fn run_json(r: &GapRun) -> Value {
+    let d = &r.diagnosis;
+    let candidates: Vec<Value> = d
+        .candidates
+        .iter()
+        .map(|c| {
+            let explains: Vec<&str> = c.effects.iter().map(|(k, _)| signature(*k)).collect();
+            json!({
+                "effect": c.name(),
+                "params": c.params(),
+                "gap_fit": num(c.score.fit),
+                "gap_holdout": num(c.score.holdout),
+                "shrink": num(c.shrink),
+                "refined": c.refined,
+                "domains": domains(c.score.domains),
+                "signature": explains.join("; "),
+            })
+        })
+        .collect();
+    let baseline_whole = &r.models[1].0;
+    json!({
+        "run": d.run,
+        "nominal_gap": num(d.nominal_score.holdout),
+        "baseline_gap": num(d.baseline.score.holdout),
+        "regions": baseline_whole.regions,
+        "candidates": candidates,
+        "verdict": d.verdict_name(),
+        "nominal": score_json(&d.nominal_score),
+        "baseline": score_json(&d.baseline.score),
+        "whole_run_gap": {
+            "nominal": num(r.models[0].0.total),
+            "baseline": num(r.models[1].0.total),
+            "fitted": num(r.models[2].0.total),
+        },
+        "baseline_model": d.baseline.model,
+        "fitted_model": d.fitted_model(),
+        "cost": {"simulations": d.evaluations, "seconds": d.seconds},
+    })
+}
+
+/// Writes `<out>/gap.json` (atomically); `settings` says how the search was run.
+pub fn write_gap_json(
+    out: &Path,
+    runs: &[GapRun],
+    settings: Value,
+) -> Result<PathBuf, ReportError> {
+    let doc = json!({
+        "format": GAP_FORMAT,
+        "skelid": env!("CARGO_PKG_VERSION"),
+        "settings": settings,
+        "runs": runs.iter().map(run_json).collect::<Vec<_>>(),
+    });
+    let path = out.join("gap.json");
+    let text = serde_json::to_string_pretty(&doc).expect("JSON values always serialise");
+    write_atomic(&path, text.as_bytes())?;
+    Ok(path)
+}
+
+/// Writes the fitted model to `path` (atomically), with a comment saying where it is from.
+pub fn write_fitted_model(path: &Path, r: &GapRun) -> Result<(), ReportError> {
+    let d = &r.diagnosis;
+    let why = match d.verdict {
+        Some(i) => format!(
+            "verdict {} (held-out gap {:.4} against {:.4} for the refitted model alone, shrink {:.0} %)",
+            d.candidates[i].name(),
+            d.candidates[i].score.holdout,
+            d.baseline.score.holdout,
+            100.0 * d.candidates[i].shrink
+        ),
+        None => "verdict none: the model's own parameters refitted, no effect added".into(),
+    };
+    let text = format!(
+        "# Written by skelid gap {} from run {}: {why}.\n{}",
+        env!("CARGO_PKG_VERSION"),
+        d.run,
+        d.fitted_model().to_toml()
+    );
+    write_atomic(path, text.as_bytes())
+}
+
+const MEASURED: RGBColor = RGBColor(20, 20, 20);
+const NOMINAL: RGBColor = RGBColor(200, 60, 40);
+const FITTED: RGBColor = RGBColor(31, 119, 180);
+
+/// The envelope over time, reduced for a plot.
+fn envelope(id: &Identification) -> (Vec<f64>, Vec<f64>) {
+    let r = &id.response;
+    let valid: Vec<u8> = r.valid.iter().map(|&v| v as u8).collect();
+    reduce(&r.time(), &r.amplitude, &valid)
+}
+
+/// Resonant skeleton: (A, f0 Hz) and (Aω, damping force).
+fn skeleton(id: &Identification) -> [Vec<f64>; 4] {
+    let b = if id.resonant_bins.is_empty() {
+        &id.bins
+    } else {
+        &id.resonant_bins
+    };
+    [
+        b.iter().map(|b| b.amplitude).collect(),
+        b.iter().map(|b| b.natural_frequency()).collect(),
+        b.iter().map(|b| b.velocity).collect(),
+        b.iter().map(|b| b.damping_force()).collect(),
+    ]
+}
+
+/// One run's three plots.
+fn run_figures(r: &GapRun) -> Vec<String> {
+    let ids = [&r.measured, &r.models[0].1, &r.models[2].1];
+    let env: Vec<(Vec<f64>, Vec<f64>)> = ids.iter().map(|i| envelope(i)).collect();
+    let sk: Vec<[Vec<f64>; 4]> = ids.iter().map(|i| skeleton(i)).collect();
+    let mut figs = Vec::new();
+    figs.extend(svg_plot(
+        "Relative-motion envelope over time",
+        "time (s)",
+        "envelope A (signal units)",
+        YAxis::Full,
+        &three([0, 1, 2].map(|i| (env[i].0.as_slice(), env[i].1.as_slice()))),
+    ));
+    figs.extend(svg_plot(
+        "Backbone at resonance",
+        "response amplitude A",
+        "natural frequency f0 (Hz)",
+        YAxis::Fenced,
+        &three([0, 1, 2].map(|i| (sk[i][0].as_slice(), sk[i][1].as_slice()))),
+    ));
+    figs.extend(svg_plot(
+        "Damping force per unit inertia at resonance",
+        "velocity amplitude A·ω (units/s)",
+        "2h0·A·ω (units/s²)",
+        YAxis::Fenced,
+        &three([0, 1, 2].map(|i| (sk[i][2].as_slice(), sk[i][3].as_slice()))),
+    ));
+    figs
+}
+
+/// Measured, nominal and fitted as three lines.
+fn three<'a>(xy: [(&'a [f64], &'a [f64]); 3]) -> Vec<Series<'a>> {
+    let colors = [MEASURED, NOMINAL, FITTED];
+    let widths = [2, 1, 1];
+    xy.into_iter()
+        .enumerate()
+        .map(|(i, (x, y))| Series {
+            color: colors[i],
+            width: widths[i],
+            mark: Mark::Line,
+            x,
+            y,
+        })
+        .collect()
+}
+
+fn css(c: RGBColor) -> String {
+    format!("rgb({},{},{})", c.0, c.1, c.2)
+}
+
+/// The page's HTML; `report` links back to report.html when there is one.
+pub fn render(title: &str, runs: &[GapRun], report: bool) -> String {
+    let mut b = String::new();
+    let _ = write!(
+        b,
+        "<h1>skelid sim-to-real gap</h1>\n<p class=\"meta\">{}{}</p>\n",
+        esc(title),
+        if report {
+            " · <a href=\"report.html\">identification report</a>"
+        } else {
+            ""
+        }
+    );
+    let _ = writeln!(
+        b,
+        "<p>Lines: <span style=\"color:{}\">measured</span>, <span style=\"color:{}\">nominal \
+         model</span>, <span style=\"color:{}\">fitted model (the verdict's, or the refitted \
+         baseline)</span>. Gaps are dimensionless (README, \"Sim-to-real gap\"); held-out gaps \
+         are measured on the odd time blocks that no fit saw.</p>",
+        css(MEASURED),
+        css(NOMINAL),
+        css(FITTED)
+    );
+    for r in runs {
+        let d = &r.diagnosis;
+        let _ = write!(
+            b,
+            "<h2>{}</h2>\n<p>verdict <b>{}</b> · held-out gap: nominal {:.4}, baseline {:.4} · \
+             whole run: nominal {:.4}, baseline {:.4}, fitted {:.4} · {} simulations, {:.1} s</p>\n",
+            esc(&d.run),
+            esc(&d.verdict_name()),
+            d.nominal_score.holdout,
+            d.baseline.score.holdout,
+            r.models[0].0.total,
+            r.models[1].0.total,
+            r.models[2].0.total,
+            d.evaluations,
+            d.seconds
+        );
+        b.push_str(
+            "<table><tr><th>candidate</th><th>parameters</th><th>gap (fit)</th>\
+             <th>gap (held out)</th><th>shrink</th><th>held out: time / backbone / damping</th></tr>\n",
+        );
+        for c in &d.candidates {
+            let params: Vec<String> = c
+                .params()
+                .iter()
+                .map(|(k, v)| format!("{k} = {v:.4e}"))
+                .collect();
+            let dom: Vec<String> = c
+                .score
+                .domains
+                .iter()
+                .map(|x| x.map_or("–".into(), |v| format!("{v:.3}")))
+                .collect();
+            let _ = writeln!(
+                b,
+                "<tr><td>{}</td><td>{}</td><td>{:.4}</td><td>{:.4}</td><td>{:.0} %</td><td>{}</td></tr>",
+                esc(&c.name()),
+                esc(&params.join(", ")),
+                c.score.fit,
+                c.score.holdout,
+                100.0 * c.shrink,
+                dom.join(" / ")
+            );
+        }
+        b.push_str("</table>\n<p>Where the refitted model's gap lies (largest shares):</p><ul>\n");
+        for reg in r.models[1].0.regions.iter().take(4) {
+            let _ = writeln!(
+                b,
+                "<li>{}: {:.0} % — {:.1}–{:.1} s, A {:.2e}–{:.2e}, {:.2}–{:.2} Hz</li>",
+                reg.domain,
+                100.0 * reg.share,
+                reg.t0,
+                reg.t1,
+                reg.amp_lo,
+                reg.amp_hi,
+                reg.f_lo,
+                reg.f_hi
+            );
+        }
+        b.push_str("</ul>\n<div class=\"plots\">\n");
+        for f in run_figures(r) {
+            let _ = writeln!(b, "<figure>{f}</figure>");
+        }
+        b.push_str("</div>\n");
+    }
+    format!(
+        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
+         <title>skelid gap</title><style>body{{font-family:sans-serif;margin:1.5em}}\
+         table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:2px 6px;\
+         text-align:left}}.plots{{display:flex;flex-wrap:wrap}}figure{{margin:4px}}\
+         .meta{{color:#555}}</style></head><body>\n{b}</body></html>\n"
+    )
+}
+
+/// Writes `<out>/gap.html` and, when `<out>/report.html` exists, links it from there.
+pub fn write_gap_page(out: &Path, title: &str, runs: &[GapRun]) -> Result<PathBuf, ReportError> {
+    let report = out.join("report.html");
+    let has_report = report.is_file();
+    let path = out.join("gap.html");
+    write_atomic(&path, render(title, runs, has_report).as_bytes())?;
+    if has_report {
+        link_from_report(&report)?;
+    }
+    Ok(path)
+}
+
+/// The link report.html gets, once.
+const LINK: &str = "<p class=\"meta\"><a href=\"gap.html\">sim-to-real gap (skelid gap)</a></p>\n";
+
+fn link_from_report(report: &Path) -> Result<(), ReportError> {
+    let Ok(text) = std::fs::read_to_string(report) else {
+        return Ok(());
+    };
+    if text.contains("href=\"gap.html\"") {
+        return Ok(());
+    }
+    let Some(at) = text.find("</h1>").map(|i| i + "</h1>".len()) else {
+        return Ok(());
+    };
+    let mut out = String::with_capacity(text.len() + LINK.len());
+    out.push_str(&text[..at]);
+    out.push('\n');
+    out.push_str(LINK);
+    out.push_str(&text[at..]);
+    write_atomic(report, out.as_bytes())
+}
+
+/// Where the fitted model goes: `<out>/<stem>.fitted.toml` for one run, and
+/// `<out>/<stem>.<run>.fitted.toml` (the run path's `/` as `_`) for each of several.
+pub fn fitted_model_path(out: &Path, rig: &Path, run: &str, several: bool) -> PathBuf {
+    let stem = rig
+        .file_stem()
+        .map_or_else(|| "rig".into(), |s| s.to_string_lossy().into_owned());
+    if several {
+        let tag = run.trim_matches('/').replace('/', "_");
+        out.join(format!("{stem}.{tag}.fitted.toml"))
+    } else {
+        out.join(format!("{stem}.fitted.toml"))
+    }
+}
+
+/// Makes sure the model written out reads back (the TOML is the contract of FORMATS.md §2).
+pub fn check_fitted(path: &Path) -> Result<RigModel, String> {
+    RigModel::load(path).map_err(|e| e.to_string())
+}
