@@ -1448,6 +1448,16 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     })
 }
 
+/// A line above the progress bar, or on stderr when the bar is hidden (not a terminal: a
+/// log file of an overnight self-check still gets every case).
+fn say(bar: &indicatif::ProgressBar, line: String) {
+    if bar.is_hidden() {
+        eprintln!("{line}");
+    } else {
+        bar.println(line);
+    }
+}
+
 fn gap_self_check(a: &GapArgs, opt: &skelid::gap::SearchOptions) -> Result<ExitCode> {
     use skelid::gap::selfcheck;
     let cases = selfcheck::cases(a.cases, a.seed);
@@ -1477,7 +1487,7 @@ fn gap_self_check(a: &GapArgs, opt: &skelid::gap::SearchOptions) -> Result<ExitC
                     o.verdict,
                     if o.right() { "right" } else { "WRONG" }
                 );
-                bar.println(&line);
+                say(&bar, line);
                 lines.push(serde_json::json!({
                     "case": c.index, "effect": o.truth(), "value": c.value, "verdict": o.verdict,
                     "right": o.right(), "shrink": o.shrink, "param_error": o.param_error,
@@ -1487,7 +1497,7 @@ fn gap_self_check(a: &GapArgs, opt: &skelid::gap::SearchOptions) -> Result<ExitC
                 outcomes.push(o);
             }
             Err(e) => {
-                bar.println(format!("case {:>3}: error: {e}", c.index));
+                say(&bar, format!("case {:>3}: error: {e}", c.index));
                 errors.push(format!("case {}: {e}", c.index));
             }
         }

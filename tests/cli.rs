@@ -634,3 +634,138 @@ fn keep_scalogram_writes_the_coarse_transform_on_both_backends() {
     assert!(!csv.status.success());
     assert!(String::from_utf8_lossy(&csv.stderr).contains("needs an HDF5 output"));
 }
+
+#[test]
+fn gap_names_the_missing_friction_and_writes_its_report_model_and_page() {
+    let dir = tempfile::tempdir().unwrap();
+    let rig = dir.path().join("rig.toml");
+    // The demo's nominal rig, without the friction its coulomb_friction run has.
+    std::fs::write(
+        &rig,
+        "inertia = 3.16\nstiffness = 15000.0\ndamping = 13.0\nclearance = 0.0262\n",
+    )
+    .unwrap();
+    let out = dir.path().join("gap");
+    std::fs::create_dir_all(&out).unwrap();
+    // An identification report already in the folder gets a link to the gap page.
+    std::fs::write(
+        out.join("report.html"),
+        "<html><body><h1>skelid report</h1></body></html>",
+    )
+    .unwrap();
+    let o = skelid()
+        .args(["gap", "--model"])
+        .arg(&rig)
+        .arg(demo_archive())
+        .args([
+            "--run",
+            "/demo/effects/coulomb_friction",
+            "--baseline-evaluations",
+            "80",
+            "--candidate-evaluations",
+            "30",
+            "--no-pairs",
+            "--effects",
+            "coulomb_friction,cubic_stiffness,sensor_delay",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    println!("{stdout}{}", String::from_utf8_lossy(&o.stderr));
+    assert!(o.status.success());
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("gap.json")).unwrap()).unwrap();
+    assert_eq!(j["format"], "skelid-gap/1");
+    let run = &j["runs"][0];
+    assert_eq!(run["run"], "/demo/effects/coulomb_friction");
+    for key in ["nominal_gap", "baseline_gap"] {
+        assert!(run[key].as_f64().unwrap() >= 0.0, "{key}");
+    }
+    let regions = run["regions"].as_array().unwrap();
+    let shares: f64 = regions.iter().map(|r| r["share"].as_f64().unwrap()).sum();
+    assert!((shares - 1.0).abs() < 1e-6, "{shares}");
+    for r in regions {
+        for key in ["t0", "t1", "amp_lo", "amp_hi", "f_lo", "f_hi"] {
+            assert!(r[key].is_number(), "{key}");
+        }
+        assert!(["time", "backbone", "damping"].contains(&r["domain"].as_str().unwrap()));
+    }
+    let candidates = run["candidates"].as_array().unwrap();
+    assert_eq!(candidates.len(), 3);
+    let holdout: Vec<f64> = candidates
+        .iter()
+        .map(|c| c["gap_holdout"].as_f64().unwrap())
+        .collect();
+    assert!(
+        holdout.windows(2).all(|w| w[0] <= w[1]),
+        "sorted best first"
+    );
+    let best = &candidates[0];
+    for key in ["gap_fit", "gap_holdout", "shrink"] {
+        assert!(best[key].is_number(), "{key}");
+    }
+    let shrink =
+        1.0 - best["gap_holdout"].as_f64().unwrap() / run["baseline_gap"].as_f64().unwrap();
+    assert!((shrink - best["shrink"].as_f64().unwrap()).abs() < 1e-9);
+    assert_eq!(run["verdict"], "coulomb_friction", "{stdout}");
+    let torque = best["params"]["torque"].as_f64().unwrap();
+    assert!((torque / 2.5 - 1.0).abs() < 0.3, "{torque}");
+    // The fitted model reads back as a rig model with the effect under [effects].
+    let fitted = skelid::model::RigModel::load(&out.join("rig.fitted.toml")).unwrap();
+    let f = fitted
+        .effects
+        .get(skelid::model::EffectKind::CoulombFriction)
+        .unwrap();
+    assert!((f - torque).abs() < 1e-9);
+    let page = std::fs::read_to_string(out.join("gap.html")).unwrap();
+    assert_eq!(page.matches("<svg").count(), 3, "three plots");
+    let report = std::fs::read_to_string(out.join("report.html")).unwrap();
+    assert_eq!(report.matches("href=\"gap.html\"").count(), 1);
+}
+
+#[test]
+fn gap_self_check_prints_its_confusion_matrix_and_wrong_arguments_say_what_to_do() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = skelid()
+        .args([
+            "gap",
+            "--self-check",
+            "--cases",
+            "2",
+            "--baseline-evaluations",
+            "60",
+            "--candidate-evaluations",
+            "25",
+            "--no-pairs",
+            "--out",
+        ])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    println!("{stdout}{}", String::from_utf8_lossy(&o.stderr));
+    assert!(o.status.success());
+    assert!(stdout.contains("confusion matrix"));
+    assert!(stdout.contains("top-1 accuracy"));
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("self-check.json")).unwrap())
+            .unwrap();
+    assert_eq!(j["summary"]["cases"], 2);
+    let cases = j["cases"].as_array().unwrap();
+    assert_eq!(cases.len(), 2);
+    assert_eq!(cases[0]["effect"], "coulomb_friction");
+    assert_eq!(cases[1]["effect"], "gravity_preload");
+
+    let o = skelid()
+        .args(["gap", "--self-check", "--effects", "magic_grease"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(err.contains("unknown effect `magic_grease`") && err.contains("coulomb_friction"));
+    let o = skelid().args(["gap"]).output().unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--model"));
+}
