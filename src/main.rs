@@ -1362,7 +1362,10 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
         }
     }
     if chosen.is_empty() {
-        bail!("{}: no base-motion run to diagnose", archive_path.display());
+        bail!(
+            "{}: no base-motion run to diagnose. skelid gap drives the rig model (a link on a moving base, FORMATS.md §2) with each run's measured base angle; force-input and free-decay runs are identified by `skelid run` only",
+            archive_path.display()
+        );
     }
     let several = chosen.len() > 1;
     let mut reports = Vec::new();

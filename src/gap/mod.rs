@@ -189,6 +189,10 @@ pub fn gap_within(
 /// backbone domain holds the frequency errors a tolerance in time forgives.
 pub const TIME_TOLERANCE: f64 = 0.25;
 
+/// The grazing band of the time domain, in multiples of the measured half-gap δ: the
+/// forced orbit first touches at 8δ/π² ≈ 0.81δ.
+pub const GRAZING: (f64, f64) = (0.7, 1.05);
+
 /// Running minimum and maximum of `x` over `[i − half, i + half]`, skipping NaN (an empty
 /// window gives +∞, −∞). Monotone deques: O(n).
 fn window_extremes(x: &[f64], half: usize) -> (Vec<f64>, Vec<f64>) {
@@ -264,13 +268,22 @@ fn time_errors(m: &Identification, s: &Identification, mask: Option<&[bool]>) ->
         .map(|i| a.amplitude[i])
         .fold(0f64, f64::max)
         .max(f64::MIN_POSITIVE);
+    // The grazing band, from the measurement's own clearance: an orbit that just touches
+    // the flanks is hypersensitive (a grazing bifurcation), in the rig and in any model of
+    // it, so its envelope there is a coin-flip like the jump-down's flank.
+    let grazing = |amp: f64| {
+        m.dead_zone.is_some_and(|dz| {
+            let d = dz.half_gap.value;
+            amp > GRAZING.0 * d && amp < GRAZING.1 * d
+        })
+    };
     let mut terms = Vec::new();
     let mut regions = Vec::new();
     for (w, start) in (0..n).step_by(window).enumerate() {
         let end = (start + window).min(n);
         let (mut alo, mut ahi, mut flo, mut fhi) = (f64::INFINITY, 0f64, f64::INFINITY, 0f64);
         for i in start..end {
-            if !inside(i) || !la[i].is_finite() {
+            if !inside(i) || !la[i].is_finite() || grazing(a.amplitude[i]) {
                 continue;
             }
             // Both ways: the measurement within the model's tolerance band and the model's

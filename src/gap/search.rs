@@ -4,8 +4,9 @@
 //! fits never saw, and give the verdict.
 //!
 //! The search is kept affordable by screening: each effect is first scanned alone over a
-//! coarse grid of its parameter on the baseline and on the nominal model (ten simulations
-//! an effect), and only
+//! coarse grid of its parameter on the baseline, on the baseline with the parameter that
+//! absorbs the effect put back, and on the nominal model (fifteen simulations an effect),
+//! and only
 //! the best few are refined by the simplex together with the model's own parameters. The
 //! scan also gives the simplex a start in the right basin: started from a guess, the dry
 //! friction fit stopped in a local minimum at two thirds of the true torque.
@@ -369,6 +370,24 @@ fn with_effect(base: &RigModel, identified: &Identification, kind: EffectKind, v
     m
 }
 
+/// `baseline` with the own parameter that most readily stands in for `kind` put back to
+/// its `nominal` value: the viscous damping for dry friction, contact damping and a sensor
+/// delay (a phase lag reads as damping), the stiffness for a hardening contact, the
+/// clearance for its offset, the gravity stiffness for a preload.
+fn undo_absorption(baseline: &RigModel, nominal: &RigModel, kind: EffectKind) -> RigModel {
+    let mut m = baseline.clone();
+    match kind {
+        EffectKind::CoulombFriction | EffectKind::ContactDamping | EffectKind::SensorDelay => {
+            m.damping = nominal.damping
+        }
+        EffectKind::CubicStiffness => m.stiffness = nominal.stiffness,
+        EffectKind::AsymmetricClearance => m.clearance = nominal.clearance,
+        EffectKind::GravityPreload => m.gravity_stiffness = nominal.gravity_stiffness,
+        EffectKind::Quantization => {}
+    }
+    m
+}
+
 /// One candidate explanation: effects added to the baseline and fitted.
 #[derive(Debug, Clone)]
 pub struct Candidate {
@@ -409,6 +428,55 @@ impl Candidate {
     }
 }
 
+impl Candidate {
+    /// The candidate a fit of `kinds` gave.
+    fn from_fit(f: Fitted, kinds: &[EffectKind], base_holdout: f64, refined: bool) -> Self {
+        let mut effects: Vec<(EffectKind, f64)> = kinds
+            .iter()
+            .map(|&k| (k, f.model.effects.get(k).unwrap_or(0.0)))
+            .collect();
+        effects.sort_by_key(|e| e.0);
+        Candidate {
+            effects,
+            shrink: 1.0 - f.score.holdout / base_holdout,
+            model: f.model,
+            score: f.score,
+            refined,
+        }
+    }
+}
+
+/// `effects` (each from its current value) fitted by the simplex together with the own
+/// parameters of `from` (the model the effects are added to).
+fn refit(
+    reference: &Reference,
+    from: &RigModel,
+    effects: &[(EffectKind, f64)],
+    opt: &SearchOptions,
+    base_holdout: f64,
+) -> Candidate {
+    let mut base = from.clone();
+    for &(k, _) in effects {
+        base.effects.set(k, None);
+    }
+    let coords = Coordinates {
+        base: &base,
+        inertia: opt.fit_inertia,
+        effects: effects.to_vec(),
+    };
+    let f = coords.fit(reference, coords.origin(), opt.candidate_evaluations);
+    let kinds: Vec<EffectKind> = effects.iter().map(|e| e.0).collect();
+    Candidate::from_fit(f, &kinds, base_holdout, true)
+}
+
+/// Whichever of two fits of the same effects is better on the fitting blocks (marked
+/// refined either way: the simplex was run).
+fn fitter(a: Candidate, b: Candidate) -> Candidate {
+    let mut best = if a.score.fit <= b.score.fit { a } else { b };
+    best.refined = true;
+    best
+}
+
 /// Everything the diagnosis of one run found.
 #[derive(Debug, Clone)]
 pub struct Diagnosis {
@@ -444,13 +512,15 @@ impl Diagnosis {
     }
 }
 
-/// Whether `c` explains significantly more than `reference_holdout`, the held-out gap of
-/// the model it extends.
-fn significant(reference_holdout: f64, c: &Candidate) -> bool {
+/// Whether `c` explains significantly more than `reference`, the score of the model it
+/// extends: better on the blocks it was fitted on (a scan point that fits worse but happens
+/// to score well on the withheld blocks is luck), and by the margins on the withheld ones.
+fn significant(reference: &Score, c: &Candidate) -> bool {
     let h = c.score.holdout;
     h.is_finite()
-        && h <= (1.0 - MIN_SHRINK) * reference_holdout
-        && reference_holdout - h >= MIN_DROP
+        && c.score.fit < reference.fit
+        && h <= (1.0 - MIN_SHRINK) * reference.holdout
+        && reference.holdout - h >= MIN_DROP
 }
 
 /// Diagnoses one measured run against the `nominal` model: baseline, candidates, verdict.
@@ -471,30 +541,35 @@ pub fn diagnose(
     }
     let base_holdout = baseline.score.holdout;
     let id = &reference.identified;
-    let shrink = |s: &Score| 1.0 - s.holdout / base_holdout;
 
-    // Scan: each effect alone over a coarse grid of its parameter, added to the baseline
-    // and to the nominal model. The baseline may have absorbed part of the missing effect
-    // by bending its own parameters (dry friction into more viscous damping and a softer
-    // contact), and then the effect added to it fits worse than to the model as given.
-    let bases: Vec<&RigModel> = if nominal_score.fit.is_finite() {
-        vec![&baseline.model, nominal]
-    } else {
-        vec![&baseline.model]
-    };
-    let grid: Vec<(&RigModel, EffectKind, f64)> = opt
+    // Scan: each effect alone over a coarse grid of its parameter, added to three models.
+    // The baseline may have absorbed part of the missing effect by bending its own
+    // parameters (dry friction or contact damping into more viscous damping, hardening into
+    // a stiffer contact), and then the effect added to it fits worse than the truth would;
+    // so the effect is also added to the baseline with that parameter put back to its
+    // nominal value, and to the nominal model itself.
+    let grid: Vec<(RigModel, EffectKind, f64)> = opt
         .effects
         .iter()
         .flat_map(|&k| {
-            bases.iter().flat_map(move |&b| {
-                let s = effect_start(k, b, id);
-                SCAN.iter().map(move |f| (b, k, s * f))
+            let mut bases = vec![
+                baseline.model.clone(),
+                undo_absorption(&baseline.model, nominal, k),
+            ];
+            if nominal_score.fit.is_finite() {
+                bases.push(nominal.clone());
+            }
+            bases.dedup();
+            bases.into_iter().flat_map(move |b| {
+                let s = effect_start(k, &b, id);
+                SCAN.iter().map(move |f| (b.clone(), k, s * f))
             })
         })
         .collect();
     let scanned: Vec<(EffectKind, f64, Fitted)> = grid
         .par_iter()
-        .map(|&(b, k, v)| {
+        .map(|(b, k, v)| {
+            let (k, v) = (*k, *v);
             let model = with_effect(b, id, k, v);
             let score = reference.score(&model);
             (k, v, Fitted { model, score })
@@ -513,30 +588,15 @@ pub fn diagnose(
     // Refine the most promising with the simplex, together with the model's own parameters.
     let refine = opt.refine.min(best_of.len());
     let mut candidates: Vec<Candidate> = best_of
-        .par_iter()
+        .into_par_iter()
         .enumerate()
         .map(|(i, (k, v, scanned))| {
-            let mut best = scanned.clone();
+            let scanned = Candidate::from_fit(scanned, &[k], base_holdout, false);
             if i < refine {
-                let mut base = scanned.model.clone();
-                base.effects.set(*k, None);
-                let coords = Coordinates {
-                    base: &base,
-                    inertia: opt.fit_inertia,
-                    effects: vec![(*k, *v)],
-                };
-                let f = coords.fit(reference, coords.origin(), opt.candidate_evaluations);
-                if f.score.fit < best.score.fit {
-                    best = f;
-                }
-            }
-            let value = best.model.effects.get(*k).unwrap_or(*v);
-            Candidate {
-                effects: vec![(*k, value)],
-                shrink: shrink(&best.score),
-                model: best.model,
-                score: best.score,
-                refined: i < refine,
+                let refined = refit(reference, &scanned.model, &[(k, v)], opt, base_holdout);
+                fitter(refined, scanned)
+            } else {
+                scanned
             }
         })
         .collect();
@@ -548,26 +608,8 @@ pub fn diagnose(
         .par_iter()
         .take(2.min(refine))
         .map(|c| {
-            let (k, v) = c.effects[0];
-            let mut base = c.model.clone();
-            base.effects.set(k, None);
-            let coords = Coordinates {
-                base: &base,
-                inertia: opt.fit_inertia,
-                effects: vec![(k, v)],
-            };
-            let f = coords.fit(reference, coords.origin(), opt.candidate_evaluations);
-            if f.score.fit < c.score.fit {
-                Candidate {
-                    effects: vec![(k, f.model.effects.get(k).unwrap_or(v))],
-                    shrink: shrink(&f.score),
-                    model: f.model,
-                    score: f.score,
-                    refined: true,
-                }
-            } else {
-                c.clone()
-            }
+            let restarted = refit(reference, &c.model, &c.effects, opt, base_holdout);
+            fitter(restarted, c.clone())
         })
         .collect();
     for (i, c) in again.into_iter().enumerate() {
@@ -575,49 +617,28 @@ pub fn diagnose(
     }
     candidates.sort_by(|a, b| a.score.holdout.total_cmp(&b.score.holdout));
 
-    // Pairs, when the best single effect leaves much of the gap.
+    // Pairs, when the best single effect leaves much of the gap: from the better single's
+    // model, the other effect at its own fitted value.
     let leaves_much = candidates
         .first()
         .is_some_and(|s| s.score.holdout > PAIR_WHEN_LEFT * base_holdout);
     if opt.pairs && leaves_much && base_holdout > MIN_DROP {
-        let others: Vec<&Candidate> = candidates.iter().filter(|c| c.refined).take(3).collect();
+        let singles: Vec<&Candidate> = candidates.iter().filter(|c| c.refined).take(3).collect();
         let mut pairs = Vec::new();
-        for (i, a) in others.iter().enumerate() {
-            for b in &others[i + 1..] {
-                pairs.push((*a, *b));
+        for (i, a) in singles.iter().enumerate() {
+            for b in &singles[i + 1..] {
+                pairs.push(if a.score.fit <= b.score.fit {
+                    (*a, *b)
+                } else {
+                    (*b, *a)
+                });
             }
         }
         let fitted: Vec<Candidate> = pairs
             .par_iter()
             .map(|(a, b)| {
-                // From the better single's model, the other effect at its own fitted value.
-                let (a, b) = if a.score.fit <= b.score.fit {
-                    (a, b)
-                } else {
-                    (b, a)
-                };
-                let (ka, va) = a.effects[0];
-                let (kb, vb) = b.effects[0];
-                let mut base = a.model.clone();
-                base.effects.set(ka, None);
-                let coords = Coordinates {
-                    base: &base,
-                    inertia: opt.fit_inertia,
-                    effects: vec![(ka, va), (kb, vb)],
-                };
-                let f = coords.fit(reference, coords.origin(), opt.candidate_evaluations);
-                let mut effects = vec![
-                    (ka, f.model.effects.get(ka).unwrap_or(va)),
-                    (kb, f.model.effects.get(kb).unwrap_or(vb)),
-                ];
-                effects.sort_by_key(|e| e.0);
-                Candidate {
-                    effects,
-                    shrink: shrink(&f.score),
-                    model: f.model,
-                    score: f.score,
-                    refined: true,
-                }
+                let effects = [a.effects[0], b.effects[0]];
+                refit(reference, &a.model, &effects, opt, base_holdout)
             })
             .collect();
         candidates.extend(fitted);
@@ -627,11 +648,10 @@ pub fn diagnose(
     // The verdict: the best single effect if significant against the baseline; a pair only
     // if it is significant against the best single effect too.
     let single = candidates.iter().position(|c| c.effects.len() == 1);
-    let mut verdict = single.filter(|&i| significant(base_holdout, &candidates[i]));
+    let mut verdict = single.filter(|&i| significant(&baseline.score, &candidates[i]));
     if let Some(p) = candidates.iter().position(|c| c.effects.len() == 2) {
-        let beats_single =
-            single.is_none_or(|s| significant(candidates[s].score.holdout, &candidates[p]));
-        if significant(base_holdout, &candidates[p]) && beats_single {
+        let beats_single = single.is_none_or(|s| significant(&candidates[s].score, &candidates[p]));
+        if significant(&baseline.score, &candidates[p]) && beats_single {
             verdict = Some(p);
         }
     }
