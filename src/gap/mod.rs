@@ -124,31 +124,89 @@ impl Blocks {
 
 /// The gap between `measured` and `simulated`, two identifications of the same run.
 pub fn gap(measured: &Identification, simulated: &Identification) -> Gap {
-    gap_within(measured, simulated, None)
+    Target::new(measured, None).gap(measured, simulated, &Envelope::of(&simulated.response))
 }
 
-/// The gap on the samples flagged in `mask` only (the whole run when `None`): the time
-/// domain keeps those samples, the skeletons are rebuilt from them.
-pub fn gap_within(
-    measured: &Identification,
-    simulated: &Identification,
-    mask: Option<&[bool]>,
-) -> Gap {
-    // Both skeleton domains are compared at resonance, where the backbone is defined: off
-    // resonance (the free flight after a jump-down, resting on a flank or touching it now
-    // and then) the first-harmonic stiffness and damping are the coin-flip of which regime
-    // the link fell into, and would make the gap jump with every small change of a model.
+/// A track's log envelope (NaN where not valid) and its running extremes over
+/// ±[`TIME_TOLERANCE`]: what the time domain compares, computed once per track.
+pub struct Envelope {
+    ln: Vec<f64>,
+    lo: Vec<f64>,
+    hi: Vec<f64>,
+}
+
+impl Envelope {
+    /// The envelope of `track`.
+    pub fn of(track: &crate::track::Track) -> Envelope {
+        let ln: Vec<f64> = (0..track.len())
+            .map(|i| {
+                if track.valid[i] && track.amplitude[i] > 0.0 {
+                    track.amplitude[i].ln()
+                } else {
+                    f64::NAN
+                }
+            })
+            .collect();
+        let half = (TIME_TOLERANCE * track.sample_rate).round() as usize;
+        let (lo, hi) = window_extremes(&ln, half);
+        Envelope { ln, lo, hi }
+    }
+}
+
+/// The measured side of a comparison on one part of a run, prepared once for all the
+/// models compared with it: the part's samples, its skeleton at resonance, its envelope.
+pub struct Target {
+    mask: Option<Vec<bool>>,
+    resonant: Vec<Bin>,
+    envelope: Envelope,
+}
+
+impl Target {
+    /// `measured` on the samples flagged in `mask` (the whole run when `None`).
+    pub fn new(measured: &Identification, mask: Option<Vec<bool>>) -> Target {
+        Target {
+            resonant: resonant(measured, mask.as_deref()),
+            envelope: Envelope::of(&measured.response),
+            mask,
+        }
+    }
+
+    /// The gap of `simulated` (whose envelope is `sim_envelope`) against `measured`, the
+    /// identification this target was prepared from. The time domain keeps the part's
+    /// samples; the simulated skeleton is rebuilt from them.
+    pub fn gap(
+        &self,
+        measured: &Identification,
+        simulated: &Identification,
+        sim_envelope: &Envelope,
+    ) -> Gap {
+        let mask = self.mask.as_deref();
+        let s_res = resonant(simulated, mask);
+        let m_res = &self.resonant;
+        let domains = [
+            time_errors(measured, &self.envelope, sim_envelope, mask),
+            backbone_errors(m_res, &s_res, measured, mask, false),
+            backbone_errors(m_res, &s_res, measured, mask, true),
+        ];
+        combine(domains)
+    }
+}
+
+/// The skeleton at resonance of the samples in `mask`. Both skeleton domains are compared
+/// at resonance, where the backbone is defined: off resonance (the free flight after a
+/// jump-down, resting on a flank or touching it now and then) the first-harmonic stiffness
+/// and damping are the coin-flip of which regime the link fell into, and would make the gap
+/// jump with every small change of a model.
+fn resonant(id: &Identification, mask: Option<&[bool]>) -> Vec<Bin> {
     let opt = IdentifyOptions::default();
-    let resonant = |id: &Identification| match mask {
+    match mask {
         None => id.resonant_bins.clone(),
         Some(m) => id.skeleton_within(m, opt.bins, Some(opt.resonance)),
-    };
-    let (m_res, s_res) = (resonant(measured), resonant(simulated));
-    let domains = [
-        time_errors(measured, simulated, mask),
-        backbone_errors(&m_res, &s_res, measured, mask, false),
-        backbone_errors(&m_res, &s_res, measured, mask, true),
-    ];
+    }
+}
+
+/// The domains' errors as one gap with its regions.
+fn combine(domains: [Errors; 3]) -> Gap {
     let ms: Vec<Option<f64>> = domains.iter().map(Errors::mean_square).collect();
     let total_ms = ms.iter().flatten().sum::<f64>() / 3.0;
     let mut regions = Vec::new();
@@ -239,27 +297,13 @@ fn outside(v: f64, lo: f64, hi: f64) -> f64 {
     }
 }
 
-fn time_errors(m: &Identification, s: &Identification, mask: Option<&[bool]>) -> Errors {
+fn time_errors(m: &Identification, ea: &Envelope, eb: &Envelope, mask: Option<&[bool]>) -> Errors {
     let inside = |i: usize| mask.is_none_or(|m| m.get(i).copied().unwrap_or(false));
-    let (a, b) = (&m.response, &s.response);
-    let n = a.len().min(b.len());
+    let a = &m.response;
+    let n = ea.ln.len().min(eb.ln.len());
     let fs = a.sample_rate;
     let window = n.div_ceil(TIME_WINDOWS).max(1);
-    let ln_env = |t: &crate::track::Track| -> Vec<f64> {
-        (0..n)
-            .map(|i| {
-                if t.valid[i] && t.amplitude[i] > 0.0 {
-                    t.amplitude[i].ln()
-                } else {
-                    f64::NAN
-                }
-            })
-            .collect()
-    };
-    let (la, lb) = (ln_env(a), ln_env(b));
-    let half = (TIME_TOLERANCE * fs).round() as usize;
-    let (a_lo, a_hi) = window_extremes(&la, half);
-    let (b_lo, b_hi) = window_extremes(&lb, half);
+    let (la, lb) = (&ea.ln, &eb.ln);
     // Each sample weighs by its amplitude: the free flight inside the clearance after a
     // jump-down is small and chaotic (which flank, how often it touches), and its relative
     // envelope error would otherwise weigh as much as the resonance's.
@@ -288,12 +332,12 @@ fn time_errors(m: &Identification, s: &Identification, mask: Option<&[bool]>) ->
             }
             // Both ways: the measurement within the model's tolerance band and the model's
             // own envelope (where it has one) within the measurement's.
-            let e1 = outside(la[i], b_lo[i], b_hi[i]);
+            let e1 = outside(la[i], eb.lo[i], eb.hi[i]);
             if !e1.is_finite() {
                 continue;
             }
             let e2 = if lb[i].is_finite() {
-                outside(lb[i], a_lo[i], a_hi[i])
+                outside(lb[i], ea.lo[i], ea.hi[i])
             } else {
                 e1
             };

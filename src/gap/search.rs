@@ -13,12 +13,11 @@
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::Mutex;
 use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::{gap, gap_within, simulate_given, Blocks, Gap, GapError, Part};
+use super::{gap, simulate_given, Blocks, Envelope, Gap, GapError, Part, Target};
 use crate::identify::{identify, Identification, IdentifyOptions};
 use crate::ingest::Run;
 use crate::model::{EffectKind, RigModel};
@@ -96,8 +95,8 @@ pub struct Reference<'a> {
     pub run: &'a Run,
     /// Its identification.
     pub identified: Identification,
-    fit: Vec<bool>,
-    holdout: Vec<bool>,
+    fit: Target,
+    holdout: Target,
     evaluations: AtomicUsize,
 }
 
@@ -116,9 +115,9 @@ impl<'a> Reference<'a> {
         let (n, fs) = (run.output.len(), run.meta.sample_rate);
         Ok(Reference {
             run,
+            fit: Target::new(&identified, Some(blocks.mask(n, fs, Part::Fit))),
+            holdout: Target::new(&identified, Some(blocks.mask(n, fs, Part::Holdout))),
             identified,
-            fit: blocks.mask(n, fs, Part::Fit),
-            holdout: blocks.mask(n, fs, Part::Holdout),
             evaluations: AtomicUsize::new(0),
         })
     }
@@ -129,9 +128,11 @@ impl<'a> Reference<'a> {
         self.evaluations.fetch_add(1, Ordering::Relaxed);
         match simulate_given(self.run, Some(&self.identified), model) {
             Ok(s) => {
-                let h = gap_within(&self.identified, &s, Some(&self.holdout));
+                let envelope = Envelope::of(&s.response);
+                let m = &self.identified;
+                let h = self.holdout.gap(m, &s, &envelope);
                 Score {
-                    fit: gap_within(&self.identified, &s, Some(&self.fit)).total,
+                    fit: self.fit.gap(m, &s, &envelope).total,
                     holdout: h.total,
                     domains: [h.time, h.backbone, h.damping],
                 }
@@ -231,20 +232,19 @@ impl Coordinates<'_> {
 
     /// Minimises the gap on the fitting blocks from `start`.
     fn fit(&self, reference: &Reference, start: Vec<f64>, evaluations: usize) -> Fitted {
-        let best: Mutex<Option<Fitted>> = Mutex::new(None);
+        // The best model seen, with both its gaps: the simplex itself keeps only the value
+        // it minimises.
+        let mut best: Option<Fitted> = None;
         let mut cost = |x: &[f64]| {
             let model = self.model(x);
             let score = reference.score(&model);
-            let mut b = best.lock().unwrap_or_else(|p| p.into_inner());
-            if b.as_ref().is_none_or(|f| score.fit < f.score.fit) {
-                *b = Some(Fitted { model, score });
+            if best.as_ref().is_none_or(|f| score.fit < f.score.fit) {
+                best = Some(Fitted { model, score });
             }
             score.fit
         };
         nelder_mead(&mut cost, self.simplex(&start), evaluations, 1e-3);
-        best.into_inner()
-            .unwrap_or_else(|p| p.into_inner())
-            .expect("the simplex evaluates its first vertex")
+        best.expect("the simplex evaluates its first vertex")
     }
 }
 
