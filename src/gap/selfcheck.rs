@@ -12,9 +12,9 @@ use rand_distr::{Distribution, Normal};
 
 use super::search::{diagnose, Diagnosis, Reference, SearchOptions};
 use super::GapError;
-use crate::demo::{demo_effect_value, paper_chirp, run_data, DEMO_NOISE};
+use crate::demo::{demo_effect_value, paper_chirp, simulate_case, DemoCase};
 use crate::model::{EffectKind, RigModel};
-use crate::simulate::{simulate, Drive, SimSettings};
+use crate::simulate::Drive;
 
 /// The parameter of a case's effect is the demo's value times a factor drawn log-uniformly
 /// from [1/RANGE, RANGE].
@@ -104,18 +104,14 @@ impl Outcome {
 /// Simulates `case` (the paper's chirp, 30 s at 1 kHz, the demo's encoder noise) and
 /// diagnoses it blind.
 pub fn run_case(case: &Case, opt: &SearchOptions) -> Result<Outcome, GapError> {
-    let drive = Drive::Base(paper_chirp());
-    let settings = SimSettings {
-        sample_rate: 1000.0,
-        duration: 30.0,
-        substeps: 4,
-        output_noise: DEMO_NOISE,
-        input_noise: DEMO_NOISE,
+    let run = simulate_case(&DemoCase {
+        path: format!("/self_check/case_{:03}", case.index),
+        model: case.truth.clone(),
+        drive: Drive::Base(paper_chirp()),
         seed: case.seed,
-    };
-    let sim = simulate(&case.truth, &drive, &settings);
-    let path = format!("/self_check/case_{:03}", case.index);
-    let run = run_data(&path, &case.truth, &drive, sim, 1000.0, "self-check case").into_run();
+        description: "self-check case".into(),
+    })
+    .into_run();
     let reference = Reference::new(&run, opt.blocks)?;
     let diagnosis = diagnose(&reference, &case.nominal, opt)?;
     let verdict = diagnosis.verdict_name();
