@@ -1330,15 +1330,21 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     let ingest = a.ingest.options()?;
     let archive = Archive::open(archive_path, &ingest)?;
     let mut chosen = Vec::new();
+    let mut failed: Vec<(String, String)> = Vec::new();
     for entry in &archive.runs {
         let wanted = a.runs.is_empty() || a.runs.iter().any(|r| r == &entry.path);
         if !wanted {
             continue;
         }
-        let meta = entry
-            .meta
-            .as_ref()
-            .map_err(|e| anyhow::anyhow!("{}: {e}", entry.path))?;
+        let meta = match &entry.meta {
+            Ok(meta) => meta,
+            Err(e) if a.runs.is_empty() => {
+                eprintln!("error: {}: {e} (skipped; the other runs go on)", entry.path);
+                failed.push((entry.path.clone(), e.to_string()));
+                continue;
+            }
+            Err(e) => bail!("{}: {e}", entry.path),
+        };
         if meta.kind != RunKind::BaseMotion {
             if a.runs.is_empty() {
                 eprintln!(
@@ -1367,9 +1373,28 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
             archive_path.display()
         );
     }
+    let settings = serde_json::json!({
+        "model": model_path.display().to_string(),
+        "archive": archive_path.display().to_string(),
+        "holdout": format!("alternate {} s blocks: fits on the even ones (from t = 0), gaps scored on the odd ones", a.holdout_block),
+        "baseline_evaluations": opt.baseline_evaluations,
+        "candidate_evaluations": opt.candidate_evaluations,
+        "refine": opt.refine,
+        "pairs": opt.pairs,
+        "fit_inertia": opt.fit_inertia,
+        "min_shrink": skelid::gap::search::MIN_SHRINK,
+        "min_drop": skelid::gap::search::MIN_DROP,
+    });
+    let title = archive_path.display().to_string();
+    // gap.json and gap.html are rewritten (atomically) after every run, so that a night's
+    // work stopped half-way keeps every run finished so far.
+    let write_outputs = |reports: &[out::GapRun], failed: &[(String, String)]| -> Result<_> {
+        let json = out::write_gap_json(&a.out, reports, failed, settings.clone())?;
+        let page = out::write_gap_page(&a.out, &title, reports)?;
+        Ok((json, page))
+    };
     let several = chosen.len() > 1;
     let mut reports = Vec::new();
-    let mut failed = 0;
     for meta in &chosen {
         eprintln!(
             "{}: refitting the model, then {} effects ...",
@@ -1414,40 +1439,27 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
                 }
                 let path = out::fitted_model_path(&a.out, model_path, &d.run, several);
                 out::write_fitted_model(&path, &r)?;
-                out::check_fitted(&path)
-                    .map_err(|e| anyhow::anyhow!("the fitted model does not read back: {e}"))?;
+                RigModel::load(&path).context("the fitted model written does not read back")?;
                 reports.push(r);
             }
             Err(e) => {
-                failed += 1;
                 eprintln!("error: {}: {e:#}", meta.path);
+                failed.push((meta.path.clone(), format!("{e:#}")));
             }
         }
+        write_outputs(&reports, &failed)?;
     }
-    let settings = serde_json::json!({
-        "model": model_path.display().to_string(),
-        "archive": archive_path.display().to_string(),
-        "holdout": format!("alternate {} s blocks: fits on the even ones (from t = 0), gaps scored on the odd ones", a.holdout_block),
-        "baseline_evaluations": opt.baseline_evaluations,
-        "candidate_evaluations": opt.candidate_evaluations,
-        "refine": opt.refine,
-        "pairs": opt.pairs,
-        "fit_inertia": opt.fit_inertia,
-        "min_shrink": skelid::gap::search::MIN_SHRINK,
-        "min_drop": skelid::gap::search::MIN_DROP,
-    });
-    let json = out::write_gap_json(&a.out, &reports, settings)?;
-    let page = out::write_gap_page(&a.out, &archive_path.display().to_string(), &reports)?;
+    let (json, page) = write_outputs(&reports, &failed)?;
     println!(
         "wrote {}, {} and the fitted model(s) in {}",
         json.display(),
         page.display(),
         a.out.display()
     );
-    Ok(if failed > 0 {
-        ExitCode::from(1)
-    } else {
+    Ok(if failed.is_empty() {
         ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
     })
 }
 

@@ -678,6 +678,7 @@ fn gap_names_the_missing_friction_and_writes_its_report_model_and_page() {
     let j: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("gap.json")).unwrap()).unwrap();
     assert_eq!(j["format"], "skelid-gap/1");
+    assert_eq!(j["failed"].as_array().unwrap().len(), 0);
     let run = &j["runs"][0];
     assert_eq!(run["run"], "/demo/effects/coulomb_friction");
     for key in ["nominal_gap", "baseline_gap"] {

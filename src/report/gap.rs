@@ -10,15 +10,17 @@ use std::path::{Path, PathBuf};
 use plotters::style::RGBColor;
 use serde_json::{json, Value};
 
-use super::html::{esc, reduce, svg_plot, Mark, Series, YAxis};
+use super::html::{css, esc, reduce, svg_plot, Mark, Series, YAxis};
 use super::{write_atomic, ReportError};
 use crate::gap::search::{signature, Reference, Score};
 use crate::gap::{Diagnosis, Gap, GapError};
 use crate::identify::Identification;
-use crate::model::RigModel;
 
 /// Format string of gap.json.
 pub const GAP_FORMAT: &str = "skelid-gap/1";
+
+/// A model over the whole run: its gap and its simulation's identification.
+pub type Whole = (Gap, Identification);
 
 /// One run's diagnosis with the whole-run gaps and identifications of the models it names.
 pub struct GapRun {
@@ -26,30 +28,40 @@ pub struct GapRun {
     pub diagnosis: Diagnosis,
     /// The measurement's identification.
     pub measured: Identification,
-    /// Nominal, baseline and fitted model over the whole run: gap and identification.
-    pub models: [(Gap, Identification); 3],
+    /// The nominal model (`None` when its response cannot even be identified).
+    pub nominal: Option<Whole>,
+    /// The baseline.
+    pub baseline: Whole,
+    /// The fitted model (the verdict's; the baseline's own when the verdict is `none`).
+    pub fitted: Option<Whole>,
 }
 
 impl GapRun {
     /// Simulates the nominal, baseline and fitted models over the whole run.
     pub fn new(reference: &Reference, diagnosis: Diagnosis) -> Result<GapRun, GapError> {
-        let [a, b, c] = [
-            &diagnosis.nominal,
-            &diagnosis.baseline.model,
-            diagnosis.fitted_model(),
-        ];
-        let ((na, nb), nc) = rayon::join(
-            || rayon::join(|| reference.whole(a), || reference.whole(b)),
-            || reference.whole(c),
+        let d = &diagnosis;
+        let with_effect = d.verdict.map(|_| d.fitted_model());
+        let ((nominal, baseline), fitted) = rayon::join(
+            || {
+                rayon::join(
+                    || reference.whole(&d.nominal).ok(),
+                    || reference.whole(&d.baseline.model),
+                )
+            },
+            || with_effect.map(|m| reference.whole(m)).transpose(),
         );
-        // A nominal model too far off to identify is drawn from the baseline's instead.
-        let nb = nb?;
-        let na = na.unwrap_or_else(|_| nb.clone());
         Ok(GapRun {
             measured: reference.identified.clone(),
-            models: [na, nb, nc?],
+            nominal,
+            baseline: baseline?,
+            fitted: fitted?,
             diagnosis,
         })
+    }
+
+    /// The fitted model over the whole run.
+    pub fn fitted(&self) -> &Whole {
+        self.fitted.as_ref().unwrap_or(&self.baseline)
     }
 }
 
@@ -94,7 +106,7 @@ pub fn run_json(r: &GapRun) -> Value {
             })
         })
         .collect();
-    let baseline_whole = &r.models[1].0;
+    let baseline_whole = &r.baseline.0;
     json!({
         "run": d.run,
         "nominal_gap": num(d.nominal_score.holdout),
@@ -105,9 +117,9 @@ pub fn run_json(r: &GapRun) -> Value {
         "nominal": score_json(&d.nominal_score),
         "baseline": score_json(&d.baseline.score),
         "whole_run_gap": {
-            "nominal": num(r.models[0].0.total),
-            "baseline": num(r.models[1].0.total),
-            "fitted": num(r.models[2].0.total),
+            "nominal": r.nominal.as_ref().map_or(Value::Null, |w| num(w.0.total)),
+            "baseline": num(r.baseline.0.total),
+            "fitted": num(r.fitted().0.total),
         },
         "baseline_model": d.baseline.model,
         "fitted_model": d.fitted_model(),
@@ -115,10 +127,12 @@ pub fn run_json(r: &GapRun) -> Value {
     })
 }
 
-/// Writes `<out>/gap.json` (atomically); `settings` says how the search was run.
+/// Writes `<out>/gap.json` (atomically); `settings` says how the search was run, `failed`
+/// lists the runs that could not be diagnosed, each with its error.
 pub fn write_gap_json(
     out: &Path,
     runs: &[GapRun],
+    failed: &[(String, String)],
     settings: Value,
 ) -> Result<PathBuf, ReportError> {
     let doc = json!({
@@ -126,6 +140,10 @@ pub fn write_gap_json(
         "skelid": env!("CARGO_PKG_VERSION"),
         "settings": settings,
         "runs": runs.iter().map(run_json).collect::<Vec<_>>(),
+        "failed": failed
+            .iter()
+            .map(|(run, error)| json!({"run": run, "error": error}))
+            .collect::<Vec<_>>(),
     });
     let path = out.join("gap.json");
     let text = serde_json::to_string_pretty(&doc).expect("JSON values always serialise");
@@ -183,9 +201,20 @@ fn skeleton(id: &Identification) -> [Vec<f64>; 4] {
 
 /// One run's three plots.
 fn run_figures(r: &GapRun) -> Vec<String> {
-    let ids = [&r.measured, &r.models[0].1, &r.models[2].1];
-    let env: Vec<(Vec<f64>, Vec<f64>)> = ids.iter().map(|i| envelope(i)).collect();
-    let sk: Vec<[Vec<f64>; 4]> = ids.iter().map(|i| skeleton(i)).collect();
+    // A nominal model whose response could not be identified has no lines.
+    let ids = [
+        Some(&r.measured),
+        r.nominal.as_ref().map(|w| &w.1),
+        Some(&r.fitted().1),
+    ];
+    let env: Vec<(Vec<f64>, Vec<f64>)> = ids
+        .iter()
+        .map(|i| i.map_or_else(Default::default, envelope))
+        .collect();
+    let sk: Vec<[Vec<f64>; 4]> = ids
+        .iter()
+        .map(|i| i.map_or_else(Default::default, skeleton))
+        .collect();
     let mut figs = Vec::new();
     figs.extend(svg_plot(
         "Relative-motion envelope over time",
@@ -227,8 +256,13 @@ fn three<'a>(xy: [(&'a [f64], &'a [f64]); 3]) -> Vec<Series<'a>> {
         .collect()
 }
 
-fn css(c: RGBColor) -> String {
-    format!("rgb({},{},{})", c.0, c.1, c.2)
+/// A gap for the page; "not identified" where the model's response could not be.
+fn gap_text(v: f64) -> String {
+    if v.is_finite() {
+        format!("{v:.4}")
+    } else {
+        "not identified".into()
+    }
 }
 
 /// The page's HTML; `report` links back to report.html when there is one.
@@ -258,15 +292,15 @@ pub fn render(title: &str, runs: &[GapRun], report: bool) -> String {
         let d = &r.diagnosis;
         let _ = write!(
             b,
-            "<h2>{}</h2>\n<p>verdict <b>{}</b> · held-out gap: nominal {:.4}, baseline {:.4} · \
-             whole run: nominal {:.4}, baseline {:.4}, fitted {:.4} · {} simulations, {:.1} s</p>\n",
+            "<h2>{}</h2>\n<p>verdict <b>{}</b> · held-out gap: nominal {}, baseline {} · \
+             whole run: nominal {}, baseline {}, fitted {} · {} simulations, {:.1} s</p>\n",
             esc(&d.run),
             esc(&d.verdict_name()),
-            d.nominal_score.holdout,
-            d.baseline.score.holdout,
-            r.models[0].0.total,
-            r.models[1].0.total,
-            r.models[2].0.total,
+            gap_text(d.nominal_score.holdout),
+            gap_text(d.baseline.score.holdout),
+            gap_text(r.nominal.as_ref().map_or(f64::NAN, |w| w.0.total)),
+            gap_text(r.baseline.0.total),
+            gap_text(r.fitted().0.total),
             d.evaluations,
             d.seconds
         );
@@ -298,7 +332,7 @@ pub fn render(title: &str, runs: &[GapRun], report: bool) -> String {
             );
         }
         b.push_str("</table>\n<p>Where the refitted model's gap lies (largest shares):</p><ul>\n");
-        for reg in r.models[1].0.regions.iter().take(4) {
+        for reg in r.baseline.0.regions.iter().take(4) {
             let _ = writeln!(
                 b,
                 "<li>{}: {:.0} % — {:.1}–{:.1} s, A {:.2e}–{:.2e}, {:.2}–{:.2} Hz</li>",
@@ -372,9 +406,4 @@ pub fn fitted_model_path(out: &Path, rig: &Path, run: &str, several: bool) -> Pa
     } else {
         out.join(format!("{stem}.fitted.toml"))
     }
-}
-
-/// Makes sure the model written out reads back (the TOML is the contract of FORMATS.md §2).
-pub fn check_fitted(path: &Path) -> Result<RigModel, String> {
-    RigModel::load(path).map_err(|e| e.to_string())
 }

@@ -735,7 +735,8 @@ fn fitted_line(m: &MethodPlots) -> String {
     }
 }
 
-fn css(c: RGBColor) -> String {
+/// A colour as CSS `rgb(…)`.
+pub(crate) fn css(c: RGBColor) -> String {
     format!("rgb({},{},{})", c.0, c.1, c.2)
 }
 
