@@ -1300,13 +1300,18 @@ fn gap_search_options(a: &GapArgs) -> Result<skelid::gap::SearchOptions> {
             })
             .collect::<Result<_>>()?
     };
+    if a.baseline_evaluations < 10 || a.candidate_evaluations < 5 {
+        bail!(
+            "--baseline-evaluations must be at least 10 and --candidate-evaluations at least 5 (a simplex needs one simulation per parameter and a few steps); the defaults are 150 and 60"
+        );
+    }
     Ok(skelid::gap::SearchOptions {
         blocks: skelid::gap::Blocks {
             seconds: a.holdout_block,
         },
-        baseline_evaluations: a.baseline_evaluations.max(10),
+        baseline_evaluations: a.baseline_evaluations,
         refine: a.refine,
-        candidate_evaluations: a.candidate_evaluations.max(5),
+        candidate_evaluations: a.candidate_evaluations,
         pairs: !a.no_pairs,
         fit_inertia: a.fit_inertia,
         effects,

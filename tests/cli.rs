@@ -766,6 +766,12 @@ fn gap_self_check_prints_its_confusion_matrix_and_wrong_arguments_say_what_to_do
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success());
     assert!(err.contains("unknown effect `magic_grease`") && err.contains("coulomb_friction"));
+    let o = skelid()
+        .args(["gap", "--self-check", "--baseline-evaluations", "3"])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("at least 10"));
     let o = skelid().args(["gap"]).output().unwrap();
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("--model"));
