@@ -116,27 +116,34 @@ impl Identification {
     /// With `resonance`, only the samples at resonance (|ω/ω0 − 1| below it) count, like
     /// `resonant_bins`.
     pub fn skeleton_within(&self, mask: &[bool], bins: usize, resonance: Option<f64>) -> Vec<Bin> {
-        let r = &self.response;
-        let at_resonance = |i: usize| {
-            resonance.is_none_or(|tol| {
-                let k = self.modal.stiffness[i];
-                k > 0.0 && (2.0 * PI * r.frequency[i] / k.sqrt() - 1.0).abs() < tol
-            })
-        };
+        let (r, m) = (&self.response, &self.modal);
         let samples: Vec<Sample> = (0..self.used.len().min(mask.len()))
-            .filter(|&i| self.used[i] && mask[i] && at_resonance(i))
-            .map(|i| Sample {
-                amplitude: r.amplitude[i],
-                omega: 2.0 * PI * r.frequency[i],
-                stiffness: self.modal.stiffness[i],
-                damping: self.modal.damping[i],
+            .filter(|&i| {
+                self.used[i] && mask[i] && resonance.is_none_or(|t| at_resonance(r, m, i, t))
             })
+            .map(|i| sample_at(r, m, i))
             .collect();
         fit::skeleton(&samples, bins, min_bin_count(samples.len(), bins))
     }
     /// Amplitude range covered by the skeleton.
     pub fn amplitude_range(&self) -> Option<(f64, f64)> {
         fit::amplitude_range(&self.bins)
+    }
+}
+
+/// Whether sample `i` is at resonance: |ω/ω0 − 1| below `tol`.
+fn at_resonance(response: &Track, modal: &Modal, i: usize, tol: f64) -> bool {
+    let k = modal.stiffness[i];
+    k > 0.0 && (2.0 * PI * response.frequency[i] / k.sqrt() - 1.0).abs() < tol
+}
+
+/// Sample `i` of the instantaneous characteristics, for a skeleton.
+fn sample_at(response: &Track, modal: &Modal, i: usize) -> Sample {
+    Sample {
+        amplitude: response.amplitude[i],
+        omega: 2.0 * PI * response.frequency[i],
+        stiffness: modal.stiffness[i],
+        damping: modal.damping[i],
     }
 }
 
@@ -308,19 +315,9 @@ fn identify_inner(
         .map(|i| modal.valid[i] && modal.stiffness[i].is_finite())
         .collect();
     let resonant: Vec<bool> = (0..n)
-        .map(|i| {
-            used[i] && modal.stiffness[i] > 0.0 && {
-                let w = 2.0 * PI * response.frequency[i];
-                (w / modal.stiffness[i].sqrt() - 1.0).abs() < opt.resonance
-            }
-        })
+        .map(|i| used[i] && at_resonance(&response, &modal, i, opt.resonance))
         .collect();
-    let sample = |i: usize| Sample {
-        amplitude: response.amplitude[i],
-        omega: 2.0 * PI * response.frequency[i],
-        stiffness: modal.stiffness[i],
-        damping: modal.damping[i],
-    };
+    let sample = |i: usize| sample_at(&response, &modal, i);
     let samples: Vec<Sample> = (0..n).filter(|&i| used[i]).map(sample).collect();
     if samples.len() < 100 {
         return Err(IdentifyError::NoSkeleton(format!(
