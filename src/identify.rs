@@ -125,6 +125,10 @@ impl Identification {
             .collect();
         fit::skeleton(&samples, bins, min_bin_count(samples.len(), bins))
     }
+    /// Whether sample `i` is at resonance, |ω/ω0 − 1| below `tol`.
+    pub fn at_resonance(&self, i: usize, tol: f64) -> bool {
+        at_resonance(&self.response, &self.modal, i, tol)
+    }
     /// Amplitude range covered by the skeleton.
     pub fn amplitude_range(&self) -> Option<(f64, f64)> {
         fit::amplitude_range(&self.bins)

@@ -97,10 +97,12 @@ struct GapArgs {
     #[arg(long, default_value_t = 150, value_name = "N")]
     baseline_evaluations: usize,
     /// Simulations per refined candidate (and per pair of effects).
-    #[arg(long, default_value_t = 60, value_name = "N")]
+    #[arg(long, default_value_t = 45, value_name = "N")]
     candidate_evaluations: usize,
-    /// Candidates refined by the simplex after every effect's coarse scan.
-    #[arg(long, default_value_t = 3, value_name = "N")]
+    /// Scan points refined by the simplex: every effect is scanned on the baseline and on
+    /// the nominal model, and the best N of those 2 × 7 starts are refined (fewer is
+    /// faster, and may leave an effect the baseline absorbed undetected).
+    #[arg(long, default_value_t = 14, value_name = "N")]
     refine: usize,
     /// Never try pairs of effects.
     #[arg(long)]

@@ -663,7 +663,7 @@ fn gap_names_the_missing_friction_and_writes_its_report_model_and_page() {
             "--baseline-evaluations",
             "80",
             "--candidate-evaluations",
-            "30",
+            "45",
             "--no-pairs",
             "--effects",
             "coulomb_friction,cubic_stiffness,sensor_delay",

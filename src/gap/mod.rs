@@ -29,7 +29,6 @@
 pub mod search;
 pub mod selfcheck;
 
-use crate::fit::Bin;
 use crate::identify::{identify, identify_with_input_track, Identification, IdentifyOptions};
 use crate::ingest::Run;
 use crate::model::RigModel;
@@ -124,20 +123,30 @@ impl Blocks {
 
 /// The gap between `measured` and `simulated`, two identifications of the same run.
 pub fn gap(measured: &Identification, simulated: &Identification) -> Gap {
-    Target::new(measured, None).gap(measured, simulated, &Envelope::of(&simulated.response))
+    Target::new(measured, None).gap(measured, &Features::of(simulated))
 }
 
-/// A track's log envelope (NaN where not valid) and its running extremes over
-/// ±[`TIME_TOLERANCE`]: what the time domain compares, computed once per track.
-pub struct Envelope {
+/// What the gap compares of one identification, computed once per identification: its log
+/// envelope (NaN where not valid) with the running extremes over ±[`TIME_TOLERANCE`], and
+/// its natural frequency and damping force at resonance, smoothed over ±[`SMOOTH`] (NaN
+/// off resonance).
+pub struct Features {
     ln: Vec<f64>,
     lo: Vec<f64>,
     hi: Vec<f64>,
+    f0: Vec<f64>,
+    force: Vec<f64>,
 }
 
-impl Envelope {
-    /// The envelope of `track`.
-    pub fn of(track: &crate::track::Track) -> Envelope {
+/// Half-width (s) of the running mean the instantaneous natural frequency and damping force
+/// are smoothed with before they are compared (the encoder noise's scatter, sample to
+/// sample, would otherwise set the floor of both skeleton domains).
+pub const SMOOTH: f64 = 0.1;
+
+impl Features {
+    /// The features of `id`.
+    pub fn of(id: &Identification) -> Features {
+        let track = &id.response;
         let ln: Vec<f64> = (0..track.len())
             .map(|i| {
                 if track.valid[i] && track.amplitude[i] > 0.0 {
@@ -149,59 +158,149 @@ impl Envelope {
             .collect();
         let half = (TIME_TOLERANCE * track.sample_rate).round() as usize;
         let (lo, hi) = window_extremes(&ln, half);
-        Envelope { ln, lo, hi }
+        let opt = IdentifyOptions::default();
+        let resonant = |i: usize| id.used[i] && id.at_resonance(i, opt.resonance);
+        let n = id.used.len().min(track.len());
+        let raw_f0: Vec<f64> = (0..n)
+            .map(|i| {
+                if resonant(i) {
+                    id.modal.stiffness[i].max(0.0).sqrt() / (2.0 * std::f64::consts::PI)
+                } else {
+                    f64::NAN
+                }
+            })
+            .collect();
+        let raw_force: Vec<f64> = (0..n)
+            .map(|i| {
+                if resonant(i) {
+                    let w = 2.0 * std::f64::consts::PI * track.frequency[i];
+                    2.0 * id.modal.damping[i] * track.amplitude[i] * w
+                } else {
+                    f64::NAN
+                }
+            })
+            .collect();
+        let half = (SMOOTH * track.sample_rate).round() as usize;
+        Features {
+            ln,
+            lo,
+            hi,
+            f0: running_mean(&raw_f0, half),
+            force: running_mean(&raw_force, half),
+        }
     }
 }
 
+/// For each index, the index of the nearest finite value of `x` (the earlier one on a tie),
+/// `None` when `x` has none.
+fn nearest_finite(x: &[f64]) -> Vec<Option<usize>> {
+    let mut before = vec![None; x.len()];
+    let mut last = None;
+    for (i, v) in x.iter().enumerate() {
+        if v.is_finite() {
+            last = Some(i);
+        }
+        before[i] = last;
+    }
+    let mut next = None;
+    let mut out = vec![None; x.len()];
+    for i in (0..x.len()).rev() {
+        if x[i].is_finite() {
+            next = Some(i);
+        }
+        out[i] = match (before[i], next) {
+            (Some(b), Some(a)) => Some(if i - b <= a - i { b } else { a }),
+            (b, a) => b.or(a),
+        };
+    }
+    out
+}
+
+/// The mean of the finite values of `x` over `[i − half, i + half]` at every finite `x[i]`
+/// (NaN elsewhere).
+fn running_mean(x: &[f64], half: usize) -> Vec<f64> {
+    let mut sum = vec![0.0; x.len() + 1];
+    let mut count = vec![0usize; x.len() + 1];
+    for (i, &v) in x.iter().enumerate() {
+        let ok = v.is_finite();
+        sum[i + 1] = sum[i] + if ok { v } else { 0.0 };
+        count[i + 1] = count[i] + ok as usize;
+    }
+    (0..x.len())
+        .map(|i| {
+            if !x[i].is_finite() {
+                return f64::NAN;
+            }
+            let (a, b) = (i.saturating_sub(half), (i + half + 1).min(x.len()));
+            (sum[b] - sum[a]) / (count[b] - count[a]) as f64
+        })
+        .collect()
+}
+
 /// The measured side of a comparison on one part of a run, prepared once for all the
-/// models compared with it: the part's samples, its skeleton at resonance, its envelope.
+/// models compared with it: the part's samples and the measurement's features.
 pub struct Target {
     mask: Option<Vec<bool>>,
-    resonant: Vec<Bin>,
-    envelope: Envelope,
+    features: Features,
 }
 
 impl Target {
     /// `measured` on the samples flagged in `mask` (the whole run when `None`).
     pub fn new(measured: &Identification, mask: Option<Vec<bool>>) -> Target {
         Target {
-            resonant: resonant(measured, mask.as_deref()),
-            envelope: Envelope::of(&measured.response),
+            features: Features::of(measured),
             mask,
         }
     }
 
-    /// The gap of `simulated` (whose envelope is `sim_envelope`) against `measured`, the
-    /// identification this target was prepared from. The time domain keeps the part's
-    /// samples; the simulated skeleton is rebuilt from them.
-    pub fn gap(
-        &self,
-        measured: &Identification,
-        simulated: &Identification,
-        sim_envelope: &Envelope,
-    ) -> Gap {
+    /// The gap of a simulation (its `features`) against `measured`, the identification this
+    /// target was prepared from, on the target's samples.
+    pub fn gap(&self, measured: &Identification, sim: &Features) -> Gap {
         let mask = self.mask.as_deref();
-        let s_res = resonant(simulated, mask);
-        let m_res = &self.resonant;
+        let ours = &self.features;
+        // The settling after a jump-down: the free flight that follows bounces between the
+        // flanks for several decay times, and which flank it ends on is the coin-flip again.
+        // It is left out where both have jumped within a second of each other (from the
+        // first jump to the later end); a model that has not jumped where the measurement
+        // has is still scored there.
+        let fs = measured.response.sample_rate;
+        let settling = match measured.dead_zone {
+            Some(dz) => {
+                let (settle, d) = (settle_seconds(measured), dz.half_gap.value);
+                paired_settling(
+                    &settling(&ours.ln, fs, d, settle),
+                    &settling(&sim.ln, fs, d, settle),
+                    fs.round() as usize,
+                )
+            }
+            None => Vec::new(),
+        };
+        // Between the two jump-ups onto the resonant branch, and while the later one joins
+        // the branch: where the branches coexist, the instant of the jump-up is as much a
+        // coin-flip as the flank after a jump-down (the noise of the rig decides it), while
+        // the jump-down's instant, which the damping sets, stays scored.
+        let jump_up = measured.dead_zone.and_then(|dz| {
+            let high = (GRAZING.1 * dz.half_gap.value).ln();
+            let first = |ln: &[f64]| ln.iter().position(|&v| v > high);
+            let (a, b) = (first(&ours.ln)?, first(&sim.ln)?);
+            if a.abs_diff(b) as f64 > JUMP_UP_SPAN * fs {
+                return None;
+            }
+            let join = (JOIN_DECAY_TIMES / SETTLE_DECAY_TIMES * settle_seconds(measured) * fs)
+                .round() as usize;
+            Some(a.min(b)..a.max(b) + join)
+        });
+        let keep = |i: usize| {
+            mask.is_none_or(|m| m.get(i).copied().unwrap_or(false))
+                && !settling.get(i).copied().unwrap_or(false)
+                && !jump_up.as_ref().is_some_and(|r| r.contains(&i))
+        };
         let domains = [
-            time_errors(measured, &self.envelope, sim_envelope, mask),
-            backbone_errors(m_res, &s_res, measured, mask, false),
-            backbone_errors(m_res, &s_res, measured, mask, true),
+            time_errors(measured, ours, sim, &keep),
+            resonance_errors(measured, &ours.f0, &sim.f0, &keep, "backbone"),
+            resonance_errors(measured, &ours.force, &sim.force, &keep, "damping"),
         ];
         combine(domains)
-    }
-}
-
-/// The skeleton at resonance of the samples in `mask`. Both skeleton domains are compared
-/// at resonance, where the backbone is defined: off resonance (the free flight after a
-/// jump-down, resting on a flank or touching it now and then) the first-harmonic stiffness
-/// and damping are the coin-flip of which regime the link fell into, and would make the gap
-/// jump with every small change of a model.
-fn resonant(id: &Identification, mask: Option<&[bool]>) -> Vec<Bin> {
-    let opt = IdentifyOptions::default();
-    match mask {
-        None => id.resonant_bins.clone(),
-        Some(m) => id.skeleton_within(m, opt.bins, Some(opt.resonance)),
     }
 }
 
@@ -288,6 +387,60 @@ fn window_extremes(x: &[f64], half: usize) -> (Vec<f64>, Vec<f64>) {
     (lo, hi)
 }
 
+/// The longest time (s) between the measured and the simulated jump-up that is forgiven as
+/// a coin-flip; a model that jumps up later than that is scored there.
+pub const JUMP_UP_SPAN: f64 = 3.0;
+
+/// Decay times the later of two jump-ups takes to join the resonant branch.
+pub const JOIN_DECAY_TIMES: f64 = 3.0;
+
+/// Decay times a jump-down's settling lasts in the time domain.
+pub const SETTLE_DECAY_TIMES: f64 = 12.0;
+
+/// How long (s) the settling after a jump-down lasts: [`SETTLE_DECAY_TIMES`] decay times
+/// 1/h of the measured viscous damping (4 s where the damping was not identified).
+fn settle_seconds(m: &Identification) -> f64 {
+    m.damping
+        .map(|(c, _)| c.value)
+        .filter(|c| c.is_finite() && *c > 0.0)
+        .map_or(4.0, |c| SETTLE_DECAY_TIMES * 2.0 / c)
+}
+
+/// Flags the samples of a log envelope `ln` (NaN where not valid) that follow a jump-down
+/// by less than `settle` seconds: a fall from above the grazing band (1.05 `half_gap`) to
+/// below it (0.7 `half_gap`) within a second.
+fn settling(ln: &[f64], fs: f64, half_gap: f64, settle: f64) -> Vec<(usize, usize)> {
+    let (high, low) = ((GRAZING.1 * half_gap).ln(), (GRAZING.0 * half_gap).ln());
+    let within = fs.round() as usize;
+    let span = (settle * fs).round() as usize;
+    let mut windows = Vec::new();
+    let mut last_high: Option<usize> = None;
+    for (i, &v) in ln.iter().enumerate() {
+        if v > high {
+            last_high = Some(i);
+        } else if v < low && last_high.is_some_and(|h| i - h <= within) {
+            windows.push((i, (i + span).min(ln.len())));
+            last_high = None;
+        }
+    }
+    windows
+}
+
+/// The samples inside a settling window of `a` that has a partner in `b` starting within
+/// `within` samples (or the other way round), from the earlier start to the later end.
+fn paired_settling(a: &[(usize, usize)], b: &[(usize, usize)], within: usize) -> Vec<bool> {
+    let n = a.iter().chain(b).map(|w| w.1).max().unwrap_or(0);
+    let mut out = vec![false; n];
+    for &(s0, e0) in a {
+        for &(s1, e1) in b {
+            if s0.abs_diff(s1) <= within {
+                out[s0.min(s1)..e0.max(e1)].fill(true);
+            }
+        }
+    }
+    out
+}
+
 /// How far `v` lies outside `[lo, hi]` (0 inside; NaN where the window was empty).
 fn outside(v: f64, lo: f64, hi: f64) -> f64 {
     if lo > hi {
@@ -297,8 +450,12 @@ fn outside(v: f64, lo: f64, hi: f64) -> f64 {
     }
 }
 
-fn time_errors(m: &Identification, ea: &Envelope, eb: &Envelope, mask: Option<&[bool]>) -> Errors {
-    let inside = |i: usize| mask.is_none_or(|m| m.get(i).copied().unwrap_or(false));
+fn time_errors(
+    m: &Identification,
+    ea: &Features,
+    eb: &Features,
+    keep: &dyn Fn(usize) -> bool,
+) -> Errors {
     let a = &m.response;
     let n = ea.ln.len().min(eb.ln.len());
     let fs = a.sample_rate;
@@ -327,15 +484,14 @@ fn time_errors(m: &Identification, ea: &Envelope, eb: &Envelope, mask: Option<&[
         let end = (start + window).min(n);
         let (mut alo, mut ahi, mut flo, mut fhi) = (f64::INFINITY, 0f64, f64::INFINITY, 0f64);
         for i in start..end {
-            if !inside(i) || !la[i].is_finite() || grazing(a.amplitude[i]) {
+            if !keep(i) || !la[i].is_finite() || grazing(a.amplitude[i]) {
                 continue;
             }
             // Both ways: the measurement within the model's tolerance band and the model's
             // own envelope (where it has one) within the measurement's.
+            // A model with no valid envelope within the tolerance misses the sample.
             let e1 = outside(la[i], eb.lo[i], eb.hi[i]);
-            if !e1.is_finite() {
-                continue;
-            }
+            let e1 = if e1.is_finite() { e1 } else { 1.0 };
             let e2 = if lb[i].is_finite() {
                 outside(lb[i], ea.lo[i], ea.hi[i])
             } else {
@@ -361,90 +517,62 @@ fn time_errors(m: &Identification, ea: &Envelope, eb: &Envelope, mask: Option<&[
     Errors { terms, regions }
 }
 
-/// Linear interpolation of `value(bin)` over ln A at `amp` (None outside the bins' range:
-/// the ends of a resonant skeleton are thin, a few dozen samples that a model reaches or not
-/// by chance).
-fn at_amplitude(bins: &[Bin], amp: f64, value: impl Fn(&Bin) -> f64) -> Option<f64> {
-    let i = bins.iter().position(|b| b.amplitude >= amp)?;
-    if bins[i].amplitude == amp {
-        return Some(value(&bins[i]));
-    }
-    if i == 0 {
-        return None;
-    }
-    let lo = &bins[i - 1];
-    let hi = &bins[i];
-    let u = (amp / lo.amplitude).ln() / (hi.amplitude / lo.amplitude).ln();
-    Some(value(lo) + u * (value(hi) - value(lo)))
-}
-
-/// The backbone (`damping` false) or damping-force (`damping` true) errors at the measured
-/// bins, with regions by amplitude range (their time and frequency spans taken from the
-/// measured track).
-fn backbone_errors(
-    meas: &[Bin],
-    sim: &[Bin],
+/// The backbone (natural frequency) or damping-force errors at the samples where both are
+/// at resonance, e = (v_sim − v_meas) / rms v_meas, with regions by amplitude range (their
+/// time and frequency spans taken from the measured track).
+///
+/// The comparison is made at the same instants, not over amplitude bins: a sweep passes
+/// its resonance twice — riding up the backbone and falling off it before the jump — with
+/// different damping estimates at the same amplitude, and a binned skeleton mixes the two
+/// branches in proportions that jump with every small change of a model.
+fn resonance_errors(
     m: &Identification,
-    mask: Option<&[bool]>,
-    damping: bool,
+    meas: &[f64],
+    sim: &[f64],
+    keep: &dyn Fn(usize) -> bool,
+    domain: &'static str,
 ) -> Errors {
-    let inside = |i: usize| mask.is_none_or(|m| m.get(i).copied().unwrap_or(false));
-    let domain = if damping { "damping" } else { "backbone" };
-    let mut sim: Vec<Bin> = sim
-        .iter()
-        .filter(|b| b.amplitude > 0.0 && b.stiffness.is_finite() && b.damping.is_finite())
-        .copied()
+    let r = &m.response;
+    let ours: Vec<usize> = (0..meas.len())
+        .filter(|&i| keep(i) && meas[i].is_finite())
         .collect();
-    sim.sort_by(|a, b| a.amplitude.total_cmp(&b.amplitude));
-    let meas: Vec<&Bin> = meas
-        .iter()
-        .filter(|b| b.amplitude > 0.0 && b.stiffness.is_finite() && b.damping.is_finite())
-        .collect();
-    let value = |b: &Bin| {
-        if damping {
-            b.damping_force()
-        } else {
-            b.stiffness.max(0.0).sqrt()
-        }
-    };
     let scale =
-        (meas.iter().map(|b| value(b).powi(2)).sum::<f64>() / meas.len().max(1) as f64).sqrt();
-    let (lo, hi) = meas.iter().fold((f64::INFINITY, 0f64), |(l, h), b| {
-        (l.min(b.amplitude), h.max(b.amplitude))
+        (ours.iter().map(|&i| meas[i].powi(2)).sum::<f64>() / ours.len().max(1) as f64).sqrt();
+    let (lo, hi) = ours.iter().fold((f64::INFINITY, 0f64), |(l, h), &i| {
+        (l.min(r.amplitude[i]), h.max(r.amplitude[i]))
     });
     let range_of = |a: f64| -> usize {
         if hi <= lo {
             return 0;
         }
         let u = (a / lo).ln() / (hi / lo).ln();
-        ((u * AMPLITUDE_RANGES as f64) as usize).min(AMPLITUDE_RANGES - 1)
+        ((u.max(0.0) * AMPLITUDE_RANGES as f64) as usize).min(AMPLITUDE_RANGES - 1)
     };
-    let mut terms = Vec::new();
-    for b in &meas {
-        let e = at_amplitude(&sim, b.amplitude, value)
-            .filter(|_| scale > 0.0)
-            .map(|v| (v - value(b)) / scale);
-        if let Some(e) = e {
-            terms.push((b.count as f64, e * e, range_of(b.amplitude)));
+    // Where the model is not at resonance at that instant, its value at the nearest instant
+    // it is: a model whose resonance comes early or late is then off by the frequency the
+    // sweep had moved on by, a graded error, instead of being compared nowhere.
+    let nearest = nearest_finite(sim);
+    let mut terms: Vec<(f64, f64, usize)> = Vec::new();
+    if scale > 0.0 {
+        for &i in &ours {
+            // A model never at resonance (too damped to reach the measured resonance, say)
+            // misses all of it.
+            let e = nearest
+                .get(i)
+                .copied()
+                .flatten()
+                .map_or(1.0, |j| (sim[j] - meas[i]) / scale);
+            terms.push((1.0, e * e, range_of(r.amplitude[i])));
         }
     }
-    // A model whose skeleton shares no amplitude with the measured one (too damped to reach
-    // the measured resonance, say) misses all of it.
-    if terms.is_empty() && !meas.is_empty() && scale > 0.0 {
-        terms = meas
-            .iter()
-            .map(|b| (b.count as f64, 1.0, range_of(b.amplitude)))
-            .collect();
-    }
     // Each amplitude range's time and frequency span, from the measured track.
-    let r = &m.response;
     let regions = (0..AMPLITUDE_RANGES)
         .map(|k| {
             let a_lo = lo * (hi / lo).powf(k as f64 / AMPLITUDE_RANGES as f64);
             let a_hi = lo * (hi / lo).powf((k + 1) as f64 / AMPLITUDE_RANGES as f64);
             let (mut t0, mut t1, mut f_lo, mut f_hi) = (f64::INFINITY, 0f64, f64::INFINITY, 0f64);
-            for i in 0..r.len() {
-                if inside(i) && r.valid[i] && r.amplitude[i] >= a_lo && r.amplitude[i] <= a_hi {
+            for &i in &ours {
+                if r.amplitude[i] >= a_lo && r.amplitude[i] <= a_hi {
                     let t = i as f64 / r.sample_rate;
                     t0 = t0.min(t);
                     t1 = t1.max(t);
@@ -526,19 +654,6 @@ pub fn model_gap(measured: &Run, identified: &Identification, model: &RigModel) 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::fit::Bin;
-
-    fn bin(a: f64, k: f64, d: f64) -> Bin {
-        Bin {
-            amplitude: a,
-            stiffness: k,
-            stiffness_spread: 0.0,
-            damping: d,
-            damping_spread: 0.0,
-            velocity: a * k.sqrt(),
-            count: 10,
-        }
-    }
 
     #[test]
     fn window_extremes_match_a_naive_scan() {
@@ -565,17 +680,53 @@ mod tests {
     }
 
     #[test]
-    fn interpolation_in_log_amplitude_is_exact_for_a_log_linear_curve() {
-        let bins: Vec<Bin> = (0..10)
+    fn running_mean_matches_a_naive_mean_of_the_finite_values() {
+        let x: Vec<f64> = (0..300)
             .map(|i| {
-                let a = 0.001 * 1.5f64.powi(i);
-                bin(a, 100.0 + 7.0 * a.ln(), 1.0)
+                if i % 7 == 2 {
+                    f64::NAN
+                } else {
+                    ((i * 13) % 29) as f64
+                }
             })
             .collect();
-        let a = 0.0042;
-        let v = at_amplitude(&bins, a, |b| b.stiffness).unwrap();
-        assert!((v - (100.0 + 7.0 * a.ln())).abs() < 1e-9, "{v}");
-        assert!(at_amplitude(&bins, 1e-6, |b| b.stiffness).is_none());
-        assert!(at_amplitude(&bins, 1.0, |b| b.stiffness).is_none());
+        for half in [0, 3, 50, 400] {
+            let y = running_mean(&x, half);
+            for i in 0..x.len() {
+                if !x[i].is_finite() {
+                    assert!(y[i].is_nan());
+                    continue;
+                }
+                let w: Vec<f64> = x[i.saturating_sub(half)..(i + half + 1).min(x.len())]
+                    .iter()
+                    .copied()
+                    .filter(|v| v.is_finite())
+                    .collect();
+                let mean = w.iter().sum::<f64>() / w.len() as f64;
+                assert!((y[i] - mean).abs() < 1e-9, "i {i} half {half}");
+            }
+        }
+    }
+
+    #[test]
+    fn settling_follows_each_jump_down_and_pairs_within_a_second() {
+        let fs = 100.0;
+        let d: f64 = 0.01;
+        // High (2δ) for 1 s, a jump to 0.2δ, high again from 5 s, a second jump at 6 s.
+        let ln: Vec<f64> = (0..1000)
+            .map(|i| {
+                if i < 100 || (500..600).contains(&i) {
+                    (2.0 * d).ln()
+                } else {
+                    (0.2 * d).ln()
+                }
+            })
+            .collect();
+        let w = settling(&ln, fs, d, 2.0);
+        assert_eq!(w, vec![(100, 300), (600, 800)]);
+        // A partner 0.5 s later widens the window; one 3 s later pairs with nothing.
+        let flags = paired_settling(&w, &[(150, 350), (900, 1000)], 100);
+        assert!(flags[100] && flags[349] && !flags[350]);
+        assert!(!flags.get(600).copied().unwrap_or(false));
     }
 }
