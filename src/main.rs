@@ -91,7 +91,7 @@ struct GapArgs {
     out: PathBuf,
     /// Length of the alternate time blocks (s): fits see the even ones, gaps are scored on
     /// the odd ones.
-    #[arg(long, default_value_t = 2.0, value_name = "SECONDS")]
+    #[arg(long, default_value_t = 1.0, value_name = "SECONDS")]
     holdout_block: f64,
     /// Simulations spent refitting the model's own parameters.
     #[arg(long, default_value_t = 150, value_name = "N")]

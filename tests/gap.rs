@@ -5,7 +5,7 @@
 //! others (a wrong stiffness also moves the jump-down, which the time domain sees first).
 
 use skelid::demo::{cases, simulate_case};
-use skelid::gap::{gap, simulate_like};
+use skelid::gap::{gap, simulate_like, Simulated};
 use skelid::identify::{identify, Identification, IdentifyOptions};
 use skelid::ingest::Run;
 use skelid::model::RigModel;
@@ -28,7 +28,7 @@ fn paper_rig() -> (RigModel, Run, Identification) {
 }
 
 /// The model simulated under the measured run's input, identified.
-fn simulated(measured: &Run, model: &RigModel) -> Identification {
+fn simulated(measured: &Run, model: &RigModel) -> Simulated {
     simulate_like(measured, model).unwrap()
 }
 
@@ -39,9 +39,9 @@ fn the_gap_sees_where_a_model_is_wrong() {
     stiff.stiffness *= 1.3;
     let mut damped = truth.clone();
     damped.damping *= 3.0;
-    let g_truth = gap(&m, &simulated(&measured, &truth));
-    let g_stiff = gap(&m, &simulated(&measured, &stiff));
-    let g_damped = gap(&m, &simulated(&measured, &damped));
+    let g_truth = gap(&m, &measured, &simulated(&measured, &truth));
+    let g_stiff = gap(&m, &measured, &simulated(&measured, &stiff));
+    let g_damped = gap(&m, &measured, &simulated(&measured, &damped));
     for (name, g) in [
         ("truth", &g_truth),
         ("k ×1.3", &g_stiff),
@@ -84,7 +84,7 @@ fn the_baseline_refit_recovers_mis_set_parameters() {
     let mut nominal = truth.clone();
     nominal.stiffness *= 1.2;
     nominal.clearance *= 0.85;
-    let reference = Reference::new(&measured, Blocks { seconds: 2.0 }).unwrap();
+    let reference = Reference::new(&measured, Blocks { seconds: 1.0 }).unwrap();
     let nominal_score = reference.score(&nominal);
     let opt = SearchOptions {
         baseline_evaluations: 120,
@@ -128,7 +128,7 @@ fn the_missing_friction_is_named_and_a_complete_model_gets_no_verdict() {
     use skelid::gap::{diagnose, Blocks, SearchOptions};
     use skelid::model::EffectKind;
     let (truth, measured, _) = paper_rig();
-    let reference = Reference::new(&measured, Blocks { seconds: 2.0 }).unwrap();
+    let reference = Reference::new(&measured, Blocks { seconds: 1.0 }).unwrap();
     let opt = SearchOptions {
         baseline_evaluations: 100,
         candidate_evaluations: 40,

@@ -121,21 +121,25 @@ impl Blocks {
     }
 }
 
-/// The gap between `measured` and `simulated`, two identifications of the same run.
-pub fn gap(measured: &Identification, simulated: &Identification) -> Gap {
-    Target::new(measured, None).gap(measured, &Features::of(simulated))
+/// The gap between `measured` (identified from `measured_run`) and `simulated`, the model
+/// simulated under the same run's input.
+pub fn gap(measured: &Identification, measured_run: &Run, simulated: &Simulated) -> Gap {
+    let features = Features::of(&simulated.identified, &simulated.run);
+    Target::new(measured, measured_run, None).gap(measured, &features)
 }
 
 /// What the gap compares of one identification, computed once per identification: its log
-/// envelope (NaN where not valid) with the running extremes over ±[`TIME_TOLERANCE`], and
-/// its natural frequency and damping force at resonance, smoothed over ±[`SMOOTH`] (NaN
-/// off resonance).
+/// envelope (NaN where not valid) with the running extremes over ±[`TIME_TOLERANCE`], its
+/// natural frequency and damping force at resonance, smoothed over ±[`SMOOTH`] (NaN off
+/// resonance), and, where the run's channels are displacements, the centre of the relative
+/// motion (its mean over one period).
 pub struct Features {
     ln: Vec<f64>,
     lo: Vec<f64>,
     hi: Vec<f64>,
     f0: Vec<f64>,
     force: Vec<f64>,
+    centre: Option<Vec<f64>>,
 }
 
 /// Half-width (s) of the running mean the instantaneous natural frequency and damping force
@@ -144,8 +148,8 @@ pub struct Features {
 pub const SMOOTH: f64 = 0.1;
 
 impl Features {
-    /// The features of `id`.
-    pub fn of(id: &Identification) -> Features {
+    /// The features of `id`, identified from `run`.
+    pub fn of(id: &Identification, run: &Run) -> Features {
         let track = &id.response;
         let ln: Vec<f64> = (0..track.len())
             .map(|i| {
@@ -182,6 +186,7 @@ impl Features {
             .collect();
         let half = (SMOOTH * track.sample_rate).round() as usize;
         Features {
+            centre: relative_motion(run).map(|z| centre(&z, track)),
             ln,
             lo,
             hi,
@@ -189,6 +194,37 @@ impl Features {
             force: running_mean(&raw_force, half),
         }
     }
+}
+
+/// The relative motion z = y − x of a base-motion run whose channels are displacements
+/// (`None` otherwise: an integrated velocity or acceleration has lost its mean).
+fn relative_motion(run: &Run) -> Option<Vec<f64>> {
+    use crate::ingest::{Quantity, RunKind};
+    let x = run.input.as_ref()?;
+    let displacement = run.meta.output_quantity == Quantity::Displacement
+        && run.meta.input_quantity.unwrap_or_default() == Quantity::Displacement;
+    (run.meta.kind == RunKind::BaseMotion && displacement && x.len() == run.output.len())
+        .then(|| run.output.iter().zip(x).map(|(y, x)| y - x).collect())
+}
+
+/// The mean of `z` over one period of `track`'s frequency around each sample (NaN where
+/// the track is not valid): the centre the motion oscillates about.
+fn centre(z: &[f64], track: &crate::track::Track) -> Vec<f64> {
+    let mut sum = vec![0.0; z.len() + 1];
+    for (i, v) in z.iter().enumerate() {
+        sum[i + 1] = sum[i] + v;
+    }
+    (0..z.len().min(track.len()))
+        .map(|i| {
+            let f = track.frequency[i];
+            if !track.valid[i] || f.is_nan() || f <= 0.0 {
+                return f64::NAN;
+            }
+            let half = (0.5 * track.sample_rate / f).round() as usize;
+            let (a, b) = (i.saturating_sub(half), (i + half + 1).min(z.len()));
+            (sum[b] - sum[a]) / (b - a) as f64
+        })
+        .collect()
 }
 
 /// For each index, the index of the nearest finite value of `x` (the earlier one on a tie),
@@ -245,10 +281,11 @@ pub struct Target {
 }
 
 impl Target {
-    /// `measured` on the samples flagged in `mask` (the whole run when `None`).
-    pub fn new(measured: &Identification, mask: Option<Vec<bool>>) -> Target {
+    /// `measured` (identified from `run`) on the samples flagged in `mask` (the whole run
+    /// when `None`).
+    pub fn new(measured: &Identification, run: &Run, mask: Option<Vec<bool>>) -> Target {
         Target {
-            features: Features::of(measured),
+            features: Features::of(measured, run),
             mask,
         }
     }
@@ -478,6 +515,23 @@ fn time_errors(
             amp > GRAZING.0 * d && amp < GRAZING.1 * d
         })
     };
+    // Where both touch both flanks, the centre the motion oscillates about, relative to the
+    // measured amplitude: an offset clearance or a preload moves it, and the envelope alone cannot
+    // tell (a shifted dead zone shifts z, not its envelope). Off contact the centre is
+    // wherever the free flight drifted, and is not compared.
+    let centre_error = |i: usize| -> f64 {
+        let (Some(dz), Some(cm), Some(cs)) = (m.dead_zone, &ea.centre, &eb.centre) else {
+            return 0.0;
+        };
+        let high = (GRAZING.1 * dz.half_gap.value).ln();
+        let touching = la[i] > high && lb[i] > high;
+        let e = (cs.get(i).copied().unwrap_or(f64::NAN) - cm[i]) / a.amplitude[i];
+        if touching && e.is_finite() {
+            e
+        } else {
+            0.0
+        }
+    };
     let mut terms = Vec::new();
     let mut regions = Vec::new();
     for (w, start) in (0..n).step_by(window).enumerate() {
@@ -497,7 +551,11 @@ fn time_errors(
             } else {
                 e1
             };
-            terms.push((a.amplitude[i] / peak, 0.5 * (e1 * e1 + e2 * e2), w));
+            terms.push((
+                a.amplitude[i] / peak,
+                0.5 * (e1 * e1 + e2 * e2) + centre_error(i).powi(2),
+                w,
+            ));
             alo = alo.min(a.amplitude[i]);
             ahi = ahi.max(a.amplitude[i]);
             flo = flo.min(a.frequency[i]);
@@ -606,18 +664,72 @@ pub enum GapError {
     Simulated(String),
 }
 
-/// The model simulated under `measured`'s own input, identified like the measurement.
-pub fn simulate_like(measured: &Run, model: &RigModel) -> Result<Identification, GapError> {
-    simulate_given(measured, None, model)
+/// A model simulated under a measured run's own input: the simulated run and its
+/// identification (made like the measurement's).
+pub struct Simulated {
+    /// The simulated run (the measured one with its channels replaced).
+    pub run: Run,
+    /// Its identification.
+    pub identified: Identification,
 }
 
-/// [`simulate_like`], reusing the measurement's input track when `identified` is given
-/// (the simulation is driven by that very input, so tracking it again only costs time).
+/// The model simulated under `measured`'s own input, identified like the measurement.
+pub fn simulate_like(measured: &Run, model: &RigModel) -> Result<Simulated, GapError> {
+    simulate_given(measured, None, model, 1)
+}
+
+/// Samples per cycle of the highest tracked frequency that a run decimated for the search
+/// keeps.
+pub const SAMPLES_PER_CYCLE: f64 = 20.0;
+
+/// The factor a run can be decimated by before it is identified for the search: its rate
+/// over [`SAMPLES_PER_CYCLE`] samples of the highest frequency either of its tracks
+/// reaches (1 to 8). The identification's cost falls with the samples, and the 1 kHz of a
+/// sweep that ends at 12 Hz carries nothing the envelope, backbone or damping need.
+pub fn decimation_for(id: &Identification) -> usize {
+    let highest = |t: &crate::track::Track| {
+        (0..t.len())
+            .filter(|&i| t.valid[i])
+            .map(|i| t.frequency[i])
+            .fold(0f64, f64::max)
+    };
+    let f = highest(&id.response).max(id.input.as_ref().map_or(0.0, highest));
+    if f <= 0.0 {
+        return 1;
+    }
+    ((id.response.sample_rate / (SAMPLES_PER_CYCLE * f)).floor() as usize).clamp(1, 8)
+}
+
+/// `run` low-passed (zero-phase, at 40 % of the new Nyquist frequency) and kept one sample
+/// in `factor`; itself when `factor` is 1. The measurement and every simulation compared
+/// with it go through the same filter.
+pub fn decimate(run: &Run, factor: usize) -> Run {
+    if factor <= 1 {
+        return run.clone();
+    }
+    let down = |x: &[f64]| -> Vec<f64> {
+        crate::filter::lowpass_zero_phase(x, 0.4 / factor as f64)
+            .into_iter()
+            .step_by(factor)
+            .collect()
+    };
+    let mut r = run.clone();
+    r.output = down(&run.output);
+    r.input = run.input.as_deref().map(down);
+    r.meta.sample_rate = run.meta.sample_rate / factor as f64;
+    r.meta.samples = r.output.len();
+    r
+}
+
+/// [`simulate_like`], decimated by `factor` before it is identified (see [`decimate`]),
+/// reusing the measurement's input track when `identified` is given (the simulation is
+/// driven by that very input, so tracking it again only costs time).
 pub fn simulate_given(
     measured: &Run,
     identified: Option<&Identification>,
     model: &RigModel,
-) -> Result<Identification, GapError> {
+    factor: usize,
+) -> Result<Simulated, GapError> {
     let input = measured.input.as_ref().ok_or_else(|| {
         GapError::Unusable("the run has no input channel to drive the model with".into())
     })?;
@@ -636,19 +748,14 @@ pub fn simulate_given(
     let mut run = measured.clone();
     run.input = Some(out.input);
     run.output = out.output;
+    let run = decimate(&run, factor);
     let opt = IdentifyOptions::default();
-    match identified.and_then(|i| i.input.as_ref()) {
+    let identified = match identified.and_then(|i| i.input.as_ref()) {
         Some(tx) => identify_with_input_track(&run, Method::Wavelet, &opt, tx),
         None => identify(&run, Method::Wavelet, &opt),
     }
-    .map_err(|e| GapError::Simulated(e.to_string()))
-}
-
-/// The gap of `model` against the identified measurement (`f64::INFINITY` when the
-/// simulated response cannot be identified: a model that far off is simply bad).
-pub fn model_gap(measured: &Run, identified: &Identification, model: &RigModel) -> f64 {
-    simulate_given(measured, Some(identified), model)
-        .map_or(f64::INFINITY, |s| gap(identified, &s).total)
+    .map_err(|e| GapError::Simulated(e.to_string()))?;
+    Ok(Simulated { run, identified })
 }
 
 #[cfg(test)]
