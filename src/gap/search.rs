@@ -674,6 +674,32 @@ pub fn diagnose(
                 refit(reference, &a.model, &effects, opt, base_holdout)
             })
             .collect();
+        // Each pair without one of its effects: the pair's simplex also moved the model's
+        // own parameters further, and that gain belongs to the single effect, not to the
+        // second one (a hardening contact once came out as cubic_stiffness+quantization).
+        let reduced: Vec<Candidate> = fitted
+            .par_iter()
+            .flat_map(|p| {
+                (0..2).into_par_iter().map(move |drop| {
+                    let (kind, _) = p.effects[drop];
+                    let mut model = p.model.clone();
+                    model.effects.set(kind, None);
+                    let score = reference.score(&model);
+                    let keep = p.effects[1 - drop].0;
+                    Candidate::from_fit(Fitted { model, score }, &[keep], base_holdout, true)
+                })
+            })
+            .collect();
+        for r in reduced {
+            if let Some(c) = candidates
+                .iter_mut()
+                .find(|c| c.effects.len() == 1 && c.effects[0].0 == r.effects[0].0)
+            {
+                if r.score.fit < c.score.fit {
+                    *c = r;
+                }
+            }
+        }
         candidates.extend(fitted);
         candidates.sort_by(|a, b| a.score.holdout.total_cmp(&b.score.holdout));
     }

@@ -272,9 +272,18 @@ impl fmt::Display for Summary {
             f,
             "confusion matrix (rows: effect in the data; columns: verdict)"
         )?;
+        // A pair's short name (`cubic+quant`) is wider than one effect's: every column is
+        // as wide as the widest name, plus a space.
+        let w = cols
+            .iter()
+            .map(|c| short(c).len())
+            .max()
+            .unwrap_or(5)
+            .max(6)
+            + 1;
         write!(f, "{:<22}", "")?;
         for c in &cols {
-            write!(f, "{:>7}", short(c))?;
+            write!(f, "{:>w$}", short(c))?;
         }
         writeln!(f)?;
         for r in rows {
@@ -282,9 +291,9 @@ impl fmt::Display for Summary {
             for c in &cols {
                 let n = self.confusion[r].get(c).copied().unwrap_or(0);
                 if n == 0 {
-                    write!(f, "{:>7}", ".")?;
+                    write!(f, "{:>w$}", ".")?;
                 } else {
-                    write!(f, "{n:>7}")?;
+                    write!(f, "{n:>w$}")?;
                 }
             }
             writeln!(f)?;
