@@ -111,20 +111,6 @@ impl Identification {
             stderr: 2.0 * e.stderr,
         })
     }
-    /// The skeleton of the samples the identification used that also lie in `mask` (one
-    /// flag per sample), binned like `bins`: the skeleton of one part of the run.
-    /// With `resonance`, only the samples at resonance (|ω/ω0 − 1| below it) count, like
-    /// `resonant_bins`.
-    pub fn skeleton_within(&self, mask: &[bool], bins: usize, resonance: Option<f64>) -> Vec<Bin> {
-        let (r, m) = (&self.response, &self.modal);
-        let samples: Vec<Sample> = (0..self.used.len().min(mask.len()))
-            .filter(|&i| {
-                self.used[i] && mask[i] && resonance.is_none_or(|t| at_resonance(r, m, i, t))
-            })
-            .map(|i| sample_at(r, m, i))
-            .collect();
-        fit::skeleton(&samples, bins, min_bin_count(samples.len(), bins))
-    }
     /// Whether sample `i` is at resonance, |ω/ω0 − 1| below `tol`.
     pub fn at_resonance(&self, i: usize, tol: f64) -> bool {
         at_resonance(&self.response, &self.modal, i, tol)
