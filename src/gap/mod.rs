@@ -6,21 +6,21 @@
 //! after the jump-down of a chirp, which flank of the clearance the link settles on is a
 //! coin-flip that moves z's mean, not its envelope, its backbone or its damping.
 //! - **time**: the response envelope over time, e = how far ln A_meas(t) lies outside the
-//!   range of ln A_sim over t ± 0.25 s (and the other way round), at every valid sample
-//!   (a relative error; 0.1 ≈ 10 %), weighted by the measured amplitude;
-//! - **backbone**: the natural frequency at each amplitude bin of the measured skeleton,
-//!   e = (f0_sim(A) − f0_meas(A)) / rms f0_meas, the simulated skeleton interpolated in
-//!   ln A (relative to the curve's own scale, not to each bin's f0: in free play f0 is
-//!   close to zero and a ratio there would weigh the noise);
-//! - **damping**: the damping force 2h0·Aω at each bin, e = (D_sim(A) − D_meas(A)) / rms D_meas.
+//!   range of ln A_sim over t ± 0.25 s (and the other way round), weighted by the measured
+//!   amplitude (a relative error; 0.1 ≈ 10 %); where both touch both flanks, plus the error
+//!   of the centre of the motion relative to the measured amplitude;
+//! - **backbone**: the natural frequency at each sample where the measurement is at
+//!   resonance (|ω/ω0 − 1| < 0.1), e = (f0_sim − f0_meas) / rms f0_meas, both smoothed over
+//!   ±[`SMOOTH`], the model taken at the same instant or its nearest resonant one;
+//! - **damping**: the damping force 2h0·Aω at the same samples, e = (D_sim − D_meas) /
+//!   rms D_meas.
 //!
-//! The skeletons compared are those of the samples at resonance (|ω/ω0 − 1| < 0.1), and
-//! each sample of the time domain weighs by its amplitude: what a model gets right or wrong
-//! is its resonance; the small free flight inside the clearance after a jump-down is chaotic
-//! in a real rig and in its model alike.
+//! Left out of the time domain, as coin-flips of the rig's noise: the grazing band
+//! ([`GRAZING`]), the settling after a jump-down ([`SETTLE_DECAY_TIMES`]) and the span
+//! between the measured and the simulated jump-up ([`JUMP_UP_SPAN`]).
 //!
-//! Each domain's gap is the RMS of its e (bins weighted by their sample counts); the gap is
-//! the RMS of the domains present, `sqrt((g_time² + g_backbone² + g_damping²) / 3)`.
+//! Each domain's gap is the RMS of its e; the gap is the RMS of the domains present,
+//! `sqrt((g_time² + g_backbone² + g_damping²) / 3)`.
 //!
 //! A gap can be measured on part of a run only ([`Blocks`]): the search fits on alternate
 //! time blocks and scores on the others ([`search`]); [`selfcheck`] measures how well the
@@ -165,33 +165,26 @@ impl Features {
         let opt = IdentifyOptions::default();
         let resonant = |i: usize| id.used[i] && id.at_resonance(i, opt.resonance);
         let n = id.used.len().min(track.len());
-        let raw_f0: Vec<f64> = (0..n)
+        let (raw_f0, raw_force): (Vec<f64>, Vec<f64>) = (0..n)
             .map(|i| {
-                if resonant(i) {
-                    id.modal.stiffness[i].max(0.0).sqrt() / (2.0 * std::f64::consts::PI)
-                } else {
-                    f64::NAN
+                if !resonant(i) {
+                    return (f64::NAN, f64::NAN);
                 }
+                let w = 2.0 * std::f64::consts::PI * track.frequency[i];
+                (
+                    id.modal.stiffness[i].max(0.0).sqrt() / (2.0 * std::f64::consts::PI),
+                    2.0 * id.modal.damping[i] * track.amplitude[i] * w,
+                )
             })
-            .collect();
-        let raw_force: Vec<f64> = (0..n)
-            .map(|i| {
-                if resonant(i) {
-                    let w = 2.0 * std::f64::consts::PI * track.frequency[i];
-                    2.0 * id.modal.damping[i] * track.amplitude[i] * w
-                } else {
-                    f64::NAN
-                }
-            })
-            .collect();
+            .unzip();
         let half = (SMOOTH * track.sample_rate).round() as usize;
         Features {
             centre: relative_motion(run).map(|z| centre(&z, track)),
             ln,
             lo,
             hi,
-            f0: running_mean(&raw_f0, half),
-            force: running_mean(&raw_force, half),
+            f0: mean_around(&raw_f0, |i| raw_f0[i].is_finite().then_some(half)),
+            force: mean_around(&raw_force, |i| raw_force[i].is_finite().then_some(half)),
         }
     }
 }
@@ -210,21 +203,10 @@ fn relative_motion(run: &Run) -> Option<Vec<f64>> {
 /// The mean of `z` over one period of `track`'s frequency around each sample (NaN where
 /// the track is not valid): the centre the motion oscillates about.
 fn centre(z: &[f64], track: &crate::track::Track) -> Vec<f64> {
-    let mut sum = vec![0.0; z.len() + 1];
-    for (i, v) in z.iter().enumerate() {
-        sum[i + 1] = sum[i] + v;
-    }
-    (0..z.len().min(track.len()))
-        .map(|i| {
-            let f = track.frequency[i];
-            if !track.valid[i] || f.is_nan() || f <= 0.0 {
-                return f64::NAN;
-            }
-            let half = (0.5 * track.sample_rate / f).round() as usize;
-            let (a, b) = (i.saturating_sub(half), (i + half + 1).min(z.len()));
-            (sum[b] - sum[a]) / (b - a) as f64
-        })
-        .collect()
+    mean_around(z, |i| {
+        let f = *track.frequency.get(i)?;
+        (track.valid[i] && f > 0.0).then(|| (0.5 * track.sample_rate / f).round() as usize)
+    })
 }
 
 /// For each index, the index of the nearest finite value of `x` (the earlier one on a tie),
@@ -252,9 +234,9 @@ fn nearest_finite(x: &[f64]) -> Vec<Option<usize>> {
     out
 }
 
-/// The mean of the finite values of `x` over `[i − half, i + half]` at every finite `x[i]`
-/// (NaN elsewhere).
-fn running_mean(x: &[f64], half: usize) -> Vec<f64> {
+/// At each sample where `half` gives a half-width, the mean of the finite values of `x`
+/// over `[i − half, i + half]` (NaN elsewhere, and where the window holds none).
+fn mean_around(x: &[f64], half: impl Fn(usize) -> Option<usize>) -> Vec<f64> {
     let mut sum = vec![0.0; x.len() + 1];
     let mut count = vec![0usize; x.len() + 1];
     for (i, &v) in x.iter().enumerate() {
@@ -264,28 +246,64 @@ fn running_mean(x: &[f64], half: usize) -> Vec<f64> {
     }
     (0..x.len())
         .map(|i| {
-            if !x[i].is_finite() {
+            let Some(h) = half(i) else {
                 return f64::NAN;
+            };
+            let (a, b) = (i.saturating_sub(h), (i + h + 1).min(x.len()));
+            match count[b] - count[a] {
+                0 => f64::NAN,
+                k => (sum[b] - sum[a]) / k as f64,
             }
-            let (a, b) = (i.saturating_sub(half), (i + half + 1).min(x.len()));
-            (sum[b] - sum[a]) / (count[b] - count[a]) as f64
         })
         .collect()
 }
 
 /// The measured side of a comparison on one part of a run, prepared once for all the
-/// models compared with it: the part's samples and the measurement's features.
+/// models compared with it: the part's samples, the measurement's features and its jumps.
 pub struct Target {
     mask: Option<Vec<bool>>,
     features: Features,
+    jumps: Option<Jumps>,
+}
+
+/// Where a response jumps between the low and the resonant branch, on the measurement's
+/// scales (its half-gap and decay time).
+struct Jumps {
+    /// The settling windows after each jump-down (sample ranges).
+    downs: Vec<(usize, usize)>,
+    /// The first sample above the grazing band: the jump-up onto the resonant branch.
+    up: Option<usize>,
+}
+
+impl Jumps {
+    /// The jumps of the log envelope `ln` (NaN where not valid) at `fs` Hz, for a
+    /// measurement of half-gap `half_gap` whose settling lasts `settle` seconds.
+    fn of(ln: &[f64], fs: f64, half_gap: f64, settle: f64) -> Jumps {
+        let high = (GRAZING.1 * half_gap).ln();
+        Jumps {
+            downs: settling(ln, fs, half_gap, settle),
+            up: ln.iter().position(|&v| v > high),
+        }
+    }
 }
 
 impl Target {
     /// `measured` (identified from `run`) on the samples flagged in `mask` (the whole run
     /// when `None`).
     pub fn new(measured: &Identification, run: &Run, mask: Option<Vec<bool>>) -> Target {
+        let features = Features::of(measured, run);
+        let jumps = measured.dead_zone.map(|dz| {
+            let fs = measured.response.sample_rate;
+            Jumps::of(
+                &features.ln,
+                fs,
+                dz.half_gap.value,
+                settle_seconds(measured),
+            )
+        });
         Target {
-            features: Features::of(measured, run),
+            features,
+            jumps,
             mask,
         }
     }
@@ -295,38 +313,28 @@ impl Target {
     pub fn gap(&self, measured: &Identification, sim: &Features) -> Gap {
         let mask = self.mask.as_deref();
         let ours = &self.features;
-        // The settling after a jump-down: the free flight that follows bounces between the
-        // flanks for several decay times, and which flank it ends on is the coin-flip again.
-        // It is left out where both have jumped within a second of each other (from the
-        // first jump to the later end); a model that has not jumped where the measurement
-        // has is still scored there.
         let fs = measured.response.sample_rate;
-        let settling = match measured.dead_zone {
-            Some(dz) => {
-                let (settle, d) = (settle_seconds(measured), dz.half_gap.value);
-                paired_settling(
-                    &settling(&ours.ln, fs, d, settle),
-                    &settling(&sim.ln, fs, d, settle),
-                    fs.round() as usize,
-                )
+        let (mut settling, mut jump_up) = (Vec::new(), None);
+        if let (Some(mj), Some(dz)) = (&self.jumps, measured.dead_zone) {
+            let settle = settle_seconds(measured);
+            let sj = Jumps::of(&sim.ln, fs, dz.half_gap.value, settle);
+            // The settling after a jump-down: the free flight that follows bounces between
+            // the flanks for several decay times, and which flank it ends on is the
+            // coin-flip again. It is left out where both have jumped within a second of
+            // each other (from the first jump to the later end); a model that has not
+            // jumped where the measurement has is still scored there.
+            settling = paired_settling(&mj.downs, &sj.downs, fs.round() as usize);
+            // Between the two jump-ups onto the resonant branch, and while the later one
+            // joins the branch: where the branches coexist, the instant of the jump-up is as
+            // much a coin-flip as the flank after a jump-down (the noise of the rig decides
+            // it), while the jump-down's instant, which the damping sets, stays scored.
+            if let (Some(a), Some(b)) = (mj.up, sj.up) {
+                if a.abs_diff(b) as f64 <= JUMP_UP_SPAN * fs {
+                    let join = (JOIN_DECAY_TIMES / SETTLE_DECAY_TIMES * settle * fs).round();
+                    jump_up = Some(a.min(b)..a.max(b) + join as usize);
+                }
             }
-            None => Vec::new(),
-        };
-        // Between the two jump-ups onto the resonant branch, and while the later one joins
-        // the branch: where the branches coexist, the instant of the jump-up is as much a
-        // coin-flip as the flank after a jump-down (the noise of the rig decides it), while
-        // the jump-down's instant, which the damping sets, stays scored.
-        let jump_up = measured.dead_zone.and_then(|dz| {
-            let high = (GRAZING.1 * dz.half_gap.value).ln();
-            let first = |ln: &[f64]| ln.iter().position(|&v| v > high);
-            let (a, b) = (first(&ours.ln)?, first(&sim.ln)?);
-            if a.abs_diff(b) as f64 > JUMP_UP_SPAN * fs {
-                return None;
-            }
-            let join = (JOIN_DECAY_TIMES / SETTLE_DECAY_TIMES * settle_seconds(measured) * fs)
-                .round() as usize;
-            Some(a.min(b)..a.max(b) + join)
-        });
+        }
         let keep = |i: usize| {
             mask.is_none_or(|m| m.get(i).copied().unwrap_or(false))
                 && !settling.get(i).copied().unwrap_or(false)
@@ -516,9 +524,9 @@ fn time_errors(
         })
     };
     // Where both touch both flanks, the centre the motion oscillates about, relative to the
-    // measured amplitude: an offset clearance or a preload moves it, and the envelope alone cannot
-    // tell (a shifted dead zone shifts z, not its envelope). Off contact the centre is
-    // wherever the free flight drifted, and is not compared.
+    // measured amplitude: an offset clearance or a preload moves it, and the envelope alone
+    // cannot tell (a shifted dead zone shifts z, not its envelope). Off contact the centre
+    // is wherever the free flight drifted, and is not compared.
     let centre_error = |i: usize| -> f64 {
         let (Some(dz), Some(cm), Some(cs)) = (m.dead_zone, &ea.centre, &eb.centre) else {
             return 0.0;
@@ -703,9 +711,9 @@ pub fn decimation_for(id: &Identification) -> usize {
 /// `run` low-passed (zero-phase, at 40 % of the new Nyquist frequency) and kept one sample
 /// in `factor`; itself when `factor` is 1. The measurement and every simulation compared
 /// with it go through the same filter.
-pub fn decimate(run: &Run, factor: usize) -> Run {
+pub fn decimate(run: Run, factor: usize) -> Run {
     if factor <= 1 {
-        return run.clone();
+        return run;
     }
     let down = |x: &[f64]| -> Vec<f64> {
         crate::filter::lowpass_zero_phase(x, 0.4 / factor as f64)
@@ -713,12 +721,15 @@ pub fn decimate(run: &Run, factor: usize) -> Run {
             .step_by(factor)
             .collect()
     };
-    let mut r = run.clone();
-    r.output = down(&run.output);
-    r.input = run.input.as_deref().map(down);
-    r.meta.sample_rate = run.meta.sample_rate / factor as f64;
-    r.meta.samples = r.output.len();
-    r
+    let output = down(&run.output);
+    let mut meta = run.meta.clone();
+    meta.sample_rate = run.meta.sample_rate / factor as f64;
+    meta.samples = output.len();
+    Run {
+        meta,
+        input: run.input.as_deref().map(down),
+        output,
+    }
 }
 
 /// [`simulate_like`], decimated by `factor` before it is identified (see [`decimate`]),
@@ -745,10 +756,12 @@ pub fn simulate_given(
         ..SimSettings::default()
     };
     let out = simulate(model, &drive, &settings);
-    let mut run = measured.clone();
-    run.input = Some(out.input);
-    run.output = out.output;
-    let run = decimate(&run, factor);
+    let run = Run {
+        meta: measured.meta.clone(),
+        input: Some(out.input),
+        output: out.output,
+    };
+    let run = decimate(run, factor);
     let opt = IdentifyOptions::default();
     let identified = match identified.and_then(|i| i.input.as_ref()) {
         Some(tx) => identify_with_input_track(&run, Method::Wavelet, &opt, tx),
@@ -787,7 +800,7 @@ mod tests {
     }
 
     #[test]
-    fn running_mean_matches_a_naive_mean_of_the_finite_values() {
+    fn mean_around_matches_a_naive_mean_of_the_finite_values() {
         let x: Vec<f64> = (0..300)
             .map(|i| {
                 if i % 7 == 2 {
@@ -798,7 +811,7 @@ mod tests {
             })
             .collect();
         for half in [0, 3, 50, 400] {
-            let y = running_mean(&x, half);
+            let y = mean_around(&x, |i| x[i].is_finite().then_some(half));
             for i in 0..x.len() {
                 if !x[i].is_finite() {
                     assert!(y[i].is_nan());

@@ -123,7 +123,7 @@ impl<'a> Reference<'a> {
         let unusable = |e| GapError::Unusable(format!("the measured run: {e}"));
         let full = identify(run, Method::Wavelet, &opt).map_err(unusable)?;
         let factor = decimation_for(&full);
-        let compared = decimate(run, factor);
+        let compared = decimate(run.clone(), factor);
         let identified = if factor > 1 {
             identify(&compared, Method::Wavelet, &opt).map_err(unusable)?
         } else {
@@ -680,12 +680,12 @@ pub fn diagnose(
         let reduced: Vec<Candidate> = fitted
             .par_iter()
             .flat_map(|p| {
-                (0..2).into_par_iter().map(move |drop| {
-                    let (kind, _) = p.effects[drop];
+                (0..2).into_par_iter().map(move |without| {
+                    let (kind, _) = p.effects[without];
                     let mut model = p.model.clone();
                     model.effects.set(kind, None);
                     let score = reference.score(&model);
-                    let keep = p.effects[1 - drop].0;
+                    let keep = p.effects[1 - without].0;
                     Candidate::from_fit(Fitted { model, score }, &[keep], base_holdout, true)
                 })
             })
