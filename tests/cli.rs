@@ -637,7 +637,7 @@ fn keep_scalogram_writes_the_coarse_transform_on_both_backends() {
 
 #[test]
 fn gap_names_the_missing_friction_and_writes_its_report_model_and_page() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tmpdir();
     let rig = dir.path().join("rig.toml");
     // The demo's nominal rig, without the friction its coulomb_friction run has.
     std::fs::write(
@@ -728,7 +728,7 @@ fn gap_names_the_missing_friction_and_writes_its_report_model_and_page() {
 
 #[test]
 fn gap_self_check_prints_its_confusion_matrix_and_wrong_arguments_say_what_to_do() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tmpdir();
     let o = skelid()
         .args([
             "gap",
