@@ -100,9 +100,9 @@ struct GapArgs {
     #[arg(long, default_value_t = 45, value_name = "N")]
     candidate_evaluations: usize,
     /// Scan points refined by the simplex: every effect is scanned on the baseline and on
-    /// the nominal model, and the best N of those 2 × 7 starts are refined (fewer is
+    /// the nominal model, and the best N of those 2 × 6 starts are refined (fewer is
     /// faster, and may leave an effect the baseline absorbed undetected).
-    #[arg(long, default_value_t = 14, value_name = "N")]
+    #[arg(long, default_value_t = 12, value_name = "N")]
     refine: usize,
     /// Never try pairs of effects.
     #[arg(long)]
@@ -123,8 +123,23 @@ struct GapArgs {
     /// Self-check seed.
     #[arg(long, default_value_t = 1, value_name = "S", requires = "self_check")]
     seed: u64,
+    /// What drives the self-check's rigs: `paper`, the paper's chirp (0 to 12 Hz in 30 s),
+    /// or `two-level`, 3 to 9 Hz at the paper's rate (0.4 Hz/s) at the paper's level and
+    /// then at 1.75 times it, in one 30 s record (one level maps only part of the skeleton:
+    /// a hardening contact hides behind a stiffer contact and a wider clearance).
+    #[arg(long, value_enum, default_value = "paper", requires = "self_check")]
+    sweep: SweepArg,
     #[command(flatten)]
     ingest: IngestArgs,
+}
+
+/// The drive of the self-check's rigs.
+#[derive(Clone, Copy, ValueEnum)]
+enum SweepArg {
+    /// The paper's chirp.
+    Paper,
+    /// 3 to 9 Hz at the paper's rate, at the paper's level then 1.75 times it.
+    TwoLevel,
 }
 
 /// Options for archives laid out differently from the skelid-campaign/1 format.
@@ -1483,8 +1498,15 @@ fn say(bar: &indicatif::ProgressBar, line: String) {
 fn gap_self_check(a: &GapArgs, opt: &skelid::gap::SearchOptions) -> Result<ExitCode> {
     use skelid::gap::selfcheck;
     let cases = selfcheck::cases(a.cases, a.seed);
+    let (sweep, drive) = match a.sweep {
+        SweepArg::Paper => (selfcheck::Sweep::Paper, "its chirp"),
+        SweepArg::TwoLevel => (
+            selfcheck::Sweep::TwoLevel,
+            "a 3-9 Hz sweep at the paper's rate, at its level then 1.75 times it,",
+        ),
+    };
     eprintln!(
-        "self-check: {} cases (seed {}), paper's rig under its chirp with encoder noise, one effect (or none) hidden from a model whose parameters are ~{:.0} % off",
+        "self-check: {} cases (seed {}), paper's rig under {drive} with encoder noise, one effect (or none) hidden from a model whose parameters are ~{:.0} % off",
         cases.len(),
         a.seed,
         100.0 * selfcheck::NOMINAL_ERROR
@@ -1499,7 +1521,7 @@ fn gap_self_check(a: &GapArgs, opt: &skelid::gap::SearchOptions) -> Result<ExitC
     let mut errors = Vec::new();
     let mut lines = Vec::new();
     for c in &cases {
-        match selfcheck::run_case(c, opt) {
+        match selfcheck::run_case(c, opt, sweep) {
             Ok(o) => {
                 let line = format!(
                     "case {:>3}: {:<22} {:>10.4e} → {:<22} {}",
@@ -1529,7 +1551,11 @@ fn gap_self_check(a: &GapArgs, opt: &skelid::gap::SearchOptions) -> Result<ExitC
     let summary = selfcheck::summarize(&outcomes, errors);
     println!("\n{summary}");
     let path = a.out.join("self-check.json");
-    let doc = serde_json::json!({"format": "skelid-gap-self-check/1", "seed": a.seed, "summary": summary, "cases": lines});
+    let sweep_name = match a.sweep {
+        SweepArg::Paper => "paper",
+        SweepArg::TwoLevel => "two-level",
+    };
+    let doc = serde_json::json!({"format": "skelid-gap-self-check/1", "seed": a.seed, "sweep": sweep_name, "summary": summary, "cases": lines});
     skelid::report::write_atomic(&path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
     println!("wrote {}", path.display());
     Ok(ExitCode::SUCCESS)

@@ -124,8 +124,10 @@ impl Blocks {
 /// The gap between `measured` (identified from `measured_run`) and `simulated`, the model
 /// simulated under the same run's input.
 pub fn gap(measured: &Identification, measured_run: &Run, simulated: &Simulated) -> Gap {
-    let features = Features::of(&simulated.identified, &simulated.run);
-    Target::new(measured, measured_run, None).gap(measured, &features)
+    let features = simulated.features();
+    Target::new(measured, measured_run, None)
+        .with_resolution(measured_resolution(measured_run))
+        .gap(measured, &features)
 }
 
 /// What the gap compares of one identification, computed once per identification: its log
@@ -140,6 +142,7 @@ pub struct Features {
     f0: Vec<f64>,
     force: Vec<f64>,
     centre: Option<Vec<f64>>,
+    resolution: f64,
 }
 
 /// Half-width (s) of the running mean the instantaneous natural frequency and damping force
@@ -185,7 +188,15 @@ impl Features {
             hi,
             f0: mean_around(&raw_f0, |i| raw_f0[i].is_finite().then_some(half)),
             force: mean_around(&raw_force, |i| raw_force[i].is_finite().then_some(half)),
+            resolution: 0.0,
         }
+    }
+
+    /// The same features with the measurement chain's resolution set: the RMS quantisation
+    /// error of the response (see [`measured_resolution`] and [`model_resolution`]).
+    pub fn with_resolution(mut self, resolution: f64) -> Features {
+        self.resolution = resolution;
+        self
     }
 }
 
@@ -198,6 +209,78 @@ fn relative_motion(run: &Run) -> Option<Vec<f64>> {
         && run.meta.input_quantity.unwrap_or_default() == Quantity::Displacement;
     (run.meta.kind == RunKind::BaseMotion && displacement && x.len() == run.output.len())
         .then(|| run.output.iter().zip(x).map(|(y, x)| y - x).collect())
+}
+
+/// The step of the lattice a sampled channel lies on, when it lies on one: the smallest
+/// change between consecutive samples, accepted when at least [`LATTICE_SHARE`] of the
+/// samples sit within 0.1 % of a step from a whole number of steps above the first (an
+/// encoder's or an ADC's least count). A continuous signal, noisy or not, puts about 0.2 %
+/// of its samples there by chance.
+pub fn lattice_step(x: &[f64]) -> Option<f64> {
+    let step = x
+        .windows(2)
+        .map(|w| (w[1] - w[0]).abs())
+        .filter(|d| *d > 0.0 && d.is_finite())
+        .fold(f64::INFINITY, f64::min);
+    let (lo, hi) = x
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+            (l.min(v), h.max(v))
+        });
+    // A handful of levels is a lattice of anything: ask for a few of them at least.
+    if !step.is_finite() || x.len() < 100 || (hi - lo) < 4.0 * step {
+        return None;
+    }
+    let on = x
+        .iter()
+        .filter(|&&v| {
+            let u = (v - x[0]) / step;
+            (u - u.round()).abs() < 1e-3
+        })
+        .count();
+    (on as f64 >= LATTICE_SHARE * x.len() as f64).then_some(step)
+}
+
+/// Share of the samples that must lie on a lattice for [`lattice_step`] to accept it.
+pub const LATTICE_SHARE: f64 = 0.99;
+
+/// The channels the response track is made of: the output, and for a base-motion run the
+/// input too (the joint's relative motion is their difference).
+fn response_channels(run: &Run) -> Vec<&[f64]> {
+    let mut ch = vec![run.output.as_slice()];
+    if run.meta.kind == crate::ingest::RunKind::BaseMotion {
+        ch.extend(run.input.as_deref());
+    }
+    ch
+}
+
+/// The RMS quantisation error of a measured run's response, from the lattices its channels
+/// lie on: `sqrt(Σ q²/12)` over the response's channels (0 where none is quantised). Read
+/// from the samples as recorded: a filtered or decimated run has lost its lattice.
+pub fn measured_resolution(run: &Run) -> f64 {
+    response_channels(run)
+        .into_iter()
+        .filter_map(lattice_step)
+        .map(|q| q * q / 12.0)
+        .sum::<f64>()
+        .sqrt()
+}
+
+/// The RMS quantisation error a model's measurement chain puts on `run`'s response: its
+/// quantisation step q on every channel the simulator quantises (the output, and the
+/// input of a base-motion run), `q·sqrt(channels/12)`.
+pub fn model_resolution(model: &RigModel, run: &Run) -> f64 {
+    let q = model
+        .effects
+        .get(crate::model::EffectKind::Quantization)
+        .unwrap_or(0.0);
+    q * resolution_per_step(run)
+}
+
+/// The RMS quantisation error of `run`'s response per unit of quantisation step,
+/// `sqrt(channels/12)`.
+pub fn resolution_per_step(run: &Run) -> f64 {
+    (response_channels(run).len() as f64 / 12.0).sqrt()
 }
 
 /// The mean of `z` over one period of `track`'s frequency around each sample (NaN where
@@ -271,18 +354,18 @@ pub struct Target {
 struct Jumps {
     /// The settling windows after each jump-down (sample ranges).
     downs: Vec<(usize, usize)>,
-    /// The first sample above the grazing band: the jump-up onto the resonant branch.
-    up: Option<usize>,
+    /// The jump-ups onto the resonant branch (a record may sweep more than once), each as
+    /// the climb's first sample and the first sample above the grazing band.
+    ups: Vec<(usize, usize)>,
 }
 
 impl Jumps {
     /// The jumps of the log envelope `ln` (NaN where not valid) at `fs` Hz, for a
     /// measurement of half-gap `half_gap` whose settling lasts `settle` seconds.
     fn of(ln: &[f64], fs: f64, half_gap: f64, settle: f64) -> Jumps {
-        let high = (GRAZING.1 * half_gap).ln();
         Jumps {
             downs: settling(ln, fs, half_gap, settle),
-            up: ln.iter().position(|&v| v > high),
+            ups: jump_ups(ln, half_gap),
         }
     }
 }
@@ -308,13 +391,20 @@ impl Target {
         }
     }
 
+    /// The same target with the measurement's resolution set (its RMS quantisation error,
+    /// [`measured_resolution`] of the run as recorded).
+    pub fn with_resolution(mut self, resolution: f64) -> Target {
+        self.features.resolution = resolution;
+        self
+    }
+
     /// The gap of a simulation (its `features`) against `measured`, the identification this
     /// target was prepared from, on the target's samples.
     pub fn gap(&self, measured: &Identification, sim: &Features) -> Gap {
         let mask = self.mask.as_deref();
         let ours = &self.features;
         let fs = measured.response.sample_rate;
-        let (mut settling, mut jump_up) = (Vec::new(), None);
+        let (mut settling, mut jump_up) = (Vec::new(), Vec::new());
         if let (Some(mj), Some(dz)) = (&self.jumps, measured.dead_zone) {
             let settle = settle_seconds(measured);
             let sj = Jumps::of(&sim.ln, fs, dz.half_gap.value, settle);
@@ -328,17 +418,23 @@ impl Target {
             // joins the branch: where the branches coexist, the instant of the jump-up is as
             // much a coin-flip as the flank after a jump-down (the noise of the rig decides
             // it), while the jump-down's instant, which the damping sets, stays scored.
-            if let (Some(a), Some(b)) = (mj.up, sj.up) {
-                if a.abs_diff(b) as f64 <= JUMP_UP_SPAN * fs {
-                    let join = (JOIN_DECAY_TIMES / SETTLE_DECAY_TIMES * settle * fs).round();
-                    jump_up = Some(a.min(b)..a.max(b) + join as usize);
+            let join = (JOIN_DECAY_TIMES / SETTLE_DECAY_TIMES * settle * fs).round() as usize;
+            for &(climb, a) in &mj.ups {
+                let partner = sj.ups.iter().min_by_key(|b| a.abs_diff(b.1));
+                if let Some(&(climb_b, b)) =
+                    partner.filter(|b| a.abs_diff(b.1) as f64 <= JUMP_UP_SPAN * fs)
+                {
+                    // From a tolerance before the earlier climb: a sample there is matched
+                    // against the other's envelope over ±TIME_TOLERANCE, its climb included.
+                    let lead = (TIME_TOLERANCE * fs).round() as usize;
+                    jump_up.push(climb.min(climb_b).saturating_sub(lead)..a.max(b) + join);
                 }
             }
         }
         let keep = |i: usize| {
             mask.is_none_or(|m| m.get(i).copied().unwrap_or(false))
                 && !settling.get(i).copied().unwrap_or(false)
-                && !jump_up.as_ref().is_some_and(|r| r.contains(&i))
+                && !jump_up.iter().any(|r| r.contains(&i))
         };
         let domains = [
             time_errors(measured, ours, sim, &keep),
@@ -451,6 +547,28 @@ fn settle_seconds(m: &Identification) -> f64 {
         .map_or(4.0, |c| SETTLE_DECAY_TIMES * 2.0 / c)
 }
 
+/// The jump-ups of a log envelope `ln` (NaN where not valid) onto the resonant branch of a
+/// rig of half-gap `half_gap`: the first sample above the grazing band (1.05 `half_gap`),
+/// and the first above it after each fall below it (0.7 `half_gap`), each with the start of
+/// its climb, the sample after the last one below the band (the envelope of a climb is
+/// often not valid: the ridge jumps with it).
+fn jump_ups(ln: &[f64], half_gap: f64) -> Vec<(usize, usize)> {
+    let (high, low) = ((GRAZING.1 * half_gap).ln(), (GRAZING.0 * half_gap).ln());
+    let mut ups = Vec::new();
+    let mut below = true;
+    let mut last_low = 0;
+    for (i, &v) in ln.iter().enumerate() {
+        if below && v > high {
+            ups.push((last_low.min(i), i));
+            below = false;
+        } else if v < low {
+            below = true;
+            last_low = i + 1;
+        }
+    }
+    ups
+}
+
 /// Flags the samples of a log envelope `ln` (NaN where not valid) that follow a jump-down
 /// by less than `settle` seconds: a fall from above the grazing band (1.05 `half_gap`) to
 /// below it (0.7 `half_gap`) within a second.
@@ -540,6 +658,17 @@ fn time_errors(
             0.0
         }
     };
+    // The measurement chain's resolution: the quantisation error one of the two has and
+    // the other lacks, relative to the measured amplitude. It is the noise floor a coarse
+    // encoder leaves at small amplitude, and weighs most there.
+    let resolution_error = |i: usize| -> f64 {
+        let d = eb.resolution - ea.resolution;
+        if d == 0.0 {
+            0.0
+        } else {
+            (d / a.amplitude[i]).powi(2)
+        }
+    };
     let mut terms = Vec::new();
     let mut regions = Vec::new();
     for (w, start) in (0..n).step_by(window).enumerate() {
@@ -561,7 +690,7 @@ fn time_errors(
             };
             terms.push((
                 a.amplitude[i] / peak,
-                0.5 * (e1 * e1 + e2 * e2) + centre_error(i).powi(2),
+                0.5 * (e1 * e1 + e2 * e2) + centre_error(i).powi(2) + resolution_error(i),
                 w,
             ));
             alo = alo.min(a.amplitude[i]);
@@ -679,6 +808,16 @@ pub struct Simulated {
     pub run: Run,
     /// Its identification.
     pub identified: Identification,
+    /// The RMS quantisation error the model's measurement chain puts on the response
+    /// ([`model_resolution`]).
+    pub resolution: f64,
+}
+
+impl Simulated {
+    /// What the gap compares of it.
+    pub fn features(&self) -> Features {
+        Features::of(&self.identified, &self.run).with_resolution(self.resolution)
+    }
 }
 
 /// The model simulated under `measured`'s own input, identified like the measurement.
@@ -755,7 +894,17 @@ pub fn simulate_given(
         duration: input.len() as f64 / fs,
         ..SimSettings::default()
     };
-    let out = simulate(model, &drive, &settings);
+    // The encoder's quantisation enters the gap as the resolution it gives the response,
+    // not by quantising this noise-free simulation: a real encoder quantises a noisy signal
+    // whose noise dithers the steps away from the envelope, while a noise-free response
+    // quantised turns into a staircase whose envelope and frequency jitter sample to sample
+    // (the true model of a quantised rig then fitted worse than the same model without it).
+    let resolution = model_resolution(model, measured);
+    let mut unquantised = model.clone();
+    unquantised
+        .effects
+        .set(crate::model::EffectKind::Quantization, None);
+    let out = simulate(&unquantised, &drive, &settings);
     let run = Run {
         meta: measured.meta.clone(),
         input: Some(out.input),
@@ -768,7 +917,11 @@ pub fn simulate_given(
         None => identify(&run, Method::Wavelet, &opt),
     }
     .map_err(|e| GapError::Simulated(e.to_string()))?;
-    Ok(Simulated { run, identified })
+    Ok(Simulated {
+        run,
+        identified,
+        resolution,
+    })
 }
 
 #[cfg(test)]
@@ -828,6 +981,87 @@ mod tests {
         }
     }
 
+    /// A noisy sine sampled at 1 kHz (a deterministic pseudo-random noise of `noise` std).
+    fn noisy_sine(n: usize, noise: f64) -> Vec<f64> {
+        let mut state = 12345u64;
+        (0..n)
+            .map(|i| {
+                // Two uniform draws make a triangular noise: enough to be continuous.
+                let mut u = || {
+                    state = state
+                        .wrapping_mul(6364136223846793005)
+                        .wrapping_add(1442695040888963407);
+                    (state >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+                };
+                let e = (u() + u()) * noise * 6f64.sqrt();
+                0.02 * (2.0 * std::f64::consts::PI * 3.0 * i as f64 / 1000.0).sin() + e
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_lattice_of_a_quantised_channel_is_found_and_a_continuous_one_has_none() {
+        let x = noisy_sine(5000, 1e-4);
+        assert_eq!(lattice_step(&x), None);
+        for q in [1e-4, 3.7e-4, 2e-3] {
+            let on: Vec<f64> = x.iter().map(|v| (v / q).round() * q).collect();
+            let step = lattice_step(&on).unwrap();
+            assert!((step / q - 1.0).abs() < 1e-9, "{q}: {step}");
+            // A lattice need not pass through zero (an ADC's offset).
+            let shifted: Vec<f64> = on.iter().map(|v| v + 0.3 * q).collect();
+            let step = lattice_step(&shifted).unwrap();
+            assert!((step / q - 1.0).abs() < 1e-9, "{q}: {step}");
+            // Stored as f32, the lattice survives.
+            let single: Vec<f64> = on.iter().map(|&v| v as f32 as f64).collect();
+            assert!(lattice_step(&single).is_some(), "{q}");
+        }
+        // A constant or nearly constant channel says nothing.
+        assert_eq!(lattice_step(&[0.5; 1000]), None);
+        let two: Vec<f64> = (0..1000).map(|i| (i % 2) as f64 * 1e-3).collect();
+        assert_eq!(lattice_step(&two), None);
+    }
+
+    #[test]
+    fn a_base_motion_run_counts_both_channels_and_a_model_matches_it() {
+        use crate::ingest::{Quantity, RunKind, RunMeta};
+        let q = 2e-4;
+        let y: Vec<f64> = noisy_sine(3000, 1e-4)
+            .iter()
+            .map(|v| (v / q).round() * q)
+            .collect();
+        let x: Vec<f64> = y.iter().map(|v| 0.5 * v).collect();
+        let x: Vec<f64> = x.iter().map(|v| (v / q).round() * q).collect();
+        let meta = RunMeta {
+            path: "/q".into(),
+            samples: y.len(),
+            sample_rate: 1000.0,
+            duration: 3.0,
+            kind: RunKind::BaseMotion,
+            input_quantity: Some(Quantity::Displacement),
+            output_quantity: Quantity::Displacement,
+            inertia: None,
+            gravity_stiffness: 0.0,
+            units: None,
+            excitation: None,
+            attributes: Default::default(),
+        };
+        let run = Run {
+            meta,
+            input: Some(x),
+            output: y,
+        };
+        let r = measured_resolution(&run);
+        assert!((r - q * (2.0f64 / 12.0).sqrt()).abs() < 1e-12, "{r}");
+        let mut model = RigModel::paper();
+        assert_eq!(model_resolution(&model, &run), 0.0);
+        model
+            .effects
+            .set(crate::model::EffectKind::Quantization, Some(q));
+        assert!((model_resolution(&model, &run) - r).abs() < 1e-12);
+        // Filtered, the lattice is gone: read the resolution before decimating.
+        assert_eq!(measured_resolution(&decimate(run, 4)), 0.0);
+    }
+
     #[test]
     fn settling_follows_each_jump_down_and_pairs_within_a_second() {
         let fs = 100.0;
@@ -844,6 +1078,15 @@ mod tests {
             .collect();
         let w = settling(&ln, fs, d, 2.0);
         assert_eq!(w, vec![(100, 300), (600, 800)]);
+        // Both climbs onto the high branch are jump-ups.
+        assert_eq!(jump_ups(&ln, d), vec![(0, 0), (500, 500)]);
+        // A climb through invalid samples starts after the last sample below the band.
+        let mut climb = ln.clone();
+        climb[498] = f64::NAN;
+        climb[499] = (0.9 * d).ln();
+        climb[500] = f64::NAN;
+        climb[501] = (2.0 * d).ln();
+        assert_eq!(jump_ups(&climb[..600], d), vec![(0, 0), (498, 501)]);
         // A partner 0.5 s later widens the window; one 3 s later pairs with nothing.
         let flags = paired_settling(&w, &[(150, 350), (900, 1000)], 100);
         assert!(flags[100] && flags[349] && !flags[350]);

@@ -18,7 +18,8 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::{
-    decimate, decimation_for, gap, simulate_given, Blocks, Features, Gap, GapError, Part, Target,
+    decimate, decimation_for, measured_resolution, resolution_per_step, simulate_given, Blocks,
+    Gap, GapError, Part, Target,
 };
 use crate::identify::{identify, Identification, IdentifyOptions};
 use crate::ingest::Run;
@@ -65,7 +66,7 @@ impl Default for SearchOptions {
         SearchOptions {
             blocks: Blocks { seconds: 1.0 },
             baseline_evaluations: 150,
-            refine: 14,
+            refine: 12,
             candidate_evaluations: 45,
             pairs: true,
             fit_inertia: false,
@@ -103,6 +104,9 @@ pub struct Reference<'a> {
     pub factor: usize,
     /// Its identification (of `compared`).
     pub identified: Identification,
+    /// The RMS quantisation error of its response, read from the samples as recorded
+    /// ([`super::measured_resolution`]; 0 when no channel lies on a lattice).
+    pub resolution: f64,
     fit: Target,
     holdout: Target,
     evaluations: AtomicUsize,
@@ -130,14 +134,16 @@ impl<'a> Reference<'a> {
             full
         };
         let (n, fs) = (compared.output.len(), compared.meta.sample_rate);
+        let resolution = measured_resolution(run);
+        let target = |part| {
+            Target::new(&identified, &compared, Some(blocks.mask(n, fs, part)))
+                .with_resolution(resolution)
+        };
         Ok(Reference {
             run,
-            fit: Target::new(&identified, &compared, Some(blocks.mask(n, fs, Part::Fit))),
-            holdout: Target::new(
-                &identified,
-                &compared,
-                Some(blocks.mask(n, fs, Part::Holdout)),
-            ),
+            fit: target(Part::Fit),
+            holdout: target(Part::Holdout),
+            resolution,
             compared,
             factor,
             identified,
@@ -151,7 +157,7 @@ impl<'a> Reference<'a> {
         self.evaluations.fetch_add(1, Ordering::Relaxed);
         match simulate_given(self.run, Some(&self.identified), model, self.factor) {
             Ok(s) => {
-                let features = Features::of(&s.identified, &s.run);
+                let features = s.features();
                 let m = &self.identified;
                 let h = self.holdout.gap(m, &features);
                 Score {
@@ -168,7 +174,9 @@ impl<'a> Reference<'a> {
     /// the report's regions and plots).
     pub fn whole(&self, model: &RigModel) -> Result<(Gap, Identification), GapError> {
         let s = simulate_given(self.run, Some(&self.identified), model, self.factor)?;
-        Ok((gap(&self.identified, &self.compared, &s), s.identified))
+        let target =
+            Target::new(&self.identified, &self.compared, None).with_resolution(self.resolution);
+        Ok((target.gap(&self.identified, &s.features()), s.identified))
     }
 
     /// Simulations run so far.
@@ -350,11 +358,67 @@ pub fn effect_start(kind: EffectKind, model: &RigModel, identified: &Identificat
             .unwrap_or(0.01 * model.stiffness * half),
         EffectKind::GravityPreload => 0.1 * model.stiffness * half,
         EffectKind::AsymmetricClearance => 0.1 * half,
-        EffectKind::CubicStiffness => 0.1 * model.stiffness / (half * half),
+        EffectKind::CubicStiffness => cubic_from_backbone(model, identified)
+            .map_or(0.1 * model.stiffness / (half * half), |(_, k3)| k3),
         EffectKind::ContactDamping => model.damping.max(1e-6),
         EffectKind::SensorDelay => 0.002,
         EffectKind::Quantization => 0.02 * half,
     }
+}
+
+/// The contact stiffness and hardening the measured backbone asks for behind `model`'s
+/// clearance: the least squares of J·(ω0² + C) = k·r(A) + k3·c3(A) over the samples at
+/// resonance, with r the dead zone's exact-orbit stiffness ratio at `model`'s half-gap and
+/// c3 the first harmonic of a cubic penetration spring (its describing function). `None`
+/// when the backbone does not rise faster than the dead zone alone explains.
+fn cubic_from_backbone(model: &RigModel, id: &Identification) -> Option<(f64, f64)> {
+    let delta = 0.5 * model.clearance;
+    if delta <= 0.0 {
+        return None;
+    }
+    let opt = IdentifyOptions::default();
+    let n = id.used.len().min(id.response.len());
+    let (mut s11, mut s13, mut s33, mut s1y, mut s3y) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for i in (0..n).filter(|&i| id.used[i] && id.at_resonance(i, opt.resonance)) {
+        let a = id.response.amplitude[i];
+        let r = crate::fit::dead_zone_orbit_ratio(delta, a);
+        let c = cubic_describing(delta, a);
+        if r <= 0.0 {
+            continue;
+        }
+        let y = model.inertia * (id.modal.stiffness[i] + model.gravity_stiffness);
+        s11 += r * r;
+        s13 += r * c;
+        s33 += c * c;
+        s1y += r * y;
+        s3y += c * y;
+    }
+    let det = s11 * s33 - s13 * s13;
+    if det <= 1e-12 * s11 * s33 || !det.is_finite() {
+        return None;
+    }
+    let k = (s33 * s1y - s13 * s3y) / det;
+    let k3 = (s11 * s3y - s13 * s1y) / det;
+    (k3.is_finite() && k3 > 0.0 && k > 0.0).then_some((k, k3))
+}
+
+/// First-harmonic stiffness of a unit cubic penetration spring, sgn(x)·(|x| − δ)³ past a
+/// half-gap δ, at amplitude A: (4/(πA)) ∫ (A cos θ − δ)³ cos θ dθ over |θ| < acos(δ/A)/…
+/// (midpoint rule, 64 points).
+fn cubic_describing(delta: f64, a: f64) -> f64 {
+    if a <= delta {
+        return 0.0;
+    }
+    let top = (delta / a).acos();
+    let m = 64;
+    let h = top / m as f64;
+    let sum: f64 = (0..m)
+        .map(|j| {
+            let t = (j as f64 + 0.5) * h;
+            (a * t.cos() - delta).powi(3) * t.cos()
+        })
+        .sum();
+    4.0 / (std::f64::consts::PI * a) * sum * h
 }
 
 /// What each effect leaves in the skeleton domain (DESIGN.md), for the report.
@@ -387,13 +451,19 @@ enum Side {
 
 /// The baseline with `kind` added at `value` (and, for dry friction, the viscous damping
 /// put back where the skeleton's damping fit separated the two: without friction the
-/// baseline has put all the damping into c).
+/// baseline has put all the damping into c; for a hardening contact, the contact stiffness
+/// the backbone asks for beside it: without it the baseline has made the contact stiffer).
 fn with_effect(base: &RigModel, identified: &Identification, kind: EffectKind, v: f64) -> RigModel {
     let mut m = base.clone();
     if let (EffectKind::CoulombFriction, Some((c, _))) = (kind, identified.damping) {
         let c = c.value * base.inertia;
         if c > 0.0 && c < base.damping {
             m.damping = c;
+        }
+    }
+    if kind == EffectKind::CubicStiffness {
+        if let Some((k, _)) = cubic_from_backbone(base, identified) {
+            m.stiffness = k;
         }
     }
     m.effects.set(kind, Some(v));
@@ -563,6 +633,7 @@ pub fn diagnose(
     let grid: Vec<(Side, RigModel, EffectKind, f64)> = opt
         .effects
         .iter()
+        .filter(|&&k| k != EffectKind::Quantization)
         .flat_map(|&k| {
             let mut bases = vec![(Side::Baseline, baseline.model.clone())];
             if nominal_score.fit.is_finite() && nominal != &baseline.model {
@@ -647,6 +718,23 @@ pub fn diagnose(
         .collect();
     for (i, c) in again.into_iter().enumerate() {
         candidates[i] = c;
+    }
+    // Quantisation is a property of the sensor, not of the dynamics: its step is read off
+    // the lattice the samples lie on, and the candidate is the baseline with that step,
+    // scored once. Searched like the others, it only cost simulations: the simulation does
+    // not change with it (see [`super::simulate_given`]). Without a lattice in the data it
+    // is scored at its starting value, to show it does not help.
+    if opt.effects.contains(&EffectKind::Quantization) {
+        let kind = EffectKind::Quantization;
+        let step = if reference.resolution > 0.0 {
+            reference.resolution / resolution_per_step(reference.run)
+        } else {
+            effect_start(kind, &baseline.model, id)
+        };
+        let model = with_effect(&baseline.model, id, kind, step);
+        let score = reference.score(&model);
+        let fitted = Fitted { model, score };
+        candidates.push(Candidate::from_fit(fitted, &[kind], base_holdout, false));
     }
     candidates.sort_by(|a, b| a.score.holdout.total_cmp(&b.score.holdout));
 
@@ -796,6 +884,18 @@ pub fn nelder_mead(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_cubic_describing_function_matches_its_closed_forms() {
+        // Without a gap, x³ at amplitude A has the first-harmonic stiffness 3A²/4.
+        let a = 0.03;
+        let c = cubic_describing(0.0, a);
+        assert!((c / (0.75 * a * a) - 1.0).abs() < 1e-4, "{c}");
+        // Past a gap it grows from 0 at the flank, and stays below the gapless value.
+        assert_eq!(cubic_describing(0.01, 0.009), 0.0);
+        let (lo, hi) = (cubic_describing(0.01, 0.012), cubic_describing(0.01, 0.03));
+        assert!(lo > 0.0 && lo < hi && hi < 0.75 * a * a);
+    }
 
     #[test]
     fn nelder_mead_finds_the_minimum_of_a_rosenbrock_valley() {

@@ -12,7 +12,7 @@ use rand_distr::{Distribution, Normal};
 
 use super::search::{diagnose, Diagnosis, Reference, SearchOptions};
 use super::GapError;
-use crate::demo::{demo_effect_value, paper_chirp, simulate_case, DemoCase};
+use crate::demo::{demo_effect_value, paper_chirp, simulate_case, two_level_chirp, DemoCase};
 use crate::model::{EffectKind, RigModel};
 use crate::simulate::Drive;
 
@@ -101,13 +101,26 @@ impl Outcome {
     }
 }
 
-/// Simulates `case` (the paper's chirp, 30 s at 1 kHz, the demo's encoder noise) and
-/// diagnoses it blind.
-pub fn run_case(case: &Case, opt: &SearchOptions) -> Result<Outcome, GapError> {
+/// What the self-check's rigs are driven by.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Sweep {
+    /// The paper's chirp: 0 to 12 Hz in 30 s, one level.
+    #[default]
+    Paper,
+    /// 3 to 9 Hz at the paper's rate, at two levels in one record ([`two_level_chirp`]).
+    TwoLevel,
+}
+
+/// Simulates `case` under `sweep` (30 s at 1 kHz, the demo's encoder noise) and diagnoses
+/// it blind.
+pub fn run_case(case: &Case, opt: &SearchOptions, sweep: Sweep) -> Result<Outcome, GapError> {
     let run = simulate_case(&DemoCase {
         path: format!("/self_check/case_{:03}", case.index),
         model: case.truth.clone(),
-        drive: Drive::Base(paper_chirp()),
+        drive: Drive::Base(match sweep {
+            Sweep::Paper => paper_chirp(),
+            Sweep::TwoLevel => two_level_chirp(),
+        }),
         seed: case.seed,
         description: "self-check case".into(),
     })
