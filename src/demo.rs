@@ -32,7 +32,7 @@ pub fn paper_chirp() -> Excitation {
 /// backbone keeps rising with amplitude, which one level cannot tell from a stiffer contact
 /// behind a wider clearance. Started at 3 Hz, the first sweep leaves the link on the low
 /// branch (it never touches, like the paper's record after 16.25 s); the second jumps onto
-/// the resonant branch and rides it up to twice the half-gap.
+/// the resonant branch and rides it up to about 2.7 times the half-gap.
 pub fn two_level_chirp() -> Excitation {
     let fs = 1000.0;
     let half = 15.0;

@@ -9,7 +9,8 @@
 //! model's own parameters. The scan gives the simplex a start in the right basin: started
 //! from a guess, the dry friction fit stopped in a local minimum at two thirds of the true
 //! torque, and started from the baseline only, an effect the baseline had absorbed (contact
-//! damping into 60 % more viscous damping) stayed absorbed.
+//! damping into 60 % more viscous damping) stayed absorbed. Quantization is not searched:
+//! its step is read off the lattice the samples lie on, and the candidate is scored once.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicUsize, Ordering};
