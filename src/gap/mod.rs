@@ -8,16 +8,18 @@
 //! - **time**: the response envelope over time, e = how far ln A_meas(t) lies outside the
 //!   range of ln A_sim over t ± 0.25 s (and the other way round), weighted by the measured
 //!   amplitude (a relative error; 0.1 ≈ 10 %); where both touch both flanks, plus the error
-//!   of the centre of the motion relative to the measured amplitude;
+//!   of the centre of the motion relative to the measured amplitude; where the measurement
+//!   chains' resolutions differ, plus the quantisation error one has and the other lacks,
+//!   relative to the measured amplitude (at most 1);
 //! - **backbone**: the natural frequency at each sample where the measurement is at
 //!   resonance (|ω/ω0 − 1| < 0.1), e = (f0_sim − f0_meas) / rms f0_meas, both smoothed over
 //!   ±[`SMOOTH`], the model taken at the same instant or its nearest resonant one;
 //! - **damping**: the damping force 2h0·Aω at the same samples, e = (D_sim − D_meas) /
 //!   rms D_meas.
 //!
-//! Left out of the time domain, as coin-flips of the rig's noise: the grazing band
-//! ([`GRAZING`]), the settling after a jump-down ([`SETTLE_DECAY_TIMES`]) and the span
-//! between the measured and the simulated jump-up ([`JUMP_UP_SPAN`]).
+//! Left out, as coin-flips of the rig's noise: the grazing band ([`GRAZING`], time domain),
+//! and in every domain the settling after a jump-down ([`SETTLE_DECAY_TIMES`]) and the
+//! climb between each measured jump-up and the model's nearest ([`JUMP_UP_SPAN`]).
 //!
 //! Each domain's gap is the RMS of its e; the gap is the RMS of the domains present,
 //! `sqrt((g_time² + g_backbone² + g_damping²) / 3)`.
@@ -660,13 +662,14 @@ fn time_errors(
     };
     // The measurement chain's resolution: the quantisation error one of the two has and
     // the other lacks, relative to the measured amplitude. It is the noise floor a coarse
-    // encoder leaves at small amplitude, and weighs most there.
+    // encoder leaves at small amplitude, and weighs most there; an error as large as the
+    // amplitude counts as a miss (1), like an envelope the other lacks.
     let resolution_error = |i: usize| -> f64 {
         let d = eb.resolution - ea.resolution;
         if d == 0.0 {
             0.0
         } else {
-            (d / a.amplitude[i]).powi(2)
+            (d.abs() / a.amplitude[i]).min(1.0).powi(2)
         }
     };
     let mut terms = Vec::new();
