@@ -1498,17 +1498,15 @@ fn say(bar: &indicatif::ProgressBar, line: String) {
 fn gap_self_check(a: &GapArgs, opt: &skelid::gap::SearchOptions) -> Result<ExitCode> {
     use skelid::gap::selfcheck;
     let cases = selfcheck::cases(a.cases, a.seed);
-    let (sweep, drive) = match a.sweep {
-        SweepArg::Paper => (selfcheck::Sweep::Paper, "its chirp"),
-        SweepArg::TwoLevel => (
-            selfcheck::Sweep::TwoLevel,
-            "a 3-9 Hz sweep at the paper's rate, at its level then 1.75 times it,",
-        ),
+    let sweep = match a.sweep {
+        SweepArg::Paper => selfcheck::Sweep::Paper,
+        SweepArg::TwoLevel => selfcheck::Sweep::TwoLevel,
     };
     eprintln!(
-        "self-check: {} cases (seed {}), paper's rig under {drive} with encoder noise, one effect (or none) hidden from a model whose parameters are ~{:.0} % off",
+        "self-check: {} cases (seed {}), paper's rig under {} with encoder noise, one effect (or none) hidden from a model whose parameters are ~{:.0} % off",
         cases.len(),
         a.seed,
+        sweep.describe(),
         100.0 * selfcheck::NOMINAL_ERROR
     );
     let bar = indicatif::ProgressBar::new(cases.len() as u64).with_style(
@@ -1551,11 +1549,7 @@ fn gap_self_check(a: &GapArgs, opt: &skelid::gap::SearchOptions) -> Result<ExitC
     let summary = selfcheck::summarize(&outcomes, errors);
     println!("\n{summary}");
     let path = a.out.join("self-check.json");
-    let sweep_name = match a.sweep {
-        SweepArg::Paper => "paper",
-        SweepArg::TwoLevel => "two-level",
-    };
-    let doc = serde_json::json!({"format": "skelid-gap-self-check/1", "seed": a.seed, "sweep": sweep_name, "summary": summary, "cases": lines});
+    let doc = serde_json::json!({"format": "skelid-gap-self-check/1", "seed": a.seed, "sweep": sweep.name(), "summary": summary, "cases": lines});
     skelid::report::write_atomic(&path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
     println!("wrote {}", path.display());
     Ok(ExitCode::SUCCESS)

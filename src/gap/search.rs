@@ -110,6 +110,7 @@ pub struct Reference<'a> {
     pub resolution: f64,
     fit: Target,
     holdout: Target,
+    whole: Target,
     evaluations: AtomicUsize,
 }
 
@@ -136,14 +137,12 @@ impl<'a> Reference<'a> {
         };
         let (n, fs) = (compared.output.len(), compared.meta.sample_rate);
         let resolution = measured_resolution(run);
-        let target = |part| {
-            Target::new(&identified, &compared, Some(blocks.mask(n, fs, part)))
-                .with_resolution(resolution)
-        };
+        let target = |mask| Target::new(&identified, &compared, mask).with_resolution(resolution);
         Ok(Reference {
             run,
-            fit: target(Part::Fit),
-            holdout: target(Part::Holdout),
+            fit: target(Some(blocks.mask(n, fs, Part::Fit))),
+            holdout: target(Some(blocks.mask(n, fs, Part::Holdout))),
+            whole: target(None),
             resolution,
             compared,
             factor,
@@ -175,9 +174,8 @@ impl<'a> Reference<'a> {
     /// the report's regions and plots).
     pub fn whole(&self, model: &RigModel) -> Result<(Gap, Identification), GapError> {
         let s = simulate_given(self.run, Some(&self.identified), model, self.factor)?;
-        let target =
-            Target::new(&self.identified, &self.compared, None).with_resolution(self.resolution);
-        Ok((target.gap(&self.identified, &s.features()), s.identified))
+        let gap = self.whole.gap(&self.identified, &s.features());
+        Ok((gap, s.identified))
     }
 
     /// Simulations run so far.
@@ -383,10 +381,10 @@ fn cubic_from_backbone(model: &RigModel, id: &Identification) -> Option<(f64, f6
     for i in (0..n).filter(|&i| id.used[i] && id.at_resonance(i, opt.resonance)) {
         let a = id.response.amplitude[i];
         let r = crate::fit::dead_zone_orbit_ratio(delta, a);
-        let c = cubic_describing(delta, a);
         if r <= 0.0 {
             continue;
         }
+        let c = cubic_describing(delta, a);
         let y = model.inertia * (id.modal.stiffness[i] + model.gravity_stiffness);
         s11 += r * r;
         s13 += r * c;
@@ -450,11 +448,12 @@ enum Side {
     Nominal,
 }
 
-/// The baseline with `kind` added at `value` (and, for dry friction, the viscous damping
-/// put back where the skeleton's damping fit separated the two: without friction the
-/// baseline has put all the damping into c; for a hardening contact, the contact stiffness
-/// the backbone asks for beside it: without it the baseline has made the contact stiffer).
-fn with_effect(base: &RigModel, identified: &Identification, kind: EffectKind, v: f64) -> RigModel {
+/// `base` with its own parameters made ready for `kind` to be added: for dry friction, the
+/// viscous damping put back where the skeleton's damping fit separated the two (without
+/// friction the baseline has put all the damping into c); for a hardening contact, the
+/// contact stiffness the backbone asks for beside it (without it the baseline has made the
+/// contact stiffer). Computed once per model and effect, not per scan point.
+fn ready_for(base: &RigModel, identified: &Identification, kind: EffectKind) -> RigModel {
     let mut m = base.clone();
     if let (EffectKind::CoulombFriction, Some((c, _))) = (kind, identified.damping) {
         let c = c.value * base.inertia;
@@ -467,7 +466,6 @@ fn with_effect(base: &RigModel, identified: &Identification, kind: EffectKind, v
             m.stiffness = k;
         }
     }
-    m.effects.set(kind, Some(v));
     m
 }
 
@@ -647,6 +645,7 @@ pub fn diagnose(
             };
             bases.into_iter().flat_map(move |(side, b)| {
                 let s = effect_start(k, &b, id);
+                let b = ready_for(&b, id, k);
                 signs
                     .iter()
                     .flat_map(move |sign| SCAN.iter().map(move |f| sign * f))
@@ -658,7 +657,8 @@ pub fn diagnose(
         .par_iter()
         .map(|(side, b, k, v)| {
             let (k, v) = (*k, *v);
-            let model = with_effect(b, id, k, v);
+            let mut model = b.clone();
+            model.effects.set(k, Some(v));
             let score = reference.score(&model);
             (*side, k, v, Fitted { model, score })
         })
@@ -732,7 +732,8 @@ pub fn diagnose(
         } else {
             effect_start(kind, &baseline.model, id)
         };
-        let model = with_effect(&baseline.model, id, kind, step);
+        let mut model = baseline.model.clone();
+        model.effects.set(kind, Some(step));
         let score = reference.score(&model);
         let fitted = Fitted { model, score };
         candidates.push(Candidate::from_fit(fitted, &[kind], base_holdout, false));

@@ -14,7 +14,7 @@ use super::search::{diagnose, Diagnosis, Reference, SearchOptions};
 use super::GapError;
 use crate::demo::{demo_effect_value, paper_chirp, simulate_case, two_level_chirp, DemoCase};
 use crate::model::{EffectKind, RigModel};
-use crate::simulate::Drive;
+use crate::simulate::{Drive, Excitation};
 
 /// The parameter of a case's effect is the demo's value times a factor drawn log-uniformly
 /// from [1/RANGE, RANGE].
@@ -111,16 +111,41 @@ pub enum Sweep {
     TwoLevel,
 }
 
+impl Sweep {
+    /// The base motion it drives a rig with.
+    pub fn excitation(self) -> Excitation {
+        match self {
+            Sweep::Paper => paper_chirp(),
+            Sweep::TwoLevel => two_level_chirp(),
+        }
+    }
+
+    /// Its name on the command line and in self-check.json.
+    pub fn name(self) -> &'static str {
+        match self {
+            Sweep::Paper => "paper",
+            Sweep::TwoLevel => "two-level",
+        }
+    }
+
+    /// What it is, in words.
+    pub fn describe(self) -> &'static str {
+        match self {
+            Sweep::Paper => "its chirp",
+            Sweep::TwoLevel => {
+                "a 3-9 Hz sweep at the paper's rate, at its level then 1.75 times it,"
+            }
+        }
+    }
+}
+
 /// Simulates `case` under `sweep` (30 s at 1 kHz, the demo's encoder noise) and diagnoses
 /// it blind.
 pub fn run_case(case: &Case, opt: &SearchOptions, sweep: Sweep) -> Result<Outcome, GapError> {
     let run = simulate_case(&DemoCase {
         path: format!("/self_check/case_{:03}", case.index),
         model: case.truth.clone(),
-        drive: Drive::Base(match sweep {
-            Sweep::Paper => paper_chirp(),
-            Sweep::TwoLevel => two_level_chirp(),
-        }),
+        drive: Drive::Base(sweep.excitation()),
         seed: case.seed,
         description: "self-check case".into(),
     })
