@@ -754,6 +754,7 @@ fn gap_self_check_prints_its_confusion_matrix_and_wrong_arguments_say_what_to_do
         serde_json::from_str(&std::fs::read_to_string(dir.path().join("self-check.json")).unwrap())
             .unwrap();
     assert_eq!(j["summary"]["cases"], 2);
+    assert_eq!(j["sweep"], "paper");
     let cases = j["cases"].as_array().unwrap();
     assert_eq!(cases.len(), 2);
     assert_eq!(cases[0]["effect"], "coulomb_friction");

@@ -235,9 +235,7 @@ fn two_levels_map_the_skeleton_far_enough_to_read_a_hardening_off_its_backbone()
     use skelid::simulate::Drive;
     // The drive: 3 to 9 Hz twice, the second at 1.75 times the first, starting and ending
     // at rest.
-    let Drive::Base(x) = Drive::Base(two_level_chirp()) else {
-        unreachable!()
-    };
+    let x = two_level_chirp();
     let at = |t: f64| x.eval(t).v;
     assert!(at(0.0).abs() < 1e-12 && at(29.999).abs() < 1e-4);
     let peak = |t0: f64, t1: f64| {
@@ -270,7 +268,7 @@ fn two_levels_map_the_skeleton_far_enough_to_read_a_hardening_off_its_backbone()
         let id = identified(&run);
         let r = &id.response;
         let at_resonance: Vec<f64> = (0..id.used.len())
-            .filter(|&i| id.used[i] && id.at_resonance(i, 0.1))
+            .filter(|&i| id.used[i] && id.at_resonance(i, IdentifyOptions::default().resonance))
             .map(|i| r.amplitude[i])
             .collect();
         let lo = at_resonance.iter().copied().fold(f64::INFINITY, f64::min);

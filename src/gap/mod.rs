@@ -664,12 +664,12 @@ fn time_errors(
     // the other lacks, relative to the measured amplitude. It is the noise floor a coarse
     // encoder leaves at small amplitude, and weighs most there; an error as large as the
     // amplitude counts as a miss (1), like an envelope the other lacks.
+    let resolution_gap = (eb.resolution - ea.resolution).abs();
     let resolution_error = |i: usize| -> f64 {
-        let d = eb.resolution - ea.resolution;
-        if d == 0.0 {
+        if resolution_gap == 0.0 {
             0.0
         } else {
-            (d.abs() / a.amplitude[i]).min(1.0).powi(2)
+            (resolution_gap / a.amplitude[i]).min(1.0).powi(2)
         }
     };
     let mut terms = Vec::new();
@@ -984,20 +984,17 @@ mod tests {
         }
     }
 
-    /// A noisy sine sampled at 1 kHz (a deterministic pseudo-random noise of `noise` std).
+    /// A 3 Hz sine of 0.02 amplitude sampled at 1 kHz, plus Gaussian noise of `noise` std
+    /// (seeded: the same every run).
     fn noisy_sine(n: usize, noise: f64) -> Vec<f64> {
-        let mut state = 12345u64;
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, Normal};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(12345);
+        let normal = Normal::new(0.0, noise).expect("a positive deviation");
         (0..n)
             .map(|i| {
-                // Two uniform draws make a triangular noise: enough to be continuous.
-                let mut u = || {
-                    state = state
-                        .wrapping_mul(6364136223846793005)
-                        .wrapping_add(1442695040888963407);
-                    (state >> 11) as f64 / (1u64 << 53) as f64 - 0.5
-                };
-                let e = (u() + u()) * noise * 6f64.sqrt();
-                0.02 * (2.0 * std::f64::consts::PI * 3.0 * i as f64 / 1000.0).sin() + e
+                0.02 * (2.0 * std::f64::consts::PI * 3.0 * i as f64 / 1000.0).sin()
+                    + normal.sample(&mut rng)
             })
             .collect()
     }
@@ -1032,8 +1029,7 @@ mod tests {
             .iter()
             .map(|v| (v / q).round() * q)
             .collect();
-        let x: Vec<f64> = y.iter().map(|v| 0.5 * v).collect();
-        let x: Vec<f64> = x.iter().map(|v| (v / q).round() * q).collect();
+        let x: Vec<f64> = y.iter().map(|v| (0.5 * v / q).round() * q).collect();
         let meta = RunMeta {
             path: "/q".into(),
             samples: y.len(),
