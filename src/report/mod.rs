@@ -1,6 +1,7 @@
 //! Output files for people and other programs: tracks (FORMATS.md §4), identification
 //! results and summaries (FORMATS.md §3).
 
+pub mod encoded;
 pub mod gap;
 pub mod html;
 
@@ -13,6 +14,7 @@ use crate::fit::{Bin, Estimate};
 use crate::h5util::{write_f64_attr, write_str_attr};
 use crate::identify::Identification;
 use crate::track::{Method, Track};
+use encoded::{Elem, EncodedRun, Item, Scalar, Storage};
 
 /// Why an output file could not be written.
 #[derive(Debug, thiserror::Error)]
@@ -277,37 +279,41 @@ impl ResultsWriter {
 
     /// Adds one run (failed runs included, with their error).
     pub fn write_run(&self, run: &RunOutcome) -> Result<(), ReportError> {
-        self.write_run_inner(run).map_err(|e| ReportError {
+        self.write_encoded(&encode_run(run))
+    }
+
+    /// Adds one run encoded by [`encode_run`] (possibly on another thread): groups and
+    /// attributes through the hdf5 crate, compressed chunks straight into the file.
+    pub fn write_encoded(&self, run: &EncodedRun) -> Result<(), ReportError> {
+        self.write_encoded_inner(run).map_err(|e| ReportError {
             file: self.path.display().to_string(),
             detail: format!("run {}: {e}", run.path),
         })
     }
 
-    fn write_run_inner(&self, run: &RunOutcome) -> hdf5::Result<()> {
-        let g = group_path(&self.file, &run.path)?;
-        write_str_attr(&g, "status", run.status())?;
-        if let Some(e) = run.error_text() {
-            write_str_attr(&g, "error", &e)?;
-        }
-        write_str_attr(&g, "backend", run.backend())?;
-        write_str_attr(&g, "source", &run.source)?;
-        if let Some(fs) = run.sample_rate {
-            write_f64_attr(&g, "sample_rate", fs)?;
-            let t: Vec<f64> = (0..run.samples).map(|i| i as f64 / fs).collect();
-            write_signal(&g, "time", &t, true)?;
-        }
-        for (method, result, seconds) in &run.methods {
-            let m = g.create_group(method.as_str())?;
-            write_f64_attr(&m, "seconds", *seconds)?;
-            match result {
-                Err(e) => {
-                    write_str_attr(&m, "status", "failed")?;
-                    write_str_attr(&m, "error", e)?;
+    fn write_encoded_inner(&self, run: &EncodedRun) -> hdf5::Result<()> {
+        let root = group_path(&self.file, &run.path)?;
+        let at = |rel: &str| -> hdf5::Result<hdf5::Group> {
+            if rel.is_empty() {
+                Ok(root.clone())
+            } else {
+                root.group(rel)
+            }
+        };
+        for item in &run.items {
+            match item {
+                Item::Group(rel) => {
+                    let (parent, name) = rel.rsplit_once('/').unwrap_or(("", rel));
+                    at(parent)?.create_group(name)?;
                 }
-                Ok(id) => {
-                    write_str_attr(&m, "status", "ok")?;
-                    write_identification(&m, id, run.inertia)?;
+                Item::Attr { group, name, value } => {
+                    let g = at(group)?;
+                    match value {
+                        Scalar::F64(x) => write_f64_attr(&g, name, *x)?,
+                        Scalar::Str(s) => write_str_attr(&g, name, s)?,
+                    }
                 }
+                Item::Dataset(d) => write_dataset(&at(&d.group)?, d)?,
             }
         }
         self.file.flush()
@@ -342,8 +348,41 @@ fn group_path(file: &hdf5::File, path: &str) -> hdf5::Result<hdf5::Group> {
 /// One column of a skeleton, read off a bin.
 type BinColumn = fn(&Bin) -> f64;
 
+/// A run's results laid out for [`ResultsWriter::write_encoded`]: pure CPU work (the
+/// compression included), so the batch's workers do it in parallel, outside libhdf5's lock.
+pub fn encode_run(run: &RunOutcome) -> EncodedRun {
+    let mut e = EncodedRun::new(&run.path);
+    e.str_attr("", "status", run.status());
+    if let Some(err) = run.error_text() {
+        e.str_attr("", "error", &err);
+    }
+    e.str_attr("", "backend", run.backend());
+    e.str_attr("", "source", &run.source);
+    if let Some(fs) = run.sample_rate {
+        e.f64_attr("", "sample_rate", fs);
+        let t: Vec<f64> = (0..run.samples).map(|i| i as f64 / fs).collect();
+        e.signal("", "time", &t, true);
+    }
+    for (method, result, seconds) in &run.methods {
+        let m = method.as_str();
+        e.group(m);
+        e.f64_attr(m, "seconds", *seconds);
+        match result {
+            Err(err) => {
+                e.str_attr(m, "status", "failed");
+                e.str_attr(m, "error", err);
+            }
+            Ok(id) => {
+                e.str_attr(m, "status", "ok");
+                encode_identification(&mut e, m, id, run.inertia);
+            }
+        }
+    }
+    e
+}
+
 /// One skeleton's columns (FORMATS.md §3 names plus stiffness, spreads and counts).
-fn write_bins(g: &hdf5::Group, bins: &[Bin]) -> hdf5::Result<()> {
+fn encode_bins(e: &mut EncodedRun, g: &str, bins: &[Bin]) {
     let columns: [(&str, BinColumn); 9] = [
         ("amplitude", |b| b.amplitude),
         ("natural_frequency", |b| b.natural_frequency()),
@@ -355,41 +394,33 @@ fn write_bins(g: &hdf5::Group, bins: &[Bin]) -> hdf5::Result<()> {
         ("damping_spread", |b| b.damping_spread),
         ("count", |b| b.count as f64),
     ];
+    e.group(g);
     for (name, f) in columns {
         let v: Vec<f64> = bins.iter().map(f).collect();
-        write_signal(g, name, &v, false)?;
+        e.signal(g, name, &v, false);
     }
-    Ok(())
 }
 
-fn write_identification(
-    m: &hdf5::Group,
-    id: &Identification,
-    inertia: Option<f64>,
-) -> hdf5::Result<()> {
+fn encode_identification(e: &mut EncodedRun, m: &str, id: &Identification, inertia: Option<f64>) {
     if let Some(inp) = &id.input {
-        write_signal(m, "input_amplitude", &inp.amplitude, true)?;
-        write_signal(m, "input_frequency", &inp.frequency, true)?;
+        e.signal(m, "input_amplitude", &inp.amplitude, true);
+        e.signal(m, "input_frequency", &inp.frequency, true);
     }
-    write_signal(m, "response_amplitude", &id.response.amplitude, true)?;
-    write_signal(m, "response_frequency", &id.response.frequency, true)?;
-    write_signal(m, "stiffness", &id.modal.stiffness, true)?;
-    write_signal(m, "damping", &id.modal.damping, true)?;
+    e.signal(m, "response_amplitude", &id.response.amplitude, true);
+    e.signal(m, "response_frequency", &id.response.frequency, true);
+    e.signal(m, "stiffness", &id.modal.stiffness, true);
+    e.signal(m, "damping", &id.modal.damping, true);
     let valid: Vec<u8> = id.used.iter().map(|&b| u8::from(b)).collect();
-    m.new_dataset_builder()
-        .with_data(&valid)
-        .chunk(valid.len().clamp(1, 4096))
-        .deflate(4)
-        .create("valid")?;
-    write_bins(&m.create_group("skeleton")?, &id.bins)?;
+    e.bytes(m, "valid", &valid, 4);
+    encode_bins(e, &format!("{m}/skeleton"), &id.bins);
     // The bins the backbone was fitted on, when not the whole skeleton.
     if id.fitted_at_resonance {
-        write_bins(&m.create_group("skeleton_resonant")?, &id.resonant_bins)?;
+        encode_bins(e, &format!("{m}/skeleton_resonant"), &id.resonant_bins);
     }
     if let Some(dz) = &id.dead_zone {
-        write_str_attr(m, "backbone_model", dz.model.name())?;
+        e.str_attr(m, "backbone_model", dz.model.name());
     }
-    write_str_attr(
+    e.str_attr(
         m,
         "backbone_bins",
         if id.fitted_at_resonance {
@@ -397,11 +428,59 @@ fn write_identification(
         } else {
             "all"
         },
-    )?;
+    );
     for (name, value) in parameters(id, inertia) {
-        write_f64_attr(m, name, value)?;
+        e.f64_attr(m, name, value);
     }
-    write_str_attr(m, "warnings", &id.warnings.join("\n"))?;
+    e.str_attr(m, "warnings", &id.warnings.join("\n"));
+}
+
+/// Creates one encoded dataset in `g`: contiguous values written as usual, or the dataset
+/// created with the same chunking and filters the chunks were encoded for, then each chunk
+/// handed to libhdf5 as it is (`H5Dwrite_chunk`, no filtering under the lock).
+fn write_dataset(g: &hdf5::Group, d: &encoded::Dataset) -> hdf5::Result<()> {
+    let chunks = match &d.storage {
+        Storage::Plain(v) => {
+            g.new_dataset_builder()
+                .with_data(v)
+                .create(d.name.as_str())?;
+            return Ok(());
+        }
+        Storage::Chunked { level, chunks } => {
+            let b = match d.elem {
+                Elem::F64 => g.new_dataset::<f64>(),
+                Elem::U8 => g.new_dataset::<u8>(),
+            }
+            .shape(d.len)
+            .chunk(encoded::chunk_len(d.len));
+            let b = if d.elem == Elem::U8 { b } else { b.shuffle() };
+            let ds = b.deflate(*level).create(d.name.as_str())?;
+            (ds, chunks)
+        }
+    };
+    let (ds, chunks) = chunks;
+    let step = encoded::chunk_len(d.len) as u64;
+    for (i, c) in chunks.iter().enumerate() {
+        let offset = [i as u64 * step];
+        // The hdf5 crate serialises every libhdf5 call behind one lock; a raw call must
+        // take the same lock.
+        let status = hdf5::sync::sync(|| unsafe {
+            hdf5_sys::h5d::H5Dwrite_chunk(
+                ds.id(),
+                hdf5_sys::h5p::H5P_DEFAULT,
+                0,
+                offset.as_ptr(),
+                c.len(),
+                c.as_ptr().cast(),
+            )
+        });
+        if status < 0 {
+            return Err(hdf5::Error::from(format!(
+                "H5Dwrite_chunk failed for {} chunk {i}",
+                d.name
+            )));
+        }
+    }
     Ok(())
 }
 

@@ -1,0 +1,249 @@
+//! A run's results laid out for HDF5 but not yet written: its groups, attributes and
+//! datasets, with every compressed dataset's chunks already shuffled and deflated.
+//!
+//! Why: libhdf5 (as Debian builds it) is not thread-safe, so the hdf5 crate runs every call
+//! under one process-wide lock. Compressing inside libhdf5 put most of a batch's output
+//! cost (a quarter of all CPU time) under that lock, and `--jobs 2` could not beat
+//! `--jobs 1` by much. Encoding here is plain CPU work that the batch's workers do in
+//! parallel; writing an encoded run ([`super::ResultsWriter::write_encoded`]) hands finished
+//! chunks to `H5Dwrite_chunk`, which only copies them into the file. The files are the same
+//! as before for any reader: the same chunking and the same shuffle + deflate pipeline.
+
+use std::io::Write;
+
+/// Chunk length (elements) of a compressed dataset.
+pub const CHUNK: usize = 4096;
+
+/// An attribute's value.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Scalar {
+    /// A float attribute.
+    F64(f64),
+    /// A UTF-8 string attribute.
+    Str(String),
+}
+
+/// How a dataset's bytes are stored.
+#[derive(Debug, Clone)]
+pub enum Storage {
+    /// Contiguous f64 values (small datasets).
+    Plain(Vec<f64>),
+    /// Chunked with shuffle (when the element is wider than a byte) then deflate at `level`;
+    /// each chunk is the filter pipeline's output for [`CHUNK`] elements (the last one
+    /// zero-padded, as libhdf5 pads it with the fill value).
+    Chunked {
+        /// Deflate level the chunks were compressed at (stored in the filter pipeline).
+        level: u8,
+        /// The filtered chunks, in order.
+        chunks: Vec<Vec<u8>>,
+    },
+}
+
+/// Element type of a dataset.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Elem {
+    /// 64-bit float.
+    F64,
+    /// Unsigned byte (masks).
+    U8,
+}
+
+impl Elem {
+    fn size(self) -> usize {
+        match self {
+            Elem::F64 => 8,
+            Elem::U8 => 1,
+        }
+    }
+}
+
+/// One dataset of an encoded run.
+#[derive(Debug, Clone)]
+pub struct Dataset {
+    /// Group it lives in, relative to the run's group ("" for the run's group itself).
+    pub group: String,
+    /// Dataset name.
+    pub name: String,
+    /// Element type.
+    pub elem: Elem,
+    /// Elements.
+    pub len: usize,
+    /// The bytes.
+    pub storage: Storage,
+}
+
+/// One item of an encoded run, written in order.
+#[derive(Debug, Clone)]
+pub enum Item {
+    /// Create a group (relative to the run's group; parents are created first).
+    Group(String),
+    /// Set an attribute on a group (relative path).
+    Attr {
+        /// Group ("" for the run's group).
+        group: String,
+        /// Attribute name.
+        name: String,
+        /// Value.
+        value: Scalar,
+    },
+    /// Create a dataset.
+    Dataset(Dataset),
+}
+
+/// A run's results, ready to be written under its absolute group path.
+#[derive(Debug, Clone, Default)]
+pub struct EncodedRun {
+    /// Absolute group path of the run (e.g. `/runs/run_001`).
+    pub path: String,
+    /// Groups, attributes and datasets, in the order they are written.
+    pub items: Vec<Item>,
+}
+
+impl EncodedRun {
+    /// An empty run at `path`.
+    pub fn new(path: &str) -> EncodedRun {
+        EncodedRun {
+            path: path.to_string(),
+            items: Vec::new(),
+        }
+    }
+
+    /// Adds a group.
+    pub fn group(&mut self, group: &str) {
+        self.items.push(Item::Group(group.to_string()));
+    }
+
+    /// Adds a float attribute.
+    pub fn f64_attr(&mut self, group: &str, name: &str, value: f64) {
+        self.items.push(Item::Attr {
+            group: group.to_string(),
+            name: name.to_string(),
+            value: Scalar::F64(value),
+        });
+    }
+
+    /// Adds a string attribute.
+    pub fn str_attr(&mut self, group: &str, name: &str, value: &str) {
+        self.items.push(Item::Attr {
+            group: group.to_string(),
+            name: name.to_string(),
+            value: Scalar::Str(value.to_string()),
+        });
+    }
+
+    /// Adds a float64 vector: chunked, shuffled and deflated (level 1) when `compress` and
+    /// long enough to be worth it, contiguous otherwise — as `campaign::write_signal` does.
+    pub fn signal(&mut self, group: &str, name: &str, data: &[f64], compress: bool) {
+        let storage = if compress && data.len() >= 64 {
+            Storage::Chunked {
+                level: 1,
+                chunks: compress_chunks(bytemuck::cast_slice(data), Elem::F64, 1),
+            }
+        } else {
+            Storage::Plain(data.to_vec())
+        };
+        self.dataset(group, name, Elem::F64, data.len(), storage);
+    }
+
+    /// Adds a byte vector, chunked and deflated at `level` (masks compress very well).
+    pub fn bytes(&mut self, group: &str, name: &str, data: &[u8], level: u8) {
+        let storage = Storage::Chunked {
+            level,
+            chunks: compress_chunks(data, Elem::U8, level),
+        };
+        self.dataset(group, name, Elem::U8, data.len(), storage);
+    }
+
+    fn dataset(&mut self, group: &str, name: &str, elem: Elem, len: usize, storage: Storage) {
+        self.items.push(Item::Dataset(Dataset {
+            group: group.to_string(),
+            name: name.to_string(),
+            elem,
+            len,
+            storage,
+        }));
+    }
+}
+
+/// The chunk length a dataset of `len` elements is created with.
+pub fn chunk_len(len: usize) -> usize {
+    len.clamp(1, CHUNK)
+}
+
+/// Splits `bytes` (elements of `elem`) into chunks of [`chunk_len`] elements and runs each
+/// through HDF5's filter pipeline as libhdf5 would: zero-pad to a whole chunk, shuffle
+/// (bytes of equal significance together) when the element is wider than a byte, then zlib
+/// at `level`.
+pub fn compress_chunks(bytes: &[u8], elem: Elem, level: u8) -> Vec<Vec<u8>> {
+    let size = elem.size();
+    let n = bytes.len() / size;
+    let chunk = chunk_len(n);
+    let chunk_bytes = chunk * size;
+    let mut padded = vec![0u8; chunk_bytes];
+    let mut shuffled = vec![0u8; chunk_bytes];
+    bytes
+        .chunks(chunk_bytes)
+        .map(|part| {
+            padded[..part.len()].copy_from_slice(part);
+            padded[part.len()..].fill(0);
+            let input = if size > 1 {
+                shuffle(&padded, size, &mut shuffled);
+                &shuffled
+            } else {
+                &padded
+            };
+            let mut z = flate2::write::ZlibEncoder::new(
+                Vec::with_capacity(chunk_bytes / 2),
+                flate2::Compression::new(u32::from(level)),
+            );
+            z.write_all(input).expect("writing to a Vec cannot fail");
+            z.finish().expect("writing to a Vec cannot fail")
+        })
+        .collect()
+}
+
+/// HDF5's shuffle filter: byte j of element i goes to `j·n + i`.
+fn shuffle(src: &[u8], size: usize, dst: &mut [u8]) {
+    let n = src.len() / size;
+    for (i, e) in src.chunks_exact(size).enumerate() {
+        for (j, &b) in e.iter().enumerate() {
+            dst[j * n + i] = b;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Read;
+
+    fn unshuffle(src: &[u8], size: usize) -> Vec<u8> {
+        let n = src.len() / size;
+        let mut out = vec![0u8; src.len()];
+        for i in 0..n {
+            for j in 0..size {
+                out[i * size + j] = src[j * n + i];
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn chunks_inflate_and_unshuffle_to_the_padded_data() {
+        let data: Vec<f64> = (0..10_000).map(|i| (i as f64 * 0.01).sin()).collect();
+        let chunks = compress_chunks(bytemuck::cast_slice(&data), Elem::F64, 1);
+        assert_eq!(chunks.len(), 3);
+        let mut back = Vec::new();
+        for c in &chunks {
+            let mut raw = Vec::new();
+            flate2::read::ZlibDecoder::new(&c[..])
+                .read_to_end(&mut raw)
+                .unwrap();
+            assert_eq!(raw.len(), CHUNK * 8);
+            back.extend(unshuffle(&raw, 8));
+        }
+        let back: &[f64] = bytemuck::cast_slice(&back);
+        assert_eq!(&back[..data.len()], &data[..]);
+        assert!(back[data.len()..].iter().all(|&x| x == 0.0));
+    }
+}
