@@ -290,6 +290,12 @@ fn probe_one(exe: &Path, path: &Path, options: &IngestOptions, timeout: Duration
     if let Ok(report) = serde_json::from_slice::<ArchiveReport>(&out) {
         return report;
     }
+    failed(file, crash_detail(status, &err))
+}
+
+/// What a reading child's end says: how it ended (exit status or signal) and the end of
+/// its stderr, which says where libhdf5 gave up when it says anything.
+pub fn crash_detail(status: std::process::ExitStatus, stderr: &[u8]) -> String {
     let how = match status.code() {
         Some(c) => format!("exit status {c}"),
         None => {
@@ -305,13 +311,12 @@ fn probe_one(exe: &Path, path: &Path, options: &IngestOptions, timeout: Duration
         }
     };
     // The end of the child's stderr says where libhdf5 gave up, when it says anything.
-    let stderr = String::from_utf8_lossy(&err);
+    let stderr = String::from_utf8_lossy(stderr);
     let stderr = stderr.trim();
     let tail = &stderr[stderr.floor_char_boundary(stderr.len().saturating_sub(300))..];
-    let detail = if tail.is_empty() {
+    if tail.is_empty() {
         format!("libhdf5 crashed reading it ({how})")
     } else {
         format!("libhdf5 crashed reading it ({how}): {tail}")
-    };
-    failed(file, detail)
+    }
 }

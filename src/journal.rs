@@ -8,7 +8,8 @@ use std::path::{Path, PathBuf};
 
 use crate::identify::IdentifyOptions;
 use crate::ingest::Run;
-use crate::report::{summary_rows, ReportError, ResultsWriter, RunOutcome, SummaryRow};
+use crate::report::encoded::EncodedRun;
+use crate::report::{encode_run, summary_rows, ReportError, ResultsWriter, RunOutcome, SummaryRow};
 use crate::track::Method;
 
 /// Folder of the committed runs inside the output folder.
@@ -76,6 +77,29 @@ pub struct Entry {
     pub rows: Vec<SummaryRow>,
 }
 
+/// A finished run made ready for its commit: results encoded (compressed) and summary rows
+/// computed, all CPU work, so a batch's workers do it and the writer only writes.
+pub struct Prepared {
+    encoded: EncodedRun,
+    rows: Vec<SummaryRow>,
+    path: String,
+    source: String,
+    failed: bool,
+}
+
+impl Prepared {
+    /// Encodes `outcome` and computes its summary rows.
+    pub fn new(outcome: &RunOutcome) -> Prepared {
+        Prepared {
+            encoded: encode_run(outcome),
+            rows: summary_rows(outcome),
+            path: outcome.path.clone(),
+            source: outcome.source.clone(),
+            failed: outcome.status() == "failed",
+        }
+    }
+}
+
 /// The committed runs of one output folder.
 pub struct Journal {
     dir: PathBuf,
@@ -122,17 +146,22 @@ impl Journal {
 
     /// Commits one finished run under `key`: written to a temporary file, then renamed.
     pub fn commit(&self, key: &str, outcome: &RunOutcome) -> Result<Entry, ReportError> {
-        let rows = summary_rows(outcome);
+        self.commit_prepared(key, Prepared::new(outcome))
+    }
+
+    /// Commits a run prepared by [`Prepared::new`] (on any thread): only the HDF5 writing
+    /// is left, under libhdf5's lock.
+    pub fn commit_prepared(&self, key: &str, run: Prepared) -> Result<Entry, ReportError> {
         let w = ResultsWriter::create_at(&self.file(key))?;
-        w.write_run(outcome)?;
-        let summary = serde_json::to_string(&rows).map_err(|e| ReportError {
+        w.write_encoded(&run.encoded)?;
+        let summary = serde_json::to_string(&run.rows).map_err(|e| ReportError {
             file: self.file(key).display().to_string(),
             detail: e.to_string(),
         })?;
         for (name, value) in [
-            ("run", outcome.path.as_str()),
-            ("run_source", outcome.source.as_str()),
-            ("run_status", outcome.status()),
+            ("run", run.path.as_str()),
+            ("run_source", run.source.as_str()),
+            ("run_status", if run.failed { "failed" } else { "ok" }),
             ("summary", summary.as_str()),
         ] {
             w.set_root_attr(name, value)?;
@@ -140,10 +169,10 @@ impl Journal {
         w.finish()?;
         Ok(Entry {
             key: key.to_string(),
-            path: outcome.path.clone(),
-            source: outcome.source.clone(),
-            failed: outcome.status() == "failed",
-            rows,
+            path: run.path,
+            source: run.source,
+            failed: run.failed,
+            rows: run.rows,
         })
     }
 

@@ -68,6 +68,16 @@ enum Command {
         #[command(flatten)]
         ingest: IngestArgs,
     },
+    /// Internal: read the archives named on stdin and stream their runs to stdout (the
+    /// isolated reader of `skelid run`).
+    #[command(name = "__read-archives", hide = true)]
+    ReadArchives {
+        #[command(flatten)]
+        ingest: IngestArgs,
+        /// Only this share of the runs.
+        #[arg(long, value_parser = skelid::batch::Shard::parse)]
+        shard: Option<skelid::batch::Shard>,
+    },
 }
 
 /// Options of `skelid gap`.
@@ -716,6 +726,10 @@ fn main() -> ExitCode {
         Command::InspectOne { file, ingest } => ingest.options().and_then(|o| {
             let report = inspect::inspect_archive(&file, &o);
             println!("{}", serde_json::to_string(&report)?);
+            Ok(ExitCode::SUCCESS)
+        }),
+        Command::ReadArchives { ingest, shard } => ingest.options().and_then(|o| {
+            skelid::batch::reader::serve_stdio(&o, shard)?;
             Ok(ExitCode::SUCCESS)
         }),
     };

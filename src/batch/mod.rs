@@ -11,17 +11,19 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::Mutex;
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 
+pub mod reader;
+
 use crate::backend::Backend;
 use crate::identify::{identify_on, IdentifyOptions};
-use crate::ingest::{Archive, IngestOptions};
-use crate::inspect::inspect_isolated;
-use crate::journal::{failed_key, run_key, settings_fingerprint, Entry, Journal, RUNS_DIR};
+use crate::ingest::IngestOptions;
+use crate::journal::{
+    failed_key, run_key, settings_fingerprint, Entry, Journal, Prepared, RUNS_DIR,
+};
 use crate::report::{html, write_summary, ReportError, RunOutcome, SummaryRow};
 use crate::track::Method;
 
@@ -216,9 +218,23 @@ impl Manifest {
 /// Manifest file name in an output folder.
 pub const MANIFEST: &str = "manifest.json";
 
+/// What the workers hand the writer.
+enum Finished {
+    /// A run found committed by an earlier invocation.
+    Skipped(Entry),
+    /// A run to commit under its key.
+    Commit(String, Prepared),
+}
+
 /// Identifies every run of `files` (this shard's share), skipping runs committed by an
 /// earlier invocation unless `force`, and writes `out/results.h5`, `out/summary.json`,
 /// `out/summary.csv` and `out/manifest.json`. `progress` is called after each run.
+///
+/// Three stages joined by bounded queues, so that compute never waits on I/O and memory
+/// stays about `jobs` runs whatever the campaign's size: one reader (in a child process
+/// when isolated, see [`reader`]) that alone touches the input archives; `jobs` workers
+/// that identify each run and encode its results (the compression included); and one
+/// writer that alone writes the output folder (journal files, log, progress).
 pub fn run_campaigns(
     files: &[PathBuf],
     ingest: &IngestOptions,
@@ -228,54 +244,154 @@ pub fn run_campaigns(
 ) -> Result<BatchSummary, BatchError> {
     let journal = Journal::open(out)?;
     let settings = settings_fingerprint(&opt.methods, &opt.identify);
-    let mut unreadable_archives: Vec<RunOutcome> = Vec::new();
-    let mut readable: Vec<PathBuf> = files.to_vec();
-    if let Isolation::Child { exe, timeout } = opt.isolation {
-        let reports = inspect_isolated(exe, files, ingest, timeout);
-        readable.clear();
-        for (f, r) in files.iter().zip(reports) {
-            match r.error {
-                Some(e) => unreadable_archives.push(unreadable(f, &e)),
-                None => readable.push(f.clone()),
-            }
-        }
-    }
-    let mut archives = Vec::new();
-    for f in &readable {
-        match Archive::open(f, ingest) {
-            Ok(a) => archives.push(a),
-            Err(e) => unreadable_archives.push(unreadable(f, &e)),
-        }
-    }
-    let all_jobs: Vec<(usize, usize)> = archives
-        .iter()
-        .enumerate()
-        .flat_map(|(a, ar)| (0..ar.runs.len()).map(move |r| (a, r)))
-        .collect();
-    let runs_in_inputs = all_jobs.len() + unreadable_archives.len();
-    let takes = |source: &str, path: &str| opt.shard.is_none_or(|s| s.takes(source, path));
-    let jobs: Vec<(usize, usize)> = all_jobs
-        .into_iter()
-        .filter(|&(a, r)| takes(archives[a].file_name(), &archives[a].runs[r].path))
-        .collect();
-    unreadable_archives.retain(|o| takes(&o.source, &o.path));
-    let total = jobs.len() + unreadable_archives.len();
-    let (done, skipped, failed) = (
-        AtomicUsize::new(0),
-        AtomicUsize::new(0),
-        AtomicUsize::new(0),
-    );
-    let entries = Mutex::new(Vec::with_capacity(total));
-    let log = Mutex::new(Log::open(out)?);
-    log.lock().unwrap_or_else(|p| p.into_inner()).line(&format!(
-        "start: {} archive(s), {total} run(s){}, settings {settings}{}",
+    let mut log = Log::open(out)?;
+    log.line(&format!(
+        "start: {} archive(s){}, settings {settings}{}",
         files.len(),
-        opt.shard
-            .map_or(String::new(), |s| format!(" in shard {s}")),
+        opt.shard.map_or(String::new(), |s| format!(", shard {s}")),
         if opt.force { ", --force" } else { "" }
     ));
-    let finish = |e: Entry, was_skipped: bool| {
-        log.lock().unwrap_or_else(|p| p.into_inner()).line(&format!(
+    let jobs = opt
+        .jobs
+        .or(opt
+            .backend
+            .is_gpu()
+            .then(|| GPU_JOBS.max(std::thread::available_parallelism().map_or(1, |n| n.get()))))
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+        .max(1);
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(jobs)
+        .build()
+        .map_err(|e| BatchError::Threads {
+            jobs,
+            detail: e.to_string(),
+        })?;
+    let counts = reader::Counts::default();
+    let isolate = match opt.isolation {
+        Isolation::Child { exe, timeout } => Some((exe, timeout)),
+        Isolation::None => None,
+    };
+    // A worker holds one run, the queues one run per worker each: about 3 × jobs runs.
+    let (work_tx, work_rx) = std::sync::mpsc::sync_channel::<reader::Delivery>(jobs);
+    let (done_tx, done_rx) = std::sync::mpsc::sync_channel::<Finished>(jobs);
+    let (entries, skipped, failed, log) = std::thread::scope(|scope| {
+        let counts = &counts;
+        scope.spawn(move || {
+            reader::read_all(files, ingest, opt.shard, isolate, counts, &mut |d| {
+                work_tx.send(d).map_err(|_| reader::Stopped)
+            })
+        });
+        let writer = scope.spawn(|| write_finished(&journal, done_rx, log, counts, progress));
+        let work = pool.install(|| {
+            work_rx
+                .into_iter()
+                .par_bridge()
+                .try_for_each(|d| -> Result<(), ()> {
+                    let f = prepare(d, &journal, &settings, opt);
+                    done_tx.send(f).map_err(|_| ())
+                })
+        });
+        drop(done_tx);
+        let written = writer.join().expect("the writer does not panic");
+        // A failed send means the writer stopped on an error, which `written` carries.
+        let _ = work;
+        written
+    })?;
+    let total = entries.len();
+    let runs_in_inputs = counts.runs_in_inputs.load(Ordering::Relaxed);
+    let mut entries = entries;
+    let manifest = Manifest::new(settings, opt.shard, runs_in_inputs, &mut entries);
+    let mut log = log;
+    let t0 = Instant::now();
+    let (results, rows, failed_runs) =
+        write_outputs(&journal, out, &entries, &manifest, opt.report_runs)?;
+    log.line(&format!(
+        "end: {total} run(s), {failed} failed, {skipped} skipped; wrote {} and the summaries, report and manifest in {:.2} s",
+        results.display(),
+        t0.elapsed().as_secs_f64()
+    ));
+    Ok(BatchSummary {
+        rows,
+        results,
+        failed_runs,
+        runs: total,
+        skipped,
+    })
+}
+
+/// A worker's part: the key, the skip test, the identification and the encoding.
+fn prepare(
+    d: reader::Delivery,
+    journal: &Journal,
+    settings: &str,
+    opt: &BatchOptions<'_>,
+) -> Finished {
+    let (key, outcome) = match d {
+        reader::Delivery::Unreadable { file, error } => {
+            let o = unreadable(&file, &error);
+            let key = failed_key(
+                &o.source,
+                &o.path,
+                &o.error_text().unwrap_or_default(),
+                settings,
+            );
+            (key, Err(o))
+        }
+        reader::Delivery::Run { source, path, run } => {
+            let key = match &run {
+                Ok(run) => run_key(run, &source, settings),
+                Err(e) => failed_key(&source, &path, e, settings),
+            };
+            (key, Ok((source, path, run)))
+        }
+    };
+    if !opt.force {
+        if let Some(e) = journal.lookup(&key) {
+            return Finished::Skipped(e);
+        }
+    }
+    let outcome = match outcome {
+        Err(o) => o,
+        Ok((source, path, run)) => {
+            let mut outcome = RunOutcome::new(path, source);
+            match run {
+                Err(e) => outcome.error = Some(e),
+                Ok(run) => {
+                    outcome.sample_rate = Some(run.meta.sample_rate);
+                    outcome.samples = run.output.len();
+                    outcome.inertia = run.meta.inertia;
+                    for &m in &opt.methods {
+                        let t0 = Instant::now();
+                        outcome.methods.push((
+                            m,
+                            identify_guarded(&run, m, &opt.identify, opt.backend),
+                            t0.elapsed().as_secs_f64(),
+                        ));
+                    }
+                }
+            }
+            outcome
+        }
+    };
+    Finished::Commit(key, Prepared::new(&outcome))
+}
+
+/// The writer: commits each finished run, logs it and reports progress. Returns the
+/// entries, the skipped and failed counts and the log; stops at the first write error.
+fn write_finished(
+    journal: &Journal,
+    done: std::sync::mpsc::Receiver<Finished>,
+    mut log: Log,
+    counts: &reader::Counts,
+    progress: &(dyn Fn(Progress) + Sync),
+) -> Result<(Vec<Entry>, usize, usize, Log), BatchError> {
+    let (mut entries, mut skipped, mut failed) = (Vec::new(), 0, 0);
+    for f in done {
+        let (e, was_skipped) = match f {
+            Finished::Skipped(e) => (e, true),
+            Finished::Commit(key, p) => (journal.commit_prepared(&key, p)?, false),
+        };
+        log.line(&format!(
             "{} {}:{} {}{}",
             if was_skipped {
                 "skipped (committed earlier)"
@@ -291,107 +407,17 @@ pub fn run_campaigns(
                 .map(|r| format!(" [{}: {}]", r.method, r.error))
                 .collect::<String>()
         ));
-        if was_skipped {
-            skipped.fetch_add(1, Ordering::Relaxed);
-        }
-        if e.failed {
-            failed.fetch_add(1, Ordering::Relaxed);
-        }
-        entries.lock().unwrap_or_else(|p| p.into_inner()).push(e);
-        let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+        skipped += usize::from(was_skipped);
+        failed += usize::from(e.failed);
+        entries.push(e);
         progress(Progress {
-            done: d,
-            total,
-            skipped: skipped.load(Ordering::Relaxed),
-            failed: failed.load(Ordering::Relaxed),
+            done: entries.len(),
+            total: counts.estimate().max(entries.len()),
+            skipped,
+            failed,
         });
-    };
-    for o in &unreadable_archives {
-        let key = failed_key(
-            &o.source,
-            &o.path,
-            &o.error_text().unwrap_or_default(),
-            &settings,
-        );
-        match journal.lookup(&key).filter(|_| !opt.force) {
-            Some(e) => finish(e, true),
-            None => finish(journal.commit(&key, o)?, false),
-        }
     }
-    let identify_all = || {
-        jobs.par_iter()
-            .map(|&(a, r)| -> Result<(), BatchError> {
-                let archive = &archives[a];
-                let entry = &archive.runs[r];
-                let source = archive.file_name().to_string();
-                let mut outcome = RunOutcome::new(entry.path.clone(), source.clone());
-                let run = entry
-                    .meta
-                    .as_ref()
-                    .map_err(|e| e.to_string())
-                    .and_then(|m| archive.load(m).map_err(|e| e.to_string()));
-                let key = match &run {
-                    Ok(run) => run_key(run, &source, &settings),
-                    Err(e) => failed_key(&source, &entry.path, e, &settings),
-                };
-                if !opt.force {
-                    if let Some(e) = journal.lookup(&key) {
-                        finish(e, true);
-                        return Ok(());
-                    }
-                }
-                match run {
-                    Err(e) => outcome.error = Some(e),
-                    Ok(run) => {
-                        outcome.sample_rate = Some(run.meta.sample_rate);
-                        outcome.samples = run.output.len();
-                        outcome.inertia = run.meta.inertia;
-                        for &m in &opt.methods {
-                            let t0 = Instant::now();
-                            outcome.methods.push((
-                                m,
-                                identify_guarded(&run, m, &opt.identify, opt.backend),
-                                t0.elapsed().as_secs_f64(),
-                            ));
-                        }
-                    }
-                }
-                finish(journal.commit(&key, &outcome)?, false);
-                Ok(())
-            })
-            .collect::<Result<Vec<()>, BatchError>>()
-    };
-    let jobs = opt.jobs.or(opt
-        .backend
-        .is_gpu()
-        .then(|| GPU_JOBS.max(std::thread::available_parallelism().map_or(1, |n| n.get()))));
-    match jobs {
-        None => identify_all()?,
-        Some(n) => rayon::ThreadPoolBuilder::new()
-            .num_threads(n.max(1))
-            .build()
-            .map_err(|e| BatchError::Threads {
-                jobs: n,
-                detail: e.to_string(),
-            })?
-            .install(identify_all)?,
-    };
-    let mut entries = entries.into_inner().unwrap_or_else(|p| p.into_inner());
-    let manifest = Manifest::new(settings, opt.shard, runs_in_inputs, &mut entries);
-    let (results, rows, failed_runs) =
-        write_outputs(&journal, out, &entries, &manifest, opt.report_runs)?;
-    log.lock().unwrap_or_else(|p| p.into_inner()).line(&format!(
-        "end: {total} run(s), {failed_runs} failed, {} skipped; wrote {}",
-        skipped.load(Ordering::Relaxed),
-        results.display()
-    ));
-    Ok(BatchSummary {
-        rows,
-        results,
-        failed_runs,
-        runs: total,
-        skipped: skipped.into_inner(),
-    })
+    Ok((entries, skipped, failed, log))
 }
 
 /// One method on one run, with a panic inside any stage turned into that run's error.

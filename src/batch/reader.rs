@@ -1,0 +1,571 @@
+//! The batch's one reader: opens the archives in order, reads every run of this shard and
+//! hands each to the workers through a bounded queue, so workers never touch an input
+//! archive and compute never waits on a read.
+//!
+//! Isolated reading (the default of `skelid run`) happens in a child process of this
+//! executable ([`READ_SUBCOMMAND`]) that streams the runs back over a pipe: libhdf5 crashes
+//! or loops forever on some corrupt files, and no in-process handling catches a segfault.
+//! One child reads archive after archive, so a campaign of a thousand files costs one
+//! process start, not a thousand, and every sample is read once (the old per-file probe
+//! read them all a second time before the work started). When the child dies or stalls on
+//! an archive, that archive is recorded unreadable with the reason and a new child takes
+//! the remaining ones; runs the dead child had already delivered stand.
+//!
+//! Protocol, child to parent, one frame after another: a little-endian `u32` length, a JSON
+//! [`Frame`], then for a [`Frame::Run`] that was read the samples as little-endian `f64`
+//! (input first when there is one, then output).
+
+use std::io::{BufRead, Read, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use serde::{Deserialize, Serialize};
+
+use super::Shard;
+use crate::ingest::{Archive, IngestOptions, Run, RunMeta};
+use crate::inspect::{crash_detail, option_args};
+
+/// Hidden subcommand of the isolated reader (`skelid __read-archives [ingest options]
+/// [--shard K/N]`, archive paths on standard input, one per line).
+pub const READ_SUBCOMMAND: &str = "__read-archives";
+
+/// One message of the reader's stream.
+#[derive(Debug, Serialize, Deserialize)]
+pub enum Frame {
+    /// The archive (index into the list given) is open and lists `runs` runs.
+    Open {
+        /// Archive index.
+        archive: usize,
+        /// Runs listed, all shards.
+        runs: usize,
+    },
+    /// One run of this shard; samples follow when `meta` is `Ok`.
+    Run {
+        /// Archive index.
+        archive: usize,
+        /// Group path.
+        path: String,
+        /// The run's metadata, or why it cannot be read.
+        meta: Result<RunMeta, String>,
+        /// Whether input samples precede the output's.
+        has_input: bool,
+    },
+    /// A run of another shard (counted, not read).
+    Skip {
+        /// Archive index.
+        archive: usize,
+    },
+    /// The archive is done; `error` when it could not be opened at all.
+    Close {
+        /// Archive index.
+        archive: usize,
+        /// Why the archive could not be opened.
+        error: Option<String>,
+    },
+}
+
+/// What the reader delivers.
+pub enum Delivery {
+    /// A run of this shard, or why it could not be read.
+    Run {
+        /// Archive file name as given.
+        source: String,
+        /// Group path.
+        path: String,
+        /// The run.
+        run: Result<Run, String>,
+    },
+    /// An archive that could not be read (or not to the end), with the reason.
+    Unreadable {
+        /// The archive.
+        file: PathBuf,
+        /// Why.
+        error: String,
+    },
+}
+
+/// Counts the reader keeps while it reads, for the progress display and the manifest.
+#[derive(Default)]
+pub struct Counts {
+    /// Runs seen in the archives so far, all shards (an unreadable archive counts one).
+    pub runs_in_inputs: AtomicUsize,
+    /// Deliveries of this shard so far.
+    pub delivered: AtomicUsize,
+    /// Archives not yet finished.
+    pub archives_left: AtomicUsize,
+}
+
+impl Counts {
+    /// The best guess of this shard's total while reading (exact once reading is done): what
+    /// was delivered, plus one for each archive not yet read.
+    pub fn estimate(&self) -> usize {
+        self.delivered.load(Ordering::Relaxed) + self.archives_left.load(Ordering::Relaxed)
+    }
+}
+
+/// Why the reader stopped early: the consumer went away.
+#[derive(Debug)]
+pub struct Stopped;
+
+/// Reads `files` in order and calls `deliver` for each run and each unreadable archive;
+/// stops early when `deliver` says so. `isolate`: the executable to run the reading child
+/// of and the time an archive may take (not counting the time `deliver` blocks).
+pub fn read_all(
+    files: &[PathBuf],
+    options: &IngestOptions,
+    shard: Option<Shard>,
+    isolate: Option<(&Path, Duration)>,
+    counts: &Counts,
+    deliver: &mut dyn FnMut(Delivery) -> Result<(), Stopped>,
+) -> Result<(), Stopped> {
+    counts.archives_left.store(files.len(), Ordering::Relaxed);
+    if let Some((exe, timeout)) = isolate {
+        let mut next = 0;
+        while next < files.len() {
+            match read_in_child(
+                exe,
+                &files[next..],
+                options,
+                shard,
+                timeout,
+                counts,
+                deliver,
+            )? {
+                ChildEnd::Finished => break,
+                // The child could not be started: read in-process rather than not at all.
+                ChildEnd::NotStarted => {
+                    return read_in_process(&files[next..], options, shard, counts, deliver)
+                }
+                ChildEnd::Died { done, detail } => {
+                    next += done;
+                    counts.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
+                    counts.delivered.fetch_add(1, Ordering::Relaxed);
+                    counts.archives_left.fetch_sub(1, Ordering::Relaxed);
+                    let file = &files[next];
+                    let e = crate::ingest::IngestError::Corrupt {
+                        file: file.display().to_string(),
+                        run: None,
+                        detail,
+                    };
+                    deliver(Delivery::Unreadable {
+                        file: file.clone(),
+                        error: e.to_string(),
+                    })?;
+                    next += 1;
+                }
+            }
+        }
+        Ok(())
+    } else {
+        read_in_process(files, options, shard, counts, deliver)
+    }
+}
+
+/// Reads in this process (trusted files, tests) through the same frames the child sends.
+fn read_in_process(
+    files: &[PathBuf],
+    options: &IngestOptions,
+    shard: Option<Shard>,
+    counts: &Counts,
+    deliver: &mut dyn FnMut(Delivery) -> Result<(), Stopped>,
+) -> Result<(), Stopped> {
+    let mut stopped = false;
+    let mut assemble = Assembler::new(files, counts);
+    serve(files, options, shard, &mut |frame, samples| {
+        if stopped {
+            return false;
+        }
+        if let Some(d) = assemble.frame(frame, samples) {
+            stopped = deliver(d).is_err();
+        }
+        !stopped
+    });
+    if stopped {
+        Err(Stopped)
+    } else {
+        Ok(())
+    }
+}
+
+/// Turns frames into deliveries and keeps the counts.
+struct Assembler<'a> {
+    files: &'a [PathBuf],
+    counts: &'a Counts,
+    /// Archives of this list finished.
+    done: usize,
+}
+
+impl<'a> Assembler<'a> {
+    fn new(files: &'a [PathBuf], counts: &'a Counts) -> Self {
+        Assembler {
+            files,
+            counts,
+            done: 0,
+        }
+    }
+
+    fn frame(
+        &mut self,
+        frame: Frame,
+        samples: Option<(Option<Vec<f64>>, Vec<f64>)>,
+    ) -> Option<Delivery> {
+        let c = self.counts;
+        match frame {
+            Frame::Open { .. } => None,
+            Frame::Skip { .. } => {
+                c.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
+                None
+            }
+            Frame::Run {
+                archive,
+                path,
+                meta,
+                ..
+            } => {
+                c.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
+                c.delivered.fetch_add(1, Ordering::Relaxed);
+                let run = meta.map(|meta| {
+                    let (input, output) = samples.unwrap_or_default();
+                    Run {
+                        meta,
+                        input,
+                        output,
+                    }
+                });
+                Some(Delivery::Run {
+                    source: self.files[archive].display().to_string(),
+                    path,
+                    run,
+                })
+            }
+            Frame::Close { archive, error } => {
+                self.done = archive + 1;
+                c.archives_left.fetch_sub(1, Ordering::Relaxed);
+                error.map(|error| {
+                    c.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
+                    c.delivered.fetch_add(1, Ordering::Relaxed);
+                    Delivery::Unreadable {
+                        file: self.files[archive].clone(),
+                        error,
+                    }
+                })
+            }
+        }
+    }
+}
+
+/// Reads `files` in this process and hands every frame (with the run's samples) to `emit`,
+/// which returns false to stop. The child's side of the protocol, and the in-process reader.
+pub fn serve(
+    files: &[PathBuf],
+    options: &IngestOptions,
+    shard: Option<Shard>,
+    emit: &mut dyn FnMut(Frame, Option<(Option<Vec<f64>>, Vec<f64>)>) -> bool,
+) {
+    for (i, f) in files.iter().enumerate() {
+        let archive = match Archive::open(f, options) {
+            Ok(a) => a,
+            Err(e) => {
+                let close = Frame::Close {
+                    archive: i,
+                    error: Some(e.to_string()),
+                };
+                if !emit(close, None) {
+                    return;
+                }
+                continue;
+            }
+        };
+        let open = Frame::Open {
+            archive: i,
+            runs: archive.runs.len(),
+        };
+        if !emit(open, None) {
+            return;
+        }
+        for entry in &archive.runs {
+            if shard.is_some_and(|s| !s.takes(archive.file_name(), &entry.path)) {
+                if !emit(Frame::Skip { archive: i }, None) {
+                    return;
+                }
+                continue;
+            }
+            let run = entry
+                .meta
+                .as_ref()
+                .map_err(|e| e.to_string())
+                .and_then(|m| archive.load(m).map_err(|e| e.to_string()));
+            let (frame, samples) = match run {
+                Ok(run) => (
+                    Frame::Run {
+                        archive: i,
+                        path: entry.path.clone(),
+                        has_input: run.input.is_some(),
+                        meta: Ok(run.meta),
+                    },
+                    Some((run.input, run.output)),
+                ),
+                Err(e) => (
+                    Frame::Run {
+                        archive: i,
+                        path: entry.path.clone(),
+                        meta: Err(e),
+                        has_input: false,
+                    },
+                    None,
+                ),
+            };
+            if !emit(frame, samples) {
+                return;
+            }
+        }
+        if !emit(
+            Frame::Close {
+                archive: i,
+                error: None,
+            },
+            None,
+        ) {
+            return;
+        }
+    }
+}
+
+/// The child's main: archive paths from standard input, frames to standard output.
+pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Result<()> {
+    let files: Vec<PathBuf> = std::io::stdin()
+        .lock()
+        .lines()
+        .collect::<std::io::Result<Vec<String>>>()?
+        .into_iter()
+        .filter(|l| !l.is_empty())
+        .map(PathBuf::from)
+        .collect();
+    let mut out = std::io::BufWriter::with_capacity(1 << 20, std::io::stdout().lock());
+    let mut failure = None;
+    serve(&files, options, shard, &mut |frame, samples| {
+        match write_frame(&mut out, &frame, samples.as_ref()) {
+            Ok(()) => true,
+            Err(e) => {
+                // The parent went away (a stopped batch): nothing left to do.
+                failure = Some(e);
+                false
+            }
+        }
+    });
+    match failure {
+        Some(e) => Err(e),
+        None => out.flush(),
+    }
+}
+
+fn write_frame(
+    out: &mut impl Write,
+    frame: &Frame,
+    samples: Option<&(Option<Vec<f64>>, Vec<f64>)>,
+) -> std::io::Result<()> {
+    let header = serde_json::to_vec(frame).map_err(std::io::Error::other)?;
+    out.write_all(&(header.len() as u32).to_le_bytes())?;
+    out.write_all(&header)?;
+    if let Some((input, output)) = samples {
+        for v in input.iter().chain(std::iter::once(output)) {
+            out.write_all(&(v.len() as u64).to_le_bytes())?;
+            for x in v {
+                out.write_all(&x.to_le_bytes())?;
+            }
+        }
+    }
+    // Each frame reaches the parent at once: its watchdog measures progress by them.
+    out.flush()
+}
+
+/// Reads one frame; `None` at a clean end of the stream.
+fn read_frame(
+    inp: &mut impl Read,
+) -> std::io::Result<Option<(Frame, Option<(Option<Vec<f64>>, Vec<f64>)>)>> {
+    let mut len = [0u8; 4];
+    match inp.read_exact(&mut len) {
+        Ok(()) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => return Ok(None),
+        Err(e) => return Err(e),
+    }
+    let mut header = vec![0u8; u32::from_le_bytes(len) as usize];
+    inp.read_exact(&mut header)?;
+    let frame: Frame = serde_json::from_slice(&header).map_err(std::io::Error::other)?;
+    let samples = match &frame {
+        Frame::Run {
+            meta: Ok(_),
+            has_input,
+            ..
+        } => {
+            let input = if *has_input {
+                Some(read_vector(inp)?)
+            } else {
+                None
+            };
+            Some((input, read_vector(inp)?))
+        }
+        _ => None,
+    };
+    Ok(Some((frame, samples)))
+}
+
+fn read_vector(inp: &mut impl Read) -> std::io::Result<Vec<f64>> {
+    let mut n = [0u8; 8];
+    inp.read_exact(&mut n)?;
+    let n = u64::from_le_bytes(n) as usize;
+    let mut bytes = vec![0u8; n * 8];
+    inp.read_exact(&mut bytes)?;
+    Ok(bytes
+        .chunks_exact(8)
+        .map(|b| f64::from_le_bytes(b.try_into().expect("8 bytes")))
+        .collect())
+}
+
+/// How one reading child ended.
+enum ChildEnd {
+    /// Every archive given to it was read.
+    Finished,
+    /// It could not be started.
+    NotStarted,
+    /// It died (or was stopped) after finishing `done` archives; `detail` says how.
+    Died { done: usize, detail: String },
+}
+
+/// Time the current archive has taken, not counting the time the parent spent handing runs
+/// on (the child then waits on a full pipe, through no fault of its own).
+struct Clock {
+    since: Option<Instant>,
+    spent: Duration,
+    finished: bool,
+    timed_out: bool,
+}
+
+fn read_in_child(
+    exe: &Path,
+    files: &[PathBuf],
+    options: &IngestOptions,
+    shard: Option<Shard>,
+    timeout: Duration,
+    counts: &Counts,
+    deliver: &mut dyn FnMut(Delivery) -> Result<(), Stopped>,
+) -> Result<ChildEnd, Stopped> {
+    let mut cmd = Command::new(exe);
+    cmd.arg(READ_SUBCOMMAND).args(option_args(options));
+    if let Some(s) = shard {
+        cmd.args(["--shard", &s.to_string()]);
+    }
+    let child = cmd
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn();
+    let Ok(mut child) = child else {
+        return Ok(ChildEnd::NotStarted);
+    };
+    let mut stdin = child.stdin.take().expect("piped stdin");
+    let mut stdout =
+        std::io::BufReader::with_capacity(1 << 20, child.stdout.take().expect("piped"));
+    let mut stderr = child.stderr.take().expect("piped stderr");
+    let list: String = files.iter().map(|f| format!("{}\n", f.display())).collect();
+    // The child reads its whole list before it writes anything, so this cannot deadlock.
+    let feeder = std::thread::spawn(move || {
+        let _ = stdin.write_all(list.as_bytes());
+    });
+    let err_tail = std::thread::spawn(move || {
+        let mut buf = Vec::new();
+        let _ = stderr.read_to_end(&mut buf);
+        buf
+    });
+    let child = Arc::new(Mutex::new(child));
+    let clock = Arc::new(Mutex::new(Clock {
+        since: Some(Instant::now()),
+        spent: Duration::ZERO,
+        finished: false,
+        timed_out: false,
+    }));
+    let watchdog = {
+        let (child, clock) = (Arc::clone(&child), Arc::clone(&clock));
+        std::thread::spawn(move || loop {
+            std::thread::sleep(Duration::from_millis(20));
+            let mut c = clock.lock().unwrap_or_else(|p| p.into_inner());
+            if c.finished {
+                return;
+            }
+            let running = c.spent + c.since.map_or(Duration::ZERO, |s| s.elapsed());
+            if running > timeout {
+                c.timed_out = true;
+                c.finished = true;
+                let _ = child.lock().unwrap_or_else(|p| p.into_inner()).kill();
+                return;
+            }
+        })
+    };
+    let set = |f: &dyn Fn(&mut Clock)| f(&mut clock.lock().unwrap_or_else(|p| p.into_inner()));
+    let mut assemble = Assembler::new(files, counts);
+    let mut result = Ok(());
+    let mut broken = false;
+    loop {
+        match read_frame(&mut stdout) {
+            Ok(Some((frame, samples))) => {
+                if let Frame::Open { .. } | Frame::Close { .. } = frame {
+                    // A new archive starts its own clock.
+                    set(&|c| {
+                        c.spent = Duration::ZERO;
+                        c.since = Some(Instant::now());
+                    });
+                }
+                if let Some(d) = assemble.frame(frame, samples) {
+                    set(&|c| {
+                        c.spent += c.since.take().map_or(Duration::ZERO, |s| s.elapsed());
+                    });
+                    result = deliver(d);
+                    set(&|c| c.since = Some(Instant::now()));
+                    if result.is_err() {
+                        break;
+                    }
+                }
+            }
+            Ok(None) => break,
+            Err(_) => {
+                broken = true;
+                break;
+            }
+        }
+    }
+    let timed_out = {
+        let mut c = clock.lock().unwrap_or_else(|p| p.into_inner());
+        c.finished = true;
+        c.timed_out
+    };
+    let _ = watchdog.join();
+    let status = {
+        let mut ch = child.lock().unwrap_or_else(|p| p.into_inner());
+        if result.is_err() || broken {
+            let _ = ch.kill();
+        }
+        ch.wait()
+    };
+    let _ = feeder.join();
+    let err = err_tail.join().unwrap_or_default();
+    result?;
+    let done = assemble.done;
+    if done == files.len() {
+        return Ok(ChildEnd::Finished);
+    }
+    let detail = if timed_out {
+        format!(
+            "reading it did not finish within {} s; libhdf5 loops on some corrupt files",
+            timeout.as_secs()
+        )
+    } else {
+        match status {
+            Ok(s) => crash_detail(s, &err),
+            Err(e) => format!("libhdf5 crashed reading it ({e})"),
+        }
+    };
+    Ok(ChildEnd::Died { done, detail })
+}
