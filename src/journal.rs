@@ -77,6 +77,22 @@ pub struct Entry {
     pub rows: Vec<SummaryRow>,
 }
 
+/// Where each of `entries` goes in results.h5: its own path, or `PATH@ARCHIVE` for the
+/// second and later runs of the same path from different archives.
+pub fn placements(entries: &[Entry]) -> Vec<String> {
+    let mut seen = std::collections::HashSet::new();
+    entries
+        .iter()
+        .map(|e| {
+            if seen.insert(e.path.as_str()) {
+                e.path.clone()
+            } else {
+                format!("{}@{}", e.path, e.source)
+            }
+        })
+        .collect()
+}
+
 /// A finished run made ready for its commit: results encoded (compressed) and summary rows
 /// computed, all CPU work, so a batch's workers do it and the writer only writes.
 pub struct Prepared {
@@ -88,6 +104,16 @@ pub struct Prepared {
 }
 
 impl Prepared {
+    /// The run's group path.
+    pub fn path(&self) -> &str {
+        &self.path
+    }
+
+    /// The run's archive.
+    pub fn source(&self) -> &str {
+        &self.source
+    }
+
     /// Encodes `outcome` and computes its summary rows.
     pub fn new(outcome: &RunOutcome) -> Prepared {
         Prepared {
@@ -152,6 +178,20 @@ impl Journal {
     /// Commits a run prepared by [`Prepared::new`] (on any thread): only the HDF5 writing
     /// is left, under libhdf5's lock.
     pub fn commit_prepared(&self, key: &str, run: Prepared) -> Result<Entry, ReportError> {
+        self.commit_into(key, run, None)
+    }
+
+    /// [`commit_prepared`](Self::commit_prepared), also writing the run into `results`
+    /// under `dst` (the batch's results.h5, built as the runs finish).
+    pub fn commit_into(
+        &self,
+        key: &str,
+        run: Prepared,
+        results: Option<(&ResultsWriter, &str)>,
+    ) -> Result<Entry, ReportError> {
+        if let Some((w, dst)) = results {
+            w.write_encoded_as(&run.encoded, dst)?;
+        }
         let w = ResultsWriter::create_at(&self.file(key))?;
         w.write_encoded(&run.encoded)?;
         let summary = serde_json::to_string(&run.rows).map_err(|e| ReportError {
@@ -181,13 +221,7 @@ impl Journal {
     /// different archives: the second goes to `PATH@ARCHIVE`.
     pub fn assemble(&self, out: &Path, entries: &[Entry]) -> Result<PathBuf, ReportError> {
         let w = ResultsWriter::create(out)?;
-        let mut seen = std::collections::HashSet::new();
-        for e in entries {
-            let dst = if seen.insert(e.path.clone()) {
-                e.path.clone()
-            } else {
-                format!("{}@{}", e.path, e.source)
-            };
+        for (e, dst) in entries.iter().zip(placements(entries)) {
             w.copy_run_from(&self.file(&e.key), &e.path, &dst)?;
         }
         w.finish()

@@ -22,9 +22,9 @@ use crate::backend::Backend;
 use crate::identify::{identify_on, IdentifyOptions};
 use crate::ingest::IngestOptions;
 use crate::journal::{
-    failed_key, run_key, settings_fingerprint, Entry, Journal, Prepared, RUNS_DIR,
+    failed_key, placements, run_key, settings_fingerprint, Entry, Journal, Prepared, RUNS_DIR,
 };
-use crate::report::{html, write_summary, ReportError, RunOutcome, SummaryRow};
+use crate::report::{html, write_summary, ReportError, ResultsWriter, RunOutcome, SummaryRow};
 use crate::track::Method;
 
 /// Why a batch or a merge could not go on.
@@ -274,14 +274,16 @@ pub fn run_campaigns(
     // A worker holds one run, the queues one run per worker each: about 3 × jobs runs.
     let (work_tx, work_rx) = std::sync::mpsc::sync_channel::<reader::Delivery>(jobs);
     let (done_tx, done_rx) = std::sync::mpsc::sync_channel::<Finished>(jobs);
-    let (entries, skipped, failed, log) = std::thread::scope(|scope| {
+    let results = ResultsWriter::create(out)?;
+    let written = std::thread::scope(|scope| {
         let counts = &counts;
         scope.spawn(move || {
             reader::read_all(files, ingest, opt.shard, isolate, counts, &mut |d| {
                 work_tx.send(d).map_err(|_| reader::Stopped)
             })
         });
-        let writer = scope.spawn(|| write_finished(&journal, done_rx, log, counts, progress));
+        let writer =
+            scope.spawn(|| write_finished(&journal, &results, done_rx, log, counts, progress));
         let work = pool.install(|| {
             work_rx
                 .into_iter()
@@ -297,14 +299,21 @@ pub fn run_campaigns(
         let _ = work;
         written
     })?;
+    let Written {
+        mut entries,
+        skipped,
+        failed,
+        mut log,
+    } = written;
     let total = entries.len();
     let runs_in_inputs = counts.runs_in_inputs.load(Ordering::Relaxed);
-    let mut entries = entries;
-    let manifest = Manifest::new(settings, opt.shard, runs_in_inputs, &mut entries);
-    let mut log = log;
     let t0 = Instant::now();
-    let (results, rows, failed_runs) =
-        write_outputs(&journal, out, &entries, &manifest, opt.report_runs)?;
+    entries.sort_by(|(a, _), (b, _)| (&a.source, &a.path).cmp(&(&b.source, &b.path)));
+    let (mut entries, written_at): (Vec<Entry>, Vec<String>) = entries.into_iter().unzip();
+    place_runs(&results, &entries, &written_at)?;
+    let results = results.finish()?;
+    let manifest = Manifest::new(settings, opt.shard, runs_in_inputs, &mut entries);
+    let (rows, failed_runs) = write_outputs(&journal, out, &entries, &manifest, opt.report_runs)?;
     log.line(&format!(
         "end: {total} run(s), {failed} failed, {skipped} skipped; wrote {} and the summaries, report and manifest in {:.2} s",
         results.display(),
@@ -380,16 +389,32 @@ fn prepare(
 /// entries, the skipped and failed counts and the log; stops at the first write error.
 fn write_finished(
     journal: &Journal,
+    results: &ResultsWriter,
     done: std::sync::mpsc::Receiver<Finished>,
     mut log: Log,
     counts: &reader::Counts,
     progress: &(dyn Fn(Progress) + Sync),
-) -> Result<(Vec<Entry>, usize, usize, Log), BatchError> {
+) -> Result<Written, BatchError> {
     let (mut entries, mut skipped, mut failed) = (Vec::new(), 0, 0);
+    let mut used = std::collections::HashSet::new();
     for f in done {
+        // Finishing order is not the final order: a path already used (the same path in
+        // two archives) goes aside now and is put in its place at the end.
+        let (path, source) = match &f {
+            Finished::Skipped(e) => (e.path.clone(), e.source.clone()),
+            Finished::Commit(_, p) => (p.path().to_string(), p.source().to_string()),
+        };
+        let dst = if used.insert(path.clone()) {
+            path
+        } else {
+            format!("{path}@{source}#{}", entries.len())
+        };
         let (e, was_skipped) = match f {
-            Finished::Skipped(e) => (e, true),
-            Finished::Commit(key, p) => (journal.commit_prepared(&key, p)?, false),
+            Finished::Skipped(e) => {
+                results.copy_run_from(&journal.file(&e.key), &e.path, &dst)?;
+                (e, true)
+            }
+            Finished::Commit(key, p) => (journal.commit_into(&key, p, Some((results, &dst)))?, false),
         };
         log.line(&format!(
             "{} {}:{} {}{}",
@@ -409,7 +434,7 @@ fn write_finished(
         ));
         skipped += usize::from(was_skipped);
         failed += usize::from(e.failed);
-        entries.push(e);
+        entries.push((e, dst));
         progress(Progress {
             done: entries.len(),
             total: counts.estimate().max(entries.len()),
@@ -417,7 +442,41 @@ fn write_finished(
             failed,
         });
     }
-    Ok((entries, skipped, failed, log))
+    Ok(Written {
+        entries,
+        skipped,
+        failed,
+        log,
+    })
+}
+
+/// What the writer leaves: every entry with the group it was written to in results.h5.
+struct Written {
+    entries: Vec<(Entry, String)>,
+    skipped: usize,
+    failed: usize,
+    log: Log,
+}
+
+/// Puts every run of `results` at its final group (see [`placements`]): link moves, through
+/// a staging group so that two runs may trade places.
+fn place_runs(results: &ResultsWriter, entries: &[Entry], written_at: &[String]) -> Result<(), BatchError> {
+    const STAGING: &str = "/_skelid_staging";
+    let moves: Vec<(&String, String)> = written_at
+        .iter()
+        .zip(placements(entries))
+        .filter(|(at, want)| *at != want)
+        .collect();
+    for (i, (at, _)) in moves.iter().enumerate() {
+        results.move_run(at, &format!("{STAGING}/{i}"))?;
+    }
+    for (i, (_, want)) in moves.iter().enumerate() {
+        results.move_run(&format!("{STAGING}/{i}"), want)?;
+    }
+    if !moves.is_empty() {
+        results.remove(STAGING)?;
+    }
+    Ok(())
 }
 
 /// One method on one run, with a panic inside any stage turned into that run's error.
@@ -447,16 +506,15 @@ pub fn guarded<T>(f: impl FnOnce() -> Result<T, String>) -> Result<T, String> {
     }
 }
 
-/// results.h5, the summaries, report.html (the first `report_runs` runs drawn) and the
-/// manifest of a folder's entries.
+/// The summaries, report.html (the first `report_runs` runs drawn) and the manifest of a
+/// folder's entries (results.h5 is written by then).
 fn write_outputs(
     journal: &Journal,
     out: &Path,
     entries: &[Entry],
     manifest: &Manifest,
     report_runs: usize,
-) -> Result<(PathBuf, Vec<SummaryRow>, usize), BatchError> {
-    let results = journal.assemble(out, entries)?;
+) -> Result<(Vec<SummaryRow>, usize), BatchError> {
     let rows: Vec<SummaryRow> = entries.iter().flat_map(|e| e.rows.clone()).collect();
     write_summary(out, &rows)?;
     let drawn = entries.len().min(report_runs);
@@ -479,7 +537,7 @@ fn write_outputs(
         detail: e.to_string(),
     })?;
     crate::report::write_atomic(&out.join(MANIFEST), text.as_bytes())?;
-    Ok((results, rows, entries.iter().filter(|e| e.failed).count()))
+    Ok((rows, entries.iter().filter(|e| e.failed).count()))
 }
 
 /// Joins the output folders of the shards of one batch into `out` (drawing the first
@@ -592,8 +650,8 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         )));
     }
     let manifest = Manifest::new(settings, None, first.runs_in_inputs, &mut entries);
-    let (results, rows, failed_runs) =
-        write_outputs(&journal, out, &entries, &manifest, report_runs)?;
+    let results = journal.assemble(out, &entries)?;
+    let (rows, failed_runs) = write_outputs(&journal, out, &entries, &manifest, report_runs)?;
     Ok(BatchSummary {
         rows,
         results,

@@ -285,14 +285,59 @@ impl ResultsWriter {
     /// Adds one run encoded by [`encode_run`] (possibly on another thread): groups and
     /// attributes through the hdf5 crate, compressed chunks straight into the file.
     pub fn write_encoded(&self, run: &EncodedRun) -> Result<(), ReportError> {
-        self.write_encoded_inner(run).map_err(|e| ReportError {
+        self.write_encoded_as(run, &run.path)
+    }
+
+    /// [`write_encoded`](Self::write_encoded) under the group path `dst` instead of the
+    /// run's own.
+    pub fn write_encoded_as(&self, run: &EncodedRun, dst: &str) -> Result<(), ReportError> {
+        self.write_encoded_inner(run, dst).map_err(|e| ReportError {
             file: self.path.display().to_string(),
             detail: format!("run {}: {e}", run.path),
         })
     }
 
-    fn write_encoded_inner(&self, run: &EncodedRun) -> hdf5::Result<()> {
-        let root = group_path(&self.file, &run.path)?;
+    /// Moves the run at group path `from` to `to` (a link move: no data is copied),
+    /// creating `to`'s parent groups.
+    pub fn move_run(&self, from: &str, to: &str) -> Result<(), ReportError> {
+        let err = |detail: String| ReportError {
+            file: self.path.display().to_string(),
+            detail: format!("moving {from} to {to}: {detail}"),
+        };
+        let (parent, name) = match to.trim_end_matches('/').rsplit_once('/') {
+            Some((p, n)) if !n.is_empty() => (p, n),
+            _ => return Err(err("a run path must name a group below the root".into())),
+        };
+        let parent = group_path(&self.file, parent).map_err(|e| err(e.to_string()))?;
+        let c = |s: &str| std::ffi::CString::new(s).map_err(|e| err(e.to_string()));
+        let (src, dst) = (c(from)?, c(name)?);
+        // A raw call takes the hdf5 crate's lock like every other libhdf5 call.
+        let status = hdf5::sync::sync(|| unsafe {
+            hdf5_sys::h5l::H5Lmove(
+                self.file.id(),
+                src.as_ptr(),
+                parent.id(),
+                dst.as_ptr(),
+                hdf5_sys::h5p::H5P_DEFAULT,
+                hdf5_sys::h5p::H5P_DEFAULT,
+            )
+        });
+        if status < 0 {
+            return Err(err("H5Lmove failed".into()));
+        }
+        Ok(())
+    }
+
+    /// Removes the object at `path` (a group and everything under it).
+    pub fn remove(&self, path: &str) -> Result<(), ReportError> {
+        self.file.unlink(path).map_err(|e| ReportError {
+            file: self.path.display().to_string(),
+            detail: format!("removing {path}: {e}"),
+        })
+    }
+
+    fn write_encoded_inner(&self, run: &EncodedRun, dst: &str) -> hdf5::Result<()> {
+        let root = group_path(&self.file, dst)?;
         let at = |rel: &str| -> hdf5::Result<hdf5::Group> {
             if rel.is_empty() {
                 Ok(root.clone())
