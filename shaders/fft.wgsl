@@ -48,7 +48,7 @@ fn stockham_pass(
 ) {
     let r = pass_.radix;
     let per = pass_.n / r;
-    let id = (wg.y * groups.x + wg.x) * 64u + local;
+    let id = ((wg.z * groups.y + wg.y) * groups.x + wg.x) * 64u + local;
     if (id >= per * pass_.batch) {
         return;
     }

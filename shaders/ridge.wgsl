@@ -43,7 +43,7 @@ struct ScaleInfo {
 struct Chunk {
     first: u32,        // first step of this dispatch
     last: u32,         // one past its last step
-    _pad0: u32,
+    scales: u32,       // the most scales of any run (column_stats' items per run)
     _pad1: u32,
 };
 
@@ -76,9 +76,16 @@ fn log_score(p: f32, unit: f32) -> f32 {
 
 @compute @workgroup_size(256)
 fn column_stats(@builtin(workgroup_id) wid: vec3<u32>,
+                @builtin(num_workgroups) groups: vec3<u32>,
                 @builtin(local_invocation_index) lid: u32) {
-    let run = runs[wid.y];
-    let k = wid.x;
+    // One workgroup per run × scale, flattened over the dispatch's dimensions.
+    let item = (wid.z * groups.y + wid.y) * groups.x + wid.x;
+    let r = item / chunk.scales;
+    if (r >= arrayLength(&runs)) {
+        return;
+    }
+    let run = runs[r];
+    let k = item % chunk.scales;
     if (k >= run.scales) {
         return;
     }
@@ -146,8 +153,13 @@ fn score(run: Run, k: u32, j: u32) -> f32 {
 
 @compute @workgroup_size(256)
 fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
+               @builtin(num_workgroups) groups: vec3<u32>,
                @builtin(local_invocation_index) lid: u32) {
-    let run = runs[wid.x];
+    let r = (wid.z * groups.y + wid.y) * groups.x + wid.x;
+    if (r >= arrayLength(&runs)) {
+        return;
+    }
+    let run = runs[r];
     let s = run.scales;
     let end = min(chunk.last, run.steps);
     if (chunk.first >= end) {
@@ -210,8 +222,13 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
 
 @compute @workgroup_size(256)
 fn backtrack(@builtin(workgroup_id) wid: vec3<u32>,
+             @builtin(num_workgroups) groups: vec3<u32>,
              @builtin(local_invocation_index) lid: u32) {
-    let run = runs[wid.x];
+    let r = (wid.z * groups.y + wid.y) * groups.x + wid.x;
+    if (r >= arrayLength(&runs)) {
+        return;
+    }
+    let run = runs[r];
     let s = run.scales;
     let end = min(chunk.last, run.steps);
     if (chunk.first >= end || (run.flags & 2u) == 0u) {

@@ -58,17 +58,25 @@ fn psi(scale: f32, f: f32) -> f32 {
     return g * a / (a + b);
 }
 
-// One workgroup row per item (y), slots along x.
+// One workgroup row per item (y, then z when the items exceed one dimension), slots along
+// x (strided when an item is longer than one dimension's workgroups).
 @compute @workgroup_size(64)
 fn scatter(
     @builtin(workgroup_id) wg: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let it = items[wg.y];
-    let q = wg.x * 64u + local;
-    if (q >= it.m) {
+    let n = wg.z * groups.y + wg.y;
+    if (n >= arrayLength(&items)) {
         return;
     }
+    let it = items[n];
+    for (var q = wg.x * 64u + local; q < it.m; q += groups.x * 64u) {
+        scatter_one(it, q);
+    }
+}
+
+fn scatter_one(it: Item, q: u32) {
     // The bin that lands on slot q: m = lo + ((q − (lo − c)) mod M), if inside the band.
     let first = (it.lo + it.m - it.centre % it.m) % it.m;  // slot of bin lo
     let d = (q + it.m - first) % it.m;
@@ -81,17 +89,24 @@ fn scatter(
     data[it.data + q] = v;
 }
 
-// One workgroup row per item (y), coarse steps along x.
+// One workgroup row per item (y, then z), coarse steps along x (strided, as in scatter).
 @compute @workgroup_size(64)
 fn power_grid(
     @builtin(workgroup_id) wg: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let it = items[wg.y];
-    let j = wg.x * 64u + local;
-    if (j >= it.steps) {
+    let n = wg.z * groups.y + wg.y;
+    if (n >= arrayLength(&items)) {
         return;
     }
+    let it = items[n];
+    for (var j = wg.x * 64u + local; j < it.steps; j += groups.x * 64u) {
+        power_one(it, j);
+    }
+}
+
+fn power_one(it: Item, j: u32) {
     let i = index[it.positions + j];
     let u = frac[it.positions + j];
     let w0 = -u * (u - 1.0) * (u - 2.0) / 6.0;

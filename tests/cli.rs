@@ -527,45 +527,98 @@ fn a_record_larger_than_one_gpu_binding_is_split_across_parts() {
     let prep = skelid::track::WaveletPrep::new(&x, 1000.0, &opt, None).unwrap();
     let scales: usize = prep.plans.iter().map(|p| p.len * 8).sum();
     assert!(scales > cap && prep.steps * 256 * 4 < cap && prep.spec.bins.len() * 8 < cap);
-    let track = |backend: &str| {
-        let out = d.path().join(format!("{backend}.csv"));
-        let o = skelid()
-            .arg("track")
-            .arg(archive)
-            .args([
-                "--dataset",
-                "/demo/linear",
-                "--scales",
-                "256",
-                "--backend",
-                backend,
-            ])
-            .arg("--out")
-            .arg(&out)
-            .env("SKELID_GPU_MAX_BINDING", cap.to_string())
-            .output()
-            .unwrap();
-        let err = String::from_utf8_lossy(&o.stderr);
-        assert!(o.status.success(), "{err}");
-        assert!(!err.contains("warning"), "{err}");
-        assert!(String::from_utf8_lossy(&o.stdout).contains(&format!("backend {backend}")));
-        std::fs::read_to_string(out).unwrap()
+    let track = |backend| {
+        track_csv(
+            d.path(),
+            archive,
+            256,
+            backend,
+            ("SKELID_GPU_MAX_BINDING", cap),
+        )
     };
-    let (cpu, gpu) = (track("cpu"), track("gpu"));
-    let mut worst = (0f64, 0f64);
-    for (a, b) in cpu.lines().skip(1).zip(gpu.lines().skip(1)) {
+    let worst = track_difference(&track("cpu"), &track("gpu"));
+    println!(
+        "split record: envelope within {:.1e}, frequency within {:.1e} Hz",
+        worst.0, worst.1
+    );
+    assert!(worst.0 <= 1e-4 && worst.1 <= 1e-3, "{worst:?}");
+}
+
+#[test]
+fn dispatches_beyond_the_workgroup_limit_are_split_not_refused() {
+    // Pretend the adapter launches at most 100 workgroups per dimension: 512 and 1024
+    // scales of one record are more run × scale items than that (the H100 refused 512
+    // scales × 256 signals this way), and must run on the GPU, not fall back.
+    let d = tmpdir();
+    for scales in [512, 1024] {
+        let track = |backend| {
+            track_csv(
+                d.path(),
+                demo_archive(),
+                scales,
+                backend,
+                ("SKELID_GPU_MAX_WORKGROUPS", 100),
+            )
+        };
+        let worst = track_difference(&track("cpu"), &track("gpu"));
+        println!(
+            "{scales} scales: envelope within {:.1e}, frequency within {:.1e} Hz",
+            worst.0, worst.1
+        );
+        assert!(
+            worst.0 <= 1e-4 && worst.1 <= 1e-3 && worst.2 == 0,
+            "{worst:?}"
+        );
+    }
+}
+
+/// `skelid track` of /demo/linear with `scales` on `backend` and one environment setting;
+/// asserts it ran on that backend with no warning (no fallback) and returns the CSV.
+fn track_csv(
+    dir: &std::path::Path,
+    archive: &std::path::Path,
+    scales: usize,
+    backend: &str,
+    env: (&str, usize),
+) -> String {
+    let out = dir.join(format!("{backend}-{scales}.csv"));
+    let o = skelid()
+        .arg("track")
+        .arg(archive)
+        .args([
+            "--dataset",
+            "/demo/linear",
+            "--scales",
+            &scales.to_string(),
+            "--backend",
+            backend,
+        ])
+        .arg("--out")
+        .arg(&out)
+        .env(env.0, env.1.to_string())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(!err.contains("warning"), "{err}");
+    assert!(String::from_utf8_lossy(&o.stdout).contains(&format!("backend {backend}")));
+    std::fs::read_to_string(out).unwrap()
+}
+
+/// Largest relative envelope and absolute frequency (Hz) difference where both tracks are
+/// valid, and the samples whose validity differs.
+fn track_difference(a: &str, b: &str) -> (f64, f64, usize) {
+    let mut worst = (0f64, 0f64, 0usize);
+    for (a, b) in a.lines().skip(1).zip(b.lines().skip(1)) {
         let p = |l: &str| -> Vec<f64> { l.split(',').map(|v| v.parse().unwrap()).collect() };
         let (a, b) = (p(a), p(b));
         if a[3] == 1.0 && b[3] == 1.0 {
             worst.0 = worst.0.max((a[1] - b[1]).abs() / a[1]);
             worst.1 = worst.1.max((a[2] - b[2]).abs());
         }
+        worst.2 += usize::from(a[3] != b[3]);
     }
-    println!(
-        "split record: envelope within {:.1e}, frequency within {:.1e} Hz",
-        worst.0, worst.1
-    );
-    assert!(worst.0 <= 1e-4 && worst.1 <= 1e-3, "{worst:?}");
+    worst
 }
 
 #[test]

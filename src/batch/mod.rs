@@ -414,7 +414,9 @@ fn write_finished(
                 results.copy_run_from(&journal.file(&e.key), &e.path, &dst)?;
                 (e, true)
             }
-            Finished::Commit(key, p) => (journal.commit_into(&key, p, Some((results, &dst)))?, false),
+            Finished::Commit(key, p) => {
+                (journal.commit_into(&key, p, Some((results, &dst)))?, false)
+            }
         };
         log.line(&format!(
             "{} {}:{} {}{}",
@@ -460,7 +462,11 @@ struct Written {
 
 /// Puts every run of `results` at its final group (see [`placements`]): link moves, through
 /// a staging group so that two runs may trade places.
-fn place_runs(results: &ResultsWriter, entries: &[Entry], written_at: &[String]) -> Result<(), BatchError> {
+fn place_runs(
+    results: &ResultsWriter,
+    entries: &[Entry],
+    written_at: &[String],
+) -> Result<(), BatchError> {
     const STAGING: &str = "/_skelid_staging";
     let moves: Vec<(&String, String)> = written_at
         .iter()

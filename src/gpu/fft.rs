@@ -165,14 +165,14 @@ impl FftStage {
                 ],
             });
             let invocations = (n / r as usize * batch) as u64;
-            let (x, y) = workgroups(invocations, gpu.limits.max_compute_workgroups_per_dimension);
+            let [x, y, z] = gpu.grid(invocations.div_ceil(u64::from(WORKGROUP)))?;
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("fft pass"),
                 timestamp_writes: None,
             });
             pass.set_pipeline(&self.pipeline);
             pass.set_bind_group(0, &bind, &[]);
-            pass.dispatch_workgroups(x, y, 1);
+            pass.dispatch_workgroups(x, y, z);
             drop(pass);
             std::mem::swap(&mut from, &mut to);
             ns *= r as usize;
@@ -228,14 +228,6 @@ pub fn offset_alignment(gpu: &Gpu) -> usize {
         .max(1)
 }
 
-/// A 2-D grid of workgroups covering `invocations` (one dimension holds at most `max`).
-fn workgroups(invocations: u64, max: u32) -> (u32, u32) {
-    let groups = invocations.div_ceil(u64::from(WORKGROUP)).max(1);
-    let x = groups.min(u64::from(max));
-    let y = groups.div_ceil(x);
-    (x as u32, y as u32)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -251,13 +243,5 @@ mod tests {
             let r = radices(m).unwrap();
             assert_eq!(r.iter().map(|&x| x as usize).product::<usize>(), m);
         }
-    }
-
-    #[test]
-    fn workgroup_grid_covers_every_invocation() {
-        assert_eq!(workgroups(1, 65535), (1, 1));
-        assert_eq!(workgroups(64 * 65535, 65535), (65535, 1));
-        let (x, y) = workgroups(64 * 65535 + 1, 65535);
-        assert!(u64::from(x) * u64::from(y) * 64 > 64 * 65535);
     }
 }

@@ -75,6 +75,9 @@ pub struct Gpu {
     /// A lower binding limit to pretend (`SKELID_GPU_MAX_BINDING`, bytes), so that tests can
     /// exercise batches and records larger than one binding on any adapter.
     binding_cap: Option<u64>,
+    /// A lower workgroups-per-dimension limit to pretend (`SKELID_GPU_MAX_WORKGROUPS`), so
+    /// that tests exercise dispatches split across dimensions on any adapter.
+    workgroup_cap: Option<u32>,
     /// The first failure reported by the device-lost callback or a validation error.
     failure: Arc<Mutex<Option<String>>>,
 }
@@ -140,6 +143,9 @@ impl Gpu {
             binding_cap: std::env::var("SKELID_GPU_MAX_BINDING")
                 .ok()
                 .and_then(|v| v.parse().ok()),
+            workgroup_cap: std::env::var("SKELID_GPU_MAX_WORKGROUPS")
+                .ok()
+                .and_then(|v| v.parse().ok()),
             failure,
         })
     }
@@ -147,6 +153,21 @@ impl Gpu {
     /// The adapter's name and kind, e.g. `llvmpipe (LLVM 15.0.6, 256 bits) (Cpu, Vulkan)`.
     pub fn adapter_name(&self) -> String {
         describe(&self.info)
+    }
+
+    /// Workgroups one dispatch may launch along each dimension.
+    pub fn max_workgroups(&self) -> u32 {
+        self.limits
+            .max_compute_workgroups_per_dimension
+            .min(self.workgroup_cap.unwrap_or(u32::MAX))
+            .max(1)
+    }
+
+    /// The dispatch `[x, y, z]` that launches at least `groups` workgroups within the
+    /// workgroups-per-dimension limit; a shader recovers the flat index as
+    /// `(z·ny + y)·nx + x` and skips indices at or past its count.
+    pub fn grid(&self, groups: u64) -> Result<[u32; 3], GpuError> {
+        grid(groups, self.max_workgroups())
     }
 
     /// The largest buffer one storage binding may hold (bytes).
@@ -329,5 +350,47 @@ impl Gpu {
         drop(view);
         staging.unmap();
         Ok(out)
+    }
+}
+
+/// [`Gpu::grid`] for a given per-dimension limit.
+pub fn grid(groups: u64, max: u32) -> Result<[u32; 3], GpuError> {
+    let max = u64::from(max.max(1));
+    let groups = groups.max(1);
+    let x = groups.min(max);
+    let rest = groups.div_ceil(x);
+    let y = rest.min(max);
+    let z = rest.div_ceil(y);
+    if z > max {
+        return Err(GpuError::TooLarge {
+            what: format!("{groups} workgroups in one dispatch"),
+            need: groups,
+            limit: max * max * max,
+        });
+    }
+    Ok([x as u32, y as u32, z as u32])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::grid;
+
+    #[test]
+    fn the_grid_covers_every_workgroup_within_the_limit() {
+        for max in [1u32, 7, 100, 65_535] {
+            for groups in [1u64, 2, 99, 100, 101, 10_007, 131_072, 1 << 20] {
+                let Ok([x, y, z]) = grid(groups, max) else {
+                    assert!(groups > u64::from(max).pow(3), "{groups} within {max}");
+                    continue;
+                };
+                assert!(x <= max && y <= max && z <= max, "{groups} within {max}");
+                let n = u64::from(x) * u64::from(y) * u64::from(z);
+                // Enough, and less than one more row of waste.
+                assert!(
+                    n >= groups && n - groups < u64::from(x) * (u64::from(y) + 1),
+                    "{groups}: {n}"
+                );
+            }
+        }
     }
 }

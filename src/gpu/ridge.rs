@@ -48,7 +48,9 @@ struct ScaleInfo {
 struct Chunk {
     first: u32,
     last: u32,
-    _pad: [u32; 2],
+    /// The most scales of any run: `column_stats` flattens run × scale with it.
+    scales: u32,
+    _pad: u32,
 }
 
 /// Loop iterations one invocation may run in a dispatch: lavapipe (gallivm) ends a loop
@@ -346,7 +348,8 @@ impl RidgeStage {
                 let range = Chunk {
                     first: (c * per_chunk) as u32,
                     last: ((c + 1) * per_chunk).min(max_steps) as u32,
-                    _pad: [0; 2],
+                    scales: max_scales as u32,
+                    _pad: 0,
                 };
                 bind(&gpu.uniform("chunk", &range))
             })
@@ -358,16 +361,18 @@ impl RidgeStage {
         // Each dispatch sees the previous one's writes (WebGPU orders them).
         pass.set_pipeline(&self.stats);
         pass.set_bind_group(0, &chunks[0], &[]);
-        pass.dispatch_workgroups(max_scales as u32, preps.len() as u32, 1);
+        let [x, y, z] = gpu.grid((max_scales * preps.len()) as u64)?;
+        pass.dispatch_workgroups(x, y, z);
+        let [x, y, z] = gpu.grid(preps.len() as u64)?;
         pass.set_pipeline(&self.steps);
         for b in &chunks {
             pass.set_bind_group(0, b, &[]);
-            pass.dispatch_workgroups(preps.len() as u32, 1, 1);
+            pass.dispatch_workgroups(x, y, z);
         }
         pass.set_pipeline(&self.backtrack);
         for b in chunks.iter().rev() {
             pass.set_bind_group(0, b, &[]);
-            pass.dispatch_workgroups(preps.len() as u32, 1, 1);
+            pass.dispatch_workgroups(x, y, z);
         }
         drop(pass);
         Ok(RidgeOut {

@@ -255,14 +255,16 @@ impl ScaleStage {
             data_len += m;
         }
         let data_bytes = (data_len * 8) as u64;
-        let max_rows = gpu.limits.max_compute_workgroups_per_dimension as usize;
-        if items.len() > max_rows {
+        // Items along y (and z past one dimension's limit), slots along x.
+        let [rows, layers, deeper] = gpu.grid(items.len() as u64)?;
+        if deeper > 1 {
             return Err(GpuError::TooLarge {
                 what: format!("{} run × scale items in one dispatch", items.len()),
                 need: items.len() as u64,
-                limit: max_rows as u64,
+                limit: u64::from(gpu.max_workgroups()).pow(2),
             });
         }
+        let max_x = gpu.max_workgroups() as usize;
         let items_buf = gpu.upload("items", &items);
         let data = gpu.storage("scales", data_bytes);
         let scratch = gpu.storage("scales scratch", data_bytes);
@@ -289,7 +291,7 @@ impl ScaleStage {
             });
             pass.set_pipeline(pipeline);
             pass.set_bind_group(0, &bind, &[]);
-            pass.dispatch_workgroups(width.div_ceil(64) as u32, items.len() as u32, 1);
+            pass.dispatch_workgroups(width.div_ceil(64).min(max_x) as u32, rows, layers);
         };
         dispatch(enc, &self.scatter, longest);
         for &(m, offset, count) in &groups {
