@@ -103,6 +103,12 @@ struct GapArgs {
     /// the odd ones.
     #[arg(long, default_value_t = 1.0, value_name = "SECONDS")]
     holdout_block: f64,
+    /// Runs diagnosed at once (default: one per core). A run's own search is a chain of
+    /// simplex steps, each waiting for the last, so one run keeps about one core busy;
+    /// an archive of several runs is diagnosed N at a time. Each run in flight holds its
+    /// record and a few simulations of it.
+    #[arg(long, short, value_name = "N")]
+    jobs: Option<usize>,
     /// Simulations spent refitting the model's own parameters.
     #[arg(long, default_value_t = 150, value_name = "N")]
     baseline_evaluations: usize,
@@ -1424,14 +1430,24 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     let title = archive_path.display().to_string();
     // gap.json and gap.html are rewritten (atomically) after every run, so that a night's
     // work stopped half-way keeps every run finished so far.
-    let write_outputs = |reports: &[out::GapRun], failed: &[(String, String)]| -> Result<_> {
+    let write_outputs = |reports: &[&out::GapRun], failed: &[(String, String)]| -> Result<_> {
         let json = out::write_gap_json(&a.out, reports, failed, settings.clone())?;
         let page = out::write_gap_page(&a.out, &title, reports)?;
         Ok((json, page))
     };
     let several = chosen.len() > 1;
-    let mut reports = Vec::new();
-    for meta in &chosen {
+    let jobs = a
+        .jobs
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+        .max(1);
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(jobs)
+        .build()
+        .with_context(|| format!("cannot start {jobs} worker thread(s) (--jobs)"))?;
+    // Finished runs in archive order, whatever order they finish in.
+    let done: std::sync::Mutex<(Vec<(usize, out::GapRun)>, Vec<(usize, String, String)>)> =
+        Default::default();
+    let diagnose_one = |(i, meta): (usize, &skelid::ingest::RunMeta)| -> Result<()> {
         eprintln!(
             "{}: refitting the model, then {} effects ...",
             meta.path,
@@ -1443,10 +1459,11 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
             let d = skelid::gap::diagnose(&reference, &model, &opt)?;
             Ok(out::GapRun::new(&reference, d)?)
         })();
+        let mut guard = done.lock().unwrap_or_else(|p| p.into_inner());
         match result {
             Ok(r) => {
                 let d = &r.diagnosis;
-                println!(
+                let mut text = format!(
                     "{}: verdict {} · held-out gap nominal {:.4} → baseline {:.4}{} · {} simulations, {:.1} s",
                     d.run,
                     d.verdict_name(),
@@ -1465,26 +1482,43 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
                         .iter()
                         .map(|(k, v)| format!("{k} = {v:.4e}"))
                         .collect();
-                    println!(
-                        "    {:<40} held-out gap {:.4}  shrink {:>4.0} %  {}",
+                    text += &format!(
+                        "\n    {:<40} held-out gap {:.4}  shrink {:>4.0} %  {}",
                         c.name(),
                         c.score.holdout,
                         100.0 * c.shrink,
                         p.join(", ")
                     );
                 }
+                println!("{text}");
                 let path = out::fitted_model_path(&a.out, model_path, &d.run, several);
                 out::write_fitted_model(&path, &r)?;
                 RigModel::load(&path).context("the fitted model written does not read back")?;
-                reports.push(r);
+                guard.0.push((i, r));
             }
             Err(e) => {
                 eprintln!("error: {}: {e:#}", meta.path);
-                failed.push((meta.path.clone(), format!("{e:#}")));
+                guard.1.push((i, meta.path.clone(), format!("{e:#}")));
             }
         }
-        write_outputs(&reports, &failed)?;
-    }
+        guard.0.sort_by_key(|r| r.0);
+        guard.1.sort_by_key(|r| r.0);
+        let reports: Vec<&out::GapRun> = guard.0.iter().map(|r| &r.1).collect();
+        let errors: Vec<(String, String)> = failed
+            .iter()
+            .cloned()
+            .chain(guard.1.iter().map(|f| (f.1.clone(), f.2.clone())))
+            .collect();
+        write_outputs(&reports, &errors)?;
+        Ok(())
+    };
+    pool.install(|| {
+        use rayon::prelude::*;
+        chosen.par_iter().enumerate().try_for_each(diagnose_one)
+    })?;
+    let (reports, errors) = done.into_inner().unwrap_or_else(|p| p.into_inner());
+    let reports: Vec<&out::GapRun> = reports.iter().map(|r| &r.1).collect();
+    failed.extend(errors.into_iter().map(|f| (f.1, f.2)));
     let (json, page) = write_outputs(&reports, &failed)?;
     println!(
         "wrote {}, {} and the fitted model(s) in {}",

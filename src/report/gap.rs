@@ -131,7 +131,7 @@ pub fn run_json(r: &GapRun) -> Value {
 /// lists the runs that could not be diagnosed, each with its error.
 pub fn write_gap_json(
     out: &Path,
-    runs: &[GapRun],
+    runs: &[&GapRun],
     failed: &[(String, String)],
     settings: Value,
 ) -> Result<PathBuf, ReportError> {
@@ -139,7 +139,7 @@ pub fn write_gap_json(
         "format": GAP_FORMAT,
         "skelid": env!("CARGO_PKG_VERSION"),
         "settings": settings,
-        "runs": runs.iter().map(run_json).collect::<Vec<_>>(),
+        "runs": runs.iter().map(|r| run_json(r)).collect::<Vec<_>>(),
         "failed": failed
             .iter()
             .map(|(run, error)| json!({"run": run, "error": error}))
@@ -266,7 +266,7 @@ fn gap_text(v: f64) -> String {
 }
 
 /// The page's HTML; `report` links back to report.html when there is one.
-pub fn render(title: &str, runs: &[GapRun], report: bool) -> String {
+pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
     let mut b = String::new();
     let _ = write!(
         b,
@@ -362,7 +362,7 @@ pub fn render(title: &str, runs: &[GapRun], report: bool) -> String {
 }
 
 /// Writes `<out>/gap.html` and, when `<out>/report.html` exists, links it from there.
-pub fn write_gap_page(out: &Path, title: &str, runs: &[GapRun]) -> Result<PathBuf, ReportError> {
+pub fn write_gap_page(out: &Path, title: &str, runs: &[&GapRun]) -> Result<PathBuf, ReportError> {
     let report = out.join("report.html");
     let has_report = report.is_file();
     let path = out.join("gap.html");
