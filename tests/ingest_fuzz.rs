@@ -3,7 +3,8 @@
 //! crash or hang `skelid inspect`; every file gets a report, and every error names its file.
 //!
 //! libhdf5 itself segfaults on some corrupted object headers, so this goes through the
-//! binary, whose isolated reader turns such crashes into errors.
+//! binary, whose isolated readers turn such crashes into errors: `inspect`'s per-file probe,
+//! and `run`'s streaming reader, which must get past a crashed file and read the rest.
 
 mod common;
 use common::*;
@@ -124,5 +125,88 @@ fn random_and_corrupted_archives_never_crash_and_errors_name_the_file() {
     assert!(
         kinds.get("not_hdf5").copied().unwrap_or(0) >= 20,
         "random bytes are not HDF5"
+    );
+}
+
+#[test]
+fn a_batch_over_corrupted_archives_reads_past_every_crash_and_records_each_file() {
+    let d = tmpdir();
+    let good = file_in(d.path(), "good.h5");
+    valid_archive(&good);
+    let bytes = std::fs::read(&good).unwrap();
+    let mut rng = StdRng::seed_from_u64(20261123);
+    let mut files = vec![good.clone()];
+    for i in 0..40 {
+        let mut data = bytes.clone();
+        for _ in 0..[1, 3, 16][i % 3] {
+            let at = rng.random_range(0..4096.min(data.len()));
+            data[at] ^= 1 << rng.random_range(0..8);
+        }
+        let p = file_in(d.path(), &format!("flipped_{i}.h5"));
+        std::fs::write(&p, &data).unwrap();
+        files.push(p);
+    }
+    // The good archive again at the end: reading must go on after any crash before it.
+    let last = file_in(d.path(), "zz_good.h5");
+    std::fs::copy(&good, &last).unwrap();
+    files.push(last);
+    let out = d.path().join("out");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_skelid"))
+        .args([
+            "run",
+            "--method",
+            "hilbert",
+            "--quiet",
+            "--jobs",
+            "2",
+            "--timeout",
+            "10",
+        ])
+        .args(&files)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        matches!(o.status.code(), Some(0) | Some(1)),
+        "run ended with {:?}: {}",
+        o.status,
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let manifest: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).unwrap()).unwrap();
+    let runs = manifest["runs"].as_array().unwrap();
+    // Runs name their archive as it was given, unreadable archives by file name.
+    let base = |v: &serde_json::Value| v.as_str().unwrap().rsplit('/').next().unwrap().to_string();
+    let mut crashed = 0;
+    for f in &files {
+        let name = f.file_name().unwrap().to_str().unwrap();
+        let of_file: Vec<&serde_json::Value> =
+            runs.iter().filter(|r| base(&r["source"]) == name).collect();
+        assert!(!of_file.is_empty(), "{name} is not in the manifest");
+        crashed += of_file
+            .iter()
+            .filter(|r| r["path"].as_str().unwrap().starts_with("/_unreadable/"))
+            .count();
+    }
+    // Both copies of the good archive read whole and identified alike (its first run has
+    // no relative motion, so fails identification in both).
+    let ok = |name: &str| {
+        runs.iter()
+            .filter(|r| base(&r["source"]) == name && r["status"] == "ok")
+            .count()
+    };
+    assert_eq!((ok("good.h5"), ok("zz_good.h5")), (2, 2));
+    let log = std::fs::read_to_string(out.join("skelid.log")).unwrap();
+    println!(
+        "{} files, {} manifest entries, {crashed} unreadable; crashes contained: {}",
+        files.len(),
+        runs.len(),
+        log.matches("crashed").count()
+    );
+    assert_eq!(
+        manifest["runs_in_inputs"].as_u64().unwrap() as usize,
+        runs.len(),
+        "every run seen is accounted for"
     );
 }
