@@ -127,7 +127,8 @@ pub fn dead_zone_orbit_ratio(delta: f64, amplitude: f64) -> f64 {
         return 1.0;
     }
     let s = delta / amplitude;
-    if !(s < ORBIT_S_MAX) {
+    // NaN (an amplitude of 0 over a gap of 0 is excluded above) counts as no contact too.
+    if s.is_nan() || s >= ORBIT_S_MAX {
         return 0.0;
     }
     // The fit evaluates this for every bin at hundreds of trial gaps (a fifth of a batch's

@@ -1444,9 +1444,10 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
         .num_threads(jobs)
         .build()
         .with_context(|| format!("cannot start {jobs} worker thread(s) (--jobs)"))?;
-    // Finished runs in archive order, whatever order they finish in.
-    let done: std::sync::Mutex<(Vec<(usize, out::GapRun)>, Vec<(usize, String, String)>)> =
-        Default::default();
+    // Finished runs (index in the archive, report) and failed ones (index, run, error),
+    // kept in archive order whatever order they finish in.
+    type Done = (Vec<(usize, out::GapRun)>, Vec<(usize, String, String)>);
+    let done: std::sync::Mutex<Done> = Default::default();
     let diagnose_one = |(i, meta): (usize, &skelid::ingest::RunMeta)| -> Result<()> {
         eprintln!(
             "{}: refitting the model, then {} effects ...",

@@ -67,6 +67,9 @@ pub enum Frame {
     },
 }
 
+/// A run's samples as read: input (when the run has one), output.
+pub type Samples = (Option<Vec<f64>>, Vec<f64>);
+
 /// What the reader delivers.
 pub enum Delivery {
     /// A run of this shard, or why it could not be read.
@@ -207,11 +210,7 @@ impl<'a> Assembler<'a> {
         }
     }
 
-    fn frame(
-        &mut self,
-        frame: Frame,
-        samples: Option<(Option<Vec<f64>>, Vec<f64>)>,
-    ) -> Option<Delivery> {
+    fn frame(&mut self, frame: Frame, samples: Option<Samples>) -> Option<Delivery> {
         let c = self.counts;
         match frame {
             Frame::Open { .. } => None,
@@ -263,7 +262,7 @@ pub fn serve(
     files: &[PathBuf],
     options: &IngestOptions,
     shard: Option<Shard>,
-    emit: &mut dyn FnMut(Frame, Option<(Option<Vec<f64>>, Vec<f64>)>) -> bool,
+    emit: &mut dyn FnMut(Frame, Option<Samples>) -> bool,
 ) {
     for (i, f) in files.iter().enumerate() {
         let archive = match Archive::open(f, options) {
@@ -365,7 +364,7 @@ pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Re
 fn write_frame(
     out: &mut impl Write,
     frame: &Frame,
-    samples: Option<&(Option<Vec<f64>>, Vec<f64>)>,
+    samples: Option<&Samples>,
 ) -> std::io::Result<()> {
     let header = serde_json::to_vec(frame).map_err(std::io::Error::other)?;
     out.write_all(&(header.len() as u32).to_le_bytes())?;
@@ -383,9 +382,7 @@ fn write_frame(
 }
 
 /// Reads one frame; `None` at a clean end of the stream.
-fn read_frame(
-    inp: &mut impl Read,
-) -> std::io::Result<Option<(Frame, Option<(Option<Vec<f64>>, Vec<f64>)>)>> {
+fn read_frame(inp: &mut impl Read) -> std::io::Result<Option<(Frame, Option<Samples>)>> {
     let mut len = [0u8; 4];
     match inp.read_exact(&mut len) {
         Ok(()) => {}
