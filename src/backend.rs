@@ -424,7 +424,9 @@ fn dispatch(
                 )),
                 None => {
                     let preps: Vec<&WaveletPrep> = take.iter().map(|r| &r.prep).collect();
-                    pass.coarse_ridges(gpu, &preps)
+                    crate::profile::time_wall(crate::profile::Stage::FirstPass, || {
+                        pass.coarse_ridges(gpu, &preps)
+                    })
                 }
             };
             submissions += 1;
@@ -433,6 +435,7 @@ fn dispatch(
                     use std::sync::atomic::Ordering::Relaxed;
                     stats.submissions.fetch_add(1, Relaxed);
                     stats.signals.fetch_add(ridges.len(), Relaxed);
+                    crate::profile::gpu_batch(ridges.len());
                     for (r, ridge) in take.into_iter().zip(ridges) {
                         let _ = r.reply.send((r.tag, r.prep, Ok(ridge)));
                     }

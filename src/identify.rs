@@ -181,6 +181,7 @@ fn track(
     guide: Option<&Track>,
     channel: &'static str,
 ) -> Result<Track, IdentifyError> {
+    let t0 = crate::profile::thread_cpu();
     let opt = ctx.opt;
     let r = match method {
         Method::Wavelet => {
@@ -195,7 +196,14 @@ fn track(
             },
         ),
     };
+    TRACKED.with(|t| t.set(t.get() + crate::profile::thread_cpu().saturating_sub(t0)));
     r.map_err(|source| IdentifyError::Track { channel, source })
+}
+
+thread_local! {
+    /// CPU time this thread spent in [`track`], so that the identification's own share
+    /// (ForceVib and the fits) can be told apart for the profile.
+    static TRACKED: std::cell::Cell<std::time::Duration> = const { std::cell::Cell::new(std::time::Duration::ZERO) };
 }
 
 /// Identifies one loaded run with one method (transforms on the CPU).
@@ -240,6 +248,25 @@ pub fn identify_with_input_track(
 }
 
 fn identify_inner(
+    run: &Run,
+    method: Method,
+    ctx: &Ctx,
+    known_input: Option<&Track>,
+) -> Result<Identification, IdentifyError> {
+    let before = TRACKED.with(|t| t.get());
+    let t0 = crate::profile::thread_cpu();
+    let r = identify_body(run, method, ctx, known_input);
+    let tracks = TRACKED.with(|t| t.get()) - before;
+    crate::profile::add(
+        crate::profile::Stage::ForceVibFit,
+        crate::profile::thread_cpu()
+            .saturating_sub(t0)
+            .saturating_sub(tracks),
+    );
+    r
+}
+
+fn identify_body(
     run: &Run,
     method: Method,
     ctx: &Ctx,

@@ -27,6 +27,7 @@ pub mod ingest;
 pub mod inspect;
 pub mod journal;
 pub mod model;
+pub mod profile;
 pub mod report;
 pub mod ridge;
 pub mod simulate;

@@ -639,13 +639,104 @@ fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
             g.tracks, g.valid_samples, g.envelope_rel, g.frequency_hz, g.mask_samples
         );
     }
+    for t in &result.backends {
+        if let Some(p) = &t.per_signal {
+            println!(
+                "{} traffic per signal: {:.0} signals per batch, {:.3} blocking syncs, \
+                 {:.0} bytes up, {:.0} bytes down ({:.2} bytes down per sample)",
+                t.backend,
+                p.signals_per_batch,
+                p.syncs,
+                p.bytes_up,
+                p.bytes_down,
+                p.bytes_down * signals.len() as f64 / samples as f64
+            );
+        }
+    }
     for (_, b) in &opened {
         report_fallbacks(b);
+    }
+    if !a.no_end_to_end {
+        let exe = std::env::current_exe().context("cannot find the skelid executable")?;
+        let scratch = tempfile_dir()?;
+        for (name, backend) in &opened {
+            eprintln!("  {name}: end to end (skelid run, both methods)");
+            let batch = skelid::batch::BatchOptions {
+                methods: vec![
+                    skelid::track::Method::Wavelet,
+                    skelid::track::Method::Hilbert,
+                ],
+                identify: skelid::identify::IdentifyOptions {
+                    wavelet: opt.clone(),
+                    ..Default::default()
+                },
+                isolation: skelid::batch::Isolation::Child {
+                    exe: &exe,
+                    timeout: std::time::Duration::from_secs(300),
+                },
+                shard: None,
+                force: true,
+                jobs: None,
+                report_runs: 100,
+                backend,
+            };
+            let e = skelid::bench::backends::end_to_end(
+                name,
+                &files,
+                &ingest,
+                &batch,
+                &scratch.join(format!("run-{name}")),
+            )?;
+            result.end_to_end.push(e);
+        }
+        let _ = std::fs::remove_dir_all(&scratch);
+        print_stages(&result.end_to_end);
     }
     std::fs::write(&a.out, serde_json::to_string_pretty(&result)? + "\n")
         .with_context(|| format!("cannot write {}", a.out.display()))?;
     println!("wrote {}", a.out.display());
     Ok(())
+}
+
+/// The end-to-end table: wall time, then each stage's CPU seconds and share per backend.
+fn print_stages(runs: &[skelid::bench::backends::EndToEnd]) {
+    let Some(first) = runs.first() else { return };
+    println!("\nend to end (skelid run, both methods, read and write included):");
+    print!("{:>14}", "");
+    for r in runs {
+        print!(" {:>18}", r.backend);
+    }
+    println!();
+    print!("{:>14}", "wall s");
+    for r in runs {
+        print!(
+            " {:>18}",
+            format!("{:.2} ({:.1} runs/s)", r.seconds, r.runs_per_s)
+        );
+    }
+    println!();
+    for (i, (stage, _)) in first.stages.iter().enumerate() {
+        print!("{stage:>14}");
+        for r in runs {
+            let total: f64 = r.stages.iter().map(|s| s.1).sum::<f64>().max(1e-12);
+            let s = r.stages[i].1;
+            print!(" {:>18}", format!("{s:.2} s {:>3.0} %", 100.0 * s / total));
+        }
+        println!();
+    }
+    println!(
+        "(CPU seconds summed over every thread; a GPU first pass in wall seconds of its \
+         submissions)"
+    );
+    for r in runs {
+        if let Some(p) = &r.per_signal {
+            println!(
+                "{} end to end: {:.0} signals per batch, {:.3} blocking syncs, {:.0} bytes \
+                 up, {:.0} bytes down per signal",
+                r.backend, p.signals_per_batch, p.syncs, p.bytes_up, p.bytes_down
+            );
+        }
+    }
 }
 
 /// Prints the backend's fallback warnings gathered during the work, and how the GPU's work
@@ -697,6 +788,10 @@ struct BenchArgs {
     /// --transform: print JSON rows instead of a table.
     #[arg(long)]
     json: bool,
+    /// Archives: skip the end-to-end batch per backend (`skelid run`, both methods, read
+    /// and write included) that shows where the time goes, stage by stage.
+    #[arg(long)]
+    no_end_to_end: bool,
     #[command(flatten)]
     ingest: IngestArgs,
 }

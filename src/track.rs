@@ -233,6 +233,10 @@ fn check_signal(x: &[f64], fs: f64) -> Result<(), TrackError> {
 /// the same zero-phase filter. Valid: away from the ends by two periods of the median
 /// frequency (where the FFT's periodic extension distorts z).
 pub fn track_hilbert(x: &[f64], fs: f64, opt: &HilbertOptions) -> Result<Track, TrackError> {
+    crate::profile::time(crate::profile::Stage::Hilbert, || hilbert_inner(x, fs, opt))
+}
+
+fn hilbert_inner(x: &[f64], fs: f64, opt: &HilbertOptions) -> Result<Track, TrackError> {
     check_signal(x, fs)?;
     if let Some(c) = opt.cutoff {
         if !(c > 0.0 && c < 1.0) {
@@ -632,6 +636,12 @@ impl WaveletPrep {
     /// The first pass on the CPU: per scale, in parallel, the band-limited transform on the
     /// coarse grid, then the ridge through the log-power scores.
     pub fn coarse_ridge(&self) -> CoarseRidge {
+        crate::profile::time(crate::profile::Stage::FirstPass, || {
+            self.coarse_ridge_inner()
+        })
+    }
+
+    fn coarse_ridge_inner(&self) -> CoarseRidge {
         let wl = self.opt.wavelet;
         let (steps, h, s_count) = (self.steps, self.h, self.freqs.len());
         let columns: Vec<Column> = self
@@ -718,6 +728,12 @@ impl WaveletPrep {
     /// scales around the ridge, the three-scale estimates, the bias correction, validity,
     /// and the per-sample track. `backend` names who computed `ridge`.
     pub fn finish(self, ridge: CoarseRidge, backend: &'static str) -> Track {
+        crate::profile::time(crate::profile::Stage::Refine, || {
+            self.finish_inner(ridge, backend)
+        })
+    }
+
+    fn finish_inner(self, ridge: CoarseRidge, backend: &'static str) -> Track {
         let scalogram = ridge.power.as_ref().map(|p| Scalogram {
             frequency: self.freqs.clone(),
             time: (0..self.steps)

@@ -24,6 +24,7 @@ use crate::ingest::IngestOptions;
 use crate::journal::{
     failed_key, placements, run_key, settings_fingerprint, Entry, Journal, Prepared, RUNS_DIR,
 };
+use crate::profile::{self, Stage};
 use crate::report::{html, write_summary, ReportError, ResultsWriter, RunOutcome, SummaryRow};
 use crate::track::Method;
 
@@ -307,13 +308,18 @@ pub fn run_campaigns(
     } = written;
     let total = entries.len();
     let runs_in_inputs = counts.runs_in_inputs.load(Ordering::Relaxed);
-    let t0 = Instant::now();
+    let (t0, cpu0) = (Instant::now(), profile::thread_cpu());
     entries.sort_by(|(a, _), (b, _)| (&a.source, &a.path).cmp(&(&b.source, &b.path)));
     let (mut entries, written_at): (Vec<Entry>, Vec<String>) = entries.into_iter().unzip();
     place_runs(&results, &entries, &written_at)?;
     let results = results.finish()?;
     let manifest = Manifest::new(settings, opt.shard, runs_in_inputs, &mut entries);
     let (rows, failed_runs) = write_outputs(&journal, out, &entries, &manifest, opt.report_runs)?;
+    profile::add(Stage::Write, profile::thread_cpu().saturating_sub(cpu0));
+    log.line(&format!(
+        "where the time went (CPU seconds since the process started): {}",
+        profile::snapshot().line()
+    ));
     log.line(&format!(
         "end: {total} run(s), {failed} failed, {skipped} skipped; wrote {} and the summaries, report and manifest in {:.2} s",
         results.display(),
@@ -382,7 +388,8 @@ fn prepare(
             outcome
         }
     };
-    Finished::Commit(key, Prepared::new(&outcome))
+    let prepared = profile::time(Stage::Encode, || Prepared::new(&outcome));
+    Finished::Commit(key, prepared)
 }
 
 /// The writer: commits each finished run, logs it and reports progress. Returns the
@@ -409,6 +416,7 @@ fn write_finished(
         } else {
             format!("{path}@{source}#{}", entries.len())
         };
+        let t0 = profile::thread_cpu();
         let (e, was_skipped) = match f {
             Finished::Skipped(e) => {
                 results.copy_run_from(&journal.file(&e.key), &e.path, &dst)?;
@@ -418,6 +426,7 @@ fn write_finished(
                 (journal.commit_into(&key, p, Some((results, &dst)))?, false)
             }
         };
+        profile::add(Stage::Write, profile::thread_cpu().saturating_sub(t0));
         log.line(&format!(
             "{} {}:{} {}{}",
             if was_skipped {

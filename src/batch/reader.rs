@@ -27,6 +27,7 @@ use serde::{Deserialize, Serialize};
 use super::Shard;
 use crate::ingest::{Archive, IngestOptions, Run, RunMeta};
 use crate::inspect::{crash_detail, option_args};
+use crate::profile::Stage;
 
 /// Hidden subcommand of the isolated reader (`skelid __read-archives [ingest options]
 /// [--shard K/N]`, archive paths on standard input, one per line).
@@ -265,7 +266,7 @@ pub fn serve(
     emit: &mut dyn FnMut(Frame, Option<Samples>) -> bool,
 ) {
     for (i, f) in files.iter().enumerate() {
-        let archive = match Archive::open(f, options) {
+        let archive = match crate::profile::time(Stage::Read, || Archive::open(f, options)) {
             Ok(a) => a,
             Err(e) => {
                 let close = Frame::Close {
@@ -296,7 +297,9 @@ pub fn serve(
                 .meta
                 .as_ref()
                 .map_err(|e| e.to_string())
-                .and_then(|m| archive.load(m).map_err(|e| e.to_string()));
+                .and_then(|m| {
+                    crate::profile::time(Stage::Read, || archive.load(m)).map_err(|e| e.to_string())
+                });
             let (frame, samples) = match run {
                 Ok(run) => (
                     Frame::Run {
@@ -506,7 +509,7 @@ fn read_in_child(
     let mut result = Ok(());
     let mut broken = false;
     loop {
-        match read_frame(&mut stdout) {
+        match crate::profile::time(Stage::Read, || read_frame(&mut stdout)) {
             Ok(Some((frame, samples))) => {
                 if let Frame::Open { .. } | Frame::Close { .. } = frame {
                     // A new archive starts its own clock.

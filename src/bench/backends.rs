@@ -7,6 +7,7 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::backend::{Backend, Signal};
+use crate::profile::{self, Traffic};
 use crate::track::{Track, WaveletOptions};
 
 /// One backend's timings.
@@ -26,6 +27,58 @@ pub struct BackendTiming {
     pub samples_scales_per_s: f64,
     /// Tracks whose first pass fell back to the CPU (0 on the CPU backend).
     pub fallbacks: usize,
+    /// CPU seconds per stage over the timed repetitions (the first pass in wall seconds of
+    /// the GPU submissions on a GPU backend): where this backend's track time goes.
+    pub stages: Vec<(String, f64)>,
+    /// Host↔device traffic over the timed repetitions (zeros on the CPU).
+    pub traffic: Traffic,
+    /// Per signal on the GPU: signals per submission, blocking syncs, bytes up, bytes down.
+    pub per_signal: Option<PerSignal>,
+}
+
+/// GPU traffic per signal.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct PerSignal {
+    /// Signals per GPU batch (one first pass for many signals).
+    pub signals_per_batch: f64,
+    /// Blocking host waits per signal.
+    pub syncs: f64,
+    /// Bytes host → device per signal.
+    pub bytes_up: f64,
+    /// Bytes device → host per signal.
+    pub bytes_down: f64,
+}
+
+impl PerSignal {
+    /// From a traffic count; `None` without GPU work.
+    pub fn of(t: &Traffic) -> Option<PerSignal> {
+        t.per_signal().map(
+            |(signals_per_batch, syncs, bytes_up, bytes_down)| PerSignal {
+                signals_per_batch,
+                syncs,
+                bytes_up,
+                bytes_down,
+            },
+        )
+    }
+}
+
+/// One backend's end-to-end batch (`skelid run`, both methods, into a scratch folder).
+#[derive(Debug, Clone, Serialize)]
+pub struct EndToEnd {
+    /// `cpu` or `gpu`.
+    pub backend: String,
+    /// Wall time of the whole batch (s), reading and writing included.
+    pub seconds: f64,
+    /// Runs per second.
+    pub runs_per_s: f64,
+    /// CPU seconds per stage, summed over every thread (the GPU first pass in wall seconds
+    /// of its submissions).
+    pub stages: Vec<(String, f64)>,
+    /// Host↔device traffic.
+    pub traffic: Traffic,
+    /// Per signal on the GPU.
+    pub per_signal: Option<PerSignal>,
 }
 
 /// How far two backends' tracks of the same signals differ, over samples valid in both.
@@ -87,6 +140,9 @@ pub struct BackendBench {
     pub gpu_speedup: Option<f64>,
     /// CPU against GPU tracks, when both ran.
     pub agreement: Option<Agreement>,
+    /// Per backend, the whole batch end to end with its stages (empty with
+    /// `--no-end-to-end`).
+    pub end_to_end: Vec<EndToEnd>,
 }
 
 /// Times `backends` (name, backend) on `signals` (samples, sample rate), `runs` runs' worth.
@@ -113,6 +169,7 @@ pub fn compare(
         let _ = backend.track_many(warm, opt);
         let mut seconds = Vec::new();
         let mut tracks = Vec::new();
+        profile::reset();
         for r in 0..repeat {
             progress(&format!("{name}: repetition {}/{repeat}", r + 1));
             let t0 = Instant::now();
@@ -128,6 +185,7 @@ pub fn compare(
         let mut sorted = seconds.clone();
         sorted.sort_by(f64::total_cmp);
         let median = sorted[sorted.len() / 2];
+        let prof = profile::snapshot();
         timings.push(BackendTiming {
             backend: name.to_string(),
             adapter: backend.adapter().map(str::to_string),
@@ -136,6 +194,13 @@ pub fn compare(
             runs_per_s: runs as f64 / median,
             samples_scales_per_s: (samples * opt.scales) as f64 / median,
             fallbacks,
+            stages: prof
+                .stages
+                .into_iter()
+                .filter(|s| s.0 == "first_pass" || s.0 == "refine")
+                .collect(),
+            per_signal: PerSignal::of(&prof.gpu),
+            traffic: prof.gpu,
         });
         last.push(tracks);
     }
@@ -163,5 +228,32 @@ pub fn compare(
         backends: timings,
         gpu_speedup,
         agreement,
+        end_to_end: Vec::new(),
     }
+}
+
+/// Runs `run` over `files` (both methods) on `backend` into `dir` and measures it: wall
+/// time, stages and traffic.
+pub fn end_to_end(
+    name: &str,
+    files: &[std::path::PathBuf],
+    ingest: &crate::ingest::IngestOptions,
+    batch: &crate::batch::BatchOptions<'_>,
+    dir: &std::path::Path,
+) -> Result<EndToEnd, crate::batch::BatchError> {
+    let _ = std::fs::remove_dir_all(dir);
+    profile::reset();
+    let t0 = Instant::now();
+    let summary = crate::batch::run_campaigns(files, ingest, batch, dir, &|_| {})?;
+    let seconds = t0.elapsed().as_secs_f64();
+    let prof = profile::snapshot();
+    let _ = std::fs::remove_dir_all(dir);
+    Ok(EndToEnd {
+        backend: name.to_string(),
+        seconds,
+        runs_per_s: summary.runs as f64 / seconds,
+        stages: prof.stages,
+        per_signal: PerSignal::of(&prof.gpu),
+        traffic: prof.gpu,
+    })
 }

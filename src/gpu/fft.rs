@@ -206,7 +206,7 @@ impl FftStage {
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("fft") });
         let holder = self.encode(gpu, &mut enc, n, data.len() / n, inverse, &a, &b, 0)?;
-        gpu.queue.submit([enc.finish()]);
+        gpu.submit(enc);
         let out: Vec<[f32; 2]> = gpu.download(
             match holder {
                 Holder::Data => &a,

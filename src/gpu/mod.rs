@@ -191,8 +191,15 @@ impl Gpu {
         }
     }
 
+    /// Submits one command buffer (counted for the profile).
+    pub fn submit(&self, enc: wgpu::CommandEncoder) {
+        crate::profile::submitted();
+        self.queue.submit([enc.finish()]);
+    }
+
     /// Waits for all submitted work.
     pub fn wait(&self) -> Result<(), GpuError> {
+        crate::profile::synced();
         self.device
             .poll(wgpu::PollType::wait_indefinitely())
             .map_err(|e| GpuError::Lost(e.to_string()))?;
@@ -281,6 +288,7 @@ impl Gpu {
     /// A uniform buffer holding `value`.
     pub fn uniform<T: bytemuck::Pod>(&self, label: &str, value: &T) -> wgpu::Buffer {
         use wgpu::util::DeviceExt;
+        crate::profile::uploaded(std::mem::size_of::<T>() as u64);
         self.device
             .create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(label),
@@ -292,6 +300,7 @@ impl Gpu {
     /// A storage buffer initialised with `data`.
     pub fn upload<T: bytemuck::Pod>(&self, label: &str, data: &[T]) -> wgpu::Buffer {
         use wgpu::util::DeviceExt;
+        crate::profile::uploaded(std::mem::size_of_val(data) as u64);
         self.device
             .create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(label),
@@ -334,7 +343,8 @@ impl Gpu {
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
         enc.copy_buffer_to_buffer(buffer, 0, &staging, 0, bytes);
-        self.queue.submit([enc.finish()]);
+        self.submit(enc);
+        crate::profile::downloaded(bytes);
         let (tx, rx) = std::sync::mpsc::channel();
         staging.map_async(wgpu::MapMode::Read, .., move |r| {
             let _ = tx.send(r);

@@ -138,7 +138,7 @@ impl FirstPass {
         let out = self
             .ridge
             .encode(gpu, &mut enc, &grid.power, &grid.offsets, preps)?;
-        gpu.queue.submit([enc.finish()]);
+        gpu.submit(enc);
         let paths: Vec<u32> = gpu.download(&out.path, out.path_len)?;
         // The scalogram is read back only when a signal asks for it.
         let power: Option<Vec<f32>> = if preps.iter().any(|p| p.keep_scalogram) {

@@ -96,7 +96,7 @@ impl ScaleStage {
                 label: Some("scales"),
             });
         let grid = self.encode(gpu, &mut enc, wavelet, runs)?;
-        gpu.queue.submit([enc.finish()]);
+        gpu.submit(enc);
         let all: Vec<f32> = gpu.download(&grid.power, grid.len)?;
         Ok(runs
             .iter()

@@ -1,0 +1,224 @@
+//! Where the time goes: CPU seconds spent in each stage of the pipeline, summed over every
+//! thread of the process (thread CPU time, so a thread waiting for a lock or for a core
+//! counts nothing), and the host↔device traffic of the GPU backend. `skelid
+//! bench` resets these, runs a batch and prints them; `skelid run` logs them at its end.
+//!
+//! Process-wide counters (relaxed atomics, a few per run) rather than values threaded
+//! through every stage's signature: a stage adds what it spent and knows nothing else.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+
+/// A stage of the pipeline, as `skelid bench` reports it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    /// Reading the input archives (the reader thread's waits on its child included).
+    Read,
+    /// The wavelet transform's first pass: every scale, noise floors, the ridge programme
+    /// (on the CPU, or one GPU submission's wall time on the dispatcher thread).
+    FirstPass,
+    /// The wavelet track after the ridge: W, W′, W″ at the ridge scales, bias correction,
+    /// envelope, frequency, phase, validity (CPU).
+    Refine,
+    /// The Hilbert track (CPU).
+    Hilbert,
+    /// ForceVib, the skeleton and the fits: identification minus its tracks.
+    ForceVibFit,
+    /// Encoding the results (compression included), on the workers.
+    Encode,
+    /// Writing the output folder (journal, results.h5, summaries, report).
+    Write,
+}
+
+/// Every stage, in report order.
+pub const STAGES: [Stage; 7] = [
+    Stage::Read,
+    Stage::FirstPass,
+    Stage::Refine,
+    Stage::Hilbert,
+    Stage::ForceVibFit,
+    Stage::Encode,
+    Stage::Write,
+];
+
+impl Stage {
+    /// Key in `skelid-bench.json`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::Read => "read",
+            Stage::FirstPass => "first_pass",
+            Stage::Refine => "refine",
+            Stage::Hilbert => "hilbert",
+            Stage::ForceVibFit => "forcevib_fit",
+            Stage::Encode => "encode",
+            Stage::Write => "write",
+        }
+    }
+}
+
+static NANOS: [AtomicU64; 7] = [const { AtomicU64::new(0) }; 7];
+
+/// GPU traffic counters.
+static SUBMISSIONS: AtomicU64 = AtomicU64::new(0);
+static SYNCS: AtomicU64 = AtomicU64::new(0);
+static BYTES_UP: AtomicU64 = AtomicU64::new(0);
+static BYTES_DOWN: AtomicU64 = AtomicU64::new(0);
+static GPU_SIGNALS: AtomicU64 = AtomicU64::new(0);
+static GPU_BATCHES: AtomicU64 = AtomicU64::new(0);
+
+/// Adds `d` to `stage`.
+pub fn add(stage: Stage, d: Duration) {
+    NANOS[stage as usize].fetch_add(d.as_nanos() as u64, Ordering::Relaxed);
+}
+
+/// Runs `f`, adding the CPU time this thread spent in it to `stage`.
+pub fn time<T>(stage: Stage, f: impl FnOnce() -> T) -> T {
+    let t0 = thread_cpu();
+    let out = f();
+    add(stage, thread_cpu().saturating_sub(t0));
+    out
+}
+
+/// Runs `f`, adding its wall time to `stage`: for work done elsewhere (the device) while
+/// this thread waits.
+pub fn time_wall<T>(stage: Stage, f: impl FnOnce() -> T) -> T {
+    let t0 = Instant::now();
+    let out = f();
+    add(stage, t0.elapsed());
+    out
+}
+
+/// CPU time of the calling thread.
+pub fn thread_cpu() -> Duration {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes one timespec, which lives on this stack frame.
+    let ok = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) } == 0;
+    if ok {
+        Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32)
+    } else {
+        Duration::ZERO
+    }
+}
+
+/// Counts one queue submission to the GPU.
+pub fn submitted() {
+    SUBMISSIONS.fetch_add(1, Ordering::Relaxed);
+}
+
+/// Counts one blocking wait of the host for the device.
+pub fn synced() {
+    SYNCS.fetch_add(1, Ordering::Relaxed);
+}
+
+/// Counts bytes copied host → device.
+pub fn uploaded(bytes: u64) {
+    BYTES_UP.fetch_add(bytes, Ordering::Relaxed);
+}
+
+/// Counts bytes copied device → host.
+pub fn downloaded(bytes: u64) {
+    BYTES_DOWN.fetch_add(bytes, Ordering::Relaxed);
+}
+
+/// Counts one GPU batch (one first pass for many signals) of `n` signals.
+pub fn gpu_batch(n: usize) {
+    GPU_BATCHES.fetch_add(1, Ordering::Relaxed);
+    GPU_SIGNALS.fetch_add(n as u64, Ordering::Relaxed);
+}
+
+/// CPU seconds per stage and the GPU traffic since the last [`reset`].
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Profile {
+    /// (stage name, CPU seconds; wall seconds for a GPU first pass), in [`STAGES`] order.
+    pub stages: Vec<(String, f64)>,
+    /// GPU traffic.
+    pub gpu: Traffic,
+}
+
+/// Host↔device traffic.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct Traffic {
+    /// Signals whose first pass ran on the GPU.
+    pub signals: u64,
+    /// GPU batches (first passes of many signals at once).
+    pub batches: u64,
+    /// Queue submissions (a batch's work, and each read-back's copy).
+    pub submissions: u64,
+    /// Blocking waits of the host for the device.
+    pub syncs: u64,
+    /// Bytes host → device.
+    pub bytes_up: u64,
+    /// Bytes device → host.
+    pub bytes_down: u64,
+}
+
+impl Traffic {
+    /// Per signal: (signals per batch, syncs, bytes up, bytes down); `None` without GPU
+    /// work.
+    pub fn per_signal(&self) -> Option<(f64, f64, f64, f64)> {
+        (self.signals > 0).then(|| {
+            let n = self.signals as f64;
+            (
+                n / self.batches.max(1) as f64,
+                self.syncs as f64 / n,
+                self.bytes_up as f64 / n,
+                self.bytes_down as f64 / n,
+            )
+        })
+    }
+}
+
+/// The counters now.
+pub fn snapshot() -> Profile {
+    Profile {
+        stages: STAGES
+            .iter()
+            .map(|&s| {
+                let ns = NANOS[s as usize].load(Ordering::Relaxed);
+                (s.name().to_string(), ns as f64 * 1e-9)
+            })
+            .collect(),
+        gpu: Traffic {
+            signals: GPU_SIGNALS.load(Ordering::Relaxed),
+            batches: GPU_BATCHES.load(Ordering::Relaxed),
+            submissions: SUBMISSIONS.load(Ordering::Relaxed),
+            syncs: SYNCS.load(Ordering::Relaxed),
+            bytes_up: BYTES_UP.load(Ordering::Relaxed),
+            bytes_down: BYTES_DOWN.load(Ordering::Relaxed),
+        },
+    }
+}
+
+/// Sets every counter to zero.
+pub fn reset() {
+    for n in &NANOS {
+        n.store(0, Ordering::Relaxed);
+    }
+    for c in [
+        &SUBMISSIONS,
+        &SYNCS,
+        &BYTES_UP,
+        &BYTES_DOWN,
+        &GPU_SIGNALS,
+        &GPU_BATCHES,
+    ] {
+        c.store(0, Ordering::Relaxed);
+    }
+}
+
+impl Profile {
+    /// One line: each stage's seconds and share.
+    pub fn line(&self) -> String {
+        let total: f64 = self.stages.iter().map(|s| s.1).sum::<f64>().max(1e-12);
+        self.stages
+            .iter()
+            .map(|(n, s)| format!("{n} {s:.2} s ({:.0} %)", 100.0 * s / total))
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+}
