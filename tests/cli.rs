@@ -509,6 +509,43 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
     assert!(g["envelope_rel"].as_f64().unwrap() <= 1e-4, "{g}");
     assert!(g["frequency_hz"].as_f64().unwrap() <= 1e-3, "{g}");
     assert!(g["mask_samples"].as_u64().unwrap() <= 21 * 8, "{g}");
+    // Where the time goes: an end-to-end batch per backend, every stage measured, and the
+    // GPU batch's structure (the targets: every waiting signal in one batch, at most
+    // 2 blocking syncs per batch, at most 16 bytes read back per sample).
+    let e = v["end_to_end"].as_array().unwrap();
+    assert_eq!(e.len(), 2);
+    for run in e {
+        let stages: Vec<(&str, f64)> = run["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|s| (s[0].as_str().unwrap(), s[1].as_f64().unwrap()))
+            .collect();
+        let names: Vec<&str> = stages.iter().map(|s| s.0).collect();
+        assert_eq!(
+            names,
+            [
+                "read",
+                "first_pass",
+                "refine",
+                "hilbert",
+                "forcevib_fit",
+                "encode",
+                "write"
+            ]
+        );
+        assert!(stages.iter().all(|s| s.1 > 0.0), "{stages:?}");
+    }
+    let t = &b[1]["traffic"];
+    let (signals, batches, syncs) = (
+        t["signals"].as_f64().unwrap(),
+        t["batches"].as_f64().unwrap(),
+        t["syncs"].as_f64().unwrap(),
+    );
+    assert_eq!(signals, 21.0, "{t}");
+    assert!(syncs <= 2.0 * batches, "{t}");
+    let samples = v["samples"].as_f64().unwrap();
+    assert!(t["bytes_down"].as_f64().unwrap() <= 16.0 * samples, "{t}");
 }
 
 #[test]
