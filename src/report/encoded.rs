@@ -9,8 +9,6 @@
 //! chunks to `H5Dwrite_chunk`, which only copies them into the file. The files are the same
 //! as before for any reader: the same chunking and the same shuffle + deflate pipeline.
 
-use std::io::Write;
-
 /// Chunk length (elements) of a compressed dataset.
 pub const CHUNK: usize = 4096;
 
@@ -181,6 +179,8 @@ pub fn compress_chunks(bytes: &[u8], elem: Elem, level: u8) -> Vec<Vec<u8>> {
     let chunk_bytes = chunk * size;
     let mut padded = vec![0u8; chunk_bytes];
     let mut shuffled = vec![0u8; chunk_bytes];
+    // One compressor for every chunk, reset between them.
+    let mut z = flate2::Compress::new(flate2::Compression::new(u32::from(level)), true);
     bytes
         .chunks(chunk_bytes)
         .map(|part| {
@@ -192,12 +192,18 @@ pub fn compress_chunks(bytes: &[u8], elem: Elem, level: u8) -> Vec<Vec<u8>> {
             } else {
                 &padded
             };
-            let mut z = flate2::write::ZlibEncoder::new(
-                Vec::with_capacity(chunk_bytes / 2),
-                flate2::Compression::new(u32::from(level)),
+            z.reset();
+            // zlib's bound for one call: the input plus a small overhead per 16 kB block.
+            let mut out = Vec::with_capacity(chunk_bytes + chunk_bytes / 1000 + 64);
+            let status = z
+                .compress_vec(input, &mut out, flate2::FlushCompress::Finish)
+                .expect("deflate into a buffer of zlib's bound cannot fail");
+            assert_eq!(
+                status,
+                flate2::Status::StreamEnd,
+                "one call compresses a chunk"
             );
-            z.write_all(input).expect("writing to a Vec cannot fail");
-            z.finish().expect("writing to a Vec cannot fail")
+            out
         })
         .collect()
 }

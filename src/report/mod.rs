@@ -337,31 +337,38 @@ impl ResultsWriter {
     }
 
     fn write_encoded_inner(&self, run: &EncodedRun, dst: &str) -> hdf5::Result<()> {
-        let root = group_path(&self.file, dst)?;
-        let at = |rel: &str| -> hdf5::Result<hdf5::Group> {
-            if rel.is_empty() {
-                Ok(root.clone())
-            } else {
-                root.group(rel)
+        // Groups by relative path, opened once: a run has about a hundred items.
+        let mut groups = std::collections::HashMap::new();
+        groups.insert(String::new(), group_path(&self.file, dst)?);
+        let at = |groups: &mut std::collections::HashMap<String, hdf5::Group>,
+                  rel: &str|
+         -> hdf5::Result<hdf5::Group> {
+            if let Some(g) = groups.get(rel) {
+                return Ok(g.clone());
             }
+            let g = groups[""].group(rel)?;
+            groups.insert(rel.to_string(), g.clone());
+            Ok(g)
         };
         for item in &run.items {
             match item {
                 Item::Group(rel) => {
                     let (parent, name) = rel.rsplit_once('/').unwrap_or(("", rel));
-                    at(parent)?.create_group(name)?;
+                    let g = at(&mut groups, parent)?.create_group(name)?;
+                    groups.insert(rel.clone(), g);
                 }
                 Item::Attr { group, name, value } => {
-                    let g = at(group)?;
+                    let g = at(&mut groups, group)?;
                     match value {
                         Scalar::F64(x) => write_f64_attr(&g, name, *x)?,
                         Scalar::Str(s) => write_str_attr(&g, name, s)?,
                     }
                 }
-                Item::Dataset(d) => write_dataset(&at(&d.group)?, d)?,
+                Item::Dataset(d) => write_dataset(&at(&mut groups, &d.group)?, d)?,
             }
         }
-        self.file.flush()
+        // No flush here: `finish` flushes once, and a file not finished is discarded.
+        Ok(())
     }
 
     /// Closes the file and renames it into place.
