@@ -252,13 +252,7 @@ impl ResultsWriter {
             detail: format!("copying {src_path} from {}: {detail}", src.display()),
         };
         let source = hdf5::File::open(src).map_err(|e| err(e.to_string()))?;
-        let (parent, name) = match dst_path.trim_end_matches('/').rsplit_once('/') {
-            Some((p, n)) if !n.is_empty() => (p, n),
-            _ => return Err(err("a run path must name a group below the root".into())),
-        };
-        let parent = group_path(&self.file, parent).map_err(|e| err(e.to_string()))?;
-        let c = |s: &str| std::ffi::CString::new(s).map_err(|e| err(e.to_string()));
-        let (src_name, dst_name) = (c(src_path)?, c(name)?);
+        let (parent, src_name, dst_name) = self.raw_target(src_path, dst_path).map_err(err)?;
         // The hdf5 crate serialises every libhdf5 call behind one lock; a raw call must
         // take the same lock.
         let status = hdf5::sync::sync(|| unsafe {
@@ -304,13 +298,7 @@ impl ResultsWriter {
             file: self.path.display().to_string(),
             detail: format!("moving {from} to {to}: {detail}"),
         };
-        let (parent, name) = match to.trim_end_matches('/').rsplit_once('/') {
-            Some((p, n)) if !n.is_empty() => (p, n),
-            _ => return Err(err("a run path must name a group below the root".into())),
-        };
-        let parent = group_path(&self.file, parent).map_err(|e| err(e.to_string()))?;
-        let c = |s: &str| std::ffi::CString::new(s).map_err(|e| err(e.to_string()));
-        let (src, dst) = (c(from)?, c(name)?);
+        let (parent, src, dst) = self.raw_target(from, to).map_err(err)?;
         // A raw call takes the hdf5 crate's lock like every other libhdf5 call.
         let status = hdf5::sync::sync(|| unsafe {
             hdf5_sys::h5l::H5Lmove(
@@ -326,6 +314,22 @@ impl ResultsWriter {
             return Err(err("H5Lmove failed".into()));
         }
         Ok(())
+    }
+
+    /// For a raw libhdf5 call that puts `src` at the group path `dst`: `dst`'s parent group
+    /// (created if need be), and `src` and `dst`'s last component as C strings.
+    fn raw_target(
+        &self,
+        src: &str,
+        dst: &str,
+    ) -> Result<(hdf5::Group, std::ffi::CString, std::ffi::CString), String> {
+        let (parent, name) = match dst.trim_end_matches('/').rsplit_once('/') {
+            Some((p, n)) if !n.is_empty() => (p, n),
+            _ => return Err("a run path must name a group below the root".into()),
+        };
+        let parent = group_path(&self.file, parent).map_err(|e| e.to_string())?;
+        let c = |s: &str| std::ffi::CString::new(s).map_err(|e| e.to_string());
+        Ok((parent, c(src)?, c(name)?))
     }
 
     /// Removes the object at `path` (a group and everything under it).
