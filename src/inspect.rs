@@ -279,18 +279,20 @@ fn probe_one(exe: &Path, path: &Path, options: &IngestOptions, timeout: Duration
     let out = out_reader.join().unwrap_or_default();
     let err = err_reader.join().unwrap_or_default();
     let Some(status) = status else {
-        return failed(
-            file,
-            format!(
-                "reading it did not finish within {} s; libhdf5 loops on some corrupt files",
-                timeout.as_secs()
-            ),
-        );
+        return failed(file, hang_detail(timeout));
     };
     if let Ok(report) = serde_json::from_slice::<ArchiveReport>(&out) {
         return report;
     }
     failed(file, crash_detail(status, &err))
+}
+
+/// Why a reading child was stopped after `timeout`.
+pub fn hang_detail(timeout: Duration) -> String {
+    format!(
+        "reading it did not finish within {} s; libhdf5 loops on some corrupt files",
+        timeout.as_secs()
+    )
 }
 
 /// What a reading child's end says: how it ended (exit status or signal) and the end of

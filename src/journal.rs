@@ -114,6 +114,11 @@ impl Prepared {
         &self.source
     }
 
+    /// The run's results, encoded.
+    pub fn encoded(&self) -> &EncodedRun {
+        &self.encoded
+    }
+
     /// Encodes `outcome` and computes its summary rows.
     pub fn new(outcome: &RunOutcome) -> Prepared {
         Prepared {
@@ -170,28 +175,10 @@ impl Journal {
         })
     }
 
-    /// Commits one finished run under `key`: written to a temporary file, then renamed.
-    pub fn commit(&self, key: &str, outcome: &RunOutcome) -> Result<Entry, ReportError> {
-        self.commit_prepared(key, Prepared::new(outcome))
-    }
-
-    /// Commits a run prepared by [`Prepared::new`] (on any thread): only the HDF5 writing
-    /// is left, under libhdf5's lock.
-    pub fn commit_prepared(&self, key: &str, run: Prepared) -> Result<Entry, ReportError> {
-        self.commit_into(key, run, None)
-    }
-
-    /// [`commit_prepared`](Self::commit_prepared), also writing the run into `results`
-    /// under `dst` (the batch's results.h5, built as the runs finish).
-    pub fn commit_into(
-        &self,
-        key: &str,
-        run: Prepared,
-        results: Option<(&ResultsWriter, &str)>,
-    ) -> Result<Entry, ReportError> {
-        if let Some((w, dst)) = results {
-            w.write_encoded_as(&run.encoded, dst)?;
-        }
+    /// Commits a run prepared by [`Prepared::new`] (on any thread) under `key`: written to
+    /// a temporary file, then renamed. Only the HDF5 writing is left here, under libhdf5's
+    /// lock.
+    pub fn commit(&self, key: &str, run: Prepared) -> Result<Entry, ReportError> {
         let w = ResultsWriter::create_at(&self.file(key))?;
         w.write_encoded(&run.encoded)?;
         let summary = serde_json::to_string(&run.rows).map_err(|e| ReportError {

@@ -4,10 +4,12 @@
 //! the same command run again skips what is committed. `--shard K/N` takes a stable share
 //! of the runs; [`merge`] joins the shards' folders.
 //!
-//! libhdf5 is not thread-safe: the hdf5 crate serialises every call behind one global lock,
-//! so reads and journal writes from the rayon workers queue there while the transforms and
-//! fits of other runs proceed in parallel. Memory: a worker holds one run (its samples and
-//! tracks) at a time, so peak memory is about `threads × one run`, not the campaign size.
+//! libhdf5 is not thread-safe: the hdf5 crate serialises every call behind one global lock.
+//! So only one reader ([`reader`]) and one writer touch HDF5, and the workers do all the
+//! CPU work in between, the compression of the results included (see [`run_campaigns`]).
+//! Memory: a worker holds one run (its samples and tracks) at a time, and the queues hold
+//! one run per worker each, so peak memory is about `3 × jobs × one run`, not the
+//! campaign size.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -97,8 +99,8 @@ impl std::fmt::Display for Shard {
 pub enum Isolation<'a> {
     /// Read in this process (trusted files, tests).
     None,
-    /// First probe every archive in a child process of this executable, so that a file
-    /// on which libhdf5 crashes or hangs is reported failed instead of ending the batch.
+    /// Read the archives in a child process of this executable ([`reader`]), so that a
+    /// file on which libhdf5 crashes or hangs is reported failed instead of ending the batch.
     Child {
         /// The skelid executable.
         exe: &'a Path,
@@ -252,14 +254,12 @@ pub fn run_campaigns(
         opt.shard.map_or(String::new(), |s| format!(", shard {s}")),
         if opt.force { ", --force" } else { "" }
     ));
-    let jobs = opt
-        .jobs
-        .or(opt
-            .backend
-            .is_gpu()
-            .then(|| GPU_JOBS.max(std::thread::available_parallelism().map_or(1, |n| n.get()))))
-        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
-        .max(1);
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let jobs = match opt.jobs {
+        Some(n) => n.max(1),
+        None if opt.backend.is_gpu() => GPU_JOBS.max(cores),
+        None => cores,
+    };
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(jobs)
         .build()
@@ -285,20 +285,16 @@ pub fn run_campaigns(
         });
         let writer =
             scope.spawn(|| write_finished(&journal, &results, done_rx, log, counts, progress));
-        let work = pool.install(|| {
-            work_rx
-                .into_iter()
-                .par_bridge()
-                .try_for_each(|d| -> Result<(), ()> {
-                    let f = prepare(d, &journal, &settings, opt);
-                    done_tx.send(f).map_err(|_| ())
-                })
+        // A failed send means the writer stopped on an error, which it returns; the
+        // workers then stop, and the reader with them.
+        let _ = pool.install(|| {
+            work_rx.into_iter().par_bridge().try_for_each(|d| {
+                let finished = prepare(d, &journal, &settings, opt);
+                done_tx.send(finished).map_err(|_| ())
+            })
         });
         drop(done_tx);
-        let written = writer.join().expect("the writer does not panic");
-        // A failed send means the writer stopped on an error, which `written` carries.
-        let _ = work;
-        written
+        writer.join().expect("the writer does not panic")
     })?;
     let Written {
         mut entries,
@@ -366,30 +362,38 @@ fn prepare(
         }
     }
     let outcome = match outcome {
-        Err(o) => o,
-        Ok((source, path, run)) => {
-            let mut outcome = RunOutcome::new(path, source);
-            match run {
-                Err(e) => outcome.error = Some(e),
-                Ok(run) => {
-                    outcome.sample_rate = Some(run.meta.sample_rate);
-                    outcome.samples = run.output.len();
-                    outcome.inertia = run.meta.inertia;
-                    for &m in &opt.methods {
-                        let t0 = Instant::now();
-                        outcome.methods.push((
-                            m,
-                            identify_guarded(&run, m, &opt.identify, opt.backend),
-                            t0.elapsed().as_secs_f64(),
-                        ));
-                    }
-                }
-            }
-            outcome
-        }
+        Err(recorded) => recorded,
+        Ok((source, path, run)) => identify_run(source, path, run, opt),
     };
     let prepared = profile::time(Stage::Encode, || Prepared::new(&outcome));
     Finished::Commit(key, prepared)
+}
+
+/// Every method of `opt` on one run as read (or its read error), timed.
+fn identify_run(
+    source: String,
+    path: String,
+    run: Result<crate::ingest::Run, String>,
+    opt: &BatchOptions<'_>,
+) -> RunOutcome {
+    let mut outcome = RunOutcome::new(path, source);
+    match run {
+        Err(e) => outcome.error = Some(e),
+        Ok(run) => {
+            outcome.sample_rate = Some(run.meta.sample_rate);
+            outcome.samples = run.output.len();
+            outcome.inertia = run.meta.inertia;
+            for &m in &opt.methods {
+                let t0 = Instant::now();
+                outcome.methods.push((
+                    m,
+                    identify_guarded(&run, m, &opt.identify, opt.backend),
+                    t0.elapsed().as_secs_f64(),
+                ));
+            }
+        }
+    }
+    outcome
 }
 
 /// The writer: commits each finished run, logs it and reports progress. Returns the
@@ -423,7 +427,8 @@ fn write_finished(
                 (e, true)
             }
             Finished::Commit(key, p) => {
-                (journal.commit_into(&key, p, Some((results, &dst)))?, false)
+                results.write_encoded_as(p.encoded(), &dst)?;
+                (journal.commit(&key, p)?, false)
             }
         };
         profile::add(Stage::Write, profile::thread_cpu().saturating_sub(t0));

@@ -26,7 +26,7 @@ use serde::{Deserialize, Serialize};
 
 use super::Shard;
 use crate::ingest::{Archive, IngestOptions, Run, RunMeta};
-use crate::inspect::{crash_detail, option_args};
+use crate::inspect::{crash_detail, hang_detail, option_args};
 use crate::profile::Stage;
 
 /// Hidden subcommand of the isolated reader (`skelid __read-archives [ingest options]
@@ -36,12 +36,10 @@ pub const READ_SUBCOMMAND: &str = "__read-archives";
 /// One message of the reader's stream.
 #[derive(Debug, Serialize, Deserialize)]
 pub enum Frame {
-    /// The archive (index into the list given) is open and lists `runs` runs.
+    /// The archive (index into the list given) is open; its runs follow.
     Open {
         /// Archive index.
         archive: usize,
-        /// Runs listed, all shards.
-        runs: usize,
     },
     /// One run of this shard; samples follow when `meta` is `Ok`.
     Run {
@@ -145,19 +143,13 @@ pub fn read_all(
                 }
                 ChildEnd::Died { done, detail } => {
                     next += done;
-                    counts.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
-                    counts.delivered.fetch_add(1, Ordering::Relaxed);
-                    counts.archives_left.fetch_sub(1, Ordering::Relaxed);
                     let file = &files[next];
                     let e = crate::ingest::IngestError::Corrupt {
                         file: file.display().to_string(),
                         run: None,
                         detail,
                     };
-                    deliver(Delivery::Unreadable {
-                        file: file.clone(),
-                        error: e.to_string(),
-                    })?;
+                    deliver(unreadable(counts, file, e.to_string()))?;
                     next += 1;
                 }
             }
@@ -243,17 +235,27 @@ impl<'a> Assembler<'a> {
             }
             Frame::Close { archive, error } => {
                 self.done = archive + 1;
-                c.archives_left.fetch_sub(1, Ordering::Relaxed);
-                error.map(|error| {
-                    c.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
-                    c.delivered.fetch_add(1, Ordering::Relaxed);
-                    Delivery::Unreadable {
-                        file: self.files[archive].clone(),
-                        error,
+                match error {
+                    Some(error) => Some(unreadable(c, &self.files[archive], error)),
+                    None => {
+                        c.archives_left.fetch_sub(1, Ordering::Relaxed);
+                        None
                     }
-                })
+                }
             }
         }
+    }
+}
+
+/// The delivery of an archive that could not be read (to the end), counted: it stands for
+/// one run of the inputs and is done with.
+fn unreadable(counts: &Counts, file: &Path, error: String) -> Delivery {
+    counts.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
+    counts.delivered.fetch_add(1, Ordering::Relaxed);
+    counts.archives_left.fetch_sub(1, Ordering::Relaxed);
+    Delivery::Unreadable {
+        file: file.to_path_buf(),
+        error,
     }
 }
 
@@ -279,11 +281,7 @@ pub fn serve(
                 continue;
             }
         };
-        let open = Frame::Open {
-            archive: i,
-            runs: archive.runs.len(),
-        };
-        if !emit(open, None) {
+        if !emit(Frame::Open { archive: i }, None) {
             return;
         }
         for entry in &archive.runs {
@@ -557,10 +555,7 @@ fn read_in_child(
         return Ok(ChildEnd::Finished);
     }
     let detail = if timed_out {
-        format!(
-            "reading it did not finish within {} s; libhdf5 loops on some corrupt files",
-            timeout.as_secs()
-        )
+        hang_detail(timeout)
     } else {
         match status {
             Ok(s) => crash_detail(s, &err),

@@ -271,13 +271,9 @@ impl ResultsWriter {
         Ok(())
     }
 
-    /// Adds one run (failed runs included, with their error).
-    pub fn write_run(&self, run: &RunOutcome) -> Result<(), ReportError> {
-        self.write_encoded(&encode_run(run))
-    }
-
-    /// Adds one run encoded by [`encode_run`] (possibly on another thread): groups and
-    /// attributes through the hdf5 crate, compressed chunks straight into the file.
+    /// Adds one run (failed runs included, with their error) encoded by [`encode_run`]
+    /// (possibly on another thread): groups and attributes through the hdf5 crate,
+    /// compressed chunks straight into the file.
     pub fn write_encoded(&self, run: &EncodedRun) -> Result<(), ReportError> {
         self.write_encoded_as(run, &run.path)
     }
@@ -495,26 +491,24 @@ fn encode_identification(e: &mut EncodedRun, m: &str, id: &Identification, inert
 /// created with the same chunking and filters the chunks were encoded for, then each chunk
 /// handed to libhdf5 as it is (`H5Dwrite_chunk`, no filtering under the lock).
 fn write_dataset(g: &hdf5::Group, d: &encoded::Dataset) -> hdf5::Result<()> {
-    let chunks = match &d.storage {
+    let (level, chunks) = match &d.storage {
         Storage::Plain(v) => {
             g.new_dataset_builder()
                 .with_data(v)
                 .create(d.name.as_str())?;
             return Ok(());
         }
-        Storage::Chunked { level, chunks } => {
-            let b = match d.elem {
-                Elem::F64 => g.new_dataset::<f64>(),
-                Elem::U8 => g.new_dataset::<u8>(),
-            }
-            .shape(d.len)
-            .chunk(encoded::chunk_len(d.len));
-            let b = if d.elem == Elem::U8 { b } else { b.shuffle() };
-            let ds = b.deflate(*level).create(d.name.as_str())?;
-            (ds, chunks)
-        }
+        Storage::Chunked { level, chunks } => (*level, chunks),
     };
-    let (ds, chunks) = chunks;
+    let b = match d.elem {
+        Elem::F64 => g.new_dataset::<f64>(),
+        Elem::U8 => g.new_dataset::<u8>(),
+    }
+    .shape(d.len)
+    .chunk(encoded::chunk_len(d.len));
+    // The chunks were shuffled exactly when the element is wider than a byte.
+    let b = if d.elem == Elem::U8 { b } else { b.shuffle() };
+    let ds = b.deflate(level).create(d.name.as_str())?;
     let step = encoded::chunk_len(d.len) as u64;
     for (i, c) in chunks.iter().enumerate() {
         let offset = [i as u64 * step];
