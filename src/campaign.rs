@@ -166,12 +166,14 @@ pub fn write_signal(
     data: &[f64],
     compress: bool,
 ) -> hdf5::Result<()> {
+    use crate::report::encoded::{chunk_len, MIN_COMPRESSED, SIGNAL_LEVEL};
     let builder = group.new_dataset_builder().with_data(data);
-    if compress && data.len() >= 64 {
+    // The same layout as the batch's pre-compressed results (report::encoded).
+    if compress && data.len() >= MIN_COMPRESSED {
         builder
-            .chunk(data.len().min(4096))
+            .chunk(chunk_len(data.len()))
             .shuffle()
-            .deflate(1)
+            .deflate(SIGNAL_LEVEL)
             .create(name)?;
     } else {
         builder.create(name)?;

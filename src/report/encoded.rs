@@ -12,6 +12,12 @@
 /// Chunk length (elements) of a compressed dataset.
 pub const CHUNK: usize = 4096;
 
+/// Signals shorter than this are stored contiguous even when compression is asked for.
+pub const MIN_COMPRESSED: usize = 64;
+
+/// Deflate level of compressed float signals (fast; the shuffle does most of the work).
+pub const SIGNAL_LEVEL: u8 = 1;
+
 /// An attribute's value.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Scalar {
@@ -129,13 +135,14 @@ impl EncodedRun {
         });
     }
 
-    /// Adds a float64 vector: chunked, shuffled and deflated (level 1) when `compress` and
-    /// long enough to be worth it, contiguous otherwise — as `campaign::write_signal` does.
+    /// Adds a float64 vector: chunked, shuffled and deflated when `compress` and long
+    /// enough to be worth it, contiguous otherwise — the layout `campaign::write_signal`
+    /// gives through libhdf5.
     pub fn signal(&mut self, group: &str, name: &str, data: &[f64], compress: bool) {
-        let storage = if compress && data.len() >= 64 {
+        let storage = if compress && data.len() >= MIN_COMPRESSED {
             Storage::Chunked {
-                level: 1,
-                chunks: compress_chunks(bytemuck::cast_slice(data), Elem::F64, 1),
+                level: SIGNAL_LEVEL,
+                chunks: compress_chunks(bytemuck::cast_slice(data), Elem::F64, SIGNAL_LEVEL),
             }
         } else {
             Storage::Plain(data.to_vec())
