@@ -491,6 +491,17 @@ impl WaveletPrep {
         opt: &WaveletOptions,
         guide: Option<&[f64]>,
     ) -> Result<WaveletPrep, TrackError> {
+        crate::profile::time(crate::profile::Stage::FirstPass, || {
+            Self::prepare(x, fs, opt, guide)
+        })
+    }
+
+    fn prepare(
+        x: &[f64],
+        fs: f64,
+        opt: &WaveletOptions,
+        guide: Option<&[f64]>,
+    ) -> Result<WaveletPrep, TrackError> {
         check_signal(x, fs)?;
         let wl = opt.wavelet;
         wl.validate().map_err(TrackError::BadOption)?;
