@@ -1,8 +1,14 @@
-//! The batch's crash-safe record: every finished run is committed as its own small HDF5
-//! file `<out>/runs/<key>.h5` (written beside, then renamed, so a run is either wholly
-//! there or absent), keyed by a hash of the run's content and the settings. A rerun skips
-//! the keys it finds; `results.h5` is assembled from these files and renamed into place, so
-//! it is never seen half-written either.
+//! The batch's crash-safe record: every finished run is committed as its own file
+//! `<out>/runs/<key>.run` (written beside, then renamed, so a run is either wholly there or
+//! absent), keyed by a hash of the run's content and the settings. A rerun skips the keys it
+//! finds; `results.h5` is written from the same encoded runs and renamed into place, so it
+//! is never seen half-written either.
+//!
+//! Why not HDF5: libhdf5 runs under one process-wide lock, and committing each run to its
+//! own HDF5 file was half of the batch's one writer thread, which no number of cores
+//! speeds up. A `.run` file is the run's encoded results (the very chunks results.h5
+//! receives) behind a small JSON head and a checksum, written by the worker that finished
+//! the run. `<key>.h5` files of earlier versions are still read.
 
 use std::path::{Path, PathBuf};
 
@@ -136,6 +142,27 @@ pub struct Journal {
     dir: PathBuf,
 }
 
+/// First bytes of a journal file (`runs/<key>.run`): what it is and its layout's version.
+const MAGIC: &[u8; 17] = b"skelid-journal/1\n";
+
+/// The head of a journal file: who the run is and its summary rows (JSON, so that the
+/// rows' optional fields need no fixed layout).
+#[derive(serde::Serialize, serde::Deserialize)]
+struct Head {
+    run: String,
+    run_source: String,
+    failed: bool,
+    summary: String,
+}
+
+/// A committed run's results as the journal holds them.
+pub enum Stored {
+    /// Encoded by this version: written into results.h5 chunk by chunk.
+    Encoded(EncodedRun),
+    /// A `<key>.h5` file from a version before the `.run` files: copied group by group.
+    Legacy(PathBuf),
+}
+
 impl Journal {
     /// Opens (creating) `<out>/runs`.
     pub fn open(out: &Path) -> Result<Journal, ReportError> {
@@ -147,70 +174,237 @@ impl Journal {
         Ok(Journal { dir })
     }
 
-    /// The file of a key.
+    /// The file of a key: `<key>.run`, or the `<key>.h5` an earlier version committed when
+    /// only that one exists.
     pub fn file(&self, key: &str) -> PathBuf {
+        let run = self.dir.join(format!("{key}.run"));
+        let legacy = self.legacy_file(key);
+        if !run.exists() && legacy.exists() {
+            legacy
+        } else {
+            run
+        }
+    }
+
+    fn legacy_file(&self, key: &str) -> PathBuf {
         self.dir.join(format!("{key}.h5"))
     }
 
     /// The committed entry of `key`, if any. A file that cannot be read (it cannot be
-    /// half-written, but it can be damaged by hand) counts as absent and is redone.
+    /// half-written, but it can be damaged by hand: every file carries a checksum) counts
+    /// as absent and is redone.
     pub fn lookup(&self, key: &str) -> Option<Entry> {
-        let f = self.file(key);
-        if !f.exists() {
-            return None;
+        self.load(key).map(|(e, _)| e)
+    }
+
+    /// The committed entry of `key` and its results, if any (see [`lookup`](Self::lookup)).
+    pub fn load(&self, key: &str) -> Option<(Entry, Stored)> {
+        let f = self.dir.join(format!("{key}.run"));
+        match std::fs::read(&f) {
+            Ok(bytes) => {
+                let (head, run) = decode(&bytes)?;
+                let entry = Entry {
+                    key: key.to_string(),
+                    rows: serde_json::from_str(&head.summary).ok()?,
+                    path: head.run,
+                    source: head.run_source,
+                    failed: head.failed,
+                };
+                Some((entry, Stored::Encoded(run)))
+            }
+            Err(_) => {
+                let legacy = self.legacy_file(key);
+                let entry = lookup_legacy(&legacy, key)?;
+                Some((entry, Stored::Legacy(legacy)))
+            }
         }
-        let file = hdf5::File::open(&f).ok()?;
-        let text = |name: &str| -> Option<String> {
-            let a = file.attr(name).ok()?;
-            let s: hdf5::types::VarLenUnicode = a.read_scalar().ok()?;
-            Some(s.as_str().to_string())
+    }
+
+    /// Commits a run prepared by [`Prepared::new`] under `key`, on any thread: no libhdf5
+    /// call (the batch's workers commit in parallel), written beside and renamed, so the
+    /// file is whole or absent. Gives the entry back with the prepared run, which the
+    /// writer then puts into results.h5.
+    pub fn commit(&self, key: &str, run: Prepared) -> Result<(Entry, Prepared), ReportError> {
+        let f = self.dir.join(format!("{key}.run"));
+        let err = |detail: String| ReportError {
+            file: f.display().to_string(),
+            detail,
         };
-        let rows: Vec<SummaryRow> = serde_json::from_str(&text("summary")?).ok()?;
-        Some(Entry {
-            key: key.to_string(),
-            path: text("run")?,
-            source: text("run_source")?,
-            failed: text("run_status")? == "failed",
-            rows,
-        })
-    }
-
-    /// Commits a run prepared by [`Prepared::new`] (on any thread) under `key`: written to
-    /// a temporary file, then renamed. Only the HDF5 writing is left here, under libhdf5's
-    /// lock.
-    pub fn commit(&self, key: &str, run: Prepared) -> Result<Entry, ReportError> {
-        let w = ResultsWriter::create_at(&self.file(key))?;
-        w.write_encoded(&run.encoded)?;
-        let summary = serde_json::to_string(&run.rows).map_err(|e| ReportError {
-            file: self.file(key).display().to_string(),
-            detail: e.to_string(),
-        })?;
-        for (name, value) in [
-            ("run", run.path.as_str()),
-            ("run_source", run.source.as_str()),
-            ("run_status", if run.failed { "failed" } else { "ok" }),
-            ("summary", summary.as_str()),
-        ] {
-            w.set_root_attr(name, value)?;
-        }
-        w.finish()?;
-        Ok(Entry {
-            key: key.to_string(),
-            path: run.path,
-            source: run.source,
+        let head = Head {
+            run: run.path.clone(),
+            run_source: run.source.clone(),
             failed: run.failed,
-            rows: run.rows,
-        })
+            summary: serde_json::to_string(&run.rows).map_err(|e| err(e.to_string()))?,
+        };
+        let bytes = encode(&head, &run.encoded).map_err(err)?;
+        crate::report::write_atomic(&f, &bytes)?;
+        let entry = Entry {
+            key: key.to_string(),
+            path: run.path.clone(),
+            source: run.source.clone(),
+            failed: run.failed,
+            rows: run.rows.clone(),
+        };
+        Ok((entry, run))
     }
 
-    /// Writes `<out>/results.h5` holding the runs of `entries` (copied from their files),
-    /// through a temporary file renamed into place. Two runs with the same path from
-    /// different archives: the second goes to `PATH@ARCHIVE`.
+    /// Writes `<out>/results.h5` holding the runs of `entries` (from their files), through
+    /// a temporary file renamed into place. Two runs with the same path from different
+    /// archives: the second goes to `PATH@ARCHIVE`.
     pub fn assemble(&self, out: &Path, entries: &[Entry]) -> Result<PathBuf, ReportError> {
         let w = ResultsWriter::create(out)?;
         for (e, dst) in entries.iter().zip(placements(entries)) {
-            w.copy_run_from(&self.file(&e.key), &e.path, &dst)?;
+            match self.load(&e.key) {
+                Some((_, Stored::Encoded(run))) => w.write_encoded_as(&run, &dst)?,
+                Some((_, Stored::Legacy(f))) => w.copy_run_from(&f, &e.path, &dst)?,
+                None => {
+                    return Err(ReportError {
+                        file: self.file(&e.key).display().to_string(),
+                        detail: "the committed run is missing or damaged: run the batch \
+                                 again to redo it"
+                            .into(),
+                    })
+                }
+            }
         }
         w.finish()
+    }
+}
+
+/// A journal file's bytes: [`MAGIC`], the head's length (u32 LE) and JSON, the encoded run
+/// (postcard), then the BLAKE3 hash of everything before it.
+fn encode(head: &Head, run: &EncodedRun) -> Result<Vec<u8>, String> {
+    let head = serde_json::to_vec(head).map_err(|e| e.to_string())?;
+    let mut out = MAGIC.to_vec();
+    out.extend_from_slice(&(head.len() as u32).to_le_bytes());
+    out.extend_from_slice(&head);
+    let out = postcard::to_extend(run, out).map_err(|e| e.to_string())?;
+    let mut out = out;
+    let hash = blake3::hash(&out);
+    out.extend_from_slice(hash.as_bytes());
+    Ok(out)
+}
+
+/// The head and run of a journal file, or `None` when it is not one or is damaged.
+fn decode(bytes: &[u8]) -> Option<(Head, EncodedRun)> {
+    let (body, hash) = bytes.split_at_checked(bytes.len().checked_sub(32)?)?;
+    if blake3::hash(body).as_bytes() != hash {
+        return None;
+    }
+    let rest = body.strip_prefix(MAGIC.as_slice())?;
+    let (len, rest) = rest.split_at_checked(4)?;
+    let len = u32::from_le_bytes(len.try_into().ok()?) as usize;
+    let (head, rest) = rest.split_at_checked(len)?;
+    let head: Head = serde_json::from_slice(head).ok()?;
+    let run: EncodedRun = postcard::from_bytes(rest).ok()?;
+    Some((head, run))
+}
+
+/// The entry of a `<key>.h5` journal file written before the `.run` files.
+fn lookup_legacy(f: &Path, key: &str) -> Option<Entry> {
+    if !f.exists() {
+        return None;
+    }
+    let file = hdf5::File::open(f).ok()?;
+    let text = |name: &str| -> Option<String> {
+        let a = file.attr(name).ok()?;
+        let s: hdf5::types::VarLenUnicode = a.read_scalar().ok()?;
+        Some(s.as_str().to_string())
+    };
+    let rows: Vec<SummaryRow> = serde_json::from_str(&text("summary")?).ok()?;
+    Some(Entry {
+        key: key.to_string(),
+        path: text("run")?,
+        source: text("run_source")?,
+        failed: text("run_status")? == "failed",
+        rows,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn prepared(path: &str) -> Prepared {
+        let mut run = EncodedRun::new(path);
+        run.str_attr("", "status", "ok");
+        run.f64_attr("", "sample_rate", 1000.0);
+        run.group("wavelet");
+        let x: Vec<f64> = (0..10_000).map(|i| (i as f64 * 0.01).sin()).collect();
+        run.signal("", "time", &x, true);
+        run.signal("wavelet", "short", &x[..10], true);
+        run.bytes("wavelet", "valid", &vec![1u8; 10_000], 4);
+        let mut outcome = RunOutcome::new(path.into(), "bench.h5".into());
+        outcome.error = Some("no output".into());
+        Prepared {
+            encoded: run,
+            rows: summary_rows(&outcome),
+            path: path.into(),
+            source: "bench.h5".into(),
+            failed: false,
+        }
+    }
+
+    #[test]
+    fn a_committed_run_loads_back_exactly_and_a_damaged_one_is_absent() {
+        let dir = tempfile::tempdir().unwrap();
+        let journal = Journal::open(dir.path()).unwrap();
+        let run = prepared("/runs/r1");
+        let want = run.encoded.clone();
+        let (entry, _) = journal.commit("k1", run).unwrap();
+        assert!(journal.file("k1").ends_with("runs/k1.run"));
+        let (loaded, stored) = journal.load("k1").expect("committed");
+        assert_eq!(
+            (loaded.path.as_str(), loaded.source.as_str()),
+            ("/runs/r1", "bench.h5")
+        );
+        assert_eq!(loaded.rows.len(), entry.rows.len());
+        assert_eq!(loaded.rows[0].error, entry.rows[0].error);
+        match stored {
+            Stored::Encoded(run) => assert_eq!(run, want),
+            Stored::Legacy(_) => panic!("a .run file is not legacy"),
+        }
+        // One flipped bit anywhere, or a truncation, and the run is redone.
+        let f = journal.file("k1");
+        let bytes = std::fs::read(&f).unwrap();
+        for at in [0, 20, bytes.len() / 2, bytes.len() - 1] {
+            let mut bad = bytes.clone();
+            bad[at] ^= 1;
+            std::fs::write(&f, &bad).unwrap();
+            assert!(journal.lookup("k1").is_none(), "bit flipped at {at}");
+        }
+        std::fs::write(&f, &bytes[..bytes.len() - 5]).unwrap();
+        assert!(journal.lookup("k1").is_none());
+        assert!(journal.lookup("absent").is_none());
+    }
+
+    #[test]
+    fn an_hdf5_journal_file_of_an_earlier_version_is_still_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let journal = Journal::open(dir.path()).unwrap();
+        let run = prepared("/runs/old");
+        // What commit wrote before the .run files.
+        let w = ResultsWriter::create_at(&dir.path().join(RUNS_DIR).join("k2.h5")).unwrap();
+        w.write_encoded(&run.encoded).unwrap();
+        let summary = serde_json::to_string(&run.rows).unwrap();
+        for (name, value) in [
+            ("run", "/runs/old"),
+            ("run_source", "bench.h5"),
+            ("run_status", "ok"),
+            ("summary", summary.as_str()),
+        ] {
+            w.set_root_attr(name, value).unwrap();
+        }
+        w.finish().unwrap();
+        assert!(journal.file("k2").ends_with("runs/k2.h5"));
+        let (entry, stored) = journal.load("k2").expect("legacy file found");
+        assert_eq!(entry.path, "/runs/old");
+        assert!(matches!(stored, Stored::Legacy(_)));
+        // And results.h5 assembled from it holds the run.
+        let out = journal.assemble(dir.path(), &[entry]).unwrap();
+        let f = hdf5::File::open(out).unwrap();
+        let time: Vec<f64> = f.dataset("/runs/old/time").unwrap().read_raw().unwrap();
+        assert_eq!(time.len(), 10_000);
+        assert_eq!(time[100], (100.0f64 * 0.01).sin());
     }
 }

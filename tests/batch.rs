@@ -160,7 +160,7 @@ fn killed_batches_resume_to_the_uninterrupted_result() {
             .map(|d| {
                 d.filter(|e| {
                     e.as_ref()
-                        .is_ok_and(|e| e.path().extension().is_some_and(|x| x == "h5"))
+                        .is_ok_and(|e| e.path().extension().is_some_and(|x| x == "run"))
                 })
                 .count()
             })

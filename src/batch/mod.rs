@@ -24,7 +24,8 @@ use crate::backend::Backend;
 use crate::identify::{identify_on, IdentifyOptions};
 use crate::ingest::IngestOptions;
 use crate::journal::{
-    failed_key, placements, run_key, settings_fingerprint, Entry, Journal, Prepared, RUNS_DIR,
+    failed_key, placements, run_key, settings_fingerprint, Entry, Journal, Prepared, Stored,
+    RUNS_DIR,
 };
 use crate::profile::{self, Stage};
 use crate::report::{html, write_summary, ReportError, ResultsWriter, RunOutcome, SummaryRow};
@@ -223,10 +224,12 @@ pub const MANIFEST: &str = "manifest.json";
 
 /// What the workers hand the writer.
 enum Finished {
-    /// A run found committed by an earlier invocation.
-    Skipped(Entry),
-    /// A run to commit under its key.
-    Commit(String, Prepared),
+    /// A run found committed by an earlier invocation, with its stored results.
+    Skipped(Entry, Stored),
+    /// A run identified and committed to the journal now.
+    Committed(Entry, Prepared),
+    /// A run identified now whose journal file could not be written.
+    Failed(ReportError),
 }
 
 /// Identifies every run of `files` (this shard's share), skipping runs committed by an
@@ -283,8 +286,7 @@ pub fn run_campaigns(
                 work_tx.send(d).map_err(|_| reader::Stopped)
             })
         });
-        let writer =
-            scope.spawn(|| write_finished(&journal, &results, done_rx, log, counts, progress));
+        let writer = scope.spawn(|| write_finished(&results, done_rx, log, counts, progress));
         // A failed send means the writer stopped on an error, which it returns; the
         // workers then stop, and the reader with them.
         let _ = pool.install(|| {
@@ -310,7 +312,7 @@ pub fn run_campaigns(
     place_runs(&results, &entries, &written_at)?;
     let results = results.finish()?;
     let manifest = Manifest::new(settings, opt.shard, runs_in_inputs, &mut entries);
-    let (rows, failed_runs) = write_outputs(&journal, out, &entries, &manifest, opt.report_runs)?;
+    let (rows, failed_runs) = write_outputs(&results, out, &entries, &manifest, opt.report_runs)?;
     profile::add(Stage::Write, profile::thread_cpu().saturating_sub(cpu0));
     log.line(&format!(
         "where the time went (CPU seconds since the process started): {}",
@@ -357,8 +359,8 @@ fn prepare(
         }
     };
     if !opt.force {
-        if let Some(e) = journal.lookup(&key) {
-            return Finished::Skipped(e);
+        if let Some((e, stored)) = journal.load(&key) {
+            return Finished::Skipped(e, stored);
         }
     }
     let outcome = match outcome {
@@ -366,7 +368,10 @@ fn prepare(
         Ok((source, path, run)) => identify_run(source, path, run, opt),
     };
     let prepared = profile::time(Stage::Encode, || Prepared::new(&outcome));
-    Finished::Commit(key, prepared)
+    match profile::time(Stage::Write, || journal.commit(&key, prepared)) {
+        Ok((entry, prepared)) => Finished::Committed(entry, prepared),
+        Err(e) => Finished::Failed(e),
+    }
 }
 
 /// Every method of `opt` on one run as read (or its read error), timed.
@@ -399,7 +404,6 @@ fn identify_run(
 /// The writer: commits each finished run, logs it and reports progress. Returns the
 /// entries, the skipped and failed counts and the log; stops at the first write error.
 fn write_finished(
-    journal: &Journal,
     results: &ResultsWriter,
     done: std::sync::mpsc::Receiver<Finished>,
     mut log: Log,
@@ -411,9 +415,11 @@ fn write_finished(
     for f in done {
         // Finishing order is not the final order: a path already used (the same path in
         // two archives) goes aside now and is put in its place at the end.
-        let (path, source) = match &f {
-            Finished::Skipped(e) => (e.path.clone(), e.source.clone()),
-            Finished::Commit(_, p) => (p.path().to_string(), p.source().to_string()),
+        let (path, source) = match f {
+            Finished::Skipped(ref e, _) | Finished::Committed(ref e, _) => {
+                (e.path.clone(), e.source.clone())
+            }
+            Finished::Failed(e) => return Err(e.into()),
         };
         let dst = if used.insert(path.clone()) {
             path
@@ -422,14 +428,19 @@ fn write_finished(
         };
         let t0 = profile::thread_cpu();
         let (e, was_skipped) = match f {
-            Finished::Skipped(e) => {
-                results.copy_run_from(&journal.file(&e.key), &e.path, &dst)?;
+            Finished::Skipped(e, Stored::Encoded(run)) => {
+                results.write_encoded_as(&run, &dst)?;
                 (e, true)
             }
-            Finished::Commit(key, p) => {
-                results.write_encoded_as(p.encoded(), &dst)?;
-                (journal.commit(&key, p)?, false)
+            Finished::Skipped(e, Stored::Legacy(file)) => {
+                results.copy_run_from(&file, &e.path, &dst)?;
+                (e, true)
             }
+            Finished::Committed(e, p) => {
+                results.write_encoded_as(p.encoded(), &dst)?;
+                (e, false)
+            }
+            Finished::Failed(_) => unreachable!("returned above"),
         };
         profile::add(Stage::Write, profile::thread_cpu().saturating_sub(t0));
         log.line(&format!(
@@ -529,7 +540,7 @@ pub fn guarded<T>(f: impl FnOnce() -> Result<T, String>) -> Result<T, String> {
 /// The summaries, report.html (the first `report_runs` runs drawn) and the manifest of a
 /// folder's entries (results.h5 is written by then).
 fn write_outputs(
-    journal: &Journal,
+    results: &Path,
     out: &Path,
     entries: &[Entry],
     manifest: &Manifest,
@@ -545,9 +556,9 @@ fn write_outputs(
             title: &title.display().to_string(),
             settings: &manifest.settings,
             rows: &rows,
-            runs: entries[..drawn]
+            runs: placements(&entries[..drawn])
                 .iter()
-                .map(|e| html::read_run(&journal.file(&e.key), &e.path))
+                .map(|group| html::read_run(results, group))
                 .collect(),
             omitted: entries.len() - drawn,
         },
@@ -645,16 +656,18 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
             }
             let e = src.lookup(&r.key).ok_or_else(|| {
                 bad(format!(
-                    "{}: run {} is listed but its file {}/{}.h5 is missing or unreadable",
+                    "{}: run {} is listed but its file {} is missing or unreadable",
                     d.display(),
                     r.path,
-                    RUNS_DIR,
-                    r.key
+                    src.file(&r.key).display()
                 ))
             })?;
-            let dst = journal.file(&r.key);
+            let from = src.file(&r.key);
+            let dst = out
+                .join(RUNS_DIR)
+                .join(from.file_name().expect("a journal file has a name"));
             if !dst.exists() {
-                std::fs::copy(src.file(&r.key), &dst).map_err(|e| ReportError {
+                std::fs::copy(&from, &dst).map_err(|e| ReportError {
                     file: dst.display().to_string(),
                     detail: e.to_string(),
                 })?;
@@ -671,7 +684,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
     }
     let manifest = Manifest::new(settings, None, first.runs_in_inputs, &mut entries);
     let results = journal.assemble(out, &entries)?;
-    let (rows, failed_runs) = write_outputs(&journal, out, &entries, &manifest, report_runs)?;
+    let (rows, failed_runs) = write_outputs(&results, out, &entries, &manifest, report_runs)?;
     Ok(BatchSummary {
         rows,
         results,

@@ -19,7 +19,7 @@ pub const MIN_COMPRESSED: usize = 64;
 pub const SIGNAL_LEVEL: u8 = 1;
 
 /// An attribute's value.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub enum Scalar {
     /// A float attribute.
     F64(f64),
@@ -28,7 +28,7 @@ pub enum Scalar {
 }
 
 /// How a dataset's bytes are stored.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub enum Storage {
     /// Contiguous f64 values (small datasets).
     Plain(Vec<f64>),
@@ -38,13 +38,14 @@ pub enum Storage {
     Chunked {
         /// Deflate level the chunks were compressed at (stored in the filter pipeline).
         level: u8,
-        /// The filtered chunks, in order.
-        chunks: Vec<Vec<u8>>,
+        /// The filtered chunks, in order (byte strings, so that the journal stores them
+        /// with one copy each rather than byte by byte).
+        chunks: Vec<serde_bytes::ByteBuf>,
     },
 }
 
 /// Element type of a dataset.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub enum Elem {
     /// 64-bit float.
     F64,
@@ -62,7 +63,7 @@ impl Elem {
 }
 
 /// One dataset of an encoded run.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Dataset {
     /// Group it lives in, relative to the run's group ("" for the run's group itself).
     pub group: String,
@@ -77,7 +78,7 @@ pub struct Dataset {
 }
 
 /// One item of an encoded run, written in order.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub enum Item {
     /// Create a group (relative to the run's group; parents are created first).
     Group(String),
@@ -95,7 +96,7 @@ pub enum Item {
 }
 
 /// A run's results, ready to be written under its absolute group path.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct EncodedRun {
     /// Absolute group path of the run (e.g. `/runs/run_001`).
     pub path: String,
@@ -142,7 +143,11 @@ impl EncodedRun {
         let storage = if compress && data.len() >= MIN_COMPRESSED {
             Storage::Chunked {
                 level: SIGNAL_LEVEL,
-                chunks: compress_chunks(bytemuck::cast_slice(data), Elem::F64, SIGNAL_LEVEL),
+                chunks: byte_bufs(compress_chunks(
+                    bytemuck::cast_slice(data),
+                    Elem::F64,
+                    SIGNAL_LEVEL,
+                )),
             }
         } else {
             Storage::Plain(data.to_vec())
@@ -154,7 +159,7 @@ impl EncodedRun {
     pub fn bytes(&mut self, group: &str, name: &str, data: &[u8], level: u8) {
         let storage = Storage::Chunked {
             level,
-            chunks: compress_chunks(data, Elem::U8, level),
+            chunks: byte_bufs(compress_chunks(data, Elem::U8, level)),
         };
         self.dataset(group, name, Elem::U8, data.len(), storage);
     }
@@ -168,6 +173,10 @@ impl EncodedRun {
             storage,
         }));
     }
+}
+
+fn byte_bufs(chunks: Vec<Vec<u8>>) -> Vec<serde_bytes::ByteBuf> {
+    chunks.into_iter().map(serde_bytes::ByteBuf::from).collect()
 }
 
 /// The chunk length a dataset of `len` elements is created with.
