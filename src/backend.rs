@@ -35,8 +35,13 @@ pub enum BackendChoice {
 /// How long the dispatcher waits for more signals once one has arrived.
 const LINGER: Duration = Duration::from_millis(4);
 
-/// Most signals in one submission.
+/// Most signals in one submission (their prepared spectra are held in host memory while
+/// they wait).
 const MAX_BATCH: usize = 256;
+
+/// Most binding-sized parts in one submission: bounds the device memory one submission
+/// takes to about this many times the adapter's largest binding.
+const SUBMISSION_PARTS: u64 = 8;
 
 /// Test hook: pretend the device is lost after this many submissions (the value of the
 /// environment variable `SKELID_GPU_FAIL_AFTER`), to exercise the mid-batch fallback.
@@ -366,7 +371,8 @@ impl Backend {
 }
 
 /// The dispatcher: gathers requests for up to `LINGER` after the first, splits them into
-/// submissions that fit the adapter, and answers each request.
+/// parts that fit the adapter's bindings, submits the parts together (one submission and
+/// one blocking read-back per batch), and answers each request.
 fn dispatch(
     gpu: &Gpu,
     pass: &FirstPass,
@@ -376,10 +382,12 @@ fn dispatch(
 ) {
     let mut submissions = 0usize;
     let mut dead: Option<String> = None;
-    // A submission's runs together within half the largest binding: their spectra, power
-    // grids and back-pointers each share one binding, and the decimated scales (split into
-    // parts by the scales stage) take two buffers of that size with their FFT scratch.
+    // A part's runs together within half the largest binding: their spectra, power grids
+    // and back-pointers each share one binding, and the decimated scales (split further by
+    // the scales stage) take two buffers of that size with their FFT scratch. A submission
+    // holds parts up to a few bindings' worth, all in device memory at once.
     let budget = gpu.max_binding() / 2;
+    let submission_budget = budget * SUBMISSION_PARTS;
     while let Ok(first) = rx.recv() {
         let mut batch = vec![first];
         let deadline = Instant::now() + LINGER;
@@ -401,42 +409,71 @@ fn dispatch(
             }
         }
         let mut batch = kept;
-        // Greedy split: one wavelet per submission, the bytes of each within the budget.
         while !batch.is_empty() {
-            let wavelet = batch[0].prep.wavelet();
-            let mut take = Vec::new();
+            // Parts of one wavelet whose bytes fit the binding budget, as many as the
+            // submission budget holds: one submission, one read-back, one wait.
+            let mut parts: Vec<(Vec<Request>, u64)> = Vec::new();
             let mut rest = Vec::new();
-            let mut bytes = 0u64;
+            let mut total = 0u64;
             for r in batch.drain(..) {
                 let b = batch_bytes(&r.prep);
-                if r.prep.wavelet() == wavelet && (take.is_empty() || bytes + b <= budget) {
-                    bytes += b;
-                    take.push(r);
-                } else {
+                if total > 0 && total + b > submission_budget {
                     rest.push(r);
+                    continue;
+                }
+                total += b;
+                let wavelet = r.prep.wavelet();
+                let part = parts
+                    .iter_mut()
+                    .find(|(p, bytes)| p[0].prep.wavelet() == wavelet && bytes + b <= budget);
+                match part {
+                    Some((p, bytes)) => {
+                        *bytes += b;
+                        p.push(r);
+                    }
+                    None => parts.push((vec![r], b)),
                 }
             }
             batch = rest;
+            let parts: Vec<Vec<Request>> = parts.into_iter().map(|(p, _)| p).collect();
             let result = match &dead {
                 Some(why) => Err(GpuError::Lost(why.clone())),
                 None if fail_after.is_some_and(|n| submissions >= n) => Err(GpuError::Lost(
                     format!("simulated device loss ({FAIL_AFTER_ENV})"),
                 )),
                 None => {
-                    let preps: Vec<&WaveletPrep> = take.iter().map(|r| &r.prep).collect();
-                    crate::profile::time_wall(crate::profile::Stage::FirstPass, || {
-                        pass.coarse_ridges(gpu, &preps)
+                    let preps: Vec<Vec<&WaveletPrep>> = parts
+                        .iter()
+                        .map(|p| p.iter().map(|r| &r.prep).collect())
+                        .collect();
+                    // A panic here would leave every waiting worker without an answer.
+                    let run = std::panic::AssertUnwindSafe(|| {
+                        crate::profile::time_wall(crate::profile::Stage::FirstPass, || {
+                            pass.coarse_ridges(gpu, &preps)
+                        })
+                    });
+                    std::panic::catch_unwind(run).unwrap_or_else(|p| {
+                        let msg = p
+                            .downcast_ref::<&str>()
+                            .map(|s| s.to_string())
+                            .or_else(|| p.downcast_ref::<String>().cloned())
+                            .unwrap_or_else(|| "unknown panic".into());
+                        Err(GpuError::Lost(format!(
+                            "internal error (panic) in the GPU first pass: {msg}"
+                        )))
                     })
                 }
             };
             submissions += 1;
+            let take = parts.into_iter().flatten();
             match result {
                 Ok(ridges) => {
                     use std::sync::atomic::Ordering::Relaxed;
+                    let ridges: Vec<CoarseRidge> = ridges.into_iter().flatten().collect();
                     stats.submissions.fetch_add(1, Relaxed);
                     stats.signals.fetch_add(ridges.len(), Relaxed);
                     crate::profile::gpu_batch(ridges.len());
-                    for (r, ridge) in take.into_iter().zip(ridges) {
+                    for (r, ridge) in take.zip(ridges) {
                         let _ = r.reply.send((r.tag, r.prep, Ok(ridge)));
                     }
                 }

@@ -152,7 +152,7 @@ pub struct Traffic {
     pub signals: u64,
     /// GPU batches (first passes of many signals at once).
     pub batches: u64,
-    /// Queue submissions (a batch's work, and each read-back's copy).
+    /// Queue submissions (a batch's work and its read-back's copies are one).
     pub submissions: u64,
     /// Blocking waits of the host for the device.
     pub syncs: u64,

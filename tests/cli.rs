@@ -867,3 +867,69 @@ fn gap_self_check_prints_its_confusion_matrix_and_wrong_arguments_say_what_to_do
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("--model"));
 }
+
+#[test]
+fn a_gpu_batch_of_256_signals_is_one_submission_and_one_wait() {
+    // 128 runs, 256 signals waiting at once (`skelid bench` hands them over together), and
+    // a binding limit pretended so small that they need four binding-sized parts: the parts
+    // still go in one submission with one read-back, and only the ridge comes back.
+    let d = tmpdir();
+    let archive = d.path().join("many.h5");
+    let (n, fs) = (1500usize, 1000.0);
+    let x: Vec<f64> = (0..n)
+        .map(|i| {
+            let t = i as f64 / fs;
+            (2.0 * std::f64::consts::PI * (20.0 * t + 30.0 * t * t)).sin()
+        })
+        .collect();
+    {
+        let f = hdf5::File::create(&archive).unwrap();
+        for r in 0..128 {
+            let g = group(&f, &format!("/runs/r{r:03}"));
+            set_f64(&g, "sample_rate", fs);
+            put(&g, "input", &x);
+            let y: Vec<f64> = x.iter().map(|v| v * (1.0 + r as f64 * 0.01)).collect();
+            put(&g, "output", &y);
+        }
+    }
+    let opt = skelid::track::WaveletOptions {
+        scales: 32,
+        ..Default::default()
+    };
+    let prep = skelid::track::WaveletPrep::new(&x, fs, &opt, None).unwrap();
+    let cap = skelid::gpu::ridge::batch_bytes(&prep) * 128;
+    let json = d.path().join("bench.json");
+    let o = skelid()
+        .arg("bench")
+        .arg(&archive)
+        .args(["--backend", "cpu,gpu", "--repeat", "1", "--scales", "32"])
+        .arg("--no-end-to-end")
+        .arg("--out")
+        .arg(&json)
+        .env("SKELID_GPU_MAX_BINDING", cap.to_string())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let gpu = v["backends"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|b| b["backend"] == "gpu")
+        .unwrap();
+    let t = &gpu["traffic"];
+    let count = |k: &str| t[k].as_u64().unwrap();
+    println!("{t}");
+    assert_eq!(gpu["fallbacks"], 0);
+    assert_eq!(count("signals"), 256);
+    assert_eq!(count("batches"), 1, "256 waiting signals, one batch");
+    assert_eq!(count("submissions"), 1);
+    assert!(count("syncs") <= 2, "{t}");
+    assert!(count("bytes_down") <= 256 * 4 * n as u64 * 4, "{t}");
+    let a = &v["agreement"];
+    assert!(a["envelope_rel"].as_f64().unwrap() <= 1e-4, "{a}");
+    assert!(a["frequency_hz"].as_f64().unwrap() <= 1e-3, "{a}");
+    assert_eq!(a["mask_samples"], 0, "{a}");
+}

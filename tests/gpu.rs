@@ -227,8 +227,15 @@ fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
             .iter()
             .map(|(x, g)| WaveletPrep::new(x, 1000.0, &opt, g.as_deref()).unwrap())
             .collect();
+        // Two parts in one submission.
         let refs: Vec<&WaveletPrep> = preps.iter().collect();
-        let ours = stage.coarse_ridges(&gpu, &refs).unwrap();
+        let parts = vec![refs[..2].to_vec(), refs[2..].to_vec()];
+        let ours: Vec<_> = stage
+            .coarse_ridges(&gpu, &parts)
+            .unwrap()
+            .into_iter()
+            .flatten()
+            .collect();
         for (p, o) in preps.iter().zip(&ours) {
             let cpu = p.coarse_ridge();
             let differ = cpu.path.iter().zip(&o.path).filter(|(a, b)| a != b).count();

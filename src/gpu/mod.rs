@@ -323,6 +323,60 @@ impl Gpu {
         })
     }
 
+    /// Records copies of `parts` (each a buffer and the bytes wanted from its start, a
+    /// multiple of 4) into one staging buffer, so that a batch's results come back with one
+    /// map and one wait ([`finish_readback`](Self::finish_readback)) after the submission
+    /// that holds both its work and these copies.
+    pub fn encode_readback(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        parts: &[(&wgpu::Buffer, u64)],
+    ) -> Readback {
+        let mut ranges = Vec::with_capacity(parts.len());
+        let mut at = 0u64;
+        for &(_, bytes) in parts {
+            ranges.push((at, bytes));
+            at += bytes.next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT);
+        }
+        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("read-back"),
+            size: at.max(wgpu::COPY_BUFFER_ALIGNMENT),
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        for (&(buffer, bytes), &(offset, _)) in parts.iter().zip(&ranges) {
+            if bytes > 0 {
+                enc.copy_buffer_to_buffer(buffer, 0, &staging, offset, bytes);
+            }
+        }
+        Readback { staging, ranges }
+    }
+
+    /// Maps a read-back recorded by [`encode_readback`](Self::encode_readback) once its
+    /// submission is made: one blocking wait, then each part's bytes in order.
+    pub fn finish_readback(&self, rb: Readback) -> Result<Vec<Vec<u8>>, GpuError> {
+        let Readback { staging, ranges } = rb;
+        crate::profile::downloaded(ranges.iter().map(|r| r.1).sum());
+        let (tx, rx) = std::sync::mpsc::channel();
+        staging.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send(r);
+        });
+        self.wait()?;
+        rx.recv()
+            .map_err(|e| GpuError::Lost(e.to_string()))?
+            .map_err(|e| GpuError::Lost(e.to_string()))?;
+        let view = staging
+            .get_mapped_range(..)
+            .map_err(|e| GpuError::Lost(e.to_string()))?;
+        let out = ranges
+            .iter()
+            .map(|&(at, bytes)| view[at as usize..(at + bytes) as usize].to_vec())
+            .collect();
+        drop(view);
+        staging.unmap();
+        Ok(out)
+    }
+
     /// Copies `count` elements of `buffer` back to the host (waits for the GPU).
     pub fn download<T: bytemuck::Pod>(
         &self,
@@ -361,6 +415,12 @@ impl Gpu {
         staging.unmap();
         Ok(out)
     }
+}
+
+/// Copies recorded for one read-back: a staging buffer and each part's (offset, bytes).
+pub struct Readback {
+    staging: wgpu::Buffer,
+    ranges: Vec<(u64, u64)>,
 }
 
 /// [`Gpu::grid`] for a given per-dimension limit.

@@ -1,7 +1,8 @@
 //! Host side of `shaders/ridge.wgsl`, and the wavelet track's whole first pass on the GPU
 //! for a batch of runs: the scales of [`super::scales`], then per scale the floor score and
-//! the median power, then the penalised ridge — one submission, and only the paths and the
-//! per-scale medians read back (a few kB per run, never the scalogram).
+//! the median power, then the penalised ridge — one submission and one read-back (a single
+//! blocking wait) per batch, and only the paths and the per-scale medians read back (a few
+//! kB per run, never the scalogram).
 
 use super::fft::radices;
 use super::scales::{RunScales, ScaleStage};
@@ -99,79 +100,106 @@ impl FirstPass {
         })
     }
 
-    /// The coarse ridge and noise medians of every run, in one submission. All runs must
-    /// use the same wavelet; size the batch with [`batch_bytes`] first.
+    /// The coarse ridges and noise medians of every run of every part, in one submission
+    /// and one read-back (one blocking wait). Each part holds one wavelet and fits the
+    /// adapter's bindings (size parts with [`batch_bytes`]); parts let a submission carry
+    /// more runs than one binding holds.
     pub fn coarse_ridges(
         &self,
         gpu: &Gpu,
-        preps: &[&WaveletPrep],
-    ) -> Result<Vec<CoarseRidge>, GpuError> {
-        let Some(first) = preps.first() else {
-            return Ok(Vec::new());
-        };
-        let wavelet = first.wavelet();
-        if let Some(p) = preps.iter().find(|p| p.wavelet() != wavelet) {
-            return Err(GpuError::Unsupported(format!(
-                "one GPU batch holds one wavelet; got {:?} and {:?}",
-                wavelet,
-                p.wavelet()
-            )));
-        }
-        for p in preps {
-            self.check(gpu, p)?;
-        }
-        let runs: Vec<RunScales> = preps
-            .iter()
-            .map(|p| RunScales {
-                spectrum: &p.spec,
-                plans: &p.plans,
-                h: p.h,
-                steps: p.steps,
-            })
-            .collect();
+        parts: &[Vec<&WaveletPrep>],
+    ) -> Result<Vec<Vec<CoarseRidge>>, GpuError> {
         let mut enc = gpu
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("first pass"),
             });
-        let grid = self.scales.encode(gpu, &mut enc, &wavelet, &runs)?;
-        let out = self
-            .ridge
-            .encode(gpu, &mut enc, &grid.power, &grid.offsets, preps)?;
+        let mut encoded = Vec::with_capacity(parts.len());
+        for preps in parts {
+            let Some(first) = preps.first() else {
+                encoded.push(None);
+                continue;
+            };
+            let wavelet = first.wavelet();
+            if let Some(p) = preps.iter().find(|p| p.wavelet() != wavelet) {
+                return Err(GpuError::Unsupported(format!(
+                    "one part of a GPU batch holds one wavelet; got {:?} and {:?}",
+                    wavelet,
+                    p.wavelet()
+                )));
+            }
+            for p in preps {
+                self.check(gpu, p)?;
+            }
+            let runs: Vec<RunScales> = preps
+                .iter()
+                .map(|p| RunScales {
+                    spectrum: &p.spec,
+                    plans: &p.plans,
+                    h: p.h,
+                    steps: p.steps,
+                })
+                .collect();
+            let grid = self.scales.encode(gpu, &mut enc, &wavelet, &runs)?;
+            let out = self
+                .ridge
+                .encode(gpu, &mut enc, &grid.power, &grid.offsets, preps)?;
+            encoded.push(Some((grid, out)));
+        }
+        // Paths, statistics and (when a signal asks for it) the scalogram of every part.
+        let mut wanted: Vec<(&wgpu::Buffer, u64)> = Vec::new();
+        for (preps, e) in parts.iter().zip(&encoded) {
+            let Some((grid, out)) = e else { continue };
+            wanted.push((&out.path, out.path_len as u64 * 4));
+            wanted.push((&out.stats, out.stats_len as u64 * 8));
+            let power = preps.iter().any(|p| p.keep_scalogram);
+            wanted.push((&grid.power, if power { grid.len as u64 * 4 } else { 0 }));
+        }
+        let readback = gpu.encode_readback(&mut enc, &wanted);
         gpu.submit(enc);
-        let paths: Vec<u32> = gpu.download(&out.path, out.path_len)?;
-        // The scalogram is read back only when a signal asks for it.
-        let power: Option<Vec<f32>> = if preps.iter().any(|p| p.keep_scalogram) {
-            Some(gpu.download(&grid.power, grid.len)?)
-        } else {
-            None
-        };
-        let stats: Vec<[f32; 2]> = gpu.download(&out.stats, out.stats_len)?;
-        Ok(preps
-            .iter()
-            .enumerate()
-            .map(|(r, p)| {
-                let (po, so) = (out.path_at[r], out.info_at[r]);
-                CoarseRidge {
-                    path: paths[po..po + p.steps]
-                        .iter()
-                        .map(|&k| k as usize)
-                        .collect(),
-                    median_power: (0..p.freqs.len())
-                        .map(|k| p.noise_steps(k).map(|_| f64::from(stats[so + k][1])))
-                        .collect(),
-                    gains: p
-                        .plans
-                        .iter()
-                        .map(|plan| plan.noise_gain(&p.spec, &wavelet))
-                        .collect(),
-                    power: power.as_ref().filter(|_| p.keep_scalogram).map(|all| {
-                        let at = grid.offsets[r];
-                        all[at..at + p.freqs.len() * p.steps].to_vec()
-                    }),
-                }
-            })
-            .collect())
+        let mut bytes = gpu.finish_readback(readback)?.into_iter();
+        let mut answers = Vec::with_capacity(parts.len());
+        for (preps, e) in parts.iter().zip(&encoded) {
+            let Some((grid, out)) = e else {
+                answers.push(Vec::new());
+                continue;
+            };
+            let mut next = || bytes.next().expect("three read-backs per part");
+            let (paths, stats, power) = (next(), next(), next());
+            // Byte vectors carry no alignment: copy into typed ones.
+            let paths: Vec<u32> = bytemuck::pod_collect_to_vec(&paths);
+            let stats: Vec<[f32; 2]> = bytemuck::pod_collect_to_vec(&stats);
+            let power: Vec<f32> = bytemuck::pod_collect_to_vec(&power);
+            let wavelet = preps[0].wavelet();
+            answers.push(
+                preps
+                    .iter()
+                    .enumerate()
+                    .map(|(r, p)| {
+                        let (po, so) = (out.path_at[r], out.info_at[r]);
+                        CoarseRidge {
+                            path: paths[po..po + p.steps]
+                                .iter()
+                                .map(|&k| k as usize)
+                                .collect(),
+                            median_power: (0..p.freqs.len())
+                                .map(|k| p.noise_steps(k).map(|_| f64::from(stats[so + k][1])))
+                                .collect(),
+                            gains: p
+                                .plans
+                                .iter()
+                                .map(|plan| plan.noise_gain(&p.spec, &wavelet))
+                                .collect(),
+                            power: p.keep_scalogram.then(|| {
+                                let at = grid.offsets[r];
+                                power[at..at + p.freqs.len() * p.steps].to_vec()
+                            }),
+                        }
+                    })
+                    .collect(),
+            );
+        }
+        Ok(answers)
     }
 
     /// Whether this device can take `prep` at all (alone in a batch): scales, steps, the
