@@ -14,7 +14,7 @@ use std::sync::mpsc::{self, Receiver, Sender};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use crate::gpu::ridge::{batch_bytes, FirstPass};
+use crate::gpu::ridge::{batch_bytes, FirstPass, InFlight};
 use crate::gpu::{Gpu, GpuError};
 use crate::track::{CoarseRidge, Track, TrackError, WaveletOptions, WaveletPrep};
 
@@ -75,6 +75,20 @@ type Passed = (WaveletPrep, Option<Result<CoarseRidge, GpuError>>);
 
 /// The dispatcher's answer to one request: its tag, its signal back, and the ridge.
 type Answer = (usize, WaveletPrep, Result<CoarseRidge, GpuError>);
+
+/// Signals handed to the dispatcher: answered slots so far, and where the rest arrive
+/// (`None` on the CPU backend, every slot already filled).
+struct Sent {
+    out: Vec<Option<Passed>>,
+    answers: Option<Receiver<Answer>>,
+}
+
+/// A group of [`Backend::track_many`] in flight: per signal, its preparation error or
+/// `None` for a track to come, and the prepared signals handed over.
+struct Group {
+    slots: Vec<Option<Result<Track, TrackError>>>,
+    sent: Sent,
+}
 
 /// One signal handed to the dispatcher, and where its answer goes.
 struct Request {
@@ -282,7 +296,10 @@ impl Backend {
 
     /// The wavelet tracks of many signals, all with the same options, in order: prepared
     /// in parallel, first passes submitted together (in batches sized to the adapter),
-    /// finished in parallel. For benchmarks and commands that hold all their signals.
+    /// finished in parallel. Groups of [`MAX_BATCH`] signals are pipelined: the next group
+    /// is prepared and handed to the GPU before the previous one is collected, so that the
+    /// CPU's preparation and finishing overlap the device's work. For benchmarks and
+    /// commands that hold all their signals.
     pub fn track_many(
         &self,
         signals: &[Signal],
@@ -290,7 +307,8 @@ impl Backend {
     ) -> Vec<Result<Track, TrackError>> {
         use rayon::prelude::*;
         let mut out = Vec::with_capacity(signals.len());
-        // A bounded number of prepared spectra in memory at once.
+        // At most two groups of prepared spectra in memory at once.
+        let mut pending: Option<Group> = None;
         for group in signals.chunks(MAX_BATCH) {
             let preps: Vec<Result<WaveletPrep, TrackError>> = group
                 .par_iter()
@@ -307,28 +325,50 @@ impl Backend {
                     Err(e) => slots.push(Some(Err(e))),
                 }
             }
-            let mut tracks = self
-                .first_passes(ok)
-                .into_par_iter()
-                .map(|(prep, ridge)| self.finish(prep, ridge))
-                .collect::<Vec<Track>>()
-                .into_iter();
-            out.extend(slots.into_iter().map(|s| {
-                s.unwrap_or_else(|| Ok(tracks.next().expect("one track per prepared signal")))
-            }));
+            let sent = self.send(ok);
+            if let Some(previous) = pending.replace(Group { slots, sent }) {
+                out.extend(self.finish_group(previous));
+            }
+        }
+        if let Some(last) = pending {
+            out.extend(self.finish_group(last));
         }
         out
+    }
+
+    /// A group's first passes, then its tracks finished in parallel, in order.
+    fn finish_group(&self, group: Group) -> Vec<Result<Track, TrackError>> {
+        use rayon::prelude::*;
+        let mut tracks = self
+            .receive(group.sent)
+            .into_par_iter()
+            .map(|(prep, ridge)| self.finish(prep, ridge))
+            .collect::<Vec<Track>>()
+            .into_iter();
+        group
+            .slots
+            .into_iter()
+            .map(|s| s.unwrap_or_else(|| Ok(tracks.next().expect("one track per prepared signal"))))
+            .collect()
     }
 
     /// The first passes of `preps`, in order: on the GPU when one is open (a signal it
     /// cannot serve comes back with the reason), else `None` for the CPU to do.
     fn first_passes(&self, preps: Vec<WaveletPrep>) -> Vec<Passed> {
-        let Some(service) = &self.gpu else {
-            return preps.into_iter().map(|p| (p, None)).collect();
-        };
+        self.receive(self.send(preps))
+    }
+
+    /// Hands `preps` to the GPU's dispatcher without waiting (see [`receive`](Self::receive)).
+    fn send(&self, preps: Vec<WaveletPrep>) -> Sent {
         let count = preps.len();
-        let (reply, answers) = mpsc::channel();
         let mut out: Vec<Option<Passed>> = (0..count).map(|_| None).collect();
+        let Some(service) = &self.gpu else {
+            for (slot, p) in out.iter_mut().zip(preps) {
+                *slot = Some((p, None));
+            }
+            return Sent { out, answers: None };
+        };
+        let (reply, answers) = mpsc::channel();
         {
             let queue = service.queue.lock().unwrap_or_else(|p| p.into_inner());
             for (tag, prep) in preps.into_iter().enumerate() {
@@ -347,9 +387,19 @@ impl Backend {
                 }
             }
         }
-        drop(reply);
-        for (tag, prep, result) in answers.iter() {
-            out[tag] = Some((prep, Some(result)));
+        Sent {
+            out,
+            answers: Some(answers),
+        }
+    }
+
+    /// Waits for every answer to what [`send`](Self::send) handed over, in order.
+    fn receive(&self, sent: Sent) -> Vec<Passed> {
+        let Sent { mut out, answers } = sent;
+        if let Some(answers) = answers {
+            for (tag, prep, result) in answers.iter() {
+                out[tag] = Some((prep, Some(result)));
+            }
         }
         out.into_iter()
             .map(|o| o.expect("the GPU thread answers every request it takes"))
@@ -372,7 +422,9 @@ impl Backend {
 
 /// The dispatcher: gathers requests for up to `LINGER` after the first, splits them into
 /// parts that fit the adapter's bindings, submits the parts together (one submission and
-/// one blocking read-back per batch), and answers each request.
+/// one blocking read-back per batch), and answers each request. Up to [`IN_FLIGHT`]
+/// submissions are on the device at once: the next batch is gathered, uploaded and
+/// submitted while the previous one computes, and only then is the previous one waited for.
 fn dispatch(
     gpu: &Gpu,
     pass: &FirstPass,
@@ -388,15 +440,22 @@ fn dispatch(
     // holds parts up to a few bindings' worth, all in device memory at once.
     let budget = gpu.max_binding() / 2;
     let submission_budget = budget * SUBMISSION_PARTS;
-    while let Ok(first) = rx.recv() {
-        let mut batch = vec![first];
-        let deadline = Instant::now() + LINGER;
-        while batch.len() < MAX_BATCH {
-            let left = deadline.saturating_duration_since(Instant::now());
-            match rx.recv_timeout(left) {
-                Ok(r) => batch.push(r),
-                Err(_) => break,
+    let mut flying: std::collections::VecDeque<Unit> = std::collections::VecDeque::new();
+    let mut open = true;
+    while open || !flying.is_empty() {
+        let batch = if open {
+            let (batch, still_open) = gather(&rx, !flying.is_empty());
+            open = still_open;
+            batch
+        } else {
+            Vec::new()
+        };
+        if batch.is_empty() {
+            // Nothing new to overlap with: wait for the oldest submission.
+            if let Some(unit) = flying.pop_front() {
+                answer(gpu, unit, &mut dead, stats);
             }
+            continue;
         }
         // A signal beyond the adapter's limits goes back alone, not with its batch.
         let mut kept = Vec::with_capacity(batch.len());
@@ -408,89 +467,161 @@ fn dispatch(
                 }
             }
         }
-        let mut batch = kept;
-        while !batch.is_empty() {
-            // Parts of one wavelet whose bytes fit the binding budget, as many as the
-            // submission budget holds: one submission, one read-back, one wait.
-            let mut parts: Vec<(Vec<Request>, u64)> = Vec::new();
-            let mut rest = Vec::new();
-            let mut total = 0u64;
-            for r in batch.drain(..) {
-                let b = batch_bytes(&r.prep);
-                if total > 0 && total + b > submission_budget {
-                    rest.push(r);
-                    continue;
-                }
-                total += b;
-                let wavelet = r.prep.wavelet();
-                let part = parts
-                    .iter_mut()
-                    .find(|(p, bytes)| p[0].prep.wavelet() == wavelet && bytes + b <= budget);
-                match part {
-                    Some((p, bytes)) => {
-                        *bytes += b;
-                        p.push(r);
-                    }
-                    None => parts.push((vec![r], b)),
-                }
+        for parts in split(kept, budget, submission_budget) {
+            while flying.len() >= IN_FLIGHT {
+                let unit = flying.pop_front().expect("in flight");
+                answer(gpu, unit, &mut dead, stats);
             }
-            batch = rest;
-            let parts: Vec<Vec<Request>> = parts.into_iter().map(|(p, _)| p).collect();
-            let result = match &dead {
+            let flight = match &dead {
                 Some(why) => Err(GpuError::Lost(why.clone())),
                 None if fail_after.is_some_and(|n| submissions >= n) => Err(GpuError::Lost(
                     format!("simulated device loss ({FAIL_AFTER_ENV})"),
                 )),
                 None => {
-                    let preps: Vec<Vec<&WaveletPrep>> = parts
-                        .iter()
-                        .map(|p| p.iter().map(|r| &r.prep).collect())
-                        .collect();
-                    // A panic here would leave every waiting worker without an answer.
-                    let run = std::panic::AssertUnwindSafe(|| {
+                    let preps = part_preps(&parts);
+                    if !flying.is_empty() {
+                        crate::profile::overlapped();
+                    }
+                    unpanicked(|| {
                         crate::profile::time_wall(crate::profile::Stage::FirstPass, || {
-                            pass.coarse_ridges(gpu, &preps)
+                            pass.submit(gpu, &preps)
                         })
-                    });
-                    std::panic::catch_unwind(run).unwrap_or_else(|p| {
-                        let msg = p
-                            .downcast_ref::<&str>()
-                            .map(|s| s.to_string())
-                            .or_else(|| p.downcast_ref::<String>().cloned())
-                            .unwrap_or_else(|| "unknown panic".into());
-                        Err(GpuError::Lost(format!(
-                            "internal error (panic) in the GPU first pass: {msg}"
-                        )))
                     })
                 }
             };
             submissions += 1;
-            let take = parts.into_iter().flatten();
-            match result {
-                Ok(ridges) => {
-                    use std::sync::atomic::Ordering::Relaxed;
-                    let ridges: Vec<CoarseRidge> = ridges.into_iter().flatten().collect();
-                    stats.submissions.fetch_add(1, Relaxed);
-                    stats.signals.fetch_add(ridges.len(), Relaxed);
-                    crate::profile::gpu_batch(ridges.len());
-                    for (r, ridge) in take.zip(ridges) {
-                        let _ = r.reply.send((r.tag, r.prep, Ok(ridge)));
-                    }
+            flying.push_back(Unit { parts, flight });
+        }
+    }
+}
+
+/// Most first-pass submissions on the device at once.
+const IN_FLIGHT: usize = 2;
+
+/// One submission: its requests by part, and its work on the device (or why not).
+struct Unit {
+    parts: Vec<Vec<Request>>,
+    flight: Result<InFlight, GpuError>,
+}
+
+/// The requests that arrive within `LINGER` of the first, up to `MAX_BATCH`. Blocks for the
+/// first only when nothing is in flight (`busy` false); else waits at most `LINGER`. Also
+/// says whether the queue is still open.
+fn gather(rx: &Receiver<Request>, busy: bool) -> (Vec<Request>, bool) {
+    use std::sync::mpsc::RecvTimeoutError;
+    let first = if busy {
+        match rx.recv_timeout(LINGER) {
+            Ok(r) => r,
+            Err(RecvTimeoutError::Timeout) => return (Vec::new(), true),
+            Err(RecvTimeoutError::Disconnected) => return (Vec::new(), false),
+        }
+    } else {
+        match rx.recv() {
+            Ok(r) => r,
+            Err(_) => return (Vec::new(), false),
+        }
+    };
+    let mut batch = vec![first];
+    let deadline = Instant::now() + LINGER;
+    while batch.len() < MAX_BATCH {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match rx.recv_timeout(left) {
+            Ok(r) => batch.push(r),
+            Err(RecvTimeoutError::Timeout) => break,
+            Err(RecvTimeoutError::Disconnected) => return (batch, false),
+        }
+    }
+    (batch, true)
+}
+
+/// Splits a batch into submissions of parts: each part one wavelet within `budget` bytes,
+/// each submission within `submission_budget` (a request alone always fits one).
+fn split(mut batch: Vec<Request>, budget: u64, submission_budget: u64) -> Vec<Vec<Vec<Request>>> {
+    let mut submissions = Vec::new();
+    while !batch.is_empty() {
+        let mut parts: Vec<(Vec<Request>, u64)> = Vec::new();
+        let mut rest = Vec::new();
+        let mut total = 0u64;
+        for r in batch.drain(..) {
+            let b = batch_bytes(&r.prep);
+            if total > 0 && total + b > submission_budget {
+                rest.push(r);
+                continue;
+            }
+            total += b;
+            let wavelet = r.prep.wavelet();
+            let part = parts
+                .iter_mut()
+                .find(|(p, bytes)| p[0].prep.wavelet() == wavelet && bytes + b <= budget);
+            match part {
+                Some((p, bytes)) => {
+                    *bytes += b;
+                    p.push(r);
                 }
-                Err(e) => {
-                    // A lost device stays lost: later work goes straight to the CPU.
-                    if let GpuError::Lost(why) = &e {
-                        dead.get_or_insert_with(|| why.clone());
-                    }
-                    for r in take {
-                        let err = match &e {
-                            GpuError::Lost(why) => GpuError::Lost(why.clone()),
-                            other => GpuError::Unsupported(other.to_string()),
-                        };
-                        let _ = r.reply.send((r.tag, r.prep, Err(err)));
-                    }
-                }
+                None => parts.push((vec![r], b)),
+            }
+        }
+        batch = rest;
+        submissions.push(parts.into_iter().map(|(p, _)| p).collect());
+    }
+    submissions
+}
+
+fn part_preps(parts: &[Vec<Request>]) -> Vec<Vec<&WaveletPrep>> {
+    parts
+        .iter()
+        .map(|p| p.iter().map(|r| &r.prep).collect())
+        .collect()
+}
+
+/// Waits for one submission and answers its requests: ridges, or the error for the CPU to
+/// take over. A lost device stays lost (`dead`): later work goes straight to the CPU.
+fn answer(gpu: &Gpu, unit: Unit, dead: &mut Option<String>, stats: &Stats) {
+    let Unit { parts, flight } = unit;
+    let result = flight.and_then(|f| {
+        let preps = part_preps(&parts);
+        unpanicked(|| {
+            crate::profile::time_wall(crate::profile::Stage::FirstPass, || f.finish(gpu, &preps))
+        })
+    });
+    let take = parts.into_iter().flatten();
+    match result {
+        Ok(ridges) => {
+            use std::sync::atomic::Ordering::Relaxed;
+            let ridges: Vec<CoarseRidge> = ridges.into_iter().flatten().collect();
+            stats.submissions.fetch_add(1, Relaxed);
+            stats.signals.fetch_add(ridges.len(), Relaxed);
+            crate::profile::gpu_batch(ridges.len());
+            for (r, ridge) in take.zip(ridges) {
+                let _ = r.reply.send((r.tag, r.prep, Ok(ridge)));
+            }
+        }
+        Err(e) => {
+            if let GpuError::Lost(why) = &e {
+                dead.get_or_insert_with(|| why.clone());
+            }
+            for r in take {
+                let err = match &e {
+                    GpuError::Lost(why) => GpuError::Lost(why.clone()),
+                    other => GpuError::Unsupported(other.to_string()),
+                };
+                let _ = r.reply.send((r.tag, r.prep, Err(err)));
             }
         }
     }
+}
+
+/// Runs GPU work, turning a panic into a lost device: a panic on the dispatcher would leave
+/// every waiting worker without an answer.
+fn unpanicked<T>(f: impl FnOnce() -> Result<T, GpuError>) -> Result<T, GpuError> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).unwrap_or_else(|p| {
+        let msg = p
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| p.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "unknown panic".into());
+        Err(GpuError::Lost(format!(
+            "internal error (panic) in the GPU first pass: {msg}"
+        )))
+    })
 }

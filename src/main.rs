@@ -643,13 +643,16 @@ fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
         if let Some(p) = &t.per_signal {
             println!(
                 "{} traffic per signal: {:.0} signals per batch, {:.3} blocking syncs, \
-                 {:.0} bytes up, {:.0} bytes down ({:.2} bytes down per sample)",
+                 {:.0} bytes up, {:.0} bytes down ({:.2} bytes down per sample); \
+                 {} of {} submissions made while another was on the device",
                 t.backend,
                 p.signals_per_batch,
                 p.syncs,
                 p.bytes_up,
                 p.bytes_down,
-                p.bytes_down * signals.len() as f64 / samples as f64
+                p.bytes_down * signals.len() as f64 / samples as f64,
+                t.traffic.overlapped,
+                t.traffic.submissions
             );
         }
     }

@@ -72,6 +72,7 @@ static BYTES_UP: AtomicU64 = AtomicU64::new(0);
 static BYTES_DOWN: AtomicU64 = AtomicU64::new(0);
 static GPU_SIGNALS: AtomicU64 = AtomicU64::new(0);
 static GPU_BATCHES: AtomicU64 = AtomicU64::new(0);
+static OVERLAPPED: AtomicU64 = AtomicU64::new(0);
 
 /// Adds `d` to `stage`.
 pub fn add(stage: Stage, d: Duration) {
@@ -130,6 +131,11 @@ pub fn downloaded(bytes: u64) {
     BYTES_DOWN.fetch_add(bytes, Ordering::Relaxed);
 }
 
+/// Counts one submission made while an earlier one was still on the device.
+pub fn overlapped() {
+    OVERLAPPED.fetch_add(1, Ordering::Relaxed);
+}
+
 /// Counts one GPU batch (one first pass for many signals) of `n` signals.
 pub fn gpu_batch(n: usize) {
     GPU_BATCHES.fetch_add(1, Ordering::Relaxed);
@@ -160,6 +166,9 @@ pub struct Traffic {
     pub bytes_up: u64,
     /// Bytes device → host.
     pub bytes_down: u64,
+    /// Submissions made while an earlier one was still on the device (upload and compute
+    /// of one batch overlapping the other's compute and read-back).
+    pub overlapped: u64,
 }
 
 impl Traffic {
@@ -195,6 +204,7 @@ pub fn snapshot() -> Profile {
             syncs: SYNCS.load(Ordering::Relaxed),
             bytes_up: BYTES_UP.load(Ordering::Relaxed),
             bytes_down: BYTES_DOWN.load(Ordering::Relaxed),
+            overlapped: OVERLAPPED.load(Ordering::Relaxed),
         },
     }
 }
@@ -211,6 +221,7 @@ pub fn reset() {
         &BYTES_DOWN,
         &GPU_SIGNALS,
         &GPU_BATCHES,
+        &OVERLAPPED,
     ] {
         c.store(0, Ordering::Relaxed);
     }

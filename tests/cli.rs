@@ -897,39 +897,55 @@ fn a_gpu_batch_of_256_signals_is_one_submission_and_one_wait() {
         ..Default::default()
     };
     let prep = skelid::track::WaveletPrep::new(&x, fs, &opt, None).unwrap();
-    let cap = skelid::gpu::ridge::batch_bytes(&prep) * 128;
-    let json = d.path().join("bench.json");
-    let o = skelid()
-        .arg("bench")
-        .arg(&archive)
-        .args(["--backend", "cpu,gpu", "--repeat", "1", "--scales", "32"])
-        .arg("--no-end-to-end")
-        .arg("--out")
-        .arg(&json)
-        .env("SKELID_GPU_MAX_BINDING", cap.to_string())
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{err}");
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
-    let gpu = v["backends"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|b| b["backend"] == "gpu")
-        .unwrap();
-    let t = &gpu["traffic"];
-    let count = |k: &str| t[k].as_u64().unwrap();
-    println!("{t}");
-    assert_eq!(gpu["fallbacks"], 0);
-    assert_eq!(count("signals"), 256);
-    assert_eq!(count("batches"), 1, "256 waiting signals, one batch");
-    assert_eq!(count("submissions"), 1);
-    assert!(count("syncs") <= 2, "{t}");
-    assert!(count("bytes_down") <= 256 * 4 * n as u64 * 4, "{t}");
-    let a = &v["agreement"];
-    assert!(a["envelope_rel"].as_f64().unwrap() <= 1e-4, "{a}");
-    assert!(a["frequency_hz"].as_f64().unwrap() <= 1e-3, "{a}");
-    assert_eq!(a["mask_samples"], 0, "{a}");
+    let bench = |signals_per_part: u64| {
+        let cap = skelid::gpu::ridge::batch_bytes(&prep) * 2 * signals_per_part;
+        let json = d.path().join(format!("bench-{signals_per_part}.json"));
+        let o = skelid()
+            .arg("bench")
+            .arg(&archive)
+            .args(["--backend", "cpu,gpu", "--repeat", "1", "--scales", "32"])
+            .arg("--no-end-to-end")
+            .arg("--out")
+            .arg(&json)
+            .env("SKELID_GPU_MAX_BINDING", cap.to_string())
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(o.status.success(), "{err}");
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+        let gpu = v["backends"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|b| b["backend"] == "gpu")
+            .unwrap()
+            .clone();
+        assert_eq!(gpu["fallbacks"], 0);
+        let a = &v["agreement"];
+        assert!(a["envelope_rel"].as_f64().unwrap() <= 1e-4, "{a}");
+        assert!(a["frequency_hz"].as_f64().unwrap() <= 1e-3, "{a}");
+        assert_eq!(a["mask_samples"], 0, "{a}");
+        println!("{signals_per_part} signals per part: {}", gpu["traffic"]);
+        gpu["traffic"].clone()
+    };
+    let count = |t: &serde_json::Value, k: &str| t[k].as_u64().unwrap();
+    // Four parts: one submission.
+    let t = bench(64);
+    assert_eq!(count(&t, "signals"), 256);
+    assert_eq!(
+        count(&t, "batches"),
+        1,
+        "256 waiting signals, one batch: {t}"
+    );
+    assert_eq!(count(&t, "submissions"), 1, "{t}");
+    assert!(count(&t, "syncs") <= 2, "{t}");
+    assert!(count(&t, "bytes_down") <= 256 * 4 * n as u64 * 4, "{t}");
+    // Sixteen parts, more device memory than one submission may take: two submissions,
+    // the second made while the first is on the device, still one wait each.
+    let t = bench(16);
+    assert_eq!(count(&t, "signals"), 256);
+    assert_eq!(count(&t, "batches"), 2, "{t}");
+    assert_eq!(count(&t, "overlapped"), 1, "{t}");
+    assert!(count(&t, "syncs") <= 2 * count(&t, "batches"), "{t}");
 }

@@ -5,8 +5,8 @@
 //! kB per run, never the scalogram).
 
 use super::fft::radices;
-use super::scales::{RunScales, ScaleStage};
-use super::{Gpu, GpuError};
+use super::scales::{PowerGrid, RunScales, ScaleStage};
+use super::{Gpu, GpuError, Readback};
 use crate::track::{CoarseRidge, WaveletPrep};
 
 /// Most scales the ridge programme holds in workgroup memory (the shader's `MAX_SCALES`).
@@ -101,14 +101,22 @@ impl FirstPass {
     }
 
     /// The coarse ridges and noise medians of every run of every part, in one submission
-    /// and one read-back (one blocking wait). Each part holds one wavelet and fits the
-    /// adapter's bindings (size parts with [`batch_bytes`]); parts let a submission carry
-    /// more runs than one binding holds.
+    /// and one read-back (one blocking wait): [`submit`](Self::submit), then
+    /// [`InFlight::finish`].
     pub fn coarse_ridges(
         &self,
         gpu: &Gpu,
         parts: &[Vec<&WaveletPrep>],
     ) -> Result<Vec<Vec<CoarseRidge>>, GpuError> {
+        self.submit(gpu, parts)?.finish(gpu, parts)
+    }
+
+    /// Records and submits the first pass of every run of every part, with the copies of
+    /// its results into one staging buffer, and returns without waiting, so that the
+    /// caller can prepare and submit the next batch while this one runs. Each part holds
+    /// one wavelet and fits the adapter's bindings (size parts with [`batch_bytes`]);
+    /// parts let a submission carry more runs than one binding holds.
+    pub fn submit(&self, gpu: &Gpu, parts: &[Vec<&WaveletPrep>]) -> Result<InFlight, GpuError> {
         let mut enc = gpu
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
@@ -157,49 +165,7 @@ impl FirstPass {
         }
         let readback = gpu.encode_readback(&mut enc, &wanted);
         gpu.submit(enc);
-        let mut bytes = gpu.finish_readback(readback)?.into_iter();
-        let mut answers = Vec::with_capacity(parts.len());
-        for (preps, e) in parts.iter().zip(&encoded) {
-            let Some((grid, out)) = e else {
-                answers.push(Vec::new());
-                continue;
-            };
-            let mut next = || bytes.next().expect("three read-backs per part");
-            let (paths, stats, power) = (next(), next(), next());
-            // Byte vectors carry no alignment: copy into typed ones.
-            let paths: Vec<u32> = bytemuck::pod_collect_to_vec(&paths);
-            let stats: Vec<[f32; 2]> = bytemuck::pod_collect_to_vec(&stats);
-            let power: Vec<f32> = bytemuck::pod_collect_to_vec(&power);
-            let wavelet = preps[0].wavelet();
-            answers.push(
-                preps
-                    .iter()
-                    .enumerate()
-                    .map(|(r, p)| {
-                        let (po, so) = (out.path_at[r], out.info_at[r]);
-                        CoarseRidge {
-                            path: paths[po..po + p.steps]
-                                .iter()
-                                .map(|&k| k as usize)
-                                .collect(),
-                            median_power: (0..p.freqs.len())
-                                .map(|k| p.noise_steps(k).map(|_| f64::from(stats[so + k][1])))
-                                .collect(),
-                            gains: p
-                                .plans
-                                .iter()
-                                .map(|plan| plan.noise_gain(&p.spec, &wavelet))
-                                .collect(),
-                            power: p.keep_scalogram.then(|| {
-                                let at = grid.offsets[r];
-                                power[at..at + p.freqs.len() * p.steps].to_vec()
-                            }),
-                        }
-                    })
-                    .collect(),
-            );
-        }
-        Ok(answers)
+        Ok(InFlight { encoded, readback })
     }
 
     /// Whether this device can take `prep` at all (alone in a batch): scales, steps, the
@@ -253,6 +219,67 @@ pub fn batch_bytes(prep: &WaveletPrep) -> u64 {
     let back = (prep.steps * prep.freqs.len()) as u64 * 4;
     let spectrum = prep.spec.bins.len() as u64 * 8;
     scales.max(back).max(spectrum)
+}
+
+/// A submitted first pass: its outputs on the GPU and their read-back, not yet waited for.
+pub struct InFlight {
+    encoded: Vec<Option<(PowerGrid, RidgeOut)>>,
+    readback: Readback,
+}
+
+impl InFlight {
+    /// Waits for the submission (one blocking wait) and reads back every run's ridge and
+    /// noise medians. `parts` are the ones given to [`FirstPass::submit`].
+    pub fn finish(
+        self,
+        gpu: &Gpu,
+        parts: &[Vec<&WaveletPrep>],
+    ) -> Result<Vec<Vec<CoarseRidge>>, GpuError> {
+        let InFlight { encoded, readback } = self;
+        let mut bytes = gpu.finish_readback(readback)?.into_iter();
+        let mut answers = Vec::with_capacity(parts.len());
+        for (preps, e) in parts.iter().zip(&encoded) {
+            let Some((grid, out)) = e else {
+                answers.push(Vec::new());
+                continue;
+            };
+            let mut next = || bytes.next().expect("three read-backs per part");
+            let (paths, stats, power) = (next(), next(), next());
+            // Byte vectors carry no alignment: copy into typed ones.
+            let paths: Vec<u32> = bytemuck::pod_collect_to_vec(&paths);
+            let stats: Vec<[f32; 2]> = bytemuck::pod_collect_to_vec(&stats);
+            let power: Vec<f32> = bytemuck::pod_collect_to_vec(&power);
+            let wavelet = preps[0].wavelet();
+            answers.push(
+                preps
+                    .iter()
+                    .enumerate()
+                    .map(|(r, p)| {
+                        let (po, so) = (out.path_at[r], out.info_at[r]);
+                        CoarseRidge {
+                            path: paths[po..po + p.steps]
+                                .iter()
+                                .map(|&k| k as usize)
+                                .collect(),
+                            median_power: (0..p.freqs.len())
+                                .map(|k| p.noise_steps(k).map(|_| f64::from(stats[so + k][1])))
+                                .collect(),
+                            gains: p
+                                .plans
+                                .iter()
+                                .map(|plan| plan.noise_gain(&p.spec, &wavelet))
+                                .collect(),
+                            power: p.keep_scalogram.then(|| {
+                                let at = grid.offsets[r];
+                                power[at..at + p.freqs.len() * p.steps].to_vec()
+                            }),
+                        }
+                    })
+                    .collect(),
+            );
+        }
+        Ok(answers)
+    }
 }
 
 /// The ridge stage's outputs, on the GPU.
