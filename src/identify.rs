@@ -64,6 +64,35 @@ impl Default for IdentifyOptions {
     }
 }
 
+impl IdentifyOptions {
+    /// Refuses impossible values before any run is touched: the wavelet options
+    /// ([`WaveletOptions::validate`]), fewer than 2 skeleton bins, and a Hilbert cut-off or
+    /// resonance band that is not a fraction in (0, 1).
+    pub fn validate(&self) -> Result<(), String> {
+        self.wavelet.validate()?;
+        if self.bins < 2 {
+            return Err(format!(
+                "{} amplitude bins: the skeleton needs at least 2",
+                self.bins
+            ));
+        }
+        if let Some(c) = self.hilbert_cutoff {
+            if !(c > 0.0 && c < 1.0) {
+                return Err(format!(
+                    "Hilbert cut-off {c} must be a fraction of Nyquist in (0, 1), e.g. 0.005"
+                ));
+            }
+        }
+        if !(self.resonance > 0.0 && self.resonance < 1.0) {
+            return Err(format!(
+                "resonance band {} must be a fraction in (0, 1), e.g. 0.1 for ±10 % around ω0",
+                self.resonance
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// Everything one method found on one run.
 #[derive(Debug, Clone)]
 pub struct Identification {

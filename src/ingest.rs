@@ -328,6 +328,31 @@ pub struct Run {
     pub output: Vec<f64>,
 }
 
+/// A group that holds datasets but is not a run: none of them has the input's or the
+/// output's name. Listed so that a run laid out with other names is never dropped unseen.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct NotARun {
+    /// Group path.
+    pub path: String,
+    /// Its datasets' names (the first 16).
+    pub datasets: Vec<String>,
+}
+
+impl fmt::Display for NotARun {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "{} (datasets: {}) is not a run: no dataset has the input's or the output's \
+             name; --input-name/--output-name read other names",
+            self.path,
+            self.datasets.join(", ")
+        )
+    }
+}
+
+/// Groups listed as [`NotARun`] at most per archive.
+const MAX_NOT_RUNS: usize = 256;
+
 /// One run found in an archive: its metadata, or why it cannot be used.
 #[derive(Debug, Clone)]
 pub struct RunEntry {
@@ -344,6 +369,8 @@ pub struct Archive {
     options: IngestOptions,
     /// Runs in path order.
     pub runs: Vec<RunEntry>,
+    /// Groups with datasets that are not runs (other dataset names), in path order.
+    pub not_runs: Vec<NotARun>,
 }
 
 impl fmt::Debug for Archive {
@@ -415,6 +442,7 @@ impl Archive {
             file,
             options: options.clone(),
             runs: Vec::new(),
+            not_runs: Vec::new(),
         };
         let mut found = Vec::new();
         let mut stats = WalkStats::default();
@@ -439,6 +467,11 @@ impl Archive {
             });
         }
         archive.runs = found;
+        stats.not_runs.sort_by(|a, b| a.path.cmp(&b.path));
+        if let Some(pat) = &options.run_glob {
+            stats.not_runs.retain(|g| pat.matches(&g.path));
+        }
+        archive.not_runs = stats.not_runs;
         Ok(archive)
     }
 
@@ -484,6 +517,7 @@ impl Archive {
             });
             return Ok(());
         }
+        let mut datasets = Vec::new();
         for name in &names {
             let child = join_path(path, name);
             match group.loc_type_by_name(name) {
@@ -500,11 +534,24 @@ impl Archive {
                     if stats.dataset_names.len() < 64 && !stats.dataset_names.contains(name) {
                         stats.dataset_names.push(name.clone());
                     }
+                    if datasets.len() < 16 {
+                        datasets.push(name.clone());
+                    }
                 }
                 Ok(_) => {}
                 // Dangling soft links and unreadable objects are skipped, not fatal.
                 Err(_) => {}
             }
+        }
+        // A time base alone is no candidate for a run, nor are MATLAB's own groups.
+        if datasets.iter().any(|d| d != "time")
+            && !path.contains("/#")
+            && stats.not_runs.len() < MAX_NOT_RUNS
+        {
+            stats.not_runs.push(NotARun {
+                path: path.to_string(),
+                datasets,
+            });
         }
         Ok(())
     }
@@ -947,6 +994,7 @@ struct RunMembers {
 #[derive(Default)]
 struct WalkStats {
     dataset_names: Vec<String>,
+    not_runs: Vec<NotARun>,
 }
 
 /// The known attributes of a run, each taken from the run group or its nearest ancestor.
@@ -1033,6 +1081,69 @@ pub fn expand_inputs(args: &[String]) -> Result<Vec<PathBuf>, String> {
     out.sort();
     out.dedup();
     Ok(out)
+}
+
+/// No archive among the inputs: what was looked at and what was there instead.
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "no campaign archive found: {0}; pass .h5, .hdf5, .he5 or .mat files, folders holding \
+     them, or a glob (nothing was done)"
+)]
+pub struct NothingFound(pub String);
+
+/// [`expand_inputs`], refusing an empty result with what each argument held instead.
+pub fn find_archives(args: &[String]) -> Result<Vec<PathBuf>, FindError> {
+    let files = expand_inputs(args).map_err(FindError::Bad)?;
+    if !files.is_empty() {
+        return Ok(files);
+    }
+    let seen: Vec<String> = args
+        .iter()
+        .map(|a| {
+            let mut others = Vec::new();
+            let _ = list_files(Path::new(a), &mut others);
+            match others.len() {
+                0 => format!("{a} is an empty folder"),
+                n => {
+                    let names: Vec<String> = others
+                        .iter()
+                        .take(3)
+                        .map(|p| p.display().to_string())
+                        .collect();
+                    format!(
+                        "{a} holds {n} other file(s) ({}{})",
+                        names.join(", "),
+                        if n > 3 { ", …" } else { "" }
+                    )
+                }
+            }
+        })
+        .collect();
+    Err(FindError::Nothing(NothingFound(seen.join("; "))))
+}
+
+/// Why [`find_archives`] found nothing to read.
+#[derive(Debug, thiserror::Error)]
+pub enum FindError {
+    /// A missing path or a bad pattern.
+    #[error("{0}")]
+    Bad(String),
+    /// Inputs that exist but hold no archive.
+    #[error(transparent)]
+    Nothing(#[from] NothingFound),
+}
+
+/// Every file below `dir`, whatever its extension (to say what a folder held instead).
+fn list_files(dir: &Path, out: &mut Vec<PathBuf>) -> std::io::Result<()> {
+    for e in std::fs::read_dir(dir)?.flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            list_files(&p, out)?;
+        } else {
+            out.push(p);
+        }
+    }
+    Ok(())
 }
 
 fn collect_dir(dir: &Path, out: &mut Vec<PathBuf>) -> std::io::Result<()> {

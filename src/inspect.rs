@@ -42,6 +42,9 @@ pub struct ArchiveReport {
     /// Machine-readable error kind.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error_kind: Option<String>,
+    /// Groups holding datasets that are not runs (other dataset names).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub not_runs: Vec<crate::ingest::NotARun>,
 }
 
 impl ArchiveReport {
@@ -79,6 +82,7 @@ pub fn inspect_archive(path: &std::path::Path, options: &IngestOptions) -> Archi
             runs: vec![],
             error_kind: Some(e.kind().to_string()),
             error: Some(e.to_string()),
+            not_runs: vec![],
         },
         Ok(archive) => {
             let runs = archive
@@ -97,6 +101,7 @@ pub fn inspect_archive(path: &std::path::Path, options: &IngestOptions) -> Archi
                 runs,
                 error: None,
                 error_kind: None,
+                not_runs: archive.not_runs.clone(),
             }
         }
     }
@@ -173,13 +178,20 @@ pub fn render_table(reports: &[ArchiveReport]) -> String {
                 }
             }
         }
+        for g in &rep.not_runs {
+            let _ = writeln!(s, "  skipped: {g}");
+        }
         let ok = rep.runs.iter().filter(|r| r.error.is_none()).count();
         let _ = writeln!(
             s,
-            "  {} run(s), {} ok, {} with problems",
+            "  {} run(s), {} ok, {} with problems{}",
             rep.runs.len(),
             ok,
-            rep.runs.len() - ok
+            rep.runs.len() - ok,
+            match rep.not_runs.len() {
+                0 => String::new(),
+                n => format!(", {n} group(s) skipped as not runs"),
+            }
         );
     }
     s
@@ -233,6 +245,7 @@ fn failed(file: String, detail: String) -> ArchiveReport {
         runs: vec![],
         error_kind: Some(e.kind().to_string()),
         error: Some(e.to_string()),
+        not_runs: vec![],
     }
 }
 

@@ -8,7 +8,7 @@ use clap::{Args, Parser, Subcommand, ValueEnum};
 use rayon::prelude::*;
 
 use skelid::campaign::{write_campaign, Attr, RunData};
-use skelid::ingest::{expand_inputs, Archive, IngestOptions};
+use skelid::ingest::{find_archives, Archive, FindError, IngestOptions};
 use skelid::model::RigModel;
 use skelid::simulate::{simulate, Drive, Excitation, Rolloff, SimSettings};
 use skelid::{demo, inspect};
@@ -562,7 +562,7 @@ fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
         .and_then(|s| s.first().copied())
         .unwrap_or(128);
     let ingest = a.ingest.options()?;
-    let files = expand_inputs(&a.archives).map_err(anyhow::Error::msg)?;
+    let files = find_archives(&a.archives)?;
     let mut signals = Vec::new();
     let mut runs = 0usize;
     for f in &files {
@@ -841,14 +841,18 @@ fn main() -> ExitCode {
         Ok(code) => code,
         Err(e) => {
             eprintln!("error: {e:#}");
-            ExitCode::from(2)
+            // Inputs that hold nothing to do are a finding (1), not a usage error (2).
+            let nothing = e
+                .chain()
+                .any(|c| matches!(c.downcast_ref::<FindError>(), Some(FindError::Nothing(_))));
+            ExitCode::from(if nothing { 1 } else { 2 })
         }
     }
 }
 
 fn cmd_inspect(a: InspectArgs) -> Result<ExitCode> {
     let options = a.ingest.options()?;
-    let files = expand_inputs(&a.archives).map_err(anyhow::Error::msg)?;
+    let files = find_archives(&a.archives)?;
     let reports = inspect::inspect_isolated(
         &self_exe()?,
         &files,
@@ -1019,28 +1023,32 @@ fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
     println!("\nidentified (true) per run; clearance in rad (m for the force run):\n");
     print!("{}", render_summary(&summary.rows, Some(&truth)));
     println!(
-        "\nwrote {}, summary.json, summary.csv, report.html",
+        "\n{} run(s), {} failed{}; wrote {}, summary.json, summary.csv, report.html",
+        summary.runs,
+        summary.failed_runs,
+        failed_methods(&summary.rows),
         summary.results.display()
     );
-    Ok(ExitCode::SUCCESS)
+    Ok(exit_status(&summary))
 }
 
 fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     let ingest = a.ingest.options()?;
-    let files = expand_inputs(&a.archives).map_err(anyhow::Error::msg)?;
+    let files = find_archives(&a.archives)?;
     let mut options = skelid::identify::IdentifyOptions::default();
     options.wavelet = a.wavelet.apply(options.wavelet);
     options.hilbert_cutoff = Some(a.cutoff);
     options.bins = a.bins;
-    if a.resonance.is_nan() || a.resonance <= 0.0 {
-        anyhow::bail!("--resonance must be a positive fraction (e.g. 0.1 for ±10 % around ω0)");
-    }
     options.resonance = a.resonance;
     options.backbone = match a.backbone {
         BackboneArg::Auto => None,
         BackboneArg::Orbit => Some(skelid::fit::BackboneModel::PeriodicOrbit),
         BackboneArg::DescribingFunction => Some(skelid::fit::BackboneModel::DescribingFunction),
     };
+    // Before any archive is opened: a value no run can use fails here, not in every run.
+    options
+        .validate()
+        .map_err(|e| anyhow::anyhow!("{e} (see skelid run --help; nothing was done)"))?;
     let exe = self_exe()?;
     let shard = a
         .shard
@@ -1074,14 +1082,44 @@ fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     if !a.quiet && !a.json_progress {
         print!("{}", render_summary(&summary.rows, None));
     }
+    report_not_runs(&summary.not_runs);
     println!(
-        "\n{} run(s), {} failed, {} already done earlier (skipped); wrote {}, summary.json, summary.csv, report.html, manifest.json, skelid.log",
+        "\n{} run(s), {} failed{}, {} already done earlier (skipped){}; wrote {}, summary.json, summary.csv, report.html, manifest.json, skelid.log",
         summary.runs,
         summary.failed_runs,
+        failed_methods(&summary.rows),
         summary.skipped,
+        match summary.not_runs.len() {
+            0 => String::new(),
+            n => format!(", {n} group(s) skipped as not runs"),
+        },
         summary.results.display()
     );
     Ok(exit_status(&summary))
+}
+
+/// ", N of M run × method failed" when some method failed on a run that another method
+/// identified (such a run is `ok`, and the exit status does not count it).
+fn failed_methods(rows: &[skelid::report::SummaryRow]) -> String {
+    let failed = rows.iter().filter(|r| r.status != "ok").count();
+    if failed == 0 {
+        String::new()
+    } else {
+        format!(" ({failed} of {} run × method failed)", rows.len())
+    }
+}
+
+/// Warns of the input groups that hold datasets but are not runs: the first few in full.
+fn report_not_runs(groups: &[skelid::batch::GroupNotRun]) {
+    for g in groups.iter().take(10) {
+        eprintln!("warning: {}: {}", g.archive, g.group);
+    }
+    if groups.len() > 10 {
+        eprintln!(
+            "warning: … and {} more group(s) that are not runs (all in manifest.json and skelid.log)",
+            groups.len() - 10
+        );
+    }
 }
 
 /// How a batch reports progress on the terminal.

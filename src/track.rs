@@ -136,6 +136,33 @@ impl Default for WaveletOptions {
     }
 }
 
+impl WaveletOptions {
+    /// Refuses what no record can be analysed with, before any work: the wavelet, the
+    /// number of scales, and a band whose ends are not positive or not in order. (The band
+    /// against a record's Nyquist frequency is checked per record.)
+    pub fn validate(&self) -> Result<(), String> {
+        self.wavelet.validate()?;
+        if !(3..=4096).contains(&self.scales) {
+            return Err(format!("{} scales: use between 3 and 4096", self.scales));
+        }
+        for (name, f) in [("fmin", self.fmin), ("fmax", self.fmax)] {
+            if let Some(f) = f {
+                if !(f.is_finite() && f > 0.0) {
+                    return Err(format!("{name} = {f} Hz must be a positive frequency"));
+                }
+            }
+        }
+        if let (Some(lo), Some(hi)) = (self.fmin, self.fmax) {
+            if lo >= hi {
+                return Err(format!(
+                    "fmin = {lo} Hz must be below fmax = {hi} Hz (the band is fmin..fmax)"
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
 /// Options of the Hilbert method.
 #[derive(Debug, Clone, Default)]
 pub struct HilbertOptions {

@@ -39,6 +39,38 @@ fn demo_writes_the_campaign_with_its_truth_and_lists_it() {
     let csv = std::fs::read_to_string(d.path().join("summary.csv")).unwrap();
     assert!(csv.starts_with("run,source,method,status,clearance,"));
     assert_eq!(csv.lines().count(), rows.len() + 1);
+    // One method failing on a run the other identified: the run is `ok` everywhere, and
+    // the failed method is counted alike on the terminal, the page and in results.h5.
+    let failed_rows: Vec<&serde_json::Value> =
+        rows.iter().filter(|r| r["status"] != "ok").collect();
+    assert_eq!(failed_rows.len(), 1, "{failed_rows:?}");
+    assert_eq!(failed_rows[0]["run"], "/demo/free_decay");
+    assert!(
+        text.contains("11 run(s), 0 failed (1 of 22 run × method failed)"),
+        "{text}"
+    );
+    let page = std::fs::read_to_string(d.path().join("report.html")).unwrap();
+    assert!(page.contains("11 run(s), 0 failed · 22 row(s) (run × method), 1 failed"));
+    let results = hdf5::File::open(d.path().join("results.h5")).unwrap();
+    let run = results.group("demo/free_decay").unwrap();
+    let text_attr = |g: &hdf5::Group, n: &str| -> Option<String> {
+        let a = g.attr(n).ok()?;
+        let v: hdf5::types::VarLenUnicode = a.read_scalar().ok()?;
+        Some(v.as_str().to_string())
+    };
+    assert_eq!(text_attr(&run, "status").as_deref(), Some("ok"));
+    assert_eq!(
+        text_attr(&run, "error"),
+        None,
+        "`error` goes with `failed` only"
+    );
+    assert_eq!(
+        text_attr(&run, "failed_methods").as_deref(),
+        Some("hilbert")
+    );
+    let hilbert = run.group("hilbert").unwrap();
+    assert_eq!(text_attr(&hilbert, "status").as_deref(), Some("failed"));
+    assert!(text_attr(&hilbert, "error").is_some());
     let archive = d.path().join("demo_campaign.h5");
     let f = hdf5::File::open(&archive).unwrap();
     let g = f.group("demo/paper_rig").unwrap();
@@ -948,4 +980,137 @@ fn a_gpu_batch_of_256_signals_is_one_submission_and_one_wait() {
     assert_eq!(count(&t, "batches"), 2, "{t}");
     assert_eq!(count(&t, "overlapped"), 1, "{t}");
     assert!(count(&t, "syncs") <= 2 * count(&t, "batches"), "{t}");
+}
+
+#[test]
+fn nothing_to_do_is_never_a_success_and_impossible_options_are_refused_before_work() {
+    let d = tmpdir();
+    let out = d.path().join("out");
+    // An empty folder, and one holding only other files: exit 1, saying what was seen,
+    // and no output folder.
+    let empty = d.path().join("empty");
+    let other = d.path().join("other");
+    std::fs::create_dir_all(&empty).unwrap();
+    std::fs::create_dir_all(&other).unwrap();
+    std::fs::write(other.join("notes.txt"), "x").unwrap();
+    for (args, says) in [
+        (vec!["run", empty.to_str().unwrap()], "is an empty folder"),
+        (vec!["run", other.to_str().unwrap()], "notes.txt"),
+        (
+            vec!["inspect", empty.to_str().unwrap()],
+            "is an empty folder",
+        ),
+    ] {
+        let mut c = skelid();
+        c.args(&args);
+        if args[0] == "run" {
+            c.arg("--out").arg(&out);
+        }
+        let o = c.output().unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{args:?}: {err}");
+        assert!(
+            err.contains("no campaign archive found") && err.contains(says),
+            "{err}"
+        );
+        assert!(!out.exists(), "{args:?} wrote {}", out.display());
+    }
+    // Values no run can use: exit 2 before any archive is opened.
+    let archive = demo_archive();
+    for (flags, says) in [
+        (vec!["--fmin", "20", "--fmax", "5"], "must be below fmax"),
+        (vec!["--fmin=-1"], "positive frequency"),
+        (vec!["--bins", "1"], "at least 2"),
+        (vec!["--cutoff", "1.5"], "(0, 1)"),
+        (vec!["--resonance", "0"], "(0, 1)"),
+        (vec!["--resonance", "1.5"], "(0, 1)"),
+        (vec!["--scales", "2"], "between 3 and 4096"),
+    ] {
+        let o = skelid()
+            .arg("run")
+            .arg(archive)
+            .arg("--out")
+            .arg(&out)
+            .args(&flags)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{flags:?}: {err}");
+        assert!(
+            err.contains(says) && err.contains("nothing was done"),
+            "{err}"
+        );
+        assert!(!out.exists(), "{flags:?} wrote {}", out.display());
+    }
+}
+
+#[test]
+fn a_group_laid_out_with_other_names_is_listed_not_dropped() {
+    let d = tmpdir();
+    let archive = d.path().join("bench.h5");
+    {
+        let f = hdf5::File::create(&archive).unwrap();
+        for (name, a, b) in [("r1", "input", "output"), ("r2", "force", "acc")] {
+            let g = group(&f, &format!("/runs/{name}"));
+            set_f64(&g, "sample_rate", 1000.0);
+            put(&g, a, &sine(3000, 5.0, 1000.0));
+            put(&g, b, &sine(3000, 5.0, 1000.0));
+        }
+        // A time base alone is no run candidate.
+        let g = group(&f, "/clock");
+        put(&g, "time", &sine(10, 1.0, 10.0));
+    }
+    let o = skelid().arg("inspect").arg(&archive).output().unwrap();
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        text.contains("skipped: /runs/r2 (datasets: acc, force) is not a run")
+            && text.contains("--input-name/--output-name")
+            && text.contains("1 group(s) skipped as not runs")
+            && !text.contains("/clock"),
+        "{text}"
+    );
+    let o = skelid()
+        .args(["inspect", "--json"])
+        .arg(&archive)
+        .output()
+        .unwrap();
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(v[0]["not_runs"][0]["path"], "/runs/r2");
+    // The option the listing names reads it.
+    let o = skelid()
+        .args(["inspect", "--input-name", "force", "--output-name", "acc"])
+        .arg(&archive)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        text.contains("/runs/r2 ") && text.contains("skipped: /runs/r1"),
+        "{text}"
+    );
+    // A batch warns, and keeps the list in its manifest and log.
+    let out = d.path().join("out");
+    let o = skelid()
+        .arg("run")
+        .arg(&archive)
+        .arg("--out")
+        .arg(&out)
+        .args(["--quiet", "--method", "hilbert"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        err.contains("warning: ") && err.contains("/runs/r2 (datasets: acc, force)"),
+        "{err}"
+    );
+    assert!(said.contains("1 group(s) skipped as not runs"), "{said}");
+    let m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).unwrap()).unwrap();
+    assert_eq!(m["not_runs"][0]["path"], "/runs/r2");
+    assert_eq!(
+        m["not_runs"][0]["datasets"],
+        serde_json::json!(["acc", "force"])
+    );
+    let log = std::fs::read_to_string(out.join("skelid.log")).unwrap();
+    assert!(log.contains("skipped (not a run)"), "{log}");
 }

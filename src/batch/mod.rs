@@ -161,6 +161,18 @@ pub struct BatchSummary {
     pub runs: usize,
     /// Runs skipped because an earlier invocation had committed them.
     pub skipped: usize,
+    /// Groups of the inputs that hold datasets but are not runs (other dataset names).
+    pub not_runs: Vec<GroupNotRun>,
+}
+
+/// A group of an input archive that holds datasets but is not a run.
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+pub struct GroupNotRun {
+    /// Archive as given.
+    pub archive: String,
+    /// The group and its datasets.
+    #[serde(flatten)]
+    pub group: crate::ingest::NotARun,
 }
 
 /// The output folder's record of a batch: what was asked and which runs it holds.
@@ -176,6 +188,9 @@ pub struct Manifest {
     pub runs_in_inputs: usize,
     /// The runs of this folder.
     pub runs: Vec<ManifestRun>,
+    /// Groups of the inputs that hold datasets but are not runs, so none goes unseen.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub not_runs: Vec<GroupNotRun>,
 }
 
 /// One run of a manifest.
@@ -199,6 +214,7 @@ impl Manifest {
         shard: Option<Shard>,
         runs_in_inputs: usize,
         entries: &mut [Entry],
+        not_runs: Vec<GroupNotRun>,
     ) -> Manifest {
         entries.sort_by(|a, b| (&a.source, &a.path).cmp(&(&b.source, &b.path)));
         Manifest {
@@ -206,6 +222,7 @@ impl Manifest {
             settings,
             shard,
             runs_in_inputs,
+            not_runs,
             runs: entries
                 .iter()
                 .map(|e| ManifestRun {
@@ -311,7 +328,21 @@ pub fn run_campaigns(
     let (mut entries, written_at): (Vec<Entry>, Vec<String>) = entries.into_iter().unzip();
     place_runs(&results, &entries, &written_at)?;
     let results = results.finish()?;
-    let manifest = Manifest::new(settings, opt.shard, runs_in_inputs, &mut entries);
+    let not_runs: Vec<GroupNotRun> =
+        std::mem::take(&mut *counts.not_runs.lock().unwrap_or_else(|p| p.into_inner()))
+            .into_iter()
+            .map(|(archive, group)| GroupNotRun { archive, group })
+            .collect();
+    for g in &not_runs {
+        log.line(&format!("skipped (not a run) {}: {}", g.archive, g.group));
+    }
+    let manifest = Manifest::new(
+        settings,
+        opt.shard,
+        runs_in_inputs,
+        &mut entries,
+        not_runs.clone(),
+    );
     let (rows, failed_runs) = write_outputs(&results, out, &entries, &manifest, opt.report_runs)?;
     profile::add(Stage::Write, profile::thread_cpu().saturating_sub(cpu0));
     log.line(&format!(
@@ -329,6 +360,7 @@ pub fn run_campaigns(
         failed_runs,
         runs: total,
         skipped,
+        not_runs,
     })
 }
 
@@ -682,7 +714,13 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
             first.runs_in_inputs
         )));
     }
-    let manifest = Manifest::new(settings, None, first.runs_in_inputs, &mut entries);
+    let manifest = Manifest::new(
+        settings,
+        None,
+        first.runs_in_inputs,
+        &mut entries,
+        first.not_runs.clone(),
+    );
     let results = journal.assemble(out, &entries)?;
     let (rows, failed_runs) = write_outputs(&results, out, &entries, &manifest, report_runs)?;
     Ok(BatchSummary {
@@ -691,6 +729,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         failed_runs,
         runs: entries.len(),
         skipped: 0,
+        not_runs: manifest.not_runs.clone(),
     })
 }
 

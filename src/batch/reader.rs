@@ -40,6 +40,9 @@ pub enum Frame {
     Open {
         /// Archive index.
         archive: usize,
+        /// Groups of the archive with datasets that are not runs.
+        #[serde(default)]
+        not_runs: Vec<crate::ingest::NotARun>,
     },
     /// One run of this shard; samples follow when `meta` is `Ok`.
     Run {
@@ -98,6 +101,8 @@ pub struct Counts {
     pub delivered: AtomicUsize,
     /// Archives not yet finished.
     pub archives_left: AtomicUsize,
+    /// Groups with datasets that are not runs, with their archive (as given).
+    pub not_runs: std::sync::Mutex<Vec<(String, crate::ingest::NotARun)>>,
 }
 
 impl Counts {
@@ -206,7 +211,14 @@ impl<'a> Assembler<'a> {
     fn frame(&mut self, frame: Frame, samples: Option<Samples>) -> Option<Delivery> {
         let c = self.counts;
         match frame {
-            Frame::Open { .. } => None,
+            Frame::Open { archive, not_runs } => {
+                let file = self.files[archive].display().to_string();
+                c.not_runs
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .extend(not_runs.into_iter().map(|g| (file.clone(), g)));
+                None
+            }
             Frame::Skip { .. } => {
                 c.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
                 None
@@ -281,7 +293,11 @@ pub fn serve(
                 continue;
             }
         };
-        if !emit(Frame::Open { archive: i }, None) {
+        let open = Frame::Open {
+            archive: i,
+            not_runs: archive.not_runs.clone(),
+        };
+        if !emit(open, None) {
             return;
         }
         for entry in &archive.runs {

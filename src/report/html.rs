@@ -578,12 +578,23 @@ pub fn render(page: &ReportPage) -> String {
         seen.len()
     };
     let failed_rows = page.rows.iter().filter(|r| r.status != "ok").count();
+    // A run failed when every one of its rows did (the terminal and results.h5 count so).
+    let failed_runs = {
+        let mut runs: std::collections::BTreeMap<(&str, &str), bool> = Default::default();
+        for r in page.rows {
+            *runs
+                .entry((r.source.as_str(), r.run.as_str()))
+                .or_insert(true) &= r.status != "ok";
+        }
+        runs.values().filter(|&&f| f).count()
+    };
     let _ = write!(
         body,
-        "<h1>skelid report</h1>\n<p class=\"meta\">{} · {} run(s), {} row(s) (run × method), \
-         {} failed · settings <code>{}</code> · skelid {}</p>\n",
+        "<h1>skelid report</h1>\n<p class=\"meta\">{} · {} run(s), {} failed · {} row(s) \
+         (run × method), {} failed · settings <code>{}</code> · skelid {}</p>\n",
         esc(page.title),
         runs_total,
+        failed_runs,
         page.rows.len(),
         failed_rows,
         esc(page.settings),

@@ -405,8 +405,22 @@ type BinColumn = fn(&Bin) -> f64;
 pub fn encode_run(run: &RunOutcome) -> EncodedRun {
     let mut e = EncodedRun::new(&run.path);
     e.str_attr("", "status", run.status());
-    if let Some(err) = run.error_text() {
-        e.str_attr("", "error", &err);
+    // `error` goes with `failed` only (FORMATS.md §3): a run that one method identified is
+    // `ok`, and names its failed methods instead (each method's group holds its error).
+    if run.status() == "failed" {
+        if let Some(err) = run.error_text() {
+            e.str_attr("", "error", &err);
+        }
+    } else {
+        let failed: Vec<&str> = run
+            .methods
+            .iter()
+            .filter(|m| m.1.is_err())
+            .map(|m| m.0.as_str())
+            .collect();
+        if !failed.is_empty() {
+            e.str_attr("", "failed_methods", &failed.join(","));
+        }
     }
     e.str_attr("", "backend", run.backend());
     e.str_attr("", "source", &run.source);
