@@ -90,13 +90,30 @@ pub fn placements(entries: &[Entry]) -> Vec<String> {
     entries
         .iter()
         .map(|e| {
-            if seen.insert(e.path.as_str()) {
-                e.path.clone()
+            let group = results_group(&e.path, &e.source);
+            if seen.insert(group.clone()) {
+                group
             } else {
-                format!("{}@{}", e.path, e.source)
+                format!("{group}@{}", e.source)
             }
         })
         .collect()
+}
+
+/// The group of results.h5 a run's results go to: its own path, or, for a run at an
+/// archive's root (MATLAB v7.3 saves its variables there), a group named after the
+/// archive's file (`/bench` for `bench.mat`), since results.h5's root is not a run's.
+pub fn results_group(path: &str, source: &str) -> String {
+    if path != "/" {
+        return path.to_string();
+    }
+    let name = base_name(source);
+    let stem = Path::new(name)
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .filter(|s| !s.is_empty() && !s.starts_with('.'))
+        .unwrap_or("root");
+    format!("/{stem}")
 }
 
 /// A finished run made ready for its commit: results encoded (compressed) and summary rows

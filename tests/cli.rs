@@ -1114,3 +1114,86 @@ fn a_group_laid_out_with_other_names_is_listed_not_dropped() {
     let log = std::fs::read_to_string(out.join("skelid.log")).unwrap();
     assert!(log.contains("skipped (not a run)"), "{log}");
 }
+
+#[test]
+fn a_run_at_the_file_root_is_written_to_a_named_group() {
+    // MATLAB v7.3 saves variables at the file root: such a run is identified and written
+    // to a group named after the file (it used to fail writing, exit 2, work lost).
+    let d = tmpdir();
+    let archive = d.path().join("bench7.h5");
+    {
+        let f = hdf5::File::create(&archive).unwrap();
+        set_f64(&f, "sample_rate", 1000.0);
+        let n = 20_000;
+        let x: Vec<f64> = (0..n)
+            .map(|i| {
+                let t = i as f64 / 1000.0;
+                0.01 * (2.0 * std::f64::consts::PI * (0.5 * t + 0.2 * t * t)).sin()
+            })
+            .collect();
+        let y: Vec<f64> = x.iter().map(|v| 1.5 * v).collect();
+        put(&f, "input", &x);
+        put(&f, "output", &y);
+    }
+    let out = d.path().join("out");
+    let o = skelid()
+        .arg("run")
+        .arg(&archive)
+        .arg("--out")
+        .arg(&out)
+        .args(["--quiet", "--method", "hilbert"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.code().is_some_and(|c| c <= 1), "{err}");
+    let f = hdf5::File::open(out.join("results.h5")).unwrap();
+    let g = f.group("bench7").unwrap();
+    let status: hdf5::types::VarLenUnicode = g.attr("status").unwrap().read_scalar().unwrap();
+    assert!(["ok", "failed"].contains(&status.as_str()));
+    assert!(g.group("hilbert").is_ok());
+    assert!(std::fs::read_dir(&out).unwrap().all(|e| !e
+        .unwrap()
+        .file_name()
+        .to_string_lossy()
+        .ends_with(".tmp")));
+}
+
+#[test]
+fn a_batch_that_cannot_write_its_outputs_keeps_its_runs_and_no_temporary_file() {
+    let d = tmpdir();
+    let out = d.path().join("out");
+    // summary.json cannot be written (a folder of that name is in the way).
+    std::fs::create_dir_all(out.join("summary.json").join("x")).unwrap();
+    let run = || {
+        skelid()
+            .arg("run")
+            .arg(demo_archive())
+            .arg("--out")
+            .arg(&out)
+            .args(["--quiet", "--run-glob", "/demo/effects/*"])
+            .output()
+            .unwrap()
+    };
+    let o = run();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("summary.json")
+            && err.contains("run the same command again to resume")
+            && err.matches("Is a directory").count() == 1,
+        "{err}"
+    );
+    let tmp: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".tmp"))
+        .collect();
+    assert!(tmp.is_empty(), "{tmp:?}");
+    let committed = std::fs::read_dir(out.join("runs")).unwrap().count();
+    assert_eq!(committed, 7, "every run kept in the journal");
+    // Once the cause is gone, the same command resumes from them.
+    std::fs::remove_dir_all(out.join("summary.json")).unwrap();
+    let o = run();
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(said.contains("7 already done earlier (skipped)"), "{said}");
+}

@@ -24,8 +24,8 @@ use crate::backend::Backend;
 use crate::identify::{identify_on, IdentifyOptions};
 use crate::ingest::IngestOptions;
 use crate::journal::{
-    failed_key, placements, run_key, settings_fingerprint, Entry, Journal, Prepared, Stored,
-    RUNS_DIR,
+    failed_key, placements, results_group, run_key, settings_fingerprint, Entry, Journal, Prepared,
+    Stored, RUNS_DIR,
 };
 use crate::profile::{self, Stage};
 use crate::report::{html, write_summary, ReportError, ResultsWriter, RunOutcome, SummaryRow};
@@ -40,6 +40,18 @@ pub enum BatchError {
     /// A merge found outputs that do not fit together.
     #[error("cannot merge: {0}")]
     Merge(String),
+    /// The batch stopped after runs were identified: they are kept in the journal.
+    #[error(
+        "{cause}; the runs identified so far are committed in {}: fix the cause and run \
+         the same command again to resume from them (they are not redone)",
+        journal.display()
+    )]
+    Interrupted {
+        /// What stopped it (in the message, not the error chain, so it is said once).
+        cause: Box<BatchError>,
+        /// The journal folder (`DIR/runs`).
+        journal: PathBuf,
+    },
     /// The worker threads asked for (`--jobs`) could not be started.
     #[error("cannot start {jobs} worker thread(s): {detail}")]
     Threads {
@@ -314,7 +326,18 @@ pub fn run_campaigns(
         });
         drop(done_tx);
         writer.join().expect("the writer does not panic")
-    })?;
+    });
+    let stopped = |e: BatchError| BatchError::Interrupted {
+        cause: Box::new(e),
+        journal: out.join(RUNS_DIR),
+    };
+    let written = match written {
+        Ok(w) => w,
+        Err(e) => {
+            results.abandon();
+            return Err(stopped(e));
+        }
+    };
     let Written {
         mut entries,
         skipped,
@@ -326,8 +349,11 @@ pub fn run_campaigns(
     let (t0, cpu0) = (Instant::now(), profile::thread_cpu());
     entries.sort_by(|(a, _), (b, _)| (&a.source, &a.path).cmp(&(&b.source, &b.path)));
     let (mut entries, written_at): (Vec<Entry>, Vec<String>) = entries.into_iter().unzip();
-    place_runs(&results, &entries, &written_at)?;
-    let results = results.finish()?;
+    if let Err(e) = place_runs(&results, &entries, &written_at) {
+        results.abandon();
+        return Err(stopped(e));
+    }
+    let results = results.finish().map_err(|e| stopped(e.into()))?;
     let not_runs: Vec<GroupNotRun> =
         std::mem::take(&mut *counts.not_runs.lock().unwrap_or_else(|p| p.into_inner()))
             .into_iter()
@@ -343,7 +369,8 @@ pub fn run_campaigns(
         &mut entries,
         not_runs.clone(),
     );
-    let (rows, failed_runs) = write_outputs(&results, out, &entries, &manifest, opt.report_runs)?;
+    let (rows, failed_runs) =
+        write_outputs(&results, out, &entries, &manifest, opt.report_runs).map_err(stopped)?;
     profile::add(Stage::Write, profile::thread_cpu().saturating_sub(cpu0));
     log.line(&format!(
         "where the time went (CPU seconds since the process started): {}",
@@ -449,7 +476,7 @@ fn write_finished(
         // two archives) goes aside now and is put in its place at the end.
         let (path, source) = match f {
             Finished::Skipped(ref e, _) | Finished::Committed(ref e, _) => {
-                (e.path.clone(), e.source.clone())
+                (results_group(&e.path, &e.source), e.source.clone())
             }
             Finished::Failed(e) => return Err(e.into()),
         };

@@ -378,10 +378,23 @@ impl ResultsWriter {
             file: path.display().to_string(),
             detail,
         };
-        file.flush().map_err(|e| err(e.to_string()))?;
+        let flushed = file.flush();
         drop(file);
-        std::fs::rename(&tmp, &path).map_err(|e| err(e.to_string()))?;
-        Ok(path)
+        let done = flushed
+            .map_err(|e| err(e.to_string()))
+            .and_then(|()| std::fs::rename(&tmp, &path).map_err(|e| err(e.to_string())));
+        if done.is_err() {
+            let _ = std::fs::remove_file(&tmp);
+        }
+        done.map(|()| path)
+    }
+
+    /// Closes and deletes the unfinished file: a batch that stops on an error leaves no
+    /// `.tmp` behind (its runs are in the journal).
+    pub fn abandon(self) {
+        let ResultsWriter { file, tmp, .. } = self;
+        drop(file);
+        let _ = std::fs::remove_file(&tmp);
     }
 }
 
@@ -706,6 +719,11 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
         detail,
     };
     let tmp = tmp_path(path);
-    std::fs::write(&tmp, bytes).map_err(|e| err(e.to_string()))?;
-    std::fs::rename(&tmp, path).map_err(|e| err(e.to_string()))
+    let done = std::fs::write(&tmp, bytes)
+        .and_then(|()| std::fs::rename(&tmp, path))
+        .map_err(|e| err(e.to_string()));
+    if done.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    done
 }
