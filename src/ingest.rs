@@ -10,7 +10,7 @@ use std::fmt;
 use std::path::{Path, PathBuf};
 
 use hdf5::types::TypeDescriptor;
-use hdf5::{Dataset, File, Group, Location};
+use hdf5::{File, Group, Location};
 use serde::Serialize;
 
 use crate::h5util::{all_attrs, read_attr, AttrValue};
@@ -46,7 +46,7 @@ pub enum IngestError {
         detail: String,
     },
     /// The walk found no group holding the signal datasets.
-    #[error("{file}: no runs found: no group holds datasets named `{input}` and `{output}` (or `{output}` alone with kind = \"free\"){hint}; use --input-name/--output-name/--run-glob for other layouts")]
+    #[error("{file}: no runs found: no group holds datasets named `{input}` and `{output}` (or `{output}` alone with kind = \"free\"){hint}; use --input-name/--output-name (NAME[k] picks channel k of a matrix), --kind and --run-glob for other layouts")]
     NoRuns {
         file: String,
         input: String,
@@ -219,6 +219,17 @@ impl RunKind {
             RunKind::Free => "free",
         }
     }
+
+    /// A kind as archives and `--kind` spell it (`base_motion`, `base-motion`, `base`,
+    /// `force`, `free`, `free_decay`).
+    pub fn parse(s: &str) -> Option<Self> {
+        match s.trim().to_ascii_lowercase().replace('-', "_").as_str() {
+            "base_motion" | "base" => Some(RunKind::BaseMotion),
+            "force" => Some(RunKind::Force),
+            "free" | "free_decay" => Some(RunKind::Free),
+            _ => None,
+        }
+    }
 }
 
 impl fmt::Display for RunKind {
@@ -253,7 +264,8 @@ impl Quantity {
         }
     }
 
-    fn parse(s: &str) -> Option<Self> {
+    /// A quantity as archives and `--input-quantity`/`--output-quantity` spell it.
+    pub fn parse(s: &str) -> Option<Self> {
         match s.trim().to_ascii_lowercase().as_str() {
             "displacement" | "angle" | "position" => Some(Quantity::Displacement),
             "velocity" => Some(Quantity::Velocity),
@@ -275,6 +287,14 @@ pub struct IngestOptions {
     pub sample_rate: Option<f64>,
     /// Only runs whose path matches this glob (e.g. `/runs/run_0*`).
     pub run_glob: Option<glob::Pattern>,
+    /// Kind of every run, overriding `kind` attributes.
+    pub kind: Option<RunKind>,
+    /// Inertia of every run (kg m² or kg), overriding `inertia` attributes.
+    pub inertia: Option<f64>,
+    /// What every run's input measures, overriding `input_quantity` attributes.
+    pub input_quantity: Option<Quantity>,
+    /// What every run's output measures, overriding `output_quantity` attributes.
+    pub output_quantity: Option<Quantity>,
 }
 
 impl Default for IngestOptions {
@@ -284,9 +304,39 @@ impl Default for IngestOptions {
             output_name: "output".into(),
             sample_rate: None,
             run_glob: None,
+            kind: None,
+            inertia: None,
+            input_quantity: None,
+            output_quantity: None,
         }
     }
 }
+
+/// A dataset name as given, `NAME` or `NAME[k]`: the dataset and the channel picked from
+/// a 2-D one (k counts from 0 along its shorter axis, so a MATLAB 3×N matrix, stored N×3,
+/// and an N×3 one read alike).
+pub fn channel_name(name: &str) -> (&str, Option<usize>) {
+    if let Some(base) = name.strip_suffix(']') {
+        if let Some((base, k)) = base.rsplit_once('[') {
+            if let Ok(k) = k.trim().parse() {
+                return (base, Some(k));
+            }
+        }
+    }
+    (name, None)
+}
+
+/// Scalar datasets that give a run's sample rate (Hz) when no attribute or `time` does, as
+/// MATLAB saves a variable `Fs`.
+const RATE_VARIABLES: [&str; 7] = [
+    "Fs",
+    "fs",
+    "FS",
+    "sample_rate",
+    "SampleRate",
+    "sampling_rate",
+    "samplerate",
+];
 
 /// Everything known about a run before its samples are read.
 #[derive(Debug, Clone, Serialize, serde::Deserialize)]
@@ -505,8 +555,8 @@ impl Archive {
             .map_err(|e| self.corrupt((depth > 0).then_some(path), e))?;
         let has = |n: &str| names.iter().any(|m| m == n) && is_dataset(group, n);
         let members = RunMembers {
-            input: has(&self.options.input_name),
-            output: has(&self.options.output_name),
+            input: has(channel_name(&self.options.input_name).0),
+            output: has(channel_name(&self.options.output_name).0),
             time: has("time"),
         };
         if members.output || members.input {
@@ -565,13 +615,12 @@ impl Archive {
         let file = &self.file_name;
         let run = path.to_string();
         let attrs = InheritedAttrs::collect(&self.file, path);
-        let kind = match attrs.text("kind") {
-            None => RunKind::BaseMotion,
-            Some(k) => match k.trim().to_ascii_lowercase().as_str() {
-                "base_motion" | "base" => RunKind::BaseMotion,
-                "force" => RunKind::Force,
-                "free" | "free_decay" => RunKind::Free,
-                _ => {
+        let kind = match (self.options.kind, attrs.text("kind")) {
+            (Some(k), _) => k,
+            (None, None) => RunKind::BaseMotion,
+            (None, Some(k)) => match RunKind::parse(&k) {
+                Some(k) => k,
+                None => {
                     return Err(IngestError::BadAttribute {
                         file: file.clone(),
                         run,
@@ -599,6 +648,13 @@ impl Archive {
             });
         }
         let quantity = |name: &str, default: Quantity| -> Result<Quantity, IngestError> {
+            let given = match name {
+                "input_quantity" => self.options.input_quantity,
+                _ => self.options.output_quantity,
+            };
+            if let Some(q) = given {
+                return Ok(q);
+            }
             match attrs.text(name) {
                 None => Ok(default),
                 Some(s) => Quantity::parse(&s).ok_or_else(|| IngestError::BadAttribute {
@@ -644,7 +700,10 @@ impl Archive {
                 }),
             }
         };
-        let inertia = number("inertia")?;
+        let inertia = match self.options.inertia {
+            Some(j) => Some(j),
+            None => number("inertia")?,
+        };
         if let Some(j) = inertia {
             if j <= 0.0 {
                 return Err(IngestError::BadAttribute {
@@ -658,15 +717,9 @@ impl Archive {
         }
         let gravity_stiffness = number("gravity_stiffness")?.unwrap_or(0.0);
 
-        let output = group
-            .dataset(&self.options.output_name)
-            .map_err(|e| self.corrupt(Some(path), e))?;
-        let samples = self.signal_len(&output, path, &self.options.output_name)?;
+        let samples = self.signal_len(group, path, &self.options.output_name)?;
         if members.input && kind != RunKind::Free {
-            let input = group
-                .dataset(&self.options.input_name)
-                .map_err(|e| self.corrupt(Some(path), e))?;
-            let n_in = self.signal_len(&input, path, &self.options.input_name)?;
+            let n_in = self.signal_len(group, path, &self.options.input_name)?;
             if n_in != samples {
                 return Err(IngestError::LengthMismatch {
                     file: file.clone(),
@@ -707,8 +760,13 @@ impl Archive {
         })
     }
 
-    /// Length of a signal dataset, checking shape and type.
-    fn signal_len(&self, ds: &Dataset, run: &str, name: &str) -> Result<usize, IngestError> {
+    /// Length of a signal (`NAME` or `NAME[k]`, see [`channel_name`]) of `group`, checking
+    /// shape and type.
+    fn signal_len(&self, group: &Group, run: &str, name: &str) -> Result<usize, IngestError> {
+        let (base, channel) = channel_name(name);
+        let ds = group
+            .dataset(base)
+            .map_err(|e| self.corrupt(Some(run), e))?;
         let shape = ds.get_shape().map_err(|e| self.corrupt(Some(run), e))?;
         let not_1d = || IngestError::NotOneD {
             file: self.file_name.clone(),
@@ -716,9 +774,16 @@ impl Archive {
             dataset: name.to_string(),
             shape: shape.clone(),
         };
-        if shape.is_empty() || shape.iter().filter(|&&d| d > 1).count() > 1 {
-            return Err(not_1d());
-        }
+        let len = match channel {
+            None if shape.is_empty() || shape.iter().filter(|&&d| d > 1).count() > 1 => {
+                return Err(not_1d())
+            }
+            None => shape.iter().product(),
+            Some(k) => match channel_axis(&shape) {
+                Some((axis, n)) if k < shape[axis] => n,
+                _ => return Err(not_1d()),
+            },
+        };
         let desc = ds
             .dtype()
             .and_then(|d| d.to_descriptor())
@@ -735,7 +800,7 @@ impl Archive {
                 })
             }
         }
-        Ok(shape.iter().product())
+        Ok(len)
     }
 
     fn sample_rate(
@@ -765,12 +830,18 @@ impl Archive {
             }
         };
         if !has_time {
-            return from_attr.ok_or(IngestError::MissingSampleRate { file, run });
+            if let Some(fs) = from_attr {
+                return Ok(fs);
+            }
+            return match self.rate_variable(group) {
+                Some(fs) => check_rate(fs, &file, &run),
+                None => Err(IngestError::MissingSampleRate { file, run }),
+            };
         }
+        let n = self.signal_len(group, path, "time")?;
         let ds = group
             .dataset("time")
             .map_err(|e| self.corrupt(Some(path), e))?;
-        let n = self.signal_len(&ds, path, "time")?;
         if n != samples {
             return Err(IngestError::LengthMismatch {
                 file,
@@ -803,6 +874,19 @@ impl Archive {
             }
         }
         Ok(fs_time)
+    }
+
+    /// A sample rate saved as a scalar variable (`Fs`, …) in the run's group or, for a
+    /// run at the root, at the root.
+    fn rate_variable(&self, group: &Group) -> Option<f64> {
+        RATE_VARIABLES.iter().find_map(|name| {
+            let ds = group.dataset(name).ok()?;
+            let shape = ds.get_shape().ok()?;
+            if shape.iter().product::<usize>() != 1 {
+                return None;
+            }
+            ds.read_raw::<f64>().ok()?.first().copied()
+        })
     }
 
     /// Reads a run's samples, applying `scale` and checking for NaN/Inf.
@@ -843,8 +927,9 @@ impl Archive {
         meta: &RunMeta,
         name: &str,
     ) -> Result<Vec<f64>, IngestError> {
+        let (base, channel) = channel_name(name);
         let ds = group
-            .dataset(name)
+            .dataset(base)
             .map_err(|e| self.corrupt(Some(&meta.path), e))?;
         let desc = ds
             .dtype()
@@ -853,6 +938,17 @@ impl Archive {
         let mut v: Vec<f64> = ds
             .read_raw::<f64>()
             .map_err(|e| self.corrupt(Some(&meta.path), e))?;
+        if let Some(k) = channel {
+            // One row or column of a 2-D dataset (row-major as read).
+            let shape = ds
+                .get_shape()
+                .map_err(|e| self.corrupt(Some(&meta.path), e))?;
+            v = match channel_axis(&shape) {
+                Some((0, n)) => v[k * n..(k + 1) * n].to_vec(),
+                Some((_, n)) => (0..n).map(|i| v[i * shape[1] + k]).collect(),
+                None => return Err(self.corrupt(Some(&meta.path), "not a 2-D dataset")),
+            };
+        }
         if v.len() != meta.samples {
             return Err(self.corrupt(
                 Some(&meta.path),
@@ -912,6 +1008,16 @@ impl Archive {
             });
         }
         Ok(v)
+    }
+}
+
+/// For a 2-D shape: the axis that counts channels (the shorter one) and the length of the
+/// other (samples).
+fn channel_axis(shape: &[usize]) -> Option<(usize, usize)> {
+    match *shape {
+        [a, b] if a <= b => Some((0, b)),
+        [a, _] => Some((1, a)),
+        _ => None,
     }
 }
 

@@ -231,6 +231,18 @@ pub fn option_args(options: &IngestOptions) -> Vec<String> {
     if let Some(g) = &options.run_glob {
         args.extend(["--run-glob".to_string(), g.as_str().to_string()]);
     }
+    if let Some(k) = options.kind {
+        args.extend(["--kind".to_string(), k.as_str().to_string()]);
+    }
+    if let Some(j) = options.inertia {
+        args.extend(["--inertia".to_string(), format!("{j:e}")]);
+    }
+    if let Some(q) = options.input_quantity {
+        args.extend(["--input-quantity".to_string(), q.as_str().to_string()]);
+    }
+    if let Some(q) = options.output_quantity {
+        args.extend(["--output-quantity".to_string(), q.as_str().to_string()]);
+    }
     args
 }
 

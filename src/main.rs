@@ -161,10 +161,12 @@ enum SweepArg {
 /// Options for archives laid out differently from the skelid-campaign/1 format.
 #[derive(Args, Clone)]
 struct IngestArgs {
-    /// Name of the input (drive or force) dataset inside each run group.
+    /// Name of the input (drive or force) dataset inside each run group; `NAME[k]` takes
+    /// channel k (from 0) of a 2-D dataset, along its shorter axis.
     #[arg(long, default_value = "input", value_name = "NAME")]
     input_name: String,
-    /// Name of the output (response) dataset inside each run group.
+    /// Name of the output (response) dataset inside each run group; `NAME[k]` takes
+    /// channel k (from 0) of a 2-D dataset such as MATLAB's 3×N `Acceleration`.
     #[arg(long, default_value = "output", value_name = "NAME")]
     output_name: String,
     /// Sample rate in Hz for every run, overriding `sample_rate` attributes and `time` datasets.
@@ -173,6 +175,32 @@ struct IngestArgs {
     /// Only runs whose group path matches this glob, e.g. '/sine_sweep/level_[1-3]'.
     #[arg(long, value_name = "GLOB")]
     run_glob: Option<String>,
+    /// Kind of every run, overriding `kind` attributes: base-motion (input = base
+    /// displacement), force (input = force on the mass) or free (decay, no input).
+    #[arg(long, value_name = "KIND", value_parser = parse_kind)]
+    kind: Option<skelid::ingest::RunKind>,
+    /// Inertia of every run (kg m² for a rotary rig, kg for a linear one), overriding
+    /// `inertia` attributes; gives the absolute stiffness, damping and friction.
+    #[arg(long, value_name = "J")]
+    inertia: Option<f64>,
+    /// What every run's input measures (displacement, velocity, acceleration, force),
+    /// overriding `input_quantity` attributes.
+    #[arg(long, value_name = "QUANTITY", value_parser = parse_quantity)]
+    input_quantity: Option<skelid::ingest::Quantity>,
+    /// What every run's output measures (displacement, velocity, acceleration), overriding
+    /// `output_quantity` attributes.
+    #[arg(long, value_name = "QUANTITY", value_parser = parse_quantity)]
+    output_quantity: Option<skelid::ingest::Quantity>,
+}
+
+fn parse_kind(s: &str) -> Result<skelid::ingest::RunKind, String> {
+    skelid::ingest::RunKind::parse(s)
+        .ok_or_else(|| format!("{s:?}: use base-motion, force or free"))
+}
+
+fn parse_quantity(s: &str) -> Result<skelid::ingest::Quantity, String> {
+    skelid::ingest::Quantity::parse(s)
+        .ok_or_else(|| format!("{s:?}: use displacement, velocity, acceleration or force"))
 }
 
 impl IngestArgs {
@@ -189,11 +217,20 @@ impl IngestArgs {
                 bail!("--sample-rate {fs}: must be a positive number of Hz");
             }
         }
+        if let Some(j) = self.inertia {
+            if !(j.is_finite() && j > 0.0) {
+                bail!("--inertia {j}: must be a positive number (kg m² or kg)");
+            }
+        }
         Ok(IngestOptions {
             input_name: self.input_name.clone(),
             output_name: self.output_name.clone(),
             sample_rate: self.sample_rate,
             run_glob,
+            kind: self.kind,
+            inertia: self.inertia,
+            input_quantity: self.input_quantity,
+            output_quantity: self.output_quantity,
         })
     }
 }

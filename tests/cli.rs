@@ -1197,3 +1197,100 @@ fn a_batch_that_cannot_write_its_outputs_keeps_its_runs_and_no_temporary_file() 
     let said = String::from_utf8_lossy(&o.stdout);
     assert!(said.contains("7 already done earlier (skipped)"), "{said}");
 }
+
+#[test]
+fn a_matlab_file_as_matlab_writes_it_is_read_with_the_options_the_listing_names() {
+    // MATLAB v7.3: variables at the root, `Force` 1×N (stored N×1), `Acceleration` 3×N
+    // (stored N×3), `Fs` a 1×1 scalar, none of skelid's attributes.
+    let d = tmpdir();
+    let file = d.path().join("shaker.mat");
+    let (n, fs) = (20_000usize, 1000.0);
+    let phase = |i: usize| {
+        let t = i as f64 / fs;
+        2.0 * std::f64::consts::PI * (0.5 * t + 0.2 * t * t)
+    };
+    {
+        let f = hdf5::File::create(&file).unwrap();
+        let force: Vec<f64> = (0..n).map(|i| phase(i).sin()).collect();
+        f.new_dataset_builder()
+            .with_data(&ndarray::Array2::from_shape_vec((n, 1), force).unwrap())
+            .create("Force")
+            .unwrap();
+        // Channel k is 0.1·(k+1)·sin(phase): tell the channels apart by their amplitude.
+        let acc =
+            ndarray::Array2::from_shape_fn((n, 3), |(i, k)| 0.1 * (k + 1) as f64 * phase(i).sin());
+        f.new_dataset_builder()
+            .with_data(&acc)
+            .create("Acceleration")
+            .unwrap();
+        f.new_dataset_builder()
+            .with_data(&ndarray::Array2::from_elem((1, 1), fs))
+            .create("Fs")
+            .unwrap();
+    }
+    // As found: no run, and the message names what was seen and the options.
+    let o = skelid().arg("inspect").arg(&file).output().unwrap();
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(
+        text.contains("Acceleration, Force, Fs") && text.contains("NAME[k]"),
+        "{text}"
+    );
+    // With them: one force run at the root, the sample rate from `Fs`.
+    let opts = [
+        "--input-name",
+        "Force",
+        "--output-name",
+        "Acceleration[2]",
+        "--kind",
+        "force",
+        "--output-quantity",
+        "acceleration",
+        "--inertia",
+        "2.5",
+    ];
+    let o = skelid()
+        .args(["inspect", "--json"])
+        .arg(&file)
+        .args(opts)
+        .output()
+        .unwrap();
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let meta = &v[0]["runs"][0]["meta"];
+    assert_eq!(v[0]["runs"][0]["path"], "/", "{v}");
+    assert_eq!(meta["sample_rate"], 1000.0, "{v}");
+    assert_eq!(meta["samples"], n);
+    assert_eq!(meta["kind"], "force");
+    assert_eq!(meta["output_quantity"], "acceleration");
+    assert_eq!(meta["inertia"], 2.5);
+    // Channel 2 is the one read.
+    let archive = skelid::ingest::Archive::open(
+        &file,
+        &skelid::ingest::IngestOptions {
+            input_name: "Force".into(),
+            output_name: "Acceleration[2]".into(),
+            kind: Some(skelid::ingest::RunKind::Force),
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let run = archive
+        .load(archive.runs[0].meta.as_ref().unwrap())
+        .unwrap();
+    let peak = run.output.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    assert!((peak - 0.3).abs() < 1e-3, "{peak}");
+    // And a batch identifies it and writes it under the file's name.
+    let out = d.path().join("out");
+    let o = skelid()
+        .arg("run")
+        .arg(&file)
+        .arg("--out")
+        .arg(&out)
+        .args(["--quiet", "--method", "hilbert"])
+        .args(opts)
+        .output()
+        .unwrap();
+    assert!(o.status.code().is_some_and(|c| c <= 1));
+    let f = hdf5::File::open(out.join("results.h5")).unwrap();
+    assert!(f.group("shaker/hilbert").is_ok());
+}

@@ -195,6 +195,7 @@ fn options_read_other_layouts() {
         output_name: "theta".into(),
         sample_rate: Some(2500.0),
         run_glob: Some(glob::Pattern::new("/bench/test_*").unwrap()),
+        ..IngestOptions::default()
     };
     let a = Archive::open(&p, &opts).unwrap();
     let paths: Vec<_> = a.runs.iter().map(|r| r.path.clone()).collect();
