@@ -28,6 +28,7 @@ pub mod inspect;
 pub mod journal;
 pub mod model;
 pub mod profile;
+pub mod quality;
 pub mod report;
 pub mod ridge;
 pub mod simulate;

@@ -1135,14 +1135,23 @@ fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     Ok(exit_status(&summary))
 }
 
-/// ", N of M run × method failed" when some method failed on a run that another method
-/// identified (such a run is `ok`, and the exit status does not count it).
+/// " (N of M run × method failed; S suspect, B bad)": the results that failed, and those
+/// whose verdict is not good ([`skelid::quality`]), when there are any.
 fn failed_methods(rows: &[skelid::report::SummaryRow]) -> String {
     let failed = rows.iter().filter(|r| r.status != "ok").count();
-    if failed == 0 {
+    let count = |q: &str| rows.iter().filter(|r| r.quality == q).count();
+    let mut parts = Vec::new();
+    if failed > 0 {
+        parts.push(format!("{failed} of {} run × method failed", rows.len()));
+    }
+    let (suspect, bad) = (count("suspect"), count("bad"));
+    if suspect + bad > 0 {
+        parts.push(format!("{suspect} suspect, {bad} bad"));
+    }
+    if parts.is_empty() {
         String::new()
     } else {
-        format!(" ({failed} of {} run × method failed)", rows.len())
+        format!(" ({})", parts.join("; "))
     }
 }
 
@@ -1240,15 +1249,20 @@ fn render_summary(rows: &[skelid::report::SummaryRow], truth: Option<Truth<'_>>)
     for r in rows {
         let t = truth.and_then(|f| f(&r.run));
         let f0 = get(r, "stiffness").map(|k| k.max(0.0).sqrt() / std::f64::consts::TAU);
-        let notes = if r.status == "ok" {
-            r.warnings.clone()
+        let notes = match r.quality.as_str() {
+            _ if r.status != "ok" => r.error.clone(),
+            "suspect" | "bad" => format!("{}: {}", r.quality.to_uppercase(), r.quality_reasons),
+            _ => r.warnings.clone(),
+        };
+        let method = if r.recommended {
+            format!("{}*", r.method)
         } else {
-            r.error.clone()
+            r.method.clone()
         };
         out.push_str(&format!(
             "{:<34} {:<8} {:<6} {:>20} {:>20} {:>17} {:>17}  {}\n",
             r.run,
-            r.method,
+            method,
             r.status,
             fmt(get(r, "clearance"), t.map(|t| t[0]), 4),
             fmt(f0, t.map(|t| t[1]), 3),
@@ -1256,6 +1270,12 @@ fn render_summary(rows: &[skelid::report::SummaryRow], truth: Option<Truth<'_>>)
             fmt(get(r, "coulomb_friction"), t.map(|t| t[3]), 3),
             notes
         ));
+    }
+    if rows.iter().any(|r| r.recommended) {
+        out.push_str(
+            "* the run's recommended estimate: its first good result, wavelet first, else the \
+             first suspect one (summary.csv: quality, quality_reasons, recommended)\n",
+        );
     }
     out
 }

@@ -46,11 +46,12 @@ fn demo_writes_the_campaign_with_its_truth_and_lists_it() {
     assert_eq!(failed_rows.len(), 1, "{failed_rows:?}");
     assert_eq!(failed_rows[0]["run"], "/demo/free_decay");
     assert!(
-        text.contains("11 run(s), 0 failed (1 of 22 run × method failed)"),
+        text.contains("11 run(s), 0 failed (1 of 22 run × method failed; "),
         "{text}"
     );
     let page = std::fs::read_to_string(d.path().join("report.html")).unwrap();
-    assert!(page.contains("11 run(s), 0 failed · 22 row(s) (run × method), 1 failed"));
+    assert!(page.contains("11 run(s), 0 failed · 22 row(s) (run × method), 1 failed; "));
+    assert!(page.contains("q-suspect") && page.contains("★"));
     let results = hdf5::File::open(d.path().join("results.h5")).unwrap();
     let run = results.group("demo/free_decay").unwrap();
     let text_attr = |g: &hdf5::Group, n: &str| -> Option<String> {
@@ -71,6 +72,47 @@ fn demo_writes_the_campaign_with_its_truth_and_lists_it() {
     let hilbert = run.group("hilbert").unwrap();
     assert_eq!(text_attr(&hilbert, "status").as_deref(), Some("failed"));
     assert!(text_attr(&hilbert, "error").is_some());
+    // A verdict on every result: the paper rig's Hilbert friction (-0.09, true 0.79) is
+    // negative beyond its error and flagged, and the wavelet estimate is the one to read.
+    let row = |run: &str, method: &str| {
+        rows.iter()
+            .find(|r| r["run"] == run && r["method"] == method)
+            .unwrap()
+            .clone()
+    };
+    let hilbert = row("/demo/paper_rig", "hilbert");
+    assert!(["suspect", "bad"].contains(&hilbert["quality"].as_str().unwrap()));
+    assert!(
+        hilbert["quality_reasons"]
+            .as_str()
+            .unwrap()
+            .contains("negative Coulomb friction"),
+        "{hilbert}"
+    );
+    assert_eq!(row("/demo/paper_rig", "wavelet")["recommended"], true);
+    assert_eq!(hilbert["recommended"], false);
+    for r in rows {
+        let q = r["quality"].as_str().unwrap();
+        assert!(
+            (r["status"] == "ok") == ["good", "suspect", "bad"].contains(&q),
+            "{r}"
+        );
+    }
+    let runs_recommended = rows.iter().filter(|r| r["recommended"] == true).count();
+    assert_eq!(runs_recommended, skelid::demo::cases().len(), "one per run");
+    assert!(csv
+        .lines()
+        .next()
+        .unwrap()
+        .ends_with(",seconds,warnings,error,quality,quality_reasons,recommended"));
+    let paper = results.group("demo/paper_rig").unwrap();
+    assert_eq!(text_attr(&paper, "recommended").as_deref(), Some("wavelet"));
+    let q = text_attr(&paper.group("hilbert").unwrap(), "quality").unwrap();
+    assert!(q == "suspect" || q == "bad", "{q}");
+    assert!(
+        text.contains("suspect") && text.contains("wavelet*"),
+        "{text}"
+    );
     let archive = d.path().join("demo_campaign.h5");
     let f = hdf5::File::open(&archive).unwrap();
     let g = f.group("demo/paper_rig").unwrap();
@@ -923,6 +965,8 @@ fn a_gpu_batch_of_256_signals_is_one_submission_and_one_wait() {
             let y: Vec<f64> = x.iter().map(|v| v * (1.0 + r as f64 * 0.01)).collect();
             put(&g, "output", &y);
         }
+        // Closed before a child process opens it (libhdf5 locks an open file).
+        f.close().unwrap();
     }
     let opt = skelid::track::WaveletOptions {
         scales: 32,
@@ -1059,6 +1103,8 @@ fn a_group_laid_out_with_other_names_is_listed_not_dropped() {
         // A time base alone is no run candidate.
         let g = group(&f, "/clock");
         put(&g, "time", &sine(10, 1.0, 10.0));
+        // Closed before a child process opens it (libhdf5 locks an open file).
+        f.close().unwrap();
     }
     let o = skelid().arg("inspect").arg(&archive).output().unwrap();
     let text = String::from_utf8_lossy(&o.stdout);
@@ -1089,14 +1135,7 @@ fn a_group_laid_out_with_other_names_is_listed_not_dropped() {
     );
     // A batch warns, and keeps the list in its manifest and log.
     let out = d.path().join("out");
-    let o = skelid()
-        .arg("run")
-        .arg(&archive)
-        .arg("--out")
-        .arg(&out)
-        .args(["--quiet", "--method", "hilbert"])
-        .output()
-        .unwrap();
+    let o = hilbert_batch(&archive, &out, &[]);
     let err = String::from_utf8_lossy(&o.stderr);
     let said = String::from_utf8_lossy(&o.stdout);
     assert!(
@@ -1134,16 +1173,11 @@ fn a_run_at_the_file_root_is_written_to_a_named_group() {
         let y: Vec<f64> = x.iter().map(|v| 1.5 * v).collect();
         put(&f, "input", &x);
         put(&f, "output", &y);
+        // Closed before a child process opens it (libhdf5 locks an open file).
+        f.close().unwrap();
     }
     let out = d.path().join("out");
-    let o = skelid()
-        .arg("run")
-        .arg(&archive)
-        .arg("--out")
-        .arg(&out)
-        .args(["--quiet", "--method", "hilbert"])
-        .output()
-        .unwrap();
+    let o = hilbert_batch(&archive, &out, &[]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.code().is_some_and(|c| c <= 1), "{err}");
     let f = hdf5::File::open(out.join("results.h5")).unwrap();
@@ -1227,6 +1261,8 @@ fn a_matlab_file_as_matlab_writes_it_is_read_with_the_options_the_listing_names(
             .with_data(&ndarray::Array2::from_elem((1, 1), fs))
             .create("Fs")
             .unwrap();
+        // Closed before a child process opens it (libhdf5 locks an open file).
+        f.close().unwrap();
     }
     // As found: no run, and the message names what was seen and the options.
     let o = skelid().arg("inspect").arg(&file).output().unwrap();
@@ -1281,16 +1317,78 @@ fn a_matlab_file_as_matlab_writes_it_is_read_with_the_options_the_listing_names(
     assert!((peak - 0.3).abs() < 1e-3, "{peak}");
     // And a batch identifies it and writes it under the file's name.
     let out = d.path().join("out");
-    let o = skelid()
-        .arg("run")
-        .arg(&file)
-        .arg("--out")
-        .arg(&out)
-        .args(["--quiet", "--method", "hilbert"])
-        .args(opts)
-        .output()
-        .unwrap();
+    let o = hilbert_batch(&file, &out, &opts);
     assert!(o.status.code().is_some_and(|c| c <= 1));
     let f = hdf5::File::open(out.join("results.h5")).unwrap();
     assert!(f.group("shaker/hilbert").is_ok());
+}
+
+/// `skelid run ARCHIVE --out OUT --quiet --method hilbert EXTRA...` (the quick method).
+fn hilbert_batch(
+    archive: &std::path::Path,
+    out: &std::path::Path,
+    extra: &[&str],
+) -> std::process::Output {
+    skelid()
+        .arg("run")
+        .arg(archive)
+        .arg("--out")
+        .arg(out)
+        .args(["--quiet", "--method", "hilbert"])
+        .args(extra)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn impossible_results_on_the_f16_are_flagged_with_their_reasons() {
+    let Some(real) = shared_real_data() else {
+        println!("../shared/data/real not present in this checkout: skipped");
+        return;
+    };
+    // Levels 6 and 7: the Hilbert method's viscous c/J came out negative (-1.44 ± 0.33,
+    // -1.24 ± 0.32 1/s) and its clearances were 1e-18 rad, all printed as `ok`.
+    let f16 = real.join("f16-gvt-sine-sweep/f16_sine_sweep.h5");
+    let d = tmpdir();
+    let out = d.path().join("out");
+    let o = skelid()
+        .arg("run")
+        .arg(&f16)
+        .arg("--out")
+        .arg(&out)
+        .args(["--quiet", "--run-glob", "/sine_sweep/level_[67]*"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let said = String::from_utf8_lossy(&o.stdout);
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let rows = summary["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 4);
+    for r in rows {
+        println!(
+            "{} {}: {} — {}",
+            r["run"], r["method"], r["quality"], r["quality_reasons"]
+        );
+        let reasons = r["quality_reasons"].as_str().unwrap();
+        if r["method"] == "hilbert" {
+            assert_eq!(r["quality"], "bad", "{r}");
+            assert!(reasons.contains("negative viscous damping"), "{r}");
+        }
+        // A clearance of 1e-18 rad is said to be zero.
+        if r["clearance"].as_f64().is_some_and(|c| c < 1e-12) {
+            assert!(reasons.contains("no clearance resolved"), "{r}");
+        }
+        // The wavelet's negative friction is flagged too.
+        if r["coulomb_friction"].as_f64().is_some_and(|f| f < -0.01) {
+            assert_ne!(r["quality"], "good", "{r}");
+        }
+    }
+    assert!(
+        rows.iter()
+            .filter(|r| r["recommended"] == true)
+            .all(|r| r["method"] == "wavelet"),
+        "the wavelet estimate is the one to read"
+    );
+    assert!(said.contains("2 bad"), "{said}");
 }

@@ -387,33 +387,17 @@ impl Gpu {
         if bytes == 0 {
             return Ok(Vec::new());
         }
-        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("download"),
-            size: bytes,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
         let mut enc = self
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
-        enc.copy_buffer_to_buffer(buffer, 0, &staging, 0, bytes);
+        let readback = self.encode_readback(&mut enc, &[(buffer, bytes)]);
         self.submit(enc);
-        crate::profile::downloaded(bytes);
-        let (tx, rx) = std::sync::mpsc::channel();
-        staging.map_async(wgpu::MapMode::Read, .., move |r| {
-            let _ = tx.send(r);
-        });
-        self.wait()?;
-        rx.recv()
-            .map_err(|e| GpuError::Lost(e.to_string()))?
-            .map_err(|e| GpuError::Lost(e.to_string()))?;
-        let view = staging
-            .get_mapped_range(..)
-            .map_err(|e| GpuError::Lost(e.to_string()))?;
-        let out = bytemuck::cast_slice(&view).to_vec();
-        drop(view);
-        staging.unmap();
-        Ok(out)
+        let part = self
+            .finish_readback(readback)?
+            .pop()
+            .expect("one part read back");
+        // Byte vectors carry no alignment: copy into a typed one.
+        Ok(bytemuck::pod_collect_to_vec(&part))
     }
 }
 

@@ -591,12 +591,14 @@ pub fn render(page: &ReportPage) -> String {
     let _ = write!(
         body,
         "<h1>skelid report</h1>\n<p class=\"meta\">{} · {} run(s), {} failed · {} row(s) \
-         (run × method), {} failed · settings <code>{}</code> · skelid {}</p>\n",
+         (run × method), {} failed; {} suspect, {} bad · settings <code>{}</code> · skelid {}</p>\n",
         esc(page.title),
         runs_total,
         failed_runs,
         page.rows.len(),
         failed_rows,
+        page.rows.iter().filter(|r| r.quality == "suspect").count(),
+        page.rows.iter().filter(|r| r.quality == "bad").count(),
         esc(page.settings),
         env!("CARGO_PKG_VERSION")
     );
@@ -754,9 +756,11 @@ pub(crate) fn css(c: RGBColor) -> String {
 /// The sortable summary table: one row per run × method.
 fn table(page: &ReportPage) -> String {
     let mut t = String::from(
-        "<h2>Summary</h2>\n<p class=\"note\">Click a column header to sort.</p>\n\
+        "<h2>Summary</h2>\n<p class=\"note\">Click a column header to sort. ★ marks each \
+         run's recommended estimate (its first good result, wavelet first, else the first \
+         suspect one); hover a quality for its reasons.</p>\n\
          <table class=\"sortable\" id=\"summary\">\n<thead><tr><th>run</th><th>archive</th>\
-         <th>method</th><th>status</th>",
+         <th>method</th><th>status</th><th>quality</th>",
     );
     for (_, header) in TABLE_COLUMNS {
         let _ = write!(t, "<th>{}</th>", esc(header));
@@ -778,13 +782,22 @@ fn table(page: &ReportPage) -> String {
             Some(i) => format!("<a href=\"#run-{i}\">{}</a>", esc(&r.run)),
             None => esc(&r.run),
         };
+        // The recommended estimate is marked; a verdict other than good carries its reasons.
+        let method = if r.recommended {
+            format!("<b>{}</b> ★", esc(&r.method))
+        } else {
+            esc(&r.method)
+        };
         let _ = write!(
             t,
-            "<tr class=\"{}\"><td>{run}</td><td>{}</td><td>{}</td><td>{}</td>",
+            "<tr class=\"{}\"><td>{run}</td><td>{}</td><td>{method}</td><td>{}</td>\
+             <td class=\"q-{}\" title=\"{}\">{}</td>",
             esc(&r.status),
             esc(&r.source),
-            esc(&r.method),
-            esc(&r.status)
+            esc(&r.status),
+            esc(&r.quality),
+            esc(&r.quality_reasons),
+            esc(&r.quality)
         );
         for (name, _) in TABLE_COLUMNS {
             match r.parameters.get(name).copied().flatten() {
@@ -794,10 +807,14 @@ fn table(page: &ReportPage) -> String {
                 None => t.push_str("<td></td>"),
             }
         }
-        let note = if r.error.is_empty() {
-            &r.warnings
-        } else {
+        let reasons;
+        let note = if !r.error.is_empty() {
             &r.error
+        } else if r.quality == "suspect" || r.quality == "bad" {
+            reasons = format!("{}: {}", r.quality, r.quality_reasons);
+            &reasons
+        } else {
+            &r.warnings
         };
         // Long notes are cut in the cell; the whole text is the cell's tooltip.
         let cut: String = note.chars().take(80).collect();
@@ -821,7 +838,7 @@ th,td{border:1px solid #ccc;padding:2px 6px;text-align:right}\
 td.text,td:first-child,td:nth-child(2),td:nth-child(3){text-align:left}\
 td.text{min-width:24em}\
 th{cursor:pointer;background:#f2f2f2;position:sticky;top:0}\
-tr.failed td{background:#fde8e8}\
+tr.failed td{background:#fde8e8}td.q-suspect{background:#fff4d6}td.q-bad{background:#fde8e8;font-weight:bold}\
 .error{color:#b00}.note,.meta{color:#555}\
 .plots{display:flex;flex-wrap:wrap;gap:8px}\
 figure.plot{margin:0}\

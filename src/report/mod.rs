@@ -146,6 +146,24 @@ pub struct RunOutcome {
 }
 
 impl RunOutcome {
+    /// The verdict on each method's result, in `methods` order (`None` where it failed),
+    /// and the method whose estimate to read ([`crate::quality`]).
+    pub fn qualities(&self) -> (Vec<Option<crate::quality::Quality>>, Option<Method>) {
+        let results: Vec<(Method, Option<&Identification>)> = self
+            .methods
+            .iter()
+            .map(|(m, r, _)| (*m, r.as_ref().ok()))
+            .collect();
+        let judged = crate::quality::judge(&results);
+        let pairs: Vec<(Method, Option<crate::quality::Quality>)> = self
+            .methods
+            .iter()
+            .map(|m| m.0)
+            .zip(judged.iter().cloned())
+            .collect();
+        (judged, crate::quality::recommend(&pairs))
+    }
+
     /// `gpu` when the GPU did the transform's first pass of every wavelet track of this
     /// run, else `cpu` (the Hilbert method, the CPU backend, or a fallback).
     pub fn backend(&self) -> &'static str {
@@ -437,15 +455,23 @@ pub fn encode_run(run: &RunOutcome) -> EncodedRun {
     }
     e.str_attr("", "backend", run.backend());
     e.str_attr("", "source", &run.source);
+    let (qualities, recommended) = run.qualities();
+    if let Some(m) = recommended {
+        e.str_attr("", "recommended", m.as_str());
+    }
     if let Some(fs) = run.sample_rate {
         e.f64_attr("", "sample_rate", fs);
         let t: Vec<f64> = (0..run.samples).map(|i| i as f64 / fs).collect();
         e.signal("", "time", &t, true);
     }
-    for (method, result, seconds) in &run.methods {
+    for ((method, result, seconds), quality) in run.methods.iter().zip(&qualities) {
         let m = method.as_str();
         e.group(m);
         e.f64_attr(m, "seconds", *seconds);
+        if let Some(q) = quality {
+            e.str_attr(m, "quality", q.verdict.as_str());
+            e.str_attr(m, "quality_reasons", &q.reasons.join("; "));
+        }
         match result {
             Err(err) => {
                 e.str_attr(m, "status", "failed");
@@ -620,6 +646,16 @@ pub struct SummaryRow {
     pub warnings: String,
     /// Seconds spent on this method.
     pub seconds: f64,
+    /// `good`, `suspect` or `bad` ([`crate::quality`]); empty when the method failed.
+    #[serde(default)]
+    pub quality: String,
+    /// Why, joined by "; ".
+    #[serde(default)]
+    pub quality_reasons: String,
+    /// Whether this row is the run's recommended estimate (the first good result,
+    /// wavelet first, else the first suspect one).
+    #[serde(default)]
+    pub recommended: bool,
 }
 
 /// The summary rows of one run.
@@ -633,13 +669,18 @@ pub fn summary_rows(run: &RunOutcome) -> Vec<SummaryRow> {
         parameters: Default::default(),
         warnings: String::new(),
         seconds,
+        quality: String::new(),
+        quality_reasons: String::new(),
+        recommended: false,
     };
     if let Some(e) = &run.error {
         return vec![base("", "failed", e.clone(), 0.0)];
     }
+    let (qualities, recommended) = run.qualities();
     run.methods
         .iter()
-        .map(|(m, r, secs)| match r {
+        .zip(qualities)
+        .map(|((m, r, secs), quality)| match r {
             Err(e) => base(m.as_str(), "failed", e.clone(), *secs),
             Ok(id) => {
                 let mut row = base(m.as_str(), "ok", String::new(), *secs);
@@ -648,6 +689,11 @@ pub fn summary_rows(run: &RunOutcome) -> Vec<SummaryRow> {
                     .map(|(k, v)| (k.to_string(), v.is_finite().then_some(v)))
                     .collect();
                 row.warnings = id.warnings.join("; ");
+                if let Some(q) = quality {
+                    row.quality = q.verdict.as_str().into();
+                    row.quality_reasons = q.reasons.join("; ");
+                }
+                row.recommended = recommended == Some(*m);
                 row
             }
         })
@@ -665,7 +711,7 @@ pub fn write_summary(dir: &Path, rows: &[SummaryRow]) -> Result<(), ReportError>
     let names = PARAMETER_NAMES;
     let mut csv = String::from("run,source,method,status,");
     csv.push_str(&names.join(","));
-    csv.push_str(",seconds,warnings,error\n");
+    csv.push_str(",seconds,warnings,error,quality,quality_reasons,recommended\n");
     let quote = |s: &str| format!("\"{}\"", s.replace('"', "\"\""));
     for r in rows {
         csv.push_str(&format!(
@@ -682,10 +728,13 @@ pub fn write_summary(dir: &Path, rows: &[SummaryRow]) -> Result<(), ReportError>
             csv.push(',');
         }
         csv.push_str(&format!(
-            "{:.3},{},{}\n",
+            "{:.3},{},{},{},{},{}\n",
             r.seconds,
             quote(&r.warnings),
-            quote(&r.error)
+            quote(&r.error),
+            r.quality,
+            quote(&r.quality_reasons),
+            u8::from(r.recommended)
         ));
     }
     write_atomic(&dir.join("summary.csv"), csv.as_bytes())
