@@ -374,8 +374,11 @@ fn cmd_merge(a: MergeArgs) -> Result<ExitCode> {
 }
 
 /// 1 when any run failed, so that schedulers see it.
+/// 1 when a run failed or a result is `bad` (impossible values), else 0; suspect results
+/// are counted in the last line only.
 fn exit_status(summary: &skelid::batch::BatchSummary) -> ExitCode {
-    if summary.failed_runs > 0 {
+    let bad = summary.rows.iter().any(|r| r.quality == "bad");
+    if summary.failed_runs > 0 || bad {
         ExitCode::from(1)
     } else {
         ExitCode::SUCCESS
@@ -433,7 +436,7 @@ struct RunArgs {
     #[arg(long, short)]
     quiet: bool,
     /// Progress as one JSON object per finished run on stderr (done, total, skipped,
-    /// failed, elapsed_s), for schedulers and dashboards.
+    /// failed, suspect, bad, elapsed_s), for schedulers and dashboards.
     #[arg(long)]
     json_progress: bool,
     /// Seconds allowed to open one archive (in a child process) before it is reported failed.
@@ -1201,8 +1204,10 @@ fn identify_with_progress(
         bar.set_length(p.total as u64);
         bar.set_position(p.done as u64);
         bar.set_message(format!(
-            "{} failed{}",
+            "{} failed, {} bad, {} suspect{}",
             p.failed,
+            p.bad,
+            p.suspect,
             if p.skipped > 0 {
                 format!(", {} already done", p.skipped)
             } else {

@@ -1356,10 +1356,24 @@ fn impossible_results_on_the_f16_are_flagged_with_their_reasons() {
         .arg(&f16)
         .arg("--out")
         .arg(&out)
-        .args(["--quiet", "--run-glob", "/sine_sweep/level_[67]*"])
+        .args(["--run-glob", "/sine_sweep/level_[67]*", "--json-progress"])
         .output()
         .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // Impossible values are a problem found: exit status 1, as for a failed run.
+    assert_eq!(
+        o.status.code(),
+        Some(1),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let progress = String::from_utf8_lossy(&o.stderr);
+    let last: serde_json::Value = progress
+        .lines()
+        .rfind(|l| l.starts_with('{'))
+        .map(|l| serde_json::from_str(l).unwrap())
+        .unwrap();
+    assert_eq!(last["bad"], 2, "{last}");
+    assert_eq!(last["done"], 2);
     let said = String::from_utf8_lossy(&o.stdout);
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();

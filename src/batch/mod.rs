@@ -158,6 +158,10 @@ pub struct Progress {
     pub skipped: usize,
     /// Of `done`, failed.
     pub failed: usize,
+    /// Results (run × method) so far whose verdict is `suspect` ([`crate::quality`]).
+    pub suspect: usize,
+    /// Results (run × method) so far whose verdict is `bad`.
+    pub bad: usize,
 }
 
 /// What a batch produced.
@@ -470,6 +474,7 @@ fn write_finished(
     progress: &(dyn Fn(Progress) + Sync),
 ) -> Result<Written, BatchError> {
     let (mut entries, mut skipped, mut failed) = (Vec::new(), 0, 0);
+    let (mut suspect, mut bad) = (0, 0);
     let mut used = std::collections::HashSet::new();
     for f in done {
         // Finishing order is not the final order: a path already used (the same path in
@@ -520,12 +525,16 @@ fn write_finished(
         ));
         skipped += usize::from(was_skipped);
         failed += usize::from(e.failed);
+        suspect += e.rows.iter().filter(|r| r.quality == "suspect").count();
+        bad += e.rows.iter().filter(|r| r.quality == "bad").count();
         entries.push((e, dst));
         progress(Progress {
             done: entries.len(),
             total: counts.estimate().max(entries.len()),
             skipped,
             failed,
+            suspect,
+            bad,
         });
     }
     Ok(Written {
