@@ -615,13 +615,17 @@ fn answer(gpu: &Gpu, unit: Unit, dead: &mut Option<String>, stats: &Stats) {
 /// every waiting worker without an answer.
 fn unpanicked<T>(f: impl FnOnce() -> Result<T, GpuError>) -> Result<T, GpuError> {
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).unwrap_or_else(|p| {
-        let msg = p
-            .downcast_ref::<&str>()
-            .map(|s| s.to_string())
-            .or_else(|| p.downcast_ref::<String>().cloned())
-            .unwrap_or_else(|| "unknown panic".into());
         Err(GpuError::Lost(format!(
-            "internal error (panic) in the GPU first pass: {msg}"
+            "internal error (panic) in the GPU first pass: {}",
+            panic_message(p.as_ref())
         )))
     })
+}
+
+/// The text a panic was raised with (`panic!`'s message), or "unknown panic".
+pub(crate) fn panic_message(p: &(dyn std::any::Any + Send)) -> String {
+    p.downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| p.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "unknown panic".into())
 }

@@ -647,11 +647,11 @@ impl Archive {
                 output: self.options.output_name.clone(),
             });
         }
-        let quantity = |name: &str, default: Quantity| -> Result<Quantity, IngestError> {
-            let given = match name {
-                "input_quantity" => self.options.input_quantity,
-                _ => self.options.output_quantity,
-            };
+        // The option given overrides the attribute `name`.
+        let quantity = |name: &str,
+                        given: Option<Quantity>,
+                        default: Quantity|
+         -> Result<Quantity, IngestError> {
             if let Some(q) = given {
                 return Ok(q);
             }
@@ -674,9 +674,17 @@ impl Archive {
             } else {
                 Quantity::Displacement
             };
-            Some(quantity("input_quantity", default)?)
+            Some(quantity(
+                "input_quantity",
+                self.options.input_quantity,
+                default,
+            )?)
         };
-        let output_quantity = quantity("output_quantity", Quantity::Displacement)?;
+        let output_quantity = quantity(
+            "output_quantity",
+            self.options.output_quantity,
+            Quantity::Displacement,
+        )?;
         if output_quantity == Quantity::Force {
             return Err(IngestError::BadAttribute {
                 file: file.clone(),

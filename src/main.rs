@@ -1066,7 +1066,7 @@ fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
         "\n{} run(s), {} failed{}; wrote {}, summary.json, summary.csv, report.html",
         summary.runs,
         summary.failed_runs,
-        failed_methods(&summary.rows),
+        result_counts(&summary.rows),
         summary.results.display()
     );
     Ok(exit_status(&summary))
@@ -1127,7 +1127,7 @@ fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         "\n{} run(s), {} failed{}, {} already done earlier (skipped){}; wrote {}, summary.json, summary.csv, report.html, manifest.json, skelid.log",
         summary.runs,
         summary.failed_runs,
-        failed_methods(&summary.rows),
+        result_counts(&summary.rows),
         summary.skipped,
         match summary.not_runs.len() {
             0 => String::new(),
@@ -1140,7 +1140,7 @@ fn cmd_run(a: RunArgs) -> Result<ExitCode> {
 
 /// " (N of M run × method failed; S suspect, B bad)": the results that failed, and those
 /// whose verdict is not good ([`skelid::quality`]), when there are any.
-fn failed_methods(rows: &[skelid::report::SummaryRow]) -> String {
+fn result_counts(rows: &[skelid::report::SummaryRow]) -> String {
     let failed = rows.iter().filter(|r| r.status != "ok").count();
     let count = |q: &str| rows.iter().filter(|r| r.quality == q).count();
     let mut parts = Vec::new();

@@ -592,16 +592,10 @@ fn identify_guarded(
 pub fn guarded<T>(f: impl FnOnce() -> Result<T, String>) -> Result<T, String> {
     match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
         Ok(r) => r,
-        Err(p) => {
-            let msg = p
-                .downcast_ref::<&str>()
-                .map(|s| s.to_string())
-                .or_else(|| p.downcast_ref::<String>().cloned())
-                .unwrap_or_else(|| "unknown panic".into());
-            Err(format!(
-                "internal error (panic) in the identification: {msg}"
-            ))
-        }
+        Err(p) => Err(format!(
+            "internal error (panic) in the identification: {}",
+            crate::backend::panic_message(p.as_ref())
+        )),
     }
 }
 
