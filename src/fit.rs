@@ -242,7 +242,7 @@ pub struct Estimate {
 }
 
 /// Which curve ω0²(A)/K a dead zone is fitted with.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 pub enum BackboneModel {
     /// The describing function (first harmonic of a sinusoidal motion).
     DescribingFunction,

@@ -36,7 +36,7 @@ pub enum IdentifyError {
 const FREE_PLAY: f64 = 0.7;
 
 /// Options of the identification.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize)]
 pub struct IdentifyOptions {
     /// Wavelet method options (band chosen per channel unless given).
     pub wavelet: WaveletOptions,

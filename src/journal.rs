@@ -26,6 +26,8 @@ pub const RUNS_DIR: &str = "runs";
 pub fn settings_fingerprint(methods: &[Method], options: &IdentifyOptions) -> String {
     let mut h = blake3::Hasher::new();
     h.update(env!("CARGO_PKG_VERSION").as_bytes());
+    // What a run's results hold; bumped when a run written before lacks something (units).
+    h.update(b"results layout 2\0");
     for m in methods {
         h.update(m.as_str().as_bytes());
         h.update(b"\0");
@@ -33,6 +35,33 @@ pub fn settings_fingerprint(methods: &[Method], options: &IdentifyOptions) -> St
     // Debug output names every field and value: a changed option changes the key.
     h.update(format!("{options:?}").as_bytes());
     h.finalize().to_hex()[..32].to_string()
+}
+
+/// Everything that made a batch's results, spelled out so that a result can be reproduced
+/// from its file alone (results.h5's `settings_json`, manifest.json's `settings_full`): the
+/// skelid version, the methods, every identification option and the archive overrides.
+pub fn settings_record(
+    methods: &[Method],
+    options: &IdentifyOptions,
+    ingest: &crate::ingest::IngestOptions,
+) -> serde_json::Value {
+    serde_json::json!({
+        "skelid_version": env!("CARGO_PKG_VERSION"),
+        "fingerprint": settings_fingerprint(methods, options),
+        "methods": methods.iter().map(|m| m.as_str()).collect::<Vec<_>>(),
+        "identify": options,
+        "ingest": {
+            "input_name": ingest.input_name,
+            "output_name": ingest.output_name,
+            "sample_rate": ingest.sample_rate,
+            "runs": ingest.run_glob.as_ref().map(|g| g.as_str().to_string()),
+            "kind": ingest.kind,
+            "inertia": ingest.inertia,
+            "input_quantity": ingest.input_quantity,
+            "output_quantity": ingest.output_quantity,
+        },
+        "command": std::env::args().collect::<Vec<_>>(),
+    })
 }
 
 /// The key of one run: its archive's file name, its path, metadata and samples, and the
@@ -268,8 +297,16 @@ impl Journal {
     /// Writes `<out>/results.h5` holding the runs of `entries` (from their files), through
     /// a temporary file renamed into place. Two runs with the same path from different
     /// archives: the second goes to `PATH@ARCHIVE`.
-    pub fn assemble(&self, out: &Path, entries: &[Entry]) -> Result<PathBuf, ReportError> {
+    pub fn assemble(
+        &self,
+        out: &Path,
+        entries: &[Entry],
+        settings: Option<&serde_json::Value>,
+    ) -> Result<PathBuf, ReportError> {
         let w = ResultsWriter::create(out)?;
+        if let Some(s) = settings {
+            w.write_settings(s)?;
+        }
         for (e, dst) in entries.iter().zip(placements(entries)) {
             match self.load(&e.key) {
                 Some((_, Stored::Encoded(run))) => w.write_encoded_as(&run, &dst)?,
@@ -418,7 +455,7 @@ mod tests {
         assert_eq!(entry.path, "/runs/old");
         assert!(matches!(stored, Stored::Legacy(_)));
         // And results.h5 assembled from it holds the run.
-        let out = journal.assemble(dir.path(), &[entry]).unwrap();
+        let out = journal.assemble(dir.path(), &[entry], None).unwrap();
         let f = hdf5::File::open(out).unwrap();
         let time: Vec<f64> = f.dataset("/runs/old/time").unwrap().read_raw().unwrap();
         assert_eq!(time.len(), 10_000);

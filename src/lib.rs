@@ -35,3 +35,4 @@ pub mod simulate;
 pub mod skeleton;
 pub mod track;
 pub mod transform;
+pub mod units;

@@ -914,6 +914,7 @@ fn cmd_inspect(a: InspectArgs) -> Result<ExitCode> {
 
 fn cmd_simulate(a: SimulateArgs) -> Result<()> {
     let model = RigModel::load(&a.model)?;
+    warn_model(&a.model, &model);
     let mut fs = a.sample_rate;
     let mut duration = a.duration;
     let rolloff = (a.rolloff_hz > 0.0).then_some(Rolloff {
@@ -1060,7 +1061,7 @@ fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
             friction / m.inertia,
         ])
     };
-    println!("\nidentified (true) per run; clearance in rad (m for the force run):\n");
+    println!("\nidentified (true) per run, each with its unit:\n");
     print!("{}", render_summary(&summary.rows, Some(&truth)));
     println!(
         "\n{} run(s), {} failed{}; wrote {}, summary.json, summary.csv, report.html",
@@ -1232,24 +1233,32 @@ type Truth<'a> = &'a dyn Fn(&str) -> Option<[f64; 4]>;
 /// The summary as a table; with `truth`, the true values of each run beside them.
 fn render_summary(rows: &[skelid::report::SummaryRow], truth: Option<Truth<'_>>) -> String {
     let mut out = format!(
-        "{:<34} {:<8} {:<6} {:>20} {:>20} {:>17} {:>17}  {}\n",
+        "{:<34} {:<8} {:<6} {:>24} {:>24} {:>21} {:>24}  {}\n",
         "run",
         "method",
         "status",
         "clearance",
-        "f0 = √(k/J)/2π Hz",
-        "viscous c/J 1/s",
+        "f0 = √(k/J)/2π",
+        "viscous c/J",
         "Coulomb F/J",
         "notes"
     );
     let get = |r: &skelid::report::SummaryRow, k: &str| r.parameters.get(k).copied().flatten();
-    let fmt = |v: Option<f64>, t: Option<f64>, prec: usize| -> String {
-        match (v, t) {
+    // Each value with its unit (runs of one campaign may differ), the truth in the same one.
+    let fmt = |v: Option<f64>, t: Option<f64>, prec: usize, unit: &str| -> String {
+        let text = match (v, t) {
             (Some(v), Some(t)) => format!("{v:.prec$} ({t:.prec$})"),
             (Some(v), None) => format!("{v:.prec$}"),
             (None, Some(t)) => format!("- ({t:.prec$})"),
-            (None, None) => "-".into(),
-        }
+            (None, None) => return "-".into(),
+        };
+        format!("{text} {unit}")
+    };
+    let unit = |r: &skelid::report::SummaryRow, k: &str| {
+        r.units
+            .get(k)
+            .cloned()
+            .unwrap_or_else(|| skelid::units::UNKNOWN.into())
     };
     for r in rows {
         let t = truth.and_then(|f| f(&r.run));
@@ -1265,14 +1274,24 @@ fn render_summary(rows: &[skelid::report::SummaryRow], truth: Option<Truth<'_>>)
             r.method.clone()
         };
         out.push_str(&format!(
-            "{:<34} {:<8} {:<6} {:>20} {:>20} {:>17} {:>17}  {}\n",
+            "{:<34} {:<8} {:<6} {:>24} {:>24} {:>21} {:>24}  {}\n",
             r.run,
             method,
             r.status,
-            fmt(get(r, "clearance"), t.map(|t| t[0]), 4),
-            fmt(f0, t.map(|t| t[1]), 3),
-            fmt(get(r, "viscous_damping"), t.map(|t| t[2]), 3),
-            fmt(get(r, "coulomb_friction"), t.map(|t| t[3]), 3),
+            fmt(
+                get(r, "clearance"),
+                t.map(|t| t[0]),
+                4,
+                &unit(r, "clearance")
+            ),
+            fmt(f0, t.map(|t| t[1]), 3, "Hz"),
+            fmt(get(r, "viscous_damping"), t.map(|t| t[2]), 3, "1/s"),
+            fmt(
+                get(r, "coulomb_friction"),
+                t.map(|t| t[3]),
+                3,
+                &unit(r, "coulomb_friction")
+            ),
             notes
         ));
     }
@@ -1567,6 +1586,7 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
         bail!("give --model RIG.toml and an ARCHIVE (or --self-check)");
     };
     let model = RigModel::load(model_path)?;
+    let model_warnings = warn_model(model_path, &model);
     let ingest = a.ingest.options()?;
     let archive = Archive::open(archive_path, &ingest)?;
     let mut chosen = Vec::new();
@@ -1624,6 +1644,7 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
         "fit_inertia": opt.fit_inertia,
         "min_shrink": skelid::gap::search::MIN_SHRINK,
         "min_drop": skelid::gap::search::MIN_DROP,
+        "model_warnings": model_warnings,
     });
     let title = archive_path.display().to_string();
     // gap.json and gap.html are rewritten (atomically) after every run, so that a night's
@@ -1646,18 +1667,53 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     // kept in archive order whatever order they finish in.
     type Done = (Vec<(usize, out::GapRun)>, Vec<(usize, String, String)>);
     let done: std::sync::Mutex<Done> = Default::default();
+    // Progress per run: runs done on the bar, each running run's simulations so far in its
+    // message (a diagnosis runs a few hundred).
+    let bar = indicatif::ProgressBar::new(chosen.len() as u64).with_style(
+        indicatif::ProgressStyle::with_template(
+            "{bar:25} {pos}/{len} runs, {elapsed} elapsed, ~{eta} left · {wide_msg}",
+        )
+        .expect("a valid template"),
+    );
+    let running: std::sync::Mutex<std::collections::BTreeMap<String, usize>> = Default::default();
+    let show = |bar: &indicatif::ProgressBar,
+                running: &std::collections::BTreeMap<String, usize>| {
+        let parts: Vec<String> = running
+            .iter()
+            .map(|(run, n)| format!("{run}: {n} simulations"))
+            .collect();
+        bar.set_message(parts.join(", "));
+    };
     let diagnose_one = |(i, meta): (usize, &skelid::ingest::RunMeta)| -> Result<()> {
-        eprintln!(
-            "{}: refitting the model, then {} effects ...",
-            meta.path,
-            opt.effects.len()
+        say(
+            &bar,
+            format!(
+                "{}: refitting the model, then {} effects ...",
+                meta.path,
+                opt.effects.len()
+            ),
         );
+        let progress = |n: usize| {
+            let mut r = running.lock().unwrap_or_else(|p| p.into_inner());
+            r.insert(meta.path.clone(), n);
+            show(&bar, &r);
+            // Without a terminal (a log file), a line every 100 simulations.
+            if bar.is_hidden() && n % 100 == 0 {
+                eprintln!("{}: {n} simulations", meta.path);
+            }
+        };
         let result = (|| -> Result<out::GapRun> {
             let run = archive.load(meta)?;
-            let reference = Reference::new(&run, opt.blocks)?;
+            let reference = Reference::new(&run, opt.blocks)?.on_score(progress);
             let d = skelid::gap::diagnose(&reference, &model, &opt)?;
             Ok(out::GapRun::new(&reference, d)?)
         })();
+        {
+            let mut r = running.lock().unwrap_or_else(|p| p.into_inner());
+            r.remove(&meta.path);
+            show(&bar, &r);
+        }
+        bar.inc(1);
         let mut guard = done.lock().unwrap_or_else(|p| p.into_inner());
         match result {
             Ok(r) => {
@@ -1679,7 +1735,7 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
                     let p: Vec<String> = c
                         .params()
                         .iter()
-                        .map(|(k, v)| format!("{k} = {v:.4e}"))
+                        .map(|(k, v)| out::param_text(k, *v))
                         .collect();
                     text += &format!(
                         "\n    {:<40} held-out gap {:.4}  shrink {:>4.0} %  {}",
@@ -1689,14 +1745,18 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
                         p.join(", ")
                     );
                 }
-                println!("{text}");
+                bar.suspend(|| println!("{text}"));
                 let path = out::fitted_model_path(&a.out, model_path, &d.run, several);
                 out::write_fitted_model(&path, &r)?;
-                RigModel::load(&path).context("the fitted model written does not read back")?;
+                let fitted =
+                    RigModel::load(&path).context("the fitted model written does not read back")?;
+                for w in fitted.warnings() {
+                    say(&bar, format!("warning: {}: {w}", path.display()));
+                }
                 guard.0.push((i, r));
             }
             Err(e) => {
-                eprintln!("error: {}: {e:#}", meta.path);
+                say(&bar, format!("error: {}: {e:#}", meta.path));
                 guard.1.push((i, meta.path.clone(), format!("{e:#}")));
             }
         }
@@ -1715,6 +1775,7 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
         use rayon::prelude::*;
         chosen.par_iter().enumerate().try_for_each(diagnose_one)
     })?;
+    bar.finish_and_clear();
     let (reports, errors) = done.into_inner().unwrap_or_else(|p| p.into_inner());
     let reports: Vec<&out::GapRun> = reports.iter().map(|r| &r.1).collect();
     failed.extend(errors.into_iter().map(|f| (f.1, f.2)));
@@ -1730,6 +1791,16 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     } else {
         ExitCode::from(1)
     })
+}
+
+/// Prints the rig model's implausible values on stderr ("warning: FILE: `clearance` = …")
+/// and returns them.
+fn warn_model(path: &std::path::Path, model: &RigModel) -> Vec<String> {
+    let w = model.warnings();
+    for line in &w {
+        eprintln!("warning: {}: {line}", path.display());
+    }
+    w
 }
 
 /// A line above the progress bar, or on stderr when the bar is hidden (not a terminal: a

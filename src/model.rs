@@ -315,8 +315,14 @@ impl RigModel {
                 self.inertia
             ));
         }
-        if self.stiffness < 0.0 || self.damping < 0.0 || self.clearance < 0.0 {
-            return Err("`stiffness`, `damping` and `clearance` must be >= 0".into());
+        for (key, v, unit) in [
+            ("stiffness", self.stiffness, "N m/rad"),
+            ("damping", self.damping, "N m s/rad"),
+            ("clearance", self.clearance, "rad"),
+        ] {
+            if v < 0.0 {
+                return Err(format!("`{key}` must be >= 0 ({unit}), got {v}"));
+            }
         }
         for (kind, v) in self.effects.present() {
             finite(kind.param(), v)?;
@@ -329,9 +335,10 @@ impl RigModel {
             };
             if !ok {
                 return Err(format!(
-                    "effect `{}`: `{}` = {v} is out of range (must be {})",
+                    "effect `{}`: `{}` = {v} {} is out of range (must be {})",
                     kind.name(),
                     kind.param(),
+                    kind.unit(),
                     if kind == EffectKind::Quantization {
                         "> 0"
                     } else {
@@ -342,7 +349,84 @@ impl RigModel {
         }
         Ok(())
     }
+
+    /// Values that are possible but unlikely to be meant, each naming its key: a clearance
+    /// above [`MAX_PLAUSIBLE_CLEARANCE`] (degrees for radians?), a contact frequency outside
+    /// 0.01 Hz–10 kHz, an over-damped contact, a gravity stiffness beyond the contact's,
+    /// a clearance offset beyond the half-gap, a sensor delay over 0.1 s.
+    pub fn warnings(&self) -> Vec<String> {
+        let mut w = Vec::new();
+        if self.clearance > MAX_PLAUSIBLE_CLEARANCE {
+            w.push(format!(
+                "`clearance` = {} rad ({:.1}°) is above {MAX_PLAUSIBLE_CLEARANCE} rad: was it given in degrees? ({} degrees would be {:.4} rad)",
+                self.clearance,
+                self.clearance.to_degrees(),
+                self.clearance,
+                self.clearance.to_radians()
+            ));
+        }
+        if self.stiffness > 0.0 {
+            let f = self.contact_frequency_hz();
+            if !(0.01..=1e4).contains(&f) {
+                w.push(format!(
+                    "`stiffness` / `inertia` = {:.4e} 1/s² puts the contact natural frequency at {f:.4e} Hz, outside 0.01 Hz–10 kHz: are both in SI units (N m/rad, kg m²)?",
+                    self.stiffness / self.inertia
+                ));
+            }
+            let zeta = self.damping / (2.0 * (self.stiffness * self.inertia).sqrt());
+            if zeta > 1.0 {
+                w.push(format!(
+                    "`damping` = {} N m s/rad is {zeta:.1}× critical in contact (2√(kJ) = {:.4e}): over-damped",
+                    self.damping,
+                    2.0 * (self.stiffness * self.inertia).sqrt()
+                ));
+            }
+            let kj = self.stiffness / self.inertia;
+            if self.gravity_stiffness.abs() > kj {
+                w.push(format!(
+                    "`gravity_stiffness` = {} 1/s² exceeds the contact's k/J = {kj:.4e} 1/s² in size: the link could not rest in contact",
+                    self.gravity_stiffness
+                ));
+            }
+        }
+        if let Some(o) = self.effects.get(EffectKind::AsymmetricClearance) {
+            if o.abs() > self.half_gap() && self.clearance > 0.0 {
+                w.push(format!(
+                    "effect `asymmetric_clearance`: `offset` = {o} rad is beyond the half-gap {} rad: the link never reaches one flank",
+                    self.half_gap()
+                ));
+            }
+        }
+        if let Some(d) = self.effects.get(EffectKind::SensorDelay) {
+            if d > 0.1 {
+                w.push(format!(
+                    "effect `sensor_delay`: `delay` = {d} s is over 0.1 s: milliseconds given as seconds?"
+                ));
+            }
+        }
+        w
+    }
 }
+
+/// Unit of a rig-model key or effect parameter (`stiffness`, `torque`, or
+/// `coulomb_friction.torque` as a pair of effects names it), as FORMATS.md §2 gives them.
+pub fn key_unit(key: &str) -> Option<&'static str> {
+    let key = key.rsplit('.').next().unwrap_or(key);
+    Some(match key {
+        "inertia" => "kg m^2",
+        "stiffness" => "N m/rad",
+        "damping" => "N m s/rad",
+        "clearance" => "rad",
+        "gravity_stiffness" => "1/s^2",
+        _ => EffectKind::ALL
+            .into_iter()
+            .find(|k| k.param() == key)?
+            .unit(),
+    })
+}
+
+/// Clearances above this (rad, about 29°) are warned about: likely degrees.
+pub const MAX_PLAUSIBLE_CLEARANCE: f64 = 0.5;
 
 #[cfg(test)]
 mod tests {
@@ -384,6 +468,55 @@ coulomb_friction = { torque = 2.5 }
         .unwrap_err()
         .to_string();
         assert!(e.contains("quantization"), "{e}");
+    }
+
+    #[test]
+    fn a_negative_value_names_its_own_key_and_unit() {
+        for (key, unit) in [
+            ("stiffness", "N m/rad"),
+            ("damping", "N m s/rad"),
+            ("clearance", "rad"),
+        ] {
+            let mut text = String::from("inertia = 1\nstiffness = 1\ndamping = 1\n");
+            text = text.replace(&format!("{key} = 1"), "");
+            text.push_str(&format!("{key} = -2\n"));
+            let e = RigModel::from_toml_str(&text, "f").unwrap_err().to_string();
+            assert!(
+                e.contains(&format!("`{key}` must be >= 0 ({unit}), got -2")),
+                "{e}"
+            );
+        }
+    }
+
+    #[test]
+    fn implausible_magnitudes_are_warned_about_by_key() {
+        assert!(RigModel::paper().warnings().is_empty());
+        let mut m = RigModel::paper();
+        m.clearance = 1.5;
+        let w = m.warnings();
+        assert_eq!(w.len(), 1, "{w:?}");
+        assert!(
+            w[0].contains("`clearance`") && w[0].contains("degrees?"),
+            "{w:?}"
+        );
+        let mut m = RigModel::paper();
+        m.stiffness = 1.5e13;
+        assert!(m.warnings().iter().any(|w| w.contains("`stiffness`")));
+        let mut m = RigModel::paper();
+        m.damping = 1e4;
+        assert!(m.warnings().iter().any(|w| w.contains("over-damped")));
+        let mut m = RigModel::paper();
+        m.gravity_stiffness = -1e5;
+        assert!(m
+            .warnings()
+            .iter()
+            .any(|w| w.contains("`gravity_stiffness`")));
+        let mut m = RigModel::paper();
+        m.effects.set(EffectKind::SensorDelay, Some(2.0));
+        assert!(m.warnings().iter().any(|w| w.contains("`delay`")));
+        let mut m = RigModel::paper();
+        m.effects.set(EffectKind::AsymmetricClearance, Some(0.02));
+        assert!(m.warnings().iter().any(|w| w.contains("`offset`")));
     }
 
     #[test]

@@ -81,7 +81,7 @@ impl Method {
 }
 
 /// How the ridge is chosen at each time.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 pub enum RidgeSearch {
     /// Penalised dynamic programming over the whole record.
     Dynamic,
@@ -90,7 +90,7 @@ pub enum RidgeSearch {
 }
 
 /// Options of the wavelet method.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize)]
 pub struct WaveletOptions {
     /// Mother wavelet.
     pub wavelet: Morlet,

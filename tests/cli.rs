@@ -100,11 +100,18 @@ fn demo_writes_the_campaign_with_its_truth_and_lists_it() {
     }
     let runs_recommended = rows.iter().filter(|r| r["recommended"] == true).count();
     assert_eq!(runs_recommended, skelid::demo::cases().len(), "one per run");
-    assert!(csv
-        .lines()
-        .next()
-        .unwrap()
-        .ends_with(",seconds,warnings,error,quality,quality_reasons,recommended"));
+    let header = csv.lines().next().unwrap();
+    assert!(header.contains(",seconds,warnings,error,quality,quality_reasons,recommended,"));
+    // Units: added at the end, never in between.
+    assert!(
+        header.ends_with(
+            ",recommended,contact_stiffness_stderr,viscous_damping_absolute,\
+             viscous_damping_absolute_stderr,coulomb_friction_absolute,\
+             coulomb_friction_absolute_stderr,displacement_unit,force_unit,inertia_unit"
+        ),
+        "{header}"
+    );
+    check_units(&results, rows, &summary, &page);
     let paper = results.group("demo/paper_rig").unwrap();
     assert_eq!(text_attr(&paper, "recommended").as_deref(), Some("wavelet"));
     let q = text_attr(&paper.group("hilbert").unwrap(), "quality").unwrap();
@@ -223,6 +230,51 @@ fn run_records_failed_runs_with_their_error() {
 
 fn g_read(f: &hdf5::File, path: &str) -> Vec<f64> {
     f.dataset(path).unwrap().read_raw().unwrap()
+}
+
+#[test]
+fn a_rig_model_with_a_clearance_in_degrees_is_warned_about_and_a_negative_key_named() {
+    let d = tmpdir();
+    let model = d.path().join("rig.toml");
+    std::fs::write(
+        &model,
+        "inertia = 3.16\nstiffness = 15000.0\ndamping = 13.0\nclearance = 1.5\n",
+    )
+    .unwrap();
+    let o = skelid()
+        .args(["simulate", "--model"])
+        .arg(&model)
+        .arg("--out")
+        .arg(d.path().join("sim.h5"))
+        .args(["--duration", "2"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("warning: ")
+            && err.contains("`clearance` = 1.5 rad")
+            && err.contains("degrees?"),
+        "{err}"
+    );
+    std::fs::write(
+        &model,
+        "inertia = 3.16\nstiffness = 15000.0\ndamping = -13.0\nclearance = 0.02\n",
+    )
+    .unwrap();
+    let o = skelid()
+        .args(["simulate", "--model"])
+        .arg(&model)
+        .arg("--out")
+        .arg(d.path().join("sim2.h5"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(
+        err.contains("`damping` must be >= 0 (N m s/rad), got -13"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -431,6 +483,92 @@ fn track_writes_csv_and_hdf5_that_match_the_truth() {
     assert!(!mixed.status.success());
     assert!(String::from_utf8_lossy(&mixed.stderr).contains("--method hilbert"));
     assert!(!d.path().join("y.csv").exists());
+}
+
+/// Every number of the demo's outputs carries its unit, the absolute parameters are the
+/// per-inertia ones times the inertia, and the settings are stored whole.
+fn check_units(
+    results: &hdf5::File,
+    rows: &[serde_json::Value],
+    summary: &serde_json::Value,
+    page: &str,
+) {
+    let text = |loc: &hdf5::Location, n: &str| -> String {
+        let v: hdf5::types::VarLenUnicode = loc.attr(n).unwrap().read_scalar().unwrap();
+        v.as_str().to_string()
+    };
+    let num =
+        |loc: &hdf5::Location, n: &str| -> f64 { loc.attr(n).unwrap().read_scalar().unwrap() };
+    let paper = results.group("demo/paper_rig").unwrap();
+    assert_eq!(text(&paper.dataset("time").unwrap(), "units"), "s");
+    let w = paper.group("wavelet").unwrap();
+    for (name, unit) in [
+        ("clearance", "rad"),
+        ("clearance_stderr", "rad"),
+        ("stiffness", "1/s^2"),
+        ("viscous_damping", "1/s"),
+        ("coulomb_friction", "rad/s^2"),
+        ("inertia", "kg m^2"),
+        ("contact_stiffness", "N m/rad"),
+        ("viscous_damping_absolute", "N m s/rad"),
+        ("coulomb_friction_absolute", "N m"),
+        ("natural_frequency_at_amplitude_max", "Hz"),
+    ] {
+        assert_eq!(text(&w, &format!("{name}_units")), unit, "{name}");
+    }
+    for (name, unit) in [
+        ("response_amplitude", "rad"),
+        ("response_frequency", "Hz"),
+        ("input_amplitude", "rad"),
+        ("stiffness", "1/s^2"),
+        ("damping", "1/s"),
+        ("valid", "1"),
+        ("skeleton/amplitude", "rad"),
+        ("skeleton/restoring_force", "rad/s^2"),
+        ("skeleton/velocity_amplitude", "rad/s"),
+    ] {
+        assert_eq!(text(&w.dataset(name).unwrap(), "units"), unit, "{name}");
+    }
+    // The paper rig's friction in N m, as its TOML gives it: J·(F/J) ≈ 2.5 N m.
+    let j = num(&w, "inertia");
+    let f_abs = num(&w, "coulomb_friction_absolute");
+    assert!((f_abs - j * num(&w, "coulomb_friction")).abs() < 1e-9 * f_abs.abs().max(1.0));
+    assert!((f_abs / 2.5 - 1.0).abs() < 0.1, "{f_abs}");
+    let force = results.group("demo/force_oscillator/wavelet").unwrap();
+    assert_eq!(text(&force, "clearance_units"), "m");
+    assert_eq!(text(&force, "coulomb_friction_absolute_units"), "N");
+    assert_eq!(
+        text(&force.dataset("input_amplitude").unwrap(), "units"),
+        "N"
+    );
+    // The settings, whole, so that the file alone says how it was made.
+    let settings: serde_json::Value =
+        serde_json::from_str(&text(results, "settings_json")).unwrap();
+    assert_eq!(settings["identify"]["bins"], 40);
+    assert_eq!(
+        settings["methods"],
+        serde_json::json!(["wavelet", "hilbert"])
+    );
+    assert_eq!(
+        settings["fingerprint"].as_str().unwrap(),
+        text(results, "settings")
+    );
+    // summary.json: a unit per parameter per row, and campaign-wide where all agree.
+    let paper_row = rows
+        .iter()
+        .find(|r| r["run"] == "/demo/paper_rig" && r["method"] == "wavelet")
+        .unwrap();
+    assert_eq!(paper_row["units"]["clearance"], "rad");
+    assert_eq!(paper_row["units"]["viscous_damping_absolute"], "N m s/rad");
+    assert_eq!(paper_row["base_units"]["force"], "N m");
+    assert_eq!(summary["units"]["stiffness"], "1/s^2");
+    assert_eq!(
+        summary["units"]["clearance"], "D (D, F, J: each row's base_units)",
+        "the force run is in m, the rest in rad"
+    );
+    // The page: engineering notation with units.
+    assert!(page.contains(" mrad<"), "clearances in mrad");
+    assert!(page.contains("kN m/rad"));
 }
 
 /// A demo archive to run on (written by `skelid demo`, which also identifies it).
@@ -884,8 +1022,27 @@ fn gap_names_the_missing_friction_and_writes_its_report_model_and_page() {
         .get(skelid::model::EffectKind::CoulombFriction)
         .unwrap();
     assert!((f - torque).abs() < 1e-9);
+    // The nominal gravity stiffness is 0: no refit may turn it negative.
+    assert!(
+        fitted.gravity_stiffness >= 0.0,
+        "{}",
+        fitted.gravity_stiffness
+    );
+    // Progress per run: without a terminal, a line every 100 simulations.
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        stderr.contains("/demo/effects/coulomb_friction: 100 simulations"),
+        "{stderr}"
+    );
     let page = std::fs::read_to_string(out.join("gap.html")).unwrap();
     assert_eq!(page.matches("<svg").count(), 3, "three plots");
+    // Parameters in engineering notation with their units.
+    assert!(
+        page.contains("torque = ") && page.contains(" N m"),
+        "{page}"
+    );
+    assert!(page.contains("refitted baseline: inertia = 3.16 kg m^2, stiffness = "));
+    assert!(page.contains(" kN m/rad"));
     let report = std::fs::read_to_string(out.join("report.html")).unwrap();
     assert_eq!(report.matches("href=\"gap.html\"").count(), 1);
 }
@@ -1392,6 +1549,13 @@ fn impossible_results_on_the_f16_are_flagged_with_their_reasons() {
         // A clearance of 1e-18 rad is said to be zero.
         if r["clearance"].as_f64().is_some_and(|c| c < 1e-12) {
             assert!(reasons.contains("no clearance resolved"), "{r}");
+        }
+        // Units: the wing's accelerometer in m/s², its shaker force in N.
+        if r["status"] == "ok" {
+            assert_eq!(r["units"]["clearance"], "m", "{r}");
+            assert_eq!(r["units"]["coulomb_friction"], "m/s^2", "{r}");
+            assert_eq!(r["units"]["inertia"], "kg", "{r}");
+            assert_eq!(r["units"]["coulomb_friction_absolute"], "N", "{r}");
         }
         // The wavelet's negative friction is flagged too.
         if r["coulomb_friction"].as_f64().is_some_and(|f| f < -0.01) {

@@ -24,8 +24,8 @@ use crate::backend::Backend;
 use crate::identify::{identify_on, IdentifyOptions};
 use crate::ingest::IngestOptions;
 use crate::journal::{
-    failed_key, placements, results_group, run_key, settings_fingerprint, Entry, Journal, Prepared,
-    Stored, RUNS_DIR,
+    failed_key, placements, results_group, run_key, settings_fingerprint, settings_record, Entry,
+    Journal, Prepared, Stored, RUNS_DIR,
 };
 use crate::profile::{self, Stage};
 use crate::report::{html, write_summary, ReportError, ResultsWriter, RunOutcome, SummaryRow};
@@ -204,6 +204,9 @@ pub struct Manifest {
     pub runs_in_inputs: usize,
     /// The runs of this folder.
     pub runs: Vec<ManifestRun>,
+    /// The settings spelled out ([`crate::journal::settings_record`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub settings_full: Option<serde_json::Value>,
     /// Groups of the inputs that hold datasets but are not runs, so none goes unseen.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub not_runs: Vec<GroupNotRun>,
@@ -231,6 +234,7 @@ impl Manifest {
         runs_in_inputs: usize,
         entries: &mut [Entry],
         not_runs: Vec<GroupNotRun>,
+        settings_full: Option<serde_json::Value>,
     ) -> Manifest {
         entries.sort_by(|a, b| (&a.source, &a.path).cmp(&(&b.source, &b.path)));
         Manifest {
@@ -239,6 +243,7 @@ impl Manifest {
             shard,
             runs_in_inputs,
             not_runs,
+            settings_full,
             runs: entries
                 .iter()
                 .map(|e| ManifestRun {
@@ -311,7 +316,9 @@ pub fn run_campaigns(
     // A worker holds one run, the queues one run per worker each: about 3 × jobs runs.
     let (work_tx, work_rx) = std::sync::mpsc::sync_channel::<reader::Delivery>(jobs);
     let (done_tx, done_rx) = std::sync::mpsc::sync_channel::<Finished>(jobs);
+    let record = settings_record(&opt.methods, &opt.identify, ingest);
     let results = ResultsWriter::create(out)?;
+    results.write_settings(&record)?;
     let written = std::thread::scope(|scope| {
         let counts = &counts;
         scope.spawn(move || {
@@ -372,6 +379,7 @@ pub fn run_campaigns(
         runs_in_inputs,
         &mut entries,
         not_runs.clone(),
+        Some(record),
     );
     let (rows, failed_runs) =
         write_outputs(&results, out, &entries, &manifest, opt.report_runs).map_err(stopped)?;
@@ -451,6 +459,7 @@ fn identify_run(
             outcome.sample_rate = Some(run.meta.sample_rate);
             outcome.samples = run.output.len();
             outcome.inertia = run.meta.inertia;
+            outcome.units = crate::units::Units::of(&run.meta);
             for &m in &opt.methods {
                 let t0 = Instant::now();
                 outcome.methods.push((
@@ -750,8 +759,9 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         first.runs_in_inputs,
         &mut entries,
         first.not_runs.clone(),
+        first.settings_full.clone(),
     );
-    let results = journal.assemble(out, &entries)?;
+    let results = journal.assemble(out, &entries, manifest.settings_full.as_ref())?;
     let (rows, failed_runs) = write_outputs(&results, out, &entries, &manifest, report_runs)?;
     Ok(BatchSummary {
         rows,

@@ -112,6 +112,7 @@ pub struct Reference<'a> {
     holdout: Target,
     whole: Target,
     evaluations: AtomicUsize,
+    on_score: Option<Box<dyn Fn(usize) + Send + Sync + 'a>>,
 }
 
 impl<'a> Reference<'a> {
@@ -148,13 +149,23 @@ impl<'a> Reference<'a> {
             factor,
             identified,
             evaluations: AtomicUsize::new(0),
+            on_score: None,
         })
+    }
+
+    /// Calls `f` with the number of simulations so far after each one (progress displays).
+    pub fn on_score(mut self, f: impl Fn(usize) + Send + Sync + 'a) -> Self {
+        self.on_score = Some(Box::new(f));
+        self
     }
 
     /// Simulates `model` and scores it on both parts (infinite where its response cannot
     /// be identified: a model that far off is simply bad).
     pub fn score(&self, model: &RigModel) -> Score {
-        self.evaluations.fetch_add(1, Ordering::Relaxed);
+        let n = self.evaluations.fetch_add(1, Ordering::Relaxed) + 1;
+        if let Some(f) = &self.on_score {
+            f(n);
+        }
         match simulate_given(self.run, Some(&self.identified), model, self.factor) {
             Ok(s) => {
                 let features = s.features();
@@ -194,8 +205,8 @@ pub struct Fitted {
 }
 
 /// The coordinates the simplex moves in: the model's own parameters relative to `base`
-/// (stiffness, damping, clearance and, when asked, inertia by their logarithms; the gravity
-/// stiffness, of either sign, in units of 1 % of k/J) and the effects' parameters in units
+/// (stiffness, damping, clearance and, when asked, inertia by their logarithms, so they stay
+/// positive; the gravity stiffness in units of 1 % of k/J, keeping the nominal's sign) and the effects' parameters in units
 /// of their starting values (by their logarithms for those that cannot be negative).
 struct Coordinates<'a> {
     base: &'a RigModel,
@@ -215,7 +226,15 @@ impl Coordinates<'_> {
         m.stiffness = b.stiffness * x[0].exp();
         m.damping = b.damping.max(1e-9) * x[1].exp();
         m.clearance = b.clearance * x[2].exp();
-        m.gravity_stiffness = b.gravity_stiffness + 0.01 * b.stiffness / b.inertia * x[3];
+        // The gravity stiffness keeps the nominal model's sign (a rig whose link hangs
+        // cannot turn into an inverted pendulum): reflected at zero, so the simplex sees no
+        // flat region. Zero counts as positive.
+        let c = b.gravity_stiffness + 0.01 * b.stiffness / b.inertia * x[3];
+        m.gravity_stiffness = if b.gravity_stiffness < 0.0 {
+            -c.abs()
+        } else {
+            c.abs()
+        };
         if self.inertia {
             m.inertia = b.inertia * x[4].exp();
         }

@@ -93,6 +93,17 @@ pub enum Item {
     },
     /// Create a dataset.
     Dataset(Dataset),
+    /// Set a string attribute on a dataset created before (its `units`).
+    DatasetAttr {
+        /// Group of the dataset (relative path).
+        group: String,
+        /// Dataset name.
+        dataset: String,
+        /// Attribute name.
+        name: String,
+        /// Value.
+        value: String,
+    },
 }
 
 /// A run's results, ready to be written under its absolute group path.
@@ -111,6 +122,16 @@ impl EncodedRun {
             path: path.to_string(),
             items: Vec::new(),
         }
+    }
+
+    /// Sets a string attribute on the dataset `name` of `group`, added before.
+    pub fn dataset_attr(&mut self, group: &str, dataset: &str, name: &str, value: &str) {
+        self.items.push(Item::DatasetAttr {
+            group: group.to_string(),
+            dataset: dataset.to_string(),
+            name: name.to_string(),
+            value: value.to_string(),
+        });
     }
 
     /// Adds a group.

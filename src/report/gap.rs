@@ -15,6 +15,7 @@ use super::{write_atomic, ReportError};
 use crate::gap::search::{signature, Reference, Score};
 use crate::gap::{Diagnosis, Gap, GapError};
 use crate::identify::Identification;
+use crate::units::eng;
 
 /// Format string of gap.json.
 pub const GAP_FORMAT: &str = "skelid-gap/1";
@@ -219,21 +220,21 @@ fn run_figures(r: &GapRun) -> Vec<String> {
     figs.extend(svg_plot(
         "Relative-motion envelope over time",
         "time (s)",
-        "envelope A (signal units)",
+        "envelope A (rad)",
         YAxis::Full,
         &three([0, 1, 2].map(|i| (env[i].0.as_slice(), env[i].1.as_slice()))),
     ));
     figs.extend(svg_plot(
         "Backbone at resonance",
-        "response amplitude A",
+        "response amplitude A (rad)",
         "natural frequency f0 (Hz)",
         YAxis::Fenced,
         &three([0, 1, 2].map(|i| (sk[i][0].as_slice(), sk[i][1].as_slice()))),
     ));
     figs.extend(svg_plot(
         "Damping force per unit inertia at resonance",
-        "velocity amplitude A·ω (units/s)",
-        "2h0·A·ω (units/s²)",
+        "velocity amplitude A·ω (rad/s)",
+        "2h0·A·ω (rad/s²)",
         YAxis::Fenced,
         &three([0, 1, 2].map(|i| (sk[i][2].as_slice(), sk[i][3].as_slice()))),
     ));
@@ -254,6 +255,14 @@ fn three<'a>(xy: [(&'a [f64], &'a [f64]); 3]) -> Vec<Series<'a>> {
             y,
         })
         .collect()
+}
+
+/// `key = value unit` in engineering notation, for a model or effect parameter.
+pub fn param_text(key: &str, value: f64) -> String {
+    format!(
+        "{key} = {}",
+        eng(value, crate::model::key_unit(key).unwrap_or(""))
+    )
 }
 
 /// A gap for the page; "not identified" where the model's response could not be.
@@ -304,16 +313,31 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
             d.evaluations,
             d.seconds
         );
+        let model_text = |m: &crate::model::RigModel| {
+            [
+                ("inertia", m.inertia),
+                ("stiffness", m.stiffness),
+                ("damping", m.damping),
+                ("clearance", m.clearance),
+                ("gravity_stiffness", m.gravity_stiffness),
+            ]
+            .iter()
+            .map(|(k, v)| param_text(k, *v))
+            .collect::<Vec<_>>()
+            .join(", ")
+        };
+        let _ = writeln!(
+            b,
+            "<p>nominal model: {}<br>refitted baseline: {}</p>",
+            esc(&model_text(&d.nominal)),
+            esc(&model_text(&d.baseline.model))
+        );
         b.push_str(
             "<table><tr><th>candidate</th><th>parameters</th><th>gap (fit)</th>\
              <th>gap (held out)</th><th>shrink</th><th>held out: time / backbone / damping</th></tr>\n",
         );
         for c in &d.candidates {
-            let params: Vec<String> = c
-                .params()
-                .iter()
-                .map(|(k, v)| format!("{k} = {v:.4e}"))
-                .collect();
+            let params: Vec<String> = c.params().iter().map(|(k, v)| param_text(k, *v)).collect();
             let dom: Vec<String> = c
                 .score
                 .domains
@@ -335,13 +359,13 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
         for reg in r.baseline.0.regions.iter().take(4) {
             let _ = writeln!(
                 b,
-                "<li>{}: {:.0} % — {:.1}–{:.1} s, A {:.2e}–{:.2e}, {:.2}–{:.2} Hz</li>",
+                "<li>{}: {:.0} % — {:.1}–{:.1} s, A {}–{}, {:.2}–{:.2} Hz</li>",
                 reg.domain,
                 100.0 * reg.share,
                 reg.t0,
                 reg.t1,
-                reg.amp_lo,
-                reg.amp_hi,
+                eng(reg.amp_lo, "rad"),
+                eng(reg.amp_hi, "rad"),
                 reg.f_lo,
                 reg.f_hi
             );

@@ -17,6 +17,7 @@ use plotters::prelude::*;
 use super::{write_atomic, ReportError, SummaryRow};
 use crate::fit::BackboneModel;
 use crate::h5util::{read_attr, AttrValue};
+use crate::units::eng;
 
 /// Points a time track is reduced to: enough for a plot 560 pixels wide.
 const TRACK_POINTS: usize = 400;
@@ -72,6 +73,11 @@ pub struct MethodPlots {
     pub skeleton: Skeleton,
     /// The fitted model, when the dead-zone fit succeeded.
     pub fitted: Option<Fitted>,
+    /// Unit of the response's displacement (`rad`, `m`, or `u` when the archive says none).
+    pub unit: String,
+    /// Absolute contact stiffness, viscous damping and friction with their units, where
+    /// the inertia is known or estimated.
+    pub absolute: Vec<(&'static str, f64, String)>,
 }
 
 /// Everything the page shows of one run.
@@ -166,6 +172,21 @@ fn read_method(m: &hdf5::Group, name: &str, time: &[f64]) -> MethodPlots {
         });
     let error = (text_attr(m, "status").as_deref() == Some("failed"))
         .then(|| text_attr(m, "error").unwrap_or_default());
+    let unit = text_attr(m, "clearance_units").unwrap_or_else(|| crate::units::UNKNOWN.into());
+    let absolute = [
+        ("k", "contact_stiffness"),
+        ("c", "viscous_damping_absolute"),
+        ("F", "coulomb_friction_absolute"),
+    ]
+    .into_iter()
+    .filter_map(|(label, name)| {
+        let v = num_attr(m, name);
+        v.is_finite().then(|| {
+            let u = text_attr(m, &format!("{name}_units")).unwrap_or_default();
+            (label, v, u)
+        })
+    })
+    .collect();
     MethodPlots {
         method: name.to_string(),
         error,
@@ -174,6 +195,8 @@ fn read_method(m: &hdf5::Group, name: &str, time: &[f64]) -> MethodPlots {
         frequency,
         skeleton,
         fitted,
+        unit,
+        absolute,
     }
 }
 
@@ -437,6 +460,10 @@ fn run_figures(run: &RunPlots) -> Vec<String> {
     let mut ms: Vec<&MethodPlots> = run.methods.iter().collect();
     ms.sort_by_key(|m| m.method == "wavelet");
     let mut figs = Vec::new();
+    let unit = ms
+        .iter()
+        .find(|m| m.error.is_none())
+        .map_or(crate::units::UNKNOWN, |m| m.unit.as_str());
     let tracks = |y: fn(&MethodPlots) -> &Vec<f64>| -> Vec<Series> {
         ms.iter()
             .map(|m| Series {
@@ -451,7 +478,7 @@ fn run_figures(run: &RunPlots) -> Vec<String> {
     figs.extend(svg_plot(
         "Response envelope",
         "time (s)",
-        "amplitude",
+        &format!("amplitude ({unit})"),
         YAxis::Full,
         &tracks(|m| &m.amplitude),
     ));
@@ -491,7 +518,7 @@ fn run_figures(run: &RunPlots) -> Vec<String> {
     };
     figs.extend(svg_plot(
         "Backbone: skeleton (circles) and fitted dead zone (line)",
-        "response amplitude",
+        &format!("response amplitude ({unit})"),
         "natural frequency (Hz)",
         YAxis::Fenced,
         &with_fit(
@@ -501,8 +528,8 @@ fn run_figures(run: &RunPlots) -> Vec<String> {
     ));
     figs.extend(svg_plot(
         "Restoring force per unit inertia",
-        "response amplitude",
-        "A·ω0² (units/s²)",
+        &format!("response amplitude ({unit})"),
+        &format!("A·ω0² ({unit}/s²)"),
         YAxis::Fenced,
         &with_fit(
             |s| (&s.amplitude, &s.restoring_force),
@@ -511,8 +538,8 @@ fn run_figures(run: &RunPlots) -> Vec<String> {
     ));
     figs.extend(svg_plot(
         "Damping force per unit inertia: viscous + Coulomb fit",
-        "velocity amplitude A·ω (units/s)",
-        "2h0·A·ω (units/s²)",
+        &format!("velocity amplitude A·ω ({unit}/s)"),
+        &format!("2h0·A·ω ({unit}/s²)"),
         YAxis::Fenced,
         &with_fit(
             |s| (&s.velocity_amplitude, &s.damping_force),
@@ -544,16 +571,19 @@ pub struct ReportPage<'a> {
     pub omitted: usize,
 }
 
-/// Table columns beyond run/source/method/status: (parameter, header with units).
-const TABLE_COLUMNS: [(&str, &str); 6] = [
-    ("clearance", "clearance (total, signal units)"),
-    ("stiffness", "k/J (1/s²)"),
-    ("viscous_damping", "c/J (1/s)"),
-    ("coulomb_friction", "F/J (units/s²)"),
-    ("contact_stiffness", "k (N·m/rad or N/m)"),
+/// Table columns beyond run/source/method/status: (parameter, header). Each cell carries
+/// its own unit, since runs of one campaign may differ (rad against m).
+const TABLE_COLUMNS: [(&str, &str); 8] = [
+    ("clearance", "clearance (total)"),
+    ("stiffness", "k/J"),
+    ("viscous_damping", "c/J"),
+    ("coulomb_friction", "F/J"),
+    ("contact_stiffness", "k (contact)"),
+    ("viscous_damping_absolute", "c (viscous)"),
+    ("coulomb_friction_absolute", "F (friction)"),
     (
         "natural_frequency_at_amplitude_max",
-        "f at largest amplitude (Hz)",
+        "f at largest amplitude",
     ),
 ];
 
@@ -605,10 +635,18 @@ pub fn render(page: &ReportPage) -> String {
     body.push_str(&legend());
     // Campaign overview: the identified clearance and stiffness of every row.
     body.push_str("<h2>Campaign</h2>\n<div class=\"plots\">\n");
-    for (param, label) in [
-        ("clearance", "clearance (total)"),
-        ("stiffness", "k/J (1/s²)"),
-    ] {
+    for (param, label) in [("clearance", "clearance (total)"), ("stiffness", "k/J")] {
+        // The axis names the unit when every row agrees on it.
+        let units: std::collections::BTreeSet<&String> = page
+            .rows
+            .iter()
+            .filter_map(|r| r.units.get(param))
+            .collect();
+        let label = match units.iter().next() {
+            Some(u) if units.len() == 1 => format!("{label} ({u})"),
+            _ => label.to_string(),
+        };
+        let label = label.as_str();
         let per_method = |method: &str| -> (Vec<f64>, Vec<f64>) {
             page.rows
                 .iter()
@@ -717,8 +755,9 @@ fn legend() -> String {
     };
     format!(
         "<p class=\"legend\">{} {} — tracks are lines, skeleton bins are circles, fitted \
-         models are dark lines. Amplitudes are in the run's signal units (rad or m), forces \
-         per unit inertia. Frequency and force axes leave out outliers (beyond three \
+         models are dark lines. Amplitudes are in the run's displacement unit (from its \
+         <code>units</code> attribute; <code>u</code> where it has none), forces per unit \
+         inertia. Frequency and force axes leave out outliers (beyond three \
          interquartile ranges), which are then not drawn.</p>\n",
         swatch("wavelet"),
         swatch("hilbert")
@@ -735,14 +774,20 @@ fn fitted_line(m: &MethodPlots) -> String {
     if let Some(e) = &m.error {
         return format!("{name}: <span class=\"error\">failed: {}</span>", esc(e));
     }
+    let u = m.unit.as_str();
+    let absolute: String = m
+        .absolute
+        .iter()
+        .map(|(label, v, unit)| format!(" · {label} {}", eng(*v, unit)))
+        .collect();
     match &m.fitted {
         None => format!("{name}: no dead-zone fit"),
         Some(f) => format!(
-            "{name}: clearance {} · k/J {} 1/s² · c/J {} 1/s · F/J {} units/s² · backbone {}",
-            short(2.0 * f.half_gap),
-            short(f.stiffness),
-            short(f.viscous),
-            short(f.coulomb),
+            "{name}: clearance {} · k/J {} · c/J {} · F/J {}{absolute} · backbone {}",
+            eng(2.0 * f.half_gap, u),
+            eng(f.stiffness, "1/s²"),
+            eng(f.viscous, "1/s"),
+            eng(f.coulomb, &format!("{u}/s²")),
             f.model.name()
         ),
     }
@@ -802,7 +847,21 @@ fn table(page: &ReportPage) -> String {
         for (name, _) in TABLE_COLUMNS {
             match r.parameters.get(name).copied().flatten() {
                 Some(v) => {
-                    let _ = write!(t, "<td data-v=\"{v:e}\">{}</td>", short(v));
+                    let unit = r.units.get(name).map_or("", String::as_str);
+                    let se = r
+                        .parameters
+                        .get(&format!("{name}_stderr"))
+                        .copied()
+                        .flatten();
+                    // A value within its standard error of zero is shown as zero, with
+                    // the resolution, not as noise (2.5e-18 rad).
+                    let text = match se {
+                        Some(se) if name == "clearance" && v.abs() < se => {
+                            format!("0 (± {})", eng(se, unit))
+                        }
+                        _ => eng(v, unit),
+                    };
+                    let _ = write!(t, "<td data-v=\"{v:e}\">{}</td>", esc(&text));
                 }
                 None => t.push_str("<td></td>"),
             }

@@ -14,6 +14,7 @@ use crate::fit::{Bin, Estimate};
 use crate::h5util::{write_f64_attr, write_str_attr};
 use crate::identify::Identification;
 use crate::track::{Method, Track};
+use crate::units::Units;
 use encoded::{Elem, EncodedRun, Item, Scalar, Storage};
 
 /// Why an output file could not be written.
@@ -139,6 +140,8 @@ pub struct RunOutcome {
     pub samples: usize,
     /// Inertia attribute (J or m), when given.
     pub inertia: Option<f64>,
+    /// The units of the run's results (from its `units`, `kind` and quantities).
+    pub units: crate::units::Units,
     /// Why the run could not be read at all.
     pub error: Option<String>,
     /// Per method: the result (or its error) and the seconds it took.
@@ -188,6 +191,7 @@ impl RunOutcome {
             sample_rate: None,
             samples: 0,
             inertia: None,
+            units: Default::default(),
             error: None,
             methods: Vec::new(),
         }
@@ -255,6 +259,15 @@ impl ResultsWriter {
             file: self.path.display().to_string(),
             detail: e.to_string(),
         })
+    }
+
+    /// Stores a batch's settings on the file's root: `settings` (the fingerprint) and
+    /// `settings_json` (everything, [`crate::journal::settings_record`]).
+    pub fn write_settings(&self, record: &serde_json::Value) -> Result<(), ReportError> {
+        if let Some(f) = record.get("fingerprint").and_then(|f| f.as_str()) {
+            self.set_root_attr("settings", f)?;
+        }
+        self.set_root_attr("settings_json", &record.to_string())
     }
 
     /// Copies the group `src_path` of the results file `src` to `dst_path` here, whole
@@ -383,6 +396,15 @@ impl ResultsWriter {
                     }
                 }
                 Item::Dataset(d) => write_dataset(&at(&mut groups, &d.group)?, d)?,
+                Item::DatasetAttr {
+                    group,
+                    dataset,
+                    name,
+                    value,
+                } => {
+                    let ds = at(&mut groups, group)?.dataset(dataset)?;
+                    write_str_attr(&ds, name, value)?;
+                }
             }
         }
         // No flush here: `finish` flushes once, and a file not finished is discarded.
@@ -463,6 +485,7 @@ pub fn encode_run(run: &RunOutcome) -> EncodedRun {
         e.f64_attr("", "sample_rate", fs);
         let t: Vec<f64> = (0..run.samples).map(|i| i as f64 / fs).collect();
         e.signal("", "time", &t, true);
+        e.dataset_attr("", "time", "units", "s");
     }
     for ((method, result, seconds), quality) in run.methods.iter().zip(&qualities) {
         let m = method.as_str();
@@ -479,7 +502,7 @@ pub fn encode_run(run: &RunOutcome) -> EncodedRun {
             }
             Ok(id) => {
                 e.str_attr(m, "status", "ok");
-                encode_identification(&mut e, m, id, run.inertia);
+                encode_identification(&mut e, m, id, run.inertia, &run.units);
             }
         }
     }
@@ -487,7 +510,7 @@ pub fn encode_run(run: &RunOutcome) -> EncodedRun {
 }
 
 /// One skeleton's columns (FORMATS.md §3 names plus stiffness, spreads and counts).
-fn encode_bins(e: &mut EncodedRun, g: &str, bins: &[Bin]) {
+fn encode_bins(e: &mut EncodedRun, g: &str, bins: &[Bin], units: &Units) {
     let columns: [(&str, BinColumn); 9] = [
         ("amplitude", |b| b.amplitude),
         ("natural_frequency", |b| b.natural_frequency()),
@@ -503,24 +526,48 @@ fn encode_bins(e: &mut EncodedRun, g: &str, bins: &[Bin]) {
     for (name, f) in columns {
         let v: Vec<f64> = bins.iter().map(f).collect();
         e.signal(g, name, &v, false);
+        unit(e, g, name, units.dataset(name));
     }
 }
 
-fn encode_identification(e: &mut EncodedRun, m: &str, id: &Identification, inertia: Option<f64>) {
-    if let Some(inp) = &id.input {
-        e.signal(m, "input_amplitude", &inp.amplitude, true);
-        e.signal(m, "input_frequency", &inp.frequency, true);
+/// Sets the `units` attribute of a dataset just written.
+fn unit(e: &mut EncodedRun, group: &str, name: &str, unit: Option<String>) {
+    if let Some(u) = unit {
+        e.dataset_attr(group, name, "units", &u);
     }
-    e.signal(m, "response_amplitude", &id.response.amplitude, true);
-    e.signal(m, "response_frequency", &id.response.frequency, true);
-    e.signal(m, "stiffness", &id.modal.stiffness, true);
-    e.signal(m, "damping", &id.modal.damping, true);
+}
+
+fn encode_identification(
+    e: &mut EncodedRun,
+    m: &str,
+    id: &Identification,
+    inertia: Option<f64>,
+    units: &Units,
+) {
+    let signal = |e: &mut EncodedRun, name: &str, v: &[f64]| {
+        e.signal(m, name, v, true);
+        unit(e, m, name, units.dataset(name));
+    };
+    if let Some(inp) = &id.input {
+        signal(e, "input_amplitude", &inp.amplitude);
+        signal(e, "input_frequency", &inp.frequency);
+    }
+    signal(e, "response_amplitude", &id.response.amplitude);
+    signal(e, "response_frequency", &id.response.frequency);
+    signal(e, "stiffness", &id.modal.stiffness);
+    signal(e, "damping", &id.modal.damping);
     let valid: Vec<u8> = id.used.iter().map(|&b| u8::from(b)).collect();
     e.bytes(m, "valid", &valid, 4);
-    encode_bins(e, &format!("{m}/skeleton"), &id.bins);
+    unit(e, m, "valid", units.dataset("valid"));
+    encode_bins(e, &format!("{m}/skeleton"), &id.bins, units);
     // The bins the backbone was fitted on, when not the whole skeleton.
     if id.fitted_at_resonance {
-        encode_bins(e, &format!("{m}/skeleton_resonant"), &id.resonant_bins);
+        encode_bins(
+            e,
+            &format!("{m}/skeleton_resonant"),
+            &id.resonant_bins,
+            units,
+        );
     }
     if let Some(dz) = &id.dead_zone {
         e.str_attr(m, "backbone_model", dz.model.name());
@@ -534,8 +581,12 @@ fn encode_identification(e: &mut EncodedRun, m: &str, id: &Identification, inert
             "all"
         },
     );
+    // An attribute cannot carry attributes: each parameter's unit is `<name>_units`.
     for (name, value) in parameters(id, inertia) {
         e.f64_attr(m, name, value);
+        if let Some(u) = units.parameter(name) {
+            e.str_attr(m, &format!("{name}_units"), &u);
+        }
     }
     e.str_attr(m, "warnings", &id.warnings.join("\n"));
 }
@@ -623,7 +674,14 @@ pub fn parameters(id: &Identification, inertia: Option<f64>) -> Vec<(&'static st
         id.mass.map_or(0.0, |m| f64::from(u8::from(m.1))),
         at_max,
     ];
-    PARAMETER_NAMES.into_iter().zip(values).collect()
+    // The absolute values: the per-inertia ones times the inertia (given or estimated).
+    let abs = |x: f64| mass.map_or(nan, |m| m * x);
+    let absolute = [abs(k_se), abs(v), abs(v_se), abs(f), abs(f_se)];
+    PARAMETER_NAMES
+        .into_iter()
+        .zip(values)
+        .chain(ABSOLUTE_NAMES.into_iter().zip(absolute))
+        .collect()
 }
 
 /// One row of `summary.json` / `summary.csv`: a run × method.
@@ -656,6 +714,13 @@ pub struct SummaryRow {
     /// wavelet first, else the first suspect one).
     #[serde(default)]
     pub recommended: bool,
+    /// Unit of each parameter in `parameters` ([`crate::units`]).
+    #[serde(default)]
+    pub units: std::collections::BTreeMap<String, String>,
+    /// Displacement, force and inertia units of the run, the three that every parameter's
+    /// unit is made of (`summary.csv` has them as its last columns).
+    #[serde(default)]
+    pub base_units: Option<crate::units::Units>,
 }
 
 /// The summary rows of one run.
@@ -672,6 +737,8 @@ pub fn summary_rows(run: &RunOutcome) -> Vec<SummaryRow> {
         quality: String::new(),
         quality_reasons: String::new(),
         recommended: false,
+        units: Default::default(),
+        base_units: Some(run.units.clone()),
     };
     if let Some(e) = &run.error {
         return vec![base("", "failed", e.clone(), 0.0)];
@@ -688,6 +755,11 @@ pub fn summary_rows(run: &RunOutcome) -> Vec<SummaryRow> {
                     .into_iter()
                     .map(|(k, v)| (k.to_string(), v.is_finite().then_some(v)))
                     .collect();
+                row.units = row
+                    .parameters
+                    .keys()
+                    .filter_map(|k| Some((k.clone(), run.units.parameter(k)?)))
+                    .collect();
                 row.warnings = id.warnings.join("; ");
                 if let Some(q) = quality {
                     row.quality = q.verdict.as_str().into();
@@ -702,7 +774,11 @@ pub fn summary_rows(run: &RunOutcome) -> Vec<SummaryRow> {
 
 /// Writes `<dir>/summary.json` and `<dir>/summary.csv` (each atomically).
 pub fn write_summary(dir: &Path, rows: &[SummaryRow]) -> Result<(), ReportError> {
-    let json = serde_json::json!({"format": "skelid-summary/1", "rows": rows});
+    let json = serde_json::json!({
+        "format": "skelid-summary/1",
+        "units": campaign_units(rows),
+        "rows": rows,
+    });
     let text = serde_json::to_string_pretty(&json).map_err(|e| ReportError {
         file: "summary.json".into(),
         detail: e.to_string(),
@@ -711,8 +787,15 @@ pub fn write_summary(dir: &Path, rows: &[SummaryRow]) -> Result<(), ReportError>
     let names = PARAMETER_NAMES;
     let mut csv = String::from("run,source,method,status,");
     csv.push_str(&names.join(","));
-    csv.push_str(",seconds,warnings,error,quality,quality_reasons,recommended\n");
+    csv.push_str(",seconds,warnings,error,quality,quality_reasons,recommended,");
+    // Added after the columns other programs already read, never between them.
+    csv.push_str(&ABSOLUTE_NAMES.join(","));
+    csv.push_str(",displacement_unit,force_unit,inertia_unit\n");
     let quote = |s: &str| format!("\"{}\"", s.replace('"', "\"\""));
+    let value = |r: &SummaryRow, n: &str| match r.parameters.get(n) {
+        Some(Some(v)) => format!("{v:.6e}"),
+        _ => String::new(),
+    };
     for r in rows {
         csv.push_str(&format!(
             "{},{},{},{},",
@@ -722,13 +805,11 @@ pub fn write_summary(dir: &Path, rows: &[SummaryRow]) -> Result<(), ReportError>
             r.status
         ));
         for n in names {
-            if let Some(Some(v)) = r.parameters.get(n) {
-                csv.push_str(&format!("{v:.6e}"));
-            }
+            csv.push_str(&value(r, n));
             csv.push(',');
         }
         csv.push_str(&format!(
-            "{:.3},{},{},{},{},{}\n",
+            "{:.3},{},{},{},{},{},",
             r.seconds,
             quote(&r.warnings),
             quote(&r.error),
@@ -736,8 +817,41 @@ pub fn write_summary(dir: &Path, rows: &[SummaryRow]) -> Result<(), ReportError>
             quote(&r.quality_reasons),
             u8::from(r.recommended)
         ));
+        for n in ABSOLUTE_NAMES {
+            csv.push_str(&value(r, n));
+            csv.push(',');
+        }
+        let u = r.base_units.clone().unwrap_or_default();
+        csv.push_str(&format!(
+            "{},{},{}\n",
+            quote(&u.displacement),
+            quote(&u.force),
+            quote(&u.inertia)
+        ));
     }
     write_atomic(&dir.join("summary.csv"), csv.as_bytes())
+}
+
+/// summary.json's campaign-wide `units`: each parameter's unit where every row that has it
+/// agrees, else its unit in symbols: "F s/D (D, F, J: each row's base_units)".
+fn campaign_units(rows: &[SummaryRow]) -> std::collections::BTreeMap<String, String> {
+    let symbols = Units {
+        displacement: "D".into(),
+        input: "I".into(),
+        inertia: "J".into(),
+        force: "F".into(),
+    };
+    let mut units: std::collections::BTreeMap<String, String> = Default::default();
+    for r in rows {
+        for (name, unit) in &r.units {
+            let u = units.entry(name.clone()).or_insert_with(|| unit.clone());
+            if u != unit {
+                let symbolic = symbols.parameter(name).unwrap_or_default();
+                *u = format!("{symbolic} (D, F, J: each row's base_units)");
+            }
+        }
+    }
+    units
 }
 
 /// The fitted parameters (FORMATS.md §3 names) and extras, in the order of `summary.csv`'s
@@ -759,6 +873,17 @@ pub const PARAMETER_NAMES: [&str; 16] = [
     "contact_stiffness",
     "inertia_estimated",
     "natural_frequency_at_amplitude_max",
+];
+
+/// The absolute parameters (inertia times the per-inertia ones, added after
+/// [`PARAMETER_NAMES`]): NaN where no inertia is given or estimated. `contact_stiffness`
+/// itself is among [`PARAMETER_NAMES`].
+pub const ABSOLUTE_NAMES: [&str; 5] = [
+    "contact_stiffness_stderr",
+    "viscous_damping_absolute",
+    "viscous_damping_absolute_stderr",
+    "coulomb_friction_absolute",
+    "coulomb_friction_absolute_stderr",
 ];
 
 /// Writes a file through a temporary file renamed into place.

@@ -24,7 +24,7 @@ pub const SPECTRUM_TOLERANCE: f64 = 1e-10;
 
 /// Complex Morlet mother wavelet ψ(t) = (π f_b)^(-1/2) e^{j2π f_c t} e^{-t²/f_b}
 /// ("cmor f_b-f_c"); its Fourier transform is Ψ(f) = exp(-π² f_b (f - f_c)²).
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct Morlet {
     /// Bandwidth parameter f_b (s² at scale 1): larger is longer in time, finer in frequency.
     pub bandwidth: f64,
