@@ -1698,7 +1698,7 @@ fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
             r.insert(meta.path.clone(), n);
             show(&bar, &r);
             // Without a terminal (a log file), a line every 100 simulations.
-            if bar.is_hidden() && n % 100 == 0 {
+            if bar.is_hidden() && n.is_multiple_of(100) {
                 eprintln!("{}: {n} simulations", meta.path);
             }
         };

@@ -8,6 +8,7 @@
 
 use crate::identify::Identification;
 use crate::track::Method;
+use crate::units::eng;
 
 /// How far a result can be trusted.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
@@ -67,7 +68,8 @@ const RESIDUAL_SPREADS: f64 = 3.0;
 /// damping, a backbone fit whose residual is several times the spread of the skeleton it
 /// was fitted to, or a partial skeleton, is `suspect`; a clearance within its standard
 /// error of zero, and a negative damping below 0.1 % of its scale, are noted as zero.
-pub fn assess(id: &Identification) -> Quality {
+/// `unit` is the response's displacement unit ([`crate::units`]), for the reasons' text.
+pub fn assess(id: &Identification, unit: &str) -> Quality {
     let mut q = Quality {
         verdict: Verdict::Good,
         reasons: Vec::new(),
@@ -103,8 +105,9 @@ pub fn assess(id: &Identification) -> Quality {
     if let Some(c) = id.clearance() {
         if c.value.abs() <= c.stderr || c.value.abs() < 1e-12 {
             q.reasons.push(format!(
-                "no clearance resolved: 2δ = {:.2e} ± {:.2e}, zero within its error",
-                c.value, c.stderr
+                "no clearance resolved: 2δ = 0 within ± {} (fitted {:.2e} {unit}, zero within its error)",
+                eng(c.stderr, unit),
+                c.value
             ));
         }
     }
@@ -123,12 +126,13 @@ pub fn assess(id: &Identification) -> Quality {
             .map(|b| b.restoring_force())
             .filter(|v| v.is_finite())
             .reduce(f64::max);
+        let friction_unit = format!("{unit}/s²");
         for (what, e, unit, scale, scale_name) in [
             ("viscous damping c/J", c, "1/s", omega0, "ω0"),
             (
                 "Coulomb friction F/J",
                 f,
-                "1/s²",
+                friction_unit.as_str(),
                 peak_force,
                 "the peak restoring force",
             ),
@@ -179,17 +183,18 @@ fn median_relative_spread(bins: &[crate::fit::Bin]) -> Option<f64> {
 
 /// Where two methods' results on one run disagree beyond their stated errors (clearance
 /// and k/J), one sentence each.
-pub fn disagreements(a: &Identification, b: &Identification) -> Vec<String> {
+pub fn disagreements(a: &Identification, b: &Identification, unit: &str) -> Vec<String> {
     let mut out = Vec::new();
     let pairs = [
-        ("clearance 2δ", a.clearance(), b.clearance()),
+        ("clearance 2δ", a.clearance(), b.clearance(), unit),
         (
             "k/J",
             a.dead_zone.map(|f| f.stiffness),
             b.dead_zone.map(|f| f.stiffness),
+            "1/s²",
         ),
     ];
-    for (what, x, y) in pairs {
+    for (what, x, y, unit) in pairs {
         let (Some(x), Some(y)) = (x, y) else { continue };
         let sigma = x.stderr.hypot(y.stderr);
         let gap = (x.value - y.value).abs();
@@ -199,13 +204,13 @@ pub fn disagreements(a: &Identification, b: &Identification) -> Vec<String> {
             && gap > 0.05 * x.value.abs().max(y.value.abs())
         {
             out.push(format!(
-                "{} and {} disagree on {what}: {:.4e} ± {:.1e} against {:.4e} ± {:.1e}",
+                "{} and {} disagree on {what}: {} ± {} against {} ± {}",
                 a.method.as_str(),
                 b.method.as_str(),
-                x.value,
-                x.stderr,
-                y.value,
-                y.stderr
+                eng(x.value, unit),
+                eng(x.stderr, unit),
+                eng(y.value, unit),
+                eng(y.stderr, unit)
             ));
         }
     }
@@ -213,15 +218,18 @@ pub fn disagreements(a: &Identification, b: &Identification) -> Vec<String> {
 }
 
 /// The verdicts of every method's result on one run (`None` where it failed), the methods
-/// disagreeing counted as `suspect` in both.
-pub fn judge(results: &[(Method, Option<&Identification>)]) -> Vec<Option<Quality>> {
-    let mut out: Vec<Option<Quality>> = results.iter().map(|(_, id)| id.map(assess)).collect();
+/// disagreeing counted as `suspect` in both; `unit` is the response's displacement unit.
+pub fn judge(results: &[(Method, Option<&Identification>)], unit: &str) -> Vec<Option<Quality>> {
+    let mut out: Vec<Option<Quality>> = results
+        .iter()
+        .map(|(_, id)| id.map(|id| assess(id, unit)))
+        .collect();
     for i in 0..results.len() {
         for j in i + 1..results.len() {
             let (Some(a), Some(b)) = (results[i].1, results[j].1) else {
                 continue;
             };
-            for d in disagreements(a, b) {
+            for d in disagreements(a, b, unit) {
                 for k in [i, j] {
                     if let Some(q) = &mut out[k] {
                         q.lower(Verdict::Suspect, d.clone());

@@ -104,13 +104,25 @@ impl Units {
             "viscous_damping" => "1/s".into(),
             "coulomb_friction" => format!("{d}/s^2"),
             "inertia" => self.inertia.clone(),
-            "contact_stiffness" => format!("{}/{d}", self.force),
-            "viscous_damping_absolute" => format!("{} s/{d}", self.force),
+            "contact_stiffness" => self.per_displacement(""),
+            "viscous_damping_absolute" => self.per_displacement(" s"),
             "coulomb_friction_absolute" => self.force.clone(),
             "inertia_estimated" => "1".into(),
             "natural_frequency_at_amplitude_max" => "Hz".into(),
             _ => return None,
         })
+    }
+
+    /// The force unit times `times` per displacement unit: "N m s/rad"; a force written in
+    /// the displacement unit ("J u/s^2", where the archive gave no units) cancels it
+    /// ("J s/s^2" is said "J/s").
+    fn per_displacement(&self, times: &str) -> String {
+        let d = &self.displacement;
+        match self.force.strip_suffix(&format!(" {d}/s^2")) {
+            Some(mass) if times.is_empty() => format!("{mass}/s^2"),
+            Some(mass) => format!("{mass}/s"),
+            None => format!("{}{times}/{d}", self.force),
+        }
     }
 
     /// Unit of a per-sample or skeleton dataset, by its results.h5 name.
@@ -295,6 +307,9 @@ mod tests {
         let u = Units::from_parts(None, Some("g"), RunKind::Free, None, Quantity::Acceleration);
         assert_eq!(u.displacement, UNKNOWN);
         assert_eq!(u.parameter("coulomb_friction").unwrap(), "u/s^2");
+        assert_eq!(u.parameter("contact_stiffness").unwrap(), "J/s^2");
+        assert_eq!(u.parameter("viscous_damping_absolute").unwrap(), "J/s");
+        assert_eq!(u.parameter("coulomb_friction_absolute").unwrap(), "J u/s^2");
     }
 
     #[test]

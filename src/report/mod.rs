@@ -157,7 +157,7 @@ impl RunOutcome {
             .iter()
             .map(|(m, r, _)| (*m, r.as_ref().ok()))
             .collect();
-        let judged = crate::quality::judge(&results);
+        let judged = crate::quality::judge(&results, &self.units.displacement);
         let pairs: Vec<(Method, Option<crate::quality::Quality>)> = self
             .methods
             .iter()
