@@ -59,6 +59,10 @@ const NEGLIGIBLE: f64 = 1e-3;
 /// errors) is impossible, not merely doubtful.
 const IMPOSSIBLE: f64 = 0.01;
 
+/// Median interquartile half-range of ω0² within the skeleton's bins, relative to ω0²,
+/// above which the skeleton is suspect (clean single-mode runs stay below 10 %).
+const SCATTERED: f64 = 0.25;
+
 /// How many times the skeleton's own spread the backbone fit's residual may be.
 const RESIDUAL_SPREADS: f64 = 3.0;
 
@@ -100,6 +104,21 @@ pub fn assess(id: &Identification, unit: &str) -> Quality {
                     ),
                 );
             }
+        }
+    }
+    // A skeleton whose bins scatter this much is not one mode's backbone: a sweep through
+    // several modes (the F-16), or a track too noisy to bin.
+    if let Some(spread) = median_relative_spread(&id.bins) {
+        if spread > SCATTERED {
+            q.lower(
+                Verdict::Suspect,
+                format!(
+                    "the skeleton scatters: ω0² spreads by a median {:.0} % within its \
+                     amplitude bins, so no one backbone describes it (several modes in the \
+                     band? narrow it with --fmin/--fmax)",
+                    100.0 * spread
+                ),
+            );
         }
     }
     if let Some(c) = id.clearance() {

@@ -907,6 +907,33 @@ mod tests {
     use super::*;
 
     #[test]
+    fn a_refit_keeps_the_gravity_stiffness_sign_of_the_nominal_model() {
+        // A refit once gave -91.9 1/s² to a rig whose nominal gravity stiffness was 0.
+        for nominal in [0.0, 2.0, -2.0] {
+            let base = RigModel {
+                gravity_stiffness: nominal,
+                ..RigModel::paper()
+            };
+            let coords = Coordinates {
+                base: &base,
+                inertia: false,
+                effects: Vec::new(),
+            };
+            for step in [-1e3, -50.0, -1.0, 0.0, 1.0, 50.0, 1e3] {
+                let c = coords.model(&[0.0, 0.0, 0.0, step]).gravity_stiffness;
+                if nominal < 0.0 {
+                    assert!(c <= 0.0, "nominal {nominal}, step {step}: {c}");
+                } else {
+                    assert!(c >= 0.0, "nominal {nominal}, step {step}: {c}");
+                }
+            }
+            // The nominal model itself is where the simplex starts.
+            let c0 = coords.model(&[0.0; 4]).gravity_stiffness;
+            assert_eq!(c0, nominal);
+        }
+    }
+
+    #[test]
     fn the_cubic_describing_function_matches_its_closed_forms() {
         // Without a gap, x³ at amplitude A has the first-harmonic stiffness 3A²/4.
         let a = 0.03;
