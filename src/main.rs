@@ -359,10 +359,15 @@ struct ReportArgs {
     /// the summary table always lists every run.
     #[arg(long, default_value_t = 100, value_name = "N")]
     report_runs: usize,
+    /// Exit with status 1 when any result is `suspect` too, not only when a run failed or
+    /// a result is `bad` (for pipelines that must stop on anything doubtful).
+    #[arg(long)]
+    strict: bool,
 }
 
 fn cmd_merge(a: MergeArgs) -> Result<ExitCode> {
     let summary = skelid::batch::merge(&a.dirs, &a.out, a.report.report_runs)?;
+    let strict = a.report.strict;
     println!(
         "merged {} folder(s): {} run(s), {} failed; wrote {}, summary.json, summary.csv, report.html, manifest.json",
         a.dirs.len(),
@@ -370,15 +375,14 @@ fn cmd_merge(a: MergeArgs) -> Result<ExitCode> {
         summary.failed_runs,
         summary.results.display()
     );
-    Ok(exit_status(&summary))
+    Ok(exit_status(&summary, strict))
 }
 
-/// 1 when any run failed, so that schedulers see it.
-/// 1 when a run failed or a result is `bad` (impossible values), else 0; suspect results
-/// are counted in the last line only.
-fn exit_status(summary: &skelid::batch::BatchSummary) -> ExitCode {
-    let bad = summary.rows.iter().any(|r| r.quality == "bad");
-    if summary.failed_runs > 0 || bad {
+/// 1 when a run failed or a result is `bad` (impossible values), so that schedulers see
+/// it, else 0; suspect results are counted in the last line, and with `strict` give 1 too.
+fn exit_status(summary: &skelid::batch::BatchSummary, strict: bool) -> ExitCode {
+    let doubtful = |q: &str| q == "bad" || (strict && q == "suspect");
+    if summary.failed_runs > 0 || summary.rows.iter().any(|r| doubtful(&r.quality)) {
         ExitCode::from(1)
     } else {
         ExitCode::SUCCESS
@@ -1070,7 +1074,7 @@ fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
         result_counts(&summary.rows),
         summary.results.display()
     );
-    Ok(exit_status(&summary))
+    Ok(exit_status(&summary, false))
 }
 
 fn cmd_run(a: RunArgs) -> Result<ExitCode> {
@@ -1136,7 +1140,7 @@ fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         },
         summary.results.display()
     );
-    Ok(exit_status(&summary))
+    Ok(exit_status(&summary, a.report.strict))
 }
 
 /// " (N of M run × method failed; S suspect, B bad)": the results that failed, and those

@@ -572,6 +572,37 @@ fn check_units(
     assert!(page.contains("kN m/rad"));
 }
 
+#[test]
+fn strict_makes_a_suspect_result_exit_1_as_a_bad_one_does() {
+    // The paper rig's wavelet result is suspect (a partial skeleton): counted, exit 0;
+    // with --strict, exit 1.
+    let d = tmpdir();
+    let run = |out: &str, strict: bool| {
+        let mut c = skelid();
+        c.arg("run")
+            .arg(demo_archive())
+            .arg("--out")
+            .arg(d.path().join(out))
+            .args([
+                "--quiet",
+                "--method",
+                "wavelet",
+                "--run-glob",
+                "/demo/paper_rig",
+            ]);
+        if strict {
+            c.arg("--strict");
+        }
+        c.output().unwrap()
+    };
+    let plain = run("plain", false);
+    let said = String::from_utf8_lossy(&plain.stdout);
+    assert!(said.contains("1 suspect, 0 bad"), "{said}");
+    assert_eq!(plain.status.code(), Some(0), "{said}");
+    let strict = run("strict", true);
+    assert_eq!(strict.status.code(), Some(1));
+}
+
 /// A demo archive to run on (written by `skelid demo`, which also identifies it).
 /// The demo campaign, written once for all the tests of this file that read it (in
 /// cargo's scratch folder for integration tests; each test writes its outputs elsewhere).
