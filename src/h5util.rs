@@ -96,6 +96,13 @@ pub fn write_str_attr(loc: &Location, name: &str, value: &str) -> hdf5::Result<(
     if loc.attr_names()?.iter().any(|n| n == name) {
         loc.delete_attr(name)?;
     }
+    new_str_attr(loc, name, value)
+}
+
+/// Creates a UTF-8 string attribute that `loc` does not have yet. Cheaper than
+/// [`write_str_attr`], which lists every attribute first: on a group of 50 attributes
+/// written one by one that listing was most of the results writer's time.
+pub fn new_str_attr(loc: &Location, name: &str, value: &str) -> hdf5::Result<()> {
     let v: VarLenUnicode = value
         .parse()
         .map_err(|e| hdf5::Error::from(format!("string attribute {name}: {e}")))?;
@@ -109,5 +116,10 @@ pub fn write_f64_attr(loc: &Location, name: &str, value: f64) -> hdf5::Result<()
     if loc.attr_names()?.iter().any(|n| n == name) {
         loc.delete_attr(name)?;
     }
+    new_f64_attr(loc, name, value)
+}
+
+/// Creates a float attribute that `loc` does not have yet (see [`new_str_attr`]).
+pub fn new_f64_attr(loc: &Location, name: &str, value: f64) -> hdf5::Result<()> {
     loc.new_attr::<f64>().create(name)?.write_scalar(&value)
 }

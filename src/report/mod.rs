@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 
 use crate::campaign::{tmp_path, write_signal};
 use crate::fit::{Bin, Estimate};
-use crate::h5util::{write_f64_attr, write_str_attr};
+use crate::h5util::{new_f64_attr, new_str_attr, write_f64_attr, write_str_attr};
 use crate::identify::Identification;
 use crate::track::{Method, Track};
 use crate::units::Units;
@@ -388,11 +388,13 @@ impl ResultsWriter {
                     let g = at(&mut groups, parent)?.create_group(name)?;
                     groups.insert(rel.clone(), g);
                 }
+                // The run's groups are new and an encoded run names each attribute once:
+                // created without looking for an old one.
                 Item::Attr { group, name, value } => {
                     let g = at(&mut groups, group)?;
                     match value {
-                        Scalar::F64(x) => write_f64_attr(&g, name, *x)?,
-                        Scalar::Str(s) => write_str_attr(&g, name, s)?,
+                        Scalar::F64(x) => new_f64_attr(&g, name, *x)?,
+                        Scalar::Str(s) => new_str_attr(&g, name, s)?,
                     }
                 }
                 Item::Dataset(d) => write_dataset(&at(&mut groups, &d.group)?, d)?,
@@ -403,7 +405,7 @@ impl ResultsWriter {
                     value,
                 } => {
                     let ds = at(&mut groups, group)?.dataset(dataset)?;
-                    write_str_attr(&ds, name, value)?;
+                    new_str_attr(&ds, name, value)?;
                 }
             }
         }
