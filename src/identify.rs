@@ -50,6 +50,9 @@ pub struct IdentifyOptions {
     /// Backbone curve of the dead-zone fit; `None` picks the periodic orbit for forced runs
     /// and the describing function for free decays (README, "Identification").
     pub backbone: Option<fit::BackboneModel>,
+    /// Simulations per half of the simulation-refined identification of base-motion runs
+    /// ([`crate::refine`]); `None`: the skeleton estimates only.
+    pub refine: Option<usize>,
 }
 
 impl Default for IdentifyOptions {
@@ -60,6 +63,7 @@ impl Default for IdentifyOptions {
             bins: 40,
             resonance: 0.1,
             backbone: None,
+            refine: None,
         }
     }
 }
@@ -70,6 +74,13 @@ impl IdentifyOptions {
     /// resonance band that is not a fraction in (0, 1).
     pub fn validate(&self) -> Result<(), String> {
         self.wavelet.validate()?;
+        if let Some(n) = self.refine {
+            if n < 10 {
+                return Err(format!(
+                    "{n} refinement simulations: a simplex over six parameters needs at least 10"
+                ));
+            }
+        }
         if self.bins < 2 {
             return Err(format!(
                 "{} amplitude bins: the skeleton needs at least 2",

@@ -1,5 +1,7 @@
 //! The `skelid` command line.
 
+mod cli;
+
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -50,6 +52,10 @@ enum Command {
     /// gap.json (FORMATS.md §5), RIG.fitted.toml and gap.html. `--self-check` measures how
     /// often it names the right effect on simulated rigs.
     Gap(GapArgs),
+    /// How accurate the identification is: random paper-like rigs (issue 20's ranges,
+    /// encoder steps, offsets and noise) simulated and identified blind by the skeleton and
+    /// by simulation refinement; prints the error table and writes validate.json.
+    Validate(cli::validate::ValidateArgs),
     /// Benchmarks, each measured side by side in one run.
     Bench(BenchArgs),
     /// Internal: one benchmark measurement in this (child) process, printed as JSON.
@@ -338,6 +344,10 @@ struct DemoArgs {
     /// Output folder; the campaign is written to DIR/demo_campaign.h5.
     #[arg(long, default_value = "demo-out", value_name = "DIR")]
     out: PathBuf,
+    /// Also refine the base-motion runs by simulation (as `skelid run --refine`), and show
+    /// the refined estimates against the truth.
+    #[arg(long)]
+    refine: bool,
 }
 
 #[derive(Args)]
@@ -427,6 +437,16 @@ struct RunArgs {
     /// function for free decays).
     #[arg(long, value_enum, default_value = "auto")]
     backbone: BackboneArg,
+    /// Also refine each base-motion run's clearance, k/J, c/J, gravity stiffness and
+    /// Coulomb F/J by matching simulations to the record (README, "Simulation-refined
+    /// identification"): written beside the skeleton estimates as `refined_*`, with
+    /// standard errors from two independent fits (even and odd time blocks). About 5–10 s
+    /// per run on 2 cores.
+    #[arg(long)]
+    refine: bool,
+    /// Simulations per half of the refinement (two halves per run).
+    #[arg(long, default_value_t = skelid::refine::EVALUATIONS, value_name = "N")]
+    refine_evaluations: usize,
     /// Take only the K-th of N shares of the runs (e.g. 3/8), for N copies of skelid on a
     /// scheduler (a Slurm array). The share depends on each run's archive name and path,
     /// not on the order of the inputs; join the N output folders with `skelid merge`.
@@ -860,6 +880,7 @@ fn main() -> ExitCode {
         Command::Merge(a) => cmd_merge(a),
         Command::Track(a) => cmd_track(a).map(|_| ExitCode::SUCCESS),
         Command::Gap(a) => cmd_gap(a),
+        Command::Validate(a) => cli::validate::run(a),
         Command::Bench(a) => cmd_bench(a).map(|_| ExitCode::SUCCESS),
         Command::BenchOne {
             file,
@@ -1039,7 +1060,10 @@ fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
             skelid::track::Method::Wavelet,
             skelid::track::Method::Hilbert,
         ],
-        identify: skelid::identify::IdentifyOptions::default(),
+        identify: skelid::identify::IdentifyOptions {
+            refine: a.refine.then_some(skelid::refine::EVALUATIONS),
+            ..Default::default()
+        },
         isolation: skelid::batch::Isolation::None,
         shard: None,
         force: true,
@@ -1067,6 +1091,7 @@ fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
     };
     println!("\nidentified (true) per run, each with its unit:\n");
     print!("{}", render_summary(&summary.rows, Some(&truth)));
+    print!("{}", render_refined(&summary.rows, Some(&truth)));
     println!(
         "\n{} run(s), {} failed{}; wrote {}, summary.json, summary.csv, report.html",
         summary.runs,
@@ -1090,6 +1115,7 @@ fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         BackboneArg::Orbit => Some(skelid::fit::BackboneModel::PeriodicOrbit),
         BackboneArg::DescribingFunction => Some(skelid::fit::BackboneModel::DescribingFunction),
     };
+    options.refine = a.refine.then_some(a.refine_evaluations);
     // Before any archive is opened: a value no run can use fails here, not in every run.
     options
         .validate()
@@ -1126,6 +1152,7 @@ fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     report_fallbacks(&backend);
     if !a.quiet && !a.json_progress {
         print!("{}", render_summary(&summary.rows, None));
+        print!("{}", render_refined(&summary.rows, None));
     }
     report_not_runs(&summary.not_runs);
     println!(
@@ -1233,6 +1260,74 @@ fn identify_with_progress(
 
 /// True clearance, f0 (Hz), c/J and F/J of a run, by its path.
 type Truth<'a> = &'a dyn Fn(&str) -> Option<[f64; 4]>;
+
+/// The simulation-refined estimates (`--refine`), one line per run that has them; empty
+/// when none has. With `truth`, the true values beside them.
+fn render_refined(rows: &[skelid::report::SummaryRow], truth: Option<Truth<'_>>) -> String {
+    let get = |r: &skelid::report::SummaryRow, k: &str| r.parameters.get(k).copied().flatten();
+    let mut seen = std::collections::BTreeSet::new();
+    let mut lines = String::new();
+    for r in rows {
+        let Some(c) = get(r, "refined_clearance") else {
+            continue;
+        };
+        if !seen.insert((&r.source, &r.run)) {
+            continue;
+        }
+        let t = truth.and_then(|f| f(&r.run));
+        let unit = r.units.get("clearance").map_or("u", String::as_str);
+        let se = |k: &str| get(r, &format!("{k}_stderr")).unwrap_or(f64::NAN);
+        let with = |v: f64, e: f64, t: Option<f64>, prec: usize| match t {
+            Some(t) => format!("{v:.prec$} ± {e:.prec$} ({t:.prec$})"),
+            None => format!("{v:.prec$} ± {e:.prec$}"),
+        };
+        let k = get(r, "refined_stiffness").unwrap_or(f64::NAN);
+        let f0 = k.max(0.0).sqrt() / std::f64::consts::TAU;
+        let f0_se =
+            0.5 * se("refined_stiffness") / k.max(f64::MIN_POSITIVE).sqrt() / std::f64::consts::TAU;
+        lines.push_str(&format!(
+            "{:<34} {:>28} {:>28} {:>26} {:>28} {:>8.4}\n",
+            r.run,
+            format!(
+                "{} {unit}",
+                with(c, se("refined_clearance"), t.map(|t| t[0]), 4)
+            ),
+            format!("{} Hz", with(f0, f0_se, t.map(|t| t[1]), 3)),
+            format!(
+                "{} 1/s",
+                with(
+                    get(r, "refined_viscous_damping").unwrap_or(f64::NAN),
+                    se("refined_viscous_damping"),
+                    t.map(|t| t[2]),
+                    3
+                )
+            ),
+            format!(
+                "{} {unit}/s^2",
+                with(
+                    get(r, "refined_coulomb_friction").unwrap_or(f64::NAN),
+                    se("refined_coulomb_friction"),
+                    t.map(|t| t[3]),
+                    3
+                )
+            ),
+            get(r, "refined_gap").unwrap_or(f64::NAN),
+        ));
+    }
+    if lines.is_empty() {
+        return lines;
+    }
+    format!(
+        "\nsimulation-refined (--refine; ± half the difference of the even- and odd-block fits{}):\n\n{:<34} {:>28} {:>28} {:>26} {:>28} {:>8}\n{lines}",
+        if truth.is_some() { ", truth in brackets" } else { "" },
+        "run",
+        "clearance",
+        "f0 = √(k/J)/2π",
+        "viscous c/J",
+        "Coulomb F/J",
+        "gap"
+    )
+}
 
 /// The summary as a table; with `truth`, the true values of each run beside them.
 fn render_summary(rows: &[skelid::report::SummaryRow], truth: Option<Truth<'_>>) -> String {

@@ -98,7 +98,10 @@ impl Units {
     pub fn parameter(&self, name: &str) -> Option<String> {
         let d = &self.displacement;
         let base = name.strip_suffix("_stderr").unwrap_or(name);
+        let base = base.strip_prefix("refined_").unwrap_or(base);
         Some(match base {
+            "gravity_stiffness" => "1/s^2".into(),
+            "gap" | "simulations" => "1".into(),
             "clearance" | "clearance_extrapolated" | "amplitude_min" | "amplitude_max" => d.clone(),
             "stiffness" => "1/s^2".into(),
             "viscous_damping" => "1/s".into(),
@@ -318,6 +321,7 @@ mod tests {
         for name in crate::report::PARAMETER_NAMES
             .iter()
             .chain(crate::report::ABSOLUTE_NAMES.iter())
+            .chain(crate::refine::NAMES.iter())
         {
             assert!(u.parameter(name).is_some(), "{name}");
         }

@@ -104,10 +104,11 @@ fn demo_writes_the_campaign_with_its_truth_and_lists_it() {
     assert!(header.contains(",seconds,warnings,error,quality,quality_reasons,recommended,"));
     // Units: added at the end, never in between.
     assert!(
-        header.ends_with(
+        header.contains(
             ",recommended,contact_stiffness_stderr,viscous_damping_absolute,\
              viscous_damping_absolute_stderr,coulomb_friction_absolute,\
-             coulomb_friction_absolute_stderr,displacement_unit,force_unit,inertia_unit"
+             coulomb_friction_absolute_stderr,displacement_unit,force_unit,inertia_unit,\
+             refined_clearance,"
         ),
         "{header}"
     );
@@ -601,6 +602,87 @@ fn strict_makes_a_suspect_result_exit_1_as_a_bad_one_does() {
     assert_eq!(plain.status.code(), Some(0), "{said}");
     let strict = run("strict", true);
     assert_eq!(strict.status.code(), Some(1));
+}
+
+#[test]
+fn refine_matches_simulations_to_the_paper_rig_and_writes_refined_estimates_with_errors() {
+    // The skeleton's clearance and k/J on the demo's paper rig are -3.4 % and -5.5 % off
+    // (0.0253 rad, 4485 1/s²); the refinement brings both within 2 %.
+    let d = tmpdir();
+    let out = d.path().join("out");
+    let o = skelid()
+        .arg("run")
+        .arg(demo_archive())
+        .arg("--out")
+        .arg(&out)
+        .args([
+            "--method",
+            "wavelet",
+            "--run-glob",
+            "/demo/paper_rig",
+            "--refine",
+        ])
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&o.stdout);
+    println!("{said}");
+    assert!(said.contains("simulation-refined"), "{said}");
+    let f = hdf5::File::open(out.join("results.h5")).unwrap();
+    let g = f.group("demo/paper_rig").unwrap();
+    let num = |n: &str| -> f64 { g.attr(n).unwrap().read_scalar().unwrap() };
+    let unit = |n: &str| -> String {
+        let v: hdf5::types::VarLenUnicode = g.attr(n).unwrap().read_scalar().unwrap();
+        v.as_str().to_string()
+    };
+    let (k_true, c_true, f_true) = (15000.0 / 3.16, 0.0262, 2.5 / 3.16);
+    let clearance = num("refined_clearance");
+    let k = num("refined_stiffness");
+    assert!((clearance / c_true - 1.0).abs() < 0.02, "{clearance}");
+    assert!((k / k_true - 1.0).abs() < 0.02, "{k}");
+    assert!((num("refined_coulomb_friction") / f_true - 1.0).abs() < 0.1);
+    // Standard errors from the two halves: finite, and not absurdly small or large.
+    let se = num("refined_clearance_stderr");
+    assert!(se.is_finite() && se < 0.1 * clearance, "{se}");
+    assert!(num("refined_gap") < 0.05);
+    assert!(num("refined_simulations") > 100.0);
+    assert_eq!(unit("refined_clearance_units"), "rad");
+    assert_eq!(unit("refined_stiffness_units"), "1/s^2");
+    assert_eq!(unit("refined_coulomb_friction_units"), "rad/s^2");
+    let csv = std::fs::read_to_string(out.join("summary.csv")).unwrap();
+    assert!(csv
+        .lines()
+        .next()
+        .unwrap()
+        .ends_with(",refined_gap,refined_simulations"));
+}
+
+#[test]
+fn validate_prints_its_error_table_and_writes_validate_json() {
+    let d = tmpdir();
+    let o = skelid()
+        .args(["validate", "--rigs", "1", "--evaluations", "20", "--out"])
+        .arg(d.path())
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "{said}{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(said.contains("refined (simulation)") && said.contains("skeleton, wavelet"));
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.path().join("validate.json")).unwrap())
+            .unwrap();
+    assert_eq!(j["format"], "skelid-validate/1");
+    assert_eq!(j["rigs"].as_array().unwrap().len(), 1);
+    assert!(j["rigs"][0]["errors"]["wavelet"]["clearance"].is_number());
+    let o = skelid()
+        .args(["validate", "--evaluations", "3"])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("at least 10"));
 }
 
 /// A demo archive to run on (written by `skelid demo`, which also identifies it).

@@ -235,3 +235,21 @@ fn paper_rig_clearance_stiffness_and_friction() {
     assert!(rel(fr.value, friction) < 0.15);
     assert!(rel(cv.value, viscous) < 0.25);
 }
+
+#[test]
+fn validation_rigs_are_refined_closer_to_the_truth_than_the_skeleton_reads_them() {
+    // Two of `skelid validate`'s random rigs (dry friction, then contact damping), with
+    // 17-20 bit encoders, offsets and noise: the refined clearance and k/J are within 3 %
+    // and 5 % of the truth on each.
+    let rigs = skelid::validate::rigs(3, 20);
+    for rig in [&rigs[0], &rigs[2]] {
+        let o = skelid::validate::run_rig(rig, 100);
+        println!(
+            "rig {} {:?}: wavelet {:?}, refined {:?}",
+            rig.index, rig.effect, o.wavelet, o.refined
+        );
+        let (c, k) = o.refined.expect("refined");
+        assert!(c.abs() < 0.03, "clearance error {c}");
+        assert!(k.abs() < 0.05, "k/J error {k}");
+    }
+}

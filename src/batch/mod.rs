@@ -468,6 +468,13 @@ fn identify_run(
                     t0.elapsed().as_secs_f64(),
                 ));
             }
+            // Base-motion runs only: the others have no model to simulate yet.
+            if let Some(n) = opt.identify.refine {
+                if run.meta.kind == crate::ingest::RunKind::BaseMotion {
+                    outcome.refined =
+                        Some(crate::refine::refine(&run, n).map_err(|e| e.to_string()));
+                }
+            }
         }
     }
     outcome

@@ -153,6 +153,13 @@ impl<'a> Reference<'a> {
         })
     }
 
+    /// The same reference with its parts exchanged: fits see the odd blocks and gaps are
+    /// scored on the even ones (a second, independent fit of the same record).
+    pub fn swapped(mut self) -> Self {
+        std::mem::swap(&mut self.fit, &mut self.holdout);
+        self
+    }
+
     /// Calls `f` with the number of simulations so far after each one (progress displays).
     pub fn on_score(mut self, f: impl Fn(usize) + Send + Sync + 'a) -> Self {
         self.on_score = Some(Box::new(f));
@@ -354,6 +361,40 @@ pub fn refit_baseline(reference: &Reference, nominal: &RigModel, opt: &SearchOpt
         effects: Vec::new(),
     };
     let refined = again.fit(reference, again.origin(), opt.baseline_evaluations - first);
+    if refined.score.fit < fitted.score.fit {
+        refined
+    } else {
+        fitted
+    }
+}
+
+/// `start`'s own parameters (stiffness, damping, clearance, gravity stiffness) and the
+/// parameters of `effects` (each from its starting value) fitted together on the fitting
+/// blocks, for at most `evaluations` simulations, the simplex restarted once from its best
+/// point like the baseline's. The simulation-refined identification ([`crate::refine`]).
+pub fn refit_with(
+    reference: &Reference,
+    start: &RigModel,
+    effects: &[(EffectKind, f64)],
+    evaluations: usize,
+) -> Fitted {
+    let coords = Coordinates {
+        base: start,
+        inertia: false,
+        effects: effects.to_vec(),
+    };
+    let first = evaluations * 3 / 5;
+    let fitted = coords.fit(reference, coords.origin(), first);
+    let present: Vec<(EffectKind, f64)> = effects
+        .iter()
+        .map(|&(k, v)| (k, fitted.model.effects.get(k).unwrap_or(v)))
+        .collect();
+    let again = Coordinates {
+        base: &fitted.model,
+        inertia: false,
+        effects: present,
+    };
+    let refined = again.fit(reference, again.origin(), evaluations - first);
     if refined.score.fit < fitted.score.fit {
         refined
     } else {

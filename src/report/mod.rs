@@ -142,6 +142,8 @@ pub struct RunOutcome {
     pub inertia: Option<f64>,
     /// The units of the run's results (from its `units`, `kind` and quantities).
     pub units: crate::units::Units,
+    /// The simulation-refined estimates, when asked for (`--refine`), or why there are none.
+    pub refined: Option<Result<crate::refine::Refined, String>>,
     /// Why the run could not be read at all.
     pub error: Option<String>,
     /// Per method: the result (or its error) and the seconds it took.
@@ -192,6 +194,7 @@ impl RunOutcome {
             samples: 0,
             inertia: None,
             units: Default::default(),
+            refined: None,
             error: None,
             methods: Vec::new(),
         }
@@ -483,6 +486,18 @@ pub fn encode_run(run: &RunOutcome) -> EncodedRun {
     if let Some(m) = recommended {
         e.str_attr("", "recommended", m.as_str());
     }
+    match &run.refined {
+        Some(Ok(r)) => {
+            for (name, value) in crate::refine::NAMES.into_iter().zip(r.values()) {
+                e.f64_attr("", name, value);
+                if let Some(u) = run.units.parameter(name) {
+                    e.str_attr("", &format!("{name}_units"), &u);
+                }
+            }
+        }
+        Some(Err(err)) => e.str_attr("", "refined_error", err),
+        None => {}
+    }
     if let Some(fs) = run.sample_rate {
         e.f64_attr("", "sample_rate", fs);
         let t: Vec<f64> = (0..run.samples).map(|i| i as f64 / fs).collect();
@@ -757,6 +772,12 @@ pub fn summary_rows(run: &RunOutcome) -> Vec<SummaryRow> {
                     .into_iter()
                     .map(|(k, v)| (k.to_string(), v.is_finite().then_some(v)))
                     .collect();
+                if let Some(Ok(r)) = &run.refined {
+                    for (name, v) in crate::refine::NAMES.into_iter().zip(r.values()) {
+                        row.parameters
+                            .insert(name.to_string(), v.is_finite().then_some(v));
+                    }
+                }
                 row.units = row
                     .parameters
                     .keys()
@@ -792,7 +813,9 @@ pub fn write_summary(dir: &Path, rows: &[SummaryRow]) -> Result<(), ReportError>
     csv.push_str(",seconds,warnings,error,quality,quality_reasons,recommended,");
     // Added after the columns other programs already read, never between them.
     csv.push_str(&ABSOLUTE_NAMES.join(","));
-    csv.push_str(",displacement_unit,force_unit,inertia_unit\n");
+    csv.push_str(",displacement_unit,force_unit,inertia_unit,");
+    csv.push_str(&crate::refine::NAMES.join(","));
+    csv.push('\n');
     let quote = |s: &str| format!("\"{}\"", s.replace('"', "\"\""));
     let value = |r: &SummaryRow, n: &str| match r.parameters.get(n) {
         Some(Some(v)) => format!("{v:.6e}"),
@@ -825,11 +848,16 @@ pub fn write_summary(dir: &Path, rows: &[SummaryRow]) -> Result<(), ReportError>
         }
         let u = r.base_units.clone().unwrap_or_default();
         csv.push_str(&format!(
-            "{},{},{}\n",
+            "{},{},{}",
             quote(&u.displacement),
             quote(&u.force),
             quote(&u.inertia)
         ));
+        for n in crate::refine::NAMES {
+            csv.push(',');
+            csv.push_str(&value(r, n));
+        }
+        csv.push('\n');
     }
     write_atomic(&dir.join("summary.csv"), csv.as_bytes())
 }
