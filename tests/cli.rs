@@ -654,6 +654,9 @@ fn refine_matches_simulations_to_the_paper_rig_and_writes_refined_estimates_with
         .next()
         .unwrap()
         .ends_with(",refined_gap,refined_simulations"));
+    // The page shows them, with their errors.
+    let page = std::fs::read_to_string(out.join("report.html")).unwrap();
+    assert!(page.contains("clearance (refined)") && page.contains(" mrad ± "));
 }
 
 #[test]

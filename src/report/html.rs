@@ -587,6 +587,14 @@ const TABLE_COLUMNS: [(&str, &str); 8] = [
     ),
 ];
 
+/// Columns of the simulation-refined estimates (`--refine`), shown when a row has them.
+const REFINED_COLUMNS: [(&str, &str); 4] = [
+    ("refined_clearance", "clearance (refined)"),
+    ("refined_stiffness", "k/J (refined)"),
+    ("refined_viscous_damping", "c/J (refined)"),
+    ("refined_coulomb_friction", "F/J (refined)"),
+];
+
 /// Writes `<out>/report.html` (atomically) and returns its path.
 pub fn write_report(out: &Path, page: &ReportPage) -> Result<PathBuf, ReportError> {
     let path = out.join("report.html");
@@ -807,7 +815,16 @@ fn table(page: &ReportPage) -> String {
          <table class=\"sortable\" id=\"summary\">\n<thead><tr><th>run</th><th>archive</th>\
          <th>method</th><th>status</th><th>quality</th>",
     );
-    for (_, header) in TABLE_COLUMNS {
+    let refined = page.rows.iter().any(|r| {
+        r.parameters
+            .get("refined_clearance")
+            .is_some_and(|v| v.is_some())
+    });
+    let columns: Vec<(&str, &str)> = TABLE_COLUMNS
+        .into_iter()
+        .chain(REFINED_COLUMNS.into_iter().filter(|_| refined))
+        .collect();
+    for (_, header) in &columns {
         let _ = write!(t, "<th>{}</th>", esc(header));
     }
     t.push_str("<th>seconds</th><th>error / warnings</th></tr></thead>\n<tbody>\n");
@@ -844,7 +861,7 @@ fn table(page: &ReportPage) -> String {
             esc(&r.quality_reasons),
             esc(&r.quality)
         );
-        for (name, _) in TABLE_COLUMNS {
+        for &(name, _) in &columns {
             match r.parameters.get(name).copied().flatten() {
                 Some(v) => {
                     let unit = r.units.get(name).map_or("", String::as_str);
@@ -858,6 +875,10 @@ fn table(page: &ReportPage) -> String {
                     let text = match se {
                         Some(se) if name == "clearance" && v.abs() < se => {
                             format!("0 (± {})", eng(se, unit))
+                        }
+                        // The refined estimates carry their two-fit error.
+                        Some(se) if name.starts_with("refined_") => {
+                            format!("{} ± {}", eng(v, unit), eng(se, unit))
                         }
                         _ => eng(v, unit),
                     };
