@@ -213,8 +213,9 @@ pub struct Fitted {
 
 /// The coordinates the simplex moves in: the model's own parameters relative to `base`
 /// (stiffness, damping, clearance and, when asked, inertia by their logarithms, so they stay
-/// positive; the gravity stiffness in units of 1 % of k/J, keeping the nominal's sign) and the effects' parameters in units
-/// of their starting values (by their logarithms for those that cannot be negative).
+/// positive; the gravity stiffness in units of 1 % of k/J, keeping the nominal's sign) and
+/// the effects' parameters in units of their starting values (by their logarithms for
+/// those that cannot be negative).
 struct Coordinates<'a> {
     base: &'a RigModel,
     inertia: bool,
@@ -286,6 +287,30 @@ impl Coordinates<'_> {
         simplex
     }
 
+    /// [`fit`](Self::fit) with three fifths of `evaluations`, then again from a fresh
+    /// simplex around its best point with the rest (a fresh simplex escapes the collapsed
+    /// one's stall); the better of the two.
+    fn fit_restarted(&self, reference: &Reference, start: Vec<f64>, evaluations: usize) -> Fitted {
+        let first = evaluations * 3 / 5;
+        let fitted = self.fit(reference, start, first);
+        let effects = self
+            .effects
+            .iter()
+            .map(|&(k, v)| (k, fitted.model.effects.get(k).unwrap_or(v)))
+            .collect();
+        let again = Coordinates {
+            base: &fitted.model,
+            inertia: self.inertia,
+            effects,
+        };
+        let refined = again.fit(reference, again.origin(), evaluations - first);
+        if refined.score.fit < fitted.score.fit {
+            refined
+        } else {
+            fitted
+        }
+    }
+
     /// Minimises the gap on the fitting blocks from `start`.
     fn fit(&self, reference: &Reference, start: Vec<f64>, evaluations: usize) -> Fitted {
         // The best model seen, with both its gaps: the simplex itself keeps only the value
@@ -353,19 +378,7 @@ pub fn refit_baseline(reference: &Reference, nominal: &RigModel, opt: &SearchOpt
             start = found;
         }
     }
-    let first = opt.baseline_evaluations * 3 / 5;
-    let fitted = coords.fit(reference, start, first);
-    let again = Coordinates {
-        base: &fitted.model,
-        inertia: opt.fit_inertia,
-        effects: Vec::new(),
-    };
-    let refined = again.fit(reference, again.origin(), opt.baseline_evaluations - first);
-    if refined.score.fit < fitted.score.fit {
-        refined
-    } else {
-        fitted
-    }
+    coords.fit_restarted(reference, start, opt.baseline_evaluations)
 }
 
 /// `start`'s own parameters (stiffness, damping, clearance, gravity stiffness) and the
@@ -383,23 +396,7 @@ pub fn refit_with(
         inertia: false,
         effects: effects.to_vec(),
     };
-    let first = evaluations * 3 / 5;
-    let fitted = coords.fit(reference, coords.origin(), first);
-    let present: Vec<(EffectKind, f64)> = effects
-        .iter()
-        .map(|&(k, v)| (k, fitted.model.effects.get(k).unwrap_or(v)))
-        .collect();
-    let again = Coordinates {
-        base: &fitted.model,
-        inertia: false,
-        effects: present,
-    };
-    let refined = again.fit(reference, again.origin(), evaluations - first);
-    if refined.score.fit < fitted.score.fit {
-        refined
-    } else {
-        fitted
-    }
+    coords.fit_restarted(reference, coords.origin(), evaluations)
 }
 
 /// A starting value for `kind`'s parameter on `model`, from the identification where it
