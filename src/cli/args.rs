@@ -1,0 +1,221 @@
+//! Arguments shared by several subcommands: how archives are read, the report, the wavelet
+//! options, the methods and the backend.
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, ValueEnum};
+use skelid::ingest::IngestOptions;
+
+/// Options for archives laid out differently from the skelid-campaign/1 format.
+#[derive(Args, Clone)]
+pub(crate) struct IngestArgs {
+    /// Name of the input (drive or force) dataset inside each run group; `NAME[k]` takes
+    /// channel k (from 0) of a 2-D dataset, along its shorter axis.
+    #[arg(long, default_value = "input", value_name = "NAME")]
+    pub(crate) input_name: String,
+    /// Name of the output (response) dataset inside each run group; `NAME[k]` takes
+    /// channel k (from 0) of a 2-D dataset such as MATLAB's 3×N `Acceleration`.
+    #[arg(long, default_value = "output", value_name = "NAME")]
+    pub(crate) output_name: String,
+    /// Sample rate in Hz for every run, overriding `sample_rate` attributes and `time` datasets.
+    #[arg(long, value_name = "HZ")]
+    pub(crate) sample_rate: Option<f64>,
+    /// Only runs whose group path matches this glob, e.g. '/sine_sweep/level_[1-3]'.
+    #[arg(long, value_name = "GLOB")]
+    pub(crate) run_glob: Option<String>,
+    /// Kind of every run, overriding `kind` attributes: base-motion (input = base
+    /// displacement), force (input = force on the mass) or free (decay, no input).
+    #[arg(long, value_name = "KIND", value_parser = parse_kind)]
+    pub(crate) kind: Option<skelid::ingest::RunKind>,
+    /// Inertia of every run (kg m² for a rotary rig, kg for a linear one), overriding
+    /// `inertia` attributes; gives the absolute stiffness, damping and friction.
+    #[arg(long, value_name = "J")]
+    pub(crate) inertia: Option<f64>,
+    /// What every run's input measures (displacement, velocity, acceleration, force),
+    /// overriding `input_quantity` attributes.
+    #[arg(long, value_name = "QUANTITY", value_parser = parse_quantity)]
+    pub(crate) input_quantity: Option<skelid::ingest::Quantity>,
+    /// What every run's output measures (displacement, velocity, acceleration), overriding
+    /// `output_quantity` attributes.
+    #[arg(long, value_name = "QUANTITY", value_parser = parse_quantity)]
+    pub(crate) output_quantity: Option<skelid::ingest::Quantity>,
+}
+
+pub(crate) fn parse_kind(s: &str) -> Result<skelid::ingest::RunKind, String> {
+    skelid::ingest::RunKind::parse(s)
+        .ok_or_else(|| format!("{s:?}: use base-motion, force or free"))
+}
+
+pub(crate) fn parse_quantity(s: &str) -> Result<skelid::ingest::Quantity, String> {
+    skelid::ingest::Quantity::parse(s)
+        .ok_or_else(|| format!("{s:?}: use displacement, velocity, acceleration or force"))
+}
+
+impl IngestArgs {
+    pub(crate) fn options(&self) -> Result<IngestOptions> {
+        let run_glob = match &self.run_glob {
+            Some(g) => Some(
+                glob::Pattern::new(g)
+                    .with_context(|| format!("--run-glob {g}: not a valid glob"))?,
+            ),
+            None => None,
+        };
+        if let Some(fs) = self.sample_rate {
+            if !(fs.is_finite() && fs > 0.0) {
+                bail!("--sample-rate {fs}: must be a positive number of Hz");
+            }
+        }
+        if let Some(j) = self.inertia {
+            if !(j.is_finite() && j > 0.0) {
+                bail!("--inertia {j}: must be a positive number (kg m² or kg)");
+            }
+        }
+        Ok(IngestOptions {
+            input_name: self.input_name.clone(),
+            output_name: self.output_name.clone(),
+            sample_rate: self.sample_rate,
+            run_glob,
+            kind: self.kind,
+            inertia: self.inertia,
+            input_quantity: self.input_quantity,
+            output_quantity: self.output_quantity,
+        })
+    }
+}
+
+/// Options of report.html.
+#[derive(Args)]
+pub(crate) struct ReportArgs {
+    /// Runs drawn in full in report.html (tracks, backbone, forces: about 100 kB each);
+    /// the summary table always lists every run.
+    #[arg(long, default_value_t = 100, value_name = "N")]
+    pub(crate) report_runs: usize,
+    /// Exit with status 1 when any result is `suspect` too, not only when a run failed or
+    /// a result is `bad` (for pipelines that must stop on anything doubtful).
+    #[arg(long)]
+    pub(crate) strict: bool,
+}
+
+/// `--backbone` values.
+#[derive(Clone, Copy, ValueEnum)]
+pub(crate) enum BackboneArg {
+    Auto,
+    Orbit,
+    DescribingFunction,
+}
+
+/// The wavelet method's analysis band and mother wavelet (shared by `track` and `run`).
+#[derive(Args, Clone)]
+pub(crate) struct WaveletArgs {
+    /// Wavelet: lowest analysis frequency, Hz (default: from the spectrum and the record length).
+    #[arg(long, value_name = "HZ")]
+    pub(crate) fmin: Option<f64>,
+    /// Wavelet: highest analysis frequency, Hz (default: from the spectrum).
+    #[arg(long, value_name = "HZ")]
+    pub(crate) fmax: Option<f64>,
+    /// Wavelet: number of log-spaced scales between --fmin and --fmax.
+    #[arg(long, default_value_t = 64)]
+    pub(crate) scales: usize,
+    /// Wavelet: Morlet bandwidth f_b; larger is longer in time and finer in frequency.
+    #[arg(long, default_value_t = 1.0, value_name = "FB")]
+    pub(crate) bandwidth: f64,
+    /// Wavelet: Morlet centre frequency f_c.
+    #[arg(long, default_value_t = 1.0, value_name = "FC")]
+    pub(crate) centre: f64,
+}
+
+impl WaveletArgs {
+    /// These settings on top of `base`.
+    pub(crate) fn apply(
+        &self,
+        base: skelid::track::WaveletOptions,
+    ) -> skelid::track::WaveletOptions {
+        skelid::track::WaveletOptions {
+            wavelet: skelid::transform::Morlet {
+                bandwidth: self.bandwidth,
+                centre: self.centre,
+            },
+            fmin: self.fmin,
+            fmax: self.fmax,
+            scales: self.scales,
+            ..base
+        }
+    }
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+pub(crate) enum RunMethod {
+    /// Complex-Morlet ridge and bias-corrected skeleton.
+    Wavelet,
+    /// Analytic signal by FFT, low-passed with --cutoff.
+    Hilbert,
+    /// Both, side by side.
+    Both,
+}
+
+impl RunMethod {
+    pub(crate) fn methods(self) -> Vec<skelid::track::Method> {
+        use skelid::track::Method;
+        match self {
+            RunMethod::Wavelet => vec![Method::Wavelet],
+            RunMethod::Hilbert => vec![Method::Hilbert],
+            RunMethod::Both => vec![Method::Wavelet, Method::Hilbert],
+        }
+    }
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+pub(crate) enum MethodArg {
+    /// Complex-Morlet ridge and bias-corrected skeleton.
+    Wavelet,
+    /// Analytic signal by FFT (optionally low-passed with --cutoff).
+    Hilbert,
+}
+
+#[derive(Args, Clone, Copy)]
+pub(crate) struct BackendArgs {
+    /// Where the wavelet transform's first pass (the band-limited Morlet transform at every
+    /// scale and the ridge search) runs. `auto`: a hardware GPU when wgpu opens one, else
+    /// the CPU (a software adapter such as lavapipe is passed over: it is slower than the
+    /// CPU backend). `gpu`: any adapter, lavapipe included, or an error when none opens.
+    /// `cpu`: rustfft and rayon only. A signal the GPU cannot take (beyond the adapter's
+    /// limits, or a device lost mid-batch) is done on the CPU with a warning; results.h5
+    /// records per run which backend did the work.
+    #[arg(long, value_enum, default_value = "auto", value_name = "BACKEND")]
+    pub(crate) backend: skelid::backend::BackendChoice,
+}
+
+impl BackendArgs {
+    /// Opens the backend, saying on stderr what `auto` chose and why.
+    pub(crate) fn open(self) -> Result<skelid::backend::Backend> {
+        let b = skelid::backend::Backend::open(self.backend).with_context(|| {
+            "--backend gpu: no GPU could be opened (use --backend auto to fall back to the CPU)"
+        })?;
+        for w in b.notes().iter().chain(&b.warnings()) {
+            eprintln!("note: {w}");
+        }
+        if let Some(a) = b.adapter() {
+            eprintln!("GPU backend: {a}");
+        }
+        Ok(b)
+    }
+}
+
+/// Prints the backend's fallback warnings gathered during the work, and how the GPU's work
+/// was batched.
+pub(crate) fn report_fallbacks(b: &skelid::backend::Backend) {
+    if let Some((signals, submissions)) = b.gpu_work() {
+        eprintln!(
+            "GPU backend: {signals} signal(s) in {submissions} submission(s) ({:.1} per submission)",
+            signals as f64 / submissions.max(1) as f64
+        );
+    }
+    for w in b.warnings() {
+        eprintln!("warning: {w}");
+    }
+}
+
+pub(crate) fn self_exe() -> Result<PathBuf> {
+    std::env::current_exe().context("cannot locate the skelid executable to isolate HDF5 reads")
+}

@@ -1,0 +1,332 @@
+//! `skelid bench`: the benchmarks, each measured side by side in one run.
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, ValueEnum};
+use skelid::ingest::{find_archives, Archive};
+use std::path::PathBuf;
+
+use super::args::{report_fallbacks, IngestArgs};
+
+/// `skelid bench ARCHIVE...`: both backends on the same signals, with their agreement.
+pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
+    use skelid::backend::{Backend, BackendChoice};
+    let scales = a
+        .scales
+        .as_ref()
+        .and_then(|s| s.first().copied())
+        .unwrap_or(128);
+    let ingest = a.ingest.options()?;
+    let files = find_archives(&a.archives)?;
+    let mut signals = Vec::new();
+    let mut runs = 0usize;
+    for f in &files {
+        let archive = Archive::open(f, &ingest)
+            .with_context(|| format!("cannot read {} for the benchmark", f.display()))?;
+        for (path, run) in archive.load_all() {
+            let run = run.with_context(|| format!("{}: run {path}", f.display()))?;
+            let fs = run.meta.sample_rate;
+            runs += 1;
+            if let Some(x) = run.input {
+                signals.push((x, fs));
+            }
+            signals.push((run.output, fs));
+        }
+    }
+    if signals.is_empty() {
+        bail!("no runs in {}", a.archives.join(" "));
+    }
+    let mut opened: Vec<(&str, Backend)> = Vec::new();
+    for b in &a.backend {
+        match b {
+            BenchBackend::Cpu if !opened.iter().any(|o| o.0 == "cpu") => {
+                opened.push(("cpu", Backend::cpu()))
+            }
+            BenchBackend::Gpu if !opened.iter().any(|o| o.0 == "gpu") => opened.push((
+                "gpu",
+                Backend::open(BackendChoice::Gpu).context(
+                    "--backend gpu: no GPU could be opened (bench only the CPU with --backend cpu)",
+                )?,
+            )),
+            _ => {}
+        }
+    }
+    let opt = skelid::track::WaveletOptions {
+        scales,
+        ..Default::default()
+    };
+    let samples: usize = signals.iter().map(|s| s.0.len()).sum();
+    println!(
+        "backend benchmark: {runs} run(s), {} signal(s), {samples} samples, {scales} scales, \
+         wavelet track (first pass on the backend, the rest on {} CPU threads), median of {}",
+        signals.len(),
+        rayon::current_num_threads(),
+        a.repeat.max(1)
+    );
+    let backends: Vec<(&str, &Backend)> = opened.iter().map(|(n, b)| (*n, b)).collect();
+    let mut result =
+        skelid::bench::backends::compare(&signals, runs, &opt, &backends, a.repeat, |stage| {
+            eprintln!("  {stage}")
+        });
+    result.archives = files.iter().map(|f| f.display().to_string()).collect();
+    println!(
+        "\n{:>7} {:>10} {:>10} {:>16} {:>9}  adapter",
+        "backend", "median s", "runs/s", "samples·scales/s", "fallback"
+    );
+    for t in &result.backends {
+        println!(
+            "{:>7} {:>10.3} {:>10.2} {:>16.3e} {:>9}  {}",
+            t.backend,
+            t.median_s,
+            t.runs_per_s,
+            t.samples_scales_per_s,
+            t.fallbacks,
+            t.adapter.as_deref().unwrap_or("-")
+        );
+    }
+    if let Some(r) = result.gpu_speedup {
+        println!("\nGPU speed-up over the CPU (median time ratio): {r:.2}x");
+    }
+    if let Some(g) = &result.agreement {
+        println!(
+            "agreement over {} track(s), {} samples valid in both: envelope within {:.1e} \
+             (relative), frequency within {:.1e} Hz, valid in one only: {} samples",
+            g.tracks, g.valid_samples, g.envelope_rel, g.frequency_hz, g.mask_samples
+        );
+    }
+    for t in &result.backends {
+        if let Some(p) = &t.per_signal {
+            println!(
+                "{} traffic per signal: {:.0} signals per batch, {:.3} blocking syncs, \
+                 {:.0} bytes up, {:.0} bytes down ({:.2} bytes down per sample); \
+                 {} of {} submissions made while another was on the device",
+                t.backend,
+                p.signals_per_batch,
+                p.syncs,
+                p.bytes_up,
+                p.bytes_down,
+                p.bytes_down * signals.len() as f64 / samples as f64,
+                t.traffic.overlapped,
+                t.traffic.submissions
+            );
+        }
+    }
+    for (_, b) in &opened {
+        report_fallbacks(b);
+    }
+    if !a.no_end_to_end {
+        let exe = std::env::current_exe().context("cannot find the skelid executable")?;
+        let scratch = tempfile_dir()?;
+        for (name, backend) in &opened {
+            eprintln!("  {name}: end to end (skelid run, both methods)");
+            let batch = skelid::batch::BatchOptions {
+                methods: vec![
+                    skelid::track::Method::Wavelet,
+                    skelid::track::Method::Hilbert,
+                ],
+                identify: skelid::identify::IdentifyOptions {
+                    wavelet: opt.clone(),
+                    ..Default::default()
+                },
+                isolation: skelid::batch::Isolation::Child {
+                    exe: &exe,
+                    timeout: std::time::Duration::from_secs(300),
+                },
+                shard: None,
+                force: true,
+                jobs: None,
+                report_runs: 100,
+                backend,
+            };
+            let e = skelid::bench::backends::end_to_end(
+                name,
+                &files,
+                &ingest,
+                &batch,
+                &scratch.join(format!("run-{name}")),
+            )?;
+            result.end_to_end.push(e);
+        }
+        let _ = std::fs::remove_dir_all(&scratch);
+        print_stages(&result.end_to_end);
+    }
+    std::fs::write(&a.out, serde_json::to_string_pretty(&result)? + "\n")
+        .with_context(|| format!("cannot write {}", a.out.display()))?;
+    println!("wrote {}", a.out.display());
+    Ok(())
+}
+
+/// The end-to-end table: wall time, then each stage's CPU seconds and share per backend.
+pub(crate) fn print_stages(runs: &[skelid::bench::backends::EndToEnd]) {
+    let Some(first) = runs.first() else { return };
+    println!("\nend to end (skelid run, both methods, read and write included):");
+    print!("{:>14}", "");
+    for r in runs {
+        print!(" {:>18}", r.backend);
+    }
+    println!();
+    print!("{:>14}", "wall s");
+    for r in runs {
+        print!(
+            " {:>18}",
+            format!("{:.2} ({:.1} runs/s)", r.seconds, r.runs_per_s)
+        );
+    }
+    println!();
+    for (i, (stage, _)) in first.stages.iter().enumerate() {
+        print!("{stage:>14}");
+        for r in runs {
+            let total: f64 = r.stages.iter().map(|s| s.1).sum::<f64>().max(1e-12);
+            let s = r.stages[i].1;
+            print!(" {:>18}", format!("{s:.2} s {:>3.0} %", 100.0 * s / total));
+        }
+        println!();
+    }
+    println!(
+        "(CPU seconds summed over every thread; a GPU first pass in wall seconds of its \
+         submissions)"
+    );
+    for r in runs {
+        if let Some(p) = &r.per_signal {
+            println!(
+                "{} end to end: {:.0} signals per batch, {:.3} blocking syncs, {:.0} bytes \
+                 up, {:.0} bytes down per signal",
+                r.backend, p.signals_per_batch, p.syncs, p.bytes_up, p.bytes_down
+            );
+        }
+    }
+}
+
+#[derive(Args)]
+pub(crate) struct BenchArgs {
+    /// Campaign archives (files, folders or globs): time the wavelet track of every channel
+    /// of every run on each backend of --backend, side by side in this process.
+    #[arg(value_name = "ARCHIVE")]
+    pub(crate) archives: Vec<String>,
+    /// Backends to compare on the archives, comma-separated (`gpu` takes any adapter,
+    /// lavapipe included).
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "cpu,gpu")]
+    pub(crate) backend: Vec<BenchBackend>,
+    /// Timed repetitions per backend after one warm-up; the median is reported.
+    #[arg(long, default_value_t = 3, value_name = "N")]
+    pub(crate) repeat: usize,
+    /// Where the archive benchmark's figures are written as JSON (`skelid-bench/1`).
+    #[arg(long, default_value = "skelid-bench.json", value_name = "FILE")]
+    pub(crate) out: PathBuf,
+    /// Our transform + ridge + skeleton against the plain full-length CWT + argmax ridge
+    /// (synthetic log sweeps, no archive needed).
+    #[arg(long)]
+    pub(crate) transform: bool,
+    /// --transform: record lengths as powers of two.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "14,17,20",
+        value_name = "LOG2N"
+    )]
+    pub(crate) log2_samples: Vec<u32>,
+    /// Scale counts (default: 64,256 for --transform; 128 for archives, of which only
+    /// the first count is used).
+    #[arg(long, value_delimiter = ',', value_name = "S")]
+    pub(crate) scales: Option<Vec<usize>>,
+    /// --transform: print JSON rows instead of a table.
+    #[arg(long)]
+    pub(crate) json: bool,
+    /// Archives: skip the end-to-end batch per backend (`skelid run`, both methods, read
+    /// and write included) that shows where the time goes, stage by stage.
+    #[arg(long)]
+    pub(crate) no_end_to_end: bool,
+    #[command(flatten)]
+    pub(crate) ingest: IngestArgs,
+}
+
+/// A backend `skelid bench` can time.
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub(crate) enum BenchBackend {
+    Cpu,
+    Gpu,
+}
+
+pub(crate) fn cmd_bench(a: BenchArgs) -> Result<()> {
+    use skelid::bench::{write_bench_archive, Measurement, Variant};
+    if !a.archives.is_empty() {
+        if a.transform {
+            bail!("--transform uses its own synthetic signals: drop it, or the archives");
+        }
+        return cmd_bench_backends(&a);
+    }
+    if !a.transform {
+        bail!(
+            "choose a benchmark: campaign archives to compare the backends on (e.g. \
+             `skelid bench demo-out/demo_campaign.h5`), or --transform"
+        );
+    }
+    let scales = a.scales.clone().unwrap_or_else(|| vec![64, 256]);
+    let exe = std::env::current_exe().context("cannot find the skelid executable")?;
+    let dir = tempfile_dir()?;
+    if !a.json {
+        println!(
+            "transform benchmark: log sweep {:.1}-{:.1} Hz at {} Hz, HDF5 in, {} threads",
+            skelid::bench::BENCH_BAND.0,
+            skelid::bench::BENCH_BAND.1,
+            skelid::bench::BENCH_FS,
+            rayon::current_num_threads()
+        );
+        println!(
+            "{:>9} {:>7} | {:>10} {:>9} | {:>10} {:>9} | {:>7}",
+            "samples", "scales", "skelid s", "peak MiB", "naive s", "peak MiB", "speed-up"
+        );
+    }
+    for &p in &a.log2_samples {
+        let n = 1usize << p;
+        let file = dir.join(format!("bench_2e{p}.h5"));
+        write_bench_archive(&file, n)?;
+        for &s in &scales {
+            let run = |v: Variant| -> Result<Measurement> {
+                let name = match v {
+                    Variant::Fast => "fast",
+                    Variant::Naive => "naive",
+                };
+                let out = std::process::Command::new(&exe)
+                    .arg("__bench-one")
+                    .arg(&file)
+                    .args(["--variant", name, "--scales", &s.to_string()])
+                    .output()
+                    .context("cannot run the benchmark child process")?;
+                if !out.status.success() {
+                    bail!("{name} failed: {}", String::from_utf8_lossy(&out.stderr));
+                }
+                Ok(serde_json::from_slice(&out.stdout)?)
+            };
+            let fast = run(Variant::Fast)?;
+            let naive = run(Variant::Naive)?;
+            let ratio = naive.seconds / fast.seconds;
+            if a.json {
+                println!(
+                    "{}",
+                    serde_json::json!({"samples": n, "scales": s, "skelid": fast, "naive": naive, "speedup": ratio})
+                );
+            } else {
+                println!(
+                    "{:>9} {:>7} | {:>10.3} {:>9.1} | {:>10.3} {:>9.1} | {:>6.1}x",
+                    format!("2^{p}"),
+                    s,
+                    fast.seconds,
+                    fast.peak_mib,
+                    naive.seconds,
+                    naive.peak_mib,
+                    ratio
+                );
+            }
+        }
+        let _ = std::fs::remove_file(&file);
+    }
+    let _ = std::fs::remove_dir(&dir);
+    Ok(())
+}
+
+pub(crate) fn tempfile_dir() -> Result<PathBuf> {
+    let dir = std::env::temp_dir().join(format!("skelid-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)
+        .with_context(|| format!("cannot create scratch folder {}", dir.display()))?;
+    Ok(dir)
+}

@@ -1,0 +1,428 @@
+//! `skelid gap`: why a rig's simulation does not match its measurements, and its
+//! self-check.
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, ValueEnum};
+use skelid::ingest::Archive;
+use skelid::model::RigModel;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use super::args::IngestArgs;
+
+/// Options of `skelid gap`.
+#[derive(Args)]
+pub(crate) struct GapArgs {
+    /// Rig model to compare with the measurements (TOML, FORMATS.md §2). Its inertia is
+    /// held (unless --fit-inertia); stiffness, damping, clearance and gravity stiffness are
+    /// refitted before any effect is tried.
+    #[arg(long, value_name = "RIG.toml", required_unless_present = "self_check")]
+    pub(crate) model: Option<PathBuf>,
+    /// Campaign archive with the measured base-motion runs (input = base angle, output =
+    /// link angle).
+    #[arg(value_name = "ARCHIVE", required_unless_present = "self_check")]
+    pub(crate) archive: Option<PathBuf>,
+    /// Run group to diagnose (repeatable); every base-motion run of the archive by default.
+    #[arg(long = "run", value_name = "PATH")]
+    pub(crate) runs: Vec<String>,
+    /// Output folder: gap.json, gap.html, the fitted model(s); self-check.json with
+    /// --self-check.
+    #[arg(long, default_value = "skelid-gap", value_name = "DIR")]
+    pub(crate) out: PathBuf,
+    /// Length of the alternate time blocks (s): fits see the even ones, gaps are scored on
+    /// the odd ones.
+    #[arg(long, default_value_t = 1.0, value_name = "SECONDS")]
+    pub(crate) holdout_block: f64,
+    /// Runs diagnosed at once (default: one per core). A run's own search is a chain of
+    /// simplex steps, each waiting for the last, so one run keeps about one core busy;
+    /// an archive of several runs is diagnosed N at a time. Each run in flight holds its
+    /// record and a few simulations of it.
+    #[arg(long, short, value_name = "N")]
+    pub(crate) jobs: Option<usize>,
+    /// Simulations spent refitting the model's own parameters.
+    #[arg(long, default_value_t = 150, value_name = "N")]
+    pub(crate) baseline_evaluations: usize,
+    /// Simulations per refined candidate (and per pair of effects).
+    #[arg(long, default_value_t = 45, value_name = "N")]
+    pub(crate) candidate_evaluations: usize,
+    /// Scan points refined by the simplex: every effect is scanned on the baseline and on
+    /// the nominal model, and the best N of those 2 × 6 starts are refined (fewer is
+    /// faster, and may leave an effect the baseline absorbed undetected).
+    #[arg(long, default_value_t = 12, value_name = "N")]
+    pub(crate) refine: usize,
+    /// Never try pairs of effects.
+    #[arg(long)]
+    pub(crate) no_pairs: bool,
+    /// Refit the inertia too (held at the model's value otherwise).
+    #[arg(long)]
+    pub(crate) fit_inertia: bool,
+    /// Effects to try, comma-separated (default: the whole vocabulary).
+    #[arg(long, value_delimiter = ',', value_name = "EFFECT,...")]
+    pub(crate) effects: Vec<String>,
+    /// Instead of diagnosing an archive, measure the diagnosis on simulated rigs that hide
+    /// one effect (or none) from their model; prints a confusion matrix.
+    #[arg(long)]
+    pub(crate) self_check: bool,
+    /// Self-check cases (the seven effects and none in turn).
+    #[arg(long, default_value_t = 40, value_name = "N", requires = "self_check")]
+    pub(crate) cases: usize,
+    /// Self-check seed.
+    #[arg(long, default_value_t = 1, value_name = "S", requires = "self_check")]
+    pub(crate) seed: u64,
+    /// What drives the self-check's rigs: `paper`, the paper's chirp (0 to 12 Hz in 30 s),
+    /// or `two-level`, 3 to 9 Hz at the paper's rate (0.4 Hz/s) at the paper's level and
+    /// then at 1.75 times it, in one 30 s record (one level maps only part of the skeleton:
+    /// a hardening contact hides behind a stiffer contact and a wider clearance).
+    #[arg(long, value_enum, default_value = "paper", requires = "self_check")]
+    pub(crate) sweep: SweepArg,
+    #[command(flatten)]
+    pub(crate) ingest: IngestArgs,
+}
+
+/// The drive of the self-check's rigs.
+#[derive(Clone, Copy, ValueEnum)]
+pub(crate) enum SweepArg {
+    /// The paper's chirp.
+    Paper,
+    /// 3 to 9 Hz at the paper's rate, at the paper's level then 1.75 times it.
+    TwoLevel,
+}
+
+pub(crate) fn gap_search_options(a: &GapArgs) -> Result<skelid::gap::SearchOptions> {
+    use skelid::model::EffectKind;
+    if !a.holdout_block.is_finite() || a.holdout_block <= 0.0 {
+        bail!("--holdout-block must be a positive number of seconds");
+    }
+    let effects = if a.effects.is_empty() {
+        EffectKind::ALL.to_vec()
+    } else {
+        a.effects
+            .iter()
+            .map(|e| {
+                EffectKind::parse(e).with_context(|| {
+                    format!(
+                        "--effects: unknown effect `{e}`; the vocabulary is {}",
+                        EffectKind::ALL.map(|k| k.name()).join(", ")
+                    )
+                })
+            })
+            .collect::<Result<_>>()?
+    };
+    if a.baseline_evaluations < 10 || a.candidate_evaluations < 5 {
+        bail!(
+            "--baseline-evaluations must be at least 10 and --candidate-evaluations at least 5 (a simplex needs one simulation per parameter and a few steps); the defaults are 150 and 45"
+        );
+    }
+    Ok(skelid::gap::SearchOptions {
+        blocks: skelid::gap::Blocks {
+            seconds: a.holdout_block,
+        },
+        baseline_evaluations: a.baseline_evaluations,
+        refine: a.refine,
+        candidate_evaluations: a.candidate_evaluations,
+        pairs: !a.no_pairs,
+        fit_inertia: a.fit_inertia,
+        effects,
+    })
+}
+
+pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
+    use skelid::gap::search::Reference;
+    use skelid::ingest::RunKind;
+    use skelid::report::gap as out;
+    let opt = gap_search_options(&a)?;
+    std::fs::create_dir_all(&a.out)
+        .with_context(|| format!("cannot create the output folder {}", a.out.display()))?;
+    if a.self_check {
+        return gap_self_check(&a, &opt);
+    }
+    let (Some(model_path), Some(archive_path)) = (&a.model, &a.archive) else {
+        bail!("give --model RIG.toml and an ARCHIVE (or --self-check)");
+    };
+    let model = RigModel::load(model_path)?;
+    let model_warnings = warn_model(model_path, &model);
+    let ingest = a.ingest.options()?;
+    let archive = Archive::open(archive_path, &ingest)?;
+    let mut chosen = Vec::new();
+    let mut failed: Vec<(String, String)> = Vec::new();
+    for entry in &archive.runs {
+        let wanted = a.runs.is_empty() || a.runs.iter().any(|r| r == &entry.path);
+        if !wanted {
+            continue;
+        }
+        let meta = match &entry.meta {
+            Ok(meta) => meta,
+            Err(e) if a.runs.is_empty() => {
+                eprintln!("error: {}: {e} (skipped; the other runs go on)", entry.path);
+                failed.push((entry.path.clone(), e.to_string()));
+                continue;
+            }
+            Err(e) => bail!("{}: {e}", entry.path),
+        };
+        if meta.kind != RunKind::BaseMotion {
+            if a.runs.is_empty() {
+                eprintln!(
+                    "note: {} skipped: a {} run (the gap simulates base-motion runs)",
+                    entry.path,
+                    meta.kind.as_str()
+                );
+                continue;
+            }
+            bail!("{}: a {} run; skelid gap simulates the model under a measured base motion, so it needs kind = \"base_motion\"", entry.path, meta.kind.as_str());
+        }
+        chosen.push(meta.clone());
+    }
+    for r in &a.runs {
+        if !archive.runs.iter().any(|e| &e.path == r) {
+            bail!(
+                "{}: no run {r} (list the runs with `skelid inspect {}`)",
+                archive_path.display(),
+                archive_path.display()
+            );
+        }
+    }
+    if chosen.is_empty() {
+        bail!(
+            "{}: no base-motion run to diagnose. skelid gap drives the rig model (a link on a moving base, FORMATS.md §2) with each run's measured base angle; force-input and free-decay runs are identified by `skelid run` only",
+            archive_path.display()
+        );
+    }
+    let settings = serde_json::json!({
+        "model": model_path.display().to_string(),
+        "archive": archive_path.display().to_string(),
+        "holdout": format!("alternate {} s blocks: fits on the even ones (from t = 0), gaps scored on the odd ones", a.holdout_block),
+        "baseline_evaluations": opt.baseline_evaluations,
+        "candidate_evaluations": opt.candidate_evaluations,
+        "refine": opt.refine,
+        "pairs": opt.pairs,
+        "fit_inertia": opt.fit_inertia,
+        "min_shrink": skelid::gap::search::MIN_SHRINK,
+        "min_drop": skelid::gap::search::MIN_DROP,
+        "model_warnings": model_warnings,
+    });
+    let title = archive_path.display().to_string();
+    // gap.json and gap.html are rewritten (atomically) after every run, so that a night's
+    // work stopped half-way keeps every run finished so far.
+    let write_outputs = |reports: &[&out::GapRun], failed: &[(String, String)]| -> Result<_> {
+        let json = out::write_gap_json(&a.out, reports, failed, settings.clone())?;
+        let page = out::write_gap_page(&a.out, &title, reports)?;
+        Ok((json, page))
+    };
+    let several = chosen.len() > 1;
+    let jobs = a
+        .jobs
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+        .max(1);
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(jobs)
+        .build()
+        .with_context(|| format!("cannot start {jobs} worker thread(s) (--jobs)"))?;
+    // Finished runs (index in the archive, report) and failed ones (index, run, error),
+    // kept in archive order whatever order they finish in.
+    type Done = (Vec<(usize, out::GapRun)>, Vec<(usize, String, String)>);
+    let done: std::sync::Mutex<Done> = Default::default();
+    // Progress per run: runs done on the bar, each running run's simulations so far in its
+    // message (a diagnosis runs a few hundred).
+    let bar = indicatif::ProgressBar::new(chosen.len() as u64).with_style(
+        indicatif::ProgressStyle::with_template(
+            "{bar:25} {pos}/{len} runs, {elapsed} elapsed, ~{eta} left · {wide_msg}",
+        )
+        .expect("a valid template"),
+    );
+    let running: std::sync::Mutex<std::collections::BTreeMap<String, usize>> = Default::default();
+    let show = |bar: &indicatif::ProgressBar,
+                running: &std::collections::BTreeMap<String, usize>| {
+        let parts: Vec<String> = running
+            .iter()
+            .map(|(run, n)| format!("{run}: {n} simulations"))
+            .collect();
+        bar.set_message(parts.join(", "));
+    };
+    let diagnose_one = |(i, meta): (usize, &skelid::ingest::RunMeta)| -> Result<()> {
+        say(
+            &bar,
+            format!(
+                "{}: refitting the model, then {} effects ...",
+                meta.path,
+                opt.effects.len()
+            ),
+        );
+        let progress = |n: usize| {
+            let mut r = running.lock().unwrap_or_else(|p| p.into_inner());
+            r.insert(meta.path.clone(), n);
+            show(&bar, &r);
+            // Without a terminal (a log file), a line every 100 simulations.
+            if bar.is_hidden() && n.is_multiple_of(100) {
+                eprintln!("{}: {n} simulations", meta.path);
+            }
+        };
+        let result = (|| -> Result<out::GapRun> {
+            let run = archive.load(meta)?;
+            let reference = Reference::new(&run, opt.blocks)?.on_score(progress);
+            let d = skelid::gap::diagnose(&reference, &model, &opt)?;
+            Ok(out::GapRun::new(&reference, d)?)
+        })();
+        {
+            let mut r = running.lock().unwrap_or_else(|p| p.into_inner());
+            r.remove(&meta.path);
+            show(&bar, &r);
+        }
+        bar.inc(1);
+        let mut guard = done.lock().unwrap_or_else(|p| p.into_inner());
+        match result {
+            Ok(r) => {
+                let d = &r.diagnosis;
+                let mut text = format!(
+                    "{}: verdict {} · held-out gap nominal {:.4} → baseline {:.4}{} · {} simulations, {:.1} s",
+                    d.run,
+                    d.verdict_name(),
+                    d.nominal_score.holdout,
+                    d.baseline.score.holdout,
+                    d.verdict.map_or(String::new(), |i| {
+                        let c = &d.candidates[i];
+                        format!(" → {:.4} with {} (shrink {:.0} %)", c.score.holdout, c.name(), 100.0 * c.shrink)
+                    }),
+                    d.evaluations,
+                    d.seconds
+                );
+                for c in d.candidates.iter().take(3) {
+                    let p: Vec<String> = c
+                        .params()
+                        .iter()
+                        .map(|(k, v)| out::param_text(k, *v))
+                        .collect();
+                    text += &format!(
+                        "\n    {:<40} held-out gap {:.4}  shrink {:>4.0} %  {}",
+                        c.name(),
+                        c.score.holdout,
+                        100.0 * c.shrink,
+                        p.join(", ")
+                    );
+                }
+                bar.suspend(|| println!("{text}"));
+                let path = out::fitted_model_path(&a.out, model_path, &d.run, several);
+                out::write_fitted_model(&path, &r)?;
+                let fitted =
+                    RigModel::load(&path).context("the fitted model written does not read back")?;
+                for w in fitted.warnings() {
+                    say(&bar, format!("warning: {}: {w}", path.display()));
+                }
+                guard.0.push((i, r));
+            }
+            Err(e) => {
+                say(&bar, format!("error: {}: {e:#}", meta.path));
+                guard.1.push((i, meta.path.clone(), format!("{e:#}")));
+            }
+        }
+        guard.0.sort_by_key(|r| r.0);
+        guard.1.sort_by_key(|r| r.0);
+        let reports: Vec<&out::GapRun> = guard.0.iter().map(|r| &r.1).collect();
+        let errors: Vec<(String, String)> = failed
+            .iter()
+            .cloned()
+            .chain(guard.1.iter().map(|f| (f.1.clone(), f.2.clone())))
+            .collect();
+        write_outputs(&reports, &errors)?;
+        Ok(())
+    };
+    pool.install(|| {
+        use rayon::prelude::*;
+        chosen.par_iter().enumerate().try_for_each(diagnose_one)
+    })?;
+    bar.finish_and_clear();
+    let (reports, errors) = done.into_inner().unwrap_or_else(|p| p.into_inner());
+    let reports: Vec<&out::GapRun> = reports.iter().map(|r| &r.1).collect();
+    failed.extend(errors.into_iter().map(|f| (f.1, f.2)));
+    let (json, page) = write_outputs(&reports, &failed)?;
+    println!(
+        "wrote {}, {} and the fitted model(s) in {}",
+        json.display(),
+        page.display(),
+        a.out.display()
+    );
+    Ok(if failed.is_empty() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
+}
+
+/// Prints the rig model's implausible values on stderr ("warning: FILE: `clearance` = …")
+/// and returns them.
+pub(crate) fn warn_model(path: &std::path::Path, model: &RigModel) -> Vec<String> {
+    let w = model.warnings();
+    for line in &w {
+        eprintln!("warning: {}: {line}", path.display());
+    }
+    w
+}
+
+/// A line above the progress bar, or on stderr when the bar is hidden (not a terminal: a
+/// log file of an overnight self-check still gets every case).
+pub(crate) fn say(bar: &indicatif::ProgressBar, line: String) {
+    if bar.is_hidden() {
+        eprintln!("{line}");
+    } else {
+        bar.println(line);
+    }
+}
+
+pub(crate) fn gap_self_check(a: &GapArgs, opt: &skelid::gap::SearchOptions) -> Result<ExitCode> {
+    use skelid::gap::selfcheck;
+    let cases = selfcheck::cases(a.cases, a.seed);
+    let sweep = match a.sweep {
+        SweepArg::Paper => selfcheck::Sweep::Paper,
+        SweepArg::TwoLevel => selfcheck::Sweep::TwoLevel,
+    };
+    eprintln!(
+        "self-check: {} cases (seed {}), paper's rig under {} with encoder noise, one effect (or none) hidden from a model whose parameters are ~{:.0} % off",
+        cases.len(),
+        a.seed,
+        sweep.describe(),
+        100.0 * selfcheck::NOMINAL_ERROR
+    );
+    let bar = indicatif::ProgressBar::new(cases.len() as u64).with_style(
+        indicatif::ProgressStyle::with_template(
+            "{bar:30} {pos}/{len} cases, {elapsed} elapsed, ~{eta} left",
+        )
+        .expect("a valid template"),
+    );
+    let mut outcomes = Vec::new();
+    let mut errors = Vec::new();
+    let mut lines = Vec::new();
+    for c in &cases {
+        match selfcheck::run_case(c, opt, sweep) {
+            Ok(o) => {
+                let line = format!(
+                    "case {:>3}: {:<22} {:>10.4e} → {:<22} {}",
+                    c.index,
+                    o.truth(),
+                    c.value,
+                    o.verdict,
+                    if o.right() { "right" } else { "WRONG" }
+                );
+                say(&bar, line);
+                lines.push(serde_json::json!({
+                    "case": c.index, "effect": o.truth(), "value": c.value, "verdict": o.verdict,
+                    "right": o.right(), "shrink": o.shrink, "param_error": o.param_error,
+                    "baseline_gap": o.diagnosis.baseline.score.holdout,
+                    "seconds": o.diagnosis.seconds, "simulations": o.diagnosis.evaluations,
+                }));
+                outcomes.push(o);
+            }
+            Err(e) => {
+                say(&bar, format!("case {:>3}: error: {e}", c.index));
+                errors.push(format!("case {}: {e}", c.index));
+            }
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let summary = selfcheck::summarize(&outcomes, errors);
+    println!("\n{summary}");
+    let path = a.out.join("self-check.json");
+    let doc = serde_json::json!({"format": "skelid-gap-self-check/1", "seed": a.seed, "sweep": sweep.name(), "summary": summary, "cases": lines});
+    skelid::report::write_atomic(&path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
+    println!("wrote {}", path.display());
+    Ok(ExitCode::SUCCESS)
+}

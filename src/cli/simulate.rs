@@ -1,0 +1,180 @@
+//! `skelid simulate`: a rig model under a chosen drive, written as a campaign archive.
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, ValueEnum};
+use skelid::campaign::{write_campaign, Attr};
+use skelid::demo;
+use skelid::ingest::{Archive, IngestOptions};
+use skelid::model::RigModel;
+use skelid::simulate::{simulate, Drive, Excitation, Rolloff, SimSettings};
+use std::path::PathBuf;
+
+use super::gap::warn_model;
+
+#[derive(Clone, Copy, ValueEnum)]
+pub(crate) enum ExcitationKind {
+    /// Linear chirp from --f0 to --f1 over --duration, with optional servo roll-off.
+    Chirp,
+    /// Phase-continuous stepped sine over --steps, --dwell seconds each.
+    Stepped,
+    /// Free decay from --initial-offset (no input channel).
+    Free,
+    /// The input channel of a measured run (--measured ARCHIVE --measured-run PATH).
+    Measured,
+}
+
+#[derive(Args)]
+pub(crate) struct SimulateArgs {
+    /// Rig model (TOML, FORMATS.md §2).
+    #[arg(long, value_name = "RIG.toml")]
+    pub(crate) model: PathBuf,
+    /// Campaign archive to write (HDF5).
+    #[arg(long, value_name = "FILE.h5")]
+    pub(crate) out: PathBuf,
+    /// Group path of the run in the archive.
+    #[arg(long, default_value = "/runs/run_001", value_name = "PATH")]
+    pub(crate) run_path: String,
+    /// What drives the rig.
+    #[arg(long, value_enum, default_value = "chirp")]
+    pub(crate) excitation: ExcitationKind,
+    /// Drive the mass with a force (m y'' + c y' + k D(y) = f) instead of the base.
+    #[arg(long)]
+    pub(crate) force_input: bool,
+    /// Chirp start frequency, Hz.
+    #[arg(long, default_value_t = 0.0)]
+    pub(crate) f0: f64,
+    /// Chirp end frequency, Hz.
+    #[arg(long, default_value_t = 12.0)]
+    pub(crate) f1: f64,
+    /// Duration of the run (and of the chirp), s.
+    #[arg(long, default_value_t = 30.0)]
+    pub(crate) duration: f64,
+    /// Drive amplitude (rad for base motion, N for force input).
+    #[arg(long, default_value_t = 0.03)]
+    pub(crate) amplitude: f64,
+    /// Servo roll-off corner, Hz: the amplitude falls as 1/sqrt(1+(f/fc)^(2n)) (0 = none).
+    #[arg(long, default_value_t = 0.0, value_name = "HZ")]
+    pub(crate) rolloff_hz: f64,
+    /// Servo roll-off order n.
+    #[arg(long, default_value_t = 1)]
+    pub(crate) rolloff_order: u32,
+    /// Stepped-sine frequencies, Hz, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "2,4,6,8,10")]
+    pub(crate) steps: Vec<f64>,
+    /// Stepped-sine dwell per frequency, s.
+    #[arg(long, default_value_t = 5.0)]
+    pub(crate) dwell: f64,
+    /// Free decay: initial link offset, rad.
+    #[arg(long, default_value_t = 0.05)]
+    pub(crate) initial_offset: f64,
+    /// Measured input: the archive holding it.
+    #[arg(long, value_name = "ARCHIVE")]
+    pub(crate) measured: Option<PathBuf>,
+    /// Measured input: the run whose input channel drives the simulation.
+    #[arg(long, value_name = "PATH")]
+    pub(crate) measured_run: Option<String>,
+    /// Measured input: zero-phase low-pass cut-off as a fraction of Nyquist (1 = none),
+    /// so that encoder noise is not differentiated into the base acceleration.
+    #[arg(long, default_value_t = skelid::simulate::MEASURED_INPUT_CUTOFF, value_name = "FRACTION")]
+    pub(crate) input_cutoff: f64,
+    /// Output sample rate, Hz (a measured input keeps its own).
+    #[arg(long, default_value_t = 1000.0)]
+    pub(crate) sample_rate: f64,
+    /// RK4 sub-steps per sample (events are located exactly in any case).
+    #[arg(long, default_value_t = 4)]
+    pub(crate) substeps: usize,
+    /// Std of white measurement noise on both channels (rad, or N for a force input).
+    #[arg(long, default_value_t = 0.0)]
+    pub(crate) noise: f64,
+    /// Noise seed.
+    #[arg(long, default_value_t = 1)]
+    pub(crate) seed: u64,
+    /// Write gzip-compressed, chunked datasets.
+    #[arg(long)]
+    pub(crate) compress: bool,
+}
+
+pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<()> {
+    let model = RigModel::load(&a.model)?;
+    warn_model(&a.model, &model);
+    let mut fs = a.sample_rate;
+    let mut duration = a.duration;
+    let rolloff = (a.rolloff_hz > 0.0).then_some(Rolloff {
+        corner_hz: a.rolloff_hz,
+        order: a.rolloff_order,
+    });
+    let excitation = match a.excitation {
+        ExcitationKind::Chirp => Some(Excitation::Chirp {
+            f0: a.f0,
+            f1: a.f1,
+            duration: a.duration,
+            amplitude: a.amplitude,
+            rolloff,
+        }),
+        ExcitationKind::Stepped => {
+            duration = a.dwell * a.steps.len() as f64;
+            Some(Excitation::SteppedSine {
+                freqs: a.steps.clone(),
+                dwell: a.dwell,
+                amplitude: a.amplitude,
+            })
+        }
+        ExcitationKind::Free => None,
+        ExcitationKind::Measured => {
+            let (Some(file), Some(run)) = (&a.measured, &a.measured_run) else {
+                bail!("--excitation measured needs --measured ARCHIVE and --measured-run PATH");
+            };
+            let archive = Archive::open(file, &IngestOptions::default())?;
+            let entry = archive
+                .runs
+                .iter()
+                .find(|r| &r.path == run)
+                .with_context(|| {
+                    format!("{}: no run {run} (see `skelid inspect`)", file.display())
+                })?;
+            let meta = entry.meta.clone()?;
+            let loaded = archive.load(&meta)?;
+            let input = loaded
+                .input
+                .with_context(|| format!("{run} is a free decay: it has no input channel"))?;
+            fs = meta.sample_rate;
+            duration = meta.duration;
+            let cutoff = a.input_cutoff * 0.5 * fs;
+            Some(Excitation::measured(&input, fs, cutoff))
+        }
+    };
+    let drive = match (excitation, a.force_input) {
+        (None, _) => Drive::Free {
+            initial_offset: a.initial_offset,
+        },
+        (Some(e), false) => Drive::Base(e),
+        (Some(e), true) => Drive::Force(e),
+    };
+    let settings = SimSettings {
+        sample_rate: fs,
+        duration,
+        substeps: a.substeps,
+        output_noise: a.noise,
+        input_noise: a.noise,
+        seed: a.seed,
+    };
+    let sim = simulate(&model, &drive, &settings);
+    let events = sim.events;
+    let samples = sim.time.len();
+    let description = format!("skelid simulate of {}", a.model.display());
+    let run = demo::run_data(&a.run_path, &model, &drive, sim, fs, &description);
+    let root = vec![(
+        "generator".to_string(),
+        Attr::Text(format!("skelid {}", env!("CARGO_PKG_VERSION"))),
+    )];
+    write_campaign(&a.out, &root, &[run], a.compress)?;
+    println!(
+        "wrote {} run {} ({} samples at {} Hz, {} events located)",
+        a.out.display(),
+        a.run_path,
+        samples,
+        fs,
+        events
+    );
+    Ok(())
+}

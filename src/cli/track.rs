@@ -1,0 +1,192 @@
+//! `skelid track`: the instantaneous envelope and frequency of one dataset.
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use skelid::ingest::{Archive, IngestOptions};
+use std::path::PathBuf;
+
+use super::args::{report_fallbacks, BackendArgs, IngestArgs, MethodArg, WaveletArgs};
+
+#[derive(Args)]
+pub(crate) struct TrackArgs {
+    /// Campaign archive (HDF5).
+    #[arg(value_name = "ARCHIVE")]
+    pub(crate) archive: PathBuf,
+    /// Dataset to track, e.g. /runs/run_001/output (a run group alone means its output).
+    #[arg(long, value_name = "PATH")]
+    pub(crate) dataset: String,
+    /// Estimator.
+    #[arg(long, value_enum, default_value = "wavelet")]
+    pub(crate) method: MethodArg,
+    /// Output file: HDF5, or CSV when the name ends in .csv.
+    #[arg(long, value_name = "FILE")]
+    pub(crate) out: PathBuf,
+    #[command(flatten)]
+    pub(crate) wavelet: WaveletArgs,
+    /// Samples whose ridge is below this multiple of the in-band noise are marked not valid.
+    #[arg(long, default_value_t = 10.0, value_name = "X")]
+    pub(crate) min_snr: f64,
+    /// Ridge by per-sample argmax instead of the penalised dynamic programme.
+    #[arg(long)]
+    pub(crate) argmax: bool,
+    /// Do not remove the window's decay/sweep bias (raw |W| and phase derivative).
+    #[arg(long)]
+    pub(crate) no_correction: bool,
+    /// Hilbert only: zero-phase low-pass of A and f, cut-off as a fraction of Nyquist
+    /// (the paper uses 0.0005-0.01).
+    #[arg(long, value_name = "FRACTION")]
+    pub(crate) cutoff: Option<f64>,
+    /// Wavelet only: a dataset of the same run whose ridge guides this one (e.g. the input).
+    #[arg(long, value_name = "PATH")]
+    pub(crate) reference: Option<String>,
+    /// Wavelet only: also write the first pass's |W| on its coarse grid (datasets
+    /// `scalogram`, scales × steps, with `scalogram_frequency` in Hz and `scalogram_time` in
+    /// s) to the HDF5 output; on a GPU this is the only time the scalogram is read back.
+    #[arg(long)]
+    pub(crate) keep_scalogram: bool,
+    #[command(flatten)]
+    pub(crate) backend: BackendArgs,
+    #[command(flatten)]
+    pub(crate) ingest: IngestArgs,
+}
+
+/// Reads one dataset of an archive: the run is the dataset's parent group (or the path itself
+/// when it names a run, meaning its output).
+pub(crate) fn read_dataset(
+    archive: &Archive,
+    dataset: &str,
+    options: &IngestOptions,
+) -> Result<(Vec<f64>, f64)> {
+    let file = archive.file_name().to_string();
+    let dataset = format!("/{}", dataset.trim_start_matches('/'));
+    let (run_path, name) = match archive.runs.iter().find(|r| r.path == dataset) {
+        Some(_) => (dataset.clone(), options.output_name.clone()),
+        None => {
+            let (parent, name) = dataset.rsplit_once('/').unwrap_or(("", &dataset));
+            let parent = if parent.is_empty() { "/" } else { parent };
+            (parent.to_string(), name.to_string())
+        }
+    };
+    let entry = archive
+        .runs
+        .iter()
+        .find(|r| r.path == run_path)
+        .with_context(|| {
+            format!(
+                "{file}: {dataset} is not in a run group; `skelid inspect {file}` lists the runs"
+            )
+        })?;
+    let meta = entry.meta.clone()?;
+    let run = archive.load(&meta)?;
+    let x = if name == options.output_name {
+        run.output
+    } else if name == options.input_name {
+        run.input
+            .with_context(|| format!("{file}: {run_path} is a free decay without an input"))?
+    } else {
+        bail!(
+            "{file}: {dataset}: tracks are taken of a run's `{}` or `{}` dataset",
+            options.input_name,
+            options.output_name
+        );
+    };
+    Ok((x, meta.sample_rate))
+}
+
+pub(crate) fn cmd_track(a: TrackArgs) -> Result<()> {
+    use skelid::track::{track_hilbert, HilbertOptions, RidgeSearch, WaveletOptions};
+    match a.method {
+        MethodArg::Wavelet if a.cutoff.is_some() => {
+            bail!(
+                "--cutoff low-passes the Hilbert method's tracks; add --method hilbert or drop it"
+            )
+        }
+        MethodArg::Hilbert if a.reference.is_some() => {
+            bail!("--reference guides a wavelet ridge; the Hilbert method has none (use --method wavelet)")
+        }
+        MethodArg::Hilbert if a.keep_scalogram => {
+            bail!("--keep-scalogram keeps the wavelet transform; add --method wavelet")
+        }
+        _ if a.keep_scalogram
+            && a.out
+                .extension()
+                .is_some_and(|e| e.eq_ignore_ascii_case("csv")) =>
+        {
+            bail!("--keep-scalogram needs an HDF5 output (a 2-D dataset); name --out FILE.h5")
+        }
+        _ => {}
+    }
+    let options = a.ingest.options()?;
+    let backend = a.backend.open()?;
+    let archive = Archive::open(&a.archive, &options)?;
+    let (x, fs) = read_dataset(&archive, &a.dataset, &options)?;
+    let track = match a.method {
+        MethodArg::Hilbert => track_hilbert(&x, fs, &HilbertOptions { cutoff: a.cutoff })?,
+        MethodArg::Wavelet => {
+            let opt = a.wavelet.apply(WaveletOptions {
+                ridge: if a.argmax {
+                    RidgeSearch::Argmax
+                } else {
+                    RidgeSearch::Dynamic
+                },
+                min_snr: a.min_snr,
+                correct: !a.no_correction,
+                ..WaveletOptions::default()
+            });
+            let guide = match &a.reference {
+                Some(r) => {
+                    let (g, _) = read_dataset(&archive, r, &options)?;
+                    let gt = backend
+                        .track_wavelet(&g, fs, &opt, None)
+                        .with_context(|| format!("tracking the reference {r}"))?;
+                    Some(gt.frequency)
+                }
+                None => None,
+            };
+            backend.track_wavelet_keeping(&x, fs, &opt, guide.as_deref(), a.keep_scalogram)?
+        }
+    };
+    report_fallbacks(&backend);
+    skelid::report::write_track(
+        &a.out,
+        &track,
+        &format!("{}:{}", a.archive.display(), a.dataset),
+    )?;
+    let n = track.len();
+    let valid: Vec<usize> = (0..n).filter(|&i| track.valid[i]).collect();
+    let (fmin_v, fmax_v, amin, amax) = valid.iter().fold(
+        (f64::INFINITY, 0f64, f64::INFINITY, 0f64),
+        |(a0, a1, b0, b1), &i| {
+            (
+                a0.min(track.frequency[i]),
+                a1.max(track.frequency[i]),
+                b0.min(track.amplitude[i]),
+                b1.max(track.amplitude[i]),
+            )
+        },
+    );
+    println!(
+        "{} {}: {n} samples at {fs} Hz, method {}, band {:.3}-{:.3} Hz, backend {}",
+        a.archive.display(),
+        a.dataset,
+        track.method.as_str(),
+        track.band.0,
+        track.band.1,
+        track.backend
+    );
+    println!(
+        "valid {:.1} % of samples; over them frequency {:.4}-{:.4} Hz, amplitude {:.4e}-{:.4e}",
+        100.0 * track.valid_fraction(),
+        fmin_v,
+        fmax_v,
+        amin,
+        amax
+    );
+    println!(
+        "offset removed {:.4e}, white-noise estimate {:.3e} per sample; wrote {}",
+        track.offset,
+        track.noise,
+        a.out.display()
+    );
+    Ok(())
+}
