@@ -28,7 +28,8 @@ use crate::journal::{
     Journal, Prepared, Stored, RUNS_DIR,
 };
 use crate::profile::{self, Stage};
-use crate::report::{html, write_summary, ReportError, ResultsWriter, RunOutcome, SummaryRow};
+use crate::report::html::{self, RunPlots};
+use crate::report::{write_summary, ReportError, ResultsWriter, RunOutcome, SummaryRow};
 use crate::track::Method;
 
 /// Why a batch or a merge could not go on.
@@ -262,10 +263,11 @@ pub const MANIFEST: &str = "manifest.json";
 
 /// What the workers hand the writer.
 enum Finished {
-    /// A run found committed by an earlier invocation, with its stored results.
-    Skipped(Entry, Stored),
-    /// A run identified and committed to the journal now.
-    Committed(Entry, Prepared),
+    /// A run found committed by an earlier invocation, with its stored results (and its
+    /// report plots, decoded by the worker, when it may be drawn).
+    Skipped(Entry, Stored, Option<RunPlots>),
+    /// A run identified and committed to the journal now, with its report plots.
+    Committed(Entry, Prepared, Option<RunPlots>),
     /// A run identified now whose journal file could not be written.
     Failed(ReportError),
 }
@@ -326,7 +328,8 @@ pub fn run_campaigns(
                 work_tx.send(d).map_err(|_| reader::Stopped)
             })
         });
-        let writer = scope.spawn(|| write_finished(&results, done_rx, log, counts, progress));
+        let writer = scope
+            .spawn(|| write_finished(&results, done_rx, log, counts, progress, opt.report_runs));
         // A failed send means the writer stopped on an error, which it returns; the
         // workers then stop, and the reader with them.
         let _ = pool.install(|| {
@@ -354,6 +357,7 @@ pub fn run_campaigns(
         skipped,
         failed,
         mut log,
+        mut drawn,
     } = written;
     let total = entries.len();
     let runs_in_inputs = counts.runs_in_inputs.load(Ordering::Relaxed);
@@ -381,8 +385,15 @@ pub fn run_campaigns(
         not_runs.clone(),
         Some(record),
     );
-    let (rows, failed_runs) =
-        write_outputs(&results, out, &entries, &manifest, opt.report_runs).map_err(stopped)?;
+    let (rows, failed_runs) = write_outputs(
+        &results,
+        out,
+        &entries,
+        &manifest,
+        opt.report_runs,
+        Some(&mut drawn),
+    )
+    .map_err(stopped)?;
     profile::add(Stage::Write, profile::thread_cpu().saturating_sub(cpu0));
     log.line(&format!(
         "where the time went (CPU seconds since the process started): {}",
@@ -431,7 +442,11 @@ fn prepare(
     };
     if !opt.force {
         if let Some((e, stored)) = journal.load(&key) {
-            return Finished::Skipped(e, stored);
+            let plots = match &stored {
+                Stored::Encoded(run) if opt.report_runs > 0 => Some(run_plots(run)),
+                _ => None,
+            };
+            return Finished::Skipped(e, stored, plots);
         }
     }
     let outcome = match outcome {
@@ -440,9 +455,17 @@ fn prepare(
     };
     let prepared = profile::time(Stage::Encode, || Prepared::new(&outcome));
     match profile::time(Stage::Write, || journal.commit(&key, prepared)) {
-        Ok((entry, prepared)) => Finished::Committed(entry, prepared),
+        Ok((entry, prepared)) => {
+            let plots = (opt.report_runs > 0).then(|| run_plots(prepared.encoded()));
+            Finished::Committed(entry, prepared, plots)
+        }
         Err(e) => Finished::Failed(e),
     }
+}
+
+/// The report's plots of an encoded run (its group in results.h5 is set when drawn).
+fn run_plots(run: &crate::report::encoded::EncodedRun) -> RunPlots {
+    profile::time(Stage::Encode, || html::encoded_plots(run, &run.path))
 }
 
 /// Every method of `opt` on one run as read (or its read error), timed.
@@ -488,7 +511,9 @@ fn write_finished(
     mut log: Log,
     counts: &reader::Counts,
     progress: &(dyn Fn(Progress) + Sync),
+    report_runs: usize,
 ) -> Result<Written, BatchError> {
+    let mut drawn = Drawn::new(report_runs);
     let (mut entries, mut skipped, mut failed) = (Vec::new(), 0, 0);
     let (mut suspect, mut bad) = (0, 0);
     let mut used = std::collections::HashSet::new();
@@ -496,7 +521,7 @@ fn write_finished(
         // Finishing order is not the final order: a path already used (the same path in
         // two archives) goes aside now and is put in its place at the end.
         let (path, source) = match f {
-            Finished::Skipped(ref e, _) | Finished::Committed(ref e, _) => {
+            Finished::Skipped(ref e, ..) | Finished::Committed(ref e, ..) => {
                 (results_group(&e.path, &e.source), e.source.clone())
             }
             Finished::Failed(e) => return Err(e.into()),
@@ -507,18 +532,18 @@ fn write_finished(
             format!("{path}@{source}#{}", entries.len())
         };
         let t0 = profile::thread_cpu();
-        let (e, was_skipped) = match f {
-            Finished::Skipped(e, Stored::Encoded(run)) => {
+        let (e, was_skipped, plots) = match f {
+            Finished::Skipped(e, Stored::Encoded(run), plots) => {
                 results.write_encoded_as(&run, &dst)?;
-                (e, true)
+                (e, true, plots)
             }
-            Finished::Skipped(e, Stored::Legacy(file)) => {
+            Finished::Skipped(e, Stored::Legacy(file), plots) => {
                 results.copy_run_from(&file, &e.path, &dst)?;
-                (e, true)
+                (e, true, plots)
             }
-            Finished::Committed(e, p) => {
+            Finished::Committed(e, p, plots) => {
                 results.write_encoded_as(p.encoded(), &dst)?;
-                (e, false)
+                (e, false, plots)
             }
             Finished::Failed(_) => unreachable!("returned above"),
         };
@@ -543,6 +568,7 @@ fn write_finished(
         failed += usize::from(e.failed);
         suspect += e.rows.iter().filter(|r| r.quality == "suspect").count();
         bad += e.rows.iter().filter(|r| r.quality == "bad").count();
+        drawn.offer(&e, plots);
         entries.push((e, dst));
         progress(Progress {
             done: entries.len(),
@@ -558,6 +584,7 @@ fn write_finished(
         skipped,
         failed,
         log,
+        drawn,
     })
 }
 
@@ -567,6 +594,55 @@ struct Written {
     skipped: usize,
     failed: usize,
     log: Log,
+    drawn: Drawn,
+}
+
+/// The report plots of the runs that come first in the report's order (archive, then
+/// path), at most as many as it draws: kept as runs finish, so that the end of a batch
+/// reads none of them back from results.h5 (that read-back, serial under libhdf5's lock,
+/// was 6 % of a 200-run batch's CPU time and all of its tail).
+struct Drawn {
+    keep: usize,
+    /// `None` where the plots must be read back: none were decoded (a legacy journal
+    /// file), or two runs share the archive name and path.
+    plots: BTreeMap<(String, String), Option<RunPlots>>,
+}
+
+impl Drawn {
+    fn new(keep: usize) -> Drawn {
+        Drawn {
+            keep,
+            plots: BTreeMap::new(),
+        }
+    }
+
+    /// Keeps `plots` of the run `e` if it is among the first `keep` so far.
+    fn offer(&mut self, e: &Entry, plots: Option<RunPlots>) {
+        if self.keep == 0 {
+            return;
+        }
+        match self.plots.entry((e.source.clone(), e.path.clone())) {
+            std::collections::btree_map::Entry::Occupied(mut o) => {
+                o.insert(None);
+            }
+            std::collections::btree_map::Entry::Vacant(v) => {
+                v.insert(plots);
+            }
+        }
+        if self.plots.len() > self.keep {
+            self.plots.pop_last();
+        }
+    }
+
+    /// The plots of run `e`, drawn as the run at `group` of results.h5.
+    fn take(&mut self, e: &Entry, group: &str) -> Option<RunPlots> {
+        let mut p = self
+            .plots
+            .get_mut(&(e.source.clone(), e.path.clone()))?
+            .take()?;
+        p.path = group.to_string();
+        Some(p)
+    }
 }
 
 /// Puts every run of `results` at its final group (see [`placements`]): link moves, through
@@ -615,14 +691,16 @@ pub fn guarded<T>(f: impl FnOnce() -> Result<T, String>) -> Result<T, String> {
     }
 }
 
-/// The summaries, report.html (the first `report_runs` runs drawn) and the manifest of a
-/// folder's entries (results.h5 is written by then).
+/// The summaries, report.html (the first `report_runs` runs drawn, from `drawn` where it
+/// holds them, else read back from results.h5) and the manifest of a folder's entries
+/// (results.h5 is written by then).
 fn write_outputs(
     results: &Path,
     out: &Path,
     entries: &[Entry],
     manifest: &Manifest,
     report_runs: usize,
+    mut drawn_plots: Option<&mut Drawn>,
 ) -> Result<(Vec<SummaryRow>, usize), BatchError> {
     let rows: Vec<SummaryRow> = entries.iter().flat_map(|e| e.rows.clone()).collect();
     write_summary(out, &rows)?;
@@ -636,7 +714,13 @@ fn write_outputs(
             rows: &rows,
             runs: placements(&entries[..drawn])
                 .iter()
-                .map(|group| html::read_run(results, group))
+                .zip(entries)
+                .map(
+                    |(group, e)| match drawn_plots.as_deref_mut().and_then(|d| d.take(e, group)) {
+                        Some(p) => Ok(p),
+                        None => html::read_run(results, group),
+                    },
+                )
                 .collect(),
             omitted: entries.len() - drawn,
         },
@@ -769,7 +853,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         first.settings_full.clone(),
     );
     let results = journal.assemble(out, &entries, manifest.settings_full.as_ref())?;
-    let (rows, failed_runs) = write_outputs(&results, out, &entries, &manifest, report_runs)?;
+    let (rows, failed_runs) = write_outputs(&results, out, &entries, &manifest, report_runs, None)?;
     Ok(BatchSummary {
         rows,
         results,

@@ -185,6 +185,49 @@ impl EncodedRun {
         self.dataset(group, name, Elem::U8, data.len(), storage);
     }
 
+    /// The value of the attribute `name` of `group` ("" for the run's group), when set.
+    pub fn attr(&self, group: &str, name: &str) -> Option<&Scalar> {
+        self.items.iter().find_map(|i| match i {
+            Item::Attr {
+                group: g,
+                name: n,
+                value,
+            } if g == group && n == name => Some(value),
+            _ => None,
+        })
+    }
+
+    /// Whether the run holds the group `group` (relative path).
+    pub fn has_group(&self, group: &str) -> bool {
+        self.items
+            .iter()
+            .any(|i| matches!(i, Item::Group(g) if g == group))
+    }
+
+    /// The elements of the dataset `name` of `group` as stored (inflated and unshuffled
+    /// as a reader of the file would get them), or `None` when it has none such.
+    pub fn read(&self, group: &str, name: &str) -> Option<Decoded> {
+        let d = self.items.iter().find_map(|i| match i {
+            Item::Dataset(d) if d.group == group && d.name == name => Some(d),
+            _ => None,
+        })?;
+        match &d.storage {
+            Storage::Plain(v) => Some(Decoded::F64(v.clone())),
+            Storage::Chunked { chunks, .. } => {
+                let bytes = inflate_chunks(chunks, d.elem, d.len)?;
+                Some(match d.elem {
+                    Elem::F64 => Decoded::F64(
+                        bytes
+                            .chunks_exact(8)
+                            .map(|b| f64::from_le_bytes(b.try_into().expect("8 bytes")))
+                            .collect(),
+                    ),
+                    Elem::U8 => Decoded::U8(bytes),
+                })
+            }
+        }
+    }
+
     fn dataset(&mut self, group: &str, name: &str, elem: Elem, len: usize, storage: Storage) {
         self.items.push(Item::Dataset(Dataset {
             group: group.to_string(),
@@ -245,6 +288,50 @@ pub fn compress_chunks(bytes: &[u8], elem: Elem, level: u8) -> Vec<Vec<u8>> {
         .collect()
 }
 
+/// A dataset's elements, decoded.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Decoded {
+    /// Float64 elements.
+    F64(Vec<f64>),
+    /// Byte elements.
+    U8(Vec<u8>),
+}
+
+/// Undoes [`compress_chunks`]: inflates each chunk, unshuffles it and keeps the first
+/// `len` elements; `None` when a chunk is not what the filter pipeline writes.
+fn inflate_chunks(chunks: &[serde_bytes::ByteBuf], elem: Elem, len: usize) -> Option<Vec<u8>> {
+    let size = elem.size();
+    let chunk_bytes = chunk_len(len) * size;
+    let mut out = Vec::with_capacity(chunks.len() * chunk_bytes);
+    let mut raw = vec![0u8; chunk_bytes];
+    let mut z = flate2::Decompress::new(true);
+    for c in chunks {
+        z.reset(true);
+        let status = z
+            .decompress(c, &mut raw, flate2::FlushDecompress::Finish)
+            .ok()?;
+        if status != flate2::Status::StreamEnd || z.total_out() as usize != chunk_bytes {
+            return None;
+        }
+        if size > 1 {
+            let n = chunk_bytes / size;
+            let start = out.len();
+            out.resize(start + chunk_bytes, 0);
+            for (i, e) in out[start..].chunks_exact_mut(size).enumerate() {
+                for (j, b) in e.iter_mut().enumerate() {
+                    *b = raw[j * n + i];
+                }
+            }
+        } else {
+            out.extend_from_slice(&raw);
+        }
+    }
+    (out.len() >= len * size).then(|| {
+        out.truncate(len * size);
+        out
+    })
+}
+
 /// HDF5's shuffle filter: byte j of element i goes to `j·n + i`.
 fn shuffle(src: &[u8], size: usize, dst: &mut [u8]) {
     let n = src.len() / size;
@@ -269,6 +356,27 @@ mod tests {
             }
         }
         out
+    }
+
+    #[test]
+    fn a_run_reads_back_what_was_encoded() {
+        let data: Vec<f64> = (0..10_000).map(|i| (i as f64 * 0.01).sin()).collect();
+        let mask: Vec<u8> = (0..9_999).map(|i| u8::from(i % 7 == 0)).collect();
+        let mut e = EncodedRun::new("/runs/r");
+        e.group("wavelet");
+        e.f64_attr("wavelet", "clearance", 0.5);
+        e.signal("wavelet", "x", &data, true);
+        e.signal("wavelet", "short", &data[..10], true);
+        e.bytes("wavelet", "valid", &mask, 4);
+        assert_eq!(e.read("wavelet", "x"), Some(Decoded::F64(data.clone())));
+        assert_eq!(
+            e.read("wavelet", "short"),
+            Some(Decoded::F64(data[..10].to_vec()))
+        );
+        assert_eq!(e.read("wavelet", "valid"), Some(Decoded::U8(mask)));
+        assert_eq!(e.read("", "x"), None);
+        assert_eq!(e.attr("wavelet", "clearance"), Some(&Scalar::F64(0.5)));
+        assert!(e.has_group("wavelet") && !e.has_group("hilbert"));
     }
 
     #[test]

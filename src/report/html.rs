@@ -14,6 +14,7 @@ use std::path::{Path, PathBuf};
 
 use plotters::prelude::*;
 
+use super::encoded::{Decoded, EncodedRun, Scalar};
 use super::{write_atomic, ReportError, SummaryRow};
 use crate::fit::BackboneModel;
 use crate::h5util::{read_attr, AttrValue};
@@ -95,6 +96,105 @@ pub struct RunPlots {
     pub methods: Vec<MethodPlots>,
 }
 
+/// Where a run's stored results are read from: a group of an HDF5 file, or a run encoded
+/// in memory (the same layout before it reaches the file). Groups are relative to the run's
+/// group ("" for the run's own).
+pub(crate) trait StoredRun {
+    /// A string attribute.
+    fn text(&self, group: &str, name: &str) -> Option<String>;
+    /// A number attribute (NaN when absent).
+    fn number(&self, group: &str, name: &str) -> f64;
+    /// A float dataset (empty when absent).
+    fn floats(&self, group: &str, name: &str) -> Vec<f64>;
+    /// A byte dataset (empty when absent).
+    fn bytes(&self, group: &str, name: &str) -> Vec<u8>;
+    /// Whether the group exists.
+    fn has(&self, group: &str) -> bool;
+}
+
+/// A run's group in an open HDF5 file.
+struct FileRun(hdf5::Group);
+
+impl FileRun {
+    fn at(&self, group: &str) -> Option<hdf5::Group> {
+        if group.is_empty() {
+            Some(self.0.clone())
+        } else {
+            self.0.group(group).ok()
+        }
+    }
+}
+
+impl StoredRun for FileRun {
+    fn text(&self, group: &str, name: &str) -> Option<String> {
+        match read_attr(&self.at(group)?.attr(name).ok()?).ok()? {
+            AttrValue::Text(s) => Some(s),
+            _ => None,
+        }
+    }
+
+    fn number(&self, group: &str, name: &str) -> f64 {
+        let v = self
+            .at(group)
+            .and_then(|g| g.attr(name).ok())
+            .and_then(|a| read_attr(&a).ok());
+        match v {
+            Some(AttrValue::Number(x)) => x,
+            _ => f64::NAN,
+        }
+    }
+
+    fn floats(&self, group: &str, name: &str) -> Vec<f64> {
+        self.at(group)
+            .and_then(|g| g.dataset(name).and_then(|d| d.read_raw()).ok())
+            .unwrap_or_default()
+    }
+
+    fn bytes(&self, group: &str, name: &str) -> Vec<u8> {
+        self.at(group)
+            .and_then(|g| g.dataset(name).and_then(|d| d.read_raw()).ok())
+            .unwrap_or_default()
+    }
+
+    fn has(&self, group: &str) -> bool {
+        self.at(group).is_some()
+    }
+}
+
+impl StoredRun for EncodedRun {
+    fn text(&self, group: &str, name: &str) -> Option<String> {
+        match self.attr(group, name)? {
+            Scalar::Str(s) => Some(s.clone()),
+            Scalar::F64(_) => None,
+        }
+    }
+
+    fn number(&self, group: &str, name: &str) -> f64 {
+        match self.attr(group, name) {
+            Some(Scalar::F64(x)) => *x,
+            _ => f64::NAN,
+        }
+    }
+
+    fn floats(&self, group: &str, name: &str) -> Vec<f64> {
+        match self.read(group, name) {
+            Some(Decoded::F64(v)) => v,
+            _ => Vec::new(),
+        }
+    }
+
+    fn bytes(&self, group: &str, name: &str) -> Vec<u8> {
+        match self.read(group, name) {
+            Some(Decoded::U8(v)) => v,
+            _ => Vec::new(),
+        }
+    }
+
+    fn has(&self, group: &str) -> bool {
+        self.has_group(group)
+    }
+}
+
 /// Reads the plot data of the run at `group` of the results file `file` (a run's journal
 /// file or results.h5).
 pub fn read_run(file: &Path, group: &str) -> Result<RunPlots, String> {
@@ -102,77 +202,67 @@ pub fn read_run(file: &Path, group: &str) -> Result<RunPlots, String> {
     let g = f
         .group(group)
         .map_err(|e| format!("{}: {group}: {e}", file.display()))?;
-    let time: Vec<f64> = g
-        .dataset("time")
-        .and_then(|d| d.read_raw())
-        .unwrap_or_default();
-    let mut methods = Vec::new();
-    for name in ["wavelet", "hilbert"] {
-        let Ok(m) = g.group(name) else { continue };
-        methods.push(read_method(&m, name, &time));
-    }
-    Ok(RunPlots {
+    Ok(plots(&FileRun(g), group))
+}
+
+/// The plot data of a run encoded in memory, as [`read_run`] would read it from the file
+/// it is written to at `group`: the batch's workers draw the report's runs from this, so
+/// that the end of a batch does not read every drawn run back from results.h5.
+pub fn encoded_plots(run: &EncodedRun, group: &str) -> RunPlots {
+    plots(run, group)
+}
+
+fn plots(run: &dyn StoredRun, group: &str) -> RunPlots {
+    let time = run.floats("", "time");
+    let methods = ["wavelet", "hilbert"]
+        .into_iter()
+        .filter(|m| run.has(m))
+        .map(|m| read_method(run, m, &time))
+        .collect();
+    RunPlots {
         path: group.to_string(),
-        source: text_attr(&g, "source").unwrap_or_default(),
-        status: text_attr(&g, "status").unwrap_or_else(|| "failed".into()),
-        error: text_attr(&g, "error"),
+        source: run.text("", "source").unwrap_or_default(),
+        status: run.text("", "status").unwrap_or_else(|| "failed".into()),
+        error: run.text("", "error"),
         methods,
-    })
-}
-
-fn text_attr(loc: &hdf5::Location, name: &str) -> Option<String> {
-    match read_attr(&loc.attr(name).ok()?).ok()? {
-        AttrValue::Text(s) => Some(s),
-        _ => None,
     }
 }
 
-fn num_attr(loc: &hdf5::Location, name: &str) -> f64 {
-    match loc.attr(name).ok().and_then(|a| read_attr(&a).ok()) {
-        Some(AttrValue::Number(x)) => x,
-        _ => f64::NAN,
-    }
-}
-
-fn read_method(m: &hdf5::Group, name: &str, time: &[f64]) -> MethodPlots {
-    let data = |n: &str| -> Vec<f64> {
-        m.dataset(n)
-            .and_then(|d| d.read_raw::<f64>())
-            .unwrap_or_default()
+fn read_method(run: &dyn StoredRun, m: &str, time: &[f64]) -> MethodPlots {
+    let valid = run.bytes(m, "valid");
+    let (t, amplitude) = reduce(time, &run.floats(m, "response_amplitude"), &valid);
+    let (_, frequency) = reduce(time, &run.floats(m, "response_frequency"), &valid);
+    let sk = format!("{m}/skeleton");
+    let skeleton = if run.has(&sk) {
+        let col = |n: &str| run.floats(&sk, n);
+        Skeleton {
+            amplitude: col("amplitude"),
+            natural_frequency: col("natural_frequency"),
+            restoring_force: col("restoring_force"),
+            velocity_amplitude: col("velocity_amplitude"),
+            damping_force: col("damping_force"),
+        }
+    } else {
+        Skeleton::default()
     };
-    let valid: Vec<u8> = m
-        .dataset("valid")
-        .and_then(|d| d.read_raw())
-        .unwrap_or_default();
-    let (t, amplitude) = reduce(time, &data("response_amplitude"), &valid);
-    let (_, frequency) = reduce(time, &data("response_frequency"), &valid);
-    let skeleton = m
-        .group("skeleton")
-        .map(|s| {
-            let col = |n: &str| s.dataset(n).and_then(|d| d.read_raw()).unwrap_or_default();
-            Skeleton {
-                amplitude: col("amplitude"),
-                natural_frequency: col("natural_frequency"),
-                restoring_force: col("restoring_force"),
-                velocity_amplitude: col("velocity_amplitude"),
-                damping_force: col("damping_force"),
-            }
-        })
-        .unwrap_or_default();
-    let model = text_attr(m, "backbone_model").and_then(|s| BackboneModel::from_name(&s));
-    let (clearance, stiffness) = (num_attr(m, "clearance"), num_attr(m, "stiffness"));
+    let model = run
+        .text(m, "backbone_model")
+        .and_then(|s| BackboneModel::from_name(&s));
+    let (clearance, stiffness) = (run.number(m, "clearance"), run.number(m, "stiffness"));
     let fitted = model
         .filter(|_| clearance.is_finite() && stiffness.is_finite())
         .map(|model| Fitted {
             model,
             half_gap: 0.5 * clearance,
             stiffness,
-            viscous: num_attr(m, "viscous_damping"),
-            coulomb: num_attr(m, "coulomb_friction"),
+            viscous: run.number(m, "viscous_damping"),
+            coulomb: run.number(m, "coulomb_friction"),
         });
-    let error = (text_attr(m, "status").as_deref() == Some("failed"))
-        .then(|| text_attr(m, "error").unwrap_or_default());
-    let unit = text_attr(m, "clearance_units").unwrap_or_else(|| crate::units::UNKNOWN.into());
+    let error = (run.text(m, "status").as_deref() == Some("failed"))
+        .then(|| run.text(m, "error").unwrap_or_default());
+    let unit = run
+        .text(m, "clearance_units")
+        .unwrap_or_else(|| crate::units::UNKNOWN.into());
     let absolute = [
         ("k", "contact_stiffness"),
         ("c", "viscous_damping_absolute"),
@@ -180,15 +270,15 @@ fn read_method(m: &hdf5::Group, name: &str, time: &[f64]) -> MethodPlots {
     ]
     .into_iter()
     .filter_map(|(label, name)| {
-        let v = num_attr(m, name);
+        let v = run.number(m, name);
         v.is_finite().then(|| {
-            let u = text_attr(m, &format!("{name}_units")).unwrap_or_default();
+            let u = run.text(m, &format!("{name}_units")).unwrap_or_default();
             (label, v, u)
         })
     })
     .collect();
     MethodPlots {
-        method: name.to_string(),
+        method: m.to_string(),
         error,
         time: t,
         amplitude,
@@ -967,6 +1057,50 @@ window.addEventListener('load', function() {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The batch draws its report from runs in memory; the page must be what reading the
+    /// same runs back from results.h5 gives (a failed method and a failed run included).
+    #[test]
+    fn plots_of_an_encoded_run_equal_those_read_back_from_the_file() {
+        use crate::identify::{identify_on, IdentifyOptions};
+        use crate::report::{encode_run, ResultsWriter, RunOutcome};
+        let case = crate::demo::cases().remove(0);
+        let run = crate::demo::simulate_case(&case).into_run();
+        let backend = crate::backend::Backend::cpu();
+        let mut ok = RunOutcome::new("/runs/a".into(), "demo.h5".into());
+        ok.sample_rate = Some(run.meta.sample_rate);
+        ok.samples = run.output.len();
+        ok.inertia = run.meta.inertia;
+        ok.units = crate::units::Units::of(&run.meta);
+        for m in [crate::track::Method::Wavelet, crate::track::Method::Hilbert] {
+            let id = identify_on(&run, m, &IdentifyOptions::default(), &backend);
+            assert!(id.is_ok(), "{m:?} identifies the demo rig");
+            ok.methods.push((m, id.map_err(|e| e.to_string()), 1.0));
+        }
+        ok.methods[1].1 = Err("the Hilbert track failed".into());
+        let mut failed = RunOutcome::new("/runs/b".into(), "demo.h5".into());
+        failed.error = Some("no output channel".into());
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("results.h5");
+        let w = ResultsWriter::create_at(&file).unwrap();
+        let encoded: Vec<EncodedRun> = [&ok, &failed].map(encode_run).into();
+        for e in &encoded {
+            w.write_encoded(e).unwrap();
+        }
+        w.finish().unwrap();
+        for e in &encoded {
+            let from_file = read_run(&file, &e.path).unwrap();
+            let from_memory = encoded_plots(e, &e.path);
+            // Debug text compares NaN (a break in a reduced track) as equal to itself.
+            assert_eq!(format!("{from_memory:?}"), format!("{from_file:?}"));
+        }
+        let drawn = encoded_plots(&encoded[0], "/runs/a");
+        assert_eq!(drawn.methods.len(), 2);
+        assert!(
+            drawn.methods[0].fitted.is_some() && !drawn.methods[0].skeleton.amplitude.is_empty()
+        );
+        assert!(drawn.methods[1].error.is_some());
+    }
 
     #[test]
     fn reduce_averages_valid_samples_and_breaks_on_gaps() {
