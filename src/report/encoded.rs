@@ -45,7 +45,7 @@ pub enum Storage {
 }
 
 /// Element type of a dataset.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
 pub enum Elem {
     /// 64-bit float.
     F64,

@@ -795,7 +795,15 @@ pub fn render(page: &ReportPage) -> String {
             page.omitted
         );
     }
-    for (i, run) in page.runs.iter().enumerate() {
+    // The figures are drawn in parallel: at the end of a batch this is what is left.
+    let figures: Vec<Vec<String>> = {
+        use rayon::prelude::*;
+        page.runs
+            .par_iter()
+            .map(|r| r.as_ref().map(run_figures).unwrap_or_default())
+            .collect()
+    };
+    for (i, (run, figs)) in page.runs.iter().zip(figures).enumerate() {
         let _ = writeln!(body, "<section id=\"run-{i}\">");
         match run {
             Err(e) => {
@@ -819,7 +827,6 @@ pub fn render(page: &ReportPage) -> String {
                 for m in &run.methods {
                     let _ = writeln!(body, "<p>{}</p>", fitted_line(m));
                 }
-                let figs = run_figures(run);
                 if !figs.is_empty() {
                     body.push_str("<div class=\"plots\">\n");
                     for svg in &figs {
