@@ -634,16 +634,22 @@ fn encode_identification(
 /// Creates one encoded dataset in `g`: contiguous values written as usual, or the dataset
 /// created with the same chunking and filters the chunks were encoded for, then each chunk
 /// handed to libhdf5 as it is (`H5Dwrite_chunk`, no filtering under the lock).
-/// The chunked datasets' layouts written so far (element, length, deflate level), each
+/// The datasets' layouts written so far (element, length, deflate level), each
 /// with the datatype, dataspace and creation list of its first dataset, so that the next
 /// ones are created with one libhdf5 call: a run has two dozen chunked datasets of three
-/// or four layouts, and building those lists anew for each was a fifth of what creating a
-/// dataset cost the writer.
+/// or four layouts and as many small contiguous ones (skeleton columns) of a few lengths,
+/// and building those lists anew for each was a fifth of what creating a dataset cost the
+/// writer.
 struct Layouts {
     /// Link creation as the binding's dataset builder sets it.
     lcpl: hdf5::plist::LinkCreate,
+    /// The memory type of float data.
+    native_f64: hdf5::Datatype,
     seen: std::sync::Mutex<std::collections::HashMap<(Elem, usize, u8), Layout>>,
 }
+
+/// The deflate level that marks a contiguous (uncompressed) layout in [`Layouts`].
+const PLAIN: u8 = u8::MAX;
 
 /// Datatype, dataspace and creation list of one layout.
 type Layout = (hdf5::Datatype, hdf5::Dataspace, hdf5::plist::DatasetCreate);
@@ -654,6 +660,7 @@ impl Layouts {
             lcpl: hdf5::plist::LinkCreate::build()
                 .create_intermediate_group(true)
                 .finish()?,
+            native_f64: hdf5::Datatype::from_type::<f64>()?,
             seen: std::sync::Mutex::new(std::collections::HashMap::new()),
         })
     }
@@ -690,6 +697,25 @@ impl Layouts {
         unsafe { hdf5::from_id::<hdf5::Dataset>(id) }.map(Some)
     }
 
+    /// Writes all of `v` into the float dataset `ds`.
+    fn write_all(&self, ds: &hdf5::Dataset, v: &[f64]) -> hdf5::Result<()> {
+        use hdf5_sys::h5s::H5S_ALL;
+        let status = hdf5::sync::sync(|| unsafe {
+            hdf5_sys::h5d::H5Dwrite(
+                ds.id(),
+                self.native_f64.id(),
+                H5S_ALL,
+                H5S_ALL,
+                hdf5_sys::h5p::H5P_DEFAULT,
+                v.as_ptr().cast(),
+            )
+        });
+        if status < 0 {
+            return Err(hdf5::Error::from(format!("cannot write {}", ds.name())));
+        }
+        Ok(())
+    }
+
     /// Remembers the layout of `ds`, the first dataset of `key`.
     fn remember(&self, key: (Elem, usize, u8), ds: &hdf5::Dataset) -> hdf5::Result<()> {
         let layout = (ds.dtype()?, ds.space()?, ds.create_plist()?);
@@ -708,7 +734,18 @@ fn write_dataset(
 ) -> hdf5::Result<hdf5::Dataset> {
     let (level, chunks) = match &d.storage {
         Storage::Plain(v) => {
-            return g.new_dataset_builder().with_data(v).create(d.name.as_str());
+            // Contiguous float datasets are keyed by length with an impossible level.
+            let key = (Elem::F64, v.len(), PLAIN);
+            if let Some(ds) = layouts.create_like(g, &d.name, key)? {
+                layouts.write_all(&ds, v)?;
+                return Ok(ds);
+            }
+            let ds = g
+                .new_dataset_builder()
+                .with_data(v)
+                .create(d.name.as_str())?;
+            layouts.remember(key, &ds)?;
+            return Ok(ds);
         }
         Storage::Chunked { level, chunks } => (*level, chunks),
     };
@@ -1083,6 +1120,16 @@ mod tests {
                 "{name}"
             );
         }
+        assert_eq!(
+            format!("{:?}", layout("/runs/a/wavelet/skeleton/amplitude")),
+            format!("{:?}", layout("/runs/b/wavelet/skeleton/amplitude"))
+        );
+        let plain: Vec<f64> = f
+            .dataset("/runs/b/wavelet/skeleton/amplitude")
+            .unwrap()
+            .read_raw()
+            .unwrap();
+        assert_eq!(plain, x[..12].iter().map(|a| a * 2.0).collect::<Vec<_>>());
         let (chunk, _, _, filters) = layout("/runs/b/wavelet/response_amplitude");
         assert_eq!(chunk, Some(vec![encoded::CHUNK]));
         assert_eq!(filters.len(), 2, "shuffle and deflate: {filters:?}");
