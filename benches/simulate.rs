@@ -7,7 +7,7 @@ use skelid::simulate::{simulate, Drive, SimSettings};
 fn bench(c: &mut Criterion) {
     let mut m = RigModel::paper();
     m.effects.set(EffectKind::CoulombFriction, Some(2.5));
-    let drive = Drive::Base(skelid::demo::paper_chirp());
+    let drive = Drive::Base(skelid::rig::paper_chirp());
     let s = SimSettings::default();
     c.bench_function("simulate paper run 30 s @ 1 kHz", |b| {
         b.iter(|| simulate(&m, &drive, &s))

@@ -7,7 +7,7 @@
 use std::path::{Path, PathBuf};
 
 use crate::h5util::{write_f64_attr, write_str_attr};
-use crate::ingest::{Quantity, RunKind};
+use crate::run::{Quantity, RunKind};
 
 /// Format string stored in the root attribute `format`.
 pub const CAMPAIGN_FORMAT: &str = "skelid-campaign/1";
@@ -45,7 +45,7 @@ pub struct RunData {
 impl RunData {
     /// The run as ingest would read it back from an archive, without the round trip
     /// through a file (the inertia and gravity stiffness taken from the attributes).
-    pub fn into_run(self) -> crate::ingest::Run {
+    pub fn into_run(self) -> crate::run::Run {
         let num = |name: &str| {
             self.attrs.iter().find_map(|(k, v)| match v {
                 Attr::Num(x) if k == name => Some(*x),
@@ -64,8 +64,8 @@ impl RunData {
             })
             .collect();
         let n = self.output.len();
-        crate::ingest::Run {
-            meta: crate::ingest::RunMeta {
+        crate::run::Run {
+            meta: crate::run::RunMeta {
                 path: self.path.clone(),
                 samples: n,
                 sample_rate: self.sample_rate,

@@ -6,7 +6,7 @@ use std::f64::consts::PI;
 use crate::backend::Backend;
 use crate::fit::{self, Bin, DeadZoneFit, Estimate, Sample};
 use crate::forcevib::{self, Modal};
-use crate::ingest::{Quantity, Run, RunKind};
+use crate::run::{Quantity, Run, RunKind};
 use crate::track::{
     default_band, track_hilbert, HilbertOptions, Method, Track, TrackError, WaveletOptions,
 };
@@ -246,18 +246,9 @@ thread_local! {
     static TRACKED: std::cell::Cell<std::time::Duration> = const { std::cell::Cell::new(std::time::Duration::ZERO) };
 }
 
-/// Identifies one loaded run with one method (transforms on the CPU).
-pub fn identify(
-    run: &Run,
-    method: Method,
-    opt: &IdentifyOptions,
-) -> Result<Identification, IdentifyError> {
-    identify_on(run, method, opt, &Backend::cpu())
-}
-
 /// Identifies one loaded run with one method, the wavelet transform's first pass on
-/// `backend`.
-pub fn identify_on(
+/// `backend` (chosen once, by the caller: see [`crate::backend`]).
+pub fn identify(
     run: &Run,
     method: Method,
     opt: &IdentifyOptions,
@@ -268,23 +259,42 @@ pub fn identify_on(
 
 /// Identifies a base-motion run whose input channel was already tracked (`input`): a
 /// simulation driven by a measured input needs only its response tracked, which halves the
-/// cost of each gap evaluation (CPU transforms).
+/// cost of each gap evaluation.
 pub fn identify_with_input_track(
     run: &Run,
     method: Method,
     opt: &IdentifyOptions,
+    backend: &Backend,
     input: &Track,
 ) -> Result<Identification, IdentifyError> {
-    let backend = Backend::cpu();
-    identify_inner(
-        run,
-        method,
-        &Ctx {
-            opt,
-            backend: &backend,
-        },
-        Some(input),
-    )
+    identify_inner(run, method, &Ctx { opt, backend }, Some(input))
+}
+
+/// The user's identification options and the backend, handed together to the stages that
+/// identify runs of their own (the gap's simulations, the refinement).
+#[derive(Clone, Copy)]
+pub struct Identifier<'a> {
+    /// Options, as the user gave them.
+    pub options: &'a IdentifyOptions,
+    /// Where the wavelet transform's first pass runs.
+    pub backend: &'a Backend,
+}
+
+impl Identifier<'_> {
+    /// [`identify`] with these options and backend.
+    pub fn identify(&self, run: &Run, method: Method) -> Result<Identification, IdentifyError> {
+        identify(run, method, self.options, self.backend)
+    }
+
+    /// [`identify_with_input_track`] with these options and backend.
+    pub fn identify_with_input_track(
+        &self,
+        run: &Run,
+        method: Method,
+        input: &Track,
+    ) -> Result<Identification, IdentifyError> {
+        identify_with_input_track(run, method, self.options, self.backend, input)
+    }
 }
 
 fn identify_inner(

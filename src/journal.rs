@@ -13,9 +13,9 @@
 use std::path::{Path, PathBuf};
 
 use crate::identify::IdentifyOptions;
-use crate::ingest::Run;
 use crate::report::encoded::EncodedRun;
 use crate::report::{encode_run, summary_rows, ReportError, ResultsWriter, RunOutcome, SummaryRow};
+use crate::run::Run;
 use crate::track::Method;
 
 /// Folder of the committed runs inside the output folder.

@@ -32,6 +32,8 @@ pub mod quality;
 pub mod refine;
 pub mod report;
 pub mod ridge;
+pub mod rig;
+pub mod run;
 pub mod simulate;
 pub mod skeleton;
 pub mod track;

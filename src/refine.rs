@@ -19,8 +19,9 @@ use std::time::Instant;
 use crate::fit::Estimate;
 use crate::gap::search::{effect_start, refit_with, Reference};
 use crate::gap::{Blocks, GapError};
-use crate::ingest::{Run, RunKind};
+use crate::identify::Identifier;
 use crate::model::{EffectKind, RigModel};
+use crate::run::{Run, RunKind};
 
 /// Simulations per half (each of the two fits) by default.
 pub const EVALUATIONS: usize = 150;
@@ -90,8 +91,13 @@ impl Refined {
 }
 
 /// Refines the skeleton identification of a base-motion `run` with `evaluations`
-/// simulations per half (see the module's doc).
-pub fn refine(run: &Run, evaluations: usize) -> Result<Refined, GapError> {
+/// simulations per half (see the module's doc), the run and the simulations identified by
+/// `identifier`.
+pub fn refine(
+    run: &Run,
+    evaluations: usize,
+    identifier: Identifier<'_>,
+) -> Result<Refined, GapError> {
     if run.meta.kind != RunKind::BaseMotion {
         return Err(GapError::Unusable(format!(
             "--refine simulates base-motion runs; this one is a {} run",
@@ -101,8 +107,8 @@ pub fn refine(run: &Run, evaluations: usize) -> Result<Refined, GapError> {
     let t0 = Instant::now();
     let blocks = Blocks { seconds: 1.0 };
     let (even, odd) = rayon::join(
-        || Reference::new(run, blocks),
-        || Reference::new(run, blocks).map(Reference::swapped),
+        || Reference::new(run, blocks, identifier),
+        || Reference::new(run, blocks, identifier).map(Reference::swapped),
     );
     let (even, odd) = (even?, odd?);
     let start = start_model(&even)?;

@@ -6,7 +6,7 @@
 //! in (integrated to a displacement), so this module only *names* units. Where the archive
 //! states none, the displacement unit is written `u` and everything else is expressed in it.
 
-use crate::ingest::{Quantity, RunKind, RunMeta};
+use crate::run::{Quantity, RunKind, RunMeta};
 
 /// Placeholder for a displacement unit that the archive does not state.
 pub const UNKNOWN: &str = "u";

@@ -10,10 +10,10 @@
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-use crate::demo::{demo_effect_value, paper_chirp, run_data};
-use crate::identify::{identify, IdentifyOptions};
+use crate::identify::Identifier;
 use crate::model::{EffectKind, RigModel};
 use crate::refine::{refine, Refined};
+use crate::rig::{effect_value, paper_chirp, run_data};
 use crate::simulate::{simulate, Drive, Excitation, SimSettings};
 use crate::track::Method;
 
@@ -71,7 +71,7 @@ pub fn rigs(n: usize, seed: u64) -> Vec<Rig> {
             truth.effects.set(EffectKind::Quantization, Some(step));
             if let Some(e) = effect {
                 let factor = rng.random_range(0.5..2.0);
-                truth.effects.set(e, Some(demo_effect_value(e) * factor));
+                truth.effects.set(e, Some(effect_value(e) * factor));
             }
             Rig {
                 index,
@@ -105,8 +105,9 @@ pub struct Outcome {
 }
 
 /// Simulates `rig` (30 s at 1 kHz under the paper's chirp at the rig's level), identifies
-/// it blind with both methods and refines it with `evaluations` simulations per half.
-pub fn run_rig(rig: &Rig, evaluations: usize) -> Outcome {
+/// it blind with both methods (by `identifier`) and refines it with `evaluations`
+/// simulations per half.
+pub fn run_rig(rig: &Rig, evaluations: usize, identifier: Identifier<'_>) -> Outcome {
     let Excitation::Chirp {
         f0,
         f1,
@@ -153,11 +154,11 @@ pub fn run_rig(rig: &Rig, evaluations: usize) -> Outcome {
     let c_true = rig.truth.clearance;
     let errors = |c: f64, k: f64| (c / c_true - 1.0, k / k_true - 1.0);
     let skeleton = |m: Method| {
-        let id = identify(&run, m, &IdentifyOptions::default()).ok()?;
+        let id = identifier.identify(&run, m).ok()?;
         let dz = id.dead_zone?;
         Some(errors(2.0 * dz.half_gap.value, dz.stiffness.value))
     };
-    let refinement = refine(&run, evaluations).map_err(|e| e.to_string());
+    let refinement = refine(&run, evaluations, identifier).map_err(|e| e.to_string());
     Outcome {
         rig: rig.clone(),
         wavelet: skeleton(Method::Wavelet),

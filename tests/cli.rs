@@ -130,7 +130,7 @@ fn demo_writes_the_campaign_with_its_truth_and_lists_it() {
         let g = f.group(&format!("demo/effects/{}", kind.name())).unwrap();
         let attr = format!("true_{}_{}", kind.name(), kind.param());
         let v: f64 = g.attr(&attr).unwrap().read_scalar().unwrap();
-        assert_eq!(v, skelid::demo::demo_effect_value(kind), "{attr}");
+        assert_eq!(v, skelid::rig::effect_value(kind), "{attr}");
     }
     // The jump-down of the paper's run: relative motion collapses between 15 and 20 s.
     let x: Vec<f64> = g_read(&f, "demo/paper_rig/input");
@@ -192,7 +192,7 @@ fn check_results(path: &std::path::Path, run: &str, has_input: bool) {
 fn run_records_failed_runs_with_their_error() {
     let d = tmpdir();
     let archive = d.path().join("mixed.h5");
-    let good = skelid::demo::simulate_case(
+    let good = skelid::rig::simulate_case(
         skelid::demo::cases()
             .iter()
             .find(|c| c.path == "/demo/force_oscillator")

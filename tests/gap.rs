@@ -4,16 +4,25 @@
 //! or damping shows a gap tens of times larger, in the domain the parameter governs among
 //! others (a wrong stiffness also moves the jump-down, which the time domain sees first).
 
-use skelid::demo::{cases, simulate_case};
+use skelid::backend::Backend;
+use skelid::demo::cases;
 use skelid::gap::{gap, simulate_like, Simulated};
-use skelid::identify::{identify, Identification, IdentifyOptions};
-use skelid::ingest::Run;
+use skelid::identify::{Identification, Identifier, IdentifyOptions};
 use skelid::model::RigModel;
+use skelid::rig::simulate_case;
+use skelid::run::Run;
 use skelid::simulate::Excitation;
 use skelid::track::Method;
 
+/// Default options on the CPU, as `skelid gap` identifies.
+fn identifier() -> Identifier<'static> {
+    static ENGINE: std::sync::OnceLock<(IdentifyOptions, Backend)> = std::sync::OnceLock::new();
+    let (options, backend) = ENGINE.get_or_init(|| (IdentifyOptions::default(), Backend::cpu()));
+    Identifier { options, backend }
+}
+
 fn identified(r: &Run) -> Identification {
-    identify(r, Method::Wavelet, &IdentifyOptions::default()).unwrap()
+    identifier().identify(r, Method::Wavelet).unwrap()
 }
 
 /// The demo's paper rig (friction included, encoder noise on) as a measured run: its true
@@ -30,7 +39,7 @@ fn paper_rig() -> (RigModel, Run, Identification) {
 
 /// The model simulated under the measured run's input, identified.
 fn simulated(measured: &Run, model: &RigModel) -> Simulated {
-    simulate_like(measured, model).unwrap()
+    simulate_like(measured, model, identifier()).unwrap()
 }
 
 #[test]
@@ -86,7 +95,7 @@ fn the_baseline_refit_recovers_mis_set_parameters() {
     let mut nominal = truth.clone();
     nominal.stiffness *= 1.2;
     nominal.clearance *= 0.85;
-    let reference = Reference::new(&measured, Blocks { seconds: 1.0 }).unwrap();
+    let reference = Reference::new(&measured, Blocks { seconds: 1.0 }, identifier()).unwrap();
     let nominal_score = reference.score(&nominal);
     let opt = SearchOptions {
         baseline_evaluations: 120,
@@ -130,7 +139,7 @@ fn the_missing_friction_is_named_and_a_complete_model_gets_no_verdict() {
     use skelid::gap::{diagnose, Blocks, SearchOptions};
     use skelid::model::EffectKind;
     let (truth, measured, _) = paper_rig();
-    let reference = Reference::new(&measured, Blocks { seconds: 1.0 }).unwrap();
+    let reference = Reference::new(&measured, Blocks { seconds: 1.0 }, identifier()).unwrap();
     let opt = SearchOptions {
         baseline_evaluations: 100,
         candidate_evaluations: 40,
@@ -209,7 +218,7 @@ fn a_coarse_encoder_is_read_off_the_samples_and_named() {
         effects: vec![EffectKind::CoulombFriction, EffectKind::Quantization],
         ..SearchOptions::default()
     };
-    let reference = Reference::new(&measured, Blocks { seconds: 1.0 }).unwrap();
+    let reference = Reference::new(&measured, Blocks { seconds: 1.0 }, identifier()).unwrap();
     let d = diagnose(&reference, &without, &opt).unwrap();
     let named = &d.candidates[d.verdict.expect("a verdict")];
     println!(
@@ -223,15 +232,15 @@ fn a_coarse_encoder_is_read_off_the_samples_and_named() {
     assert!((named.effects[0].1 / q - 1.0).abs() < 1e-9);
     assert!(named.shrink > 0.5);
     let (_, clean, _) = paper_rig();
-    let reference = Reference::new(&clean, Blocks { seconds: 1.0 }).unwrap();
+    let reference = Reference::new(&clean, Blocks { seconds: 1.0 }, identifier()).unwrap();
     assert_eq!(reference.resolution, 0.0);
 }
 
 #[test]
 fn two_levels_map_the_skeleton_far_enough_to_read_a_hardening_off_its_backbone() {
-    use skelid::demo::{paper_chirp, two_level_chirp, DemoCase, SECOND_LEVEL};
     use skelid::gap::search::effect_start;
     use skelid::model::EffectKind;
+    use skelid::rig::{paper_chirp, two_level_chirp, RigCase, SECOND_LEVEL};
     use skelid::simulate::Drive;
     // The drive: 3 to 9 Hz twice, the second at 1.75 times the first, starting and ending
     // at rest.
@@ -257,7 +266,7 @@ fn two_levels_map_the_skeleton_far_enough_to_read_a_hardening_off_its_backbone()
     nominal.stiffness *= 1.03;
     nominal.clearance *= 1.02;
     let span = |drive: Excitation| {
-        let run = simulate_case(&DemoCase {
+        let run = simulate_case(&RigCase {
             path: "/hardening".into(),
             model: truth.clone(),
             drive: Drive::Base(drive),

@@ -1,21 +1,23 @@
 //! Identification against simulated rigs with known parameters (seeds fixed, encoder noise
 //! on). Each test prints what it measured.
 
-use skelid::demo::{cases, simulate_case, DemoCase};
+use skelid::backend::Backend;
+use skelid::demo::cases;
 use skelid::fit::{dead_zone_ratio, BackboneModel};
-use skelid::identify::{identify, Identification, IdentifyOptions};
-use skelid::ingest::{Run, RunMeta};
+use skelid::identify::{identify, Identification, Identifier, IdentifyOptions};
 use skelid::model::RigModel;
+use skelid::rig::{simulate_case, RigCase};
+use skelid::run::{Run, RunMeta};
 use skelid::track::Method;
 
-fn case(path: &str) -> DemoCase {
+fn case(path: &str) -> RigCase {
     cases()
         .into_iter()
         .find(|c| c.path == path)
         .expect("demo case")
 }
 
-fn run_of(c: &DemoCase, inertia: Option<f64>) -> Run {
+fn run_of(c: &RigCase, inertia: Option<f64>) -> Run {
     let rd = simulate_case(c);
     let n = rd.output.len();
     Run {
@@ -41,8 +43,8 @@ fn run_of(c: &DemoCase, inertia: Option<f64>) -> Run {
 fn both(run: &Run) -> (Identification, Option<Identification>) {
     let o = IdentifyOptions::default();
     (
-        identify(run, Method::Wavelet, &o).expect("wavelet identification"),
-        identify(run, Method::Hilbert, &o).ok(),
+        identify(run, Method::Wavelet, &o, &Backend::cpu()).expect("wavelet identification"),
+        identify(run, Method::Hilbert, &o, &Backend::cpu()).ok(),
     )
 }
 
@@ -158,7 +160,7 @@ fn near_gap_free_decay_follows_the_periodic_orbit() {
             backbone: Some(b),
             ..Default::default()
         };
-        identify(&run, Method::Wavelet, &o).unwrap()
+        identify(&run, Method::Wavelet, &o, &Backend::cpu()).unwrap()
     };
     let orbit = fit(BackboneModel::PeriodicOrbit);
     let df = fit(BackboneModel::DescribingFunction);
@@ -243,7 +245,12 @@ fn validation_rigs_are_refined_closer_to_the_truth_than_the_skeleton_reads_them(
     // and 5 % of the truth on each.
     let rigs = skelid::validate::rigs(3, 20);
     for rig in [&rigs[0], &rigs[2]] {
-        let o = skelid::validate::run_rig(rig, 100);
+        let (options, cpu) = (IdentifyOptions::default(), Backend::cpu());
+        let identifier = Identifier {
+            options: &options,
+            backend: &cpu,
+        };
+        let o = skelid::validate::run_rig(rig, 100, identifier);
         println!(
             "rig {} {:?}: wavelet {:?}, refined {:?}",
             rig.index, rig.effect, o.wavelet, o.refined

@@ -6,7 +6,7 @@ use skelid::model::{EffectKind, RigModel};
 use skelid::simulate::{mechanical_energy, simulate, Drive, Excitation, Rolloff, SimSettings};
 
 fn chirp() -> Excitation {
-    skelid::demo::paper_chirp()
+    skelid::rig::paper_chirp()
 }
 
 fn settings(duration: f64, substeps: usize) -> SimSettings {

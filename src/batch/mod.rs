@@ -21,7 +21,7 @@ use rayon::prelude::*;
 pub mod reader;
 
 use crate::backend::Backend;
-use crate::identify::{identify_on, IdentifyOptions};
+use crate::identify::{identify, IdentifyOptions};
 use crate::ingest::IngestOptions;
 use crate::journal::{
     failed_key, placements, results_group, run_key, settings_fingerprint, settings_record, Entry,
@@ -472,7 +472,7 @@ fn run_plots(run: &crate::report::encoded::EncodedRun) -> RunPlots {
 fn identify_run(
     source: String,
     path: String,
-    run: Result<crate::ingest::Run, String>,
+    run: Result<crate::run::Run, String>,
     opt: &BatchOptions<'_>,
 ) -> RunOutcome {
     let mut outcome = RunOutcome::new(path, source);
@@ -493,9 +493,17 @@ fn identify_run(
             }
             // Base-motion runs only: the others have no model to simulate yet.
             if let Some(n) = opt.identify.refine {
-                if run.meta.kind == crate::ingest::RunKind::BaseMotion {
+                if run.meta.kind == crate::run::RunKind::BaseMotion {
+                    // The refinement's simulations are identified one after another, each
+                    // waiting on the last: a GPU's batching gains nothing there, and its
+                    // gathering window would be added to each, so they run on the CPU.
+                    let cpu = Backend::cpu();
+                    let identifier = crate::identify::Identifier {
+                        options: &opt.identify,
+                        backend: &cpu,
+                    };
                     outcome.refined =
-                        Some(crate::refine::refine(&run, n).map_err(|e| e.to_string()));
+                        Some(crate::refine::refine(&run, n, identifier).map_err(|e| e.to_string()));
                 }
             }
         }
@@ -672,12 +680,12 @@ fn place_runs(
 
 /// One method on one run, with a panic inside any stage turned into that run's error.
 fn identify_guarded(
-    run: &crate::ingest::Run,
+    run: &crate::run::Run,
     method: Method,
     options: &IdentifyOptions,
     backend: &Backend,
 ) -> Result<crate::identify::Identification, String> {
-    guarded(|| identify_on(run, method, options, backend).map_err(|e| e.to_string()))
+    guarded(|| identify(run, method, options, backend).map_err(|e| e.to_string()))
 }
 
 /// Runs `f`, turning a panic into an error that names it.

@@ -27,7 +27,7 @@ pub(crate) struct IngestArgs {
     /// Kind of every run, overriding `kind` attributes: base-motion (input = base
     /// displacement), force (input = force on the mass) or free (decay, no input).
     #[arg(long, value_name = "KIND", value_parser = parse_kind)]
-    pub(crate) kind: Option<skelid::ingest::RunKind>,
+    pub(crate) kind: Option<skelid::run::RunKind>,
     /// Inertia of every run (kg m² for a rotary rig, kg for a linear one), overriding
     /// `inertia` attributes; gives the absolute stiffness, damping and friction.
     #[arg(long, value_name = "J")]
@@ -35,20 +35,19 @@ pub(crate) struct IngestArgs {
     /// What every run's input measures (displacement, velocity, acceleration, force),
     /// overriding `input_quantity` attributes.
     #[arg(long, value_name = "QUANTITY", value_parser = parse_quantity)]
-    pub(crate) input_quantity: Option<skelid::ingest::Quantity>,
+    pub(crate) input_quantity: Option<skelid::run::Quantity>,
     /// What every run's output measures (displacement, velocity, acceleration), overriding
     /// `output_quantity` attributes.
     #[arg(long, value_name = "QUANTITY", value_parser = parse_quantity)]
-    pub(crate) output_quantity: Option<skelid::ingest::Quantity>,
+    pub(crate) output_quantity: Option<skelid::run::Quantity>,
 }
 
-pub(crate) fn parse_kind(s: &str) -> Result<skelid::ingest::RunKind, String> {
-    skelid::ingest::RunKind::parse(s)
-        .ok_or_else(|| format!("{s:?}: use base-motion, force or free"))
+pub(crate) fn parse_kind(s: &str) -> Result<skelid::run::RunKind, String> {
+    skelid::run::RunKind::parse(s).ok_or_else(|| format!("{s:?}: use base-motion, force or free"))
 }
 
-pub(crate) fn parse_quantity(s: &str) -> Result<skelid::ingest::Quantity, String> {
-    skelid::ingest::Quantity::parse(s)
+pub(crate) fn parse_quantity(s: &str) -> Result<skelid::run::Quantity, String> {
+    skelid::run::Quantity::parse(s)
         .ok_or_else(|| format!("{s:?}: use displacement, velocity, acceleration or force"))
 }
 

@@ -128,8 +128,8 @@ pub(crate) fn gap_search_options(a: &GapArgs) -> Result<skelid::gap::SearchOptio
 
 pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     use skelid::gap::search::Reference;
-    use skelid::ingest::RunKind;
     use skelid::report::gap as out;
+    use skelid::run::RunKind;
     let opt = gap_search_options(&a)?;
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create the output folder {}", a.out.display()))?;
@@ -238,7 +238,18 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
             .collect();
         bar.set_message(parts.join(", "));
     };
-    let diagnose_one = |(i, meta): (usize, &skelid::ingest::RunMeta)| -> Result<()> {
+    // The gap identifies the measurement and every simulation with the default options on
+    // the CPU: its simulations are identified one after another, where a GPU's batching
+    // gains nothing (the library takes both from here; the CLI does not offer them yet).
+    let (options, cpu) = (
+        skelid::identify::IdentifyOptions::default(),
+        skelid::backend::Backend::cpu(),
+    );
+    let identifier = skelid::identify::Identifier {
+        options: &options,
+        backend: &cpu,
+    };
+    let diagnose_one = |(i, meta): (usize, &skelid::run::RunMeta)| -> Result<()> {
         say(
             &bar,
             format!(
@@ -258,7 +269,7 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
         };
         let result = (|| -> Result<out::GapRun> {
             let run = archive.load(meta)?;
-            let reference = Reference::new(&run, opt.blocks)?.on_score(progress);
+            let reference = Reference::new(&run, opt.blocks, identifier)?.on_score(progress);
             let d = skelid::gap::diagnose(&reference, &model, &opt)?;
             Ok(out::GapRun::new(&reference, d)?)
         })();
@@ -390,8 +401,16 @@ pub(crate) fn gap_self_check(a: &GapArgs, opt: &skelid::gap::SearchOptions) -> R
     let mut outcomes = Vec::new();
     let mut errors = Vec::new();
     let mut lines = Vec::new();
+    let (options, cpu) = (
+        skelid::identify::IdentifyOptions::default(),
+        skelid::backend::Backend::cpu(),
+    );
+    let identifier = skelid::identify::Identifier {
+        options: &options,
+        backend: &cpu,
+    };
     for c in &cases {
-        match selfcheck::run_case(c, opt, sweep) {
+        match selfcheck::run_case(c, opt, sweep, identifier) {
             Ok(o) => {
                 let line = format!(
                     "case {:>3}: {:<22} {:>10.4e} → {:<22} {}",

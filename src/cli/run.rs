@@ -146,7 +146,7 @@ pub(crate) fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
     let runs: Vec<RunData> = cases
         .par_iter()
         .map(|c| {
-            let r = demo::simulate_case(c);
+            let r = skelid::rig::simulate_case(c);
             bar.inc(1);
             r
         })

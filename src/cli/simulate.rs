@@ -3,7 +3,6 @@
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use skelid::campaign::{write_campaign, Attr};
-use skelid::demo;
 use skelid::ingest::{Archive, IngestOptions};
 use skelid::model::RigModel;
 use skelid::simulate::{simulate, Drive, Excitation, Rolloff, SimSettings};
@@ -162,7 +161,7 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<()> {
     let events = sim.events;
     let samples = sim.time.len();
     let description = format!("skelid simulate of {}", a.model.display());
-    let run = demo::run_data(&a.run_path, &model, &drive, sim, fs, &description);
+    let run = skelid::rig::run_data(&a.run_path, &model, &drive, sim, fs, &description);
     let root = vec![(
         "generator".to_string(),
         Attr::Text(format!("skelid {}", env!("CARGO_PKG_VERSION"))),

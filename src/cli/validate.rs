@@ -60,8 +60,17 @@ pub fn run(a: ValidateArgs) -> Result<ExitCode> {
     };
     let mut outcomes = Vec::new();
     let mut lines = Vec::new();
+    // Blind identification as `skelid run` does it by default, on the CPU.
+    let (options, cpu) = (
+        skelid::identify::IdentifyOptions::default(),
+        skelid::backend::Backend::cpu(),
+    );
+    let identifier = skelid::identify::Identifier {
+        options: &options,
+        backend: &cpu,
+    };
     for rig in &drawn {
-        let o = run_rig(rig, a.evaluations);
+        let o = run_rig(rig, a.evaluations, identifier);
         let line = format!(
             "rig {:>3} {:<18} {:>2} bit  clearance / k/J error: wavelet {}  hilbert {}  refined {}{}",
             rig.index,

@@ -31,9 +31,9 @@
 pub mod search;
 pub mod selfcheck;
 
-use crate::identify::{identify, identify_with_input_track, Identification, IdentifyOptions};
-use crate::ingest::Run;
+use crate::identify::{Identification, Identifier, IdentifyOptions};
 use crate::model::RigModel;
+use crate::run::Run;
 use crate::simulate::{simulate, Drive, Excitation, SimSettings, MEASURED_INPUT_CUTOFF};
 use crate::track::Method;
 
@@ -205,7 +205,7 @@ impl Features {
 /// The relative motion z = y − x of a base-motion run whose channels are displacements
 /// (`None` otherwise: an integrated velocity or acceleration has lost its mean).
 fn relative_motion(run: &Run) -> Option<Vec<f64>> {
-    use crate::ingest::{Quantity, RunKind};
+    use crate::run::{Quantity, RunKind};
     let x = run.input.as_ref()?;
     let displacement = run.meta.output_quantity == Quantity::Displacement
         && run.meta.input_quantity.unwrap_or_default() == Quantity::Displacement;
@@ -250,7 +250,7 @@ pub const LATTICE_SHARE: f64 = 0.99;
 /// input too (the joint's relative motion is their difference).
 fn response_channels(run: &Run) -> Vec<&[f64]> {
     let mut ch = vec![run.output.as_slice()];
-    if run.meta.kind == crate::ingest::RunKind::BaseMotion {
+    if run.meta.kind == crate::run::RunKind::BaseMotion {
         ch.extend(run.input.as_deref());
     }
     ch
@@ -824,8 +824,12 @@ impl Simulated {
 }
 
 /// The model simulated under `measured`'s own input, identified like the measurement.
-pub fn simulate_like(measured: &Run, model: &RigModel) -> Result<Simulated, GapError> {
-    simulate_given(measured, None, model, 1)
+pub fn simulate_like(
+    measured: &Run,
+    model: &RigModel,
+    identifier: Identifier<'_>,
+) -> Result<Simulated, GapError> {
+    simulate_given(measured, None, model, 1, identifier)
 }
 
 /// Samples per cycle of the highest tracked frequency that a run decimated for the search
@@ -882,6 +886,7 @@ pub fn simulate_given(
     identified: Option<&Identification>,
     model: &RigModel,
     factor: usize,
+    identifier: Identifier<'_>,
 ) -> Result<Simulated, GapError> {
     let input = measured.input.as_ref().ok_or_else(|| {
         GapError::Unusable("the run has no input channel to drive the model with".into())
@@ -914,10 +919,9 @@ pub fn simulate_given(
         output: out.output,
     };
     let run = decimate(run, factor);
-    let opt = IdentifyOptions::default();
     let identified = match identified.and_then(|i| i.input.as_ref()) {
-        Some(tx) => identify_with_input_track(&run, Method::Wavelet, &opt, tx),
-        None => identify(&run, Method::Wavelet, &opt),
+        Some(tx) => identifier.identify_with_input_track(&run, Method::Wavelet, tx),
+        None => identifier.identify(&run, Method::Wavelet),
     }
     .map_err(|e| GapError::Simulated(e.to_string()))?;
     Ok(Simulated {
@@ -1023,7 +1027,7 @@ mod tests {
 
     #[test]
     fn a_base_motion_run_counts_both_channels_and_a_model_matches_it() {
-        use crate::ingest::{Quantity, RunKind, RunMeta};
+        use crate::run::{Quantity, RunKind, RunMeta};
         let q = 2e-4;
         let y: Vec<f64> = noisy_sine(3000, 1e-4)
             .iter()

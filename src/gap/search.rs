@@ -22,9 +22,9 @@ use super::{
     decimate, decimation_for, measured_resolution, resolution_per_step, simulate_given, Blocks,
     Gap, GapError, Part, Target,
 };
-use crate::identify::{identify, Identification, IdentifyOptions};
-use crate::ingest::Run;
+use crate::identify::{Identification, Identifier, IdentifyOptions};
 use crate::model::{EffectKind, RigModel};
+use crate::run::Run;
 use crate::track::Method;
 
 /// A candidate's held-out shrink must reach this for a verdict: in the self-check's
@@ -113,12 +113,15 @@ pub struct Reference<'a> {
     whole: Target,
     evaluations: AtomicUsize,
     on_score: Option<Box<dyn Fn(usize) + Send + Sync + 'a>>,
+    /// How the measurement and every simulation are identified.
+    identifier: Identifier<'a>,
 }
 
 impl<'a> Reference<'a> {
-    /// Identifies `run` (wavelet method), decimated as far as its band allows, and splits
-    /// it into `blocks`.
-    pub fn new(run: &'a Run, blocks: Blocks) -> Result<Self, GapError> {
+    /// Identifies `run` (wavelet method, with `identifier`'s options and backend, as every
+    /// simulation will be), decimated as far as its band allows, and splits it into
+    /// `blocks`.
+    pub fn new(run: &'a Run, blocks: Blocks, identifier: Identifier<'a>) -> Result<Self, GapError> {
         if run.input.is_none() {
             return Err(GapError::Unusable(
                 "the run has no input channel to drive the model with (a free decay cannot be \
@@ -126,13 +129,16 @@ impl<'a> Reference<'a> {
                     .into(),
             ));
         }
-        let opt = IdentifyOptions::default();
         let unusable = |e| GapError::Unusable(format!("the measured run: {e}"));
-        let full = identify(run, Method::Wavelet, &opt).map_err(unusable)?;
+        let full = identifier
+            .identify(run, Method::Wavelet)
+            .map_err(unusable)?;
         let factor = decimation_for(&full);
         let compared = decimate(run.clone(), factor);
         let identified = if factor > 1 {
-            identify(&compared, Method::Wavelet, &opt).map_err(unusable)?
+            identifier
+                .identify(&compared, Method::Wavelet)
+                .map_err(unusable)?
         } else {
             full
         };
@@ -150,6 +156,7 @@ impl<'a> Reference<'a> {
             identified,
             evaluations: AtomicUsize::new(0),
             on_score: None,
+            identifier,
         })
     }
 
@@ -173,7 +180,13 @@ impl<'a> Reference<'a> {
         if let Some(f) = &self.on_score {
             f(n);
         }
-        match simulate_given(self.run, Some(&self.identified), model, self.factor) {
+        match simulate_given(
+            self.run,
+            Some(&self.identified),
+            model,
+            self.factor,
+            self.identifier,
+        ) {
             Ok(s) => {
                 let features = s.features();
                 let m = &self.identified;
@@ -191,7 +204,13 @@ impl<'a> Reference<'a> {
     /// The gap of `model` over the whole run, with the simulation's identification (for
     /// the report's regions and plots).
     pub fn whole(&self, model: &RigModel) -> Result<(Gap, Identification), GapError> {
-        let s = simulate_given(self.run, Some(&self.identified), model, self.factor)?;
+        let s = simulate_given(
+            self.run,
+            Some(&self.identified),
+            model,
+            self.factor,
+            self.identifier,
+        )?;
         let gap = self.whole.gap(&self.identified, &s.features());
         Ok((gap, s.identified))
     }

@@ -12,8 +12,9 @@ use rand_distr::{Distribution, Normal};
 
 use super::search::{diagnose, Diagnosis, Reference, SearchOptions};
 use super::GapError;
-use crate::demo::{demo_effect_value, paper_chirp, simulate_case, two_level_chirp, DemoCase};
+use crate::identify::Identifier;
 use crate::model::{EffectKind, RigModel};
+use crate::rig::{effect_value, paper_chirp, simulate_case, two_level_chirp, RigCase};
 use crate::simulate::{Drive, Excitation};
 
 /// The parameter of a case's effect is the demo's value times a factor drawn log-uniformly
@@ -49,7 +50,7 @@ pub fn cases(n: usize, seed: u64) -> Vec<Case> {
         .map(|index| {
             let effect = EffectKind::ALL.get(index % 8).copied();
             let factor = (rng.random_range(-1.0..1.0) * RANGE.ln()).exp();
-            let value = effect.map_or(0.0, |k| demo_effect_value(k) * factor);
+            let value = effect.map_or(0.0, |k| effect_value(k) * factor);
             let mut truth = RigModel::paper();
             if let Some(k) = effect {
                 truth.effects.set(k, Some(value));
@@ -140,9 +141,14 @@ impl Sweep {
 }
 
 /// Simulates `case` under `sweep` (30 s at 1 kHz, the demo's encoder noise) and diagnoses
-/// it blind.
-pub fn run_case(case: &Case, opt: &SearchOptions, sweep: Sweep) -> Result<Outcome, GapError> {
-    let run = simulate_case(&DemoCase {
+/// it blind, identifying with `identifier`.
+pub fn run_case(
+    case: &Case,
+    opt: &SearchOptions,
+    sweep: Sweep,
+    identifier: Identifier<'_>,
+) -> Result<Outcome, GapError> {
+    let run = simulate_case(&RigCase {
         path: format!("/self_check/case_{:03}", case.index),
         model: case.truth.clone(),
         drive: Drive::Base(sweep.excitation()),
@@ -150,7 +156,7 @@ pub fn run_case(case: &Case, opt: &SearchOptions, sweep: Sweep) -> Result<Outcom
         description: "self-check case".into(),
     })
     .into_run();
-    let reference = Reference::new(&run, opt.blocks)?;
+    let reference = Reference::new(&run, opt.blocks, identifier)?;
     let diagnosis = diagnose(&reference, &case.nominal, opt)?;
     let verdict = diagnosis.verdict_name();
     let chosen = diagnosis.verdict.map(|i| &diagnosis.candidates[i]);
@@ -387,7 +393,7 @@ mod tests {
         for (i, case) in c.iter().enumerate() {
             assert_eq!(case.effect, EffectKind::ALL.get(i % 8).copied());
             if let Some(k) = case.effect {
-                let f = case.value / demo_effect_value(k);
+                let f = case.value / effect_value(k);
                 assert!((1.0 / RANGE..=RANGE).contains(&f), "{f}");
                 assert_eq!(case.truth.effects.present(), vec![(k, case.value)]);
             }

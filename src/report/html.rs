@@ -1069,10 +1069,10 @@ mod tests {
     /// same runs back from results.h5 gives (a failed method and a failed run included).
     #[test]
     fn plots_of_an_encoded_run_equal_those_read_back_from_the_file() {
-        use crate::identify::{identify_on, IdentifyOptions};
+        use crate::identify::{identify, IdentifyOptions};
         use crate::report::{encode_run, ResultsWriter, RunOutcome};
         let case = crate::demo::cases().remove(0);
-        let run = crate::demo::simulate_case(&case).into_run();
+        let run = crate::rig::simulate_case(&case).into_run();
         let backend = crate::backend::Backend::cpu();
         let mut ok = RunOutcome::new("/runs/a".into(), "demo.h5".into());
         ok.sample_rate = Some(run.meta.sample_rate);
@@ -1080,7 +1080,7 @@ mod tests {
         ok.inertia = run.meta.inertia;
         ok.units = crate::units::Units::of(&run.meta);
         for m in [crate::track::Method::Wavelet, crate::track::Method::Hilbert] {
-            let id = identify_on(&run, m, &IdentifyOptions::default(), &backend);
+            let id = identify(&run, m, &IdentifyOptions::default(), &backend);
             assert!(id.is_ok(), "{m:?} identifies the demo rig");
             ok.methods.push((m, id.map_err(|e| e.to_string()), 1.0));
         }
