@@ -238,17 +238,8 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
             .collect();
         bar.set_message(parts.join(", "));
     };
-    // The gap identifies the measurement and every simulation with the default options on
-    // the CPU: its simulations are identified one after another, where a GPU's batching
-    // gains nothing (the library takes both from here; the CLI does not offer them yet).
-    let (options, cpu) = (
-        skelid::identify::IdentifyOptions::default(),
-        skelid::backend::Backend::cpu(),
-    );
-    let identifier = skelid::identify::Identifier {
-        options: &options,
-        backend: &cpu,
-    };
+    let engine = super::DefaultIdentifier::new();
+    let identifier = engine.get();
     let diagnose_one = |(i, meta): (usize, &skelid::run::RunMeta)| -> Result<()> {
         say(
             &bar,
@@ -401,14 +392,8 @@ pub(crate) fn gap_self_check(a: &GapArgs, opt: &skelid::gap::SearchOptions) -> R
     let mut outcomes = Vec::new();
     let mut errors = Vec::new();
     let mut lines = Vec::new();
-    let (options, cpu) = (
-        skelid::identify::IdentifyOptions::default(),
-        skelid::backend::Backend::cpu(),
-    );
-    let identifier = skelid::identify::Identifier {
-        options: &options,
-        backend: &cpu,
-    };
+    let engine = super::DefaultIdentifier::new();
+    let identifier = engine.get();
     for c in &cases {
         match selfcheck::run_case(c, opt, sweep, identifier) {
             Ok(o) => {

@@ -9,3 +9,28 @@ pub mod run;
 pub mod simulate;
 pub mod track;
 pub mod validate;
+
+/// Default identification options on the CPU: what `gap` and `validate` identify with
+/// (their simulations are identified one after another, where a GPU's batching gains
+/// nothing; neither command offers identification options yet).
+pub(crate) struct DefaultIdentifier {
+    options: skelid::identify::IdentifyOptions,
+    cpu: skelid::backend::Backend,
+}
+
+impl DefaultIdentifier {
+    pub(crate) fn new() -> DefaultIdentifier {
+        DefaultIdentifier {
+            options: skelid::identify::IdentifyOptions::default(),
+            cpu: skelid::backend::Backend::cpu(),
+        }
+    }
+
+    /// The options and backend, handed on together.
+    pub(crate) fn get(&self) -> skelid::identify::Identifier<'_> {
+        skelid::identify::Identifier {
+            options: &self.options,
+            backend: &self.cpu,
+        }
+    }
+}

@@ -61,14 +61,8 @@ pub fn run(a: ValidateArgs) -> Result<ExitCode> {
     let mut outcomes = Vec::new();
     let mut lines = Vec::new();
     // Blind identification as `skelid run` does it by default, on the CPU.
-    let (options, cpu) = (
-        skelid::identify::IdentifyOptions::default(),
-        skelid::backend::Backend::cpu(),
-    );
-    let identifier = skelid::identify::Identifier {
-        options: &options,
-        backend: &cpu,
-    };
+    let engine = super::DefaultIdentifier::new();
+    let identifier = engine.get();
     for rig in &drawn {
         let o = run_rig(rig, a.evaluations, identifier);
         let line = format!(
