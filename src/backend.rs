@@ -19,7 +19,7 @@ use crate::gpu::{Gpu, GpuError};
 use crate::track::{CoarseRidge, Track, TrackError, WaveletOptions, WaveletPrep};
 
 /// Which backend the user asked for.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum BackendChoice {
     /// A hardware GPU when one opens, else the CPU. A software adapter (lavapipe) is

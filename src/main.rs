@@ -68,7 +68,7 @@ enum Command {
     #[command(name = "__bench-one", hide = true)]
     BenchOne {
         file: PathBuf,
-        #[arg(long, value_enum)]
+        #[arg(long, value_parser = parse_variant)]
         variant: skelid::bench::Variant,
         #[arg(long)]
         scales: usize,
@@ -135,4 +135,9 @@ fn main() -> ExitCode {
             ExitCode::from(if nothing { 1 } else { 2 })
         }
     }
+}
+
+/// `__bench-one --variant`: the measurement a child process is asked for.
+fn parse_variant(s: &str) -> Result<skelid::bench::Variant, String> {
+    skelid::bench::Variant::from_name(s).ok_or_else(|| format!("{s:?}: use fast or naive"))
 }

@@ -72,12 +72,29 @@ pub fn write_bench_archive(path: &Path, n: usize) -> Result<(), BenchError> {
 }
 
 /// Which implementation a measurement runs.
-#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
 pub enum Variant {
     /// Band-limited transform, DP ridge, corrected skeleton (the pipeline).
     Fast,
     /// Full-length inverse FFT per scale, argmax ridge (the baseline).
     Naive,
+}
+
+impl Variant {
+    /// The name a child measurement is asked for by (`fast`, `naive`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Variant::Fast => "fast",
+            Variant::Naive => "naive",
+        }
+    }
+
+    /// The variant of that name.
+    pub fn from_name(s: &str) -> Option<Variant> {
+        [Variant::Fast, Variant::Naive]
+            .into_iter()
+            .find(|v| v.name() == s)
+    }
 }
 
 /// One measurement.

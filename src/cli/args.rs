@@ -182,13 +182,35 @@ pub(crate) struct BackendArgs {
     /// limits, or a device lost mid-batch) is done on the CPU with a warning; results.h5
     /// records per run which backend did the work.
     #[arg(long, value_enum, default_value = "auto", value_name = "BACKEND")]
-    pub(crate) backend: skelid::backend::BackendChoice,
+    pub(crate) backend: BackendArg,
+}
+
+/// `--backend` values (the library's [`skelid::backend::BackendChoice`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub(crate) enum BackendArg {
+    /// A hardware GPU when one opens, else the CPU. A software adapter (lavapipe) is
+    /// slower than the CPU backend on the same cores, so `auto` passes it over.
+    Auto,
+    /// The CPU (rustfft + rayon).
+    Cpu,
+    /// The GPU, or an error when none opens.
+    Gpu,
+}
+
+impl From<BackendArg> for skelid::backend::BackendChoice {
+    fn from(a: BackendArg) -> Self {
+        match a {
+            BackendArg::Auto => Self::Auto,
+            BackendArg::Cpu => Self::Cpu,
+            BackendArg::Gpu => Self::Gpu,
+        }
+    }
 }
 
 impl BackendArgs {
     /// Opens the backend, saying on stderr what `auto` chose and why.
     pub(crate) fn open(self) -> Result<skelid::backend::Backend> {
-        let b = skelid::backend::Backend::open(self.backend).with_context(|| {
+        let b = skelid::backend::Backend::open(self.backend.into()).with_context(|| {
             "--backend gpu: no GPU could be opened (use --backend auto to fall back to the CPU)"
         })?;
         for w in b.notes().iter().chain(&b.warnings()) {

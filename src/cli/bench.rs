@@ -282,10 +282,7 @@ pub(crate) fn cmd_bench(a: BenchArgs) -> Result<()> {
         write_bench_archive(&file, n)?;
         for &s in &scales {
             let run = |v: Variant| -> Result<Measurement> {
-                let name = match v {
-                    Variant::Fast => "fast",
-                    Variant::Naive => "naive",
-                };
+                let name = v.name();
                 let out = std::process::Command::new(&exe)
                     .arg("__bench-one")
                     .arg(&file)

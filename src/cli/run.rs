@@ -165,7 +165,7 @@ pub(crate) fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
     println!("wrote {}", path.display());
     // The demo archive is rewritten every time: identify it afresh, never from the journal.
     let backend = BackendArgs {
-        backend: skelid::backend::BackendChoice::Auto,
+        backend: crate::cli::args::BackendArg::Auto,
     }
     .open()?;
     let options = skelid::batch::BatchOptions {
