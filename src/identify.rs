@@ -134,6 +134,8 @@ pub struct Identification {
     pub mass: Option<(f64, bool)>,
     /// Warnings for the user (partial skeleton, estimated mass, …).
     pub warnings: Vec<String>,
+    /// The resonance band it was identified with ([`IdentifyOptions::resonance`]).
+    pub resonance: f64,
 }
 
 impl Identification {
@@ -154,6 +156,11 @@ impl Identification {
     /// Whether sample `i` is at resonance, |ω/ω0 − 1| below `tol`.
     pub fn at_resonance(&self, i: usize, tol: f64) -> bool {
         at_resonance(&self.response, &self.modal, i, tol)
+    }
+    /// Whether sample `i` was used and is at resonance within the band it was identified
+    /// with: the samples its backbone fit saw.
+    pub fn resonant(&self, i: usize) -> bool {
+        self.used[i] && self.at_resonance(i, self.resonance)
     }
     /// Amplitude range covered by the skeleton.
     pub fn amplitude_range(&self) -> Option<(f64, f64)> {
@@ -465,5 +472,6 @@ fn identify_body(
         damping,
         mass,
         warnings,
+        resonance: opt.resonance,
     })
 }

@@ -1214,6 +1214,17 @@ fn gap_self_check_prints_its_confusion_matrix_and_wrong_arguments_say_what_to_do
     let o = skelid().args(["gap"]).output().unwrap();
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("--model"));
+    // The identification options are `run`'s, checked before anything is done.
+    let o = skelid()
+        .args(["gap", "--self-check", "--scales", "2"])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("2 scales") && err.contains("see skelid gap --help; nothing was done"),
+        "{err}"
+    );
 }
 
 #[test]

@@ -104,6 +104,53 @@ pub(crate) enum BackboneArg {
     DescribingFunction,
 }
 
+/// How each run is identified (shared by `run` and `gap`), validated once into the
+/// library's options.
+#[derive(Args, Clone)]
+pub(crate) struct IdentifyArgs {
+    #[command(flatten)]
+    pub(crate) wavelet: WaveletArgs,
+    /// Hilbert: zero-phase low-pass cut-off as a fraction of Nyquist (the paper's 0.005).
+    #[arg(long, default_value_t = 0.005, value_name = "FRACTION")]
+    pub(crate) cutoff: f64,
+    /// Amplitude bins of the skeleton curves.
+    #[arg(long, default_value_t = 40)]
+    pub(crate) bins: usize,
+    /// Resonance band of the backbone fit for a joint with free play: only samples with
+    /// |ω/ω0 − 1| below this are fitted (off resonance, e.g. after a jump-down, the
+    /// first-harmonic stiffness of a clearance depends on the forcing).
+    #[arg(long, default_value_t = 0.1, value_name = "FRACTION")]
+    pub(crate) resonance: f64,
+    /// Backbone curve fitted to a joint with free play: `orbit` (the exact free periodic
+    /// orbit, right for forced runs and lightly damped decays), `describing-function`
+    /// (first harmonic of a sinusoid), or `auto` (orbit for forced runs, describing
+    /// function for free decays).
+    #[arg(long, value_enum, default_value = "auto")]
+    pub(crate) backbone: BackboneArg,
+}
+
+impl IdentifyArgs {
+    /// The identification options these give, checked before any archive is opened (a
+    /// value no run can use fails here, not in every run); `command` names the
+    /// subcommand whose help to see.
+    pub(crate) fn options(&self, command: &str) -> Result<skelid::identify::IdentifyOptions> {
+        let mut options = skelid::identify::IdentifyOptions::default();
+        options.wavelet = self.wavelet.apply(options.wavelet);
+        options.hilbert_cutoff = Some(self.cutoff);
+        options.bins = self.bins;
+        options.resonance = self.resonance;
+        options.backbone = match self.backbone {
+            BackboneArg::Auto => None,
+            BackboneArg::Orbit => Some(skelid::fit::BackboneModel::PeriodicOrbit),
+            BackboneArg::DescribingFunction => Some(skelid::fit::BackboneModel::DescribingFunction),
+        };
+        options
+            .validate()
+            .map_err(|e| anyhow::anyhow!("{e} (see skelid {command} --help; nothing was done)"))?;
+        Ok(options)
+    }
+}
+
 /// The wavelet method's analysis band and mother wavelet (shared by `track` and `run`).
 #[derive(Args, Clone)]
 pub(crate) struct WaveletArgs {

@@ -8,7 +8,7 @@ use skelid::model::RigModel;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use super::args::IngestArgs;
+use super::args::{IdentifyArgs, IngestArgs};
 
 /// Options of `skelid gap`.
 #[derive(Args)]
@@ -75,6 +75,10 @@ pub(crate) struct GapArgs {
     /// a hardening contact hides behind a stiffer contact and a wider clearance).
     #[arg(long, value_enum, default_value = "paper", requires = "self_check")]
     pub(crate) sweep: SweepArg,
+    /// How the measurement and every simulation are identified (wavelet method, on the
+    /// CPU): the same options as `skelid run`, with the same defaults.
+    #[command(flatten)]
+    pub(crate) identify: IdentifyArgs,
     #[command(flatten)]
     pub(crate) ingest: IngestArgs,
 }
@@ -131,10 +135,11 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     use skelid::report::gap as out;
     use skelid::run::RunKind;
     let opt = gap_search_options(&a)?;
+    let engine = super::CpuIdentifier::new(a.identify.options("gap")?);
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create the output folder {}", a.out.display()))?;
     if a.self_check {
-        return gap_self_check(&a, &opt);
+        return gap_self_check(&a, &opt, &engine);
     }
     let (Some(model_path), Some(archive_path)) = (&a.model, &a.archive) else {
         bail!("give --model RIG.toml and an ARCHIVE (or --self-check)");
@@ -238,7 +243,6 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
             .collect();
         bar.set_message(parts.join(", "));
     };
-    let engine = super::DefaultIdentifier::new();
     let identifier = engine.get();
     let diagnose_one = |(i, meta): (usize, &skelid::run::RunMeta)| -> Result<()> {
         say(
@@ -369,7 +373,11 @@ pub(crate) fn say(bar: &indicatif::ProgressBar, line: String) {
     }
 }
 
-pub(crate) fn gap_self_check(a: &GapArgs, opt: &skelid::gap::SearchOptions) -> Result<ExitCode> {
+pub(crate) fn gap_self_check(
+    a: &GapArgs,
+    opt: &skelid::gap::SearchOptions,
+    engine: &super::CpuIdentifier,
+) -> Result<ExitCode> {
     use skelid::gap::selfcheck;
     let cases = selfcheck::cases(a.cases, a.seed);
     let sweep = match a.sweep {
@@ -392,7 +400,6 @@ pub(crate) fn gap_self_check(a: &GapArgs, opt: &skelid::gap::SearchOptions) -> R
     let mut outcomes = Vec::new();
     let mut errors = Vec::new();
     let mut lines = Vec::new();
-    let engine = super::DefaultIdentifier::new();
     let identifier = engine.get();
     for c in &cases {
         match selfcheck::run_case(c, opt, sweep, identifier) {

@@ -10,18 +10,17 @@ pub mod simulate;
 pub mod track;
 pub mod validate;
 
-/// Default identification options on the CPU: what `gap` and `validate` identify with
-/// (their simulations are identified one after another, where a GPU's batching gains
-/// nothing; neither command offers identification options yet).
-pub(crate) struct DefaultIdentifier {
+/// Identification options on the CPU: what `gap` and `validate` identify with (their
+/// simulations are identified one after another, where a GPU's batching gains nothing).
+pub(crate) struct CpuIdentifier {
     options: skelid::identify::IdentifyOptions,
     cpu: skelid::backend::Backend,
 }
 
-impl DefaultIdentifier {
-    pub(crate) fn new() -> DefaultIdentifier {
-        DefaultIdentifier {
-            options: skelid::identify::IdentifyOptions::default(),
+impl CpuIdentifier {
+    pub(crate) fn new(options: skelid::identify::IdentifyOptions) -> CpuIdentifier {
+        CpuIdentifier {
+            options,
             cpu: skelid::backend::Backend::cpu(),
         }
     }

@@ -11,8 +11,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use super::args::{
-    report_fallbacks, self_exe, BackboneArg, BackendArgs, IngestArgs, ReportArgs, RunMethod,
-    WaveletArgs,
+    report_fallbacks, self_exe, BackendArgs, IdentifyArgs, IngestArgs, ReportArgs, RunMethod,
 };
 
 #[derive(Args)]
@@ -74,24 +73,7 @@ pub(crate) struct RunArgs {
     #[arg(long, value_enum, default_value = "both")]
     pub(crate) method: RunMethod,
     #[command(flatten)]
-    pub(crate) wavelet: WaveletArgs,
-    /// Hilbert: zero-phase low-pass cut-off as a fraction of Nyquist (the paper's 0.005).
-    #[arg(long, default_value_t = 0.005, value_name = "FRACTION")]
-    pub(crate) cutoff: f64,
-    /// Amplitude bins of the skeleton curves.
-    #[arg(long, default_value_t = 40)]
-    pub(crate) bins: usize,
-    /// Resonance band of the backbone fit for a joint with free play: only samples with
-    /// |ω/ω0 − 1| below this are fitted (off resonance, e.g. after a jump-down, the
-    /// first-harmonic stiffness of a clearance depends on the forcing).
-    #[arg(long, default_value_t = 0.1, value_name = "FRACTION")]
-    pub(crate) resonance: f64,
-    /// Backbone curve fitted to a joint with free play: `orbit` (the exact free periodic
-    /// orbit, right for forced runs and lightly damped decays), `describing-function`
-    /// (first harmonic of a sinusoid), or `auto` (orbit for forced runs, describing
-    /// function for free decays).
-    #[arg(long, value_enum, default_value = "auto")]
-    pub(crate) backbone: BackboneArg,
+    pub(crate) identify: IdentifyArgs,
     /// Also refine each base-motion run's clearance, k/J, c/J, gravity stiffness and
     /// Coulomb F/J by matching simulations to the record (README, "Simulation-refined
     /// identification"): written beside the skeleton estimates as `refined_*`, with
@@ -218,18 +200,8 @@ pub(crate) fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
 pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     let ingest = a.ingest.options()?;
     let files = find_archives(&a.archives)?;
-    let mut options = skelid::identify::IdentifyOptions::default();
-    options.wavelet = a.wavelet.apply(options.wavelet);
-    options.hilbert_cutoff = Some(a.cutoff);
-    options.bins = a.bins;
-    options.resonance = a.resonance;
-    options.backbone = match a.backbone {
-        BackboneArg::Auto => None,
-        BackboneArg::Orbit => Some(skelid::fit::BackboneModel::PeriodicOrbit),
-        BackboneArg::DescribingFunction => Some(skelid::fit::BackboneModel::DescribingFunction),
-    };
+    let mut options = a.identify.options("run")?;
     options.refine = a.refine.then_some(a.refine_evaluations);
-    // Before any archive is opened: a value no run can use fails here, not in every run.
     options
         .validate()
         .map_err(|e| anyhow::anyhow!("{e} (see skelid run --help; nothing was done)"))?;

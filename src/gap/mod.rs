@@ -31,7 +31,7 @@
 pub mod search;
 pub mod selfcheck;
 
-use crate::identify::{Identification, Identifier, IdentifyOptions};
+use crate::identify::{Identification, Identifier};
 use crate::model::RigModel;
 use crate::run::Run;
 use crate::simulate::{simulate, Drive, Excitation, SimSettings, MEASURED_INPUT_CUTOFF};
@@ -167,8 +167,7 @@ impl Features {
             .collect();
         let half = (TIME_TOLERANCE * track.sample_rate).round() as usize;
         let (lo, hi) = window_extremes(&ln, half);
-        let opt = IdentifyOptions::default();
-        let resonant = |i: usize| id.used[i] && id.at_resonance(i, opt.resonance);
+        let resonant = |i: usize| id.resonant(i);
         let n = id.used.len().min(track.len());
         let (raw_f0, raw_force): (Vec<f64>, Vec<f64>) = (0..n)
             .map(|i| {

@@ -22,7 +22,7 @@ use super::{
     decimate, decimation_for, measured_resolution, resolution_per_step, simulate_given, Blocks,
     Gap, GapError, Part, Target,
 };
-use crate::identify::{Identification, Identifier, IdentifyOptions};
+use crate::identify::{Identification, Identifier};
 use crate::model::{EffectKind, RigModel};
 use crate::run::Run;
 use crate::track::Method;
@@ -451,10 +451,9 @@ fn cubic_from_backbone(model: &RigModel, id: &Identification) -> Option<(f64, f6
     if delta <= 0.0 {
         return None;
     }
-    let opt = IdentifyOptions::default();
     let n = id.used.len().min(id.response.len());
     let (mut s11, mut s13, mut s33, mut s1y, mut s3y) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for i in (0..n).filter(|&i| id.used[i] && id.at_resonance(i, opt.resonance)) {
+    for i in (0..n).filter(|&i| id.resonant(i)) {
         let a = id.response.amplitude[i];
         let r = crate::fit::dead_zone_orbit_ratio(delta, a);
         if r <= 0.0 {
