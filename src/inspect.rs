@@ -2,10 +2,9 @@
 
 use std::path::PathBuf;
 
-use std::io::Read;
+use std::ffi::OsString;
 use std::path::Path;
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
@@ -262,54 +261,20 @@ fn failed(file: String, detail: String) -> ArchiveReport {
 }
 
 fn probe_one(exe: &Path, path: &Path, options: &IngestOptions, timeout: Duration) -> ArchiveReport {
+    use crate::child::{run_json, ChildFailure};
     let file = path.display().to_string();
-    let child = Command::new(exe)
-        .arg(PROBE_SUBCOMMAND)
-        .arg(path)
-        .args(option_args(options))
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn();
-    let mut child = match child {
-        Ok(c) => c,
+    let mut args = vec![
+        OsString::from(PROBE_SUBCOMMAND),
+        path.as_os_str().to_owned(),
+    ];
+    args.extend(option_args(options).into_iter().map(OsString::from));
+    match run_json::<ArchiveReport>(exe, &args, Some(timeout)) {
+        Ok(report) => report,
         // Cannot isolate (e.g. no executable): read in-process rather than not at all.
-        Err(_) => return inspect_archive(path, options),
-    };
-    let mut stdout = child.stdout.take().expect("piped stdout");
-    let mut stderr = child.stderr.take().expect("piped stderr");
-    let out_reader = std::thread::spawn(move || {
-        let mut buf = Vec::new();
-        let _ = stdout.read_to_end(&mut buf);
-        buf
-    });
-    let err_reader = std::thread::spawn(move || {
-        let mut buf = Vec::new();
-        let _ = stderr.read_to_end(&mut buf);
-        buf
-    });
-    let start = Instant::now();
-    let status = loop {
-        match child.try_wait() {
-            Ok(Some(status)) => break Some(status),
-            Ok(None) if start.elapsed() > timeout => {
-                let _ = child.kill();
-                let _ = child.wait();
-                break None;
-            }
-            Ok(None) => std::thread::sleep(Duration::from_millis(5)),
-            Err(_) => break None,
-        }
-    };
-    let out = out_reader.join().unwrap_or_default();
-    let err = err_reader.join().unwrap_or_default();
-    let Some(status) = status else {
-        return failed(file, hang_detail(timeout));
-    };
-    if let Ok(report) = serde_json::from_slice::<ArchiveReport>(&out) {
-        return report;
+        Err(ChildFailure::Spawn(_)) => inspect_archive(path, options),
+        Err(ChildFailure::Hang(_)) => failed(file, hang_detail(timeout)),
+        Err(ChildFailure::Crash { status, stderr }) => failed(file, crash_detail(status, &stderr)),
     }
-    failed(file, crash_detail(status, &err))
 }
 
 /// Why a reading child was stopped after `timeout`.

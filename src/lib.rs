@@ -15,6 +15,7 @@ pub mod backend;
 pub mod batch;
 pub mod bench;
 pub mod campaign;
+pub mod child;
 pub mod demo;
 pub mod filter;
 pub mod fit;

@@ -283,16 +283,24 @@ pub(crate) fn cmd_bench(a: BenchArgs) -> Result<()> {
         for &s in &scales {
             let run = |v: Variant| -> Result<Measurement> {
                 let name = v.name();
-                let out = std::process::Command::new(&exe)
-                    .arg("__bench-one")
-                    .arg(&file)
-                    .args(["--variant", name, "--scales", &s.to_string()])
-                    .output()
-                    .context("cannot run the benchmark child process")?;
-                if !out.status.success() {
-                    bail!("{name} failed: {}", String::from_utf8_lossy(&out.stderr));
-                }
-                Ok(serde_json::from_slice(&out.stdout)?)
+                let args: Vec<std::ffi::OsString> = vec![
+                    "__bench-one".into(),
+                    file.clone().into(),
+                    "--variant".into(),
+                    name.into(),
+                    "--scales".into(),
+                    s.to_string().into(),
+                ];
+                use skelid::child::{run_json, ChildFailure};
+                run_json(&exe, &args, None).map_err(|e| match e {
+                    ChildFailure::Spawn(e) => {
+                        anyhow::anyhow!("cannot run the benchmark child process: {e}")
+                    }
+                    ChildFailure::Crash { stderr, .. } => {
+                        anyhow::anyhow!("{name} failed: {}", String::from_utf8_lossy(&stderr))
+                    }
+                    ChildFailure::Hang(_) => unreachable!("no time limit was set"),
+                })
             };
             let fast = run(Variant::Fast)?;
             let naive = run(Variant::Naive)?;
