@@ -208,11 +208,12 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     let title = archive_path.display().to_string();
     // gap.json and gap.html are rewritten (atomically) after every run, so that a night's
     // work stopped half-way keeps every run finished so far.
-    let write_outputs = |reports: &[&out::GapRun], failed: &[(String, String)]| -> Result<_> {
-        let json = out::write_gap_json(&a.out, reports, failed, settings.clone())?;
-        let page = out::write_gap_page(&a.out, &title, reports)?;
-        Ok((json, page))
-    };
+    let write_outputs =
+        |reports: &[&skelid::gap::GapRun], failed: &[(String, String)]| -> Result<_> {
+            let json = out::write_gap_json(&a.out, reports, failed, settings.clone())?;
+            let page = out::write_gap_page(&a.out, &title, reports)?;
+            Ok((json, page))
+        };
     let several = chosen.len() > 1;
     let jobs = a
         .jobs
@@ -224,7 +225,10 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
         .with_context(|| format!("cannot start {jobs} worker thread(s) (--jobs)"))?;
     // Finished runs (index in the archive, report) and failed ones (index, run, error),
     // kept in archive order whatever order they finish in.
-    type Done = (Vec<(usize, out::GapRun)>, Vec<(usize, String, String)>);
+    type Done = (
+        Vec<(usize, skelid::gap::GapRun)>,
+        Vec<(usize, String, String)>,
+    );
     let done: std::sync::Mutex<Done> = Default::default();
     // Progress per run: runs done on the bar, each running run's simulations so far in its
     // message (a diagnosis runs a few hundred).
@@ -262,11 +266,11 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
                 eprintln!("{}: {n} simulations", meta.path);
             }
         };
-        let result = (|| -> Result<out::GapRun> {
+        let result = (|| -> Result<skelid::gap::GapRun> {
             let run = archive.load(meta)?;
             let reference = Reference::new(&run, opt.blocks, identifier)?.on_score(progress);
             let d = skelid::gap::diagnose(&reference, &model, &opt)?;
-            Ok(out::GapRun::new(&reference, d)?)
+            Ok(skelid::gap::GapRun::new(&reference, d)?)
         })();
         {
             let mut r = running.lock().unwrap_or_else(|p| p.into_inner());
@@ -322,7 +326,7 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
         }
         guard.0.sort_by_key(|r| r.0);
         guard.1.sort_by_key(|r| r.0);
-        let reports: Vec<&out::GapRun> = guard.0.iter().map(|r| &r.1).collect();
+        let reports: Vec<&skelid::gap::GapRun> = guard.0.iter().map(|r| &r.1).collect();
         let errors: Vec<(String, String)> = failed
             .iter()
             .cloned()
@@ -337,7 +341,7 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     })?;
     bar.finish_and_clear();
     let (reports, errors) = done.into_inner().unwrap_or_else(|p| p.into_inner());
-    let reports: Vec<&out::GapRun> = reports.iter().map(|r| &r.1).collect();
+    let reports: Vec<&skelid::gap::GapRun> = reports.iter().map(|r| &r.1).collect();
     failed.extend(errors.into_iter().map(|f| (f.1, f.2)));
     let (json, page) = write_outputs(&reports, &failed)?;
     println!(

@@ -28,6 +28,7 @@
 //! time blocks and scores on the others ([`search`]); [`selfcheck`] measures how well the
 //! whole diagnosis does on simulated rigs with a known missing effect.
 
+mod finished;
 pub mod search;
 pub mod selfcheck;
 
@@ -37,6 +38,7 @@ use crate::run::Run;
 use crate::simulate::{simulate, Drive, Excitation, SimSettings, MEASURED_INPUT_CUTOFF};
 use crate::track::Method;
 
+pub use finished::{GapRun, Whole};
 pub use search::{diagnose, Candidate, Diagnosis, SearchOptions};
 
 /// Time windows the time domain is split into for the regions.
