@@ -282,11 +282,12 @@ fn a_rig_model_with_a_clearance_in_degrees_is_warned_about_and_a_negative_key_na
 fn simulate_from_a_toml_model_writes_an_archive_that_inspect_reads() {
     let d = tmpdir();
     let model = d.path().join("rig.toml");
-    std::fs::write(
-        &model,
-        "inertia = 3.16\nstiffness = 15000.0\ndamping = 13.0\nclearance = 0.0262\n\n[effects]\ncoulomb_friction = { torque = 2.5 }\n",
-    )
-    .unwrap();
+    // The paper's rig with its dry friction, written as a user's rig file.
+    let mut paper = skelid::model::RigModel::paper();
+    paper
+        .effects
+        .set(skelid::model::EffectKind::CoulombFriction, Some(2.5));
+    std::fs::write(&model, paper.to_toml()).unwrap();
     let out_h5 = d.path().join("sim.h5");
     let st = skelid()
         .args(["simulate", "--model"])
@@ -1059,11 +1060,7 @@ fn gap_names_the_missing_friction_and_writes_its_report_model_and_page() {
     let dir = tmpdir();
     let rig = dir.path().join("rig.toml");
     // The demo's nominal rig, without the friction its coulomb_friction run has.
-    std::fs::write(
-        &rig,
-        "inertia = 3.16\nstiffness = 15000.0\ndamping = 13.0\nclearance = 0.0262\n",
-    )
-    .unwrap();
+    std::fs::write(&rig, skelid::model::RigModel::paper().to_toml()).unwrap();
     let out = dir.path().join("gap");
     std::fs::create_dir_all(&out).unwrap();
     // An identification report already in the folder gets a link to the gap page.
