@@ -321,6 +321,7 @@ pub fn run_campaigns(
     let record = settings_record(&opt.methods, &opt.identify, ingest);
     let results = ResultsWriter::create(out)?;
     results.write_settings(&record)?;
+    let drawn = Drawn::new(opt.report_runs);
     let written = std::thread::scope(|scope| {
         let counts = &counts;
         scope.spawn(move || {
@@ -328,13 +329,14 @@ pub fn run_campaigns(
                 work_tx.send(d).map_err(|_| reader::Stopped)
             })
         });
-        let writer = scope
-            .spawn(|| write_finished(&results, done_rx, log, counts, progress, opt.report_runs));
+        let drawn = &drawn;
+        let writer =
+            scope.spawn(|| write_finished(&results, done_rx, log, counts, progress, drawn));
         // A failed send means the writer stopped on an error, which it returns; the
         // workers then stop, and the reader with them.
         let _ = pool.install(|| {
             work_rx.into_iter().par_bridge().try_for_each(|d| {
-                let finished = prepare(d, &journal, &settings, opt);
+                let finished = prepare(d, &journal, &settings, opt, drawn);
                 done_tx.send(finished).map_err(|_| ())
             })
         });
@@ -357,7 +359,6 @@ pub fn run_campaigns(
         skipped,
         failed,
         mut log,
-        mut drawn,
     } = written;
     let total = entries.len();
     let runs_in_inputs = counts.runs_in_inputs.load(Ordering::Relaxed);
@@ -391,7 +392,7 @@ pub fn run_campaigns(
         &entries,
         &manifest,
         opt.report_runs,
-        Some(&mut drawn),
+        Some(&drawn),
     )
     .map_err(stopped)?;
     profile::add(Stage::Write, profile::thread_cpu().saturating_sub(cpu0));
@@ -420,6 +421,7 @@ fn prepare(
     journal: &Journal,
     settings: &str,
     opt: &BatchOptions<'_>,
+    drawn: &Drawn,
 ) -> Finished {
     let (key, outcome) = match d {
         reader::Delivery::Unreadable { file, error } => {
@@ -443,7 +445,7 @@ fn prepare(
     if !opt.force {
         if let Some((e, stored)) = journal.load(&key) {
             let plots = match &stored {
-                Stored::Encoded(run) if opt.report_runs > 0 => Some(run_plots(run)),
+                Stored::Encoded(run) if drawn.wants(&e) => Some(run_plots(run)),
                 _ => None,
             };
             return Finished::Skipped(e, stored, plots);
@@ -456,7 +458,7 @@ fn prepare(
     let prepared = profile::time(Stage::Encode, || Prepared::new(&outcome));
     match profile::time(Stage::Write, || journal.commit(&key, prepared)) {
         Ok((entry, prepared)) => {
-            let plots = (opt.report_runs > 0).then(|| run_plots(prepared.encoded()));
+            let plots = drawn.wants(&entry).then(|| run_plots(prepared.encoded()));
             Finished::Committed(entry, prepared, plots)
         }
         Err(e) => Finished::Failed(e),
@@ -519,9 +521,8 @@ fn write_finished(
     mut log: Log,
     counts: &reader::Counts,
     progress: &(dyn Fn(Progress) + Sync),
-    report_runs: usize,
+    drawn: &Drawn,
 ) -> Result<Written, BatchError> {
-    let mut drawn = Drawn::new(report_runs);
     let (mut entries, mut skipped, mut failed) = (Vec::new(), 0, 0);
     let (mut suspect, mut bad) = (0, 0);
     let mut used = std::collections::HashSet::new();
@@ -592,7 +593,6 @@ fn write_finished(
         skipped,
         failed,
         log,
-        drawn,
     })
 }
 
@@ -602,34 +602,56 @@ struct Written {
     skipped: usize,
     failed: usize,
     log: Log,
-    drawn: Drawn,
 }
 
 /// The report plots of the runs that come first in the report's order (archive, then
 /// path), at most as many as it draws: kept as runs finish, so that the end of a batch
 /// reads none of them back from results.h5 (that read-back, serial under libhdf5's lock,
 /// was 6 % of a 200-run batch's CPU time and all of its tail).
+///
+/// Shared by the workers and the writer: a worker decodes a run's plots only when the run
+/// can still be drawn ([`Drawn::wants`]), since once `keep` runs are held a run that comes
+/// after all of them never will be (decoding every run's was 3.6 ms of CPU per run).
 struct Drawn {
     keep: usize,
     /// `None` where the plots must be read back: none were decoded (a legacy journal
     /// file), or two runs share the archive name and path.
-    plots: BTreeMap<(String, String), Option<RunPlots>>,
+    plots: std::sync::Mutex<BTreeMap<(String, String), Option<RunPlots>>>,
 }
 
 impl Drawn {
     fn new(keep: usize) -> Drawn {
         Drawn {
             keep,
-            plots: BTreeMap::new(),
+            plots: std::sync::Mutex::new(BTreeMap::new()),
         }
     }
 
+    fn held(&self) -> std::sync::MutexGuard<'_, BTreeMap<(String, String), Option<RunPlots>>> {
+        self.plots.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Whether run `e` may still be drawn: fewer than `keep` runs are held, or it comes
+    /// before the last of them. Once false for a run it stays false (the last held run
+    /// only moves earlier).
+    fn wants(&self, e: &Entry) -> bool {
+        if self.keep == 0 {
+            return false;
+        }
+        let held = self.held();
+        held.len() < self.keep
+            || held
+                .last_key_value()
+                .is_some_and(|(k, _)| (&e.source, &e.path) <= (&k.0, &k.1))
+    }
+
     /// Keeps `plots` of the run `e` if it is among the first `keep` so far.
-    fn offer(&mut self, e: &Entry, plots: Option<RunPlots>) {
+    fn offer(&self, e: &Entry, plots: Option<RunPlots>) {
         if self.keep == 0 {
             return;
         }
-        match self.plots.entry((e.source.clone(), e.path.clone())) {
+        let mut held = self.held();
+        match held.entry((e.source.clone(), e.path.clone())) {
             std::collections::btree_map::Entry::Occupied(mut o) => {
                 o.insert(None);
             }
@@ -637,15 +659,15 @@ impl Drawn {
                 v.insert(plots);
             }
         }
-        if self.plots.len() > self.keep {
-            self.plots.pop_last();
+        if held.len() > self.keep {
+            held.pop_last();
         }
     }
 
     /// The plots of run `e`, drawn as the run at `group` of results.h5.
-    fn take(&mut self, e: &Entry, group: &str) -> Option<RunPlots> {
+    fn take(&self, e: &Entry, group: &str) -> Option<RunPlots> {
         let mut p = self
-            .plots
+            .held()
             .get_mut(&(e.source.clone(), e.path.clone()))?
             .take()?;
         p.path = group.to_string();
@@ -708,7 +730,7 @@ fn write_outputs(
     entries: &[Entry],
     manifest: &Manifest,
     report_runs: usize,
-    mut drawn_plots: Option<&mut Drawn>,
+    drawn_plots: Option<&Drawn>,
 ) -> Result<(Vec<SummaryRow>, usize), BatchError> {
     let rows: Vec<SummaryRow> = entries.iter().flat_map(|e| e.rows.clone()).collect();
     write_summary(out, &rows)?;
@@ -724,7 +746,7 @@ fn write_outputs(
                 .iter()
                 .zip(entries)
                 .map(
-                    |(group, e)| match drawn_plots.as_deref_mut().and_then(|d| d.take(e, group)) {
+                    |(group, e)| match drawn_plots.and_then(|d| d.take(e, group)) {
                         Some(p) => Ok(p),
                         None => html::read_run(results, group),
                     },
@@ -920,6 +942,53 @@ fn file_name(p: &Path) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn entry(source: &str) -> Entry {
+        Entry {
+            key: source.into(),
+            path: "/runs/r".into(),
+            source: source.into(),
+            failed: false,
+            rows: Vec::new(),
+        }
+    }
+
+    fn plots(source: &str) -> RunPlots {
+        RunPlots {
+            path: "/runs/r".into(),
+            source: source.into(),
+            status: "ok".into(),
+            error: None,
+            methods: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn the_report_keeps_the_first_runs_in_its_order_whatever_order_they_finish_in() {
+        let drawn = Drawn::new(2);
+        for s in ["c.h5", "a.h5"] {
+            assert!(drawn.wants(&entry(s)), "fewer than 2 held: {s} is wanted");
+            drawn.offer(&entry(s), Some(plots(s)));
+        }
+        // Full with a and c: d comes after both and is never drawn; b comes before c.
+        assert!(!drawn.wants(&entry("d.h5")));
+        assert!(drawn.wants(&entry("b.h5")));
+        drawn.offer(&entry("b.h5"), Some(plots("b.h5")));
+        assert!(!drawn.wants(&entry("c.h5")), "c was pushed out by b");
+        // A second run with a's archive name and path: both are read back from the file.
+        drawn.offer(&entry("a.h5"), Some(plots("a.h5")));
+        assert!(drawn.take(&entry("a.h5"), "/runs/r").is_none());
+        let b = drawn.take(&entry("b.h5"), "/runs/r@b.h5").expect("kept");
+        assert_eq!(
+            (b.source.as_str(), b.path.as_str()),
+            ("b.h5", "/runs/r@b.h5")
+        );
+        assert!(drawn.take(&entry("c.h5"), "/runs/r").is_none());
+        assert!(
+            !Drawn::new(0).wants(&entry("a.h5")),
+            "nothing drawn: nothing decoded"
+        );
+    }
 
     #[test]
     fn a_panic_becomes_the_runs_error() {
