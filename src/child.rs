@@ -14,8 +14,8 @@ use std::time::{Duration, Instant};
 pub enum ChildFailure {
     /// It could not be started (no executable, no processes left).
     Spawn(std::io::Error),
-    /// It ran past its limit and was stopped.
-    Hang(Duration),
+    /// It ran past its limit and was stopped (or could no longer be waited for).
+    Hang,
     /// It ended without printing what it should: how it ended and its stderr.
     Crash {
         /// Its exit status.
@@ -64,7 +64,7 @@ pub fn run_json<T: serde::de::DeserializeOwned>(
     };
     let Some(status) = status else {
         // Not waiting for its pipes: a process it started may still hold them open.
-        return Err(ChildFailure::Hang(timeout.unwrap_or_default()));
+        return Err(ChildFailure::Hang);
     };
     let out = out.join().unwrap_or_default();
     let stderr = err.join().unwrap_or_default();
@@ -93,7 +93,10 @@ mod tests {
         }
         let t0 = Instant::now();
         let limit = Duration::from_millis(200);
-        assert!(matches!(sh("sleep 30", Some(limit)), Err(ChildFailure::Hang(l)) if l == limit));
+        assert!(matches!(
+            sh("sleep 30", Some(limit)),
+            Err(ChildFailure::Hang)
+        ));
         assert!(
             t0.elapsed() < Duration::from_secs(20),
             "the child was stopped"

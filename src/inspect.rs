@@ -272,7 +272,7 @@ fn probe_one(exe: &Path, path: &Path, options: &IngestOptions, timeout: Duration
         Ok(report) => report,
         // Cannot isolate (e.g. no executable): read in-process rather than not at all.
         Err(ChildFailure::Spawn(_)) => inspect_archive(path, options),
-        Err(ChildFailure::Hang(_)) => failed(file, hang_detail(timeout)),
+        Err(ChildFailure::Hang) => failed(file, hang_detail(timeout)),
         Err(ChildFailure::Crash { status, stderr }) => failed(file, crash_detail(status, &stderr)),
     }
 }

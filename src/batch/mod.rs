@@ -467,7 +467,7 @@ fn prepare(
 
 /// The report's plots of an encoded run (its group in results.h5 is set when drawn).
 fn run_plots(run: &crate::report::encoded::EncodedRun) -> RunPlots {
-    profile::time(Stage::Encode, || html::encoded_plots(run, &run.path))
+    profile::time(Stage::Encode, || html::encoded_plots(run))
 }
 
 /// Every method of `opt` on one run as read (or its read error), timed.

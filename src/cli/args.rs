@@ -130,15 +130,20 @@ pub(crate) struct IdentifyArgs {
 }
 
 impl IdentifyArgs {
-    /// The identification options these give, checked before any archive is opened (a
-    /// value no run can use fails here, not in every run); `command` names the
-    /// subcommand whose help to see.
-    pub(crate) fn options(&self, command: &str) -> Result<skelid::identify::IdentifyOptions> {
+    /// The identification options these give, with `refine` simulations per half when
+    /// asked, checked before any archive is opened (a value no run can use fails here, not
+    /// in every run); `command` names the subcommand whose help to see.
+    pub(crate) fn options(
+        &self,
+        command: &str,
+        refine: Option<usize>,
+    ) -> Result<skelid::identify::IdentifyOptions> {
         let mut options = skelid::identify::IdentifyOptions::default();
         options.wavelet = self.wavelet.apply(options.wavelet);
         options.hilbert_cutoff = Some(self.cutoff);
         options.bins = self.bins;
         options.resonance = self.resonance;
+        options.refine = refine;
         options.backbone = match self.backbone {
             BackboneArg::Auto => None,
             BackboneArg::Orbit => Some(skelid::fit::BackboneModel::PeriodicOrbit),

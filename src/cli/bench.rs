@@ -299,7 +299,7 @@ pub(crate) fn cmd_bench(a: BenchArgs) -> Result<()> {
                     ChildFailure::Crash { stderr, .. } => {
                         anyhow::anyhow!("{name} failed: {}", String::from_utf8_lossy(&stderr))
                     }
-                    ChildFailure::Hang(_) => unreachable!("no time limit was set"),
+                    ChildFailure::Hang => unreachable!("no time limit was set"),
                 })
             };
             let fast = run(Variant::Fast)?;

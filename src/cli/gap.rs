@@ -135,7 +135,7 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     use skelid::report::gap as out;
     use skelid::run::RunKind;
     let opt = gap_search_options(&a)?;
-    let engine = super::CpuIdentifier::new(a.identify.options("gap")?);
+    let engine = super::CpuIdentifier::new(a.identify.options("gap", None)?);
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create the output folder {}", a.out.display()))?;
     if a.self_check {

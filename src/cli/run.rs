@@ -200,11 +200,9 @@ pub(crate) fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
 pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     let ingest = a.ingest.options()?;
     let files = find_archives(&a.archives)?;
-    let mut options = a.identify.options("run")?;
-    options.refine = a.refine.then_some(a.refine_evaluations);
-    options
-        .validate()
-        .map_err(|e| anyhow::anyhow!("{e} (see skelid run --help; nothing was done)"))?;
+    let options = a
+        .identify
+        .options("run", a.refine.then_some(a.refine_evaluations))?;
     let exe = self_exe()?;
     let shard = a
         .shard

@@ -313,17 +313,12 @@ fn inflate_chunks(chunks: &[serde_bytes::ByteBuf], elem: Elem, len: usize) -> Op
         if status != flate2::Status::StreamEnd || z.total_out() as usize != chunk_bytes {
             return None;
         }
+        let start = out.len();
+        out.resize(start + chunk_bytes, 0);
         if size > 1 {
-            let n = chunk_bytes / size;
-            let start = out.len();
-            out.resize(start + chunk_bytes, 0);
-            for (i, e) in out[start..].chunks_exact_mut(size).enumerate() {
-                for (j, b) in e.iter_mut().enumerate() {
-                    *b = raw[j * n + i];
-                }
-            }
+            unshuffle(&raw, size, &mut out[start..]);
         } else {
-            out.extend_from_slice(&raw);
+            out[start..].copy_from_slice(&raw);
         }
     }
     (out.len() >= len * size).then(|| {
@@ -342,12 +337,23 @@ fn shuffle(src: &[u8], size: usize, dst: &mut [u8]) {
     }
 }
 
+/// Undoes [`shuffle`]: byte `j·n + i` goes back to byte j of element i.
+fn unshuffle(src: &[u8], size: usize, dst: &mut [u8]) {
+    let n = src.len() / size;
+    for (i, e) in dst.chunks_exact_mut(size).enumerate() {
+        for (j, b) in e.iter_mut().enumerate() {
+            *b = src[j * n + i];
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use std::io::Read;
 
-    fn unshuffle(src: &[u8], size: usize) -> Vec<u8> {
+    /// The shuffle filter undone the plain way, to check [`super::unshuffle`] against.
+    fn naive_unshuffle(src: &[u8], size: usize) -> Vec<u8> {
         let n = src.len() / size;
         let mut out = vec![0u8; src.len()];
         for i in 0..n {
@@ -391,7 +397,7 @@ mod tests {
                 .read_to_end(&mut raw)
                 .unwrap();
             assert_eq!(raw.len(), CHUNK * 8);
-            back.extend(unshuffle(&raw, 8));
+            back.extend(naive_unshuffle(&raw, 8));
         }
         let back: &[f64] = bytemuck::cast_slice(&back);
         assert_eq!(&back[..data.len()], &data[..]);

@@ -205,11 +205,11 @@ pub fn read_run(file: &Path, group: &str) -> Result<RunPlots, String> {
     Ok(plots(&FileRun(g), group))
 }
 
-/// The plot data of a run encoded in memory, as [`read_run`] would read it from the file
-/// it is written to at `group`: the batch's workers draw the report's runs from this, so
+/// The plot data of a run encoded in memory, as [`read_run`] would read it back from the
+/// file at the run's own path: the batch's workers draw the report's runs from this, so
 /// that the end of a batch does not read every drawn run back from results.h5.
-pub fn encoded_plots(run: &EncodedRun, group: &str) -> RunPlots {
-    plots(run, group)
+pub fn encoded_plots(run: &EncodedRun) -> RunPlots {
+    plots(run, &run.path)
 }
 
 fn plots(run: &dyn StoredRun, group: &str) -> RunPlots {
@@ -1097,11 +1097,11 @@ mod tests {
         w.finish().unwrap();
         for e in &encoded {
             let from_file = read_run(&file, &e.path).unwrap();
-            let from_memory = encoded_plots(e, &e.path);
+            let from_memory = encoded_plots(e);
             // Debug text compares NaN (a break in a reduced track) as equal to itself.
             assert_eq!(format!("{from_memory:?}"), format!("{from_file:?}"));
         }
-        let drawn = encoded_plots(&encoded[0], "/runs/a");
+        let drawn = encoded_plots(&encoded[0]);
         assert_eq!(drawn.methods.len(), 2);
         assert!(
             drawn.methods[0].fitted.is_some() && !drawn.methods[0].skeleton.amplitude.is_empty()

@@ -631,10 +631,7 @@ fn encode_identification(
     e.str_attr(m, "warnings", &id.warnings.join("\n"));
 }
 
-/// Creates one encoded dataset in `g`: contiguous values written as usual, or the dataset
-/// created with the same chunking and filters the chunks were encoded for, then each chunk
-/// handed to libhdf5 as it is (`H5Dwrite_chunk`, no filtering under the lock).
-/// The datasets' layouts written so far (element, length, deflate level), each
+/// The datasets' layouts written so far, each
 /// with the datatype, dataspace and creation list of its first dataset, so that the next
 /// ones are created with one libhdf5 call: a run has two dozen chunked datasets of three
 /// or four layouts and as many small contiguous ones (skeleton columns) of a few lengths,
@@ -645,11 +642,17 @@ struct Layouts {
     lcpl: hdf5::plist::LinkCreate,
     /// The memory type of float data.
     native_f64: hdf5::Datatype,
-    seen: std::sync::Mutex<std::collections::HashMap<(Elem, usize, u8), Layout>>,
+    seen: std::sync::Mutex<std::collections::HashMap<LayoutKey, Layout>>,
 }
 
-/// The deflate level that marks a contiguous (uncompressed) layout in [`Layouts`].
-const PLAIN: u8 = u8::MAX;
+/// What makes two datasets alike for [`Layouts`].
+#[derive(Clone, Copy, PartialEq, Eq, Hash)]
+enum LayoutKey {
+    /// Contiguous float64 values of this length.
+    Plain(usize),
+    /// Chunked: element, length, deflate level.
+    Chunked(Elem, usize, u8),
+}
 
 /// Datatype, dataspace and creation list of one layout.
 type Layout = (hdf5::Datatype, hdf5::Dataspace, hdf5::plist::DatasetCreate);
@@ -670,7 +673,7 @@ impl Layouts {
         &self,
         g: &hdf5::Group,
         name: &str,
-        key: (Elem, usize, u8),
+        key: LayoutKey,
     ) -> hdf5::Result<Option<hdf5::Dataset>> {
         let seen = self.seen.lock().unwrap_or_else(|p| p.into_inner());
         let Some((dtype, space, dcpl)) = seen.get(&key) else {
@@ -717,7 +720,7 @@ impl Layouts {
     }
 
     /// Remembers the layout of `ds`, the first dataset of `key`.
-    fn remember(&self, key: (Elem, usize, u8), ds: &hdf5::Dataset) -> hdf5::Result<()> {
+    fn remember(&self, key: LayoutKey, ds: &hdf5::Dataset) -> hdf5::Result<()> {
         let layout = (ds.dtype()?, ds.space()?, ds.create_plist()?);
         self.seen
             .lock()
@@ -727,6 +730,9 @@ impl Layouts {
     }
 }
 
+/// Creates one encoded dataset in `g`: contiguous values written as usual, or the dataset
+/// created with the same chunking and filters the chunks were encoded for, then each chunk
+/// handed to libhdf5 as it is (`H5Dwrite_chunk`, no filtering under the lock).
 fn write_dataset(
     g: &hdf5::Group,
     d: &encoded::Dataset,
@@ -734,8 +740,7 @@ fn write_dataset(
 ) -> hdf5::Result<hdf5::Dataset> {
     let (level, chunks) = match &d.storage {
         Storage::Plain(v) => {
-            // Contiguous float datasets are keyed by length with an impossible level.
-            let key = (Elem::F64, v.len(), PLAIN);
+            let key = LayoutKey::Plain(v.len());
             if let Some(ds) = layouts.create_like(g, &d.name, key)? {
                 layouts.write_all(&ds, v)?;
                 return Ok(ds);
@@ -749,7 +754,7 @@ fn write_dataset(
         }
         Storage::Chunked { level, chunks } => (*level, chunks),
     };
-    let key = (d.elem, d.len, level);
+    let key = LayoutKey::Chunked(d.elem, d.len, level);
     let ds = match layouts.create_like(g, &d.name, key)? {
         Some(ds) => ds,
         None => {
