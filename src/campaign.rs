@@ -78,6 +78,8 @@ impl RunData {
                 units: None,
                 excitation: None,
                 attributes,
+                mode_band: None,
+                mode_near: None,
             },
             input: self.input,
             output: self.output,

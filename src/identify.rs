@@ -6,6 +6,7 @@ use std::f64::consts::PI;
 use crate::backend::Backend;
 use crate::fit::{self, Bin, DeadZoneFit, Estimate, Sample};
 use crate::forcevib::{self, Modal};
+use crate::mode::{self, ModeBand, ModeChoice};
 use crate::run::{Quantity, Run, RunKind};
 use crate::track::{
     default_band, track_hilbert, HilbertOptions, Method, Track, TrackError, WaveletOptions,
@@ -53,6 +54,8 @@ pub struct IdentifyOptions {
     /// Simulations per half of the simulation-refined identification of base-motion runs
     /// ([`crate::refine`]); `None`: the skeleton estimates only.
     pub refine: Option<usize>,
+    /// Which mode to isolate before tracking ([`crate::mode`]).
+    pub mode: ModeChoice,
 }
 
 impl Default for IdentifyOptions {
@@ -64,6 +67,7 @@ impl Default for IdentifyOptions {
             resonance: 0.1,
             backbone: None,
             refine: None,
+            mode: ModeChoice::default(),
         }
     }
 }
@@ -74,6 +78,7 @@ impl IdentifyOptions {
     /// resonance band that is not a fraction in (0, 1).
     pub fn validate(&self) -> Result<(), String> {
         self.wavelet.validate()?;
+        self.mode.validate()?;
         if let Some(n) = self.refine {
             if n < 10 {
                 return Err(format!(
@@ -134,6 +139,8 @@ pub struct Identification {
     pub mass: Option<(f64, bool)>,
     /// Warnings for the user (partial skeleton, estimated mass, …).
     pub warnings: Vec<String>,
+    /// The band the mode was isolated in before tracking (`None`: the whole record).
+    pub mode: Option<ModeBand>,
     /// The resonance band it was identified with ([`IdentifyOptions::resonance`]).
     pub resonance: f64,
 }
@@ -199,19 +206,54 @@ fn order(q: Quantity) -> u32 {
 
 /// A channel as displacement: velocity and acceleration are integrated spectrally, with the
 /// high-pass at half the lowest frequency of the signal's own band.
+/// Within a mode's band the channel is band-passed first and the band's lower edge sets
+/// the high-pass.
 fn displacement(
     x: &[f64],
     fs: f64,
     q: Quantity,
     channel: &'static str,
+    band: Option<&ModeBand>,
 ) -> Result<Vec<f64>, IdentifyError> {
+    let x = match band {
+        Some(b) => std::borrow::Cow::Owned(mode::band_pass(x, fs, b.fmin, b.fmax)),
+        None => std::borrow::Cow::Borrowed(x),
+    };
     let k = order(q);
     if k == 0 {
-        return Ok(x.to_vec());
+        return Ok(x.into_owned());
     }
-    let (fmin, _) = default_band(x, fs, &Morlet::default())
-        .map_err(|source| IdentifyError::Track { channel, source })?;
-    Ok(forcevib::integrate(x, fs, k, 0.5 * fmin))
+    let fmin = match band {
+        Some(b) => b.fmin,
+        None => {
+            default_band(&x, fs, &Morlet::default())
+                .map_err(|source| IdentifyError::Track { channel, source })?
+                .0
+        }
+    };
+    Ok(forcevib::integrate(&x, fs, k, 0.5 * fmin))
+}
+
+/// A band-passed drive is nearly zero while a sweep is outside the band, where the ratio of
+/// response to force is noise over noise: those samples are not valid (the Hilbert track
+/// has no noise floor of its own to say so). The drive counts as outside the band below a
+/// quarter of its 99th-percentile envelope.
+fn drive_outside_band(tf: &mut Track) {
+    let mut a: Vec<f64> = tf
+        .amplitude
+        .iter()
+        .zip(&tf.valid)
+        .filter(|(a, &v)| v && a.is_finite())
+        .map(|(a, _)| *a)
+        .collect();
+    if a.is_empty() {
+        return;
+    }
+    let k = ((a.len() - 1) as f64 * 0.99) as usize;
+    let (_, &mut p99, _) = a.select_nth_unstable_by(k, |x, y| x.total_cmp(y));
+    for (v, &amp) in tf.valid.iter_mut().zip(&tf.amplitude) {
+        *v &= amp >= 0.25 * p99;
+    }
 }
 
 /// What one identification works with: its options and the backend of the transform.
@@ -329,10 +371,28 @@ fn identify_body(
     ctx: &Ctx,
     known_input: Option<&Track>,
 ) -> Result<Identification, IdentifyError> {
-    let opt = ctx.opt;
     let meta = &run.meta;
     let fs = meta.sample_rate;
-    let y = displacement(&run.output, fs, meta.output_quantity, "output")?;
+    let band =
+        mode::choose(run, ctx.opt.mode).map_err(|e| IdentifyError::Unusable(e.to_string()))?;
+    // Within a mode's band the wavelet's scales span the band alone, unless given.
+    let banded;
+    let ctx = match &band {
+        Some(b) => {
+            let mut o = ctx.opt.clone();
+            o.wavelet.fmin = o.wavelet.fmin.or(Some(b.fmin));
+            o.wavelet.fmax = o.wavelet.fmax.or(Some(b.fmax));
+            banded = o;
+            &Ctx {
+                opt: &banded,
+                backend: ctx.backend,
+            }
+        }
+        None => ctx,
+    };
+    let opt = ctx.opt;
+    let band_ref = band.as_ref();
+    let y = displacement(&run.output, fs, meta.output_quantity, "output", band_ref)?;
     let mut warnings = Vec::new();
     let (input, response, modal, mass) = match meta.kind {
         RunKind::Free => {
@@ -350,7 +410,7 @@ fn identify_body(
                     "input_quantity is force but kind is base_motion: set kind = \"force\"".into(),
                 ));
             }
-            let x = displacement(raw, fs, q, "input")?;
+            let x = displacement(raw, fs, q, "input", band_ref)?;
             let z: Vec<f64> = y.iter().zip(&x).map(|(a, b)| a - b).collect();
             let tx = match known_input {
                 Some(t) if t.amplitude.len() == x.len() => t.clone(),
@@ -364,7 +424,14 @@ fn identify_body(
             let f = run.input.as_ref().ok_or_else(|| {
                 IdentifyError::Unusable("a force run needs an input (force) dataset".into())
             })?;
-            let tf = track(f, fs, method, ctx, None, "input")?;
+            let f = match band_ref {
+                Some(b) => std::borrow::Cow::Owned(mode::band_pass(f, fs, b.fmin, b.fmax)),
+                None => std::borrow::Cow::Borrowed(f.as_slice()),
+            };
+            let mut tf = track(&f, fs, method, ctx, None, "input")?;
+            if band_ref.is_some() {
+                drive_outside_band(&mut tf);
+            }
             let ty = track(&y, fs, method, ctx, Some(&tf), "output")?;
             let (m, estimated) = match meta.inertia {
                 Some(m) => (m, false),
@@ -473,5 +540,6 @@ fn identify_body(
         mass,
         warnings,
         resonance: opt.resonance,
+        mode: band,
     })
 }

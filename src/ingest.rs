@@ -606,6 +606,20 @@ impl Archive {
             }
         }
         let gravity_stiffness = number("gravity_stiffness")?.unwrap_or(0.0);
+        let mode_near = number("mode_near")?;
+        let mode_band = match (number("mode_fmin")?, number("mode_fmax")?) {
+            (None, None) => None,
+            (Some(lo), Some(hi)) if lo > 0.0 && hi > lo => Some((lo, hi)),
+            (lo, hi) => return Err(IngestError::BadAttribute {
+                file: file.clone(),
+                run,
+                name: "mode_fmin".into(),
+                value: format!("{lo:?}, mode_fmax {hi:?}"),
+                detail:
+                    "a mode band needs both mode_fmin and mode_fmax (Hz), 0 < mode_fmin < mode_fmax"
+                        .into(),
+            }),
+        };
 
         let samples = self.signal_len(group, path, &self.options.output_name)?;
         if members.input && kind != RunKind::Free {
@@ -647,6 +661,8 @@ impl Archive {
             units: attrs.text("units"),
             excitation: attrs.text("excitation"),
             attributes,
+            mode_band,
+            mode_near,
         })
     }
 
@@ -1007,6 +1023,9 @@ const INHERITED: &[&str] = &[
     "inertia",
     "gravity_stiffness",
     "excitation",
+    "mode_fmin",
+    "mode_fmax",
+    "mode_near",
 ];
 
 impl InheritedAttrs {

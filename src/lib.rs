@@ -27,6 +27,7 @@ pub mod identify;
 pub mod ingest;
 pub mod inspect;
 pub mod journal;
+pub mod mode;
 pub mod model;
 pub mod profile;
 pub mod quality;

@@ -114,6 +114,14 @@ pub struct RunMeta {
     pub excitation: Option<String>,
     /// Every attribute of the run group itself, for display.
     pub attributes: BTreeMap<String, String>,
+    /// The band of the mode to identify (`mode_fmin`, `mode_fmax`, Hz), if the archive
+    /// names one ([`crate::mode`]).
+    #[serde(default)]
+    pub mode_band: Option<(f64, f64)>,
+    /// The frequency near which the mode to identify lies (`mode_near`, Hz), if the archive
+    /// names one.
+    #[serde(default)]
+    pub mode_near: Option<f64>,
 }
 
 /// A run with its samples, ready for analysis.

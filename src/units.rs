@@ -111,7 +111,10 @@ impl Units {
             "viscous_damping_absolute" => self.per_displacement(" s"),
             "coulomb_friction_absolute" => self.force.clone(),
             "inertia_estimated" => "1".into(),
-            "natural_frequency_at_amplitude_max" => "Hz".into(),
+            "natural_frequency_at_amplitude_max" | "mode_frequency" | "mode_fmin" | "mode_fmax" => {
+                "Hz".into()
+            }
+            "damping_ratio_at_amplitude_max" => "1".into(),
             _ => return None,
         })
     }
@@ -322,6 +325,7 @@ mod tests {
             .iter()
             .chain(crate::report::ABSOLUTE_NAMES.iter())
             .chain(crate::refine::NAMES.iter())
+            .chain(crate::report::MODE_NAMES.iter())
         {
             assert!(u.parameter(name).is_some(), "{name}");
         }

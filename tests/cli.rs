@@ -650,11 +650,15 @@ fn refine_matches_simulations_to_the_paper_rig_and_writes_refined_estimates_with
     assert_eq!(unit("refined_stiffness_units"), "1/s^2");
     assert_eq!(unit("refined_coulomb_friction_units"), "rad/s^2");
     let csv = std::fs::read_to_string(out.join("summary.csv")).unwrap();
-    assert!(csv
-        .lines()
-        .next()
-        .unwrap()
-        .ends_with(",refined_gap,refined_simulations"));
+    // Columns are only ever added at the end: the refined ones, then the isolated mode's.
+    let header = csv.lines().next().unwrap();
+    assert!(
+        header.ends_with(&format!(
+            ",refined_gap,refined_simulations,{}",
+            skelid::report::MODE_NAMES.join(",")
+        )),
+        "{header}"
+    );
     // The page shows them, with their errors.
     let page = std::fs::read_to_string(out.join("report.html")).unwrap();
     assert!(page.contains("clearance (refined)") && page.contains(" mrad ± "));
@@ -1638,7 +1642,9 @@ fn impossible_results_on_the_f16_are_flagged_with_their_reasons() {
         .arg(&f16)
         .arg("--out")
         .arg(&out)
+        // Over the whole record, as before mode isolation (tests/mode.rs has the isolated).
         .args(["--run-glob", "/sine_sweep/level_[67]*", "--json-progress"])
+        .arg("--whole-record")
         .output()
         .unwrap();
     // Impossible values are a problem found: exit status 1, as for a failed run.

@@ -34,6 +34,8 @@ fn run_of(c: &RigCase, inertia: Option<f64>) -> Run {
             units: None,
             excitation: None,
             attributes: Default::default(),
+            mode_band: None,
+            mode_near: None,
         },
         input: rd.input,
         output: rd.output,

@@ -435,11 +435,11 @@ fn prepare(
             (key, Err(o))
         }
         reader::Delivery::Run { source, path, run } => {
-            let key = match &run {
+            let key = match &*run {
                 Ok(run) => run_key(run, &source, settings),
                 Err(e) => failed_key(&source, &path, e, settings),
             };
-            (key, Ok((source, path, run)))
+            (key, Ok((source, path, *run)))
         }
     };
     if !opt.force {

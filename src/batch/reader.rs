@@ -80,8 +80,8 @@ pub enum Delivery {
         source: String,
         /// Group path.
         path: String,
-        /// The run.
-        run: Result<Run, String>,
+        /// The run (boxed: a run's metadata is far larger than the other variant).
+        run: Box<Result<Run, String>>,
     },
     /// An archive that could not be read (or not to the end), with the reason.
     Unreadable {
@@ -242,7 +242,7 @@ impl<'a> Assembler<'a> {
                 Some(Delivery::Run {
                     source: self.files[archive].display().to_string(),
                     path,
-                    run,
+                    run: Box::new(run),
                 })
             }
             Frame::Close { archive, error } => {

@@ -127,6 +127,38 @@ pub(crate) struct IdentifyArgs {
     /// function for free decays).
     #[arg(long, value_enum, default_value = "auto")]
     pub(crate) backbone: BackboneArg,
+    /// Mode isolation: identify the mode whose peak in the record's frequency response
+    /// (force-input and free-decay runs; for base-motion runs this turns isolation on) is
+    /// nearest HZ. Both channels are band-passed to that mode's band before tracking.
+    #[arg(long, value_name = "HZ", conflicts_with_all = ["band", "whole_record"])]
+    pub(crate) mode_near: Option<f64>,
+    /// Mode isolation: identify what lies in this band, FMIN:FMAX in Hz (e.g. 6:9), in
+    /// every run. Without --band or --mode-near, a run is isolated on the band or mode its
+    /// `mode_fmin`/`mode_fmax` or `mode_near` attributes name; else a force-input run whose
+    /// frequency response shows several modes is isolated on its largest, and every other
+    /// run (one mode, base motion, free decay) is identified over the whole record.
+    #[arg(long, value_name = "FMIN:FMAX", value_parser = parse_band, conflicts_with = "whole_record")]
+    pub(crate) band: Option<(f64, f64)>,
+    /// No mode isolation: every run is identified over its whole record, as before
+    /// skelid 0.2 (a sweep through several modes then mixes them in one skeleton).
+    #[arg(long)]
+    pub(crate) whole_record: bool,
+}
+
+pub(crate) fn parse_band(s: &str) -> Result<(f64, f64), String> {
+    let (a, b) = s
+        .split_once(':')
+        .ok_or_else(|| format!("{s:?}: give the band as FMIN:FMAX in Hz, e.g. 6:9"))?;
+    let num = |t: &str| {
+        t.trim()
+            .parse::<f64>()
+            .map_err(|_| format!("{s:?}: {t:?} is not a number of Hz (FMIN:FMAX, e.g. 6:9)"))
+    };
+    let (lo, hi) = (num(a)?, num(b)?);
+    if !(lo > 0.0 && hi > lo && hi.is_finite()) {
+        return Err(format!("{s:?}: need 0 < FMIN < FMAX (Hz), e.g. 6:9"));
+    }
+    Ok((lo, hi))
 }
 
 impl IdentifyArgs {
@@ -148,6 +180,12 @@ impl IdentifyArgs {
             BackboneArg::Auto => None,
             BackboneArg::Orbit => Some(skelid::fit::BackboneModel::PeriodicOrbit),
             BackboneArg::DescribingFunction => Some(skelid::fit::BackboneModel::DescribingFunction),
+        };
+        options.mode = match (self.whole_record, self.band, self.mode_near) {
+            (true, _, _) => skelid::mode::ModeChoice::Whole,
+            (_, Some((lo, hi)), _) => skelid::mode::ModeChoice::Band(lo, hi),
+            (_, None, Some(f)) => skelid::mode::ModeChoice::Near(f),
+            _ => skelid::mode::ModeChoice::ByKind,
         };
         options
             .validate()

@@ -1048,6 +1048,8 @@ mod tests {
             units: None,
             excitation: None,
             attributes: Default::default(),
+            mode_band: None,
+            mode_near: None,
         };
         let run = Run {
             meta,

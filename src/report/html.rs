@@ -685,6 +685,15 @@ const REFINED_COLUMNS: [(&str, &str); 4] = [
     ("refined_coulomb_friction", "F/J (refined)"),
 ];
 
+/// Columns of the isolated mode (force and free runs, `--band`, `--mode-near`), shown when
+/// a row has them.
+const MODE_COLUMNS: [(&str, &str); 4] = [
+    ("mode_frequency", "mode peak"),
+    ("mode_fmin", "band from"),
+    ("mode_fmax", "band to"),
+    ("damping_ratio_at_amplitude_max", "ζ at largest amplitude"),
+];
+
 /// Writes `<out>/report.html` (atomically) and returns its path.
 pub fn write_report(out: &Path, page: &ReportPage) -> Result<PathBuf, ReportError> {
     let path = out.join("report.html");
@@ -917,8 +926,14 @@ fn table(page: &ReportPage) -> String {
             .get("refined_clearance")
             .is_some_and(|v| v.is_some())
     });
+    let isolated = page.rows.iter().any(|r| {
+        r.parameters
+            .get("mode_frequency")
+            .is_some_and(|v| v.is_some())
+    });
     let columns: Vec<(&str, &str)> = TABLE_COLUMNS
         .into_iter()
+        .chain(MODE_COLUMNS.into_iter().filter(|_| isolated))
         .chain(REFINED_COLUMNS.into_iter().filter(|_| refined))
         .collect();
     for (_, header) in &columns {

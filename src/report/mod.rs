@@ -614,6 +614,11 @@ fn encode_identification(
     }
     e.str_attr(
         m,
+        "mode_choice",
+        id.mode.map_or("whole_record", |b| b.chosen.as_str()),
+    );
+    e.str_attr(
+        m,
         "backbone_bins",
         if id.fitted_at_resonance {
             "resonant"
@@ -835,10 +840,25 @@ pub fn parameters(id: &Identification, inertia: Option<f64>) -> Vec<(&'static st
     // The absolute values: the per-inertia ones times the inertia (given or estimated).
     let abs = |x: f64| mass.map_or(nan, |m| m * x);
     let absolute = [abs(k_se), abs(v), abs(v_se), abs(f), abs(f_se)];
+    let largest = id
+        .bins
+        .iter()
+        .max_by(|a, b| a.amplitude.total_cmp(&b.amplitude));
+    // ζ = h0/ω0, with the bin's damping 2 h0.
+    let zeta = largest
+        .filter(|b| b.stiffness > 0.0)
+        .map_or(nan, |b| 0.5 * b.damping / b.stiffness.sqrt());
+    let mode = [
+        id.mode.map_or(nan, |m| m.peak),
+        id.mode.map_or(nan, |m| m.fmin),
+        id.mode.map_or(nan, |m| m.fmax),
+        zeta,
+    ];
     PARAMETER_NAMES
         .into_iter()
         .zip(values)
         .chain(ABSOLUTE_NAMES.into_iter().zip(absolute))
+        .chain(MODE_NAMES.into_iter().zip(mode))
         .collect()
 }
 
@@ -956,6 +976,8 @@ pub fn write_summary(dir: &Path, rows: &[SummaryRow]) -> Result<(), ReportError>
     csv.push_str(&ABSOLUTE_NAMES.join(","));
     csv.push_str(",displacement_unit,force_unit,inertia_unit,");
     csv.push_str(&crate::refine::NAMES.join(","));
+    csv.push(',');
+    csv.push_str(&MODE_NAMES.join(","));
     csv.push('\n');
     let quote = |s: &str| format!("\"{}\"", s.replace('"', "\"\""));
     let value = |r: &SummaryRow, n: &str| match r.parameters.get(n) {
@@ -994,7 +1016,7 @@ pub fn write_summary(dir: &Path, rows: &[SummaryRow]) -> Result<(), ReportError>
             quote(&u.force),
             quote(&u.inertia)
         ));
-        for n in crate::refine::NAMES {
+        for n in crate::refine::NAMES.into_iter().chain(MODE_NAMES) {
             csv.push(',');
             csv.push_str(&value(r, n));
         }
@@ -1055,6 +1077,16 @@ pub const ABSOLUTE_NAMES: [&str; 5] = [
     "viscous_damping_absolute_stderr",
     "coulomb_friction_absolute",
     "coulomb_friction_absolute_stderr",
+];
+
+/// The isolated mode ([`crate::mode`]: its peak and band, Hz; NaN for the whole record)
+/// and the damping ratio at the largest amplitude, added after [`ABSOLUTE_NAMES`] and the
+/// refined names.
+pub const MODE_NAMES: [&str; 4] = [
+    "mode_frequency",
+    "mode_fmin",
+    "mode_fmax",
+    "damping_ratio_at_amplitude_max",
 ];
 
 /// Writes a file through a temporary file renamed into place.
