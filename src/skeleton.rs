@@ -198,6 +198,135 @@ pub fn correct(w: &Morlet, scales: [f64; 3], obs: &Observation) -> Corrected {
     }
 }
 
+/// One point of a wavelet track's estimation grid: a sample and the ridge's scale there
+/// (kept one scale inside the range, so that it has a neighbour on each side).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct GridPoint {
+    /// Sample index.
+    pub sample: usize,
+    /// Scale index of the ridge.
+    pub centre: usize,
+}
+
+/// The skeleton at one grid point: what a backend computes after the ridge (the CPU in
+/// [`estimate_point`], the GPU in `shaders/refine.wgsl`), and all the track's completion
+/// needs from it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GridEstimate {
+    /// ln |W| at the refined ridge before the bias correction: the SNR's numerator.
+    pub observed_ln_amp: f64,
+    /// ln A, bias corrected.
+    pub ln_amp: f64,
+    /// Phase (rad), bias corrected.
+    pub phase: f64,
+    /// Decay rate σ (1/s), bias corrected.
+    pub decay: f64,
+    /// Frequency (Hz), bias corrected.
+    pub frequency: f64,
+    /// Sweep rate (Hz/s), bias corrected.
+    pub sweep: f64,
+    /// Refined ridge scale (s).
+    pub scale: f64,
+    /// Scale index at the middle of the triple the estimate came from.
+    pub best: usize,
+    /// Whether |W| peaked inside the triple (else the point is not valid).
+    pub peaked: bool,
+    /// Whether the bias correction succeeded or was not needed (a failure invalidates the
+    /// point and its neighbours).
+    pub corrected: bool,
+}
+
+impl GridEstimate {
+    /// A point where the three scales around the ridge have no values (`scale`, `freq`:
+    /// the middle one's): not peaked, no amplitude, at that scale's frequency.
+    pub fn unobserved(scale: f64, freq: f64, best: usize, corrected: bool) -> GridEstimate {
+        GridEstimate {
+            observed_ln_amp: f64::NEG_INFINITY,
+            ln_amp: f64::NEG_INFINITY,
+            phase: 0.0,
+            decay: 0.0,
+            frequency: 2.0 * PI * freq / (2.0 * PI),
+            sweep: 0.0,
+            scale,
+            best,
+            peaked: false,
+            corrected,
+        }
+    }
+}
+
+/// The skeleton at one grid point whose ridge sits at scale index `centre`: of the ridge's
+/// scale and its two neighbours the one with the largest |W|, the three-scale estimate
+/// around it ([`estimate`]), and, when `correct`, the bias correction ([`correct`]).
+/// `value(k)` gives scale k's values at the point (`None` where it has none); `scales` and
+/// `freqs` are the analysis scales (s) and their frequencies (Hz).
+pub fn estimate_point(
+    w: &Morlet,
+    scales: &[f64],
+    freqs: &[f64],
+    centre: usize,
+    correct_bias: bool,
+    value: impl Fn(usize) -> Option<ScaleValue>,
+) -> GridEstimate {
+    let (c, s_count) = (centre, scales.len());
+    let near = [c - 1, c, c + 1].map(|k| (k >= 1 && k + 1 < s_count).then(|| value(k)).flatten());
+    let best = near
+        .iter()
+        .enumerate()
+        .filter_map(|(p, v)| v.map(|v| (c - 1 + p, v.ln_amp)))
+        .max_by(|a, b| a.1.total_cmp(&b.1))
+        .map_or(c, |(k, _)| k);
+    // The triple reuses the values already interpolated.
+    let pick = |k: usize| {
+        let p = k as isize - (c as isize - 1);
+        if (0..3).contains(&p) {
+            near[p as usize]
+        } else {
+            value(k)
+        }
+    };
+    let o = match [pick(best - 1), pick(best), pick(best + 1)] {
+        [Some(a), Some(b), Some(c3)] => estimate([a, b, c3]),
+        // Without correction a point counts as corrected, as the estimate below has it.
+        _ => return GridEstimate::unobserved(scales[best], freqs[best], best, !correct_bias),
+    };
+    let ok = o.peaked;
+    let fix: Option<[f64; 5]> = if !correct_bias {
+        Some([0.0; 5])
+    } else if !ok {
+        None
+    } else {
+        let triple = [scales[best - 1], scales[best], scales[best + 1]];
+        let st = w.time_sigma(o.scale);
+        // A steady tone is estimated exactly; skip the solve where the model is that close.
+        if (o.decay() * st).abs() < 1e-4 && (o.sweep() * st * st).abs() < 1e-4 {
+            Some([0.0; 5])
+        } else {
+            let c = correct(w, triple, &o);
+            (c.converged && c.ln_amp_shift.abs() < std::f64::consts::LN_2).then_some([
+                c.ln_amp_shift,
+                c.phase_shift,
+                c.model.decay - o.decay(),
+                c.model.freq - o.freq(),
+                c.model.sweep - o.sweep(),
+            ])
+        }
+    };
+    let f = |i: usize| fix.map_or(0.0, |f| f[i]);
+    GridEstimate {
+        observed_ln_amp: o.ln_amp,
+        ln_amp: o.ln_amp + f(0),
+        phase: o.phase + f(1),
+        decay: o.decay() + f(2),
+        frequency: o.freq() + f(3),
+        sweep: o.sweep() + f(4),
+        scale: o.scale,
+        best,
+        peaked: ok,
+        corrected: fix.is_some(),
+    }
+}
+
 /// Solves a 3×3 linear system by Cramer's rule; `None` when singular.
 fn solve3(a: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
     let det = |m: [[f64; 3]; 3]| {

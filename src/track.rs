@@ -24,7 +24,7 @@ use thiserror::Error;
 
 use crate::filter::{local_line_weighted, local_slope, lowpass_zero_phase};
 use crate::ridge::{argmax_ridge, dp_ridge};
-use crate::skeleton::{self, Observation, ScaleValue};
+use crate::skeleton::{self, GridEstimate, GridPoint, ScaleValue};
 use crate::transform::band::{interpolate, ScalePlan};
 use crate::transform::{hilbert, log_frequencies, Morlet, Spectrum};
 
@@ -762,16 +762,169 @@ impl WaveletPrep {
         }
     }
 
-    /// Everything after the first pass, on the CPU: the estimation grid, W, W′, W″ at the
-    /// scales around the ridge, the three-scale estimates, the bias correction, validity,
-    /// and the per-sample track. `backend` names who computed `ridge`.
+    /// Everything after the first pass, on the CPU: the estimation grid
+    /// ([`grid`](Self::grid)), the skeleton at every grid point
+    /// ([`estimate_grid`](Self::estimate_grid)), then [`complete`](Self::complete).
+    /// `backend` names who computed `ridge`.
     pub fn finish(self, ridge: CoarseRidge, backend: &'static str) -> Track {
         crate::profile::time(crate::profile::Stage::Refine, || {
-            self.finish_inner(ridge, backend)
+            let grid = self.grid(&ridge.path);
+            let estimates = self.estimate_grid(&grid);
+            self.complete(ridge, &grid, &estimates, backend)
         })
     }
 
-    fn finish_inner(self, ridge: CoarseRidge, backend: &'static str) -> Track {
+    /// The ridge's scale index at sample `i`, linear between coarse steps.
+    fn ridge_at(&self, path: &[usize], i: usize) -> usize {
+        let (h, steps) = (self.h, self.steps);
+        let j = i / h;
+        let u = (i % h) as f64 / h as f64;
+        let a = path[j] as f64;
+        let b = path[(j + 1).min(steps - 1)] as f64;
+        (a + u * (b - a)).round() as usize
+    }
+
+    /// The estimation grid: σ_t/`GRID_DIVISION` apart at the ridge's scale, from the first
+    /// sample to the last. Everything after it is computed on this grid; the per-sample track
+    /// is interpolated at the end. Each point carries the ridge's scale there, kept one scale
+    /// inside the range so that it has a neighbour on each side.
+    pub fn grid(&self, path: &[usize]) -> Vec<GridPoint> {
+        let wl = self.opt.wavelet;
+        let (n, fs, s_count) = (self.n, self.fs, self.freqs.len());
+        let mut grid = Vec::new();
+        let mut i = 0usize;
+        while i < n {
+            let k = self.ridge_at(path, i);
+            grid.push(GridPoint {
+                sample: i,
+                centre: k.clamp(1, s_count - 2),
+            });
+            let st = wl.time_sigma(wl.scale_for(self.freqs[k])) * fs;
+            i += ((st / GRID_DIVISION).floor() as usize).max(1);
+        }
+        if grid.last().expect("n ≥ 1").sample != n - 1 {
+            let k = self.ridge_at(path, n - 1);
+            grid.push(GridPoint {
+                sample: n - 1,
+                centre: k.clamp(1, s_count - 2),
+            });
+        }
+        grid
+    }
+
+    /// Per scale, the stretches of samples (inclusive) where `grid` needs its W, W′, W″:
+    /// within ±2 of the ridge (the best of its three neighbours, and that one's neighbours
+    /// for the parabola). Empty for a scale the ridge never comes near.
+    pub fn wanted(&self, grid: &[GridPoint]) -> Vec<Vec<(usize, usize)>> {
+        let s_count = self.freqs.len();
+        let mut wanted: Vec<Vec<(usize, usize)>> = vec![Vec::new(); s_count];
+        for (g, p) in grid.iter().enumerate() {
+            let c = p.centre;
+            let (lo, hi) = (c.saturating_sub(2), (c + 2).min(s_count - 1));
+            let prev = g.checked_sub(1).map(|q| grid[q].sample);
+            for runs in &mut wanted[lo..=hi] {
+                match runs.last_mut() {
+                    Some(r) if Some(r.1) == prev => r.1 = p.sample,
+                    _ => runs.push((p.sample, p.sample)),
+                }
+            }
+        }
+        wanted
+    }
+
+    /// The pass-2 plan of scale `k`: the exact pass band (the first pass cut it at 1e-3),
+    /// for the W, W′, W″ the skeleton is estimated from.
+    pub fn exact_plan(&self, k: usize) -> ScalePlan {
+        ScalePlan::new(
+            &self.spec,
+            &self.opt.wavelet,
+            self.plans[k].scale,
+            PASS2_OVERSAMPLE,
+        )
+    }
+
+    /// Whether the window's bias is removed ([`WaveletOptions::correct`]).
+    pub fn corrects(&self) -> bool {
+        self.opt.correct
+    }
+
+    /// The skeleton at every grid point on the CPU: W, W′, W″ of the scales the ridge comes
+    /// near (pass 2), then per point the three-scale estimate and its bias correction
+    /// ([`skeleton::estimate_point`]).
+    pub fn estimate_grid(&self, grid: &[GridPoint]) -> Vec<GridEstimate> {
+        let wl = self.opt.wavelet;
+        let s_count = self.freqs.len();
+        let spec = &self.spec;
+        let data: Vec<ScaleData> = self
+            .wanted(grid)
+            .into_par_iter()
+            .enumerate()
+            .map(|(k, runs)| {
+                let plan = self.exact_plan(k);
+                let step = plan.step(spec);
+                if runs.is_empty() {
+                    return ScaleData {
+                        plan,
+                        step,
+                        segments: Vec::new(),
+                    };
+                }
+                let [w, d1, d2] = plan.evaluate_with_derivatives(spec, &wl).map(|d| d.values);
+                let m = w.len() as isize;
+                let take = |v: &[Complex64], a: isize, b: isize| -> Vec<Complex64> {
+                    (a..=b).map(|i| v[i.rem_euclid(m) as usize]).collect()
+                };
+                let segments = runs
+                    .iter()
+                    .map(|&(s0, s1)| {
+                        let a = (s0 as f64 / step).floor() as isize - 2;
+                        let b = (s1 as f64 / step).floor() as isize + 3;
+                        Segment {
+                            first: a,
+                            w: take(&w, a, b),
+                            d1: take(&d1, a, b),
+                            d2: take(&d2, a, b),
+                            samples: (s0, s1),
+                        }
+                    })
+                    .collect();
+                ScaleData {
+                    plan,
+                    step,
+                    segments,
+                }
+            })
+            .collect();
+        let scales: Vec<f64> = self.freqs.iter().map(|&f| wl.scale_for(f)).collect();
+        grid.par_iter()
+            .map(|p| {
+                skeleton::estimate_point(
+                    &wl,
+                    &scales,
+                    &self.freqs,
+                    p.centre,
+                    self.opt.correct,
+                    |k| {
+                        (k < s_count)
+                            .then(|| data[k].value(spec, p.sample))
+                            .flatten()
+                    },
+                )
+            })
+            .collect()
+    }
+
+    /// The track from the skeleton on the grid, on the CPU whichever backend estimated it:
+    /// the white-noise floor (from the first pass's per-scale medians and the spectrum above
+    /// the band), validity (cone of influence, band, SNR, failed corrections), low-SNR
+    /// smoothing, the phase unwrapped, σ′, and every sample interpolated from the grid.
+    pub fn complete(
+        self,
+        ridge: CoarseRidge,
+        grid: &[GridPoint],
+        est: &[GridEstimate],
+        backend: &'static str,
+    ) -> Track {
         let scalogram = ridge.power.as_ref().map(|p| Scalogram {
             frequency: self.freqs.clone(),
             time: (0..self.steps)
@@ -785,17 +938,11 @@ impl WaveletPrep {
             opt,
             fmin,
             fmax,
-            freqs,
             spec,
-            plans,
-            h,
-            steps,
             ..
         } = self;
         let opt = &opt;
         let wl = opt.wavelet;
-        let s_count = freqs.len();
-        let path = ridge.path;
         // White-noise floor: the lower of the quietest quarter of the scales (median over
         // time) and the spectrum above the analysis band, where only noise should be left.
         let gains = ridge.gains;
@@ -824,169 +971,21 @@ impl WaveletPrep {
             .iter()
             .map(|g| (noise_var * n as f64 * g).sqrt())
             .collect();
-        let ridge_at = |i: usize| -> usize {
-            let j = i / h;
-            let u = (i % h) as f64 / h as f64;
-            let a = path[j] as f64;
-            let b = path[(j + 1).min(steps - 1)] as f64;
-            (a + u * (b - a)).round() as usize
-        };
-
-        // The estimation grid: σ_t/GRID_DIVISION apart at the ridge's scale. Everything below
-        // is computed on it; the per-sample track is interpolated at the end.
-        let mut grid = Vec::new();
-        let mut i = 0usize;
-        while i < n {
-            grid.push(i);
-            let st = wl.time_sigma(wl.scale_for(freqs[ridge_at(i)])) * fs;
-            i += ((st / GRID_DIVISION).floor() as usize).max(1);
-        }
-        if *grid.last().expect("n ≥ 1") != n - 1 {
-            grid.push(n - 1);
-        }
-        let g_count = grid.len();
-
-        // Pass 2: W, W', W'' for the scales within ±2 of the ridge (the best of its three
-        // neighbours, and that one's neighbours for the parabola), kept where needed.
-        let mut wanted: Vec<Vec<(usize, usize)>> = vec![Vec::new(); s_count];
-        for (g, &i) in grid.iter().enumerate() {
-            let c = ridge_at(i).clamp(1, s_count - 2);
-            let (lo, hi) = (c.saturating_sub(2), (c + 2).min(s_count - 1));
-            let prev = g.checked_sub(1).map(|p| grid[p]);
-            for runs in &mut wanted[lo..=hi] {
-                match runs.last_mut() {
-                    Some(r) if Some(r.1) == prev => r.1 = i,
-                    _ => runs.push((i, i)),
-                }
-            }
-        }
-        let data: Vec<ScaleData> = plans
-            .into_par_iter()
-            .zip(wanted.into_par_iter())
-            .map(|(plan, runs)| {
-                let plan = ScalePlan::new(&spec, &wl, plan.scale, PASS2_OVERSAMPLE);
-                let step = plan.step(&spec);
-                if runs.is_empty() {
-                    return ScaleData {
-                        plan,
-                        step,
-                        segments: Vec::new(),
-                    };
-                }
-                let [w, d1, d2] = plan.evaluate_with_derivatives(&spec, &wl).map(|d| d.values);
-                let m = w.len() as isize;
-                let take = |v: &[Complex64], a: isize, b: isize| -> Vec<Complex64> {
-                    (a..=b).map(|i| v[i.rem_euclid(m) as usize]).collect()
-                };
-                let segments = runs
-                    .iter()
-                    .map(|&(s0, s1)| {
-                        let a = (s0 as f64 / step).floor() as isize - 2;
-                        let b = (s1 as f64 / step).floor() as isize + 3;
-                        Segment {
-                            first: a,
-                            w: take(&w, a, b),
-                            d1: take(&d1, a, b),
-                            d2: take(&d2, a, b),
-                            samples: (s0, s1),
-                        }
-                    })
-                    .collect();
-                ScaleData {
-                    plan,
-                    step,
-                    segments,
-                }
-            })
-            .collect();
-
-        // Pass 3: per grid point, the three-scale estimate around the largest of the ridge's
-        // neighbours.
-        let obs: Vec<(Observation, usize, bool)> = grid
-            .par_iter()
-            .map(|&i| {
-                let c = ridge_at(i).clamp(1, s_count - 2);
-                let at = |k: usize| data[k].value(&spec, i);
-                let near =
-                    [c - 1, c, c + 1].map(|k| (k >= 1 && k + 1 < s_count).then(|| at(k)).flatten());
-                let best = near
-                    .iter()
-                    .enumerate()
-                    .filter_map(|(p, v)| v.map(|v| (c - 1 + p, v.ln_amp)))
-                    .max_by(|a, b| a.1.total_cmp(&b.1))
-                    .map_or(c, |(k, _)| k);
-                // The triple reuses the values already interpolated.
-                let pick = |k: usize| {
-                    let p = k as isize - (c as isize - 1);
-                    if (0..3).contains(&p) {
-                        near[p as usize]
-                    } else {
-                        at(k)
-                    }
-                };
-                match [pick(best - 1), pick(best), pick(best + 1)] {
-                    [Some(a), Some(b), Some(c3)] => {
-                        let o = skeleton::estimate([a, b, c3]);
-                        (o, best, o.peaked)
-                    }
-                    _ => (
-                        Observation {
-                            ln_amp: f64::NEG_INFINITY,
-                            phase: 0.0,
-                            d1: Complex64::new(0.0, 2.0 * PI * freqs[best]),
-                            d2: Complex64::new(0.0, 0.0),
-                            scale: wl.scale_for(freqs[best]),
-                            peaked: false,
-                        },
-                        best,
-                        false,
-                    ),
-                }
-            })
-            .collect();
-        drop(data);
         let offset = spec.mean;
         drop(spec);
+        let g_count = grid.len();
 
-        // Bias correction at every grid point.
-        let fixes: Vec<Option<[f64; 5]>> = obs
-            .par_iter()
-            .map(|&(o, k, ok)| {
-                if !opt.correct {
-                    return Some([0.0; 5]);
-                }
-                if !ok {
-                    return None;
-                }
-                let scales = [k - 1, k, k + 1].map(|q| wl.scale_for(freqs[q]));
-                let st = wl.time_sigma(o.scale);
-                // A steady tone is estimated exactly; skip the solve where the model is that close.
-                if (o.decay() * st).abs() < 1e-4 && (o.sweep() * st * st).abs() < 1e-4 {
-                    return Some([0.0; 5]);
-                }
-                let c = skeleton::correct(&wl, scales, &o);
-                (c.converged && c.ln_amp_shift.abs() < std::f64::consts::LN_2).then_some([
-                    c.ln_amp_shift,
-                    c.phase_shift,
-                    c.model.decay - o.decay(),
-                    c.model.freq - o.freq(),
-                    c.model.sweep - o.sweep(),
-                ])
-            })
-            .collect();
-
-        let t: Vec<f64> = grid.iter().map(|&i| i as f64 / fs).collect();
-        let half: Vec<f64> = obs.iter().map(|o| wl.time_sigma(o.0.scale)).collect();
-        let fix = |g: usize, c: usize| fixes[g].map_or(0.0, |f| f[c]);
-        let mut ln_amp: Vec<f64> = (0..g_count).map(|g| obs[g].0.ln_amp + fix(g, 0)).collect();
-        let mut phase: Vec<f64> = (0..g_count).map(|g| obs[g].0.phase + fix(g, 1)).collect();
-        let decay: Vec<f64> = (0..g_count).map(|g| obs[g].0.decay() + fix(g, 2)).collect();
-        let mut frequency: Vec<f64> = (0..g_count).map(|g| obs[g].0.freq() + fix(g, 3)).collect();
-        let sweep: Vec<f64> = (0..g_count).map(|g| obs[g].0.sweep() + fix(g, 4)).collect();
+        let t: Vec<f64> = grid.iter().map(|p| p.sample as f64 / fs).collect();
+        let half: Vec<f64> = est.iter().map(|e| wl.time_sigma(e.scale)).collect();
+        let mut ln_amp: Vec<f64> = est.iter().map(|e| e.ln_amp).collect();
+        let mut phase: Vec<f64> = est.iter().map(|e| e.phase).collect();
+        let decay: Vec<f64> = est.iter().map(|e| e.decay).collect();
+        let mut frequency: Vec<f64> = est.iter().map(|e| e.frequency).collect();
+        let sweep: Vec<f64> = est.iter().map(|e| e.sweep).collect();
         // A failed solve invalidates the grid points around it.
         let mut fix_ok = vec![true; g_count];
-        for (g, f) in fixes.iter().enumerate() {
-            if f.is_none() {
+        for (g, e) in est.iter().enumerate() {
+            if !e.corrected {
                 let b = (g + 1).min(g_count - 1);
                 fix_ok[g.saturating_sub(1)..=b].fill(false);
             }
@@ -997,8 +996,8 @@ impl WaveletPrep {
         let fslope = coarse_slope(&t, &frequency, &half);
         let mut valid: Vec<bool> = (0..g_count)
             .map(|g| {
-                let (o, k, ok) = obs[g];
-                let i = grid[g];
+                let e = &est[g];
+                let i = grid[g].sample;
                 let st = half[g];
                 let margin = st * (opt.coi + (decay[g] * st).abs()) * fs;
                 let inside = i as f64 >= margin && (n - 1 - i) as f64 >= margin;
@@ -1008,14 +1007,14 @@ impl WaveletPrep {
                 let in_band = frequency[g] - reach >= fmin && frequency[g] + reach <= fmax;
                 // A loose threshold first: the final one is applied after smoothing, so that
                 // noise which happens to lift a point over it does not select that point.
-                let audible = o.ln_amp.exp() >= 0.5 * opt.min_snr * noise_w[k];
-                ok && fix_ok[g] && inside && in_band && audible && frequency[g] > 0.0
+                let audible = e.observed_ln_amp.exp() >= 0.5 * opt.min_snr * noise_w[e.best];
+                e.peaked && fix_ok[g] && inside && in_band && audible && frequency[g] > 0.0
             })
             .collect();
         if opt.smooth_snr > 0.0 {
-            let snr: Vec<f64> = obs
+            let snr: Vec<f64> = est
                 .iter()
-                .map(|&(o, k, _)| o.ln_amp.exp() / noise_w[k])
+                .map(|e| e.observed_ln_amp.exp() / noise_w[e.best])
                 .collect();
             smooth_low_snr(
                 &t,
@@ -1028,7 +1027,7 @@ impl WaveletPrep {
             );
         }
         for g in 0..g_count {
-            valid[g] = valid[g] && ln_amp[g].exp() >= opt.min_snr * noise_w[obs[g].1];
+            valid[g] = valid[g] && ln_amp[g].exp() >= opt.min_snr * noise_w[est[g].best];
         }
         unwrap_phase(&mut phase, &frequency, |g| t[g]);
         // A'' = A (σ² − σ'); σ' by a local least-squares slope over ±σ_t of the grid.
@@ -1053,8 +1052,8 @@ impl WaveletPrep {
             scalogram,
         };
         for g in 0..g_count {
-            let a = grid[g];
-            let b = grid.get(g + 1).copied().unwrap_or(a);
+            let a = grid[g].sample;
+            let b = grid.get(g + 1).map_or(a, |p| p.sample);
             let gb = (g + 1).min(g_count - 1);
             let span = (b - a).max(1) as f64;
             let dt = span / fs;
