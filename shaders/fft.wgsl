@@ -10,6 +10,11 @@
 // Every root of unity comes from one table of e^{-j2πm/n}, m < n, computed on the host in
 // double precision: f32 sin/cos of large angles on a GPU would cost accuracy.
 // The inverse is unnormalised, as rustfft's.
+//
+// `real` is f32; the host compiles a second copy with `alias real = f64;` (wgpu's
+// SHADER_F64) for transforms whose quiet stretches f32 cannot resolve (src/gpu/fft.rs).
+
+alias real = f32;
 
 struct Pass {
     n: u32,        // transform length
@@ -23,19 +28,19 @@ struct Pass {
 };
 
 @group(0) @binding(0) var<uniform> pass_: Pass;
-@group(0) @binding(1) var<storage, read> src: array<vec2<f32>>;
-@group(0) @binding(2) var<storage, read_write> dst: array<vec2<f32>>;
-@group(0) @binding(3) var<storage, read> roots: array<vec2<f32>>;
+@group(0) @binding(1) var<storage, read> src: array<vec2<real>>;
+@group(0) @binding(2) var<storage, read_write> dst: array<vec2<real>>;
+@group(0) @binding(3) var<storage, read> roots: array<vec2<real>>;
 
-fn cmul(a: vec2<f32>, b: vec2<f32>) -> vec2<f32> {
-    return vec2<f32>(a.x * b.x - a.y * b.y, a.x * b.y + a.y * b.x);
+fn cmul(a: vec2<real>, b: vec2<real>) -> vec2<real> {
+    return vec2<real>(a.x * b.x - a.y * b.y, a.x * b.y + a.y * b.x);
 }
 
 // e^{∓j2π m/n} (minus for the forward transform).
-fn root(m: u32) -> vec2<f32> {
+fn root(m: u32) -> vec2<real> {
     let w = roots[m % pass_.n];
     if (pass_.inverse == 1u) {
-        return vec2<f32>(w.x, -w.y);
+        return vec2<real>(w.x, -w.y);
     }
     return w;
 }
@@ -58,7 +63,7 @@ fn stockham_pass(
     let k = j % ns;
     // e^{∓j2π i k/(ns R)} = root(i·k·n/(ns R)); i·k·n/(ns R) < n, no overflow.
     let twist = pass_.n / (ns * r);
-    var v: array<vec2<f32>, 5>;
+    var v: array<vec2<real>, 5>;
     for (var i = 0u; i < r; i = i + 1u) {
         v[i] = cmul(src[base + j + i * per], root(i * k * twist));
     }

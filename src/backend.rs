@@ -1,21 +1,28 @@
 //! The one place where the CPU or GPU backend is chosen (`--backend auto|cpu|gpu`).
 //!
-//! The backend evaluates the wavelet track's first pass — the band-limited Morlet transform
-//! at every scale and the ridge search ([`WaveletPrep::coarse_ridge`]) — for each signal;
-//! everything after it (the refinement at the ridge's scales, the bias correction, ForceVib,
-//! fits) is the shared CPU stage. On a GPU, signals tracked at the same time by different
-//! worker threads are gathered into one submission by a dispatcher thread that owns the
-//! device: a worker hands over its prepared signal and waits for its ridge. When the GPU
-//! cannot serve a signal (no adapter, a failed or lost device, a signal beyond the adapter's
-//! limits), that signal's first pass runs on the CPU, a warning is kept, and the track
-//! records `backend = "cpu"`.
+//! The backend evaluates the wavelet transform of each signal: its first pass (the
+//! band-limited Morlet transform at every scale and the ridge search,
+//! [`WaveletPrep::coarse_ridge`]) and its refinement (W, W′, W″ at the scales around the
+//! ridge, the three-scale estimate and the bias correction at every point of the
+//! estimation grid, [`WaveletPrep::estimate_grid`]). What follows — the noise floor,
+//! validity, the per-sample track ([`WaveletPrep::complete`]), ForceVib and the fits — is
+//! the shared CPU stage. On a GPU, signals tracked at the same time by different worker
+//! threads are gathered into batches by a dispatcher thread that owns the device: a worker
+//! hands over its prepared signal and waits for its skeleton. A batch takes two
+//! submissions: the first pass (its ridges are read back, the host lays out each signal's
+//! estimation grid), then the refinement (its grid records are read back). When the GPU
+//! cannot serve a signal (no adapter, a failed or lost device, a signal beyond the
+//! adapter's limits), that signal's first pass, or only its refinement, runs on the CPU, a
+//! warning is kept, and a track whose first pass ran on the CPU records `backend = "cpu"`.
 
 use std::sync::mpsc::{self, Receiver, Sender};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use crate::gpu::refine::{RefineFlight, RefineStage, Refined};
 use crate::gpu::ridge::{batch_bytes, FirstPass, InFlight};
 use crate::gpu::{Gpu, GpuError};
+use crate::skeleton::{GridEstimate, GridPoint};
 use crate::track::{CoarseRidge, Track, TrackError, WaveletOptions, WaveletPrep};
 
 /// Which backend the user asked for.
@@ -43,7 +50,7 @@ const MAX_BATCH: usize = 256;
 /// takes to about this many times the adapter's largest binding.
 const SUBMISSION_PARTS: u64 = 8;
 
-/// Test hook: pretend the device is lost after this many submissions (the value of the
+/// Test hook: pretend the device is lost after this many batches (the value of the
 /// environment variable `SKELID_GPU_FAIL_AFTER`), to exercise the mid-batch fallback.
 const FAIL_AFTER_ENV: &str = "SKELID_GPU_FAIL_AFTER";
 
@@ -56,7 +63,7 @@ pub struct Backend {
 /// What the dispatcher has done, for the user's summary.
 #[derive(Default)]
 struct Stats {
-    submissions: std::sync::atomic::AtomicUsize,
+    batches: std::sync::atomic::AtomicUsize,
     signals: std::sync::atomic::AtomicUsize,
 }
 
@@ -70,11 +77,18 @@ struct Warnings {
 /// One signal to track: samples, sample rate (Hz), and the guide's frequency per sample.
 pub type Signal<'a> = (&'a [f64], f64, Option<&'a [f64]>);
 
-/// A signal after its first pass: on the GPU (its ridge, or why not), or `None` for the CPU.
-type Passed = (WaveletPrep, Option<Result<CoarseRidge, GpuError>>);
+/// What the GPU did for one signal: its ridge, and its skeleton on its estimation grid (or
+/// why the GPU could not refine it, for the CPU to do from the ridge).
+struct GpuPass {
+    ridge: CoarseRidge,
+    refined: Result<(Vec<GridPoint>, Vec<GridEstimate>), GpuError>,
+}
 
-/// The dispatcher's answer to one request: its tag, its signal back, and the ridge.
-type Answer = (usize, WaveletPrep, Result<CoarseRidge, GpuError>);
+/// A signal after the GPU: what it did (or why not), or `None` for the CPU.
+type Passed = (WaveletPrep, Option<Result<GpuPass, GpuError>>);
+
+/// The dispatcher's answer to one request: its tag, its signal back, and the GPU's work.
+type Answer = (usize, WaveletPrep, Result<GpuPass, GpuError>);
 
 /// Signals handed to the dispatcher: answered slots so far, and where the rest arrive
 /// (`None` on the CPU backend, every slot already filled).
@@ -166,13 +180,16 @@ impl Backend {
             .name("skelid-gpu".into())
             .spawn(move || {
                 let opened = Gpu::new().and_then(|gpu| {
-                    let pass = FirstPass::new(&gpu)?;
-                    Ok((gpu, pass))
+                    let stages = Stages {
+                        first: FirstPass::new(&gpu)?,
+                        refine: RefineStage::new(&gpu),
+                    };
+                    Ok((gpu, stages))
                 });
                 match opened {
-                    Ok((gpu, pass)) => {
+                    Ok((gpu, stages)) => {
                         let _ = ready_tx.send(Ok(gpu.adapter_name()));
-                        dispatch(&gpu, &pass, rx, fail_after, &counted);
+                        dispatch(&gpu, &stages, rx, fail_after, &counted);
                     }
                     Err(e) => {
                         let _ = ready_tx.send(Err(e));
@@ -215,15 +232,13 @@ impl Backend {
         self.gpu.as_ref().map(|g| g.adapter.as_str())
     }
 
-    /// Signals the GPU has done and the submissions they took, when a GPU is open.
+    /// Signals the GPU has done and the batches they took (two submissions each: first
+    /// pass, refinement), when a GPU is open.
     pub fn gpu_work(&self) -> Option<(usize, usize)> {
         use std::sync::atomic::Ordering::Relaxed;
-        self.gpu.as_ref().map(|g| {
-            (
-                g.stats.signals.load(Relaxed),
-                g.stats.submissions.load(Relaxed),
-            )
-        })
+        self.gpu
+            .as_ref()
+            .map(|g| (g.stats.signals.load(Relaxed), g.stats.batches.load(Relaxed)))
     }
 
     /// Why `auto` chose the CPU although an adapter exists (a software one), if it did.
@@ -406,10 +421,27 @@ impl Backend {
             .collect()
     }
 
-    /// The rest of a track after its first pass; the CPU does a first pass the GPU did not.
-    fn finish(&self, prep: WaveletPrep, ridge: Option<Result<CoarseRidge, GpuError>>) -> Track {
-        match ridge {
-            Some(Ok(ridge)) => return prep.finish(ridge, "gpu"),
+    /// The rest of a track after the GPU: its completion from the GPU's skeleton, or on the
+    /// CPU whatever the GPU did not do (the refinement, or everything).
+    fn finish(&self, prep: WaveletPrep, pass: Option<Result<GpuPass, GpuError>>) -> Track {
+        match pass {
+            Some(Ok(GpuPass {
+                ridge,
+                refined: Ok((grid, estimates)),
+            })) => {
+                return crate::profile::time(crate::profile::Stage::Refine, || {
+                    prep.complete(ridge, &grid, &estimates, "gpu")
+                })
+            }
+            Some(Ok(GpuPass {
+                ridge,
+                refined: Err(e),
+            })) => {
+                self.warn(format!(
+                    "GPU refinement failed, the skeleton done on the CPU: {e}"
+                ));
+                return prep.finish(ridge, "gpu");
+            }
             Some(Err(e)) => self.warn(format!(
                 "GPU first pass failed, signal done on the CPU: {e}"
             )),
@@ -420,19 +452,26 @@ impl Backend {
     }
 }
 
+/// The compiled GPU stages the dispatcher runs.
+struct Stages {
+    first: FirstPass,
+    refine: RefineStage,
+}
+
 /// The dispatcher: gathers requests for up to `LINGER` after the first, splits them into
-/// parts that fit the adapter's bindings, submits the parts together (one submission and
-/// one blocking read-back per batch), and answers each request. Up to [`IN_FLIGHT`]
-/// submissions are on the device at once: the next batch is gathered, uploaded and
-/// submitted while the previous one computes, and only then is the previous one waited for.
+/// parts that fit the adapter's bindings, and takes each batch through its two submissions
+/// (first pass, then refinement; one blocking read-back each) before answering its requests.
+/// Up to [`IN_FLIGHT`] submissions are on the device at once: the next batch is gathered,
+/// uploaded and submitted while the previous one computes, and only then is the previous
+/// one waited for and moved on.
 fn dispatch(
     gpu: &Gpu,
-    pass: &FirstPass,
+    stages: &Stages,
     rx: Receiver<Request>,
     fail_after: Option<usize>,
     stats: &Stats,
 ) {
-    let mut submissions = 0usize;
+    let mut batches = 0usize;
     let mut dead: Option<String> = None;
     // A part's runs together within half the largest binding: their spectra, power grids
     // and back-pointers each share one binding, and the decimated scales (split further by
@@ -451,16 +490,16 @@ fn dispatch(
             Vec::new()
         };
         if batch.is_empty() {
-            // Nothing new to overlap with: wait for the oldest submission.
+            // Nothing new to overlap with: move the oldest submission on.
             if let Some(unit) = flying.pop_front() {
-                answer(gpu, unit, &mut dead, stats);
+                step(gpu, stages, unit, &mut flying, &mut dead, stats);
             }
             continue;
         }
         // A signal beyond the adapter's limits goes back alone, not with its batch.
         let mut kept = Vec::with_capacity(batch.len());
         for r in batch {
-            match pass.check(gpu, &r.prep) {
+            match stages.first.check(gpu, &r.prep) {
                 Ok(()) => kept.push(r),
                 Err(e) => {
                     let _ = r.reply.send((r.tag, r.prep, Err(e)));
@@ -470,38 +509,199 @@ fn dispatch(
         for parts in split(kept, budget, submission_budget) {
             while flying.len() >= IN_FLIGHT {
                 let unit = flying.pop_front().expect("in flight");
-                answer(gpu, unit, &mut dead, stats);
+                step(gpu, stages, unit, &mut flying, &mut dead, stats);
             }
-            let flight = match &dead {
-                Some(why) => Err(GpuError::Lost(why.clone())),
-                None if fail_after.is_some_and(|n| submissions >= n) => Err(GpuError::Lost(
-                    format!("simulated device loss ({FAIL_AFTER_ENV})"),
-                )),
-                None => {
-                    let preps = part_preps(&parts);
-                    if !flying.is_empty() {
-                        crate::profile::overlapped();
-                    }
-                    unpanicked(|| {
-                        crate::profile::time_wall(crate::profile::Stage::FirstPass, || {
-                            pass.submit(gpu, &preps)
+            let flight = if fail_after.is_some_and(|n| batches >= n) {
+                Err(GpuError::Lost(format!(
+                    "simulated device loss ({FAIL_AFTER_ENV})"
+                )))
+            } else {
+                match gpu_dead(&dead) {
+                    Some(e) => Err(e),
+                    None => {
+                        let preps = part_preps(&parts);
+                        if !flying.is_empty() {
+                            crate::profile::overlapped();
+                        }
+                        unpanicked(|| {
+                            crate::profile::time_wall(crate::profile::Stage::FirstPass, || {
+                                stages.first.submit(gpu, &preps)
+                            })
                         })
-                    })
+                    }
                 }
             };
-            submissions += 1;
-            flying.push_back(Unit { parts, flight });
+            batches += 1;
+            flying.push_back(Unit {
+                parts,
+                flight: Flight::First(flight),
+            });
         }
     }
 }
 
-/// Most first-pass submissions on the device at once.
+/// Moves the oldest unit on ([`advance`]); one that goes on to its refinement is in flight
+/// again, behind the others.
+fn step(
+    gpu: &Gpu,
+    stages: &Stages,
+    unit: Unit,
+    flying: &mut std::collections::VecDeque<Unit>,
+    dead: &mut Option<String>,
+    stats: &Stats,
+) {
+    if let Some(next) = advance(gpu, stages, unit, dead, stats) {
+        if !flying.is_empty() {
+            crate::profile::overlapped();
+        }
+        flying.push_back(next);
+    }
+}
+
+/// Most submissions on the device at once.
 const IN_FLIGHT: usize = 2;
 
-/// One submission: its requests by part, and its work on the device (or why not).
+/// One batch: its requests by part, and where its work on the device stands.
 struct Unit {
     parts: Vec<Vec<Request>>,
-    flight: Result<InFlight, GpuError>,
+    flight: Flight,
+}
+
+/// A batch's submission on the device (or why there is none).
+enum Flight {
+    /// The first pass.
+    First(Result<InFlight, GpuError>),
+    /// The refinement, with the first pass's ridges and each signal's estimation grid.
+    Refine {
+        ridges: Vec<Vec<CoarseRidge>>,
+        grids: Vec<Vec<Vec<GridPoint>>>,
+        flight: Result<RefineFlight, GpuError>,
+    },
+}
+
+/// The error of a device already lost, if it was.
+fn gpu_dead(dead: &Option<String>) -> Option<GpuError> {
+    dead.as_ref().map(|why| GpuError::Lost(why.clone()))
+}
+
+/// Waits for a unit's submission and moves it on: after the first pass, lays out each
+/// signal's estimation grid from its ridge and submits the refinement (the unit comes
+/// back, in flight again); after the refinement, answers the requests. A lost device stays
+/// lost (`dead`): later work goes straight to the CPU.
+fn advance(
+    gpu: &Gpu,
+    stages: &Stages,
+    unit: Unit,
+    dead: &mut Option<String>,
+    stats: &Stats,
+) -> Option<Unit> {
+    let Unit { parts, flight } = unit;
+    let preps = part_preps(&parts);
+    match flight {
+        Flight::First(flight) => {
+            let done = flight.and_then(|f| {
+                unpanicked(|| {
+                    crate::profile::time_wall(crate::profile::Stage::FirstPass, || {
+                        f.finish(gpu, &preps)
+                    })
+                })
+            });
+            let ridges = match done {
+                Ok(d) => d,
+                Err(e) => {
+                    drop(preps);
+                    fail(parts, e, dead);
+                    return None;
+                }
+            };
+            let grids: Vec<Vec<Vec<GridPoint>>> = preps
+                .iter()
+                .zip(&ridges)
+                .map(|(p, r)| p.iter().zip(r).map(|(p, r)| p.grid(&r.path)).collect())
+                .collect();
+            let flight = match gpu_dead(dead) {
+                Some(e) => Err(e),
+                None => unpanicked(|| {
+                    crate::profile::time_wall(crate::profile::Stage::Refine, || {
+                        stages.refine.submit(gpu, &preps, &grids)
+                    })
+                }),
+            };
+            drop(preps);
+            Some(Unit {
+                parts,
+                flight: Flight::Refine {
+                    ridges,
+                    grids,
+                    flight,
+                },
+            })
+        }
+        Flight::Refine {
+            ridges,
+            grids,
+            flight,
+        } => {
+            let refined = flight.and_then(|f| {
+                unpanicked(|| {
+                    crate::profile::time_wall(crate::profile::Stage::Refine, || {
+                        f.finish(gpu, &preps, &grids)
+                    })
+                })
+            });
+            drop(preps);
+            use std::sync::atomic::Ordering::Relaxed;
+            let count: usize = ridges.iter().map(Vec::len).sum();
+            stats.batches.fetch_add(1, Relaxed);
+            stats.signals.fetch_add(count, Relaxed);
+            crate::profile::gpu_batch(count);
+            // A whole failed refinement leaves every ridge good: the CPU refines from them.
+            let refined: Vec<Vec<Refined>> = match refined {
+                Ok(r) => r,
+                Err(e) => {
+                    if let GpuError::Lost(why) = &e {
+                        dead.get_or_insert_with(|| why.clone());
+                    }
+                    ridges
+                        .iter()
+                        .map(|p| p.iter().map(|_| Err(copy_error(&e))).collect())
+                        .collect()
+                }
+            };
+            let all = parts.into_iter().flatten();
+            let answers = ridges
+                .into_iter()
+                .flatten()
+                .zip(grids.into_iter().flatten())
+                .zip(refined.into_iter().flatten());
+            for (r, ((ridge, grid), est)) in all.zip(answers) {
+                let pass = GpuPass {
+                    ridge,
+                    refined: est.map(|e| (grid, e)),
+                };
+                let _ = r.reply.send((r.tag, r.prep, Ok(pass)));
+            }
+            None
+        }
+    }
+}
+
+/// The same error again, for each signal it applies to.
+fn copy_error(e: &GpuError) -> GpuError {
+    match e {
+        GpuError::Lost(why) => GpuError::Lost(why.clone()),
+        other => GpuError::Unsupported(other.to_string()),
+    }
+}
+
+/// Answers every request of a batch whose first pass failed, for the CPU to do.
+fn fail(parts: Vec<Vec<Request>>, e: GpuError, dead: &mut Option<String>) {
+    if let GpuError::Lost(why) = &e {
+        dead.get_or_insert_with(|| why.clone());
+    }
+    for r in parts.into_iter().flatten() {
+        let _ = r.reply.send((r.tag, r.prep, Err(copy_error(&e))));
+    }
 }
 
 /// The requests that arrive within `LINGER` of the first, up to `MAX_BATCH`. Blocks for the
@@ -572,43 +772,6 @@ fn part_preps(parts: &[Vec<Request>]) -> Vec<Vec<&WaveletPrep>> {
         .iter()
         .map(|p| p.iter().map(|r| &r.prep).collect())
         .collect()
-}
-
-/// Waits for one submission and answers its requests: ridges, or the error for the CPU to
-/// take over. A lost device stays lost (`dead`): later work goes straight to the CPU.
-fn answer(gpu: &Gpu, unit: Unit, dead: &mut Option<String>, stats: &Stats) {
-    let Unit { parts, flight } = unit;
-    let result = flight.and_then(|f| {
-        let preps = part_preps(&parts);
-        unpanicked(|| {
-            crate::profile::time_wall(crate::profile::Stage::FirstPass, || f.finish(gpu, &preps))
-        })
-    });
-    let take = parts.into_iter().flatten();
-    match result {
-        Ok(ridges) => {
-            use std::sync::atomic::Ordering::Relaxed;
-            let ridges: Vec<CoarseRidge> = ridges.into_iter().flatten().collect();
-            stats.submissions.fetch_add(1, Relaxed);
-            stats.signals.fetch_add(ridges.len(), Relaxed);
-            crate::profile::gpu_batch(ridges.len());
-            for (r, ridge) in take.zip(ridges) {
-                let _ = r.reply.send((r.tag, r.prep, Ok(ridge)));
-            }
-        }
-        Err(e) => {
-            if let GpuError::Lost(why) = &e {
-                dead.get_or_insert_with(|| why.clone());
-            }
-            for r in take {
-                let err = match &e {
-                    GpuError::Lost(why) => GpuError::Lost(why.clone()),
-                    other => GpuError::Unsupported(other.to_string()),
-                };
-                let _ = r.reply.send((r.tag, r.prep, Err(err)));
-            }
-        }
-    }
 }
 
 /// Runs GPU work, turning a panic into a lost device: a panic on the dispatcher would leave

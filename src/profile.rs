@@ -24,8 +24,9 @@ pub enum Stage {
     /// scale, noise floors and the ridge programme (on the CPU, or one GPU submission's wall
     /// time on the dispatcher thread).
     FirstPass,
-    /// The wavelet track after the ridge: W, W′, W″ at the ridge scales, bias correction,
-    /// envelope, frequency, phase, validity (CPU).
+    /// The wavelet track after the ridge: W, W′, W″ at the ridge scales, bias correction
+    /// (on the CPU, or the GPU refinement's wall time on the dispatcher thread), then
+    /// envelope, frequency, phase and validity from the grid (CPU).
     Refine,
     /// The Hilbert track (CPU).
     Hilbert,
@@ -136,7 +137,7 @@ pub fn overlapped() {
     OVERLAPPED.fetch_add(1, Ordering::Relaxed);
 }
 
-/// Counts one GPU batch (one first pass for many signals) of `n` signals.
+/// Counts one GPU batch (first pass and refinement of many signals) of `n` signals.
 pub fn gpu_batch(n: usize) {
     GPU_BATCHES.fetch_add(1, Ordering::Relaxed);
     GPU_SIGNALS.fetch_add(n as u64, Ordering::Relaxed);
@@ -145,7 +146,8 @@ pub fn gpu_batch(n: usize) {
 /// CPU seconds per stage and the GPU traffic since the last [`reset`].
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct Profile {
-    /// (stage name, CPU seconds; wall seconds for a GPU first pass), in [`STAGES`] order.
+    /// (stage name, CPU seconds; wall seconds for the GPU's submissions), in [`STAGES`]
+    /// order.
     pub stages: Vec<(String, f64)>,
     /// GPU traffic.
     pub gpu: Traffic,
@@ -156,9 +158,10 @@ pub struct Profile {
 pub struct Traffic {
     /// Signals whose first pass ran on the GPU.
     pub signals: u64,
-    /// GPU batches (first passes of many signals at once).
+    /// GPU batches (first pass and refinement of many signals at once).
     pub batches: u64,
-    /// Queue submissions (a batch's work and its read-back's copies are one).
+    /// Queue submissions (two per batch, first pass and refinement, each with the copies
+    /// of its read-back).
     pub submissions: u64,
     /// Blocking waits of the host for the device.
     pub syncs: u64,

@@ -391,6 +391,7 @@ fn track_writes_csv_and_hdf5_that_match_the_truth() {
             .collect();
         put(&g, "output", &x);
     }
+    release_locks(&path);
     for (name, method) in [
         ("t.csv", "wavelet"),
         ("t.h5", "wavelet"),
@@ -880,6 +881,24 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
     assert!(syncs <= 2.0 * batches, "{t}");
     let samples = v["samples"].as_f64().unwrap();
     assert!(t["bytes_down"].as_f64().unwrap() <= 16.0 * samples, "{t}");
+    // The same agreement from the f32 path, used where an adapter has no SHADER_F64.
+    let json32 = d.path().join("bench32.json");
+    let out = skelid()
+        .arg("bench")
+        .arg(archive)
+        .args(["--repeat", "1", "--no-end-to-end", "--out"])
+        .arg(&json32)
+        .env("SKELID_GPU_NO_F64", "1")
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json32).unwrap()).unwrap();
+    let g = &v["agreement"];
+    println!("f32 path: {g}");
+    assert!(g["envelope_rel"].as_f64().unwrap() <= 1e-4, "{g}");
+    assert!(g["frequency_hz"].as_f64().unwrap() <= 1e-3, "{g}");
+    assert!(g["mask_samples"].as_u64().unwrap() <= 21 * 8, "{g}");
 }
 
 #[test]
@@ -887,7 +906,10 @@ fn a_record_larger_than_one_gpu_binding_is_split_across_parts() {
     let d = tmpdir();
     let archive = demo_archive();
     // Pretend the adapter binds 600 000 bytes at most: the run's 256 decimated scales
-    // (about 1 MB) need two parts, while its spectrum and ridge grid still fit.
+    // (about 1 MB) need two parts, while its spectrum and ridge grid still fit; the
+    // refinement's W, W′, W″ of the scales near the ridge (2.7 MB in f32, twice that in
+    // f64) are split into pieces over overlapping ranges of scales. No fallback
+    // (`track_csv` refuses any warning).
     let cap = 600_000usize;
     let f = hdf5::File::open(archive).unwrap();
     let x: Vec<f64> = f.dataset("demo/linear/output").unwrap().read_raw().unwrap();
@@ -931,13 +953,19 @@ fn dispatches_beyond_the_workgroup_limit_are_split_not_refused() {
                 ("SKELID_GPU_MAX_WORKGROUPS", 100),
             )
         };
-        let worst = track_difference(&track("cpu"), &track("gpu"));
+        let cpu = track("cpu");
+        let worst = track_difference(&cpu, &track("gpu"));
         println!(
             "{scales} scales: envelope within {:.1e}, frequency within {:.1e} Hz",
             worst.0, worst.1
         );
+        // Validity may differ where the bias correction's Newton solve is borderline: made
+        // in f64 on the CPU and in f32 on the GPU, the pass/fail decision can split there
+        // (1024 scales: one grid point of 1800, whose 65-sample neighbourhood is 195
+        // samples).
+        let samples = cpu.lines().count() - 1;
         assert!(
-            worst.0 <= 1e-4 && worst.1 <= 1e-3 && worst.2 == 0,
+            worst.0 <= 1e-4 && worst.1 <= 1e-3 && worst.2 * 100 <= samples,
             "{worst:?}"
         );
     }
@@ -1229,10 +1257,11 @@ fn gap_self_check_prints_its_confusion_matrix_and_wrong_arguments_say_what_to_do
 }
 
 #[test]
-fn a_gpu_batch_of_256_signals_is_one_submission_and_one_wait() {
+fn a_gpu_batch_of_256_signals_is_two_submissions_and_two_waits() {
     // 128 runs, 256 signals waiting at once (`skelid bench` hands them over together), and
     // a binding limit pretended so small that they need four binding-sized parts: the parts
-    // still go in one submission with one read-back, and only the ridge comes back.
+    // still go in one batch of two submissions (first pass, refinement) with one read-back
+    // each, and only the ridges and the skeleton on the estimation grid come back.
     let d = tmpdir();
     let archive = d.path().join("many.h5");
     let (n, fs) = (1500usize, 1000.0);
@@ -1254,6 +1283,7 @@ fn a_gpu_batch_of_256_signals_is_one_submission_and_one_wait() {
         // Closed before a child process opens it (libhdf5 locks an open file).
         f.close().unwrap();
     }
+    release_locks(&archive);
     let opt = skelid::track::WaveletOptions {
         scales: 32,
         ..Default::default()
@@ -1292,7 +1322,7 @@ fn a_gpu_batch_of_256_signals_is_one_submission_and_one_wait() {
         gpu["traffic"].clone()
     };
     let count = |t: &serde_json::Value, k: &str| t[k].as_u64().unwrap();
-    // Four parts: one submission.
+    // Four parts: one batch.
     let t = bench(64);
     assert_eq!(count(&t, "signals"), 256);
     assert_eq!(
@@ -1300,15 +1330,22 @@ fn a_gpu_batch_of_256_signals_is_one_submission_and_one_wait() {
         1,
         "256 waiting signals, one batch: {t}"
     );
-    assert_eq!(count(&t, "submissions"), 1, "{t}");
+    assert_eq!(count(&t, "submissions"), 2, "{t}");
     assert!(count(&t, "syncs") <= 2, "{t}");
-    assert!(count(&t, "bytes_down") <= 256 * 4 * n as u64 * 4, "{t}");
-    // Sixteen parts, more device memory than one submission may take: two submissions,
-    // the second made while the first is on the device, still one wait each.
+    // Read back: each signal's ridge (4 bytes a coarse step) and noise medians (8 bytes a
+    // scale), and 32 bytes per point of its estimation grid — here every sample, since the
+    // chirp reaches 110 Hz at 1 kHz, where the grid spacing σ_t/8 is under one sample.
+    let per_signal = 4 * prep.steps + 8 * 32 + 32 * n;
+    assert!(count(&t, "bytes_down") <= 256 * per_signal as u64, "{t}");
+    // Sixteen parts, more device memory than one batch may take: two batches, four
+    // submissions, each after the first made while another is on the device (the second
+    // batch's first pass while the first batch's runs; each refinement while the other
+    // batch's work runs), still one wait each.
     let t = bench(16);
     assert_eq!(count(&t, "signals"), 256);
     assert_eq!(count(&t, "batches"), 2, "{t}");
-    assert_eq!(count(&t, "overlapped"), 1, "{t}");
+    assert_eq!(count(&t, "submissions"), 4, "{t}");
+    assert_eq!(count(&t, "overlapped"), 3, "{t}");
     assert!(count(&t, "syncs") <= 2 * count(&t, "batches"), "{t}");
 }
 
@@ -1392,6 +1429,7 @@ fn a_group_laid_out_with_other_names_is_listed_not_dropped() {
         // Closed before a child process opens it (libhdf5 locks an open file).
         f.close().unwrap();
     }
+    release_locks(&archive);
     let o = skelid().arg("inspect").arg(&archive).output().unwrap();
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(
@@ -1462,6 +1500,7 @@ fn a_run_at_the_file_root_is_written_to_a_named_group() {
         // Closed before a child process opens it (libhdf5 locks an open file).
         f.close().unwrap();
     }
+    release_locks(&archive);
     let out = d.path().join("out");
     let o = hilbert_batch(&archive, &out, &[]);
     let err = String::from_utf8_lossy(&o.stderr);
@@ -1550,6 +1589,7 @@ fn a_matlab_file_as_matlab_writes_it_is_read_with_the_options_the_listing_names(
         // Closed before a child process opens it (libhdf5 locks an open file).
         f.close().unwrap();
     }
+    release_locks(&file);
     // As found: no run, and the message names what was seen and the options.
     let o = skelid().arg("inspect").arg(&file).output().unwrap();
     let text = String::from_utf8_lossy(&o.stdout);

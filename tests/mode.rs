@@ -63,6 +63,7 @@ fn a_sweep_through_two_modes_is_identified_one_mode_at_a_time() {
         put(&g, "input", &f);
         put(&g, "output", &y);
     }
+    release_locks(&path);
     let run = |extra: &[&str], name: &str| -> Vec<serde_json::Value> {
         let out = d.path().join(name);
         let o = skelid()

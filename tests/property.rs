@@ -189,6 +189,7 @@ fn two_hundred_random_bad_options_and_odd_archives_never_pass_silently() {
                 for g in archive(&p, &mut rng) {
                     expected.push((name.clone(), g));
                 }
+                release_locks(&p);
             }
         }
         let out = d.path().join("out");

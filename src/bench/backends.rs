@@ -27,19 +27,20 @@ pub struct BackendTiming {
     pub samples_scales_per_s: f64,
     /// Tracks whose first pass fell back to the CPU (0 on the CPU backend).
     pub fallbacks: usize,
-    /// CPU seconds per stage over the timed repetitions (the first pass in wall seconds of
-    /// the GPU submissions on a GPU backend): where this backend's track time goes.
+    /// CPU seconds per stage over the timed repetitions (the first pass and the refinement
+    /// in wall seconds of the GPU submissions on a GPU backend): where this backend's track
+    /// time goes.
     pub stages: Vec<(String, f64)>,
     /// Host↔device traffic over the timed repetitions (zeros on the CPU).
     pub traffic: Traffic,
-    /// Per signal on the GPU: signals per submission, blocking syncs, bytes up, bytes down.
+    /// Per signal on the GPU: signals per batch, blocking syncs, bytes up, bytes down.
     pub per_signal: Option<PerSignal>,
 }
 
 /// GPU traffic per signal.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct PerSignal {
-    /// Signals per GPU batch (one first pass for many signals).
+    /// Signals per GPU batch (one first pass and one refinement for many signals).
     pub signals_per_batch: f64,
     /// Blocking host waits per signal.
     pub syncs: f64,
@@ -72,8 +73,8 @@ pub struct EndToEnd {
     pub seconds: f64,
     /// Runs per second.
     pub runs_per_s: f64,
-    /// CPU seconds per stage, summed over every thread (the GPU first pass in wall seconds
-    /// of its submissions).
+    /// CPU seconds per stage, summed over every thread (the GPU first pass and refinement in
+    /// wall seconds of their submissions).
     pub stages: Vec<(String, f64)>,
     /// Host↔device traffic.
     pub traffic: Traffic,

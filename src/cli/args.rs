@@ -316,10 +316,11 @@ impl BackendArgs {
 /// Prints the backend's fallback warnings gathered during the work, and how the GPU's work
 /// was batched.
 pub(crate) fn report_fallbacks(b: &skelid::backend::Backend) {
-    if let Some((signals, submissions)) = b.gpu_work() {
+    if let Some((signals, batches)) = b.gpu_work() {
         eprintln!(
-            "GPU backend: {signals} signal(s) in {submissions} submission(s) ({:.1} per submission)",
-            signals as f64 / submissions.max(1) as f64
+            "GPU backend: {signals} signal(s) in {batches} batch(es) ({:.1} per batch; two \
+             submissions each: first pass, refinement)",
+            signals as f64 / batches.max(1) as f64
         );
     }
     for w in b.warnings() {

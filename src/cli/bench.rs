@@ -57,7 +57,8 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
     let samples: usize = signals.iter().map(|s| s.0.len()).sum();
     println!(
         "backend benchmark: {runs} run(s), {} signal(s), {samples} samples, {scales} scales, \
-         wavelet track (first pass on the backend, the rest on {} CPU threads), median of {}",
+         wavelet track (first pass and refinement on the backend, the track's completion on {} CPU \
+         threads), median of {}",
         signals.len(),
         rayon::current_num_threads(),
         a.repeat.max(1)
@@ -182,8 +183,8 @@ pub(crate) fn print_stages(runs: &[skelid::bench::backends::EndToEnd]) {
         println!();
     }
     println!(
-        "(CPU seconds summed over every thread; a GPU first pass in wall seconds of its \
-         submissions)"
+        "(CPU seconds summed over every thread; a GPU first pass and refinement in wall seconds \
+         of their submissions)"
     );
     for r in runs {
         if let Some(p) = &r.per_signal {

@@ -1,14 +1,15 @@
 //! Host side of `shaders/fft.wgsl`: batched complex FFTs of any length 2^a·3^b·5^c (the
-//! lengths [`plan_len`](crate::transform::plan_len) chooses), in f32, one dispatch per
-//! radix pass, ping-ponging between two buffers. Lengths beyond one workgroup need no
-//! special case: every pass reads and writes global memory.
+//! lengths [`plan_len`](crate::transform::plan_len) chooses), in f32 or (where the adapter
+//! has SHADER_F64) f64, one dispatch per radix pass, ping-ponging between two buffers.
+//! Lengths beyond one workgroup need no special case: every pass reads and writes global
+//! memory.
 
 use std::collections::HashMap;
 use std::sync::Mutex;
 
-use num_complex::Complex32;
+use num_complex::{Complex32, Complex64};
 
-use super::{Gpu, GpuError};
+use super::{Gpu, GpuError, Real};
 
 /// The shader's `Pass` uniform, declared once here for the host.
 #[repr(C)]
@@ -56,16 +57,22 @@ pub struct FftStage {
     pipeline: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
     roots: Mutex<HashMap<usize, wgpu::Buffer>>,
+    real: Real,
 }
 
 impl FftStage {
-    /// Compiles the shader and declares its bindings: the pass's parameters (uniform), the
-    /// source and destination of the pass, and the root table.
+    /// Compiles the shader in f32 and declares its bindings: the pass's parameters
+    /// (uniform), the source and destination of the pass, and the root table.
     pub fn new(gpu: &Gpu) -> FftStage {
+        Self::with_real(gpu, Real::F32)
+    }
+
+    /// [`new`](Self::new) in the given precision (f64 needs [`Gpu::has_f64`]).
+    pub fn with_real(gpu: &Gpu, real: Real) -> FftStage {
         use super::Binding::{Read, Uniform, Write};
         let (layout, mut pipelines) = gpu.stage(
             "fft.wgsl",
-            include_str!("../../shaders/fft.wgsl"),
+            &real.source(include_str!("../../shaders/fft.wgsl")),
             &[Uniform, Read, Write, Read],
             &["stockham_pass"],
         );
@@ -73,29 +80,41 @@ impl FftStage {
             pipeline: pipelines.pop().expect("one entry point"),
             layout,
             roots: Mutex::new(HashMap::new()),
+            real,
         }
     }
 
-    /// e^{-j2πm/n}, m < n, computed in f64 and stored in f32, one table per length.
+    /// The precision it computes in.
+    pub fn real(&self) -> Real {
+        self.real
+    }
+
+    /// e^{-j2πm/n}, m < n, computed in f64 and stored in the stage's precision, one table
+    /// per length.
     fn roots(&self, gpu: &Gpu, n: usize) -> wgpu::Buffer {
         let mut cache = self.roots.lock().unwrap_or_else(|p| p.into_inner());
         cache
             .entry(n)
             .or_insert_with(|| {
-                let table: Vec<[f32; 2]> = (0..n)
-                    .map(|m| {
-                        let a = -2.0 * std::f64::consts::PI * m as f64 / n as f64;
-                        [a.cos() as f32, a.sin() as f32]
-                    })
-                    .collect();
-                gpu.upload("fft roots", &table)
+                let table = (0..n).map(|m| {
+                    let a = -2.0 * std::f64::consts::PI * m as f64 / n as f64;
+                    [a.cos(), a.sin()]
+                });
+                match self.real {
+                    Real::F32 => gpu.upload(
+                        "fft roots",
+                        &table.map(|[c, s]| [c as f32, s as f32]).collect::<Vec<_>>(),
+                    ),
+                    Real::F64 => gpu.upload("fft roots", &table.collect::<Vec<_>>()),
+                }
             })
             .clone()
     }
 
     /// Records the passes that transform `batch` sequences of length `n`, held back to back
-    /// in `data` from element `offset` on (a multiple of [`offset_alignment`]), using the
-    /// same range of `scratch` for the ping-pong; returns which buffer holds the result.
+    /// in `data` from element `offset` on (a multiple of [`offset_alignment`] for the
+    /// stage's precision), using the same range of `scratch` for the ping-pong; returns
+    /// which buffer holds the result.
     #[allow(clippy::too_many_arguments)]
     pub fn encode(
         &self,
@@ -113,7 +132,8 @@ impl FftStage {
                 "FFT length {n} has a prime factor above 5; the GPU FFT takes 2^a·3^b·5^c"
             ))
         })?;
-        let bytes = (n * batch * 8) as u64;
+        let elem = self.real.complex_bytes();
+        let bytes = (n * batch * elem) as u64;
         if bytes > gpu.max_binding() {
             return Err(GpuError::TooLarge {
                 what: format!("{batch} FFT(s) of length {n}"),
@@ -126,7 +146,7 @@ impl FftStage {
         let range = |buffer| {
             wgpu::BindingResource::Buffer(wgpu::BufferBinding {
                 buffer,
-                offset: (offset * 8) as u64,
+                offset: (offset * elem) as u64,
                 size: wgpu::BufferSize::new(bytes),
             })
         };
@@ -221,10 +241,54 @@ impl FftStage {
     }
 }
 
-/// Elements (complex f32) that a sub-range bound for [`FftStage::encode`] must start on.
+impl FftStage {
+    /// Transforms host data in place in f64 (a stage made with [`Real::F64`]): `data`
+    /// holds `data.len() / n` sequences of length `n`. For tests and benchmarks.
+    pub fn transform_f64(
+        &self,
+        gpu: &Gpu,
+        data: &mut [Complex64],
+        n: usize,
+        inverse: bool,
+    ) -> Result<(), GpuError> {
+        if self.real != Real::F64 || n == 0 || !data.len().is_multiple_of(n) {
+            return Err(GpuError::Unsupported(format!(
+                "{} values in length-{n} transforms on a {:?} stage",
+                data.len(),
+                self.real
+            )));
+        }
+        let flat: Vec<[f64; 2]> = data.iter().map(|c| [c.re, c.im]).collect();
+        let a = gpu.upload("fft data", &flat);
+        let b = gpu.storage("fft scratch", (flat.len() * 16) as u64);
+        let mut enc = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("fft") });
+        let holder = self.encode(gpu, &mut enc, n, data.len() / n, inverse, &a, &b, 0)?;
+        gpu.submit(enc);
+        let out: Vec<[f64; 2]> = gpu.download(
+            match holder {
+                Holder::Data => &a,
+                Holder::Scratch => &b,
+            },
+            flat.len(),
+        )?;
+        for (d, o) in data.iter_mut().zip(out) {
+            *d = Complex64::new(o[0], o[1]);
+        }
+        Ok(())
+    }
+}
+
+/// Complex f32 elements that a sub-range bound for [`FftStage::encode`] must start on.
 pub fn offset_alignment(gpu: &Gpu) -> usize {
+    offset_alignment_of(gpu, Real::F32)
+}
+
+/// Complex elements of precision `real` that a bound sub-range must start on.
+pub fn offset_alignment_of(gpu: &Gpu, real: Real) -> usize {
     (gpu.limits.min_storage_buffer_offset_alignment as usize)
-        .div_ceil(8)
+        .div_ceil(real.complex_bytes())
         .max(1)
 }
 

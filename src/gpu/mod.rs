@@ -6,6 +6,7 @@
 //! next to the shader that uses them.
 
 pub mod fft;
+pub mod refine;
 pub mod ridge;
 pub mod scales;
 
@@ -51,6 +52,40 @@ pub enum GpuError {
 fn describe(info: &wgpu::AdapterInfo) -> String {
     format!("{} ({:?}, {:?})", info.name, info.device_type, info.backend)
 }
+
+/// The floating-point type a stage computes in. Shaders are written over
+/// `alias real = f32;`; the f64 copy swaps that one line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Real {
+    /// 32-bit.
+    F32,
+    /// 64-bit (wgpu's SHADER_F64).
+    F64,
+}
+
+impl Real {
+    /// Bytes of one complex value.
+    pub fn complex_bytes(self) -> usize {
+        match self {
+            Real::F32 => 8,
+            Real::F64 => 16,
+        }
+    }
+
+    /// The shader source in this precision: its `alias real = f32;` line set to the type.
+    pub fn source(self, wgsl: &str) -> String {
+        const LINE: &str = "alias real = f32;";
+        assert!(wgsl.contains(LINE), "the shader declares {LINE}");
+        match self {
+            Real::F32 => wgsl.to_string(),
+            Real::F64 => wgsl.replace(LINE, "alias real = f64;"),
+        }
+    }
+}
+
+/// Test hook: with this environment variable set, an adapter's SHADER_F64 is not used, so
+/// that the f32 path is tested on adapters that have f64.
+const NO_F64_ENV: &str = "SKELID_GPU_NO_F64";
 
 /// How a stage's shader sees one of its buffers.
 #[derive(Debug, Clone, Copy)]
@@ -109,9 +144,14 @@ impl Gpu {
         let adapter = Self::adapter()?;
         let info = adapter.get_info();
         let limits = adapter.limits();
+        let features = if std::env::var_os(NO_F64_ENV).is_some() {
+            wgpu::Features::empty()
+        } else {
+            adapter.features() & wgpu::Features::SHADER_F64
+        };
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("skelid"),
-            required_features: wgpu::Features::empty(),
+            required_features: features,
             required_limits: limits.clone(),
             ..Default::default()
         }))
@@ -148,6 +188,12 @@ impl Gpu {
                 .and_then(|v| v.parse().ok()),
             failure,
         })
+    }
+
+    /// Whether shaders may compute in f64 (the adapter has SHADER_F64 and `SKELID_GPU_NO_F64`
+    /// is not set).
+    pub fn has_f64(&self) -> bool {
+        self.device.features().contains(wgpu::Features::SHADER_F64)
     }
 
     /// The adapter's name and kind, e.g. `llvmpipe (LLVM 15.0.6, 256 bits) (Cpu, Vulkan)`.

@@ -56,6 +56,17 @@ pub fn good_run(f: &hdf5::File, path: &str) {
 }
 
 /// A fresh temporary folder.
+/// Gives a file this test process wrote with libhdf5 a new inode, before a child process
+/// opens it. libhdf5 opens files without O_CLOEXEC: a child that another test thread spawns
+/// while the file is open inherits the descriptor with its `flock` lock and holds both as
+/// long as it runs, and a child of this test opening the file then fails with "unable to
+/// lock file, errno = 11". A copy renamed over the file carries no lock.
+pub fn release_locks(path: &Path) {
+    let tmp = path.with_extension("unlocked");
+    std::fs::copy(path, &tmp).unwrap();
+    std::fs::rename(&tmp, path).unwrap();
+}
+
 pub fn tmpdir() -> tempfile::TempDir {
     tempfile::tempdir().unwrap()
 }

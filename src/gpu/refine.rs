@@ -1,0 +1,684 @@
+//! Host side of `shaders/refine.wgsl`: the wavelet track after its ridge for a batch of
+//! runs — W, W′, W″ of the scales each run's ridge comes near (the exact pass band,
+//! batched inverse FFTs), then per point of each run's estimation grid the three-scale
+//! estimate and its bias correction — read back as one 32-byte record per grid point.
+//!
+//! The grid comes from the host (`WaveletPrep::grid`, after the first pass's ridge is read
+//! back), so the scales evaluated, and the points estimated, are exactly the CPU's. Each
+//! run's spectrum goes up once more, only the bins its pass bands use, in f64 where the
+//! adapter has SHADER_F64 (else f32; the shader explains why f64), scaled by a power of
+//! two. A run whose W, W′, W″ exceed one storage binding is split into pieces over
+//! overlapping ranges of scales, each serving the grid points whose five scales (ridge ± 2)
+//! it holds.
+
+use super::fft::{offset_alignment_of, radices, FftStage, Holder};
+use super::{Gpu, GpuError, Real};
+use crate::skeleton::{GridEstimate, GridPoint};
+use crate::track::WaveletPrep;
+use crate::transform::{band::ScalePlan, TAPER};
+
+/// The shader's `Wavelet` uniform: f_b and f_c as f32 pairs (hi + lo), the taper.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct WaveletParams {
+    bandwidth: [f32; 2],
+    centre: [f32; 2],
+    taper: f32,
+    _pad: [u32; 3],
+}
+
+/// The shader's `Item`: one run × one scale × one derivative order.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Item {
+    spec: u32,
+    lo: u32,
+    hi: u32,
+    centre: u32,
+    m: u32,
+    data: u32,
+    order: u32,
+    scale: [f32; 2],
+    df: [f32; 2],
+    norm: [f32; 2],
+}
+
+/// `x` as two f32 whose sum holds it to 48 bits (the shader's `pair`).
+fn split(x: f64) -> [f32; 2] {
+    let hi = x as f32;
+    [hi, (x - f64::from(hi)) as f32]
+}
+
+/// The shader's `Scale`: where one scale of one run sits in `data`.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ScaleEntry {
+    data: u32,
+    m: u32,
+    centre: u32,
+    _pad: u32,
+    scale: f32,
+    freq: f32,
+    omega_c: f32,
+    _pad1: u32,
+}
+
+/// The shader's `Run`.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct RunParams {
+    scales: u32,
+    count: u32,
+    l: u32,
+    correct: u32,
+}
+
+/// The shader's `Point`.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct PointParams {
+    sample: u32,
+    centre: u32,
+    run: u32,
+    _pad: u32,
+}
+
+/// The shader's `NONE`: a scale not evaluated.
+const NONE: u32 = u32::MAX;
+/// Record flags (the shader's constants): the best scale in the low 16 bits, then these.
+const PEAKED: u32 = 0x1_0000;
+const CORRECTED: u32 = 0x2_0000;
+const NO_TRIPLE: u32 = 0x4_0000;
+/// Bytes of one grid point's record.
+pub const RECORD_BYTES: u64 = 32;
+
+/// The compiled stage.
+pub struct RefineStage {
+    fft: FftStage,
+    scatter: wgpu::ComputePipeline,
+    estimate: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+    real: Real,
+}
+
+/// One run's pass-2 plan: the scales it needs, with their exact plans.
+struct Planned {
+    /// (scale index, plan) of every wanted scale, in scale order.
+    scales: Vec<(usize, ScalePlan)>,
+    /// The highest spectrum bin any of them uses.
+    top: usize,
+}
+
+fn plan(prep: &WaveletPrep, grid: &[GridPoint]) -> Planned {
+    let scales: Vec<(usize, ScalePlan)> = prep
+        .wanted(grid)
+        .iter()
+        .enumerate()
+        .filter(|(_, w)| !w.is_empty())
+        .map(|(k, _)| (k, prep.exact_plan(k)))
+        .collect();
+    let top = scales
+        .iter()
+        .map(|(_, p)| p.band().1)
+        .max()
+        .unwrap_or(0)
+        .min(prep.spec.bins.len() - 1);
+    Planned { scales, top }
+}
+
+/// A run's share of one sub-part: the scales it evaluates there (indices into its
+/// [`Planned::scales`]) and the grid points they serve.
+struct Piece {
+    run: usize,
+    scales: std::ops::Range<usize>,
+    points: Vec<usize>,
+}
+
+/// Where a run's grid points are read back: per piece its sub-part, the index of its first
+/// record there, and the points in record order.
+type Spans = Vec<(usize, usize, Vec<usize>)>;
+
+/// A refinement recorded into a submission: the sub-parts' record buffers, and per run
+/// where its records are (or why the GPU cannot serve it) and the log of the factor its
+/// spectrum was scaled by.
+pub struct Encoded {
+    records: Vec<(wgpu::Buffer, u64)>,
+    at: Vec<Result<Spans, GpuError>>,
+    ln_scale: Vec<f64>,
+}
+
+impl Encoded {
+    /// The record buffers and their lengths (bytes), for the batch's read-back.
+    pub fn buffers(&self) -> impl Iterator<Item = (&wgpu::Buffer, u64)> {
+        self.records.iter().map(|(b, n)| (b, *n))
+    }
+
+    /// Each run's grid estimates from the read-back bytes of [`buffers`](Self::buffers), in
+    /// order; `preps` and `grids` are the ones given to [`RefineStage::encode`].
+    pub fn decode(
+        self,
+        bytes: &[Vec<u8>],
+        preps: &[&WaveletPrep],
+        grids: &[Vec<GridPoint>],
+    ) -> Vec<Refined> {
+        let words: Vec<Vec<u32>> = bytes
+            .iter()
+            .map(|b| bytemuck::pod_collect_to_vec(b))
+            .collect();
+        self.at
+            .into_iter()
+            .zip(preps.iter().zip(grids))
+            .zip(&self.ln_scale)
+            .map(|((spans, (prep, grid)), &ln_scale)| {
+                let mut out: Vec<Option<GridEstimate>> = vec![None; grid.len()];
+                for (part, first, points) in spans? {
+                    let w = &words[part][first * 8..(first + points.len()) * 8];
+                    for (&g, rec) in points.iter().zip(w.chunks_exact(8)) {
+                        out[g] = Some(decode(prep, grid[g], rec, ln_scale));
+                    }
+                }
+                Ok(out
+                    .into_iter()
+                    .map(|e| e.expect("every grid point has a piece"))
+                    .collect())
+            })
+            .collect()
+    }
+}
+
+/// One record as a [`GridEstimate`] in f64: the spectrum's scaling taken off the logs, the
+/// carrier's whole turns added to the phase (the shader's is arg W + 2π·frac(c·i/L); the
+/// CPU's is arg W + 2π·c·i/L).
+fn decode(prep: &WaveletPrep, p: GridPoint, w: &[u32], ln_scale: f64) -> GridEstimate {
+    let f = |i: usize| f64::from(f32::from_bits(w[i]));
+    let flags = w[7];
+    let best = (flags & 0xffff) as usize;
+    let corrected = flags & CORRECTED != 0;
+    let wl = prep.wavelet();
+    if flags & NO_TRIPLE != 0 {
+        let freq = prep.freqs[best];
+        return GridEstimate::unobserved(wl.scale_for(freq), freq, best, corrected);
+    }
+    let c = prep.exact_plan(best).band().2 as u64;
+    let turns = (c * p.sample as u64 / prep.spec.padded_len as u64) as f64;
+    GridEstimate {
+        observed_ln_amp: f(0) - ln_scale,
+        ln_amp: f(1) - ln_scale,
+        phase: f(2) + 2.0 * std::f64::consts::PI * turns,
+        decay: f(3),
+        frequency: f(4),
+        sweep: f(5),
+        scale: f(6),
+        best,
+        peaked: flags & PEAKED != 0,
+        corrected,
+    }
+}
+
+impl RefineStage {
+    /// Compiles `refine.wgsl` (and the FFT) in f64 where the device allows it, else f32,
+    /// and declares its bindings: wavelet (uniform), items, spectra, data, the scale table,
+    /// runs, grid points and records.
+    pub fn new(gpu: &Gpu) -> RefineStage {
+        Self::with_real(gpu, if gpu.has_f64() { Real::F64 } else { Real::F32 })
+    }
+
+    /// [`new`](Self::new) in the given precision (f64 needs [`Gpu::has_f64`]).
+    pub fn with_real(gpu: &Gpu, real: Real) -> RefineStage {
+        use super::Binding::{Read, Uniform, Write};
+        let (layout, pipelines) = gpu.stage(
+            "refine.wgsl",
+            &real.source(include_str!("../../shaders/refine.wgsl")),
+            &[Uniform, Read, Read, Write, Read, Read, Read, Write],
+            &["scatter", "estimate"],
+        );
+        let [scatter, estimate]: [wgpu::ComputePipeline; 2] =
+            pipelines.try_into().expect("two entry points");
+        RefineStage {
+            fft: FftStage::with_real(gpu, real),
+            scatter,
+            estimate,
+            layout,
+            real,
+        }
+    }
+
+    /// The precision of the spectrum, the FFTs and the ratios.
+    pub fn real(&self) -> Real {
+        self.real
+    }
+
+    /// A run's pieces within `limit` bytes each: one for the whole run when its W, W′, W″
+    /// fit, else consecutive ranges of its scales overlapping by four, each serving the
+    /// points whose scales ridge ± 2 it holds.
+    fn pieces(
+        &self,
+        run: usize,
+        prep: &WaveletPrep,
+        grid: &[GridPoint],
+        planned: &Planned,
+        limit: u64,
+    ) -> Result<Vec<Piece>, GpuError> {
+        let elem = self.real.complex_bytes() as u64;
+        let bytes = |r: std::ops::Range<usize>| -> u64 {
+            planned.scales[r]
+                .iter()
+                .map(|(_, p)| 3 * p.len as u64 * elem)
+                .sum()
+        };
+        let spectrum = (planned.top as u64 + 1) * elem;
+        let records = grid.len() as u64 * RECORD_BYTES;
+        let all = 0..planned.scales.len();
+        if bytes(all.clone()) + spectrum <= limit && records <= limit {
+            return Ok(vec![Piece {
+                run,
+                scales: all,
+                points: (0..grid.len()).collect(),
+            }]);
+        }
+        let too_large = |need: u64| GpuError::TooLarge {
+            what: format!(
+                "W, W′, W″ of five scales of a record of {} samples",
+                prep.len()
+            ),
+            need,
+            limit,
+        };
+        let s_count = prep.freqs.len();
+        let k_of = |i: usize| planned.scales[i].0;
+        // Scale ranges: as many scales as fit, the next starting four scales back.
+        let mut ranges: Vec<std::ops::Range<usize>> = Vec::new();
+        let mut start = 0;
+        loop {
+            let mut end = start;
+            while end < planned.scales.len() && bytes(start..end + 1) + spectrum <= limit {
+                end += 1;
+            }
+            if end < planned.scales.len().min(start + 5) {
+                return Err(too_large(bytes(
+                    start..(start + 5).min(planned.scales.len()),
+                )));
+            }
+            ranges.push(start..end);
+            if end == planned.scales.len() {
+                break;
+            }
+            let back = k_of(end - 1).saturating_sub(3);
+            let next = (start + 1..end).find(|&i| k_of(i) >= back).unwrap_or(end);
+            start = next;
+        }
+        let mut pieces: Vec<Piece> = ranges
+            .into_iter()
+            .map(|scales| Piece {
+                run,
+                scales,
+                points: Vec::new(),
+            })
+            .collect();
+        for (g, p) in grid.iter().enumerate() {
+            let (lo, hi) = (p.centre.saturating_sub(2), (p.centre + 2).min(s_count - 1));
+            let piece = pieces
+                .iter_mut()
+                .find(|q| k_of(q.scales.start) <= lo && k_of(q.scales.end - 1) >= hi)
+                .ok_or_else(|| too_large(limit + 1))?;
+            piece.points.push(g);
+        }
+        // Records of one piece are read back in one buffer.
+        if let Some(q) = pieces
+            .iter()
+            .find(|q| q.points.len() as u64 * RECORD_BYTES > limit)
+        {
+            return Err(too_large(q.points.len() as u64 * RECORD_BYTES));
+        }
+        pieces.retain(|q| !q.points.is_empty());
+        Ok(pieces)
+    }
+
+    /// Records the refinement of the runs `preps` (one wavelet), with their estimation
+    /// `grids`, into `enc`. Pieces of runs are grouped into sub-parts whose buffers each fit
+    /// one storage binding; a run the GPU cannot serve (an FFT length it cannot plan, five
+    /// scales beyond a binding) gets its reason instead of a place.
+    pub fn encode(
+        &self,
+        gpu: &Gpu,
+        enc: &mut wgpu::CommandEncoder,
+        preps: &[&WaveletPrep],
+        grids: &[Vec<GridPoint>],
+    ) -> Result<Encoded, GpuError> {
+        let limit = gpu.max_binding();
+        let elem = self.real.complex_bytes() as u64;
+        let planned: Vec<Planned> = preps.iter().zip(grids).map(|(p, g)| plan(p, g)).collect();
+        let mut at: Vec<Result<Spans, GpuError>> = Vec::with_capacity(preps.len());
+        let mut parts: Vec<Vec<Piece>> = Vec::new();
+        let mut used = (u64::MAX, u64::MAX);
+        for (r, (prep, grid)) in preps.iter().zip(grids).enumerate() {
+            let p = &planned[r];
+            if let Some((_, bad)) = p.scales.iter().find(|(_, s)| radices(s.len).is_none()) {
+                at.push(Err(GpuError::Unsupported(format!(
+                    "FFT length {} has a prime factor above 5",
+                    bad.len
+                ))));
+                continue;
+            }
+            let pieces = match self.pieces(r, prep, grid, p, limit) {
+                Ok(q) => q,
+                Err(e) => {
+                    at.push(Err(e));
+                    continue;
+                }
+            };
+            at.push(Ok(Vec::new()));
+            for piece in pieces {
+                let data: u64 = p.scales[piece.scales.clone()]
+                    .iter()
+                    .map(|(_, s)| 3 * s.len as u64 * elem)
+                    .sum::<u64>()
+                    + (p.top as u64 + 1) * elem;
+                let records = piece.points.len() as u64 * RECORD_BYTES;
+                if used.0.saturating_add(data) > limit || used.1.saturating_add(records) > limit {
+                    parts.push(Vec::new());
+                    used = (0, 0);
+                }
+                used = (used.0 + data, used.1 + records);
+                parts.last_mut().expect("a part was opened").push(piece);
+            }
+        }
+        let wl = preps.first().map(|p| p.wavelet()).unwrap_or_default();
+        let params = WaveletParams {
+            bandwidth: split(wl.bandwidth),
+            centre: split(wl.centre),
+            taper: TAPER as f32,
+            _pad: [0; 3],
+        };
+        let uniform = gpu.uniform("refine wavelet", &params);
+        // Each spectrum scaled by a power of two to a largest bin near 1.
+        let ln_scale: Vec<f64> = preps
+            .iter()
+            .zip(&planned)
+            .map(|(p, q)| {
+                let big = p.spec.bins[..=q.top]
+                    .iter()
+                    .map(|c| c.re.abs().max(c.im.abs()))
+                    .fold(0.0f64, f64::max);
+                if big > 0.0 && big.is_finite() {
+                    -(big.log2().ceil()) * std::f64::consts::LN_2
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let mut records = Vec::with_capacity(parts.len());
+        for (q, part) in parts.iter().enumerate() {
+            let (buffer, firsts) =
+                self.encode_part(gpu, enc, &uniform, preps, grids, &planned, &ln_scale, part)?;
+            let points: usize = part.iter().map(|p| p.points.len()).sum();
+            for (piece, first) in part.iter().zip(firsts) {
+                if let Ok(spans) = &mut at[piece.run] {
+                    spans.push((q, first, piece.points.clone()));
+                }
+            }
+            records.push((buffer, points as u64 * RECORD_BYTES));
+        }
+        Ok(Encoded {
+            records,
+            at,
+            ln_scale,
+        })
+    }
+
+    /// One sub-part: its pieces' spectra, the scatter of every scale's three orders, the
+    /// inverse FFTs grouped by length, the estimate at every grid point. Returns its records
+    /// buffer and the index of each piece's first record in it.
+    #[allow(clippy::too_many_arguments)]
+    fn encode_part(
+        &self,
+        gpu: &Gpu,
+        enc: &mut wgpu::CommandEncoder,
+        uniform: &wgpu::Buffer,
+        preps: &[&WaveletPrep],
+        grids: &[Vec<GridPoint>],
+        planned: &[Planned],
+        ln_scale: &[f64],
+        part: &[Piece],
+    ) -> Result<(wgpu::Buffer, Vec<usize>), GpuError> {
+        let align = offset_alignment_of(gpu, self.real);
+        // Spectra: each piece's bins up to its run's top, scaled.
+        let mut spectrum: Vec<[f64; 2]> = Vec::new();
+        let mut spec_at = Vec::with_capacity(part.len());
+        for piece in part {
+            let r = piece.run;
+            spec_at.push(spectrum.len() as u32);
+            let k = ln_scale[r].exp();
+            spectrum.extend(
+                preps[r].spec.bins[..=planned[r].top]
+                    .iter()
+                    .map(|c| [c.re * k, c.im * k]),
+            );
+        }
+        // Blocks (piece, scale) by FFT length; each block is w, w′, w″ back to back.
+        let mut blocks: Vec<(usize, usize)> = part
+            .iter()
+            .enumerate()
+            .flat_map(|(q, piece)| piece.scales.clone().map(move |j| (q, j)))
+            .collect();
+        blocks.sort_by_key(|&(q, j)| planned[part[q].run].scales[j].1.len);
+        let mut table_at: Vec<u32> = Vec::with_capacity(part.len());
+        let mut table: Vec<ScaleEntry> = Vec::new();
+        for piece in part {
+            table_at.push(table.len() as u32);
+            let prep = preps[piece.run];
+            let wl = prep.wavelet();
+            table.extend(prep.freqs.iter().map(|&f| ScaleEntry {
+                data: NONE,
+                m: 0,
+                centre: 0,
+                _pad: 0,
+                scale: wl.scale_for(f) as f32,
+                freq: f as f32,
+                omega_c: 0.0,
+                _pad1: 0,
+            }));
+        }
+        let mut data_len = 0usize;
+        let mut groups: Vec<(usize, usize, usize)> = Vec::new(); // (length, offset, sequences)
+        let mut items = Vec::with_capacity(3 * blocks.len());
+        for &(q, j) in &blocks {
+            let r = part[q].run;
+            let (k, plan) = &planned[r].scales[j];
+            let m = plan.len;
+            match groups.last_mut() {
+                Some(g) if g.0 == m => g.2 += 3,
+                _ => {
+                    data_len = data_len.div_ceil(align) * align;
+                    groups.push((m, data_len, 3));
+                }
+            }
+            let spec = &preps[r].spec;
+            let l = spec.padded_len;
+            let (lo, hi, centre) = plan.band();
+            let e = &mut table[table_at[q] as usize + k];
+            e.data = data_len as u32;
+            e.m = m as u32;
+            e.centre = centre as u32;
+            e.omega_c =
+                (2.0 * std::f64::consts::PI * centre as f64 * spec.sample_rate / l as f64) as f32;
+            for order in 0..3u32 {
+                items.push(Item {
+                    spec: spec_at[q],
+                    lo: lo as u32,
+                    hi: hi.min(planned[r].top) as u32,
+                    centre: centre as u32,
+                    m: m as u32,
+                    data: (data_len + order as usize * m) as u32,
+                    order,
+                    scale: split(plan.scale),
+                    df: split(spec.sample_rate / l as f64),
+                    norm: split(2.0 / l as f64),
+                });
+            }
+            data_len += 3 * m;
+        }
+        let mut run_params = Vec::with_capacity(part.len());
+        let mut points: Vec<PointParams> = Vec::new();
+        let mut firsts = Vec::with_capacity(part.len());
+        for (q, piece) in part.iter().enumerate() {
+            let prep = preps[piece.run];
+            run_params.push(RunParams {
+                scales: table_at[q],
+                count: prep.freqs.len() as u32,
+                l: prep.spec.padded_len as u32,
+                correct: u32::from(prep.corrects()),
+            });
+            firsts.push(points.len());
+            let grid = &grids[piece.run];
+            points.extend(piece.points.iter().map(|&g| PointParams {
+                sample: grid[g].sample as u32,
+                centre: grid[g].centre as u32,
+                run: q as u32,
+                _pad: 0,
+            }));
+        }
+        let elem = self.real.complex_bytes();
+        let spectra = match self.real {
+            Real::F64 => gpu.upload("refine spectra", &spectrum),
+            Real::F32 => gpu.upload(
+                "refine spectra",
+                &spectrum
+                    .iter()
+                    .map(|[a, b]| [*a as f32, *b as f32])
+                    .collect::<Vec<_>>(),
+            ),
+        };
+        let data_bytes = (data_len.max(1) * elem) as u64;
+        let items_buf = gpu.upload("refine items", &items);
+        let data = gpu.storage("refine scales", data_bytes);
+        let scratch = gpu.storage("refine scratch", data_bytes);
+        let table_buf = gpu.upload("refine table", &table);
+        let runs_buf = gpu.upload("refine runs", &run_params);
+        let points_buf = gpu.upload("grid points", &points);
+        let records = gpu.storage("grid records", points.len() as u64 * RECORD_BYTES);
+        let bind = gpu.bind(
+            "refine",
+            &self.layout,
+            &[
+                uniform,
+                &items_buf,
+                &spectra,
+                &data,
+                &table_buf,
+                &runs_buf,
+                &points_buf,
+                &records,
+            ],
+        );
+        // Items along y (and z past one dimension's limit), slots along x.
+        let [rows, layers, deeper] = gpu.grid(items.len() as u64)?;
+        if deeper > 1 {
+            return Err(GpuError::TooLarge {
+                what: format!("{} scale items in one dispatch", items.len()),
+                need: items.len() as u64,
+                limit: u64::from(gpu.max_workgroups()).pow(2),
+            });
+        }
+        let longest = groups.iter().map(|g| g.0).max().unwrap_or(1);
+        let max_x = gpu.max_workgroups() as usize;
+        if !items.is_empty() {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("refine scatter"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.scatter);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(longest.div_ceil(64).min(max_x) as u32, rows, layers);
+        }
+        for &(m, offset, count) in &groups {
+            let holder = self
+                .fft
+                .encode(gpu, enc, m, count, true, &data, &scratch, offset)?;
+            if holder == Holder::Scratch {
+                let bytes = (offset * elem) as u64;
+                enc.copy_buffer_to_buffer(&scratch, bytes, &data, bytes, (m * count * elem) as u64);
+            }
+        }
+        if !points.is_empty() {
+            let [x, y, z] = gpu.grid(points.len().div_ceil(64) as u64)?;
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("refine estimate"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.estimate);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(x, y, z);
+        }
+        Ok((records, firsts))
+    }
+}
+
+/// One run's grid estimates, or why the GPU could not refine it.
+pub type Refined = Result<Vec<GridEstimate>, GpuError>;
+
+/// A submitted refinement: each part's records and their read-back, not yet waited for.
+pub struct RefineFlight {
+    encoded: Vec<Option<Encoded>>,
+    readback: super::Readback,
+}
+
+impl RefineStage {
+    /// Records and submits the refinement of every run of every part, with the copies of
+    /// all records into one staging buffer, and returns without waiting. `parts` hold one
+    /// wavelet each (the first pass's), `grids` each run's estimation grid.
+    pub fn submit(
+        &self,
+        gpu: &Gpu,
+        parts: &[Vec<&WaveletPrep>],
+        grids: &[Vec<Vec<GridPoint>>],
+    ) -> Result<RefineFlight, GpuError> {
+        let mut enc = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("refinement"),
+            });
+        let mut encoded = Vec::with_capacity(parts.len());
+        for (preps, grids) in parts.iter().zip(grids) {
+            encoded.push(if preps.is_empty() {
+                None
+            } else {
+                Some(self.encode(gpu, &mut enc, preps, grids)?)
+            });
+        }
+        let wanted: Vec<(&wgpu::Buffer, u64)> =
+            encoded.iter().flatten().flat_map(|e| e.buffers()).collect();
+        let readback = gpu.encode_readback(&mut enc, &wanted);
+        gpu.submit(enc);
+        Ok(RefineFlight { encoded, readback })
+    }
+}
+
+impl RefineFlight {
+    /// Waits for the submission (one blocking wait) and decodes every run's grid estimates,
+    /// or per run why the GPU could not serve it. `parts` and `grids` are the ones given to
+    /// [`RefineStage::submit`].
+    pub fn finish(
+        self,
+        gpu: &Gpu,
+        parts: &[Vec<&WaveletPrep>],
+        grids: &[Vec<Vec<GridPoint>>],
+    ) -> Result<Vec<Vec<Refined>>, GpuError> {
+        let RefineFlight { encoded, readback } = self;
+        let mut bytes = gpu.finish_readback(readback)?.into_iter();
+        Ok(parts
+            .iter()
+            .zip(grids)
+            .zip(encoded)
+            .map(|((preps, grids), e)| {
+                let Some(e) = e else {
+                    return Vec::new();
+                };
+                let part_bytes: Vec<Vec<u8>> = (0..e.records.len())
+                    .map(|_| bytes.next().expect("one read-back per records buffer"))
+                    .collect();
+                e.decode(&part_bytes, preps, grids)
+            })
+            .collect())
+    }
+}
