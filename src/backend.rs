@@ -525,7 +525,7 @@ fn dispatch(
                         }
                         unpanicked(|| {
                             crate::profile::time_wall(crate::profile::Stage::FirstPass, || {
-                                stages.first.submit(gpu, &preps)
+                                crate::profile::dispatcher(|| stages.first.submit(gpu, &preps))
                             })
                         })
                     }
@@ -550,7 +550,7 @@ fn step(
     dead: &mut Option<String>,
     stats: &Stats,
 ) {
-    if let Some(next) = advance(gpu, stages, unit, dead, stats) {
+    if let Some(next) = crate::profile::dispatcher(|| advance(gpu, stages, unit, dead, stats)) {
         if !flying.is_empty() {
             crate::profile::overlapped();
         }
@@ -614,10 +614,14 @@ fn advance(
                     return None;
                 }
             };
+            // In parallel (the global rayon pool idles while the workers wait on the GPU).
             let grids: Vec<Vec<Vec<GridPoint>>> = preps
                 .iter()
                 .zip(&ridges)
-                .map(|(p, r)| p.iter().zip(r).map(|(p, r)| p.grid(&r.path)).collect())
+                .map(|(p, r)| {
+                    use rayon::prelude::*;
+                    p.par_iter().zip(r).map(|(p, r)| p.grid(&r.path)).collect()
+                })
                 .collect();
             let flight = match gpu_dead(dead) {
                 Some(e) => Err(e),

@@ -74,6 +74,7 @@ static BYTES_DOWN: AtomicU64 = AtomicU64::new(0);
 static GPU_SIGNALS: AtomicU64 = AtomicU64::new(0);
 static GPU_BATCHES: AtomicU64 = AtomicU64::new(0);
 static OVERLAPPED: AtomicU64 = AtomicU64::new(0);
+static DISPATCHER_NANOS: AtomicU64 = AtomicU64::new(0);
 
 /// Adds `d` to `stage`.
 pub fn add(stage: Stage, d: Duration) {
@@ -137,6 +138,18 @@ pub fn overlapped() {
     OVERLAPPED.fetch_add(1, Ordering::Relaxed);
 }
 
+/// Runs `f` on the GPU dispatcher's thread, adding the CPU time it spent there (not its waits
+/// for the device, nor work it hands to rayon) to the dispatcher's serial host time.
+pub fn dispatcher<T>(f: impl FnOnce() -> T) -> T {
+    let t0 = thread_cpu();
+    let out = f();
+    DISPATCHER_NANOS.fetch_add(
+        thread_cpu().saturating_sub(t0).as_nanos() as u64,
+        Ordering::Relaxed,
+    );
+    out
+}
+
 /// Counts one GPU batch (first pass and refinement of many signals) of `n` signals.
 pub fn gpu_batch(n: usize) {
     GPU_BATCHES.fetch_add(1, Ordering::Relaxed);
@@ -172,6 +185,9 @@ pub struct Traffic {
     /// Submissions made while an earlier one was still on the device (upload and compute
     /// of one batch overlapping the other's compute and read-back).
     pub overlapped: u64,
+    /// CPU seconds of the dispatcher thread itself (encoding, uploads, laying out grids,
+    /// reading back; not its waits): the serial host work every GPU batch goes through.
+    pub dispatcher_cpu_s: f64,
 }
 
 impl Traffic {
@@ -208,6 +224,7 @@ pub fn snapshot() -> Profile {
             bytes_up: BYTES_UP.load(Ordering::Relaxed),
             bytes_down: BYTES_DOWN.load(Ordering::Relaxed),
             overlapped: OVERLAPPED.load(Ordering::Relaxed),
+            dispatcher_cpu_s: DISPATCHER_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
         },
     }
 }
@@ -225,6 +242,7 @@ pub fn reset() {
         &GPU_SIGNALS,
         &GPU_BATCHES,
         &OVERLAPPED,
+        &DISPATCHER_NANOS,
     ] {
         c.store(0, Ordering::Relaxed);
     }

@@ -1058,31 +1058,38 @@ impl WaveletPrep {
             let span = (b - a).max(1) as f64;
             let dt = span / fs;
             let last = if g + 1 == g_count { a } else { b - 1 };
+            let lerp = |v: &[f64], u: f64| v[g] + u * (v[gb] - v[g]);
+            let w0 = 2.0 * PI * frequency[g] * dt;
+            let w1 = 2.0 * PI * frequency[gb] * dt;
+            let both = valid[g] && valid[gb];
+            // ln A is linear over the segment, so A is geometric: one exp per segment, not
+            // per sample (the product drifts by ~1e-14 over a segment).
+            let geometric = ln_amp[g].is_finite() && ln_amp[gb].is_finite();
+            let ratio = ((ln_amp[gb] - ln_amp[g]) / span).exp();
+            let mut next_amp = ln_amp[g].exp();
             for i in a..=last {
                 let u = (i - a) as f64 / span;
-                let lerp = |v: &[f64]| v[g] + u * (v[gb] - v[g]);
-                let la = if ln_amp[g].is_finite() && ln_amp[gb].is_finite() {
-                    lerp(&ln_amp)
+                let amp = if geometric {
+                    let amp = next_amp;
+                    next_amp *= ratio;
+                    amp
                 } else if u < 0.5 {
-                    ln_amp[g]
+                    ln_amp[g].exp()
                 } else {
-                    ln_amp[gb]
+                    ln_amp[gb].exp()
                 };
-                let amp = la.exp();
-                let sig = lerp(&decay);
+                let sig = lerp(&decay, u);
                 let (u2, u3) = (u * u, u * u * u);
-                let w0 = 2.0 * PI * frequency[g] * dt;
-                let w1 = 2.0 * PI * frequency[gb] * dt;
                 out.amplitude[i] = amp;
-                out.frequency[i] = lerp(&frequency);
+                out.frequency[i] = lerp(&frequency, u);
                 out.phase[i] = (2.0 * u3 - 3.0 * u2 + 1.0) * phase[g]
                     + (u3 - 2.0 * u2 + u) * w0
                     + (3.0 * u2 - 2.0 * u3) * phase[gb]
                     + (u3 - u2) * w1;
                 out.d_amplitude[i] = -sig * amp;
-                out.d2_amplitude[i] = amp * (sig * sig - lerp(&dsigma));
-                out.d_frequency[i] = lerp(&sweep);
-                out.valid[i] = valid[g] && valid[gb];
+                out.d2_amplitude[i] = amp * (sig * sig - lerp(&dsigma, u));
+                out.d_frequency[i] = lerp(&sweep, u);
+                out.valid[i] = both;
             }
         }
         out

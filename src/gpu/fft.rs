@@ -26,6 +26,21 @@ struct PassParams {
 /// Invocations per workgroup (the shader's `@workgroup_size`).
 const WORKGROUP: u32 = 64;
 
+/// Whether the GPU FFT plans length `n` (no prime factor above 5), without allocating: the
+/// dispatcher asks it of every scale of every signal.
+pub fn plannable(n: usize) -> bool {
+    if n == 0 {
+        return false;
+    }
+    let mut rest = n;
+    for r in [2, 3, 5] {
+        while rest.is_multiple_of(r) {
+            rest /= r;
+        }
+    }
+    rest == 1
+}
+
 /// The radices of a length, largest passes first (4 before 2: fewer passes); `None` when
 /// the length has a prime factor above 5.
 pub fn radices(n: usize) -> Option<Vec<u32>> {
@@ -302,6 +317,9 @@ mod tests {
         assert_eq!(radices(8), Some(vec![4, 2]));
         assert_eq!(radices(1152), Some(vec![3, 3, 4, 4, 4, 2]));
         assert_eq!(radices(7), None);
+        for n in 1..5000 {
+            assert_eq!(plannable(n), radices(n).is_some(), "{n}");
+        }
         for n in 16..5000 {
             let m = crate::transform::plan_len(n);
             let r = radices(m).unwrap();

@@ -11,7 +11,9 @@
 //! overlapping ranges of scales, each serving the grid points whose five scales (ridge ± 2)
 //! it holds.
 
-use super::fft::{offset_alignment_of, radices, FftStage, Holder};
+use rayon::prelude::*;
+
+use super::fft::{offset_alignment_of, plannable, FftStage, Holder};
 use super::{Gpu, GpuError, Real};
 use crate::skeleton::{GridEstimate, GridPoint};
 use crate::track::WaveletPrep;
@@ -166,15 +168,16 @@ impl Encoded {
             .map(|b| bytemuck::pod_collect_to_vec(b))
             .collect();
         self.at
-            .into_iter()
-            .zip(preps.iter().zip(grids))
+            .into_par_iter()
+            .zip(preps.par_iter().zip(grids))
             .zip(&self.ln_scale)
             .map(|((spans, (prep, grid)), &ln_scale)| {
                 let mut out: Vec<Option<GridEstimate>> = vec![None; grid.len()];
+                let mut centres: Vec<Option<u64>> = vec![None; prep.freqs.len()];
                 for (part, first, points) in spans? {
                     let w = &words[part][first * 8..(first + points.len()) * 8];
                     for (&g, rec) in points.iter().zip(w.chunks_exact(8)) {
-                        out[g] = Some(decode(prep, grid[g], rec, ln_scale));
+                        out[g] = Some(decode(prep, grid[g], rec, ln_scale, &mut centres));
                     }
                 }
                 Ok(out
@@ -188,8 +191,14 @@ impl Encoded {
 
 /// One record as a [`GridEstimate`] in f64: the spectrum's scaling taken off the logs, the
 /// carrier's whole turns added to the phase (the shader's is arg W + 2π·frac(c·i/L); the
-/// CPU's is arg W + 2π·c·i/L).
-fn decode(prep: &WaveletPrep, p: GridPoint, w: &[u32], ln_scale: f64) -> GridEstimate {
+/// CPU's is arg W + 2π·c·i/L). `centres` caches each scale's demodulation bin.
+fn decode(
+    prep: &WaveletPrep,
+    p: GridPoint,
+    w: &[u32],
+    ln_scale: f64,
+    centres: &mut [Option<u64>],
+) -> GridEstimate {
     let f = |i: usize| f64::from(f32::from_bits(w[i]));
     let flags = w[7];
     let best = (flags & 0xffff) as usize;
@@ -199,7 +208,7 @@ fn decode(prep: &WaveletPrep, p: GridPoint, w: &[u32], ln_scale: f64) -> GridEst
         let freq = prep.freqs[best];
         return GridEstimate::unobserved(wl.scale_for(freq), freq, best, corrected);
     }
-    let c = prep.exact_plan(best).band().2 as u64;
+    let c = *centres[best].get_or_insert_with(|| prep.exact_plan(best).band().2 as u64);
     let turns = (c * p.sample as u64 / prep.spec.padded_len as u64) as f64;
     GridEstimate {
         observed_ln_amp: f(0) - ln_scale,
@@ -347,13 +356,18 @@ impl RefineStage {
     ) -> Result<Encoded, GpuError> {
         let limit = gpu.max_binding();
         let elem = self.real.complex_bytes() as u64;
-        let planned: Vec<Planned> = preps.iter().zip(grids).map(|(p, g)| plan(p, g)).collect();
+        // Per-run host work in parallel: the dispatcher is one thread for every worker.
+        let planned: Vec<Planned> = preps
+            .par_iter()
+            .zip(grids)
+            .map(|(p, g)| plan(p, g))
+            .collect();
         let mut at: Vec<Result<Spans, GpuError>> = Vec::with_capacity(preps.len());
         let mut parts: Vec<Vec<Piece>> = Vec::new();
         let mut used = (u64::MAX, u64::MAX);
         for (r, (prep, grid)) in preps.iter().zip(grids).enumerate() {
             let p = &planned[r];
-            if let Some((_, bad)) = p.scales.iter().find(|(_, s)| radices(s.len).is_none()) {
+            if let Some((_, bad)) = p.scales.iter().find(|(_, s)| !plannable(s.len)) {
                 at.push(Err(GpuError::Unsupported(format!(
                     "FFT length {} has a prime factor above 5",
                     bad.len
@@ -393,7 +407,7 @@ impl RefineStage {
         let uniform = gpu.uniform("refine wavelet", &params);
         // Each spectrum scaled by a power of two to a largest bin near 1.
         let ln_scale: Vec<f64> = preps
-            .iter()
+            .par_iter()
             .zip(&planned)
             .map(|(p, q)| {
                 let big = p.spec.bins[..=q.top]
@@ -443,7 +457,8 @@ impl RefineStage {
     ) -> Result<(wgpu::Buffer, Vec<usize>), GpuError> {
         let align = offset_alignment_of(gpu, self.real);
         // Spectra: each piece's bins up to its run's top, scaled.
-        let mut spectrum: Vec<[f64; 2]> = Vec::new();
+        let bins: usize = part.iter().map(|q| planned[q.run].top + 1).sum();
+        let mut spectrum: Vec<[f64; 2]> = Vec::with_capacity(bins);
         let mut spec_at = Vec::with_capacity(part.len());
         for piece in part {
             let r = piece.run;
@@ -519,7 +534,8 @@ impl RefineStage {
             data_len += 3 * m;
         }
         let mut run_params = Vec::with_capacity(part.len());
-        let mut points: Vec<PointParams> = Vec::new();
+        let mut points: Vec<PointParams> =
+            Vec::with_capacity(part.iter().map(|q| q.points.len()).sum());
         let mut firsts = Vec::with_capacity(part.len());
         for (q, piece) in part.iter().enumerate() {
             let prep = preps[piece.run];

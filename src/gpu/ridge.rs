@@ -4,7 +4,9 @@
 //! blocking wait) per batch, and only the paths and the per-scale medians read back (a few
 //! kB per run, never the scalogram).
 
-use super::fft::radices;
+use rayon::prelude::*;
+
+use super::fft::plannable;
 use super::scales::{PowerGrid, RunScales, ScaleStage};
 use super::{Gpu, GpuError, Readback};
 use crate::track::{CoarseRidge, WaveletPrep};
@@ -185,7 +187,7 @@ impl FirstPass {
                 MAX_STEPS * prep.h
             )));
         }
-        if let Some(p) = prep.plans.iter().find(|p| radices(p.len).is_none()) {
+        if let Some(p) = prep.plans.iter().find(|p| !plannable(p.len)) {
             return Err(GpuError::Unsupported(format!(
                 "FFT length {} has a prime factor above 5",
                 p.len
@@ -250,9 +252,11 @@ impl InFlight {
             let stats: Vec<[f32; 2]> = bytemuck::pod_collect_to_vec(&stats);
             let power: Vec<f32> = bytemuck::pod_collect_to_vec(&power);
             let wavelet = preps[0].wavelet();
+            // In parallel: the noise gains evaluate every scale's weights, and the
+            // dispatcher is one thread for every worker.
             answers.push(
                 preps
-                    .iter()
+                    .par_iter()
                     .enumerate()
                     .map(|(r, p)| {
                         let (po, so) = (out.path_at[r], out.info_at[r]);

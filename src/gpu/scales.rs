@@ -120,7 +120,8 @@ impl ScaleStage {
         let align = offset_alignment(gpu);
         let limit = gpu.max_binding();
         // Spectra back to back.
-        let mut spectrum: Vec<[f32; 2]> = Vec::new();
+        let mut spectrum: Vec<[f32; 2]> =
+            Vec::with_capacity(runs.iter().map(|r| r.spectrum.bins.len()).sum());
         let mut spec_offset = Vec::with_capacity(runs.len());
         for r in runs {
             spec_offset.push(spectrum.len() as u32);
