@@ -42,9 +42,13 @@ pub enum BackendChoice {
 /// How long the dispatcher waits for more signals once one has arrived.
 const LINGER: Duration = Duration::from_millis(4);
 
-/// Most signals in one submission (their prepared spectra are held in host memory while
-/// they wait).
-const MAX_BATCH: usize = 256;
+/// Most signals in one batch, whatever the adapter's memory (their prepared spectra are held
+/// in host memory while they wait: about 0.3 MB each at 30 000 samples).
+const MAX_BATCH: usize = 4096;
+
+/// Signals in [`Backend::track_many`]'s first group (and every group on the CPU); later
+/// groups on a GPU are sized to fill one submission's device memory.
+const GROUP: usize = 256;
 
 /// Most binding-sized parts in one submission: bounds the device memory one submission
 /// takes to about this many times the adapter's largest binding.
@@ -113,6 +117,9 @@ struct Request {
 
 struct GpuService {
     adapter: String,
+    /// Device memory (bytes, as [`batch_bytes`] counts it) one submission may take: half the
+    /// adapter's largest binding times [`SUBMISSION_PARTS`]. Batches are sized to it.
+    submission_budget: u64,
     /// Submissions made and signals they carried (successful ones).
     stats: Arc<Stats>,
     queue: Mutex<Option<Sender<Request>>>,
@@ -188,7 +195,8 @@ impl Backend {
                 });
                 match opened {
                     Ok((gpu, stages)) => {
-                        let _ = ready_tx.send(Ok(gpu.adapter_name()));
+                        let budget = gpu.max_binding() / 2 * SUBMISSION_PARTS;
+                        let _ = ready_tx.send(Ok((gpu.adapter_name(), budget)));
                         dispatch(&gpu, &stages, rx, fail_after, &counted);
                     }
                     Err(e) => {
@@ -204,7 +212,7 @@ impl Backend {
             .recv()
             .map_err(|_| GpuError::Lost("the GPU thread ended while opening the device".into()))
             .and_then(|r| r);
-        let adapter = match ready {
+        let (adapter, submission_budget) = match ready {
             Ok(a) => a,
             Err(e) => {
                 let _ = thread.join();
@@ -214,6 +222,7 @@ impl Backend {
         Ok(Backend {
             gpu: Some(GpuService {
                 adapter,
+                submission_budget,
                 stats,
                 queue: Mutex::new(Some(tx)),
                 thread: Some(thread),
@@ -310,10 +319,12 @@ impl Backend {
     }
 
     /// The wavelet tracks of many signals, all with the same options, in order: prepared
-    /// in parallel, first passes submitted together (in batches sized to the adapter),
-    /// finished in parallel. Groups of [`MAX_BATCH`] signals are pipelined: the next group
-    /// is prepared and handed to the GPU before the previous one is collected, so that the
-    /// CPU's preparation and finishing overlap the device's work. For benchmarks and
+    /// in parallel, handed to the GPU together (in batches sized to the adapter's memory),
+    /// finished in parallel. Groups are pipelined: the next group is prepared and handed
+    /// to the GPU before the previous one is collected, so that the CPU's preparation and
+    /// finishing overlap the device's work. The first group holds [`GROUP`] signals; on a
+    /// GPU the later ones as many as fill one submission's device memory by the first
+    /// group's measure (up to [`MAX_BATCH`]: thousands on a large GPU). For benchmarks and
     /// commands that hold all their signals.
     pub fn track_many(
         &self,
@@ -324,11 +335,25 @@ impl Backend {
         let mut out = Vec::with_capacity(signals.len());
         // At most two groups of prepared spectra in memory at once.
         let mut pending: Option<Group> = None;
-        for group in signals.chunks(MAX_BATCH) {
+        let mut size = GROUP;
+        let mut at = 0;
+        while at < signals.len() {
+            let group = &signals[at..(at + size).min(signals.len())];
+            at += group.len();
             let preps: Vec<Result<WaveletPrep, TrackError>> = group
                 .par_iter()
                 .map(|&(x, fs, g)| WaveletPrep::new(x, fs, opt, g))
                 .collect();
+            if let Some(budget) = self.gpu.as_ref().map(|g| g.submission_budget) {
+                let (bytes, n) = preps
+                    .iter()
+                    .flatten()
+                    .fold((0u64, 0u64), |(b, n), p| (b + batch_bytes(p), n + 1));
+                if let Some(each) = bytes.checked_div(n) {
+                    let fit = budget / each.max(1);
+                    size = (fit as usize).clamp(GROUP, MAX_BATCH);
+                }
+            }
             let mut ok = Vec::new();
             let mut slots: Vec<Option<Result<Track, TrackError>>> = Vec::new();
             for p in preps {
@@ -483,7 +508,7 @@ fn dispatch(
     let mut open = true;
     while open || !flying.is_empty() {
         let batch = if open {
-            let (batch, still_open) = gather(&rx, !flying.is_empty());
+            let (batch, still_open) = gather(&rx, !flying.is_empty(), submission_budget);
             open = still_open;
             batch
         } else {
@@ -708,10 +733,11 @@ fn fail(parts: Vec<Vec<Request>>, e: GpuError, dead: &mut Option<String>) {
     }
 }
 
-/// The requests that arrive within `LINGER` of the first, up to `MAX_BATCH`. Blocks for the
-/// first only when nothing is in flight (`busy` false); else waits at most `LINGER`. Also
-/// says whether the queue is still open.
-fn gather(rx: &Receiver<Request>, busy: bool) -> (Vec<Request>, bool) {
+/// The requests that arrive within `LINGER` of the first, until they fill `budget` bytes of
+/// device memory (one submission's, as [`batch_bytes`] counts it) or number [`MAX_BATCH`].
+/// Blocks for the first only when nothing is in flight (`busy` false); else waits at most
+/// `LINGER`. Also says whether the queue is still open.
+fn gather(rx: &Receiver<Request>, busy: bool, budget: u64) -> (Vec<Request>, bool) {
     use std::sync::mpsc::RecvTimeoutError;
     let first = if busy {
         match rx.recv_timeout(LINGER) {
@@ -725,12 +751,16 @@ fn gather(rx: &Receiver<Request>, busy: bool) -> (Vec<Request>, bool) {
             Err(_) => return (Vec::new(), false),
         }
     };
+    let mut bytes = batch_bytes(&first.prep);
     let mut batch = vec![first];
     let deadline = Instant::now() + LINGER;
-    while batch.len() < MAX_BATCH {
+    while batch.len() < MAX_BATCH && bytes < budget {
         let left = deadline.saturating_duration_since(Instant::now());
         match rx.recv_timeout(left) {
-            Ok(r) => batch.push(r),
+            Ok(r) => {
+                bytes += batch_bytes(&r.prep);
+                batch.push(r)
+            }
             Err(RecvTimeoutError::Timeout) => break,
             Err(RecvTimeoutError::Disconnected) => return (batch, false),
         }

@@ -1350,6 +1350,74 @@ fn a_gpu_batch_of_256_signals_is_two_submissions_and_two_waits() {
 }
 
 #[test]
+fn gpu_batches_are_sized_from_the_adapters_memory() {
+    // 600 short signals (300 runs) handed over at once: batches beyond the 256 signals a
+    // batch was capped at before when the adapter's memory holds them, and as many
+    // batches as a pretended small binding requires.
+    let d = tmpdir();
+    let archive = d.path().join("short.h5");
+    let (n, fs) = (800usize, 1000.0);
+    {
+        let f = hdf5::File::create(&archive).unwrap();
+        for r in 0..300 {
+            let g = group(&f, &format!("/runs/r{r:03}"));
+            set_f64(&g, "sample_rate", fs);
+            let x: Vec<f64> = (0..n)
+                .map(|i| {
+                    let t = i as f64 / fs;
+                    (2.0 * std::f64::consts::PI * (20.0 + r as f64 * 0.01) * t).sin()
+                })
+                .collect();
+            put(&g, "input", &x);
+            put(&g, "output", &x);
+        }
+        f.close().unwrap();
+    }
+    release_locks(&archive);
+    let bench = |cap: Option<u64>| {
+        let json = d.path().join(format!("bench-{cap:?}.json"));
+        let mut c = skelid();
+        c.arg("bench")
+            .arg(&archive)
+            .args(["--backend", "gpu", "--repeat", "1", "--scales", "16"])
+            .arg("--no-end-to-end")
+            .arg("--out")
+            .arg(&json);
+        if let Some(cap) = cap {
+            c.env("SKELID_GPU_MAX_BINDING", cap.to_string());
+        }
+        let o = c.output().unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+        let t = v["backends"][0]["traffic"].clone();
+        println!("binding cap {cap:?}: {t}");
+        (
+            t["signals"].as_u64().unwrap(),
+            t["batches"].as_u64().unwrap(),
+        )
+    };
+    // The first group `bench` hands over is 256 signals (it measures their footprint), the
+    // rest one group sized to the submission's memory: 256 + 344, the second beyond the
+    // 256 a batch was capped at before.
+    let (signals, batches) = bench(None);
+    assert_eq!((signals, batches), (600, 2));
+    assert!(signals / batches > 256);
+    // A binding holding about 40 signals: a submission's budget (4 bindings' worth of
+    // half-binding parts) about 160, so four batches or more.
+    let x: Vec<f64> = (0..n).map(|i| (i as f64 * 0.1).sin()).collect();
+    let opt = skelid::track::WaveletOptions {
+        scales: 16,
+        ..Default::default()
+    };
+    let prep = skelid::track::WaveletPrep::new(&x, fs, &opt, None).unwrap();
+    let cap = skelid::gpu::ridge::batch_bytes(&prep) * 40;
+    let (signals, batches) = bench(Some(cap));
+    assert_eq!(signals, 600);
+    assert!((4..=8).contains(&batches), "{batches}");
+}
+
+#[test]
 fn nothing_to_do_is_never_a_success_and_impossible_options_are_refused_before_work() {
     let d = tmpdir();
     let out = d.path().join("out");
