@@ -1,0 +1,256 @@
+//! The wavelet track from its skeleton, whichever backend estimated it. In: a
+//! [`WaveletPrep`], its [`CoarseRidge`], the grid and a [`GridEstimate`] per point; out: the
+//! [`Track`] — white-noise floor, validity (cone of influence, band, SNR, failed
+//! corrections), low-SNR smoothing, the unwrapped phase, σ′, and every sample interpolated
+//! from the grid.
+
+use std::f64::consts::PI;
+
+use rayon::prelude::*;
+
+use crate::filter::{local_line_weighted, local_slope};
+use crate::skeleton::{GridEstimate, GridPoint};
+
+use super::{unwrap_phase, CoarseRidge, Method, Scalogram, Track, WaveletPrep};
+
+impl WaveletPrep {
+    /// The track from the skeleton on the grid, on the CPU whichever backend estimated it:
+    /// the white-noise floor (from the first pass's per-scale medians and the spectrum above
+    /// the band), validity (cone of influence, band, SNR, failed corrections), low-SNR
+    /// smoothing, the phase unwrapped, σ′, and every sample interpolated from the grid.
+    pub fn complete(
+        self,
+        ridge: CoarseRidge,
+        grid: &[GridPoint],
+        est: &[GridEstimate],
+        backend: &'static str,
+    ) -> Track {
+        let scalogram = ridge.power.as_ref().map(|p| Scalogram {
+            frequency: self.freqs.clone(),
+            time: (0..self.steps)
+                .map(|j| (j * self.h) as f64 / self.fs)
+                .collect(),
+            magnitude: p.iter().map(|v| v.max(0.0).sqrt()).collect(),
+        });
+        let WaveletPrep {
+            n,
+            fs,
+            opt,
+            fmin,
+            fmax,
+            spec,
+            ..
+        } = self;
+        let opt = &opt;
+        let wl = opt.wavelet;
+        // White-noise floor: the lower of the quietest quarter of the scales (median over
+        // time) and the spectrum above the analysis band, where only noise should be left.
+        let gains = ridge.gains;
+        let mut per_scale: Vec<f64> = ridge
+            .median_power
+            .iter()
+            .zip(&gains)
+            .filter_map(|(m, g)| m.map(|m| m / std::f64::consts::LN_2 / (n as f64 * g)))
+            .collect();
+        let from_scales = if per_scale.is_empty() {
+            f64::INFINITY
+        } else {
+            let q = per_scale.len() / 4;
+            *per_scale.select_nth_unstable_by(q, |a, b| a.total_cmp(b)).1
+        };
+        let from_spectrum = spec
+            .white_noise_variance(1.5 * fmax, fs / 2.0)
+            .unwrap_or(f64::INFINITY);
+        let noise_var = from_scales.min(from_spectrum);
+        let noise_var = if noise_var.is_finite() {
+            noise_var
+        } else {
+            0.0
+        };
+        let noise_w: Vec<f64> = gains
+            .iter()
+            .map(|g| (noise_var * n as f64 * g).sqrt())
+            .collect();
+        let offset = spec.mean;
+        drop(spec);
+        let g_count = grid.len();
+
+        let t: Vec<f64> = grid.iter().map(|p| p.sample as f64 / fs).collect();
+        let half: Vec<f64> = est.iter().map(|e| wl.time_sigma(e.scale)).collect();
+        let mut ln_amp: Vec<f64> = est.iter().map(|e| e.ln_amp).collect();
+        let mut phase: Vec<f64> = est.iter().map(|e| e.phase).collect();
+        let decay: Vec<f64> = est.iter().map(|e| e.decay).collect();
+        let mut frequency: Vec<f64> = est.iter().map(|e| e.frequency).collect();
+        let sweep: Vec<f64> = est.iter().map(|e| e.sweep).collect();
+        // A failed solve invalidates the grid points around it.
+        let mut fix_ok = vec![true; g_count];
+        for (g, e) in est.iter().enumerate() {
+            if !e.corrected {
+                let b = (g + 1).min(g_count - 1);
+                fix_ok[g.saturating_sub(1)..=b].fill(false);
+            }
+        }
+
+        // The sweep rate as the frequency track's own slope over ±σ_t: where the window saw a
+        // signal the local model cannot describe, it disagrees with the model's β.
+        let fslope = coarse_slope(&t, &frequency, &half);
+        let mut valid: Vec<bool> = (0..g_count)
+            .map(|g| {
+                let e = &est[g];
+                let i = grid[g].sample;
+                let st = half[g];
+                let margin = st * (opt.coi + (decay[g] * st).abs()) * fs;
+                let inside = i as f64 >= margin && (n - 1 - i) as f64 >= margin;
+                // The window spans ±coi σ_t, over which a sweep moves the frequency by β coi σ_t:
+                // the model needs all of that inside the analysed band (and clear of DC).
+                let reach = sweep[g].abs().max(fslope[g].abs()) * opt.coi * st;
+                let in_band = frequency[g] - reach >= fmin && frequency[g] + reach <= fmax;
+                // A loose threshold first: the final one is applied after smoothing, so that
+                // noise which happens to lift a point over it does not select that point.
+                let audible = e.observed_ln_amp.exp() >= 0.5 * opt.min_snr * noise_w[e.best];
+                e.peaked && fix_ok[g] && inside && in_band && audible && frequency[g] > 0.0
+            })
+            .collect();
+        if opt.smooth_snr > 0.0 {
+            let snr: Vec<f64> = est
+                .iter()
+                .map(|e| e.observed_ln_amp.exp() / noise_w[e.best])
+                .collect();
+            smooth_low_snr(
+                &t,
+                &half,
+                &snr,
+                &mut ln_amp,
+                &mut frequency,
+                &valid,
+                opt.smooth_snr,
+            );
+        }
+        for g in 0..g_count {
+            valid[g] = valid[g] && ln_amp[g].exp() >= opt.min_snr * noise_w[est[g].best];
+        }
+        unwrap_phase(&mut phase, &frequency, |g| t[g]);
+        // A'' = A (σ² − σ'); σ' by a local least-squares slope over ±σ_t of the grid.
+        let dsigma = coarse_slope(&t, &decay, &half);
+
+        // Per sample: ln A, f, σ, β, σ' linear between grid points (they vary over σ_t, the
+        // grid is σ_t/8), the phase cubic (Hermite, with 2πf as its slope at both ends).
+        let mut out = Track {
+            method: Method::Wavelet,
+            sample_rate: fs,
+            amplitude: vec![0.0; n],
+            frequency: vec![0.0; n],
+            phase: vec![0.0; n],
+            d_amplitude: vec![0.0; n],
+            d2_amplitude: vec![0.0; n],
+            d_frequency: vec![0.0; n],
+            valid: vec![false; n],
+            offset,
+            noise: noise_var.sqrt(),
+            band: (fmin, fmax),
+            backend,
+            scalogram,
+        };
+        for g in 0..g_count {
+            let a = grid[g].sample;
+            let b = grid.get(g + 1).map_or(a, |p| p.sample);
+            let gb = (g + 1).min(g_count - 1);
+            let span = (b - a).max(1) as f64;
+            let dt = span / fs;
+            let last = if g + 1 == g_count { a } else { b - 1 };
+            let lerp = |v: &[f64], u: f64| v[g] + u * (v[gb] - v[g]);
+            let w0 = 2.0 * PI * frequency[g] * dt;
+            let w1 = 2.0 * PI * frequency[gb] * dt;
+            let both = valid[g] && valid[gb];
+            // ln A is linear over the segment, so A is geometric: one exp per segment, not
+            // per sample (the product drifts by ~1e-14 over a segment).
+            let geometric = ln_amp[g].is_finite() && ln_amp[gb].is_finite();
+            let ratio = ((ln_amp[gb] - ln_amp[g]) / span).exp();
+            let mut next_amp = ln_amp[g].exp();
+            for i in a..=last {
+                let u = (i - a) as f64 / span;
+                let amp = if geometric {
+                    let amp = next_amp;
+                    next_amp *= ratio;
+                    amp
+                } else if u < 0.5 {
+                    ln_amp[g].exp()
+                } else {
+                    ln_amp[gb].exp()
+                };
+                let sig = lerp(&decay, u);
+                let (u2, u3) = (u * u, u * u * u);
+                out.amplitude[i] = amp;
+                out.frequency[i] = lerp(&frequency, u);
+                out.phase[i] = (2.0 * u3 - 3.0 * u2 + 1.0) * phase[g]
+                    + (u3 - 2.0 * u2 + u) * w0
+                    + (3.0 * u2 - 2.0 * u3) * phase[gb]
+                    + (u3 - u2) * w1;
+                out.d_amplitude[i] = -sig * amp;
+                out.d2_amplitude[i] = amp * (sig * sig - lerp(&dsigma, u));
+                out.d_frequency[i] = lerp(&sweep, u);
+                out.valid[i] = both;
+            }
+        }
+        out
+    }
+}
+
+/// Slope of `y` at every coarse time by a least-squares line over ±`half` (0 where too few
+/// points fall in the window).
+fn coarse_slope(t: &[f64], y: &[f64], half: &[f64]) -> Vec<f64> {
+    (0..t.len())
+        .into_par_iter()
+        .map(|c| local_slope(t, y, t[c], half[c]).unwrap_or(0.0))
+        .collect()
+}
+
+/// Longest averaging window, in σ_t either side, that low-SNR smoothing may use.
+const MAX_SMOOTH: f64 = 16.0;
+
+/// Where the in-band SNR x is below `target`, replaces ln A and f by a weighted (SNR²)
+/// least-squares line over the valid grid points within ±σ_t·min(16, (target/x)²): noise
+/// drops as the window grows, and a decay or a linear sweep (ln A and f linear in time) is
+/// not biased by it.
+fn smooth_low_snr(
+    t: &[f64],
+    sigma_t: &[f64],
+    snr: &[f64],
+    ln_amp: &mut [f64],
+    frequency: &mut [f64],
+    valid: &[bool],
+    target: f64,
+) {
+    let pts: Vec<usize> = (0..t.len()).filter(|&g| valid[g]).collect();
+    if pts.len() < 3 {
+        return;
+    }
+    let tv: Vec<f64> = pts.iter().map(|&g| t[g]).collect();
+    let ln_a: Vec<f64> = pts.iter().map(|&g| ln_amp[g]).collect();
+    let f: Vec<f64> = pts.iter().map(|&g| frequency[g]).collect();
+    // ln Â and f̂ have variances ∝ 1/SNR²: weigh each point by SNR².
+    let w: Vec<f64> = pts.iter().map(|&g| snr[g].powi(2)).collect();
+    let smoothed: Vec<Option<(f64, f64)>> = pts
+        .par_iter()
+        .enumerate()
+        .map(|(c, &g)| {
+            if snr[g] >= target {
+                return None;
+            }
+            let half = sigma_t[g] * (target / snr[g]).powi(2).min(MAX_SMOOTH);
+            match (
+                local_line_weighted(&tv, &ln_a, Some(&w), tv[c], half),
+                local_line_weighted(&tv, &f, Some(&w), tv[c], half),
+            ) {
+                (Some((a, _)), Some((b, _))) => Some((a, b)),
+                _ => None,
+            }
+        })
+        .collect();
+    for (&g, v) in pts.iter().zip(smoothed) {
+        if let Some((a, b)) = v {
+            ln_amp[g] = a;
+            frequency[g] = b;
+        }
+    }
+}

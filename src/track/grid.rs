@@ -1,0 +1,197 @@
+//! The estimation grid and the CPU's refinement. In: a [`WaveletPrep`] and its ridge; out:
+//! the grid (σ_t/8 apart at the ridge's scale, [`GridPoint`]s) and the skeleton at every
+//! grid point ([`GridEstimate`]: W, W′, W″ of the scales near the ridge by the exact pass
+//! band, the three-scale estimate, the bias correction) — on the CPU here, on a GPU in
+//! `gpu::refine`.
+
+use num_complex::Complex64;
+use rayon::prelude::*;
+
+use crate::skeleton::{self, GridEstimate, GridPoint, ScaleValue};
+use crate::transform::band::{interpolate, ScalePlan};
+use crate::transform::Spectrum;
+
+use super::{WaveletPrep, GRID_DIVISION, PASS2_OVERSAMPLE};
+
+/// Scale values W, W', W'' kept around the ridge for one scale and one stretch of time.
+struct Segment {
+    /// First decimated index held (may be negative: periodic).
+    first: isize,
+    w: Vec<Complex64>,
+    d1: Vec<Complex64>,
+    d2: Vec<Complex64>,
+    /// Samples (inclusive range) this segment serves.
+    samples: (usize, usize),
+}
+
+/// Everything kept for one scale after the second pass.
+struct ScaleData {
+    plan: ScalePlan,
+    step: f64,
+    segments: Vec<Segment>,
+}
+
+impl ScaleData {
+    fn segment(&self, n: usize) -> Option<&Segment> {
+        let i = self.segments.partition_point(|s| s.samples.1 < n);
+        self.segments.get(i).filter(|s| s.samples.0 <= n)
+    }
+
+    fn value(&self, spec: &Spectrum, n: usize) -> Option<ScaleValue> {
+        let seg = self.segment(n)?;
+        let x = n as f64 / self.step - seg.first as f64;
+        let w = interpolate(&seg.w, x);
+        let w1 = interpolate(&seg.d1, x);
+        let w2 = interpolate(&seg.d2, x);
+        let d1 = w1 / w;
+        Some(ScaleValue {
+            scale: self.plan.scale,
+            ln_amp: w.norm().max(1e-300).ln(),
+            phase: w.arg() + self.plan.carrier(spec, n as f64),
+            d1,
+            d2: w2 / w - d1 * d1,
+        })
+    }
+}
+
+impl WaveletPrep {
+    /// The ridge's scale index at sample `i`, linear between coarse steps.
+    fn ridge_at(&self, path: &[usize], i: usize) -> usize {
+        let (h, steps) = (self.h, self.steps);
+        let j = i / h;
+        let u = (i % h) as f64 / h as f64;
+        let a = path[j] as f64;
+        let b = path[(j + 1).min(steps - 1)] as f64;
+        (a + u * (b - a)).round() as usize
+    }
+
+    /// The estimation grid: σ_t/`GRID_DIVISION` apart at the ridge's scale, from the first
+    /// sample to the last. Everything after it is computed on this grid; the per-sample track
+    /// is interpolated at the end. Each point carries the ridge's scale there, kept one scale
+    /// inside the range so that it has a neighbour on each side.
+    pub fn grid(&self, path: &[usize]) -> Vec<GridPoint> {
+        let wl = self.opt.wavelet;
+        let (n, fs, s_count) = (self.n, self.fs, self.freqs.len());
+        let mut grid = Vec::new();
+        let mut i = 0usize;
+        while i < n {
+            let k = self.ridge_at(path, i);
+            grid.push(GridPoint {
+                sample: i,
+                centre: k.clamp(1, s_count - 2),
+            });
+            let st = wl.time_sigma(wl.scale_for(self.freqs[k])) * fs;
+            i += ((st / GRID_DIVISION).floor() as usize).max(1);
+        }
+        if grid.last().expect("n ≥ 1").sample != n - 1 {
+            let k = self.ridge_at(path, n - 1);
+            grid.push(GridPoint {
+                sample: n - 1,
+                centre: k.clamp(1, s_count - 2),
+            });
+        }
+        grid
+    }
+
+    /// Per scale, the stretches of samples (inclusive) where `grid` needs its W, W′, W″:
+    /// within ±2 of the ridge (the best of its three neighbours, and that one's neighbours
+    /// for the parabola). Empty for a scale the ridge never comes near.
+    pub fn wanted(&self, grid: &[GridPoint]) -> Vec<Vec<(usize, usize)>> {
+        let s_count = self.freqs.len();
+        let mut wanted: Vec<Vec<(usize, usize)>> = vec![Vec::new(); s_count];
+        for (g, p) in grid.iter().enumerate() {
+            let c = p.centre;
+            let (lo, hi) = (c.saturating_sub(2), (c + 2).min(s_count - 1));
+            let prev = g.checked_sub(1).map(|q| grid[q].sample);
+            for runs in &mut wanted[lo..=hi] {
+                match runs.last_mut() {
+                    Some(r) if Some(r.1) == prev => r.1 = p.sample,
+                    _ => runs.push((p.sample, p.sample)),
+                }
+            }
+        }
+        wanted
+    }
+
+    /// The pass-2 plan of scale `k`: the exact pass band (the first pass cut it at 1e-3),
+    /// for the W, W′, W″ the skeleton is estimated from.
+    pub fn exact_plan(&self, k: usize) -> ScalePlan {
+        ScalePlan::new(
+            &self.spec,
+            &self.opt.wavelet,
+            self.plans[k].scale,
+            PASS2_OVERSAMPLE,
+        )
+    }
+
+    /// Whether the window's bias is removed ([`WaveletOptions::correct`]).
+    pub fn corrects(&self) -> bool {
+        self.opt.correct
+    }
+
+    /// The skeleton at every grid point on the CPU: W, W′, W″ of the scales the ridge comes
+    /// near (pass 2), then per point the three-scale estimate and its bias correction
+    /// ([`skeleton::estimate_point`]).
+    pub fn estimate_grid(&self, grid: &[GridPoint]) -> Vec<GridEstimate> {
+        let wl = self.opt.wavelet;
+        let s_count = self.freqs.len();
+        let spec = &self.spec;
+        let data: Vec<ScaleData> = self
+            .wanted(grid)
+            .into_par_iter()
+            .enumerate()
+            .map(|(k, runs)| {
+                let plan = self.exact_plan(k);
+                let step = plan.step(spec);
+                if runs.is_empty() {
+                    return ScaleData {
+                        plan,
+                        step,
+                        segments: Vec::new(),
+                    };
+                }
+                let [w, d1, d2] = plan.evaluate_with_derivatives(spec, &wl).map(|d| d.values);
+                let m = w.len() as isize;
+                let take = |v: &[Complex64], a: isize, b: isize| -> Vec<Complex64> {
+                    (a..=b).map(|i| v[i.rem_euclid(m) as usize]).collect()
+                };
+                let segments = runs
+                    .iter()
+                    .map(|&(s0, s1)| {
+                        let a = (s0 as f64 / step).floor() as isize - 2;
+                        let b = (s1 as f64 / step).floor() as isize + 3;
+                        Segment {
+                            first: a,
+                            w: take(&w, a, b),
+                            d1: take(&d1, a, b),
+                            d2: take(&d2, a, b),
+                            samples: (s0, s1),
+                        }
+                    })
+                    .collect();
+                ScaleData {
+                    plan,
+                    step,
+                    segments,
+                }
+            })
+            .collect();
+        let scales: Vec<f64> = self.freqs.iter().map(|&f| wl.scale_for(f)).collect();
+        grid.par_iter()
+            .map(|p| {
+                skeleton::estimate_point(
+                    &wl,
+                    &scales,
+                    &self.freqs,
+                    p.centre,
+                    self.opt.correct,
+                    |k| {
+                        (k < s_count)
+                            .then(|| data[k].value(spec, p.sample))
+                            .flatten()
+                    },
+                )
+            })
+            .collect()
+    }
+}

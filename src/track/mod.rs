@@ -1,0 +1,317 @@
+//! Instantaneous characteristics of one signal: envelope A(t), frequency f(t), phase φ(t)
+//! and the derivatives ForceVib needs, by the Hilbert transform or along a complex-Morlet
+//! wavelet ridge.
+//!
+//! The wavelet path (CPU backend):
+//! 1. one real FFT of the mean-removed, zero-padded record ([`Spectrum`]);
+//! 2. per scale, in parallel, the band-limited transform ([`ScalePlan`]) sampled on a coarse
+//!    grid (log-magnitude only, S × N/h values of 4 bytes) and a white-noise floor estimate;
+//! 3. a penalised dynamic-programming ridge on that grid, optionally pulled towards a
+//!    reference ridge (a forced response follows its excitation);
+//! 4. an estimation grid σ_t/8 apart at the ridge's scale; per scale the ridge visits, W,
+//!    W′ and W″ (spectral derivatives), kept only around the ridge, then per grid point the
+//!    three-scale parabola ([`skeleton::estimate`]);
+//! 5. the window's bias from decay and sweep removed by the local model
+//!    ([`skeleton::correct`]) at every grid point, then interpolated to every sample;
+//! 6. samples flagged not valid: cone of influence, ridge at the edge of the scale range,
+//!    in-band SNR below `min_snr`, correction that did not converge or exceeded ×2.
+
+//!
+//! Files: `hilbert` (the analytic-signal track), `wavelet` (a signal prepared up to its
+//! first pass, and the CPU's first pass), `grid` (the estimation grid and the CPU's
+//! refinement), `complete` (the track from the skeleton on the grid, on either backend).
+
+mod complete;
+mod grid;
+mod hilbert;
+mod wavelet;
+
+pub use hilbert::track_hilbert;
+pub use wavelet::{track_wavelet, CoarseRidge, WaveletPrep};
+
+use std::f64::consts::PI;
+
+use thiserror::Error;
+
+use crate::transform::{Morlet, Spectrum};
+
+/// Decimated rate over pass band for the coarse ridge grid (|W| only, near the band centre).
+const PASS1_OVERSAMPLE: f64 = 1.0;
+/// Relative level at which the coarse pass cuts the wavelet's spectrum (a third fewer bins
+/// than the exact passes; |W| to 1e-3 is ample for choosing a ridge and a noise floor).
+const PASS1_TOLERANCE: f64 = 1e-3;
+/// Decimated rate over pass band for the values interpolated to the estimation grid.
+const PASS2_OVERSAMPLE: f64 = 1.0;
+/// Fewest coarse steps inside a scale's cone of influence for their median to estimate
+/// that scale's noise floor.
+const MIN_NOISE_STEPS: usize = 8;
+/// Estimation grid spacing as a fraction of the ridge scale's σ_t.
+const GRID_DIVISION: f64 = 8.0;
+
+/// Shortest record either method accepts.
+pub const MIN_SAMPLES: usize = 64;
+
+/// Why a signal could not be tracked.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum TrackError {
+    /// Too few samples.
+    #[error("the signal has {samples} samples; tracking needs at least {MIN_SAMPLES}")]
+    TooShort {
+        /// Samples given.
+        samples: usize,
+    },
+    /// An option is out of range.
+    #[error("{0}")]
+    BadOption(String),
+    /// Nothing but a constant or non-finite values.
+    #[error("the signal has no oscillating content to track ({0})")]
+    NoSignal(String),
+}
+
+/// Which estimator of the instantaneous characteristics.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Method {
+    /// Complex-Morlet ridge and skeleton.
+    Wavelet,
+    /// Analytic signal by FFT.
+    Hilbert,
+}
+
+impl Method {
+    /// Name used in files and on the command line.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Method::Wavelet => "wavelet",
+            Method::Hilbert => "hilbert",
+        }
+    }
+}
+
+/// How the ridge is chosen at each time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub enum RidgeSearch {
+    /// Penalised dynamic programming over the whole record.
+    Dynamic,
+    /// The largest |W| at each time (what most tools do; for comparison).
+    Argmax,
+}
+
+/// Options of the wavelet method.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct WaveletOptions {
+    /// Mother wavelet.
+    pub wavelet: Morlet,
+    /// Lowest analysis frequency (Hz); chosen from the spectrum when `None`.
+    pub fmin: Option<f64>,
+    /// Highest analysis frequency (Hz); chosen from the spectrum when `None`.
+    pub fmax: Option<f64>,
+    /// Number of log-spaced scales.
+    pub scales: usize,
+    /// Ridge search.
+    pub ridge: RidgeSearch,
+    /// Cost of moving the ridge by one frequency-resolution cell (σ_f/f) between grid steps,
+    /// in nepers of |W|.
+    pub penalty: f64,
+    /// Cost per squared resolution cell of leaving the reference ridge, when one is given.
+    pub guide_weight: f64,
+    /// Samples whose ridge magnitude is below this multiple of the in-band noise are not valid.
+    pub min_snr: f64,
+    /// Cone of influence: samples closer to an end than this many σ_t are not valid.
+    pub coi: f64,
+    /// Remove the window's bias from decay and sweep (the local-model correction).
+    pub correct: bool,
+    /// Below this in-band SNR, average ln A and f over a window that grows as (SNR)⁻²
+    /// (up to ±16 σ_t); 0 turns it off.
+    pub smooth_snr: f64,
+}
+
+impl Default for WaveletOptions {
+    fn default() -> Self {
+        Self {
+            wavelet: Morlet::default(),
+            fmin: None,
+            fmax: None,
+            scales: 64,
+            ridge: RidgeSearch::Dynamic,
+            penalty: 1.0,
+            guide_weight: 1.0,
+            min_snr: 10.0,
+            coi: 3.0,
+            correct: true,
+            smooth_snr: 100.0,
+        }
+    }
+}
+
+impl WaveletOptions {
+    /// Refuses what no record can be analysed with, before any work: the wavelet, the
+    /// number of scales, and a band whose ends are not positive or not in order. (The band
+    /// against a record's Nyquist frequency is checked per record.)
+    pub fn validate(&self) -> Result<(), String> {
+        self.wavelet.validate()?;
+        if !(3..=4096).contains(&self.scales) {
+            return Err(format!("{} scales: use between 3 and 4096", self.scales));
+        }
+        for (name, f) in [("fmin", self.fmin), ("fmax", self.fmax)] {
+            if let Some(f) = f {
+                if !(f.is_finite() && f > 0.0) {
+                    return Err(format!("{name} = {f} Hz must be a positive frequency"));
+                }
+            }
+        }
+        if let (Some(lo), Some(hi)) = (self.fmin, self.fmax) {
+            if lo >= hi {
+                return Err(format!(
+                    "fmin = {lo} Hz must be below fmax = {hi} Hz (the band is fmin..fmax)"
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Options of the Hilbert method.
+#[derive(Debug, Clone, Default)]
+pub struct HilbertOptions {
+    /// Zero-phase low-pass of envelope, frequency and their derivatives, cut-off as a
+    /// fraction of the Nyquist frequency (the paper uses 0.0005–0.01); `None`: unfiltered.
+    pub cutoff: Option<f64>,
+}
+
+/// Instantaneous characteristics of one signal, one value per sample.
+#[derive(Debug, Clone)]
+pub struct Track {
+    /// Method that produced it.
+    pub method: Method,
+    /// Sample rate (Hz).
+    pub sample_rate: f64,
+    /// Envelope A (signal units).
+    pub amplitude: Vec<f64>,
+    /// Instantaneous frequency f = φ'/2π (Hz).
+    pub frequency: Vec<f64>,
+    /// Unwrapped phase φ (rad).
+    pub phase: Vec<f64>,
+    /// A' (units/s).
+    pub d_amplitude: Vec<f64>,
+    /// A'' (units/s²).
+    pub d2_amplitude: Vec<f64>,
+    /// f' (Hz/s); ω' = 2π f'.
+    pub d_frequency: Vec<f64>,
+    /// Trusted samples (not edge, not below the noise, ridge found).
+    pub valid: Vec<bool>,
+    /// Mean removed before the transform (the record's offset), signal units.
+    pub offset: f64,
+    /// Estimated white-noise standard deviation per sample (signal units).
+    pub noise: f64,
+    /// Analysis range (Hz) of the wavelet method; the whole band for Hilbert.
+    pub band: (f64, f64),
+    /// Backend that evaluated the all-scale transform and the ridge: `cpu` or `gpu`.
+    pub backend: &'static str,
+    /// The first pass's |W| on its coarse grid, when asked for (`--keep-scalogram`).
+    pub scalogram: Option<Scalogram>,
+}
+
+/// |W| of every scale on the first pass's coarse time grid.
+#[derive(Debug, Clone)]
+pub struct Scalogram {
+    /// Frequency of each scale (Hz).
+    pub frequency: Vec<f64>,
+    /// Time of each coarse step (s).
+    pub time: Vec<f64>,
+    /// |W| (signal units), scale-major: `[k · time.len() + j]`.
+    pub magnitude: Vec<f32>,
+}
+
+impl Track {
+    /// Number of samples.
+    pub fn len(&self) -> usize {
+        self.amplitude.len()
+    }
+    /// True for an empty track.
+    pub fn is_empty(&self) -> bool {
+        self.amplitude.is_empty()
+    }
+    /// Fraction of samples marked valid.
+    pub fn valid_fraction(&self) -> f64 {
+        self.valid.iter().filter(|&&v| v).count() as f64 / self.len().max(1) as f64
+    }
+    /// Times (s) of the samples.
+    pub fn time(&self) -> Vec<f64> {
+        (0..self.len())
+            .map(|i| i as f64 / self.sample_rate)
+            .collect()
+    }
+}
+
+fn check_signal(x: &[f64], fs: f64) -> Result<(), TrackError> {
+    if x.len() < MIN_SAMPLES {
+        return Err(TrackError::TooShort { samples: x.len() });
+    }
+    if !(fs.is_finite() && fs > 0.0) {
+        return Err(TrackError::BadOption(format!(
+            "sample rate {fs} Hz must be a positive number"
+        )));
+    }
+    if let Some(i) = x.iter().position(|v| !v.is_finite()) {
+        return Err(TrackError::NoSignal(format!(
+            "sample {i} is {}; remove or interpolate non-finite samples first",
+            x[i]
+        )));
+    }
+    Ok(())
+}
+
+/// Makes a wrapped phase continuous, choosing at each step the branch closest to the
+/// advance predicted by the frequency; `time(i)` is point i's time (s).
+fn unwrap_phase(phase: &mut [f64], freq: &[f64], time: impl Fn(usize) -> f64) {
+    for i in 1..phase.len() {
+        let dt = time(i) - time(i - 1);
+        let predicted = phase[i - 1] + PI * (freq[i - 1] + freq[i]) * dt;
+        let d = phase[i] - predicted;
+        phase[i] -= 2.0 * PI * ((d + PI) / (2.0 * PI)).floor();
+    }
+}
+
+/// Analysis band chosen from the record's spectrum: where the smoothed power stands above
+/// both 1e-4 of its peak and ten times the noise floor, widened by 25 %, no lower than the
+/// frequency whose cone of influence leaves half the record, no higher than 0.45 fs.
+pub fn default_band(x: &[f64], fs: f64, wavelet: &Morlet) -> Result<(f64, f64), TrackError> {
+    let spec = Spectrum::new(x, fs, 0);
+    let p: Vec<f64> = spec.bins.iter().map(|c| c.norm_sqr()).collect();
+    let w = (p.len() / 1024).max(1);
+    let mut smooth = vec![0.0; p.len()];
+    let mut acc = 0.0;
+    for i in 0..p.len() {
+        acc += p[i];
+        if i >= w {
+            acc -= p[i - w];
+        }
+        smooth[i] = acc / w.min(i + 1) as f64;
+    }
+    let peak = smooth.iter().cloned().fold(0.0, f64::max);
+    if peak <= 0.0 {
+        return Err(TrackError::NoSignal("the record is constant".into()));
+    }
+    let floor = spec
+        .white_noise_variance(fs / 4.0, fs / 2.0)
+        .map(|v| v * x.len() as f64)
+        .unwrap_or(0.0);
+    let thr = (peak * 1e-4).max(10.0 * floor);
+    let above: Vec<usize> = (1..smooth.len()).filter(|&m| smooth[m] > thr).collect();
+    let (Some(&lo), Some(&hi)) = (above.first(), above.last()) else {
+        return Err(TrackError::NoSignal(
+            "no part of the spectrum stands above the noise".into(),
+        ));
+    };
+    let duration = x.len() as f64 / fs;
+    let record_floor = 12.0 * wavelet.centre * (wavelet.bandwidth / 2.0).sqrt() / duration;
+    let fmin = (spec.bin_freq(lo.saturating_sub(w / 2).max(1)) / 1.25).max(record_floor);
+    let fmax = (spec.bin_freq(hi + w / 2) * 1.25).min(0.45 * fs);
+    if fmin >= fmax {
+        return Err(TrackError::NoSignal(format!(
+            "the signal's band (up to {:.3} Hz) lies below the lowest frequency a {duration:.1} s record can resolve ({record_floor:.3} Hz); give --fmin/--fmax or a narrower wavelet (--bandwidth)",
+            spec.bin_freq(hi)
+        )));
+    }
+    Ok((fmin, fmax))
+}

@@ -1,0 +1,347 @@
+//! A signal prepared for the wavelet track, and the CPU's first pass. In: samples, sample
+//! rate, options and an optional guide frequency; out: a [`WaveletPrep`] (spectrum, scales,
+//! their band plans, the coarse grid), and from it a [`CoarseRidge`] (the ridge on the coarse
+//! grid and each scale's noise median) — on the CPU here, on a GPU in `gpu::ridge`.
+
+use rayon::prelude::*;
+
+use crate::ridge::{argmax_ridge, dp_ridge};
+use crate::transform::band::{interpolate, ScalePlan};
+use crate::transform::{log_frequencies, Morlet, Spectrum};
+
+use super::{
+    check_signal, default_band, RidgeSearch, Track, TrackError, WaveletOptions, MIN_NOISE_STEPS,
+    PASS1_OVERSAMPLE, PASS1_TOLERANCE,
+};
+
+/// One scale's first pass on the CPU: its ridge scores, noise median, kept |W|² (when a
+/// scalogram is kept) and noise gain.
+struct Column {
+    score: Vec<f32>,
+    median: Option<f64>,
+    power: Vec<f32>,
+    gain: f64,
+}
+
+/// Envelope, frequency and derivatives along the complex-Morlet ridge of `x`.
+///
+/// `guide`, when given, is a reference frequency (Hz) per sample — typically the input
+/// channel's ridge — that the ridge is pulled towards.
+pub fn track_wavelet(
+    x: &[f64],
+    fs: f64,
+    opt: &WaveletOptions,
+    guide: Option<&[f64]>,
+) -> Result<Track, TrackError> {
+    let prep = WaveletPrep::new(x, fs, opt, guide)?;
+    let ridge = prep.coarse_ridge();
+    Ok(prep.finish(ridge, "cpu"))
+}
+
+/// A wavelet track set up to its first pass: the spectrum, the scales and their band
+/// plans, and the coarse grid. The first pass (all scales, then the ridge) is what a
+/// backend evaluates — [`coarse_ridge`](Self::coarse_ridge) on the CPU, `gpu::ridge` on
+/// a GPU for many runs at once; [`finish`](Self::finish) does the rest on the CPU.
+pub struct WaveletPrep {
+    pub(super) n: usize,
+    pub(super) fs: f64,
+    pub(super) opt: WaveletOptions,
+    /// ln of the guide's frequency at each coarse step (NaN where it has none).
+    pub(super) guide: Option<Vec<f64>>,
+    pub(super) fmin: f64,
+    pub(super) fmax: f64,
+    /// Analysed frequencies (Hz), one per scale, log-spaced.
+    pub freqs: Vec<f64>,
+    /// The record's padded spectrum.
+    pub spec: Spectrum,
+    /// First-pass band plan per scale.
+    pub plans: Vec<ScalePlan>,
+    /// Samples between coarse steps.
+    pub h: usize,
+    /// Coarse steps.
+    pub steps: usize,
+    /// 1/(mean power of the record): ridge scores are log-power relative to it.
+    pub unit: f64,
+    /// Keep the first pass's |W| grid in the track (costs S × steps × 4 bytes).
+    pub keep_scalogram: bool,
+}
+
+/// What the first pass finds: the ridge on the coarse grid and the noise level per scale.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CoarseRidge {
+    /// Scale index of the ridge at every coarse step.
+    pub path: Vec<usize>,
+    /// Median coarse |W|² inside the cone of influence, per scale (`None` where
+    /// [`WaveletPrep::noise_steps`] has none): the white-noise floor estimate.
+    pub median_power: Vec<Option<f64>>,
+    /// Coarse |W|², scale-major, when the prepared signal asked to keep its scalogram.
+    pub power: Option<Vec<f32>>,
+    /// Noise gain per scale ([`ScalePlan::noise_gain`]): W's variance per unit of white
+    /// noise variance and sample.
+    pub gains: Vec<f64>,
+}
+
+impl WaveletPrep {
+    /// Checks the signal and options, chooses the band and scales, and takes the spectrum.
+    pub fn new(
+        x: &[f64],
+        fs: f64,
+        opt: &WaveletOptions,
+        guide: Option<&[f64]>,
+    ) -> Result<WaveletPrep, TrackError> {
+        crate::profile::time(crate::profile::Stage::FirstPass, || {
+            Self::prepare(x, fs, opt, guide)
+        })
+    }
+
+    fn prepare(
+        x: &[f64],
+        fs: f64,
+        opt: &WaveletOptions,
+        guide: Option<&[f64]>,
+    ) -> Result<WaveletPrep, TrackError> {
+        check_signal(x, fs)?;
+        let wl = opt.wavelet;
+        wl.validate().map_err(TrackError::BadOption)?;
+        if opt.scales < 3 || opt.scales > 4096 {
+            return Err(TrackError::BadOption(format!(
+                "{} scales: use between 3 and 4096",
+                opt.scales
+            )));
+        }
+        if let Some(g) = guide {
+            if g.len() != x.len() {
+                return Err(TrackError::BadOption(format!(
+                    "the reference ridge has {} samples, the signal {}",
+                    g.len(),
+                    x.len()
+                )));
+            }
+        }
+        let n = x.len();
+        let (fmin, fmax) = match (opt.fmin, opt.fmax) {
+            (Some(a), Some(b)) => (a, b),
+            (a, b) => {
+                let (da, db) = default_band(x, fs, &wl)?;
+                (a.unwrap_or(da), b.unwrap_or(db))
+            }
+        };
+        if !(fmin > 0.0 && fmax > fmin && fmax <= fs / 2.0) {
+            return Err(TrackError::BadOption(format!(
+                "frequency range {fmin}..{fmax} Hz must satisfy 0 < fmin < fmax ≤ fs/2 = {} Hz",
+                fs / 2.0
+            )));
+        }
+        let freqs = log_frequencies(fmin, fmax, opt.scales);
+        let s_count = freqs.len();
+        let pad = (wl.support(wl.scale_for(fmin), 1e-8) * fs).ceil() as usize;
+        let spec = Spectrum::new(x, fs, pad.min(4 * n));
+        let plans: Vec<ScalePlan> = freqs
+            .iter()
+            .map(|&f| {
+                let s = wl.scale_for(f);
+                ScalePlan::with_tolerance(&spec, &wl, s, PASS1_OVERSAMPLE, PASS1_TOLERANCE)
+            })
+            .collect();
+        let sigma_t_min = wl.time_sigma(wl.scale_for(fmax)) * fs;
+        let h = ((sigma_t_min / 2.0).floor() as usize)
+            .max(s_count.div_ceil(4))
+            .max(1);
+        let steps = (n - 1) / h + 1;
+        let variance = spec.bins.iter().map(|b| b.norm_sqr()).sum::<f64>() * 2.0
+            / (n as f64 * spec.padded_len as f64);
+        let guide = guide.map(|g| {
+            (0..steps)
+                .map(|j| {
+                    let f = g[j * h];
+                    if f > 0.0 && f.is_finite() {
+                        f.ln()
+                    } else {
+                        f64::NAN
+                    }
+                })
+                .collect()
+        });
+        Ok(WaveletPrep {
+            n,
+            fs,
+            opt: opt.clone(),
+            guide,
+            fmin,
+            fmax,
+            freqs,
+            spec,
+            plans,
+            h,
+            steps,
+            unit: 1.0 / variance.max(f64::MIN_POSITIVE),
+            keep_scalogram: false,
+        })
+    }
+
+    /// Coarse steps inside scale `k`'s cone of influence (an inclusive range; empty when
+    /// `first > last`): outside it a long scale sees the record's onset or end.
+    pub fn inner_steps(&self, k: usize) -> (usize, usize) {
+        let wl = self.opt.wavelet;
+        let n = self.n;
+        let edge = self.opt.coi * wl.time_sigma(self.plans[k].scale) * self.fs;
+        let inside =
+            |j: usize| (j * self.h) as f64 >= edge && ((n - 1 - j * self.h) as f64) >= edge;
+        let first = (0..self.steps).find(|&j| inside(j)).unwrap_or(self.steps);
+        let last = (0..self.steps).rev().find(|&j| inside(j)).unwrap_or(0);
+        (first, last)
+    }
+
+    /// The coarse steps whose median power estimates scale `k`'s noise floor: its inner
+    /// steps, when there are at least `MIN_NOISE_STEPS` of them.
+    pub fn noise_steps(&self, k: usize) -> Option<(usize, usize)> {
+        let (first, last) = self.inner_steps(k);
+        (last + 1 >= first + MIN_NOISE_STEPS).then_some((first, last))
+    }
+
+    /// ln f − ln g over the wavelet's relative resolution, per scale, at coarse step `j`,
+    /// when the guide has a usable frequency there: the guide's pull is weight × that².
+    pub fn guide_at(&self, j: usize) -> Option<f64> {
+        let g = self.guide.as_ref()?[j];
+        (!g.is_nan()).then_some(g)
+    }
+
+    /// The ridge penalty per squared scale step (the DP's λ).
+    pub fn penalty(&self) -> f32 {
+        let cell = (self.fmax / self.fmin).ln()
+            / (self.freqs.len() - 1) as f64
+            / self.opt.wavelet.relative_resolution();
+        (self.opt.penalty * cell * cell) as f32
+    }
+
+    /// Weight of the guide's pull and the wavelet's relative resolution.
+    pub fn guide_weight(&self) -> (f64, f64) {
+        (
+            self.opt.guide_weight,
+            self.opt.wavelet.relative_resolution(),
+        )
+    }
+
+    /// Whether the ridge is the penalised path (else the per-step argmax).
+    pub fn dynamic_ridge(&self) -> bool {
+        self.opt.ridge == RidgeSearch::Dynamic
+    }
+
+    /// The wavelet analysed with.
+    pub fn wavelet(&self) -> Morlet {
+        self.opt.wavelet
+    }
+
+    /// Record length (samples).
+    pub fn len(&self) -> usize {
+        self.n
+    }
+
+    /// Always false: a prepared record has at least `MIN_SAMPLES` samples.
+    pub fn is_empty(&self) -> bool {
+        self.n == 0
+    }
+
+    /// The first pass on the CPU: per scale, in parallel, the band-limited transform on the
+    /// coarse grid, then the ridge through the log-power scores.
+    pub fn coarse_ridge(&self) -> CoarseRidge {
+        crate::profile::time(crate::profile::Stage::FirstPass, || {
+            self.coarse_ridge_inner()
+        })
+    }
+
+    fn coarse_ridge_inner(&self) -> CoarseRidge {
+        let wl = self.opt.wavelet;
+        let (steps, h, s_count) = (self.steps, self.h, self.freqs.len());
+        let columns: Vec<Column> = self
+            .plans
+            .par_iter()
+            .enumerate()
+            .map_init(Vec::new, |buf, (k, plan)| {
+                let gain = plan.evaluate_into(&self.spec, &wl, buf);
+                let step = plan.step(&self.spec);
+                let power: Vec<f64> = (0..steps)
+                    .map(|j| interpolate(buf, (j * h) as f64 / step).norm_sqr())
+                    .collect();
+                // Scores in f32 relative to the record's power (a constant shift, which the
+                // ridge does not see); anything 380 dB down is floored.
+                let mut col: Vec<f32> = power
+                    .iter()
+                    .map(|&p| 0.5 * ((p * self.unit) as f32).max(f32::MIN_POSITIVE).ln())
+                    .collect();
+                let median = self.noise_steps(k).map(|(first, last)| {
+                    let mut inner = power[first..=last].to_vec();
+                    let mid = inner.len() / 2;
+                    *inner.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1
+                });
+                let (first, last) = self.inner_steps(k);
+                // Inside its cone of influence a long scale sees the record's onset or end
+                // (a broadband transient) rather than the signal: keep the ridge away.
+                let floor = col.iter().cloned().fold(f32::INFINITY, f32::min);
+                for (j, c) in col.iter_mut().enumerate() {
+                    if j < first || j > last {
+                        *c = floor;
+                    }
+                }
+                let kept = if self.keep_scalogram {
+                    power.iter().map(|&p| p as f32).collect()
+                } else {
+                    Vec::new()
+                };
+                Column {
+                    score: col,
+                    median,
+                    power: kept,
+                    gain,
+                }
+            })
+            .collect();
+        let mut scores = vec![0f32; steps * s_count];
+        for (k, col) in columns.iter().enumerate() {
+            for j in 0..steps {
+                scores[j * s_count + k] = col.score[j];
+            }
+        }
+        if self.guide.is_some() {
+            let ln_f: Vec<f64> = self.freqs.iter().map(|f| f.ln()).collect();
+            let (weight, r) = self.guide_weight();
+            for j in 0..steps {
+                if let Some(lg) = self.guide_at(j) {
+                    for k in 0..s_count {
+                        let d = (ln_f[k] - lg) / r;
+                        scores[j * s_count + k] -= (weight * d * d) as f32;
+                    }
+                }
+            }
+        }
+        let path = if self.dynamic_ridge() {
+            dp_ridge(&scores, s_count, self.penalty())
+        } else {
+            argmax_ridge(&scores, s_count)
+        };
+        let power = self.keep_scalogram.then(|| {
+            columns
+                .iter()
+                .flat_map(|c| c.power.iter().copied())
+                .collect()
+        });
+        CoarseRidge {
+            path,
+            median_power: columns.iter().map(|c| c.median).collect(),
+            power,
+            gains: columns.iter().map(|c| c.gain).collect(),
+        }
+    }
+
+    /// Everything after the first pass, on the CPU: the estimation grid
+    /// ([`grid`](Self::grid)), the skeleton at every grid point
+    /// ([`estimate_grid`](Self::estimate_grid)), then [`complete`](Self::complete).
+    /// `backend` names who computed `ridge`.
+    pub fn finish(self, ridge: CoarseRidge, backend: &'static str) -> Track {
+        crate::profile::time(crate::profile::Stage::Refine, || {
+            let grid = self.grid(&ridge.path);
+            let estimates = self.estimate_grid(&grid);
+            self.complete(ridge, &grid, &estimates, backend)
+        })
+    }
+}
