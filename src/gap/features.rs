@@ -1,0 +1,221 @@
+//! What the gap compares of one identification ([`Features`]: its log envelope with running
+//! extremes, natural frequency and damping force at resonance, the centre of the relative
+//! motion), and the measurement chain's resolution read off the samples (the lattice an
+//! encoder's or ADC's steps leave). In: an identification and its run; out: features.
+
+use crate::identify::Identification;
+use crate::model::RigModel;
+use crate::run::Run;
+
+use super::compare::window_extremes;
+use super::TIME_TOLERANCE;
+
+/// What the gap compares of one identification, computed once per identification: its log
+/// envelope (NaN where not valid) with the running extremes over ±[`TIME_TOLERANCE`], its
+/// natural frequency and damping force at resonance, smoothed over ±[`SMOOTH`] (NaN off
+/// resonance), and, where the run's channels are displacements, the centre of the relative
+/// motion (its mean over one period).
+pub struct Features {
+    pub(super) ln: Vec<f64>,
+    pub(super) lo: Vec<f64>,
+    pub(super) hi: Vec<f64>,
+    pub(super) f0: Vec<f64>,
+    pub(super) force: Vec<f64>,
+    pub(super) centre: Option<Vec<f64>>,
+    pub(super) resolution: f64,
+}
+
+/// Half-width (s) of the running mean the instantaneous natural frequency and damping force
+/// are smoothed with before they are compared (the encoder noise's scatter, sample to
+/// sample, would otherwise set the floor of both skeleton domains).
+pub const SMOOTH: f64 = 0.1;
+
+impl Features {
+    /// The features of `id`, identified from `run`.
+    pub fn of(id: &Identification, run: &Run) -> Features {
+        let track = &id.response;
+        let ln: Vec<f64> = (0..track.len())
+            .map(|i| {
+                if track.valid[i] && track.amplitude[i] > 0.0 {
+                    track.amplitude[i].ln()
+                } else {
+                    f64::NAN
+                }
+            })
+            .collect();
+        let half = (TIME_TOLERANCE * track.sample_rate).round() as usize;
+        let (lo, hi) = window_extremes(&ln, half);
+        let resonant = |i: usize| id.resonant(i);
+        let n = id.used.len().min(track.len());
+        let (raw_f0, raw_force): (Vec<f64>, Vec<f64>) = (0..n)
+            .map(|i| {
+                if !resonant(i) {
+                    return (f64::NAN, f64::NAN);
+                }
+                let w = 2.0 * std::f64::consts::PI * track.frequency[i];
+                (
+                    id.modal.stiffness[i].max(0.0).sqrt() / (2.0 * std::f64::consts::PI),
+                    2.0 * id.modal.damping[i] * track.amplitude[i] * w,
+                )
+            })
+            .unzip();
+        let half = (SMOOTH * track.sample_rate).round() as usize;
+        Features {
+            centre: relative_motion(run).map(|z| centre(&z, track)),
+            ln,
+            lo,
+            hi,
+            f0: mean_around(&raw_f0, |i| raw_f0[i].is_finite().then_some(half)),
+            force: mean_around(&raw_force, |i| raw_force[i].is_finite().then_some(half)),
+            resolution: 0.0,
+        }
+    }
+
+    /// The same features with the measurement chain's resolution set: the RMS quantisation
+    /// error of the response (see [`measured_resolution`] and [`model_resolution`]).
+    pub fn with_resolution(mut self, resolution: f64) -> Features {
+        self.resolution = resolution;
+        self
+    }
+}
+
+/// The relative motion z = y − x of a base-motion run whose channels are displacements
+/// (`None` otherwise: an integrated velocity or acceleration has lost its mean).
+pub(super) fn relative_motion(run: &Run) -> Option<Vec<f64>> {
+    use crate::run::{Quantity, RunKind};
+    let x = run.input.as_ref()?;
+    let displacement = run.meta.output_quantity == Quantity::Displacement
+        && run.meta.input_quantity.unwrap_or_default() == Quantity::Displacement;
+    (run.meta.kind == RunKind::BaseMotion && displacement && x.len() == run.output.len())
+        .then(|| run.output.iter().zip(x).map(|(y, x)| y - x).collect())
+}
+
+/// The step of the lattice a sampled channel lies on, when it lies on one: the smallest
+/// change between consecutive samples, accepted when at least [`LATTICE_SHARE`] of the
+/// samples sit within 0.1 % of a step from a whole number of steps above the first (an
+/// encoder's or an ADC's least count). A continuous signal, noisy or not, puts about 0.2 %
+/// of its samples there by chance.
+pub fn lattice_step(x: &[f64]) -> Option<f64> {
+    let step = x
+        .windows(2)
+        .map(|w| (w[1] - w[0]).abs())
+        .filter(|d| *d > 0.0 && d.is_finite())
+        .fold(f64::INFINITY, f64::min);
+    let (lo, hi) = x
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+            (l.min(v), h.max(v))
+        });
+    // A handful of levels is a lattice of anything: ask for a few of them at least.
+    if !step.is_finite() || x.len() < 100 || (hi - lo) < 4.0 * step {
+        return None;
+    }
+    let on = x
+        .iter()
+        .filter(|&&v| {
+            let u = (v - x[0]) / step;
+            (u - u.round()).abs() < 1e-3
+        })
+        .count();
+    (on as f64 >= LATTICE_SHARE * x.len() as f64).then_some(step)
+}
+
+/// Share of the samples that must lie on a lattice for [`lattice_step`] to accept it.
+pub const LATTICE_SHARE: f64 = 0.99;
+
+/// The channels the response track is made of: the output, and for a base-motion run the
+/// input too (the joint's relative motion is their difference).
+pub(super) fn response_channels(run: &Run) -> Vec<&[f64]> {
+    let mut ch = vec![run.output.as_slice()];
+    if run.meta.kind == crate::run::RunKind::BaseMotion {
+        ch.extend(run.input.as_deref());
+    }
+    ch
+}
+
+/// The RMS quantisation error of a measured run's response, from the lattices its channels
+/// lie on: `sqrt(Σ q²/12)` over the response's channels (0 where none is quantised). Read
+/// from the samples as recorded: a filtered or decimated run has lost its lattice.
+pub fn measured_resolution(run: &Run) -> f64 {
+    response_channels(run)
+        .into_iter()
+        .filter_map(lattice_step)
+        .map(|q| q * q / 12.0)
+        .sum::<f64>()
+        .sqrt()
+}
+
+/// The RMS quantisation error a model's measurement chain puts on `run`'s response: its
+/// quantisation step q on every channel the simulator quantises (the output, and the
+/// input of a base-motion run), `q·sqrt(channels/12)`.
+pub fn model_resolution(model: &RigModel, run: &Run) -> f64 {
+    let q = model
+        .effects
+        .get(crate::model::EffectKind::Quantization)
+        .unwrap_or(0.0);
+    q * resolution_per_step(run)
+}
+
+/// The RMS quantisation error of `run`'s response per unit of quantisation step,
+/// `sqrt(channels/12)`.
+pub fn resolution_per_step(run: &Run) -> f64 {
+    (response_channels(run).len() as f64 / 12.0).sqrt()
+}
+
+/// The mean of `z` over one period of `track`'s frequency around each sample (NaN where
+/// the track is not valid): the centre the motion oscillates about.
+pub(super) fn centre(z: &[f64], track: &crate::track::Track) -> Vec<f64> {
+    mean_around(z, |i| {
+        let f = *track.frequency.get(i)?;
+        (track.valid[i] && f > 0.0).then(|| (0.5 * track.sample_rate / f).round() as usize)
+    })
+}
+
+/// For each index, the index of the nearest finite value of `x` (the earlier one on a tie),
+/// `None` when `x` has none.
+pub(super) fn nearest_finite(x: &[f64]) -> Vec<Option<usize>> {
+    let mut before = vec![None; x.len()];
+    let mut last = None;
+    for (i, v) in x.iter().enumerate() {
+        if v.is_finite() {
+            last = Some(i);
+        }
+        before[i] = last;
+    }
+    let mut next = None;
+    let mut out = vec![None; x.len()];
+    for i in (0..x.len()).rev() {
+        if x[i].is_finite() {
+            next = Some(i);
+        }
+        out[i] = match (before[i], next) {
+            (Some(b), Some(a)) => Some(if i - b <= a - i { b } else { a }),
+            (b, a) => b.or(a),
+        };
+    }
+    out
+}
+
+/// At each sample where `half` gives a half-width, the mean of the finite values of `x`
+/// over `[i − half, i + half]` (NaN elsewhere, and where the window holds none).
+pub(super) fn mean_around(x: &[f64], half: impl Fn(usize) -> Option<usize>) -> Vec<f64> {
+    let mut sum = vec![0.0; x.len() + 1];
+    let mut count = vec![0usize; x.len() + 1];
+    for (i, &v) in x.iter().enumerate() {
+        let ok = v.is_finite();
+        sum[i + 1] = sum[i] + if ok { v } else { 0.0 };
+        count[i + 1] = count[i] + ok as usize;
+    }
+    (0..x.len())
+        .map(|i| {
+            let Some(h) = half(i) else {
+                return f64::NAN;
+            };
+            let (a, b) = (i.saturating_sub(h), (i + h + 1).min(x.len()));
+            match count[b] - count[a] {
+                0 => f64::NAN,
+                k => (sum[b] - sum[a]) / k as f64,
+            }
+        })
+        .collect()
+}
