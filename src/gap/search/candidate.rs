@@ -1,0 +1,157 @@
+//! Candidates: one or two effects added to the baseline and fitted with its own
+//! parameters, scored on the held-out blocks; what each effect leaves in the skeleton, for
+//! the report. In: the baseline, the identification and an effect; out: a [`Candidate`].
+
+use std::collections::BTreeMap;
+
+use super::fit::{cubic_from_backbone, Coordinates, Fitted};
+use super::{Reference, Score, SearchOptions};
+use crate::identify::Identification;
+use crate::model::{EffectKind, RigModel};
+
+/// What each effect leaves in the skeleton domain (DESIGN.md), for the report.
+pub fn signature(kind: EffectKind) -> &'static str {
+    match kind {
+        EffectKind::CoulombFriction => {
+            "dry friction: the damping force stays up at small amplitude (2h0 rising as 1/(A·ω))"
+        }
+        EffectKind::GravityPreload => {
+            "preload: the link leans on one flank, so the backbone stiffens at small amplitude"
+        }
+        EffectKind::AsymmetricClearance => {
+            "offset clearance: contact on one flank first, the backbone bends earlier"
+        }
+        EffectKind::CubicStiffness => "hardening contact: the backbone keeps rising with amplitude",
+        EffectKind::ContactDamping => "contact damping: damping grows once the link touches",
+        EffectKind::SensorDelay => {
+            "sensor delay: a phase error growing with frequency distorts the relative motion"
+        }
+        EffectKind::Quantization => "quantization: a noise floor at small amplitude",
+    }
+}
+
+/// Which model a scan point added its effect to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Side {
+    Baseline,
+    Nominal,
+}
+
+/// `base` with its own parameters made ready for `kind` to be added: for dry friction, the
+/// viscous damping put back where the skeleton's damping fit separated the two (without
+/// friction the baseline has put all the damping into c); for a hardening contact, the
+/// contact stiffness the backbone asks for beside it (without it the baseline has made the
+/// contact stiffer). Computed once per model and effect, not per scan point.
+pub(super) fn ready_for(
+    base: &RigModel,
+    identified: &Identification,
+    kind: EffectKind,
+) -> RigModel {
+    let mut m = base.clone();
+    if let (EffectKind::CoulombFriction, Some((c, _))) = (kind, identified.damping) {
+        let c = c.value * base.inertia;
+        if c > 0.0 && c < base.damping {
+            m.damping = c;
+        }
+    }
+    if kind == EffectKind::CubicStiffness {
+        if let Some((k, _)) = cubic_from_backbone(base, identified) {
+            m.stiffness = k;
+        }
+    }
+    m
+}
+
+/// One candidate explanation: effects added to the baseline and fitted.
+#[derive(Debug, Clone)]
+pub struct Candidate {
+    /// The effects and their fitted parameters.
+    pub effects: Vec<(EffectKind, f64)>,
+    /// The whole fitted model.
+    pub model: RigModel,
+    /// Its gaps.
+    pub score: Score,
+    /// 1 − gap_holdout / baseline_gap.
+    pub shrink: f64,
+    /// Whether the simplex refined it (otherwise it is the best point of the scan).
+    pub refined: bool,
+}
+
+impl Candidate {
+    /// `a` or `a+b`.
+    pub fn name(&self) -> String {
+        let names: Vec<&str> = self.effects.iter().map(|(k, _)| k.name()).collect();
+        names.join("+")
+    }
+
+    /// The fitted effect parameters by name (`effect.param` for a pair, whose parameters
+    /// may share a name).
+    pub fn params(&self) -> BTreeMap<String, f64> {
+        let pair = self.effects.len() > 1;
+        self.effects
+            .iter()
+            .map(|&(k, v)| {
+                let key = if pair {
+                    format!("{}.{}", k.name(), k.param())
+                } else {
+                    k.param().to_string()
+                };
+                (key, v)
+            })
+            .collect()
+    }
+}
+
+impl Candidate {
+    /// The candidate a fit of `kinds` gave.
+    pub(super) fn from_fit(
+        f: Fitted,
+        kinds: &[EffectKind],
+        base_holdout: f64,
+        refined: bool,
+    ) -> Self {
+        let mut effects: Vec<(EffectKind, f64)> = kinds
+            .iter()
+            .map(|&k| (k, f.model.effects.get(k).unwrap_or(0.0)))
+            .collect();
+        effects.sort_by_key(|e| e.0);
+        Candidate {
+            effects,
+            shrink: 1.0 - f.score.holdout / base_holdout,
+            model: f.model,
+            score: f.score,
+            refined,
+        }
+    }
+}
+
+/// `effects` (each from its current value) fitted by the simplex together with the own
+/// parameters of `from` (the model the effects are added to).
+pub(super) fn refit(
+    reference: &Reference,
+    from: &RigModel,
+    effects: &[(EffectKind, f64)],
+    opt: &SearchOptions,
+    base_holdout: f64,
+) -> Candidate {
+    let mut base = from.clone();
+    for &(k, _) in effects {
+        base.effects.set(k, None);
+    }
+    let coords = Coordinates {
+        base: &base,
+        inertia: opt.fit_inertia,
+        effects: effects.to_vec(),
+    };
+    let f = coords.fit(reference, coords.origin(), opt.candidate_evaluations);
+    let kinds: Vec<EffectKind> = effects.iter().map(|e| e.0).collect();
+    Candidate::from_fit(f, &kinds, base_holdout, true)
+}
+
+/// Whichever of two fits of the same effects is better on the fitting blocks (marked
+/// refined either way: the simplex was run).
+pub(super) fn fitter(a: Candidate, b: Candidate) -> Candidate {
+    let mut best = if a.score.fit <= b.score.fit { a } else { b };
+    best.refined = true;
+    best
+}

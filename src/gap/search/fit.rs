@@ -1,0 +1,354 @@
+//! The fits of the search: the coordinates the simplex moves in, the baseline refit of the
+//! model's own parameters, each effect's starting value (from the skeleton where it can be
+//! read off), and the Nelder–Mead simplex itself. In: a reference run and a model; out: the
+//! fitted model with its score.
+
+use super::{Reference, Score, SearchOptions};
+use crate::identify::Identification;
+use crate::model::{EffectKind, RigModel};
+
+/// A model found by a fit, with its score.
+#[derive(Debug, Clone)]
+pub struct Fitted {
+    /// The model.
+    pub model: RigModel,
+    /// Its gaps.
+    pub score: Score,
+}
+
+/// The coordinates the simplex moves in: the model's own parameters relative to `base`
+/// (stiffness, damping, clearance and, when asked, inertia by their logarithms, so they stay
+/// positive; the gravity stiffness in units of 1 % of k/J, keeping the nominal's sign) and
+/// the effects' parameters in units of their starting values (by their logarithms for
+/// those that cannot be negative).
+pub(super) struct Coordinates<'a> {
+    pub(super) base: &'a RigModel,
+    pub(super) inertia: bool,
+    pub(super) effects: Vec<(EffectKind, f64)>,
+}
+
+impl Coordinates<'_> {
+    /// Index of the first effect coordinate.
+    pub(super) fn own(&self) -> usize {
+        4 + self.inertia as usize
+    }
+
+    pub(super) fn model(&self, x: &[f64]) -> RigModel {
+        let b = self.base;
+        let mut m = b.clone();
+        m.stiffness = b.stiffness * x[0].exp();
+        m.damping = b.damping.max(1e-9) * x[1].exp();
+        m.clearance = b.clearance * x[2].exp();
+        // The gravity stiffness keeps the nominal model's sign (a rig whose link hangs
+        // cannot turn into an inverted pendulum): reflected at zero, so the simplex sees no
+        // flat region. Zero counts as positive.
+        let c = b.gravity_stiffness + 0.01 * b.stiffness / b.inertia * x[3];
+        m.gravity_stiffness = if b.gravity_stiffness < 0.0 {
+            -c.abs()
+        } else {
+            c.abs()
+        };
+        if self.inertia {
+            m.inertia = b.inertia * x[4].exp();
+        }
+        for (i, &(kind, start)) in self.effects.iter().enumerate() {
+            let u = x[self.own() + i];
+            m.effects.set(
+                kind,
+                Some(if by_log(kind) {
+                    start * u.exp()
+                } else {
+                    start * u
+                }),
+            );
+        }
+        m
+    }
+
+    /// The point of `base` itself, every effect at its starting value.
+    pub(super) fn origin(&self) -> Vec<f64> {
+        let mut x = vec![0.0; self.own()];
+        x.extend(
+            self.effects
+                .iter()
+                .map(|&(k, _)| if by_log(k) { 0.0 } else { 1.0 }),
+        );
+        x
+    }
+
+    /// A simplex around `x`: a step of 0.05 in each log parameter (0.1 % of k/J in the
+    /// gravity stiffness) and of half the starting value in each effect's. Without a
+    /// clearance its coordinate is left out.
+    pub(super) fn simplex(&self, x: &[f64]) -> Vec<Vec<f64>> {
+        let mut simplex = vec![x.to_vec()];
+        for d in 0..x.len() {
+            if d == 2 && self.base.clearance <= 0.0 {
+                continue;
+            }
+            let mut v = x.to_vec();
+            v[d] += if d >= self.own() { 0.5 } else { 0.05 };
+            simplex.push(v);
+        }
+        simplex
+    }
+
+    /// [`fit`](Self::fit) with three fifths of `evaluations`, then again from a fresh
+    /// simplex around its best point with the rest (a fresh simplex escapes the collapsed
+    /// one's stall); the better of the two.
+    pub(super) fn fit_restarted(
+        &self,
+        reference: &Reference,
+        start: Vec<f64>,
+        evaluations: usize,
+    ) -> Fitted {
+        let first = evaluations * 3 / 5;
+        let fitted = self.fit(reference, start, first);
+        let effects = self
+            .effects
+            .iter()
+            .map(|&(k, v)| (k, fitted.model.effects.get(k).unwrap_or(v)))
+            .collect();
+        let again = Coordinates {
+            base: &fitted.model,
+            inertia: self.inertia,
+            effects,
+        };
+        let refined = again.fit(reference, again.origin(), evaluations - first);
+        if refined.score.fit < fitted.score.fit {
+            refined
+        } else {
+            fitted
+        }
+    }
+
+    /// Minimises the gap on the fitting blocks from `start`.
+    pub(super) fn fit(&self, reference: &Reference, start: Vec<f64>, evaluations: usize) -> Fitted {
+        // The best model seen, with both its gaps: the simplex itself keeps only the value
+        // it minimises.
+        let mut best: Option<Fitted> = None;
+        let mut cost = |x: &[f64]| {
+            let model = self.model(x);
+            let score = reference.score(&model);
+            if best.as_ref().is_none_or(|f| score.fit < f.score.fit) {
+                best = Some(Fitted { model, score });
+            }
+            score.fit
+        };
+        nelder_mead(&mut cost, self.simplex(&start), evaluations, 1e-3);
+        best.expect("the simplex evaluates its first vertex")
+    }
+}
+
+/// Effect parameters that cannot be negative move by their logarithm.
+pub(super) fn by_log(kind: EffectKind) -> bool {
+    matches!(
+        kind,
+        EffectKind::CoulombFriction
+            | EffectKind::ContactDamping
+            | EffectKind::SensorDelay
+            | EffectKind::Quantization
+    )
+}
+
+/// `ln(v / nominal)`, or 0 where either is not positive.
+pub(super) fn log_ratio(v: f64, nominal: f64) -> f64 {
+    if v > 0.0 && nominal > 0.0 {
+        (v / nominal).ln()
+    } else {
+        0.0
+    }
+}
+
+/// The baseline: the model's own parameters — stiffness, damping, clearance, gravity
+/// stiffness, and the inertia when asked — refitted on the fitting blocks, so that a
+/// mis-set parameter is never taken for a missing effect. The simplex restarts once from
+/// its best point (a fresh simplex escapes the collapsed one's stall).
+pub fn refit_baseline(reference: &Reference, nominal: &RigModel, opt: &SearchOptions) -> Fitted {
+    let coords = Coordinates {
+        base: nominal,
+        inertia: opt.fit_inertia,
+        effects: Vec::new(),
+    };
+    // Start from the nominal model or from what the identification found, whichever is
+    // closer: the skeleton fit is near the truth when the nominal values are far off.
+    let mut start = coords.origin();
+    let id = &reference.identified;
+    if let Some(dz) = id.dead_zone {
+        let j = nominal.inertia;
+        let c = id.damping.map_or(nominal.damping, |(c, _)| c.value * j);
+        let mut found = coords.origin();
+        found[0] = log_ratio(dz.stiffness.value * j, nominal.stiffness);
+        found[1] = log_ratio(c, nominal.damping);
+        found[2] = log_ratio(2.0 * dz.half_gap.value, nominal.clearance);
+        let (a, b) = rayon::join(
+            || reference.score(&coords.model(&found)).fit,
+            || reference.score(&coords.model(&start)).fit,
+        );
+        if a < b {
+            start = found;
+        }
+    }
+    coords.fit_restarted(reference, start, opt.baseline_evaluations)
+}
+
+/// `start`'s own parameters (stiffness, damping, clearance, gravity stiffness) and the
+/// parameters of `effects` (each from its starting value) fitted together on the fitting
+/// blocks, for at most `evaluations` simulations, the simplex restarted once from its best
+/// point like the baseline's. The simulation-refined identification ([`crate::refine`]).
+pub fn refit_with(
+    reference: &Reference,
+    start: &RigModel,
+    effects: &[(EffectKind, f64)],
+    evaluations: usize,
+) -> Fitted {
+    let coords = Coordinates {
+        base: start,
+        inertia: false,
+        effects: effects.to_vec(),
+    };
+    coords.fit_restarted(reference, coords.origin(), evaluations)
+}
+
+/// A starting value for `kind`'s parameter on `model`, from the identification where it
+/// says something (the Coulomb level of the damping fit) and otherwise a small fraction of
+/// the model's own scales: the torque of 10 % of the half-gap's contact deflection, a tenth
+/// of the half-gap, the cubic term that adds 10 % of k at one half-gap of penetration, the
+/// viscous damping itself, 2 ms, 2 % of the half-gap. The scan spans ×1/8 to ×8 around it.
+pub fn effect_start(kind: EffectKind, model: &RigModel, identified: &Identification) -> f64 {
+    let half = (0.5 * model.clearance).max(1e-6);
+    match kind {
+        EffectKind::CoulombFriction => identified
+            .damping
+            .map(|(_, f)| f.value * model.inertia)
+            .filter(|f| *f > 0.0)
+            .unwrap_or(0.01 * model.stiffness * half),
+        EffectKind::GravityPreload => 0.1 * model.stiffness * half,
+        EffectKind::AsymmetricClearance => 0.1 * half,
+        EffectKind::CubicStiffness => cubic_from_backbone(model, identified)
+            .map_or(0.1 * model.stiffness / (half * half), |(_, k3)| k3),
+        EffectKind::ContactDamping => model.damping.max(1e-6),
+        EffectKind::SensorDelay => 0.002,
+        EffectKind::Quantization => 0.02 * half,
+    }
+}
+
+/// The contact stiffness and hardening the measured backbone asks for behind `model`'s
+/// clearance: the least squares of J·(ω0² + C) = k·r(A) + k3·c3(A) over the samples at
+/// resonance, with r the dead zone's exact-orbit stiffness ratio at `model`'s half-gap and
+/// c3 the first harmonic of a cubic penetration spring (its describing function). `None`
+/// when the backbone does not rise faster than the dead zone alone explains.
+pub(super) fn cubic_from_backbone(model: &RigModel, id: &Identification) -> Option<(f64, f64)> {
+    let delta = 0.5 * model.clearance;
+    if delta <= 0.0 {
+        return None;
+    }
+    let n = id.used.len().min(id.response.len());
+    let (mut s11, mut s13, mut s33, mut s1y, mut s3y) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for i in (0..n).filter(|&i| id.resonant(i)) {
+        let a = id.response.amplitude[i];
+        let r = crate::fit::dead_zone_orbit_ratio(delta, a);
+        if r <= 0.0 {
+            continue;
+        }
+        let c = cubic_describing(delta, a);
+        let y = model.inertia * (id.modal.stiffness[i] + model.gravity_stiffness);
+        s11 += r * r;
+        s13 += r * c;
+        s33 += c * c;
+        s1y += r * y;
+        s3y += c * y;
+    }
+    let det = s11 * s33 - s13 * s13;
+    if det <= 1e-12 * s11 * s33 || !det.is_finite() {
+        return None;
+    }
+    let k = (s33 * s1y - s13 * s3y) / det;
+    let k3 = (s11 * s3y - s13 * s1y) / det;
+    (k3.is_finite() && k3 > 0.0 && k > 0.0).then_some((k, k3))
+}
+
+/// First-harmonic stiffness of a unit cubic penetration spring, sgn(x)·(|x| − δ)³ past a
+/// half-gap δ, at amplitude A: (4/(πA)) ∫ (A cos θ − δ)³ cos θ dθ over |θ| < acos(δ/A)/…
+/// (midpoint rule, 64 points).
+pub(super) fn cubic_describing(delta: f64, a: f64) -> f64 {
+    if a <= delta {
+        return 0.0;
+    }
+    let top = (delta / a).acos();
+    let m = 64;
+    let h = top / m as f64;
+    let sum: f64 = (0..m)
+        .map(|j| {
+            let t = (j as f64 + 0.5) * h;
+            (a * t.cos() - delta).powi(3) * t.cos()
+        })
+        .sum();
+    4.0 / (std::f64::consts::PI * a) * sum * h
+}
+
+/// Minimises `f` from the initial `simplex` (n + 1 points of any dimension ≥ n) by Nelder
+/// and Mead's method (standard coefficients), for at most `budget` evaluations or until the
+/// simplex's values agree within `tol`. Returns the best point and its value.
+pub fn nelder_mead(
+    f: &mut impl FnMut(&[f64]) -> f64,
+    simplex: Vec<Vec<f64>>,
+    budget: usize,
+    tol: f64,
+) -> (Vec<f64>, f64) {
+    let mut pts: Vec<(Vec<f64>, f64)> = simplex
+        .into_iter()
+        .map(|x| {
+            let v = f(&x);
+            (x, v)
+        })
+        .collect();
+    let mut used = pts.len();
+    let dim = pts[0].0.len();
+    let combine = |a: &[f64], b: &[f64], t: f64| -> Vec<f64> {
+        a.iter().zip(b).map(|(a, b)| a + t * (b - a)).collect()
+    };
+    while used < budget {
+        pts.sort_by(|a, b| a.1.total_cmp(&b.1));
+        let (lo, hi) = (pts[0].1, pts[pts.len() - 1].1);
+        if (hi - lo).abs() <= tol * lo.abs().max(1e-12) {
+            break;
+        }
+        let n = pts.len() - 1;
+        let centroid: Vec<f64> = (0..dim)
+            .map(|d| pts[..n].iter().map(|p| p.0[d]).sum::<f64>() / n as f64)
+            .collect();
+        let worst = pts[n].clone();
+        let reflected = combine(&centroid, &worst.0, -1.0);
+        let fr = f(&reflected);
+        used += 1;
+        if fr < pts[0].1 {
+            let expanded = combine(&centroid, &worst.0, -2.0);
+            let fe = f(&expanded);
+            used += 1;
+            pts[n] = if fe < fr {
+                (expanded, fe)
+            } else {
+                (reflected, fr)
+            };
+        } else if fr < pts[n - 1].1 {
+            pts[n] = (reflected, fr);
+        } else {
+            let contracted = combine(&centroid, &worst.0, 0.5);
+            let fc = f(&contracted);
+            used += 1;
+            if fc < worst.1 {
+                pts[n] = (contracted, fc);
+            } else {
+                // Shrink towards the best point.
+                let best = pts[0].0.clone();
+                for p in pts.iter_mut().skip(1) {
+                    p.0 = combine(&best, &p.0, 0.5);
+                    p.1 = f(&p.0);
+                    used += 1;
+                }
+            }
+        }
+    }
+    pts.sort_by(|a, b| a.1.total_cmp(&b.1));
+    pts.swap_remove(0)
+}
