@@ -290,8 +290,36 @@ pub fn diagnose(
         ));
     }
     let base_holdout = baseline.score.holdout;
-    let id = &reference.identified;
+    let starts = scan(reference, nominal, &nominal_score, &baseline, opt);
+    let mut candidates = singles(reference, starts, opt, base_holdout);
+    if let Some(q) = quantization(reference, &baseline, opt, base_holdout) {
+        candidates.push(q);
+    }
+    candidates.sort_by(|a, b| a.score.holdout.total_cmp(&b.score.holdout));
+    pairs(reference, &mut candidates, opt, base_holdout);
+    let verdict = verdict(&baseline, &candidates);
+    Ok(Diagnosis {
+        run: reference.run.meta.path.clone(),
+        nominal: nominal.clone(),
+        nominal_score,
+        baseline,
+        candidates,
+        verdict,
+        evaluations: reference.evaluations(),
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}
 
+/// The scan: the best point of each effect's coarse grid on each side (the baseline, and
+/// the nominal model where it differs and can be identified).
+fn scan(
+    reference: &Reference,
+    nominal: &RigModel,
+    nominal_score: &Score,
+    baseline: &Fitted,
+    opt: &SearchOptions,
+) -> Vec<(Side, EffectKind, f64, Fitted)> {
+    let id = &reference.identified;
     // Scan: each effect alone over a coarse grid of its parameter, added to the baseline and
     // to the nominal model. The baseline may have absorbed part of the missing effect by
     // bending its own parameters (dry friction or contact damping into more viscous
@@ -344,6 +372,17 @@ pub fn diagnose(
             None => starts.push((side, k, v, f)),
         }
     }
+    starts
+}
+
+/// The single effects: the best scan starts refined by the simplex with the model's own
+/// parameters, the better fit of each effect kept, and the two best refined once more.
+fn singles(
+    reference: &Reference,
+    mut starts: Vec<(Side, EffectKind, f64, Fitted)>,
+    opt: &SearchOptions,
+    base_holdout: f64,
+) -> Vec<Candidate> {
     // The best starts are refined by the simplex together with the model's own parameters;
     // each effect keeps its better fit.
     starts.sort_by(|a, b| a.3.score.fit.total_cmp(&b.3.score.fit));
@@ -389,26 +428,46 @@ pub fn diagnose(
     for (i, c) in again.into_iter().enumerate() {
         candidates[i] = c;
     }
+    candidates
+}
+
+/// The quantisation candidate, when the vocabulary has it.
+fn quantization(
+    reference: &Reference,
+    baseline: &Fitted,
+    opt: &SearchOptions,
+    base_holdout: f64,
+) -> Option<Candidate> {
+    let id = &reference.identified;
     // Quantisation is a property of the sensor, not of the dynamics: its step is read off
     // the lattice the samples lie on, and the candidate is the baseline with that step,
     // scored once. Searched like the others, it only cost simulations: the simulation does
     // not change with it (see [`super::simulate_given`]). Without a lattice in the data it
     // is scored at its starting value, to show it does not help.
-    if opt.effects.contains(&EffectKind::Quantization) {
-        let kind = EffectKind::Quantization;
-        let step = if reference.resolution > 0.0 {
-            reference.resolution / resolution_per_step(reference.run)
-        } else {
-            effect_start(kind, &baseline.model, id)
-        };
-        let mut model = baseline.model.clone();
-        model.effects.set(kind, Some(step));
-        let score = reference.score(&model);
-        let fitted = Fitted { model, score };
-        candidates.push(Candidate::from_fit(fitted, &[kind], base_holdout, false));
+    if !opt.effects.contains(&EffectKind::Quantization) {
+        return None;
     }
-    candidates.sort_by(|a, b| a.score.holdout.total_cmp(&b.score.holdout));
+    let kind = EffectKind::Quantization;
+    let step = if reference.resolution > 0.0 {
+        reference.resolution / resolution_per_step(reference.run)
+    } else {
+        effect_start(kind, &baseline.model, id)
+    };
+    let mut model = baseline.model.clone();
+    model.effects.set(kind, Some(step));
+    let score = reference.score(&model);
+    let fitted = Fitted { model, score };
+    Some(Candidate::from_fit(fitted, &[kind], base_holdout, false))
+}
 
+/// The pairs of effects, added to `candidates` (sorted by held-out gap) when the best single
+/// effect leaves much of the gap.
+fn pairs(
+    reference: &Reference,
+    candidates: &mut Vec<Candidate>,
+    opt: &SearchOptions,
+    base_holdout: f64,
+) {
     // Pairs, when the best single effect leaves much of the gap: from the better single's
     // model, the other effect at its own fitted value.
     let leaves_much = candidates
@@ -462,9 +521,11 @@ pub fn diagnose(
         candidates.extend(fitted);
         candidates.sort_by(|a, b| a.score.holdout.total_cmp(&b.score.holdout));
     }
+}
 
-    // The verdict: the best single effect if significant against the baseline; a pair only
-    // if it is significant against the best single effect too.
+/// The verdict, an index into `candidates`: the best single effect if significant against
+/// the baseline; a pair only if it is significant against the best single effect too.
+fn verdict(baseline: &Fitted, candidates: &[Candidate]) -> Option<usize> {
     let single = candidates.iter().position(|c| c.effects.len() == 1);
     let mut verdict = single.filter(|&i| significant(&baseline.score, &candidates[i]));
     if let Some(p) = candidates.iter().position(|c| c.effects.len() == 2) {
@@ -473,16 +534,7 @@ pub fn diagnose(
             verdict = Some(p);
         }
     }
-    Ok(Diagnosis {
-        run: reference.run.meta.path.clone(),
-        nominal: nominal.clone(),
-        nominal_score,
-        baseline,
-        candidates,
-        verdict,
-        evaluations: reference.evaluations(),
-        seconds: t0.elapsed().as_secs_f64(),
-    })
+    verdict
 }
 
 #[cfg(test)]
