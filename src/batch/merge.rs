@@ -1,0 +1,142 @@
+//! `skelid merge`: the output folders of a `--shard K/N` batch joined into one, refusing
+//! missing or doubled shards, runs in two shards and folders made with other settings. In:
+//! shard folders; out: one folder as an unsharded run writes it.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use crate::journal::{Journal, RUNS_DIR};
+use crate::report::ReportError;
+
+use super::*;
+
+/// Joins the output folders of the shards of one batch into `out` (drawing the first
+/// `report_runs` runs in its report.html): refuses folders made
+/// with different settings, a shard given twice or missing, a run present in two shards,
+/// or a shard whose runs are not all committed.
+pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSummary, BatchError> {
+    let bad = |m: String| BatchError::Merge(m);
+    let mut manifests = Vec::new();
+    for d in dirs {
+        let f = d.join(MANIFEST);
+        let text = std::fs::read_to_string(&f).map_err(|e| {
+            bad(format!(
+                "{}: {e} (is {} the output folder of a finished `skelid run`?)",
+                f.display(),
+                d.display()
+            ))
+        })?;
+        let m: Manifest = serde_json::from_str(&text)
+            .map_err(|e| bad(format!("{}: not a skelid manifest: {e}", f.display())))?;
+        manifests.push((d.clone(), m));
+    }
+    let Some((_, first)) = manifests.first() else {
+        return Err(bad("no folders given".into()));
+    };
+    let settings = first.settings.clone();
+    let count = first.shard.map_or(1, |s| s.count);
+    let mut seen_shards = BTreeMap::new();
+    for (d, m) in &manifests {
+        if m.settings != settings {
+            return Err(bad(format!(
+                "{} was made with other settings (skelid version, methods or options) than {}",
+                d.display(),
+                manifests[0].0.display()
+            )));
+        }
+        if m.runs_in_inputs != first.runs_in_inputs {
+            return Err(bad(format!(
+                "{} saw {} runs in its inputs, {} saw {}: the shards were not given the same archives",
+                d.display(),
+                m.runs_in_inputs,
+                manifests[0].0.display(),
+                first.runs_in_inputs
+            )));
+        }
+        let s = m.shard.unwrap_or(Shard { index: 1, count: 1 });
+        if s.count != count {
+            return Err(bad(format!(
+                "{} is shard {s}, others are of {count}",
+                d.display()
+            )));
+        }
+        if let Some(other) = seen_shards.insert(s.index, d.clone()) {
+            return Err(bad(format!(
+                "shard {s} is given twice: {} and {}",
+                other.display(),
+                d.display()
+            )));
+        }
+    }
+    let missing: Vec<String> = (1..=count)
+        .filter(|k| !seen_shards.contains_key(k))
+        .map(|k| format!("{k}/{count}"))
+        .collect();
+    if !missing.is_empty() {
+        return Err(bad(format!(
+            "shard(s) {} missing: run them (or pass their folders) before merging",
+            missing.join(", ")
+        )));
+    }
+    let journal = Journal::open(out)?;
+    let mut owner: BTreeMap<(String, String), PathBuf> = BTreeMap::new();
+    let mut entries = Vec::new();
+    for (d, m) in &manifests {
+        let src = Journal::open(d)?;
+        for r in &m.runs {
+            if let Some(other) = owner.insert((r.source.clone(), r.path.clone()), d.clone()) {
+                return Err(bad(format!(
+                    "run {} of {} is in both {} and {}",
+                    r.path,
+                    r.source,
+                    other.display(),
+                    d.display()
+                )));
+            }
+            let e = src.lookup(&r.key).ok_or_else(|| {
+                bad(format!(
+                    "{}: run {} is listed but its file {} is missing or unreadable",
+                    d.display(),
+                    r.path,
+                    src.file(&r.key).display()
+                ))
+            })?;
+            let from = src.file(&r.key);
+            let dst = out
+                .join(RUNS_DIR)
+                .join(from.file_name().expect("a journal file has a name"));
+            if !dst.exists() {
+                std::fs::copy(&from, &dst).map_err(|e| ReportError {
+                    file: dst.display().to_string(),
+                    detail: e.to_string(),
+                })?;
+            }
+            entries.push(e);
+        }
+    }
+    if entries.len() != first.runs_in_inputs {
+        return Err(bad(format!(
+            "the shards hold {} runs but their inputs had {}",
+            entries.len(),
+            first.runs_in_inputs
+        )));
+    }
+    let manifest = Manifest::new(
+        settings,
+        None,
+        first.runs_in_inputs,
+        &mut entries,
+        first.not_runs.clone(),
+        first.settings_full.clone(),
+    );
+    let results = journal.assemble(out, &entries, manifest.settings_full.as_ref())?;
+    let (rows, failed_runs) = write_outputs(&results, out, &entries, &manifest, report_runs, None)?;
+    Ok(BatchSummary {
+        rows,
+        results,
+        failed_runs,
+        runs: entries.len(),
+        skipped: 0,
+        not_runs: manifest.not_runs.clone(),
+    })
+}

@@ -1,0 +1,135 @@
+//! A worker's share of the batch: a delivered run prepared (its journal key, skipped when
+//! committed by an earlier invocation), identified by every method, encoded and committed to
+//! the journal, with its report plots decoded while the run can still be drawn. In: a
+//! delivery; out: what the writer receives. Panics in one run fail that run alone.
+
+use std::time::Instant;
+
+use crate::backend::Backend;
+use crate::identify::{identify, IdentifyOptions};
+use crate::journal::{failed_key, run_key, Journal, Prepared, Stored};
+use crate::profile::{self, Stage};
+use crate::report::html::{self, RunPlots};
+use crate::report::RunOutcome;
+use crate::track::Method;
+
+use super::*;
+
+/// A worker's part: the key, the skip test, the identification and the encoding.
+pub(super) fn prepare(
+    d: reader::Delivery,
+    journal: &Journal,
+    settings: &str,
+    opt: &BatchOptions<'_>,
+    drawn: &Drawn,
+) -> Finished {
+    let (key, outcome) = match d {
+        reader::Delivery::Unreadable { file, error } => {
+            let o = unreadable(&file, &error);
+            let key = failed_key(
+                &o.source,
+                &o.path,
+                &o.error_text().unwrap_or_default(),
+                settings,
+            );
+            (key, Err(o))
+        }
+        reader::Delivery::Run { source, path, run } => {
+            let key = match &*run {
+                Ok(run) => run_key(run, &source, settings),
+                Err(e) => failed_key(&source, &path, e, settings),
+            };
+            (key, Ok((source, path, *run)))
+        }
+    };
+    if !opt.force {
+        if let Some((e, stored)) = journal.load(&key) {
+            let plots = match &stored {
+                Stored::Encoded(run) if drawn.wants(&e) => Some(run_plots(run)),
+                _ => None,
+            };
+            return Finished::Skipped(e, stored, plots);
+        }
+    }
+    let outcome = match outcome {
+        Err(recorded) => recorded,
+        Ok((source, path, run)) => identify_run(source, path, run, opt),
+    };
+    let prepared = profile::time(Stage::Encode, || Prepared::new(&outcome));
+    match profile::time(Stage::Write, || journal.commit(&key, prepared)) {
+        Ok((entry, prepared)) => {
+            let plots = drawn.wants(&entry).then(|| run_plots(prepared.encoded()));
+            Finished::Committed(entry, prepared, plots)
+        }
+        Err(e) => Finished::Failed(e),
+    }
+}
+
+/// The report's plots of an encoded run (its group in results.h5 is set when drawn).
+pub(super) fn run_plots(run: &crate::report::encoded::EncodedRun) -> RunPlots {
+    profile::time(Stage::Encode, || html::encoded_plots(run))
+}
+
+/// Every method of `opt` on one run as read (or its read error), timed.
+pub(super) fn identify_run(
+    source: String,
+    path: String,
+    run: Result<crate::run::Run, String>,
+    opt: &BatchOptions<'_>,
+) -> RunOutcome {
+    let mut outcome = RunOutcome::new(path, source);
+    match run {
+        Err(e) => outcome.error = Some(e),
+        Ok(run) => {
+            outcome.sample_rate = Some(run.meta.sample_rate);
+            outcome.samples = run.output.len();
+            outcome.inertia = run.meta.inertia;
+            outcome.units = crate::units::Units::of(&run.meta);
+            for &m in &opt.methods {
+                let t0 = Instant::now();
+                outcome.methods.push((
+                    m,
+                    identify_guarded(&run, m, &opt.identify, opt.backend),
+                    t0.elapsed().as_secs_f64(),
+                ));
+            }
+            // Base-motion runs only: the others have no model to simulate yet.
+            if let Some(n) = opt.identify.refine {
+                if run.meta.kind == crate::run::RunKind::BaseMotion {
+                    // The refinement's simulations are identified one after another, each
+                    // waiting on the last: a GPU's batching gains nothing there, and its
+                    // gathering window would be added to each, so they run on the CPU.
+                    let cpu = Backend::cpu();
+                    let identifier = crate::identify::Identifier {
+                        options: &opt.identify,
+                        backend: &cpu,
+                    };
+                    outcome.refined =
+                        Some(crate::refine::refine(&run, n, identifier).map_err(|e| e.to_string()));
+                }
+            }
+        }
+    }
+    outcome
+}
+
+/// One method on one run, with a panic inside any stage turned into that run's error.
+pub(super) fn identify_guarded(
+    run: &crate::run::Run,
+    method: Method,
+    options: &IdentifyOptions,
+    backend: &Backend,
+) -> Result<crate::identify::Identification, String> {
+    guarded(|| identify(run, method, options, backend).map_err(|e| e.to_string()))
+}
+
+/// Runs `f`, turning a panic into an error that names it.
+pub fn guarded<T>(f: impl FnOnce() -> Result<T, String>) -> Result<T, String> {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
+        Ok(r) => r,
+        Err(p) => Err(format!(
+            "internal error (panic) in the identification: {}",
+            crate::backend::panic_message(p.as_ref())
+        )),
+    }
+}

@@ -1,0 +1,289 @@
+//! The batch's one writer: finished runs into `results.h5` as they arrive (placed in the
+//! report's order at the end), the log and the progress, then the batch's end (summaries,
+//! report.html, manifest). In: finished runs from the workers; out: the output folder.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use crate::journal::{placements, results_group, Entry, Stored};
+use crate::profile::{self, Stage};
+use crate::report::html::{self, RunPlots};
+use crate::report::{write_summary, ReportError, ResultsWriter, RunOutcome, SummaryRow};
+
+use super::*;
+
+/// The writer: commits each finished run, logs it and reports progress. Returns the
+/// entries, the skipped and failed counts and the log; stops at the first write error.
+pub(super) fn write_finished(
+    results: &ResultsWriter,
+    done: std::sync::mpsc::Receiver<Finished>,
+    mut log: Log,
+    counts: &reader::Counts,
+    progress: &(dyn Fn(Progress) + Sync),
+    drawn: &Drawn,
+) -> Result<Written, BatchError> {
+    let (mut entries, mut skipped, mut failed) = (Vec::new(), 0, 0);
+    let (mut suspect, mut bad) = (0, 0);
+    let mut used = std::collections::HashSet::new();
+    for f in done {
+        // Finishing order is not the final order: a path already used (the same path in
+        // two archives) goes aside now and is put in its place at the end.
+        let (path, source) = match f {
+            Finished::Skipped(ref e, ..) | Finished::Committed(ref e, ..) => {
+                (results_group(&e.path, &e.source), e.source.clone())
+            }
+            Finished::Failed(e) => return Err(e.into()),
+        };
+        let dst = if used.insert(path.clone()) {
+            path
+        } else {
+            format!("{path}@{source}#{}", entries.len())
+        };
+        let t0 = profile::thread_cpu();
+        let (e, was_skipped, plots) = match f {
+            Finished::Skipped(e, Stored::Encoded(run), plots) => {
+                results.write_encoded_as(&run, &dst)?;
+                (e, true, plots)
+            }
+            Finished::Skipped(e, Stored::Legacy(file), plots) => {
+                results.copy_run_from(&file, &e.path, &dst)?;
+                (e, true, plots)
+            }
+            Finished::Committed(e, p, plots) => {
+                results.write_encoded_as(p.encoded(), &dst)?;
+                (e, false, plots)
+            }
+            Finished::Failed(_) => unreachable!("returned above"),
+        };
+        profile::add(Stage::Write, profile::thread_cpu().saturating_sub(t0));
+        log.line(&format!(
+            "{} {}:{} {}{}",
+            if was_skipped {
+                "skipped (committed earlier)"
+            } else {
+                "done"
+            },
+            e.source,
+            e.path,
+            if e.failed { "failed" } else { "ok" },
+            e.rows
+                .iter()
+                .filter(|r| !r.error.is_empty())
+                .map(|r| format!(" [{}: {}]", r.method, r.error))
+                .collect::<String>()
+        ));
+        skipped += usize::from(was_skipped);
+        failed += usize::from(e.failed);
+        suspect += e.rows.iter().filter(|r| r.quality == "suspect").count();
+        bad += e.rows.iter().filter(|r| r.quality == "bad").count();
+        drawn.offer(&e, plots);
+        entries.push((e, dst));
+        progress(Progress {
+            done: entries.len(),
+            total: counts.estimate().max(entries.len()),
+            skipped,
+            failed,
+            suspect,
+            bad,
+        });
+    }
+    Ok(Written {
+        entries,
+        skipped,
+        failed,
+        log,
+    })
+}
+
+/// What the writer leaves: every entry with the group it was written to in results.h5.
+pub(super) struct Written {
+    pub(super) entries: Vec<(Entry, String)>,
+    pub(super) skipped: usize,
+    pub(super) failed: usize,
+    pub(super) log: Log,
+}
+
+/// The report plots of the runs that come first in the report's order (archive, then
+/// path), at most as many as it draws: kept as runs finish, so that the end of a batch
+/// reads none of them back from results.h5 (that read-back, serial under libhdf5's lock,
+/// was 6 % of a 200-run batch's CPU time and all of its tail).
+///
+/// Shared by the workers and the writer: a worker decodes a run's plots only when the run
+/// can still be drawn ([`Drawn::wants`]), since once `keep` runs are held a run that comes
+/// after all of them never will be (decoding every run's was 3.6 ms of CPU per run).
+pub(super) struct Drawn {
+    pub(super) keep: usize,
+    /// `None` where the plots must be read back: none were decoded (a legacy journal
+    /// file), or two runs share the archive name and path.
+    pub(super) plots: std::sync::Mutex<BTreeMap<(String, String), Option<RunPlots>>>,
+}
+
+impl Drawn {
+    pub(super) fn new(keep: usize) -> Drawn {
+        Drawn {
+            keep,
+            plots: std::sync::Mutex::new(BTreeMap::new()),
+        }
+    }
+
+    pub(super) fn held(
+        &self,
+    ) -> std::sync::MutexGuard<'_, BTreeMap<(String, String), Option<RunPlots>>> {
+        self.plots.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Whether run `e` may still be drawn: fewer than `keep` runs are held, or it comes
+    /// before the last of them. Once false for a run it stays false (the last held run
+    /// only moves earlier).
+    pub(super) fn wants(&self, e: &Entry) -> bool {
+        if self.keep == 0 {
+            return false;
+        }
+        let held = self.held();
+        held.len() < self.keep
+            || held
+                .last_key_value()
+                .is_some_and(|(k, _)| (&e.source, &e.path) <= (&k.0, &k.1))
+    }
+
+    /// Keeps `plots` of the run `e` if it is among the first `keep` so far.
+    pub(super) fn offer(&self, e: &Entry, plots: Option<RunPlots>) {
+        if self.keep == 0 {
+            return;
+        }
+        let mut held = self.held();
+        match held.entry((e.source.clone(), e.path.clone())) {
+            std::collections::btree_map::Entry::Occupied(mut o) => {
+                o.insert(None);
+            }
+            std::collections::btree_map::Entry::Vacant(v) => {
+                v.insert(plots);
+            }
+        }
+        if held.len() > self.keep {
+            held.pop_last();
+        }
+    }
+
+    /// The plots of run `e`, drawn as the run at `group` of results.h5.
+    pub(super) fn take(&self, e: &Entry, group: &str) -> Option<RunPlots> {
+        let mut p = self
+            .held()
+            .get_mut(&(e.source.clone(), e.path.clone()))?
+            .take()?;
+        p.path = group.to_string();
+        Some(p)
+    }
+}
+
+/// Puts every run of `results` at its final group (see [`placements`]): link moves, through
+/// a staging group so that two runs may trade places.
+pub(super) fn place_runs(
+    results: &ResultsWriter,
+    entries: &[Entry],
+    written_at: &[String],
+) -> Result<(), BatchError> {
+    const STAGING: &str = "/_skelid_staging";
+    let moves: Vec<(&String, String)> = written_at
+        .iter()
+        .zip(placements(entries))
+        .filter(|(at, want)| *at != want)
+        .collect();
+    for (i, (at, _)) in moves.iter().enumerate() {
+        results.move_run(at, &format!("{STAGING}/{i}"))?;
+    }
+    for (i, (_, want)) in moves.iter().enumerate() {
+        results.move_run(&format!("{STAGING}/{i}"), want)?;
+    }
+    if !moves.is_empty() {
+        results.remove(STAGING)?;
+    }
+    Ok(())
+}
+
+/// The summaries, report.html (the first `report_runs` runs drawn, from `drawn` where it
+/// holds them, else read back from results.h5) and the manifest of a folder's entries
+/// (results.h5 is written by then).
+pub(super) fn write_outputs(
+    results: &Path,
+    out: &Path,
+    entries: &[Entry],
+    manifest: &Manifest,
+    report_runs: usize,
+    drawn_plots: Option<&Drawn>,
+) -> Result<(Vec<SummaryRow>, usize), BatchError> {
+    let rows: Vec<SummaryRow> = entries.iter().flat_map(|e| e.rows.clone()).collect();
+    write_summary(out, &rows)?;
+    let drawn = entries.len().min(report_runs);
+    let title = std::fs::canonicalize(out).unwrap_or_else(|_| out.to_path_buf());
+    html::write_report(
+        out,
+        &html::ReportPage {
+            title: &title.display().to_string(),
+            settings: &manifest.settings,
+            rows: &rows,
+            runs: placements(&entries[..drawn])
+                .iter()
+                .zip(entries)
+                .map(
+                    |(group, e)| match drawn_plots.and_then(|d| d.take(e, group)) {
+                        Some(p) => Ok(p),
+                        None => html::read_run(results, group),
+                    },
+                )
+                .collect(),
+            omitted: entries.len() - drawn,
+        },
+    )?;
+    let text = serde_json::to_string_pretty(manifest).map_err(|e| ReportError {
+        file: MANIFEST.into(),
+        detail: e.to_string(),
+    })?;
+    crate::report::write_atomic(&out.join(MANIFEST), text.as_bytes())?;
+    Ok((rows, entries.iter().filter(|e| e.failed).count()))
+}
+
+/// `<out>/skelid.log`: one line per event, appended, with seconds since the Unix epoch.
+pub(super) struct Log {
+    pub(super) file: std::fs::File,
+}
+
+impl Log {
+    pub(super) fn open(out: &Path) -> Result<Log, ReportError> {
+        let path = out.join("skelid.log");
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&path)
+            .map_err(|e| ReportError {
+                file: path.display().to_string(),
+                detail: e.to_string(),
+            })?;
+        Ok(Log { file })
+    }
+
+    pub(super) fn line(&mut self, text: &str) {
+        use std::io::Write;
+        let t = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0.0, |d| d.as_secs_f64());
+        // A log line that cannot be written must not stop the batch.
+        let _ = writeln!(self.file, "{t:.3} {text}");
+    }
+}
+
+/// The record of an archive that could not be opened: one failed entry under
+/// `/_unreadable/<file name>`.
+pub(super) fn unreadable(file: &Path, error: &dyn std::fmt::Display) -> RunOutcome {
+    let name = file_name(file);
+    RunOutcome {
+        error: Some(format!("archive unreadable: {error}")),
+        ..RunOutcome::new(format!("/_unreadable/{}", name.replace('/', "_")), name)
+    }
+}
+
+pub(super) fn file_name(p: &Path) -> String {
+    p.file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| p.display().to_string())
+}
