@@ -15,7 +15,6 @@ use std::f64::consts::PI;
 use num_complex::Complex64;
 
 use crate::track::Track;
-use crate::transform::{fast_len, real_inverse_plan, real_plan};
 
 /// Instantaneous modal characteristics of the identified channel.
 #[derive(Debug, Clone)]
@@ -144,60 +143,6 @@ pub fn estimate_mass(force: &Track, resp: &Track) -> Option<f64> {
     (slope < 0.0 && slope.is_finite()).then(|| -1.0 / slope)
 }
 
-/// Displacement from a velocity (`order` 1) or acceleration (`order` 2) record by spectral
-/// integration: X(f)/(j2πf)^order, with everything below `f_cut` Hz (drift, offsets, the
-/// integration's 1/f blow-up) removed by a raised-cosine high-pass from f_cut/2 to f_cut.
-/// The first and last 2/f_cut seconds are tapered and should be treated as edge zone.
-pub fn integrate(x: &[f64], fs: f64, order: u32, f_cut: f64) -> Vec<f64> {
-    if order == 0 {
-        return x.to_vec();
-    }
-    let n = x.len();
-    // Padding by a tenth keeps the ends from wrapping into each other.
-    let len = fast_len(n + n / 10 + 16);
-    let mean = x.iter().sum::<f64>() / n.max(1) as f64;
-    let mut buf = vec![0.0; len];
-    // A cosine taper over the first and last two periods of f_cut: the abrupt ends would
-    // otherwise leak into the band just above f_cut, which integration amplifies as 1/f^k.
-    let ramp = ((2.0 * fs / f_cut) as usize).min(n / 4).max(1);
-    for (i, (b, v)) in buf.iter_mut().zip(x).enumerate() {
-        let e = i.min(n - 1 - i);
-        let w = if e >= ramp {
-            1.0
-        } else {
-            0.5 - 0.5 * (PI * e as f64 / ramp as f64).cos()
-        };
-        *b = (v - mean) * w;
-    }
-    let fwd = real_plan(len);
-    let mut spec = fwd.make_output_vec();
-    fwd.process(&mut buf, &mut spec)
-        .expect("buffer sizes come from the plan");
-    for (m, c) in spec.iter_mut().enumerate() {
-        let f = m as f64 * fs / len as f64;
-        let gate = if f >= f_cut {
-            1.0
-        } else if f <= 0.5 * f_cut {
-            0.0
-        } else {
-            0.5 - 0.5 * (PI * (f - 0.5 * f_cut) / (0.5 * f_cut)).cos()
-        };
-        if gate == 0.0 {
-            *c = Complex64::new(0.0, 0.0);
-            continue;
-        }
-        let jw = Complex64::new(0.0, 2.0 * PI * f).powi(order as i32);
-        *c = *c * gate / jw;
-    }
-    let inv = real_inverse_plan(len);
-    let mut out = inv.make_output_vec();
-    inv.process(&mut spec, &mut out)
-        .expect("buffer sizes come from the plan");
-    out.truncate(n);
-    out.iter_mut().for_each(|v| *v /= len as f64);
-    out
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -274,19 +219,5 @@ mod tests {
         let r = base_motion(&xt, &zt, cg);
         assert!((r.stiffness[50] - w0sq).abs() < 1e-9 * w0sq);
         assert!((r.damping[50] - h).abs() < 1e-12);
-    }
-
-    #[test]
-    fn spectral_integration_of_an_acceleration() {
-        let fs = 500.0;
-        let n = 5000;
-        let w = 2.0 * PI * 7.0;
-        let acc: Vec<f64> = (0..n)
-            .map(|i| -w * w * (w * i as f64 / fs).sin() + 0.3)
-            .collect();
-        let x = integrate(&acc, fs, 2, 2.0);
-        for (i, v) in x.iter().enumerate().take(n - 1000).skip(1000) {
-            assert!((v - (w * i as f64 / fs).sin()).abs() < 2e-3, "{i}: {v}");
-        }
     }
 }

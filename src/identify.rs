@@ -1,17 +1,16 @@
-//! One run through the identification: channels to displacement, instantaneous
-//! characteristics of input and response, ForceVib, skeleton, fits.
+//! One run through the identification: its channels conditioned ([`crate::condition`]: mode
+//! band, displacement), the instantaneous characteristics of input and response, ForceVib,
+//! skeleton, fits.
 
 use std::f64::consts::PI;
 
 use crate::backend::Backend;
+use crate::condition::{self, Channels, ConditionError, Conditioned};
 use crate::fit::{self, Bin, DeadZoneFit, Estimate, Sample};
 use crate::forcevib::{self, Modal};
-use crate::mode::{self, ModeBand, ModeChoice};
-use crate::run::{Quantity, Run, RunKind};
-use crate::track::{
-    default_band, track_hilbert, HilbertOptions, Method, Track, TrackError, WaveletOptions,
-};
-use crate::transform::Morlet;
+use crate::mode::{ModeBand, ModeChoice};
+use crate::run::{Run, RunKind};
+use crate::track::{track_hilbert, HilbertOptions, Method, Track, TrackError, WaveletOptions};
 
 /// Why a run could not be identified.
 #[derive(Debug, thiserror::Error)]
@@ -30,6 +29,16 @@ pub enum IdentifyError {
     /// Too little valid data for a skeleton.
     #[error("{0}")]
     NoSkeleton(String),
+}
+
+impl From<ConditionError> for IdentifyError {
+    /// The same words either way: conditioning is the identification's first stage.
+    fn from(e: ConditionError) -> Self {
+        match e {
+            ConditionError::Unusable(s) => IdentifyError::Unusable(s),
+            ConditionError::Band { channel, source } => IdentifyError::Track { channel, source },
+        }
+    }
 }
 
 /// Amplitudes below this fraction of the half-gap are free play: the orbit model first
@@ -196,44 +205,6 @@ fn min_bin_count(samples: usize, bins: usize) -> usize {
     (samples / (20 * bins.max(1))).max(5)
 }
 
-fn order(q: Quantity) -> u32 {
-    match q {
-        Quantity::Velocity => 1,
-        Quantity::Acceleration => 2,
-        _ => 0,
-    }
-}
-
-/// A channel as displacement: velocity and acceleration are integrated spectrally, with the
-/// high-pass at half the lowest frequency of the signal's own band.
-/// Within a mode's band the channel is band-passed first and the band's lower edge sets
-/// the high-pass.
-fn displacement(
-    x: &[f64],
-    fs: f64,
-    q: Quantity,
-    channel: &'static str,
-    band: Option<&ModeBand>,
-) -> Result<Vec<f64>, IdentifyError> {
-    let x = match band {
-        Some(b) => std::borrow::Cow::Owned(mode::band_pass(x, fs, b.fmin, b.fmax)),
-        None => std::borrow::Cow::Borrowed(x),
-    };
-    let k = order(q);
-    if k == 0 {
-        return Ok(x.into_owned());
-    }
-    let fmin = match band {
-        Some(b) => b.fmin,
-        None => {
-            default_band(&x, fs, &Morlet::default())
-                .map_err(|source| IdentifyError::Track { channel, source })?
-                .0
-        }
-    };
-    Ok(forcevib::integrate(&x, fs, k, 0.5 * fmin))
-}
-
 /// A band-passed drive is nearly zero while a sweep is outside the band, where the ratio of
 /// response to force is noise over noise: those samples are not valid (the Hilbert track
 /// has no noise floor of its own to say so). The drive counts as outside the band below a
@@ -373,8 +344,7 @@ fn identify_body(
 ) -> Result<Identification, IdentifyError> {
     let meta = &run.meta;
     let fs = meta.sample_rate;
-    let band =
-        mode::choose(run, ctx.opt.mode).map_err(|e| IdentifyError::Unusable(e.to_string()))?;
+    let Conditioned { band, channels } = condition::condition(run, ctx.opt.mode)?;
     // Within a mode's band the wavelet's scales span the band alone, unless given.
     let banded;
     let ctx = match &band {
@@ -391,27 +361,17 @@ fn identify_body(
         None => ctx,
     };
     let opt = ctx.opt;
-    let band_ref = band.as_ref();
-    let y = displacement(&run.output, fs, meta.output_quantity, "output", band_ref)?;
     let mut warnings = Vec::new();
-    let (input, response, modal, mass) = match meta.kind {
-        RunKind::Free => {
+    let (input, response, modal, mass) = match channels {
+        Channels::Free { response: y } => {
             let resp = track(&y, fs, method, ctx, None, "output")?;
             let modal = forcevib::free_decay(&resp);
             (None, resp, modal, None)
         }
-        RunKind::BaseMotion => {
-            let raw = run.input.as_ref().ok_or_else(|| {
-                IdentifyError::Unusable("a base-motion run needs an input dataset".into())
-            })?;
-            let q = meta.input_quantity.unwrap_or(Quantity::Displacement);
-            if q == Quantity::Force {
-                return Err(IdentifyError::Unusable(
-                    "input_quantity is force but kind is base_motion: set kind = \"force\"".into(),
-                ));
-            }
-            let x = displacement(raw, fs, q, "input", band_ref)?;
-            let z: Vec<f64> = y.iter().zip(&x).map(|(a, b)| a - b).collect();
+        Channels::BaseMotion {
+            input: x,
+            relative: z,
+        } => {
             let tx = match known_input {
                 Some(t) if t.amplitude.len() == x.len() => t.clone(),
                 _ => track(&x, fs, method, ctx, None, "input")?,
@@ -420,16 +380,12 @@ fn identify_body(
             let modal = forcevib::base_motion(&tx, &tz, meta.gravity_stiffness);
             (Some(tx), tz, modal, None)
         }
-        RunKind::Force => {
-            let f = run.input.as_ref().ok_or_else(|| {
-                IdentifyError::Unusable("a force run needs an input (force) dataset".into())
-            })?;
-            let f = match band_ref {
-                Some(b) => std::borrow::Cow::Owned(mode::band_pass(f, fs, b.fmin, b.fmax)),
-                None => std::borrow::Cow::Borrowed(f.as_slice()),
-            };
+        Channels::Force {
+            force: f,
+            response: y,
+        } => {
             let mut tf = track(&f, fs, method, ctx, None, "input")?;
-            if band_ref.is_some() {
+            if band.is_some() {
                 drive_outside_band(&mut tf);
             }
             let ty = track(&y, fs, method, ctx, Some(&tf), "output")?;

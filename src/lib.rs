@@ -16,6 +16,7 @@ pub mod batch;
 pub mod bench;
 pub mod campaign;
 pub mod child;
+pub mod condition;
 pub mod demo;
 pub mod filter;
 pub mod fit;
