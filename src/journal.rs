@@ -32,8 +32,13 @@ pub fn settings_fingerprint(methods: &[Method], options: &IdentifyOptions) -> St
         h.update(m.as_str().as_bytes());
         h.update(b"\0");
     }
-    // Debug output names every field and value: a changed option changes the key.
-    h.update(format!("{options:?}").as_bytes());
+    // The options as serialised for settings_json: every field by name and value, so a
+    // changed option changes the key (and the key reads from the same record the file keeps).
+    h.update(
+        serde_json::to_string(options)
+            .expect("identification options serialise")
+            .as_bytes(),
+    );
     h.finalize().to_hex()[..32].to_string()
 }
 
@@ -73,7 +78,11 @@ pub fn run_key(run: &Run, source: &str, settings: &str) -> String {
     h.update(b"\0");
     h.update(run.meta.path.as_bytes());
     h.update(b"\0");
-    h.update(format!("{:?}", run.meta).as_bytes());
+    h.update(
+        serde_json::to_string(&run.meta)
+            .expect("run metadata serialises")
+            .as_bytes(),
+    );
     if let Some(x) = &run.input {
         h.update(bytemuck::cast_slice(x));
     }
