@@ -9,6 +9,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use super::args::{IdentifyArgs, IngestArgs};
+use skelid::gap::export as out;
 
 /// Options of `skelid gap`.
 #[derive(Args)]
@@ -131,8 +132,6 @@ pub(crate) fn gap_search_options(a: &GapArgs) -> Result<skelid::gap::SearchOptio
 }
 
 pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
-    use skelid::gap::search::Reference;
-    use skelid::report::gap as out;
     use skelid::run::RunKind;
     let opt = gap_search_options(&a)?;
     let engine = super::CpuIdentifier::new(a.identify.options("gap", None)?);
@@ -205,156 +204,170 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
         "min_drop": skelid::gap::search::MIN_DROP,
         "model_warnings": model_warnings,
     });
-    let title = archive_path.display().to_string();
-    // gap.json and gap.html are rewritten (atomically) after every run, so that a night's
-    // work stopped half-way keeps every run finished so far.
-    let write_outputs =
-        |reports: &[&skelid::gap::GapRun], failed: &[(String, String)]| -> Result<_> {
-            let json = out::write_gap_json(&a.out, reports, failed, settings.clone())?;
-            let page = out::write_gap_page(&a.out, &title, reports)?;
-            Ok((json, page))
-        };
-    let several = chosen.len() > 1;
+    let exporter = Terminal {
+        out: &a.out,
+        model_path,
+        title: archive_path.display().to_string(),
+        settings,
+        several: chosen.len() > 1,
+        effects: opt.effects.len(),
+        bar: indicatif::ProgressBar::new(chosen.len() as u64).with_style(
+            indicatif::ProgressStyle::with_template(
+                "{bar:25} {pos}/{len} runs, {elapsed} elapsed, ~{eta} left · {wide_msg}",
+            )
+            .expect("a valid template"),
+        ),
+        running: Default::default(),
+    };
     let jobs = a
         .jobs
-        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
-        .max(1);
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(jobs)
-        .build()
-        .with_context(|| format!("cannot start {jobs} worker thread(s) (--jobs)"))?;
-    // Finished runs (index in the archive, report) and failed ones (index, run, error),
-    // kept in archive order whatever order they finish in.
-    type Done = (
-        Vec<(usize, skelid::gap::GapRun)>,
-        Vec<(usize, String, String)>,
-    );
-    let done: std::sync::Mutex<Done> = Default::default();
-    // Progress per run: runs done on the bar, each running run's simulations so far in its
-    // message (a diagnosis runs a few hundred).
-    let bar = indicatif::ProgressBar::new(chosen.len() as u64).with_style(
-        indicatif::ProgressStyle::with_template(
-            "{bar:25} {pos}/{len} runs, {elapsed} elapsed, ~{eta} left · {wide_msg}",
-        )
-        .expect("a valid template"),
-    );
-    let running: std::sync::Mutex<std::collections::BTreeMap<String, usize>> = Default::default();
-    let show = |bar: &indicatif::ProgressBar,
-                running: &std::collections::BTreeMap<String, usize>| {
-        let parts: Vec<String> = running
-            .iter()
-            .map(|(run, n)| format!("{run}: {n} simulations"))
-            .collect();
-        bar.set_message(parts.join(", "));
-    };
-    let identifier = engine.get();
-    let diagnose_one = |(i, meta): (usize, &skelid::run::RunMeta)| -> Result<()> {
-        say(
-            &bar,
-            format!(
-                "{}: refitting the model, then {} effects ...",
-                meta.path,
-                opt.effects.len()
-            ),
-        );
-        let progress = |n: usize| {
-            let mut r = running.lock().unwrap_or_else(|p| p.into_inner());
-            r.insert(meta.path.clone(), n);
-            show(&bar, &r);
-            // Without a terminal (a log file), a line every 100 simulations.
-            if bar.is_hidden() && n.is_multiple_of(100) {
-                eprintln!("{}: {n} simulations", meta.path);
-            }
-        };
-        let result = (|| -> Result<skelid::gap::GapRun> {
-            let run = archive.load(meta)?;
-            let reference = Reference::new(&run, opt.blocks, identifier)?.on_score(progress);
-            let d = skelid::gap::diagnose(&reference, &model, &opt)?;
-            Ok(skelid::gap::GapRun::new(&reference, d)?)
-        })();
-        {
-            let mut r = running.lock().unwrap_or_else(|p| p.into_inner());
-            r.remove(&meta.path);
-            show(&bar, &r);
-        }
-        bar.inc(1);
-        let mut guard = done.lock().unwrap_or_else(|p| p.into_inner());
-        match result {
-            Ok(r) => {
-                let d = &r.diagnosis;
-                let mut text = format!(
-                    "{}: verdict {} · held-out gap nominal {:.4} → baseline {:.4}{} · {} simulations, {:.1} s",
-                    d.run,
-                    d.verdict_name(),
-                    d.nominal_score.holdout,
-                    d.baseline.score.holdout,
-                    d.verdict.map_or(String::new(), |i| {
-                        let c = &d.candidates[i];
-                        format!(" → {:.4} with {} (shrink {:.0} %)", c.score.holdout, c.name(), 100.0 * c.shrink)
-                    }),
-                    d.evaluations,
-                    d.seconds
-                );
-                for c in d.candidates.iter().take(3) {
-                    let p: Vec<String> = c
-                        .params()
-                        .iter()
-                        .map(|(k, v)| out::param_text(k, *v))
-                        .collect();
-                    text += &format!(
-                        "\n    {:<40} held-out gap {:.4}  shrink {:>4.0} %  {}",
-                        c.name(),
-                        c.score.holdout,
-                        100.0 * c.shrink,
-                        p.join(", ")
-                    );
-                }
-                bar.suspend(|| println!("{text}"));
-                let path = out::fitted_model_path(&a.out, model_path, &d.run, several);
-                out::write_fitted_model(&path, &r)?;
-                let fitted =
-                    RigModel::load(&path).context("the fitted model written does not read back")?;
-                for w in fitted.warnings() {
-                    say(&bar, format!("warning: {}: {w}", path.display()));
-                }
-                guard.0.push((i, r));
-            }
-            Err(e) => {
-                say(&bar, format!("error: {}: {e:#}", meta.path));
-                guard.1.push((i, meta.path.clone(), format!("{e:#}")));
-            }
-        }
-        guard.0.sort_by_key(|r| r.0);
-        guard.1.sort_by_key(|r| r.0);
-        let reports: Vec<&skelid::gap::GapRun> = guard.0.iter().map(|r| &r.1).collect();
-        let errors: Vec<(String, String)> = failed
-            .iter()
-            .cloned()
-            .chain(guard.1.iter().map(|f| (f.1.clone(), f.2.clone())))
-            .collect();
-        write_outputs(&reports, &errors)?;
-        Ok(())
-    };
-    pool.install(|| {
-        use rayon::prelude::*;
-        chosen.par_iter().enumerate().try_for_each(diagnose_one)
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let done = skelid::gap::runner::diagnose_runs(
+        &archive,
+        &chosen,
+        &model,
+        &opt,
+        engine.get(),
+        jobs,
+        failed,
+        &exporter,
+    )
+    .map_err(|e| match e {
+        skelid::gap::runner::RunnerError::Export(e) => anyhow::anyhow!(e),
+        other => anyhow::Error::new(other).context("--jobs"),
     })?;
-    bar.finish_and_clear();
-    let (reports, errors) = done.into_inner().unwrap_or_else(|p| p.into_inner());
-    let reports: Vec<&skelid::gap::GapRun> = reports.iter().map(|r| &r.1).collect();
-    failed.extend(errors.into_iter().map(|f| (f.1, f.2)));
-    let (json, page) = write_outputs(&reports, &failed)?;
+    exporter.bar.finish_and_clear();
+    let reports: Vec<&skelid::gap::GapRun> = done.runs.iter().collect();
+    let (json, page) = exporter.write(&reports, &done.failed)?;
     println!(
         "wrote {}, {} and the fitted model(s) in {}",
         json.display(),
         page.display(),
         a.out.display()
     );
-    Ok(if failed.is_empty() {
+    Ok(if done.failed.is_empty() {
         ExitCode::SUCCESS
     } else {
         ExitCode::from(1)
     })
+}
+
+/// `skelid gap`'s exporter: a progress bar (runs done; each running run's simulations in its
+/// message), a summary of each run on the terminal, its fitted model, and gap.json and
+/// gap.html rewritten (atomically) after every run.
+struct Terminal<'a> {
+    out: &'a std::path::Path,
+    model_path: &'a std::path::Path,
+    title: String,
+    settings: serde_json::Value,
+    several: bool,
+    effects: usize,
+    bar: indicatif::ProgressBar,
+    running: std::sync::Mutex<std::collections::BTreeMap<String, usize>>,
+}
+
+impl Terminal<'_> {
+    fn show(&self, running: &std::collections::BTreeMap<String, usize>) {
+        let parts: Vec<String> = running
+            .iter()
+            .map(|(run, n)| format!("{run}: {n} simulations"))
+            .collect();
+        self.bar.set_message(parts.join(", "));
+    }
+
+    fn write(
+        &self,
+        reports: &[&skelid::gap::GapRun],
+        failed: &[(String, String)],
+    ) -> Result<(PathBuf, PathBuf)> {
+        let json = out::write_gap_json(self.out, reports, failed, self.settings.clone())?;
+        let page = out::write_gap_page(self.out, &self.title, reports)?;
+        Ok((json, page))
+    }
+
+    /// A diagnosed run's lines on the terminal and its fitted model written (and read back).
+    fn report(&self, r: &skelid::gap::GapRun) -> Result<()> {
+        let d = &r.diagnosis;
+        let mut text = format!(
+            "{}: verdict {} · held-out gap nominal {:.4} → baseline {:.4}{} · {} simulations, {:.1} s",
+            d.run,
+            d.verdict_name(),
+            d.nominal_score.holdout,
+            d.baseline.score.holdout,
+            d.verdict.map_or(String::new(), |i| {
+                let c = &d.candidates[i];
+                format!(" → {:.4} with {} (shrink {:.0} %)", c.score.holdout, c.name(), 100.0 * c.shrink)
+            }),
+            d.evaluations,
+            d.seconds
+        );
+        for c in d.candidates.iter().take(3) {
+            let p: Vec<String> = c
+                .params()
+                .iter()
+                .map(|(k, v)| out::param_text(k, *v))
+                .collect();
+            text += &format!(
+                "\n    {:<40} held-out gap {:.4}  shrink {:>4.0} %  {}",
+                c.name(),
+                c.score.holdout,
+                100.0 * c.shrink,
+                p.join(", ")
+            );
+        }
+        self.bar.suspend(|| println!("{text}"));
+        let path = out::fitted_model_path(self.out, self.model_path, &d.run, self.several);
+        out::write_fitted_model(&path, r)?;
+        let fitted =
+            RigModel::load(&path).context("the fitted model written does not read back")?;
+        for w in fitted.warnings() {
+            say(&self.bar, format!("warning: {}: {w}", path.display()));
+        }
+        Ok(())
+    }
+}
+
+impl skelid::gap::runner::Exporter for Terminal<'_> {
+    fn started(&self, run: &skelid::run::RunMeta) {
+        say(
+            &self.bar,
+            format!(
+                "{}: refitting the model, then {} effects ...",
+                run.path, self.effects
+            ),
+        );
+    }
+
+    fn simulations(&self, run: &skelid::run::RunMeta, n: usize) {
+        let mut r = self.running.lock().unwrap_or_else(|p| p.into_inner());
+        r.insert(run.path.clone(), n);
+        self.show(&r);
+        // Without a terminal (a log file), a line every 100 simulations.
+        if self.bar.is_hidden() && n.is_multiple_of(100) {
+            eprintln!("{}: {n} simulations", run.path);
+        }
+    }
+
+    fn finished(
+        &self,
+        run: &skelid::run::RunMeta,
+        result: Result<&skelid::gap::GapRun, &str>,
+        done: &[&skelid::gap::GapRun],
+        failed: &[(String, String)],
+    ) -> Result<(), skelid::gap::runner::ExportError> {
+        {
+            let mut r = self.running.lock().unwrap_or_else(|p| p.into_inner());
+            r.remove(&run.path);
+            self.show(&r);
+        }
+        self.bar.inc(1);
+        match result {
+            Ok(r) => self.report(r)?,
+            Err(e) => say(&self.bar, format!("error: {}: {e}", run.path)),
+        }
+        self.write(done, failed)?;
+        Ok(())
+    }
 }
 
 /// Prints the rig model's implausible values on stderr ("warning: FILE: `clearance` = …")

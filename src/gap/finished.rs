@@ -1,6 +1,6 @@
 //! A run's diagnosis finished for its outputs: the whole-run gaps and identifications of
 //! the models it names (nominal, baseline, fitted), simulated here so that the output files
-//! (`report::gap`) only render what they are given.
+//! (`gap::export`) only render what they are given.
 
 use super::search::Reference;
 use super::{Diagnosis, Gap, GapError};

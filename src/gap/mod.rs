@@ -29,8 +29,10 @@
 //! whole diagnosis does on simulated rigs with a known missing effect.
 
 mod compare;
+pub mod export;
 mod features;
 mod finished;
+pub mod runner;
 pub mod search;
 pub mod selfcheck;
 mod simulated;

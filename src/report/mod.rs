@@ -2,7 +2,6 @@
 //! results and summaries (FORMATS.md §3).
 
 pub mod encoded;
-pub mod gap;
 pub mod html;
 mod results;
 mod schema;

@@ -10,11 +10,11 @@ use std::path::{Path, PathBuf};
 use plotters::style::RGBColor;
 use serde_json::{json, Value};
 
-use super::html::{css, esc, reduce, svg_plot, Mark, Series, YAxis};
-use super::{write_atomic, ReportError};
-use crate::gap::search::{signature, Score};
-use crate::gap::GapRun;
+use super::search::{signature, Score};
+use super::GapRun;
 use crate::identify::Identification;
+use crate::report::html::{css, esc, reduce, svg_plot, Mark, Series, YAxis};
+use crate::report::{write_atomic, ReportError};
 use crate::units::eng;
 
 /// Format string of gap.json.

@@ -1,0 +1,147 @@
+//! The diagnosis of many runs of one archive, N at a time: the per-run loop of `skelid gap`
+//! as a library, after hyperfine's exporters. In: the archive, the runs chosen, the rig
+//! model, the search options and the identifier; out: each run handed to an [`Exporter`] as
+//! it ends — with every run ended so far, in archive order, so that outputs rewritten then
+//! keep a night's work stopped half-way — and all of them at the end ([`Diagnosed`]).
+//!
+//! A run's own search is a chain of simplex steps, each waiting for the last, so one run
+//! keeps about one core busy; runs are diagnosed `jobs` at a time.
+
+use std::sync::Mutex;
+
+use rayon::prelude::*;
+
+use super::search::Reference;
+use super::{diagnose, GapRun, SearchOptions};
+use crate::identify::Identifier;
+use crate::ingest::Archive;
+use crate::model::RigModel;
+use crate::run::RunMeta;
+
+/// An error an exporter returns: it stops the runner (a report that cannot be written).
+pub type ExportError = Box<dyn std::error::Error + Send + Sync>;
+
+/// Where the runner's work goes as it happens: progress, and each run as it ends.
+pub trait Exporter: Sync {
+    /// `run`'s diagnosis starts.
+    fn started(&self, _run: &RunMeta) {}
+    /// `run` has run `simulations` simulations so far.
+    fn simulations(&self, _run: &RunMeta, _simulations: usize) {}
+    /// `run` ended, diagnosed (`Ok`) or not (`Err`, the reason). `done` and `failed` hold
+    /// every run ended so far, in archive order (the runs that failed before the runner
+    /// started first among the failed).
+    fn finished(
+        &self,
+        run: &RunMeta,
+        result: Result<&GapRun, &str>,
+        done: &[&GapRun],
+        failed: &[(String, String)],
+    ) -> Result<(), ExportError>;
+}
+
+/// Every run's outcome, in archive order.
+pub struct Diagnosed {
+    /// The diagnosed runs.
+    pub runs: Vec<GapRun>,
+    /// The runs that could not be diagnosed, with the reason (those failed before first).
+    pub failed: Vec<(String, String)>,
+}
+
+/// Why the runner stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum RunnerError {
+    /// The worker threads could not start.
+    #[error("cannot start {jobs} worker thread(s): {detail}")]
+    Threads {
+        /// Threads asked for.
+        jobs: usize,
+        /// Why not.
+        detail: String,
+    },
+    /// The exporter failed.
+    #[error(transparent)]
+    Export(ExportError),
+}
+
+/// Runs ended so far: (index in `runs`, report) and (index, run, reason).
+type Ended = (Vec<(usize, GapRun)>, Vec<(usize, String, String)>);
+
+/// Diagnoses `runs` of `archive` against `model`, `jobs` at a time, each identified by
+/// `identifier`; `failed_before` are runs that could not even be listed (they lead the
+/// failed ones). Each run ends in `exporter`.
+#[allow(clippy::too_many_arguments)]
+pub fn diagnose_runs(
+    archive: &Archive,
+    runs: &[RunMeta],
+    model: &RigModel,
+    opt: &SearchOptions,
+    identifier: Identifier,
+    jobs: usize,
+    failed_before: Vec<(String, String)>,
+    exporter: &dyn Exporter,
+) -> Result<Diagnosed, RunnerError> {
+    let jobs = jobs.max(1);
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(jobs)
+        .build()
+        .map_err(|e| RunnerError::Threads {
+            jobs,
+            detail: e.to_string(),
+        })?;
+    let ended: Mutex<Ended> = Mutex::default();
+    let one = |(i, meta): (usize, &RunMeta)| -> Result<(), RunnerError> {
+        exporter.started(meta);
+        let result = (|| -> Result<GapRun, String> {
+            let run = archive.load(meta).map_err(|e| chain(&e))?;
+            let reference = Reference::new(&run, opt.blocks, identifier)
+                .map_err(|e| chain(&e))?
+                .on_score(|n| exporter.simulations(meta, n));
+            let d = diagnose(&reference, model, opt).map_err(|e| chain(&e))?;
+            GapRun::new(&reference, d).map_err(|e| chain(&e))
+        })();
+        // The outputs are written under the lock: one writer at a time, in archive order.
+        let mut guard = ended.lock().unwrap_or_else(|p| p.into_inner());
+        match result {
+            Ok(r) => guard.0.push((i, r)),
+            Err(e) => guard.1.push((i, meta.path.clone(), e)),
+        }
+        guard.0.sort_by_key(|r| r.0);
+        guard.1.sort_by_key(|r| r.0);
+        let done: Vec<&GapRun> = guard.0.iter().map(|r| &r.1).collect();
+        let failed: Vec<(String, String)> = failed_before
+            .iter()
+            .cloned()
+            .chain(guard.1.iter().map(|f| (f.1.clone(), f.2.clone())))
+            .collect();
+        let this = match guard.0.iter().find(|r| r.0 == i) {
+            Some(r) => Ok(&r.1),
+            None => Err(guard
+                .1
+                .iter()
+                .find(|f| f.0 == i)
+                .map_or("", |f| f.2.as_str())),
+        };
+        exporter
+            .finished(meta, this, &done, &failed)
+            .map_err(RunnerError::Export)
+    };
+    pool.install(|| runs.par_iter().enumerate().try_for_each(one))?;
+    let (done, errors) = ended.into_inner().unwrap_or_else(|p| p.into_inner());
+    let mut failed = failed_before;
+    failed.extend(errors.into_iter().map(|f| (f.1, f.2)));
+    Ok(Diagnosed {
+        runs: done.into_iter().map(|r| r.1).collect(),
+        failed,
+    })
+}
+
+/// An error with its sources, "what: why: why", as the command line shows it.
+fn chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        text += &format!(": {s}");
+        source = s.source();
+    }
+    text
+}
