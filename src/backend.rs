@@ -164,7 +164,8 @@ impl Backend {
                     match why {
                         Ok(software) => cpu.note(format!(
                             "only a software GPU adapter was found ({software}): using the \
-                             CPU backend, which is faster; --backend gpu uses the adapter anyway"
+                             CPU backend, which is faster; {} uses the adapter anyway",
+                            crate::hint::Hint::GpuBackend
                         )),
                         Err(e) => cpu.warn(format!("GPU backend unavailable, using the CPU: {e}")),
                     }

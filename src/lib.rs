@@ -24,6 +24,7 @@ pub mod forcevib;
 pub mod gap;
 pub mod gpu;
 pub mod h5util;
+pub mod hint;
 pub mod identify;
 pub mod ingest;
 pub mod inspect;

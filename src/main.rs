@@ -11,6 +11,7 @@ use cli::{internal, Cli, Command};
 use skelid::ingest::FindError;
 
 fn main() -> ExitCode {
+    skelid::hint::set_namer(cli::hints::flag);
     let ok = |r: anyhow::Result<()>| r.map(|()| ExitCode::SUCCESS);
     let result = match Cli::parse().command {
         Command::Inspect(a) => cli::inspect::cmd_inspect(a),

@@ -182,9 +182,10 @@ pub fn isolate(
     };
     let Some(p) = pick else {
         return Err(ModeError::NoPeak(format!(
-            "the frequency response between {:.3} and {:.3} Hz has no peak standing {PROMINENCE}× above its surroundings; give the band (--band FMIN:FMAX)",
+            "the frequency response between {:.3} and {:.3} Hz has no peak standing {PROMINENCE}× above its surroundings; give the band ({} FMIN:FMAX)",
             h[0].f,
-            h[h.len() - 1].f
+            h[h.len() - 1].f,
+            crate::hint::Hint::Band
         )));
     };
     let f0 = h[p].f;

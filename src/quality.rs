@@ -115,8 +115,9 @@ pub fn assess(id: &Identification, unit: &str) -> Quality {
                 format!(
                     "the skeleton scatters: ω0² spreads by a median {:.0} % within its \
                      amplitude bins, so no one backbone describes it (several modes in the \
-                     band? narrow it with --fmin/--fmax)",
-                    100.0 * spread
+                     band? narrow it with {})",
+                    100.0 * spread,
+                    crate::hint::Hint::FrequencyRange
                 ),
             );
         }

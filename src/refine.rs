@@ -100,7 +100,8 @@ pub fn refine(
 ) -> Result<Refined, GapError> {
     if run.meta.kind != RunKind::BaseMotion {
         return Err(GapError::Unusable(format!(
-            "--refine simulates base-motion runs; this one is a {} run",
+            "{} simulates base-motion runs; this one is a {} run",
+            crate::hint::Hint::Refine,
             run.meta.kind.as_str()
         )));
     }

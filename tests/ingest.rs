@@ -189,7 +189,9 @@ fn options_read_other_layouts() {
     let e = Archive::open(&p, &IngestOptions::default()).unwrap_err();
     println!("{e}");
     assert!(matches!(e, IngestError::NoRuns { .. }));
-    assert!(e.to_string().contains("phi") && e.to_string().contains("--input-name"));
+    // The hint, as whichever front end names it (the command line: --input-name/...).
+    let hint = skelid::hint::Hint::ChannelNames.to_string();
+    assert!(e.to_string().contains("phi") && e.to_string().contains(&hint));
     let opts = IngestOptions {
         input_name: "phi".into(),
         output_name: "theta".into(),

@@ -30,6 +30,7 @@ use worker::prepare;
 use writer::{place_runs, unreadable, write_finished, write_outputs, Drawn, Log, Written};
 
 use crate::backend::Backend;
+use crate::hint::Hint;
 use crate::identify::IdentifyOptions;
 use crate::ingest::IngestOptions;
 use crate::journal::{
@@ -85,17 +86,17 @@ impl Shard {
     pub fn parse(s: &str) -> Result<Shard, String> {
         let (k, n) = s
             .split_once('/')
-            .ok_or_else(|| format!("--shard takes K/N (e.g. 2/8), not {s:?}"))?;
+            .ok_or_else(|| format!("{} takes K/N (e.g. 2/8), not {s:?}", Hint::Shard))?;
         let k: usize = k
             .trim()
             .parse()
-            .map_err(|_| format!("bad K in --shard {s}"))?;
+            .map_err(|_| format!("bad K in {} {s}", Hint::Shard))?;
         let n: usize = n
             .trim()
             .parse()
-            .map_err(|_| format!("bad N in --shard {s}"))?;
+            .map_err(|_| format!("bad N in {} {s}", Hint::Shard))?;
         if n == 0 || k == 0 || k > n {
-            return Err(format!("--shard {s}: K must be between 1 and N"));
+            return Err(format!("{} {s}: K must be between 1 and N", Hint::Shard));
         }
         Ok(Shard { index: k, count: n })
     }
@@ -224,7 +225,11 @@ pub fn run_campaigns(
         "start: {} archive(s){}, settings {settings}{}",
         files.len(),
         opt.shard.map_or(String::new(), |s| format!(", shard {s}")),
-        if opt.force { ", --force" } else { "" }
+        if opt.force {
+            format!(", {}", crate::hint::Hint::Force)
+        } else {
+            String::new()
+        }
     ));
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let jobs = match opt.jobs {

@@ -5,6 +5,7 @@
 pub mod args;
 pub mod bench;
 pub mod gap;
+pub mod hints;
 pub mod inspect;
 pub mod internal;
 pub mod run;

@@ -19,7 +19,8 @@ pub enum GpuError {
     /// No adapter at all (no Vulkan driver, or none that wgpu accepts).
     #[error(
         "no GPU adapter found ({0}); install a Vulkan driver (scripts/install-deps.sh installs \
-         Mesa's lavapipe, a software one) or use --backend cpu"
+         Mesa's lavapipe, a software one) or use {cpu}",
+        cpu = crate::hint::Hint::CpuBackend
     )]
     NoAdapter(String),
     /// The adapter refused to open a device.

@@ -90,10 +90,11 @@ impl FirstPass {
         {
             return Err(GpuError::Unsupported(format!(
                 "the adapter {} allows {} bytes of workgroup memory and {} invocations per \
-                 workgroup; the ridge shader needs {WORKGROUP_BYTES} and 256 (use --backend cpu)",
+                 workgroup; the ridge shader needs {WORKGROUP_BYTES} and 256 (use {})",
                 gpu.adapter_name(),
                 limits.max_compute_workgroup_storage_size,
-                limits.max_compute_invocations_per_workgroup
+                limits.max_compute_invocations_per_workgroup,
+                crate::hint::Hint::CpuBackend
             )));
         }
         Ok(FirstPass {

@@ -105,7 +105,7 @@ impl Archive {
         if found.is_empty() {
             let mut hint = String::new();
             if let Some(pat) = &options.run_glob {
-                hint = format!(" matching --run-glob {pat}");
+                hint = format!(" matching {} {pat}", crate::hint::Hint::RunGlob);
             } else if !stats.dataset_names.is_empty() {
                 let names: Vec<_> = stats.dataset_names.iter().take(8).cloned().collect();
                 hint = format!(" (datasets seen: {})", names.join(", "));

@@ -302,7 +302,7 @@ impl Archive {
                     name: "sample_rate".into(),
                     value: fs.to_string(),
                     detail: format!(
-                        "disagrees with the `time` dataset, which gives {fs_time:.6} Hz; fix one, or pass --sample-rate"
+                        "disagrees with the `time` dataset, which gives {fs_time:.6} Hz; fix one, or pass {}", crate::hint::Hint::SampleRate
                     ),
                 });
             }

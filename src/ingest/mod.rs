@@ -9,6 +9,7 @@ use std::fmt;
 
 use serde::Serialize;
 
+use crate::hint::Hint;
 pub use crate::run::{Quantity, Run, RunKind, RunMeta};
 
 mod archive;
@@ -53,7 +54,7 @@ pub enum IngestError {
         detail: String,
     },
     /// The walk found no group holding the signal datasets.
-    #[error("{file}: no runs found: no group holds datasets named `{input}` and `{output}` (or `{output}` alone with kind = \"free\"){hint}; use --input-name/--output-name (NAME[k] picks channel k of a matrix), --kind and --run-glob for other layouts")]
+    #[error("{file}: no runs found: no group holds datasets named `{input}` and `{output}` (or `{output}` alone with kind = \"free\"){hint}; use {} (NAME[k] picks channel k of a matrix), {} and {} for other layouts", Hint::ChannelNames, Hint::Kind, Hint::RunGlob)]
     NoRuns {
         file: String,
         input: String,
@@ -61,7 +62,7 @@ pub enum IngestError {
         hint: String,
     },
     /// Neither a `sample_rate` attribute nor a `time` dataset, nor `--sample-rate`.
-    #[error("{file}: run {run}: no sample rate: add a `sample_rate` attribute (Hz) to the run or a parent group, a `time` dataset, or pass --sample-rate")]
+    #[error("{file}: run {run}: no sample rate: add a `sample_rate` attribute (Hz) to the run or a parent group, a `time` dataset, or pass {}", Hint::SampleRate)]
     MissingSampleRate { file: String, run: String },
     /// Sample rate present but not a positive finite number.
     #[error("{file}: run {run}: invalid sample rate {value} Hz (must be positive and finite)")]
@@ -119,7 +120,7 @@ pub enum IngestError {
         min: usize,
     },
     /// `time` not strictly increasing or not uniform.
-    #[error("{file}: run {run}: non-uniform time: {detail}; skelid needs uniformly sampled signals (resample first, or drop `time` and pass --sample-rate)")]
+    #[error("{file}: run {run}: non-uniform time: {detail}; skelid needs uniformly sampled signals (resample first, or drop `time` and pass {})", Hint::SampleRate)]
     NonUniformTime {
         file: String,
         run: String,
@@ -281,9 +282,10 @@ impl fmt::Display for NotARun {
         write!(
             f,
             "{} (datasets: {}) is not a run: no dataset has the input's or the output's \
-             name; --input-name/--output-name read other names",
+             name; {} read other names",
             self.path,
-            self.datasets.join(", ")
+            self.datasets.join(", "),
+            Hint::ChannelNames
         )
     }
 }

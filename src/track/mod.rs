@@ -309,8 +309,10 @@ pub fn default_band(x: &[f64], fs: f64, wavelet: &Morlet) -> Result<(f64, f64), 
     let fmax = (spec.bin_freq(hi + w / 2) * 1.25).min(0.45 * fs);
     if fmin >= fmax {
         return Err(TrackError::NoSignal(format!(
-            "the signal's band (up to {:.3} Hz) lies below the lowest frequency a {duration:.1} s record can resolve ({record_floor:.3} Hz); give --fmin/--fmax or a narrower wavelet (--bandwidth)",
-            spec.bin_freq(hi)
+            "the signal's band (up to {:.3} Hz) lies below the lowest frequency a {duration:.1} s record can resolve ({record_floor:.3} Hz); give {} or a narrower wavelet ({})",
+            spec.bin_freq(hi),
+            crate::hint::Hint::FrequencyRange,
+            crate::hint::Hint::Bandwidth
         )));
     }
     Ok((fmin, fmax))

@@ -184,8 +184,9 @@ pub fn render(page: &ReportPage) -> String {
         let _ = writeln!(
             body,
             "<p class=\"note\">{} more run(s) are in the table but not drawn; raise \
-             <code>--report-runs</code> to draw them.</p>",
-            page.omitted
+             <code>{}</code> to draw them.</p>",
+            page.omitted,
+            crate::hint::Hint::ReportRuns
         );
     }
     // The figures are drawn in parallel: at the end of a batch this is what is left.
