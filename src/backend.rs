@@ -23,7 +23,7 @@ use crate::gpu::refine::{RefineFlight, RefineStage, Refined};
 use crate::gpu::ridge::{batch_bytes, FirstPass, InFlight};
 use crate::gpu::{Gpu, GpuError};
 use crate::skeleton::{GridEstimate, GridPoint};
-use crate::track::{CoarseRidge, Track, TrackError, WaveletOptions, WaveletPrep};
+use crate::track::{CoarseRidge, Device, Track, TrackError, WaveletOptions, WaveletPrep};
 
 /// Which backend the user asked for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
@@ -456,7 +456,7 @@ impl Backend {
                 refined: Ok((grid, estimates)),
             })) => {
                 return crate::profile::time(crate::profile::Stage::Refine, || {
-                    prep.complete(ridge, &grid, &estimates, "gpu")
+                    prep.complete(ridge, &grid, &estimates, Device::Gpu)
                 })
             }
             Some(Ok(GpuPass {
@@ -466,7 +466,7 @@ impl Backend {
                 self.warn(format!(
                     "GPU refinement failed, the skeleton done on the CPU: {e}"
                 ));
-                return prep.finish(ridge, "gpu");
+                return prep.finish(ridge, Device::Gpu);
             }
             Some(Err(e)) => self.warn(format!(
                 "GPU first pass failed, signal done on the CPU: {e}"
@@ -474,7 +474,7 @@ impl Backend {
             None => {}
         }
         let ridge = prep.coarse_ridge();
-        prep.finish(ridge, "cpu")
+        prep.finish(ridge, Device::Cpu)
     }
 }
 

@@ -168,7 +168,7 @@ mod tests {
             offset: 0.0,
             noise: 0.0,
             band: (0.0, fs / 2.0),
-            backend: "cpu",
+            backend: crate::track::Device::Cpu,
             scalogram: None,
         }
     }

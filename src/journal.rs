@@ -10,6 +10,7 @@
 //! receives) behind a small JSON head and a checksum, written by the worker that finished
 //! the run. `<key>.h5` files of earlier versions are still read.
 
+use crate::report::Status;
 use std::path::{Path, PathBuf};
 
 use crate::identify::IdentifyOptions;
@@ -187,7 +188,7 @@ impl Prepared {
             rows: summary_rows(outcome),
             path: outcome.path.clone(),
             source: outcome.source.clone(),
-            failed: outcome.status() == "failed",
+            failed: outcome.status() == Status::Failed,
         }
     }
 }
@@ -390,7 +391,7 @@ mod tests {
 
     fn prepared(path: &str) -> Prepared {
         let mut run = EncodedRun::new(path);
-        run.str_attr("", "status", "ok");
+        run.str_attr("", "status", Status::Ok.as_str());
         run.f64_attr("", "sample_rate", 1000.0);
         run.group("wavelet");
         let x: Vec<f64> = (0..10_000).map(|i| (i as f64 * 0.01).sin()).collect();

@@ -356,7 +356,7 @@ fn gpu_and_cpu_backends_give_the_same_tracks() {
         let r = r.as_ref().unwrap();
         for (how, ours) in [("batch of 4", &batched[k]), ("alone", &alone[k])] {
             let ours = ours.as_ref().unwrap();
-            assert_eq!(ours.backend, "gpu");
+            assert_eq!(ours.backend, skelid::track::Device::Gpu);
             let mut a = skelid::bench::backends::Agreement::default();
             a.add(r, ours);
             let (env, freq, mask) = (a.envelope_rel, a.frequency_hz, a.mask_samples);

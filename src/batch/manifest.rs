@@ -3,6 +3,7 @@
 //! the end of a batch and of a merge; read by `merge` and by resumes.
 
 use crate::journal::Entry;
+use crate::report::Status;
 
 use super::*;
 
@@ -47,7 +48,7 @@ pub struct ManifestRun {
     /// Journal key.
     pub key: String,
     /// `ok` or `failed`.
-    pub status: String,
+    pub status: Status,
 }
 
 impl Manifest {
@@ -75,7 +76,7 @@ impl Manifest {
                     source: e.source.clone(),
                     path: e.path.clone(),
                     key: e.key.clone(),
-                    status: if e.failed { "failed" } else { "ok" }.into(),
+                    status: if e.failed { Status::Failed } else { Status::Ok },
                 })
                 .collect(),
         }

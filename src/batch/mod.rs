@@ -367,7 +367,7 @@ mod tests {
         RunPlots {
             path: "/runs/r".into(),
             source: source.into(),
-            status: "ok".into(),
+            status: crate::report::Status::Ok,
             error: None,
             methods: Vec::new(),
         }

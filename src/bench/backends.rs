@@ -181,7 +181,7 @@ pub fn compare(
         let fallbacks = tracks
             .iter()
             .flatten()
-            .filter(|t| backend.is_gpu() && t.backend != "gpu")
+            .filter(|t| backend.is_gpu() && t.backend != crate::track::Device::Gpu)
             .count();
         let mut sorted = seconds.clone();
         sorted.sort_by(f64::total_cmp);

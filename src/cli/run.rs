@@ -256,7 +256,10 @@ pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
 /// " (N of M run × method failed; S suspect, B bad)": the results that failed, and those
 /// whose verdict is not good ([`skelid::quality`]), when there are any.
 pub(crate) fn result_counts(rows: &[skelid::report::SummaryRow]) -> String {
-    let failed = rows.iter().filter(|r| r.status != "ok").count();
+    let failed = rows
+        .iter()
+        .filter(|r| r.status != skelid::report::Status::Ok)
+        .count();
     let count = |q: &str| rows.iter().filter(|r| r.quality == q).count();
     let mut parts = Vec::new();
     if failed > 0 {
@@ -452,7 +455,7 @@ pub(crate) fn render_summary(
         let t = truth.and_then(|f| f(&r.run));
         let f0 = get(r, "stiffness").map(|k| k.max(0.0).sqrt() / std::f64::consts::TAU);
         let notes = match r.quality.as_str() {
-            _ if r.status != "ok" => r.error.clone(),
+            _ if r.status != skelid::report::Status::Ok => r.error.clone(),
             "suspect" | "bad" => format!("{}: {}", r.quality.to_uppercase(), r.quality_reasons),
             _ => r.warnings.clone(),
         };

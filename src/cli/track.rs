@@ -172,7 +172,7 @@ pub(crate) fn cmd_track(a: TrackArgs) -> Result<()> {
         track.method.as_str(),
         track.band.0,
         track.band.1,
-        track.backend
+        track.backend.as_str()
     );
     println!(
         "valid {:.1} % of samples; over them frequency {:.4}-{:.4} Hz, amplitude {:.4e}-{:.4e}",

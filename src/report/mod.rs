@@ -19,6 +19,41 @@ use crate::campaign::tmp_path;
 use crate::identify::Identification;
 use crate::track::Method;
 
+/// How a run (or one method of it) ended: results.h5's `status`, the summaries' and the
+/// manifest's.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Status {
+    /// Identified (a run: by at least one method).
+    Ok,
+    /// Not identified; the error says why.
+    Failed,
+}
+
+impl Status {
+    /// The name written to the files.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Status::Ok => "ok",
+            Status::Failed => "failed",
+        }
+    }
+
+    /// A status as stored: `ok`, else failed (a run without one never finished).
+    pub fn parse(text: Option<&str>) -> Status {
+        match text {
+            Some("ok") => Status::Ok,
+            _ => Status::Failed,
+        }
+    }
+}
+
+impl std::fmt::Display for Status {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
 /// Why an output file could not be written.
 #[derive(Debug, thiserror::Error)]
 #[error("{file}: cannot write: {detail}")]
@@ -80,7 +115,7 @@ impl RunOutcome {
             .filter_map(|(m, r, _)| (*m == Method::Wavelet).then_some(r.as_ref().ok()?))
             .flat_map(|id| id.input.iter().chain(std::iter::once(&id.response)))
             .peekable();
-        if tracks.peek().is_some() && tracks.all(|t| t.backend == "gpu") {
+        if tracks.peek().is_some() && tracks.all(|t| t.backend == crate::track::Device::Gpu) {
             "gpu"
         } else {
             "cpu"
@@ -102,12 +137,12 @@ impl RunOutcome {
         }
     }
 
-    /// `ok` when at least one method identified the run.
-    pub fn status(&self) -> &'static str {
+    /// `Ok` when at least one method identified the run.
+    pub fn status(&self) -> Status {
         if self.error.is_none() && self.methods.iter().any(|m| m.1.is_ok()) {
-            "ok"
+            Status::Ok
         } else {
-            "failed"
+            Status::Failed
         }
     }
 
@@ -156,7 +191,7 @@ mod tests {
         let mask: Vec<u8> = (0..10_000).map(|i| u8::from(i % 3 == 0)).collect();
         let run = |path: &str, scale: f64| {
             let mut e = EncodedRun::new(path);
-            e.str_attr("", "status", "ok");
+            e.str_attr("", "status", Status::Ok.as_str());
             e.f64_attr("", "sample_rate", 1000.0);
             e.group("wavelet");
             e.group("wavelet/skeleton");

@@ -17,10 +17,10 @@ pub(super) type BinColumn = fn(&Bin) -> f64;
 /// compression included), so the batch's workers do it in parallel, outside libhdf5's lock.
 pub fn encode_run(run: &RunOutcome) -> EncodedRun {
     let mut e = EncodedRun::new(&run.path);
-    e.str_attr("", "status", run.status());
+    e.str_attr("", "status", run.status().as_str());
     // `error` goes with `failed` only (FORMATS.md §3): a run that one method identified is
     // `ok`, and names its failed methods instead (each method's group holds its error).
-    if run.status() == "failed" {
+    if run.status() == Status::Failed {
         if let Some(err) = run.error_text() {
             e.str_attr("", "error", &err);
         }
@@ -69,11 +69,11 @@ pub fn encode_run(run: &RunOutcome) -> EncodedRun {
         }
         match result {
             Err(err) => {
-                e.str_attr(m, "status", "failed");
+                e.str_attr(m, "status", Status::Failed.as_str());
                 e.str_attr(m, "error", err);
             }
             Ok(id) => {
-                e.str_attr(m, "status", "ok");
+                e.str_attr(m, "status", Status::Ok.as_str());
                 encode_identification(&mut e, m, id, run.inertia, &run.units);
             }
         }

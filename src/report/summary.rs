@@ -18,7 +18,7 @@ pub struct SummaryRow {
     /// Method (empty when the run could not be read).
     pub method: String,
     /// `ok` or `failed`.
-    pub status: String,
+    pub status: Status,
     /// Error text when failed.
     pub error: String,
     /// Fitted parameters and extras, FORMATS.md §3 names (null where not fitted).
@@ -49,11 +49,11 @@ pub struct SummaryRow {
 
 /// The summary rows of one run.
 pub fn summary_rows(run: &RunOutcome) -> Vec<SummaryRow> {
-    let base = |method: &str, status: &str, error: String, seconds: f64| SummaryRow {
+    let base = |method: &str, status: Status, error: String, seconds: f64| SummaryRow {
         run: run.path.clone(),
         source: run.source.clone(),
         method: method.into(),
-        status: status.into(),
+        status,
         error,
         parameters: Default::default(),
         warnings: String::new(),
@@ -65,16 +65,16 @@ pub fn summary_rows(run: &RunOutcome) -> Vec<SummaryRow> {
         base_units: Some(run.units.clone()),
     };
     if let Some(e) = &run.error {
-        return vec![base("", "failed", e.clone(), 0.0)];
+        return vec![base("", Status::Failed, e.clone(), 0.0)];
     }
     let (qualities, recommended) = run.qualities();
     run.methods
         .iter()
         .zip(qualities)
         .map(|((m, r, secs), quality)| match r {
-            Err(e) => base(m.as_str(), "failed", e.clone(), *secs),
+            Err(e) => base(m.as_str(), Status::Failed, e.clone(), *secs),
             Ok(id) => {
-                let mut row = base(m.as_str(), "ok", String::new(), *secs);
+                let mut row = base(m.as_str(), Status::Ok, String::new(), *secs);
                 row.parameters = parameters(id, run.inertia)
                     .into_iter()
                     .map(|(k, v)| (k.to_string(), v.is_finite().then_some(v)))

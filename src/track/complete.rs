@@ -11,7 +11,7 @@ use rayon::prelude::*;
 use crate::filter::{local_line_weighted, local_slope};
 use crate::skeleton::{GridEstimate, GridPoint};
 
-use super::{unwrap_phase, CoarseRidge, Method, Scalogram, Track, WaveletPrep};
+use super::{unwrap_phase, CoarseRidge, Device, Method, Scalogram, Track, WaveletPrep};
 
 impl WaveletPrep {
     /// The track from the skeleton on the grid, on the CPU whichever backend estimated it:
@@ -23,7 +23,7 @@ impl WaveletPrep {
         ridge: CoarseRidge,
         grid: &[GridPoint],
         est: &[GridEstimate],
-        backend: &'static str,
+        backend: Device,
     ) -> Track {
         let scalogram = ridge.power.as_ref().map(|p| Scalogram {
             frequency: self.freqs.clone(),

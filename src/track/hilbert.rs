@@ -7,7 +7,7 @@ use std::f64::consts::PI;
 use crate::filter::lowpass_zero_phase;
 use crate::transform::{hilbert, Spectrum};
 
-use super::{check_signal, unwrap_phase, HilbertOptions, Method, Track, TrackError};
+use super::{check_signal, unwrap_phase, Device, HilbertOptions, Method, Track, TrackError};
 
 /// Envelope, frequency and derivatives by the Hilbert transform.
 ///
@@ -90,7 +90,7 @@ fn hilbert_inner(x: &[f64], fs: f64, opt: &HilbertOptions) -> Result<Track, Trac
         offset: an.mean,
         noise,
         band: (0.0, fs / 2.0),
-        backend: "cpu",
+        backend: Device::Cpu,
         scalogram: None,
     })
 }

@@ -205,10 +205,30 @@ pub struct Track {
     pub noise: f64,
     /// Analysis range (Hz) of the wavelet method; the whole band for Hilbert.
     pub band: (f64, f64),
-    /// Backend that evaluated the all-scale transform and the ridge: `cpu` or `gpu`.
-    pub backend: &'static str,
+    /// Where the all-scale transform and the ridge were evaluated.
+    pub backend: Device,
     /// The first pass's |W| on its coarse grid, when asked for (`--keep-scalogram`).
     pub scalogram: Option<Scalogram>,
+}
+
+/// Where a track's wavelet transform was evaluated (results.h5 `backend`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Device {
+    /// The CPU backend (every Hilbert track too).
+    Cpu,
+    /// The GPU backend.
+    Gpu,
+}
+
+impl Device {
+    /// The name written to results.h5 and printed.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Device::Cpu => "cpu",
+            Device::Gpu => "gpu",
+        }
+    }
 }
 
 /// |W| of every scale on the first pass's coarse time grid.

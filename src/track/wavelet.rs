@@ -10,8 +10,8 @@ use crate::transform::band::{interpolate, ScalePlan};
 use crate::transform::{log_frequencies, Morlet, Spectrum};
 
 use super::{
-    check_signal, default_band, RidgeSearch, Track, TrackError, WaveletOptions, MIN_NOISE_STEPS,
-    PASS1_OVERSAMPLE, PASS1_TOLERANCE,
+    check_signal, default_band, Device, RidgeSearch, Track, TrackError, WaveletOptions,
+    MIN_NOISE_STEPS, PASS1_OVERSAMPLE, PASS1_TOLERANCE,
 };
 
 /// One scale's first pass on the CPU: its ridge scores, noise median, kept |W|² (when a
@@ -35,7 +35,7 @@ pub fn track_wavelet(
 ) -> Result<Track, TrackError> {
     let prep = WaveletPrep::new(x, fs, opt, guide)?;
     let ridge = prep.coarse_ridge();
-    Ok(prep.finish(ridge, "cpu"))
+    Ok(prep.finish(ridge, Device::Cpu))
 }
 
 /// A wavelet track set up to its first pass: the spectrum, the scales and their band
@@ -337,7 +337,7 @@ impl WaveletPrep {
     /// ([`grid`](Self::grid)), the skeleton at every grid point
     /// ([`estimate_grid`](Self::estimate_grid)), then [`complete`](Self::complete).
     /// `backend` names who computed `ridge`.
-    pub fn finish(self, ridge: CoarseRidge, backend: &'static str) -> Track {
+    pub fn finish(self, ridge: CoarseRidge, backend: Device) -> Track {
         crate::profile::time(crate::profile::Stage::Refine, || {
             let grid = self.grid(&ridge.path);
             let estimates = self.estimate_grid(&grid);

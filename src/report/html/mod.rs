@@ -12,6 +12,7 @@
 mod figures;
 mod stored;
 
+use crate::report::Status;
 pub(crate) use figures::{esc, reduce, svg_plot, Mark, Series, YAxis};
 use figures::{fit_color, method_color, run_figures};
 pub use stored::{encoded_plots, read_run, Fitted, MethodPlots, RunPlots, Skeleton};
@@ -98,14 +99,14 @@ pub fn render(page: &ReportPage) -> String {
         seen.dedup();
         seen.len()
     };
-    let failed_rows = page.rows.iter().filter(|r| r.status != "ok").count();
+    let failed_rows = page.rows.iter().filter(|r| r.status != Status::Ok).count();
     // A run failed when every one of its rows did (the terminal and results.h5 count so).
     let failed_runs = {
         let mut runs: std::collections::BTreeMap<(&str, &str), bool> = Default::default();
         for r in page.rows {
             *runs
                 .entry((r.source.as_str(), r.run.as_str()))
-                .or_insert(true) &= r.status != "ok";
+                .or_insert(true) &= r.status != Status::Ok;
         }
         runs.values().filter(|&&f| f).count()
     };
@@ -213,7 +214,7 @@ pub fn render(page: &ReportPage) -> String {
                     "<h3>{} <small>{} · {}</small></h3>",
                     esc(&run.path),
                     esc(&run.source),
-                    esc(&run.status)
+                    esc(run.status.as_str())
                 );
                 if let Some(e) = &run.error {
                     let _ = writeln!(body, "<p class=\"error\">{}</p>", esc(e));
@@ -351,9 +352,9 @@ fn table(page: &ReportPage) -> String {
             t,
             "<tr class=\"{}\"><td>{run}</td><td>{}</td><td>{method}</td><td>{}</td>\
              <td class=\"q-{}\" title=\"{}\">{}</td>",
-            esc(&r.status),
+            esc(r.status.as_str()),
             esc(&r.source),
-            esc(&r.status),
+            esc(r.status.as_str()),
             esc(&r.quality),
             esc(&r.quality_reasons),
             esc(&r.quality)

@@ -3,6 +3,7 @@
 //! memory, through one reader ([`StoredRun`]) so that both are read alike. In: a stored run;
 //! out: its plots' data.
 
+use crate::report::Status;
 use std::path::Path;
 
 use super::super::encoded::{Decoded, EncodedRun, Scalar};
@@ -72,7 +73,7 @@ pub struct RunPlots {
     /// Archive file name.
     pub source: String,
     /// `ok` or `failed`.
-    pub status: String,
+    pub status: Status,
     /// The run's error, when it failed.
     pub error: Option<String>,
     /// One entry per method present.
@@ -205,7 +206,7 @@ pub(super) fn plots(run: &dyn StoredRun, group: &str) -> RunPlots {
     RunPlots {
         path: group.to_string(),
         source: run.text("", "source").unwrap_or_default(),
-        status: run.text("", "status").unwrap_or_else(|| "failed".into()),
+        status: Status::parse(run.text("", "status").as_deref()),
         error: run.text("", "error"),
         methods,
     }
