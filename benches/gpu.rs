@@ -25,7 +25,11 @@ fn backends(c: &mut Criterion) {
     let signals = chirps(16);
     let refs: Vec<skelid::backend::Signal> = signals
         .iter()
-        .map(|x| (x.as_slice(), 1000.0, None))
+        .map(|x| skelid::backend::Signal {
+            samples: x,
+            sample_rate: 1000.0,
+            guide: None,
+        })
         .collect();
     let opt = WaveletOptions {
         scales: 128,

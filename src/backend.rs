@@ -79,7 +79,15 @@ struct Warnings {
 }
 
 /// One signal to track: samples, sample rate (Hz), and the guide's frequency per sample.
-pub type Signal<'a> = (&'a [f64], f64, Option<&'a [f64]>);
+#[derive(Debug, Clone, Copy)]
+pub struct Signal<'a> {
+    /// The samples.
+    pub samples: &'a [f64],
+    /// Sample rate (Hz).
+    pub sample_rate: f64,
+    /// The guide's frequency (Hz) per sample, if the ridge is guided.
+    pub guide: Option<&'a [f64]>,
+}
 
 /// What the GPU did for one signal: its ridge, and its skeleton on its estimation grid (or
 /// why the GPU could not refine it, for the CPU to do from the ridge).
@@ -88,11 +96,22 @@ struct GpuPass {
     refined: Result<(Vec<GridPoint>, Vec<GridEstimate>), GpuError>,
 }
 
-/// A signal after the GPU: what it did (or why not), or `None` for the CPU.
-type Passed = (WaveletPrep, Option<Result<GpuPass, GpuError>>);
+/// A signal after the GPU.
+struct Passed {
+    prep: WaveletPrep,
+    /// What the GPU did (or why not); `None` for the CPU to do everything.
+    pass: Option<Result<GpuPass, GpuError>>,
+}
 
-/// The dispatcher's answer to one request: its tag, its signal back, and the GPU's work.
-type Answer = (usize, WaveletPrep, Result<GpuPass, GpuError>);
+/// The dispatcher's answer to one request.
+struct Answer {
+    /// The request's tag (its place among the signals handed over).
+    tag: usize,
+    /// The signal, back.
+    prep: WaveletPrep,
+    /// What the GPU did, or why not.
+    result: Result<GpuPass, GpuError>,
+}
 
 /// Signals handed to the dispatcher: answered slots so far, and where the rest arrive
 /// (`None` on the CPU backend, every slot already filled).
@@ -113,6 +132,17 @@ struct Request {
     tag: usize,
     prep: WaveletPrep,
     reply: Sender<Answer>,
+}
+
+impl Request {
+    /// Sends the answer back to whoever waits for this signal (gone: nothing to do).
+    fn answer(self, result: Result<GpuPass, GpuError>) {
+        let _ = self.reply.send(Answer {
+            tag: self.tag,
+            prep: self.prep,
+            result,
+        });
+    }
 }
 
 struct GpuService {
@@ -315,8 +345,8 @@ impl Backend {
         let mut prep = WaveletPrep::new(x, fs, opt, guide)?;
         prep.keep_scalogram = keep_scalogram;
         let mut answers = self.first_passes(vec![prep]);
-        let (prep, ridge) = answers.pop().expect("one answer per signal");
-        Ok(self.finish(prep, ridge))
+        let passed = answers.pop().expect("one answer per signal");
+        Ok(self.finish(passed.prep, passed.pass))
     }
 
     /// The wavelet tracks of many signals, all with the same options, in order: prepared
@@ -343,7 +373,7 @@ impl Backend {
             at += group.len();
             let preps: Vec<Result<WaveletPrep, TrackError>> = group
                 .par_iter()
-                .map(|&(x, fs, g)| WaveletPrep::new(x, fs, opt, g))
+                .map(|s| WaveletPrep::new(s.samples, s.sample_rate, opt, s.guide))
                 .collect();
             if let Some(budget) = self.gpu.as_ref().map(|g| g.submission_budget) {
                 let (bytes, n) = preps
@@ -383,7 +413,7 @@ impl Backend {
         let mut tracks = self
             .receive(group.sent)
             .into_par_iter()
-            .map(|(prep, ridge)| self.finish(prep, ridge))
+            .map(|p| self.finish(p.prep, p.pass))
             .collect::<Vec<Track>>()
             .into_iter();
         group
@@ -405,7 +435,10 @@ impl Backend {
         let mut out: Vec<Option<Passed>> = (0..count).map(|_| None).collect();
         let Some(service) = &self.gpu else {
             for (slot, p) in out.iter_mut().zip(preps) {
-                *slot = Some((p, None));
+                *slot = Some(Passed {
+                    prep: p,
+                    pass: None,
+                });
             }
             return Sent { out, answers: None };
         };
@@ -424,7 +457,10 @@ impl Backend {
                 };
                 if let Err(mpsc::SendError(r)) = sent {
                     let gone = GpuError::Lost("the GPU thread has ended".into());
-                    out[r.tag] = Some((r.prep, Some(Err(gone))));
+                    out[r.tag] = Some(Passed {
+                        prep: r.prep,
+                        pass: Some(Err(gone)),
+                    });
                 }
             }
         }
@@ -438,8 +474,11 @@ impl Backend {
     fn receive(&self, sent: Sent) -> Vec<Passed> {
         let Sent { mut out, answers } = sent;
         if let Some(answers) = answers {
-            for (tag, prep, result) in answers.iter() {
-                out[tag] = Some((prep, Some(result)));
+            for a in answers.iter() {
+                out[a.tag] = Some(Passed {
+                    prep: a.prep,
+                    pass: Some(a.result),
+                });
             }
         }
         out.into_iter()
@@ -528,7 +567,7 @@ fn dispatch(
             match stages.first.check(gpu, &r.prep) {
                 Ok(()) => kept.push(r),
                 Err(e) => {
-                    let _ = r.reply.send((r.tag, r.prep, Err(e)));
+                    r.answer(Err(e));
                 }
             }
         }
@@ -709,7 +748,7 @@ fn advance(
                     ridge,
                     refined: est.map(|e| (grid, e)),
                 };
-                let _ = r.reply.send((r.tag, r.prep, Ok(pass)));
+                r.answer(Ok(pass));
             }
             None
         }
@@ -730,7 +769,7 @@ fn fail(parts: Vec<Vec<Request>>, e: GpuError, dead: &mut Option<String>) {
         dead.get_or_insert_with(|| why.clone());
     }
     for r in parts.into_iter().flatten() {
-        let _ = r.reply.send((r.tag, r.prep, Err(copy_error(&e))));
+        r.answer(Err(copy_error(&e)));
     }
 }
 

@@ -227,22 +227,16 @@ fn drive_outside_band(tf: &mut Track) {
     }
 }
 
-/// What one identification works with: its options and the backend of the transform.
-struct Ctx<'a> {
-    opt: &'a IdentifyOptions,
-    backend: &'a Backend,
-}
-
 fn track(
     x: &[f64],
     fs: f64,
     method: Method,
-    ctx: &Ctx,
+    ctx: &Identifier,
     guide: Option<&Track>,
     channel: &'static str,
 ) -> Result<Track, IdentifyError> {
     let t0 = crate::profile::thread_cpu();
-    let opt = ctx.opt;
+    let opt = ctx.options;
     let r = match method {
         Method::Wavelet => {
             ctx.backend
@@ -274,20 +268,11 @@ pub fn identify(
     opt: &IdentifyOptions,
     backend: &Backend,
 ) -> Result<Identification, IdentifyError> {
-    identify_inner(run, method, &Ctx { opt, backend }, None)
-}
-
-/// Identifies a base-motion run whose input channel was already tracked (`input`): a
-/// simulation driven by a measured input needs only its response tracked, which halves the
-/// cost of each gap evaluation.
-pub fn identify_with_input_track(
-    run: &Run,
-    method: Method,
-    opt: &IdentifyOptions,
-    backend: &Backend,
-    input: &Track,
-) -> Result<Identification, IdentifyError> {
-    identify_inner(run, method, &Ctx { opt, backend }, Some(input))
+    Identifier {
+        options: opt,
+        backend,
+    }
+    .identify(run, method)
 }
 
 /// The user's identification options and the backend, handed together to the stages that
@@ -301,31 +286,34 @@ pub struct Identifier<'a> {
 }
 
 impl Identifier<'_> {
-    /// [`identify`] with these options and backend.
+    /// Identifies one loaded run with one method.
     pub fn identify(&self, run: &Run, method: Method) -> Result<Identification, IdentifyError> {
-        identify(run, method, self.options, self.backend)
+        identify_profiled(run, method, self, None)
     }
 
-    /// [`identify_with_input_track`] with these options and backend.
+    /// [`identify`](Self::identify) for a base-motion run whose input channel was already
+    /// tracked (`input`): a simulation driven by a measured input needs only its response
+    /// tracked, which halves the cost of each gap evaluation.
     pub fn identify_with_input_track(
         &self,
         run: &Run,
         method: Method,
         input: &Track,
     ) -> Result<Identification, IdentifyError> {
-        identify_with_input_track(run, method, self.options, self.backend, input)
+        identify_profiled(run, method, self, Some(input))
     }
 }
 
-fn identify_inner(
+/// The identification, its CPU time split between the tracks and the rest for the profile.
+fn identify_profiled(
     run: &Run,
     method: Method,
-    ctx: &Ctx,
+    ctx: &Identifier,
     known_input: Option<&Track>,
 ) -> Result<Identification, IdentifyError> {
     let before = TRACKED.with(|t| t.get());
     let t0 = crate::profile::thread_cpu();
-    let r = identify_body(run, method, ctx, known_input);
+    let r = identify_run(run, method, ctx, known_input);
     let tracks = TRACKED.with(|t| t.get()) - before;
     crate::profile::add(
         crate::profile::Stage::ForceVibFit,
@@ -336,31 +324,34 @@ fn identify_inner(
     r
 }
 
-fn identify_body(
+/// A run through conditioning, tracks, ForceVib, skeleton and fits.
+fn identify_run(
     run: &Run,
     method: Method,
-    ctx: &Ctx,
+    ctx: &Identifier,
     known_input: Option<&Track>,
 ) -> Result<Identification, IdentifyError> {
     let meta = &run.meta;
     let fs = meta.sample_rate;
-    let Conditioned { band, channels } = condition::condition(run, ctx.opt.mode)?;
+    let Conditioned { band, channels } = condition::condition(run, ctx.options.mode)?;
     // Within a mode's band the wavelet's scales span the band alone, unless given.
     let banded;
+    let within;
     let ctx = match &band {
         Some(b) => {
-            let mut o = ctx.opt.clone();
+            let mut o = ctx.options.clone();
             o.wavelet.fmin = o.wavelet.fmin.or(Some(b.fmin));
             o.wavelet.fmax = o.wavelet.fmax.or(Some(b.fmax));
             banded = o;
-            &Ctx {
-                opt: &banded,
+            within = Identifier {
+                options: &banded,
                 backend: ctx.backend,
-            }
+            };
+            &within
         }
         None => ctx,
     };
-    let opt = ctx.opt;
+    let opt = ctx.options;
     let mut warnings = Vec::new();
     let (input, response, modal, mass) = match channels {
         Channels::Free { response: y } => {

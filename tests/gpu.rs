@@ -338,9 +338,17 @@ fn gpu_and_cpu_backends_give_the_same_tracks() {
         .collect();
     let mut all: Vec<skelid::backend::Signal> = signals
         .iter()
-        .map(|(x, g)| (x.as_slice(), 1000.0, g.as_deref()))
+        .map(|(x, g)| skelid::backend::Signal {
+            samples: x,
+            sample_rate: 1000.0,
+            guide: g.as_deref(),
+        })
         .collect();
-    all.push((&long, 1000.0, None));
+    all.push(skelid::backend::Signal {
+        samples: &long,
+        sample_rate: 1000.0,
+        guide: None,
+    });
     let opt = WaveletOptions {
         scales: 128,
         ..Default::default()
@@ -349,7 +357,7 @@ fn gpu_and_cpu_backends_give_the_same_tracks() {
     let batched = gpu.track_many(&all, &opt);
     let alone: Vec<_> = all
         .iter()
-        .map(|&(x, fs, g)| gpu.track_wavelet(x, fs, &opt, g))
+        .map(|s| gpu.track_wavelet(s.samples, s.sample_rate, &opt, s.guide))
         .collect();
     assert!(gpu.warnings().is_empty(), "{:?}", gpu.warnings());
     for (k, r) in reference.iter().enumerate() {

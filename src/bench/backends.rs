@@ -158,7 +158,11 @@ pub fn compare(
     let repeat = repeat.max(1);
     let refs: Vec<Signal> = signals
         .iter()
-        .map(|(x, fs)| (x.as_slice(), *fs, None))
+        .map(|(x, fs)| Signal {
+            samples: x,
+            sample_rate: *fs,
+            guide: None,
+        })
         .collect();
     let samples: usize = signals.iter().map(|s| s.0.len()).sum();
     let mut timings = Vec::new();

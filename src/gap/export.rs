@@ -61,7 +61,7 @@ pub fn run_json(r: &GapRun) -> Value {
             })
         })
         .collect();
-    let baseline_whole = &r.baseline.0;
+    let baseline_whole = &r.baseline.gap;
     json!({
         "run": d.run,
         "nominal_gap": num(d.nominal_score.holdout),
@@ -72,9 +72,9 @@ pub fn run_json(r: &GapRun) -> Value {
         "nominal": score_json(&d.nominal_score),
         "baseline": score_json(&d.baseline.score),
         "whole_run_gap": {
-            "nominal": r.nominal.as_ref().map_or(Value::Null, |w| num(w.0.total)),
-            "baseline": num(r.baseline.0.total),
-            "fitted": num(r.fitted().0.total),
+            "nominal": r.nominal.as_ref().map_or(Value::Null, |w| num(w.gap.total)),
+            "baseline": num(r.baseline.gap.total),
+            "fitted": num(r.fitted().gap.total),
         },
         "baseline_model": d.baseline.model,
         "fitted_model": d.fitted_model(),
@@ -159,8 +159,8 @@ fn run_figures(r: &GapRun) -> Vec<String> {
     // A nominal model whose response could not be identified has no lines.
     let ids = [
         Some(&r.measured),
-        r.nominal.as_ref().map(|w| &w.1),
-        Some(&r.fitted().1),
+        r.nominal.as_ref().map(|w| &w.identified),
+        Some(&r.fitted().identified),
     ];
     let env: Vec<(Vec<f64>, Vec<f64>)> = ids
         .iter()
@@ -261,9 +261,9 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
             esc(&d.verdict_name()),
             gap_text(d.nominal_score.holdout),
             gap_text(d.baseline.score.holdout),
-            gap_text(r.nominal.as_ref().map_or(f64::NAN, |w| w.0.total)),
-            gap_text(r.baseline.0.total),
-            gap_text(r.fitted().0.total),
+            gap_text(r.nominal.as_ref().map_or(f64::NAN, |w| w.gap.total)),
+            gap_text(r.baseline.gap.total),
+            gap_text(r.fitted().gap.total),
             d.evaluations,
             d.seconds
         );
@@ -310,7 +310,7 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
             );
         }
         b.push_str("</table>\n<p>Where the refitted model's gap lies (largest shares):</p><ul>\n");
-        for reg in r.baseline.0.regions.iter().take(4) {
+        for reg in r.baseline.gap.regions.iter().take(4) {
             let _ = writeln!(
                 b,
                 "<li>{}: {:.0} % — {:.1}–{:.1} s, A {}–{}, {:.2}–{:.2} Hz</li>",

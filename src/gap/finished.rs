@@ -7,7 +7,12 @@ use super::{Diagnosis, Gap, GapError};
 use crate::identify::Identification;
 
 /// A model over the whole run: its gap and its simulation's identification.
-pub type Whole = (Gap, Identification);
+pub struct Whole {
+    /// The gap over the whole run.
+    pub gap: Gap,
+    /// The simulation's identification.
+    pub identified: Identification,
+}
 
 /// One run's diagnosis with the whole-run gaps and identifications of the models it names.
 pub struct GapRun {

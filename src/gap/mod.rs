@@ -152,9 +152,17 @@ pub enum GapError {
     /// The run cannot drive a base-motion simulation.
     #[error("{0}")]
     Unusable(String),
-    /// The simulated response could not be identified.
+    /// The model gives no response that can be identified (no refit of it does either).
     #[error("the model's simulated response could not be identified: {0}")]
     Simulated(String),
+    /// The simulated response could not be identified, and why. The identification's error
+    /// is kept whole, typed; it is part of the message rather than a `source()` because
+    /// every place that shows a gap error prints the whole chain.
+    #[error("the model's simulated response could not be identified: {reason}")]
+    Unidentified {
+        /// Why the identification failed.
+        reason: crate::identify::IdentifyError,
+    },
 }
 
 #[cfg(test)]

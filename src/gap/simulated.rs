@@ -130,7 +130,7 @@ pub fn simulate_given(
         Some(tx) => identifier.identify_with_input_track(&run, Method::Wavelet, tx),
         None => identifier.identify(&run, Method::Wavelet),
     }
-    .map_err(|e| GapError::Simulated(e.to_string()))?;
+    .map_err(|reason| GapError::Unidentified { reason })?;
     Ok(Simulated {
         run,
         identified,

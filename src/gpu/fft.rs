@@ -228,35 +228,14 @@ impl FftStage {
         n: usize,
         inverse: bool,
     ) -> Result<(), GpuError> {
-        if n == 0 || !data.len().is_multiple_of(n) {
-            return Err(GpuError::Unsupported(format!(
-                "{} values are not a whole number of length-{n} transforms",
-                data.len()
-            )));
-        }
         let flat: Vec<[f32; 2]> = data.iter().map(|c| [c.re, c.im]).collect();
-        let a = gpu.upload("fft data", &flat);
-        let b = gpu.storage("fft scratch", (flat.len() * 8) as u64);
-        let mut enc = gpu
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("fft") });
-        let holder = self.encode(gpu, &mut enc, n, data.len() / n, inverse, &a, &b, 0)?;
-        gpu.submit(enc);
-        let out: Vec<[f32; 2]> = gpu.download(
-            match holder {
-                Holder::Data => &a,
-                Holder::Scratch => &b,
-            },
-            flat.len(),
-        )?;
+        let out = self.round_trip(gpu, flat, n, inverse)?;
         for (d, o) in data.iter_mut().zip(out) {
             *d = Complex32::new(o[0], o[1]);
         }
         Ok(())
     }
-}
 
-impl FftStage {
     /// Transforms host data in place in f64 (a stage made with [`Real::F64`]): `data`
     /// holds `data.len() / n` sequences of length `n`. For tests and benchmarks.
     pub fn transform_f64(
@@ -266,32 +245,48 @@ impl FftStage {
         n: usize,
         inverse: bool,
     ) -> Result<(), GpuError> {
-        if self.real != Real::F64 || n == 0 || !data.len().is_multiple_of(n) {
-            return Err(GpuError::Unsupported(format!(
-                "{} values in length-{n} transforms on a {:?} stage",
-                data.len(),
-                self.real
-            )));
+        if self.real != Real::F64 {
+            return Err(GpuError::Unsupported(
+                "transform_f64 needs a stage made with Real::F64".into(),
+            ));
         }
         let flat: Vec<[f64; 2]> = data.iter().map(|c| [c.re, c.im]).collect();
+        let out = self.round_trip(gpu, flat, n, inverse)?;
+        for (d, o) in data.iter_mut().zip(out) {
+            *d = Complex64::new(o[0], o[1]);
+        }
+        Ok(())
+    }
+
+    /// Uploads `flat` (complex values as pairs in the stage's precision), transforms it in
+    /// sequences of length `n` and reads it back.
+    fn round_trip<T: bytemuck::Pod>(
+        &self,
+        gpu: &Gpu,
+        flat: Vec<[T; 2]>,
+        n: usize,
+        inverse: bool,
+    ) -> Result<Vec<[T; 2]>, GpuError> {
+        if n == 0 || !flat.len().is_multiple_of(n) {
+            return Err(GpuError::Unsupported(format!(
+                "{} values are not a whole number of length-{n} transforms",
+                flat.len()
+            )));
+        }
         let a = gpu.upload("fft data", &flat);
-        let b = gpu.storage("fft scratch", (flat.len() * 16) as u64);
+        let b = gpu.storage("fft scratch", std::mem::size_of_val(flat.as_slice()) as u64);
         let mut enc = gpu
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("fft") });
-        let holder = self.encode(gpu, &mut enc, n, data.len() / n, inverse, &a, &b, 0)?;
+        let holder = self.encode(gpu, &mut enc, n, flat.len() / n, inverse, &a, &b, 0)?;
         gpu.submit(enc);
-        let out: Vec<[f64; 2]> = gpu.download(
+        gpu.download(
             match holder {
                 Holder::Data => &a,
                 Holder::Scratch => &b,
             },
             flat.len(),
-        )?;
-        for (d, o) in data.iter_mut().zip(out) {
-            *d = Complex64::new(o[0], o[1]);
-        }
-        Ok(())
+        )
     }
 }
 

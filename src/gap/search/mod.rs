@@ -26,7 +26,7 @@ pub use fit::{effect_start, nelder_mead, refit_baseline, refit_with, Fitted};
 
 use super::{
     decimate, decimation_for, measured_resolution, resolution_per_step, simulate_given, Blocks,
-    Gap, GapError, Part, Target,
+    GapError, Part, Target,
 };
 use crate::identify::{Identification, Identifier};
 use crate::model::{EffectKind, RigModel};
@@ -209,7 +209,7 @@ impl<'a> Reference<'a> {
 
     /// The gap of `model` over the whole run, with the simulation's identification (for
     /// the report's regions and plots).
-    pub fn whole(&self, model: &RigModel) -> Result<(Gap, Identification), GapError> {
+    pub fn whole(&self, model: &RigModel) -> Result<super::Whole, GapError> {
         let s = simulate_given(
             self.run,
             Some(&self.identified),
@@ -218,7 +218,10 @@ impl<'a> Reference<'a> {
             self.identifier,
         )?;
         let gap = self.whole.gap(&self.identified, &s.features());
-        Ok((gap, s.identified))
+        Ok(super::Whole {
+            gap,
+            identified: s.identified,
+        })
     }
 
     /// Simulations run so far.
