@@ -4,7 +4,7 @@
 pub mod encoded;
 pub mod html;
 mod results;
-mod schema;
+pub mod schema;
 mod summary;
 mod track_file;
 

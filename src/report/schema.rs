@@ -17,12 +17,12 @@ pub(super) type BinColumn = fn(&Bin) -> f64;
 /// compression included), so the batch's workers do it in parallel, outside libhdf5's lock.
 pub fn encode_run(run: &RunOutcome) -> EncodedRun {
     let mut e = EncodedRun::new(&run.path);
-    e.str_attr("", "status", run.status().as_str());
+    e.str_attr("", name::STATUS, run.status().as_str());
     // `error` goes with `failed` only (FORMATS.md §3): a run that one method identified is
     // `ok`, and names its failed methods instead (each method's group holds its error).
     if run.status() == Status::Failed {
         if let Some(err) = run.error_text() {
-            e.str_attr("", "error", &err);
+            e.str_attr("", name::ERROR, &err);
         }
     } else {
         let failed: Vec<&str> = run
@@ -36,7 +36,7 @@ pub fn encode_run(run: &RunOutcome) -> EncodedRun {
         }
     }
     e.str_attr("", "backend", run.backend());
-    e.str_attr("", "source", &run.source);
+    e.str_attr("", name::SOURCE, &run.source);
     let (qualities, recommended) = run.qualities();
     if let Some(m) = recommended {
         e.str_attr("", "recommended", m.as_str());
@@ -46,7 +46,7 @@ pub fn encode_run(run: &RunOutcome) -> EncodedRun {
             for (name, value) in crate::refine::NAMES.into_iter().zip(r.values()) {
                 e.f64_attr("", name, value);
                 if let Some(u) = run.units.parameter(name) {
-                    e.str_attr("", &format!("{name}_units"), &u);
+                    e.str_attr("", &format!("{name}{}", name::UNITS_SUFFIX), &u);
                 }
             }
         }
@@ -56,8 +56,8 @@ pub fn encode_run(run: &RunOutcome) -> EncodedRun {
     if let Some(fs) = run.sample_rate {
         e.f64_attr("", "sample_rate", fs);
         let t: Vec<f64> = (0..run.samples).map(|i| i as f64 / fs).collect();
-        e.signal("", "time", &t, true);
-        e.dataset_attr("", "time", "units", "s");
+        e.signal("", name::TIME, &t, true);
+        e.dataset_attr("", name::TIME, "units", "s");
     }
     for ((method, result, seconds), quality) in run.methods.iter().zip(&qualities) {
         let m = method.as_str();
@@ -69,11 +69,11 @@ pub fn encode_run(run: &RunOutcome) -> EncodedRun {
         }
         match result {
             Err(err) => {
-                e.str_attr(m, "status", Status::Failed.as_str());
-                e.str_attr(m, "error", err);
+                e.str_attr(m, name::STATUS, Status::Failed.as_str());
+                e.str_attr(m, name::ERROR, err);
             }
             Ok(id) => {
-                e.str_attr(m, "status", Status::Ok.as_str());
+                e.str_attr(m, name::STATUS, Status::Ok.as_str());
                 encode_identification(&mut e, m, id, run.inertia, &run.units);
             }
         }
@@ -81,16 +81,51 @@ pub fn encode_run(run: &RunOutcome) -> EncodedRun {
     e
 }
 
+/// The names of what a run's results hold (FORMATS.md §3), for the writer (this file) and
+/// the page's reader (`html::stored`) alike: a name changed here changes both.
+pub mod name {
+    /// A run's archive (attribute of the run's group).
+    pub const SOURCE: &str = "source";
+    /// `ok` or `failed` (attribute of a run's and of a method's group).
+    pub const STATUS: &str = "status";
+    /// Why it failed (attribute beside `status`).
+    pub const ERROR: &str = "error";
+    /// The samples' times, s (dataset of the run's group).
+    pub const TIME: &str = "time";
+    /// Trusted samples (dataset of a method's group).
+    pub const VALID: &str = "valid";
+    /// The response's envelope (dataset of a method's group).
+    pub const RESPONSE_AMPLITUDE: &str = "response_amplitude";
+    /// The response's instantaneous frequency, Hz (dataset of a method's group).
+    pub const RESPONSE_FREQUENCY: &str = "response_frequency";
+    /// The skeleton's group inside a method's group.
+    pub const SKELETON: &str = "skeleton";
+    /// Skeleton columns the page draws.
+    pub const AMPLITUDE: &str = "amplitude";
+    /// The natural frequency per bin, Hz.
+    pub const NATURAL_FREQUENCY: &str = "natural_frequency";
+    /// The restoring force per bin.
+    pub const RESTORING_FORCE: &str = "restoring_force";
+    /// The velocity amplitude per bin.
+    pub const VELOCITY_AMPLITUDE: &str = "velocity_amplitude";
+    /// The damping force per bin.
+    pub const DAMPING_FORCE: &str = "damping_force";
+    /// Which backbone model the dead zone was fitted with (attribute of a method's group).
+    pub const BACKBONE_MODEL: &str = "backbone_model";
+    /// A parameter's unit is the attribute `<parameter>` followed by this.
+    pub const UNITS_SUFFIX: &str = "_units";
+}
+
 /// One skeleton's columns (FORMATS.md §3 names plus stiffness, spreads and counts).
 pub(super) fn encode_bins(e: &mut EncodedRun, g: &str, bins: &[Bin], units: &Units) {
     let columns: [(&str, BinColumn); 9] = [
-        ("amplitude", |b| b.amplitude),
-        ("natural_frequency", |b| b.natural_frequency()),
+        (name::AMPLITUDE, |b| b.amplitude),
+        (name::NATURAL_FREQUENCY, |b| b.natural_frequency()),
         ("stiffness", |b| b.stiffness),
         ("stiffness_spread", |b| b.stiffness_spread),
-        ("restoring_force", |b| b.restoring_force()),
-        ("velocity_amplitude", |b| b.velocity),
-        ("damping_force", |b| b.damping_force()),
+        (name::RESTORING_FORCE, |b| b.restoring_force()),
+        (name::VELOCITY_AMPLITUDE, |b| b.velocity),
+        (name::DAMPING_FORCE, |b| b.damping_force()),
         ("damping_spread", |b| b.damping_spread),
         ("count", |b| b.count as f64),
     ];
@@ -124,25 +159,25 @@ pub(super) fn encode_identification(
         signal(e, "input_amplitude", &inp.amplitude);
         signal(e, "input_frequency", &inp.frequency);
     }
-    signal(e, "response_amplitude", &id.response.amplitude);
-    signal(e, "response_frequency", &id.response.frequency);
+    signal(e, name::RESPONSE_AMPLITUDE, &id.response.amplitude);
+    signal(e, name::RESPONSE_FREQUENCY, &id.response.frequency);
     signal(e, "stiffness", &id.modal.stiffness);
     signal(e, "damping", &id.modal.damping);
     let valid: Vec<u8> = id.used.iter().map(|&b| u8::from(b)).collect();
-    e.bytes(m, "valid", &valid, 4);
-    unit(e, m, "valid", units.dataset("valid"));
-    encode_bins(e, &format!("{m}/skeleton"), &id.bins, units);
+    e.bytes(m, name::VALID, &valid, 4);
+    unit(e, m, name::VALID, units.dataset(name::VALID));
+    encode_bins(e, &format!("{m}/{}", name::SKELETON), &id.bins, units);
     // The bins the backbone was fitted on, when not the whole skeleton.
     if id.fitted_at_resonance {
         encode_bins(
             e,
-            &format!("{m}/skeleton_resonant"),
+            &format!("{m}/{}_resonant", name::SKELETON),
             &id.resonant_bins,
             units,
         );
     }
     if let Some(dz) = &id.dead_zone {
-        e.str_attr(m, "backbone_model", dz.model.name());
+        e.str_attr(m, name::BACKBONE_MODEL, dz.model.name());
     }
     e.str_attr(
         m,
@@ -162,7 +197,7 @@ pub(super) fn encode_identification(
     for (name, value) in parameters(id, inertia) {
         e.f64_attr(m, name, value);
         if let Some(u) = units.parameter(name) {
-            e.str_attr(m, &format!("{name}_units"), &u);
+            e.str_attr(m, &format!("{name}{}", name::UNITS_SUFFIX), &u);
         }
     }
     e.str_attr(m, "warnings", &id.warnings.join("\n"));

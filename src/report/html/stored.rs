@@ -3,6 +3,8 @@
 //! memory, through one reader ([`StoredRun`]) so that both are read alike. In: a stored run;
 //! out: its plots' data.
 
+use crate::report::schema::name;
+use crate::report::schema::name as schema_name;
 use crate::report::Status;
 use std::path::Path;
 
@@ -197,7 +199,7 @@ pub fn encoded_plots(run: &EncodedRun) -> RunPlots {
 }
 
 pub(super) fn plots(run: &dyn StoredRun, group: &str) -> RunPlots {
-    let time = run.floats("", "time");
+    let time = run.floats("", name::TIME);
     let methods = ["wavelet", "hilbert"]
         .into_iter()
         .filter(|m| run.has(m))
@@ -205,32 +207,32 @@ pub(super) fn plots(run: &dyn StoredRun, group: &str) -> RunPlots {
         .collect();
     RunPlots {
         path: group.to_string(),
-        source: run.text("", "source").unwrap_or_default(),
-        status: Status::parse(run.text("", "status").as_deref()),
-        error: run.text("", "error"),
+        source: run.text("", name::SOURCE).unwrap_or_default(),
+        status: Status::parse(run.text("", name::STATUS).as_deref()),
+        error: run.text("", name::ERROR),
         methods,
     }
 }
 
 pub(super) fn read_method(run: &dyn StoredRun, m: &str, time: &[f64]) -> MethodPlots {
-    let valid = run.bytes(m, "valid");
-    let (t, amplitude) = reduce(time, &run.floats(m, "response_amplitude"), &valid);
-    let (_, frequency) = reduce(time, &run.floats(m, "response_frequency"), &valid);
-    let sk = format!("{m}/skeleton");
+    let valid = run.bytes(m, name::VALID);
+    let (t, amplitude) = reduce(time, &run.floats(m, name::RESPONSE_AMPLITUDE), &valid);
+    let (_, frequency) = reduce(time, &run.floats(m, name::RESPONSE_FREQUENCY), &valid);
+    let sk = format!("{m}/{}", name::SKELETON);
     let skeleton = if run.has(&sk) {
         let col = |n: &str| run.floats(&sk, n);
         Skeleton {
-            amplitude: col("amplitude"),
-            natural_frequency: col("natural_frequency"),
-            restoring_force: col("restoring_force"),
-            velocity_amplitude: col("velocity_amplitude"),
-            damping_force: col("damping_force"),
+            amplitude: col(name::AMPLITUDE),
+            natural_frequency: col(name::NATURAL_FREQUENCY),
+            restoring_force: col(name::RESTORING_FORCE),
+            velocity_amplitude: col(name::VELOCITY_AMPLITUDE),
+            damping_force: col(name::DAMPING_FORCE),
         }
     } else {
         Skeleton::default()
     };
     let model = run
-        .text(m, "backbone_model")
+        .text(m, name::BACKBONE_MODEL)
         .and_then(|s| BackboneModel::from_name(&s));
     let (clearance, stiffness) = (run.number(m, "clearance"), run.number(m, "stiffness"));
     let fitted = model
@@ -242,10 +244,10 @@ pub(super) fn read_method(run: &dyn StoredRun, m: &str, time: &[f64]) -> MethodP
             viscous: run.number(m, "viscous_damping"),
             coulomb: run.number(m, "coulomb_friction"),
         });
-    let error = (run.text(m, "status").as_deref() == Some("failed"))
-        .then(|| run.text(m, "error").unwrap_or_default());
+    let error = (run.text(m, name::STATUS).as_deref() == Some(Status::Failed.as_str()))
+        .then(|| run.text(m, name::ERROR).unwrap_or_default());
     let unit = run
-        .text(m, "clearance_units")
+        .text(m, &format!("clearance{}", name::UNITS_SUFFIX))
         .unwrap_or_else(|| crate::units::UNKNOWN.into());
     let absolute = [
         ("k", "contact_stiffness"),
@@ -256,7 +258,9 @@ pub(super) fn read_method(run: &dyn StoredRun, m: &str, time: &[f64]) -> MethodP
     .filter_map(|(label, name)| {
         let v = run.number(m, name);
         v.is_finite().then(|| {
-            let u = run.text(m, &format!("{name}_units")).unwrap_or_default();
+            let u = run
+                .text(m, &format!("{name}{}", schema_name::UNITS_SUFFIX))
+                .unwrap_or_default();
             (label, v, u)
         })
     })
