@@ -9,6 +9,18 @@ use std::path::Path;
 use std::process::{Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
 
+/// How to start one of skelid's own child processes: the front end's executable and the
+/// arguments of its hidden command (the subcommand and the options it carries); the library
+/// appends only what varies between children (an archive's path). The front end builds it,
+/// so that the library never spells a command line.
+#[derive(Debug, Clone)]
+pub struct ChildCommand {
+    /// The executable.
+    pub exe: std::path::PathBuf,
+    /// Its arguments.
+    pub args: Vec<OsString>,
+}
+
 /// Why a child gave no answer.
 #[derive(Debug)]
 pub enum ChildFailure {

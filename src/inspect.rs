@@ -2,12 +2,12 @@
 
 use std::path::PathBuf;
 
-use std::ffi::OsString;
 use std::path::Path;
 use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
+use crate::child::ChildCommand;
 use crate::ingest::{Archive, IngestError, IngestOptions, RunMeta};
 
 /// One run's line in the report.
@@ -196,15 +196,12 @@ pub fn render_table(reports: &[ArchiveReport]) -> String {
     s
 }
 
-/// Hidden subcommand the isolated inspection runs in a child process.
-pub const PROBE_SUBCOMMAND: &str = "__inspect-one";
-
-/// Inspects each archive in a child process (`exe PROBE_SUBCOMMAND FILE ...`), so that a
+/// Inspects each archive in a child process (`command`, then the archive's path), so that a
 /// crash or hang inside libhdf5 on a corrupt file becomes an error naming that file
 /// instead of killing the whole batch. libhdf5 segfaults on some corrupted object headers,
 /// which no in-process error handling can catch. Children run in parallel.
 pub fn inspect_isolated(
-    exe: &Path,
+    command: &ChildCommand,
     paths: &[PathBuf],
     options: &IngestOptions,
     timeout: Duration,
@@ -212,37 +209,8 @@ pub fn inspect_isolated(
     use rayon::prelude::*;
     paths
         .par_iter()
-        .map(|p| probe_one(exe, p, options, timeout))
+        .map(|p| probe_one(command, p, options, timeout))
         .collect()
-}
-
-/// The command-line flags that reproduce `options` in a child process.
-pub fn option_args(options: &IngestOptions) -> Vec<String> {
-    let mut args = vec![
-        "--input-name".to_string(),
-        options.input_name.clone(),
-        "--output-name".to_string(),
-        options.output_name.clone(),
-    ];
-    if let Some(fs) = options.sample_rate {
-        args.extend(["--sample-rate".to_string(), format!("{fs:e}")]);
-    }
-    if let Some(g) = &options.run_glob {
-        args.extend(["--run-glob".to_string(), g.as_str().to_string()]);
-    }
-    if let Some(k) = options.kind {
-        args.extend(["--kind".to_string(), k.as_str().to_string()]);
-    }
-    if let Some(j) = options.inertia {
-        args.extend(["--inertia".to_string(), format!("{j:e}")]);
-    }
-    if let Some(q) = options.input_quantity {
-        args.extend(["--input-quantity".to_string(), q.as_str().to_string()]);
-    }
-    if let Some(q) = options.output_quantity {
-        args.extend(["--output-quantity".to_string(), q.as_str().to_string()]);
-    }
-    args
 }
 
 fn failed(file: String, detail: String) -> ArchiveReport {
@@ -260,15 +228,17 @@ fn failed(file: String, detail: String) -> ArchiveReport {
     }
 }
 
-fn probe_one(exe: &Path, path: &Path, options: &IngestOptions, timeout: Duration) -> ArchiveReport {
+fn probe_one(
+    command: &ChildCommand,
+    path: &Path,
+    options: &IngestOptions,
+    timeout: Duration,
+) -> ArchiveReport {
     use crate::child::{run_json, ChildFailure};
     let file = path.display().to_string();
-    let mut args = vec![
-        OsString::from(PROBE_SUBCOMMAND),
-        path.as_os_str().to_owned(),
-    ];
-    args.extend(option_args(options).into_iter().map(OsString::from));
-    match run_json::<ArchiveReport>(exe, &args, Some(timeout)) {
+    let mut args = command.args.clone();
+    args.push(path.as_os_str().to_owned());
+    match run_json::<ArchiveReport>(&command.exe, &args, Some(timeout)) {
         Ok(report) => report,
         // Cannot isolate (e.g. no executable): read in-process rather than not at all.
         Err(ChildFailure::Spawn(_)) => inspect_archive(path, options),

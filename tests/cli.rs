@@ -202,6 +202,7 @@ fn run_records_failed_runs_with_their_error() {
     flat.path = "/runs/flat".into();
     flat.output = vec![0.0; flat.output.len()];
     skelid::campaign::write_campaign(&archive, &[], &[good, flat], false).unwrap();
+    release_locks(&archive);
     let out = skelid()
         .arg("run")
         .arg(&archive)

@@ -125,8 +125,9 @@ pub enum Isolation<'a> {
     /// Read the archives in a child process of this executable ([`reader`]), so that a
     /// file on which libhdf5 crashes or hangs is reported failed instead of ending the batch.
     Child {
-        /// The skelid executable.
-        exe: &'a Path,
+        /// The reader child's command (its hidden command with the ingest options and the
+        /// shard, built by the front end; the archives go on its stdin).
+        command: &'a crate::child::ChildCommand,
         /// Time allowed per archive.
         timeout: Duration,
     },
@@ -246,7 +247,7 @@ pub fn run_campaigns(
         })?;
     let counts = reader::Counts::default();
     let isolate = match opt.isolation {
-        Isolation::Child { exe, timeout } => Some((exe, timeout)),
+        Isolation::Child { command, timeout } => Some((command, timeout)),
         Isolation::None => None,
     };
     // A worker holds one run, the queues one run per worker each: about 3 × jobs runs.

@@ -25,13 +25,10 @@ use std::time::{Duration, Instant};
 use serde::{Deserialize, Serialize};
 
 use super::Shard;
+use crate::child::ChildCommand;
 use crate::ingest::{Archive, IngestOptions, Run, RunMeta};
-use crate::inspect::{crash_detail, hang_detail, option_args};
+use crate::inspect::{crash_detail, hang_detail};
 use crate::profile::Stage;
-
-/// Hidden subcommand of the isolated reader (`skelid __read-archives [ingest options]
-/// [--shard K/N]`, archive paths on standard input, one per line).
-pub const READ_SUBCOMMAND: &str = "__read-archives";
 
 /// One message of the reader's stream.
 #[derive(Debug, Serialize, Deserialize)]
@@ -124,23 +121,15 @@ pub fn read_all(
     files: &[PathBuf],
     options: &IngestOptions,
     shard: Option<Shard>,
-    isolate: Option<(&Path, Duration)>,
+    isolate: Option<(&ChildCommand, Duration)>,
     counts: &Counts,
     deliver: &mut dyn FnMut(Delivery) -> Result<(), Stopped>,
 ) -> Result<(), Stopped> {
     counts.archives_left.store(files.len(), Ordering::Relaxed);
-    if let Some((exe, timeout)) = isolate {
+    if let Some((command, timeout)) = isolate {
         let mut next = 0;
         while next < files.len() {
-            match read_in_child(
-                exe,
-                &files[next..],
-                options,
-                shard,
-                timeout,
-                counts,
-                deliver,
-            )? {
+            match read_in_child(command, &files[next..], timeout, counts, deliver)? {
                 ChildEnd::Finished => break,
                 // The child could not be started: read in-process rather than not at all.
                 ChildEnd::NotStarted => {
@@ -459,19 +448,14 @@ struct Clock {
 }
 
 fn read_in_child(
-    exe: &Path,
+    command: &ChildCommand,
     files: &[PathBuf],
-    options: &IngestOptions,
-    shard: Option<Shard>,
     timeout: Duration,
     counts: &Counts,
     deliver: &mut dyn FnMut(Delivery) -> Result<(), Stopped>,
 ) -> Result<ChildEnd, Stopped> {
-    let mut cmd = Command::new(exe);
-    cmd.arg(READ_SUBCOMMAND).args(option_args(options));
-    if let Some(s) = shard {
-        cmd.args(["--shard", &s.to_string()]);
-    }
+    let mut cmd = Command::new(&command.exe);
+    cmd.args(&command.args);
     let child = cmd
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())

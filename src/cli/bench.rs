@@ -117,7 +117,7 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
         report_fallbacks(b);
     }
     if !a.no_end_to_end {
-        let exe = std::env::current_exe().context("cannot find the skelid executable")?;
+        let reader = super::internal::reader_command(&ingest, None)?;
         let scratch = tempfile_dir()?;
         for (name, backend) in &opened {
             eprintln!("  {name}: end to end (skelid run, both methods)");
@@ -131,7 +131,7 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
                     ..Default::default()
                 },
                 isolation: skelid::batch::Isolation::Child {
-                    exe: &exe,
+                    command: &reader,
                     timeout: std::time::Duration::from_secs(300),
                 },
                 shard: None,

@@ -6,7 +6,7 @@ use skelid::ingest::find_archives;
 use skelid::inspect;
 use std::process::ExitCode;
 
-use super::args::{self_exe, IngestArgs};
+use super::args::IngestArgs;
 
 #[derive(Args)]
 pub(crate) struct InspectArgs {
@@ -27,7 +27,7 @@ pub(crate) fn cmd_inspect(a: InspectArgs) -> Result<ExitCode> {
     let options = a.ingest.options()?;
     let files = find_archives(&a.archives)?;
     let reports = inspect::inspect_isolated(
-        &self_exe()?,
+        &super::internal::probe_command(&options)?,
         &files,
         &options,
         std::time::Duration::from_secs(a.timeout),

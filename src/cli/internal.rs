@@ -3,6 +3,7 @@
 //! inspection, and the isolated reader of `skelid run`. Each prints JSON (or the reader's
 //! stream) on stdout for the parent.
 
+use std::ffi::OsString;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -59,6 +60,71 @@ pub(crate) fn read_archives(a: ReadArchivesArgs) -> Result<ExitCode> {
     let o = a.ingest.options()?;
     skelid::batch::reader::serve_stdio(&o, a.shard)?;
     Ok(ExitCode::SUCCESS)
+}
+
+/// The subcommand of the archive probe child (`__inspect-one`).
+const PROBE: &str = "__inspect-one";
+/// The subcommand of `skelid run`'s reader child (`__read-archives`).
+const READ: &str = "__read-archives";
+
+/// The command of an archive probe child with `options` (the archive is appended per
+/// child).
+pub(crate) fn probe_command(
+    options: &skelid::ingest::IngestOptions,
+) -> Result<skelid::child::ChildCommand> {
+    let mut args = vec![OsString::from(PROBE)];
+    args.extend(option_args(options).into_iter().map(OsString::from));
+    Ok(skelid::child::ChildCommand {
+        exe: super::args::self_exe()?,
+        args,
+    })
+}
+
+/// The command of `skelid run`'s reader child with `options` and `shard` (the archives go
+/// on its stdin).
+pub(crate) fn reader_command(
+    options: &skelid::ingest::IngestOptions,
+    shard: Option<skelid::batch::Shard>,
+) -> Result<skelid::child::ChildCommand> {
+    let mut args = vec![OsString::from(READ)];
+    args.extend(option_args(options).into_iter().map(OsString::from));
+    if let Some(s) = shard {
+        args.extend(["--shard".into(), s.to_string().into()]);
+    }
+    Ok(skelid::child::ChildCommand {
+        exe: super::args::self_exe()?,
+        args,
+    })
+}
+
+/// The flags that reproduce `options` in a child process (the ingest flags of
+/// [`IngestArgs`]).
+fn option_args(options: &skelid::ingest::IngestOptions) -> Vec<String> {
+    let mut args = vec![
+        "--input-name".to_string(),
+        options.input_name.clone(),
+        "--output-name".to_string(),
+        options.output_name.clone(),
+    ];
+    if let Some(fs) = options.sample_rate {
+        args.extend(["--sample-rate".to_string(), format!("{fs:e}")]);
+    }
+    if let Some(g) = &options.run_glob {
+        args.extend(["--run-glob".to_string(), g.as_str().to_string()]);
+    }
+    if let Some(k) = options.kind {
+        args.extend(["--kind".to_string(), k.as_str().to_string()]);
+    }
+    if let Some(j) = options.inertia {
+        args.extend(["--inertia".to_string(), format!("{j:e}")]);
+    }
+    if let Some(q) = options.input_quantity {
+        args.extend(["--input-quantity".to_string(), q.as_str().to_string()]);
+    }
+    if let Some(q) = options.output_quantity {
+        args.extend(["--output-quantity".to_string(), q.as_str().to_string()]);
+    }
+    args
 }
 
 /// `__bench-one --variant`: the measurement a child process is asked for.

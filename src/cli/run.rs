@@ -10,9 +10,7 @@ use skelid::ingest::{find_archives, IngestOptions};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use super::args::{
-    report_fallbacks, self_exe, BackendArgs, IdentifyArgs, IngestArgs, ReportArgs, RunMethod,
-};
+use super::args::{report_fallbacks, BackendArgs, IdentifyArgs, IngestArgs, ReportArgs, RunMethod};
 
 #[derive(Args)]
 pub(crate) struct DemoArgs {
@@ -203,19 +201,19 @@ pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     let options = a
         .identify
         .options("run", a.refine.then_some(a.refine_evaluations))?;
-    let exe = self_exe()?;
     let shard = a
         .shard
         .as_deref()
         .map(skelid::batch::Shard::parse)
         .transpose()
         .map_err(anyhow::Error::msg)?;
+    let reader = super::internal::reader_command(&ingest, shard)?;
     let backend = a.backend.open()?;
     let batch = skelid::batch::BatchOptions {
         methods: a.method.methods(),
         identify: options,
         isolation: skelid::batch::Isolation::Child {
-            exe: &exe,
+            command: &reader,
             timeout: std::time::Duration::from_secs(a.timeout),
         },
         shard,
