@@ -8,7 +8,7 @@ use skelid::model::RigModel;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use super::args::{IdentifyArgs, IngestArgs};
+use super::args::{report_fallbacks, BackendArg, BackendArgs, IdentifyArgs, IngestArgs};
 use skelid::gap::export as out;
 
 /// Options of `skelid gap`.
@@ -34,6 +34,15 @@ pub(crate) struct GapArgs {
     /// the odd ones.
     #[arg(long, default_value_t = 1.0, value_name = "SECONDS")]
     pub(crate) holdout_block: f64,
+    /// Where the wavelet transforms of the gap's identifications run (the measured run's
+    /// and every simulation's): `cpu` (the default: each run's search identifies one
+    /// simulation at a time, where a GPU's batching gains little), `auto` (a hardware GPU
+    /// when one opens, else the CPU) or `gpu` (any adapter, or an error). Runs diagnosed
+    /// at once hand their simulations to the GPU together. The transforms differ in their
+    /// last digits (the GPU's estimate runs in f32), so the simplex searches take slightly
+    /// different paths: verdicts agree, gaps may differ in their second digit.
+    #[arg(long, value_enum, default_value = "cpu", value_name = "BACKEND")]
+    pub(crate) backend: BackendArg,
     /// Runs diagnosed at once (default: one per core). A run's own search is a chain of
     /// simplex steps, each waiting for the last, so one run keeps about one core busy;
     /// an archive of several runs is diagnosed N at a time. Each run in flight holds its
@@ -134,7 +143,10 @@ pub(crate) fn gap_search_options(a: &GapArgs) -> Result<skelid::gap::SearchOptio
 pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     use skelid::run::RunKind;
     let opt = gap_search_options(&a)?;
-    let engine = super::CpuIdentifier::new(a.identify.options("gap", None)?);
+    let engine = super::Engine::new(
+        a.identify.options("gap", None)?,
+        BackendArgs { backend: a.backend }.open()?,
+    );
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create the output folder {}", a.out.display()))?;
     if a.self_check {
@@ -199,6 +211,7 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
         "candidate_evaluations": opt.candidate_evaluations,
         "refine": opt.refine,
         "pairs": opt.pairs,
+        "backend": if engine.backend().is_gpu() { "gpu" } else { "cpu" },
         "fit_inertia": opt.fit_inertia,
         "min_shrink": skelid::gap::search::MIN_SHRINK,
         "min_drop": skelid::gap::search::MIN_DROP,
@@ -237,6 +250,7 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
         other => anyhow::Error::new(other).context("--jobs"),
     })?;
     exporter.bar.finish_and_clear();
+    report_fallbacks(engine.backend());
     let reports: Vec<&skelid::gap::GapRun> = done.runs.iter().collect();
     let (json, page) = exporter.write(&reports, &done.failed)?;
     println!(
@@ -393,7 +407,7 @@ pub(crate) fn say(bar: &indicatif::ProgressBar, line: String) {
 pub(crate) fn gap_self_check(
     a: &GapArgs,
     opt: &skelid::gap::SearchOptions,
-    engine: &super::CpuIdentifier,
+    engine: &super::Engine,
 ) -> Result<ExitCode> {
     use skelid::gap::selfcheck;
     let cases = selfcheck::cases(a.cases, a.seed);
@@ -430,12 +444,7 @@ pub(crate) fn gap_self_check(
                     if o.right() { "right" } else { "WRONG" }
                 );
                 say(&bar, line);
-                lines.push(serde_json::json!({
-                    "case": c.index, "effect": o.truth(), "value": c.value, "verdict": o.verdict,
-                    "right": o.right(), "shrink": o.shrink, "param_error": o.param_error,
-                    "baseline_gap": o.diagnosis.baseline.score.holdout,
-                    "seconds": o.diagnosis.seconds, "simulations": o.diagnosis.evaluations,
-                }));
+                lines.push(selfcheck::CaseRecord::from(&o));
                 outcomes.push(o);
             }
             Err(e) => {
@@ -446,10 +455,17 @@ pub(crate) fn gap_self_check(
         bar.inc(1);
     }
     bar.finish_and_clear();
+    report_fallbacks(engine.backend());
     let summary = selfcheck::summarize(&outcomes, errors);
     println!("\n{summary}");
     let path = a.out.join("self-check.json");
-    let doc = serde_json::json!({"format": "skelid-gap-self-check/1", "seed": a.seed, "sweep": sweep.name(), "summary": summary, "cases": lines});
+    let doc = selfcheck::Document {
+        format: selfcheck::FORMAT,
+        seed: a.seed,
+        sweep: sweep.name(),
+        summary,
+        cases: lines,
+    };
     skelid::report::write_atomic(&path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
     println!("wrote {}", path.display());
     Ok(ExitCode::SUCCESS)

@@ -80,26 +80,37 @@ pub(crate) enum Command {
     ReadArchives(internal::ReadArchivesArgs),
 }
 
-/// Identification options on the CPU: what `gap` and `validate` identify with (their
-/// simulations are identified one after another, where a GPU's batching gains nothing).
-pub(crate) struct CpuIdentifier {
+/// Identification options and the backend they run on, held together: what `gap` and
+/// `validate` hand to the library's identifications.
+pub(crate) struct Engine {
     options: skelid::identify::IdentifyOptions,
-    cpu: skelid::backend::Backend,
+    backend: skelid::backend::Backend,
 }
 
-impl CpuIdentifier {
-    pub(crate) fn new(options: skelid::identify::IdentifyOptions) -> CpuIdentifier {
-        CpuIdentifier {
-            options,
-            cpu: skelid::backend::Backend::cpu(),
-        }
+impl Engine {
+    /// The options on the CPU backend.
+    pub(crate) fn cpu(options: skelid::identify::IdentifyOptions) -> Engine {
+        Engine::new(options, skelid::backend::Backend::cpu())
+    }
+
+    /// The options on a backend already opened.
+    pub(crate) fn new(
+        options: skelid::identify::IdentifyOptions,
+        backend: skelid::backend::Backend,
+    ) -> Engine {
+        Engine { options, backend }
+    }
+
+    /// The backend, for its warnings and its work at the end.
+    pub(crate) fn backend(&self) -> &skelid::backend::Backend {
+        &self.backend
     }
 
     /// The options and backend, handed on together.
     pub(crate) fn get(&self) -> skelid::identify::Identifier<'_> {
         skelid::identify::Identifier {
             options: &self.options,
-            backend: &self.cpu,
+            backend: &self.backend,
         }
     }
 }

@@ -61,7 +61,7 @@ pub fn run(a: ValidateArgs) -> Result<ExitCode> {
     let mut outcomes = Vec::new();
     let mut lines = Vec::new();
     // Blind identification as `skelid run` does it by default, on the CPU.
-    let engine = super::CpuIdentifier::new(skelid::identify::IdentifyOptions::default());
+    let engine = super::Engine::cpu(skelid::identify::IdentifyOptions::default());
     let identifier = engine.get();
     for rig in &drawn {
         let o = run_rig(rig, a.evaluations, identifier);

@@ -102,6 +102,66 @@ impl Outcome {
     }
 }
 
+/// The format name of self-check.json (FORMATS.md).
+pub const FORMAT: &str = "skelid-gap-self-check/1";
+
+/// One case's entry in self-check.json.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct CaseRecord {
+    /// Case number.
+    pub case: usize,
+    /// The true class (`none` or an effect).
+    pub effect: &'static str,
+    /// The effect's true parameter (0 for `none`).
+    pub value: f64,
+    /// The verdict.
+    pub verdict: String,
+    /// Whether the verdict names the true class.
+    pub right: bool,
+    /// Held-out shrink of the verdict.
+    pub shrink: Option<f64>,
+    /// |fitted| / |true| − 1 of the effect's parameter when the verdict is right.
+    pub param_error: Option<f64>,
+    /// Held-out gap of the refitted baseline.
+    pub baseline_gap: f64,
+    /// Wall time of the diagnosis (s).
+    pub seconds: f64,
+    /// Simulations it took.
+    pub simulations: usize,
+}
+
+impl From<&Outcome> for CaseRecord {
+    fn from(o: &Outcome) -> CaseRecord {
+        CaseRecord {
+            case: o.case.index,
+            effect: o.truth(),
+            value: o.case.value,
+            verdict: o.verdict.clone(),
+            right: o.right(),
+            shrink: o.shrink,
+            param_error: o.param_error,
+            baseline_gap: o.diagnosis.baseline.score.holdout,
+            seconds: o.diagnosis.seconds,
+            simulations: o.diagnosis.evaluations,
+        }
+    }
+}
+
+/// self-check.json: what was run, the summary, and every case.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Document {
+    /// [`FORMAT`].
+    pub format: &'static str,
+    /// The seed the cases were drawn from.
+    pub seed: u64,
+    /// The drive's name.
+    pub sweep: &'static str,
+    /// The scores.
+    pub summary: Summary,
+    /// One record per case diagnosed.
+    pub cases: Vec<CaseRecord>,
+}
+
 /// What the self-check's rigs are driven by.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Sweep {

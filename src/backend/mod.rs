@@ -1,0 +1,377 @@
+//! The one place where the CPU or GPU backend is chosen (`--backend auto|cpu|gpu`).
+//!
+//! The backend evaluates the wavelet transform of each signal: its first pass (the
+//! band-limited Morlet transform at every scale and the ridge search,
+//! [`WaveletPrep::coarse_ridge`]) and its refinement (W, W′, W″ at the scales around the
+//! ridge, the three-scale estimate and the bias correction at every point of the
+//! estimation grid, [`WaveletPrep::estimate_grid`]). What follows — the noise floor,
+//! validity, the per-sample track ([`WaveletPrep::complete`]), ForceVib and the fits — is
+//! the shared CPU stage. On a GPU, signals tracked at the same time by different worker
+//! threads are gathered into batches by a dispatcher thread that owns the device: a worker
+//! hands over its prepared signal and waits for its skeleton. A batch takes two
+//! submissions: the first pass (its ridges are read back, the host lays out each signal's
+//! estimation grid), then the refinement (its grid records are read back). When the GPU
+//! cannot serve a signal (no adapter, a failed or lost device, a signal beyond the
+//! adapter's limits), that signal's first pass, or only its refinement, runs on the CPU, a
+//! warning is kept, and a track whose first pass ran on the CPU records `backend = "cpu"`.
+
+use std::sync::mpsc::Receiver;
+use std::sync::Mutex;
+
+use crate::gpu::ridge::batch_bytes;
+use crate::gpu::{Gpu, GpuError};
+use crate::track::{Device, Track, TrackError, WaveletOptions, WaveletPrep};
+
+mod dispatcher;
+
+pub(crate) use dispatcher::panic_message;
+use dispatcher::{Answer, GpuPass, GpuService};
+
+/// Which backend the user asked for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BackendChoice {
+    /// A hardware GPU when one opens, else the CPU. A software adapter (lavapipe) is
+    /// slower than the CPU backend on the same cores, so `auto` passes it over.
+    #[default]
+    Auto,
+    /// The CPU (rustfft + rayon).
+    Cpu,
+    /// The GPU, or an error when none opens.
+    Gpu,
+}
+
+/// Most signals in one batch, whatever the adapter's memory (their prepared spectra are held
+/// in host memory while they wait: about 0.3 MB each at 30 000 samples).
+pub(crate) const MAX_BATCH: usize = 4096;
+
+/// Signals in [`Backend::track_many`]'s first group (and every group on the CPU); later
+/// groups on a GPU are sized to fill one submission's device memory.
+const GROUP: usize = 256;
+
+/// The chosen backend, shared by all worker threads.
+pub struct Backend {
+    gpu: Option<GpuService>,
+    warnings: Mutex<Warnings>,
+}
+
+#[derive(Default)]
+struct Warnings {
+    notes: Vec<String>,
+    first: Vec<String>,
+    count: usize,
+}
+
+/// One signal to track: samples, sample rate (Hz), and the guide's frequency per sample.
+#[derive(Debug, Clone, Copy)]
+pub struct Signal<'a> {
+    /// The samples.
+    pub samples: &'a [f64],
+    /// Sample rate (Hz).
+    pub sample_rate: f64,
+    /// The guide's frequency (Hz) per sample, if the ridge is guided.
+    pub guide: Option<&'a [f64]>,
+}
+
+/// A signal after the GPU.
+struct Passed {
+    prep: WaveletPrep,
+    /// What the GPU did (or why not); `None` for the CPU to do everything.
+    pass: Option<Result<GpuPass, GpuError>>,
+}
+
+/// Signals handed to the dispatcher: answered slots so far, and where the rest arrive
+/// (`None` on the CPU backend, every slot already filled).
+struct Sent {
+    out: Vec<Option<Passed>>,
+    answers: Option<Receiver<Answer>>,
+}
+
+/// A group of [`Backend::track_many`] in flight: per signal, its preparation error or
+/// `None` for a track to come, and the prepared signals handed over.
+struct Group {
+    slots: Vec<Option<Result<Track, TrackError>>>,
+    sent: Sent,
+}
+
+impl Backend {
+    /// The CPU backend.
+    pub fn cpu() -> Backend {
+        Backend {
+            gpu: None,
+            warnings: Mutex::default(),
+        }
+    }
+
+    /// Opens the backend asked for. `Auto` never fails: without a usable GPU it is the CPU,
+    /// and [`warnings`](Self::warnings) says why. `Gpu` fails with the reason instead.
+    pub fn open(choice: BackendChoice) -> Result<Backend, GpuError> {
+        match choice {
+            BackendChoice::Cpu => Ok(Backend::cpu()),
+            BackendChoice::Gpu => Backend::start_gpu(),
+            BackendChoice::Auto => {
+                // Look at the adapter before opening a device on it.
+                let opened = match Gpu::probe() {
+                    Ok((name, true)) => Err(Ok(name)),
+                    Ok((_, false)) => Backend::start_gpu().map_err(Err),
+                    Err(e) => Err(Err(e)),
+                };
+                Ok(opened.unwrap_or_else(|why| {
+                    let cpu = Backend::cpu();
+                    match why {
+                        Ok(software) => cpu.note(format!(
+                            "only a software GPU adapter was found ({software}): using the \
+                             CPU backend, which is faster; {} uses the adapter anyway",
+                            crate::hint::Hint::GpuBackend
+                        )),
+                        Err(e) => cpu.warn(format!("GPU backend unavailable, using the CPU: {e}")),
+                    }
+                    cpu
+                }))
+            }
+        }
+    }
+
+    fn start_gpu() -> Result<Backend, GpuError> {
+        Ok(Backend {
+            gpu: Some(GpuService::start()?),
+            warnings: Mutex::default(),
+        })
+    }
+
+    /// Whether a GPU device is open.
+    pub fn is_gpu(&self) -> bool {
+        self.gpu.is_some()
+    }
+
+    /// The GPU adapter's name and kind, when one is open.
+    pub fn adapter(&self) -> Option<&str> {
+        self.gpu.as_ref().map(|g| g.adapter.as_str())
+    }
+
+    /// Signals the GPU has done and the batches they took (two submissions each: first
+    /// pass, refinement), when a GPU is open.
+    pub fn gpu_work(&self) -> Option<(usize, usize)> {
+        self.gpu.as_ref().map(GpuService::work)
+    }
+
+    /// Why `auto` chose the CPU although an adapter exists (a software one), if it did.
+    pub fn notes(&self) -> Vec<String> {
+        self.warnings
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .notes
+            .clone()
+    }
+
+    fn note(&self, text: String) {
+        self.warnings
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .notes
+            .push(text);
+    }
+
+    /// Warnings so far (the GPU unavailable, signals that fell back to the CPU): the first
+    /// few in full, then how many more.
+    pub fn warnings(&self) -> Vec<String> {
+        let w = self.warnings.lock().unwrap_or_else(|p| p.into_inner());
+        let mut out = w.first.clone();
+        if w.count > w.first.len() {
+            out.push(format!(
+                "… and {} more GPU fallback warning(s)",
+                w.count - w.first.len()
+            ));
+        }
+        out
+    }
+
+    fn warn(&self, text: String) {
+        let mut w = self.warnings.lock().unwrap_or_else(|p| p.into_inner());
+        w.count += 1;
+        if w.first.len() < 5 {
+            w.first.push(text);
+        }
+    }
+
+    /// The wavelet track of one signal (see [`crate::track::track_wavelet`]), its first
+    /// pass on this backend. Blocks while the GPU batch it joins is computed.
+    pub fn track_wavelet(
+        &self,
+        x: &[f64],
+        fs: f64,
+        opt: &WaveletOptions,
+        guide: Option<&[f64]>,
+    ) -> Result<Track, TrackError> {
+        self.track_wavelet_keeping(x, fs, opt, guide, false)
+    }
+
+    /// [`track_wavelet`](Self::track_wavelet), keeping the first pass's |W| grid in the
+    /// track when `keep_scalogram` (read back from the GPU only then).
+    pub fn track_wavelet_keeping(
+        &self,
+        x: &[f64],
+        fs: f64,
+        opt: &WaveletOptions,
+        guide: Option<&[f64]>,
+        keep_scalogram: bool,
+    ) -> Result<Track, TrackError> {
+        let mut prep = WaveletPrep::new(x, fs, opt, guide)?;
+        prep.keep_scalogram = keep_scalogram;
+        let mut answers = self.first_passes(vec![prep]);
+        let passed = answers.pop().expect("one answer per signal");
+        Ok(self.finish(passed.prep, passed.pass))
+    }
+
+    /// The wavelet tracks of many signals, all with the same options, in order: prepared
+    /// in parallel, handed to the GPU together (in batches sized to the adapter's memory),
+    /// finished in parallel. Groups are pipelined: the next group is prepared and handed
+    /// to the GPU before the previous one is collected, so that the CPU's preparation and
+    /// finishing overlap the device's work. The first group holds [`GROUP`] signals; on a
+    /// GPU the later ones as many as fill one submission's device memory by the first
+    /// group's measure (up to [`MAX_BATCH`]: thousands on a large GPU). For benchmarks and
+    /// commands that hold all their signals.
+    pub fn track_many(
+        &self,
+        signals: &[Signal],
+        opt: &WaveletOptions,
+    ) -> Vec<Result<Track, TrackError>> {
+        use rayon::prelude::*;
+        let mut out = Vec::with_capacity(signals.len());
+        // At most two groups of prepared spectra in memory at once.
+        let mut pending: Option<Group> = None;
+        let mut size = GROUP;
+        let mut at = 0;
+        while at < signals.len() {
+            let group = &signals[at..(at + size).min(signals.len())];
+            at += group.len();
+            let preps: Vec<Result<WaveletPrep, TrackError>> = group
+                .par_iter()
+                .map(|s| WaveletPrep::new(s.samples, s.sample_rate, opt, s.guide))
+                .collect();
+            if let Some(budget) = self.gpu.as_ref().map(|g| g.submission_budget) {
+                let (bytes, n) = preps
+                    .iter()
+                    .flatten()
+                    .fold((0u64, 0u64), |(b, n), p| (b + batch_bytes(p), n + 1));
+                if let Some(each) = bytes.checked_div(n) {
+                    let fit = budget / each.max(1);
+                    size = (fit as usize).clamp(GROUP, MAX_BATCH);
+                }
+            }
+            let mut ok = Vec::new();
+            let mut slots: Vec<Option<Result<Track, TrackError>>> = Vec::new();
+            for p in preps {
+                match p {
+                    Ok(p) => {
+                        ok.push(p);
+                        slots.push(None);
+                    }
+                    Err(e) => slots.push(Some(Err(e))),
+                }
+            }
+            let sent = self.send(ok);
+            if let Some(previous) = pending.replace(Group { slots, sent }) {
+                out.extend(self.finish_group(previous));
+            }
+        }
+        if let Some(last) = pending {
+            out.extend(self.finish_group(last));
+        }
+        out
+    }
+
+    /// A group's first passes, then its tracks finished in parallel, in order.
+    fn finish_group(&self, group: Group) -> Vec<Result<Track, TrackError>> {
+        use rayon::prelude::*;
+        let mut tracks = self
+            .receive(group.sent)
+            .into_par_iter()
+            .map(|p| self.finish(p.prep, p.pass))
+            .collect::<Vec<Track>>()
+            .into_iter();
+        group
+            .slots
+            .into_iter()
+            .map(|s| s.unwrap_or_else(|| Ok(tracks.next().expect("one track per prepared signal"))))
+            .collect()
+    }
+
+    /// The first passes of `preps`, in order: on the GPU when one is open (a signal it
+    /// cannot serve comes back with the reason), else `None` for the CPU to do.
+    fn first_passes(&self, preps: Vec<WaveletPrep>) -> Vec<Passed> {
+        self.receive(self.send(preps))
+    }
+
+    /// Hands `preps` to the GPU's dispatcher without waiting (see [`receive`](Self::receive)).
+    fn send(&self, preps: Vec<WaveletPrep>) -> Sent {
+        let count = preps.len();
+        let mut out: Vec<Option<Passed>> = (0..count).map(|_| None).collect();
+        let Some(service) = &self.gpu else {
+            for (slot, p) in out.iter_mut().zip(preps) {
+                *slot = Some(Passed {
+                    prep: p,
+                    pass: None,
+                });
+            }
+            return Sent { out, answers: None };
+        };
+        let (unsent, answers) = service.send(preps);
+        for (tag, prep, gone) in unsent {
+            out[tag] = Some(Passed {
+                prep,
+                pass: Some(Err(gone)),
+            });
+        }
+        Sent {
+            out,
+            answers: Some(answers),
+        }
+    }
+
+    /// Waits for every answer to what [`send`](Self::send) handed over, in order.
+    fn receive(&self, sent: Sent) -> Vec<Passed> {
+        let Sent { mut out, answers } = sent;
+        if let Some(answers) = answers {
+            for a in answers.iter() {
+                out[a.tag] = Some(Passed {
+                    prep: a.prep,
+                    pass: Some(a.result),
+                });
+            }
+        }
+        out.into_iter()
+            .map(|o| o.expect("the GPU thread answers every request it takes"))
+            .collect()
+    }
+
+    /// The rest of a track after the GPU: its completion from the GPU's skeleton, or on the
+    /// CPU whatever the GPU did not do (the refinement, or everything).
+    fn finish(&self, prep: WaveletPrep, pass: Option<Result<GpuPass, GpuError>>) -> Track {
+        match pass {
+            Some(Ok(GpuPass {
+                ridge,
+                refined: Ok((grid, estimates)),
+            })) => {
+                return crate::profile::time(crate::profile::Stage::Refine, || {
+                    prep.complete(ridge, &grid, &estimates, Device::Gpu)
+                })
+            }
+            Some(Ok(GpuPass {
+                ridge,
+                refined: Err(e),
+            })) => {
+                self.warn(format!(
+                    "GPU refinement failed, the skeleton done on the CPU: {e}"
+                ));
+                return prep.finish(ridge, Device::Gpu);
+            }
+            Some(Err(e)) => self.warn(format!(
+                "GPU first pass failed, signal done on the CPU: {e}"
+            )),
+            None => {}
+        }
+        let ridge = prep.coarse_ridge();
+        prep.finish(ridge, Device::Cpu)
+    }
+}
