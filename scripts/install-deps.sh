@@ -4,9 +4,10 @@
 #   libvulkan1 + mesa-vulkan-drivers -> wgpu's Vulkan backend; lavapipe is the software GPU CI tests on
 #   vulkan-tools              -> `vulkaninfo --summary` for diagnosing adapters
 #   chromium                  -> the headless browser the report test opens report.html in
+#   poppler-utils             -> pdftoppm/pdftotext, with which the figures test renders --figures pdf
 # Safe to run repeatedly. Uses sudo only when not already root.
 set -euo pipefail
-pkgs=(libhdf5-dev pkg-config libvulkan1 mesa-vulkan-drivers vulkan-tools chromium)
+pkgs=(libhdf5-dev pkg-config libvulkan1 mesa-vulkan-drivers vulkan-tools chromium poppler-utils)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

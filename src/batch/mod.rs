@@ -152,6 +152,19 @@ pub struct BatchOptions<'a> {
     pub report_runs: usize,
     /// Where the wavelet transform's first pass runs.
     pub backend: &'a Backend,
+    /// Each run's figures written as files too (`None`: only report.html draws them).
+    pub figures: Option<Figures>,
+}
+
+/// Where and how a batch writes each run's figures: `DIR/ARCHIVE/RUN/NN-title.EXT`
+/// ([`crate::report::figure_files`]), written by the worker that identified the run, or
+/// that found it committed by an earlier invocation.
+#[derive(Debug, Clone)]
+pub struct Figures {
+    /// The folder (the CLI's `OUT/figures`).
+    pub dir: std::path::PathBuf,
+    /// The files' format.
+    pub format: crate::report::figure_files::FigureFormat,
 }
 
 /// Runs in flight by default on a GPU backend: the signals of concurrent runs share one

@@ -45,8 +45,14 @@ pub(super) fn prepare(
     if !opt.force {
         if let Some((e, stored)) = journal.load(&key) {
             let plots = match &stored {
-                Stored::Encoded(run) if drawn.wants(&e) => Some(run_plots(run)),
-                _ => None,
+                Stored::Encoded(run) => {
+                    let plots = drawn.wants(&e).then(|| run_plots(run));
+                    if let Err(err) = figures(run, &e.source, plots.as_ref(), opt) {
+                        return Finished::Failed(err);
+                    }
+                    plots
+                }
+                Stored::Legacy(_) => None,
             };
             return Finished::Skipped(e, stored, plots);
         }
@@ -59,7 +65,10 @@ pub(super) fn prepare(
     match profile::time(Stage::Write, || journal.commit(&key, prepared)) {
         Ok((entry, prepared)) => {
             let plots = drawn.wants(&entry).then(|| run_plots(prepared.encoded()));
-            Finished::Committed(entry, prepared, plots)
+            match figures(prepared.encoded(), &entry.source, plots.as_ref(), opt) {
+                Ok(()) => Finished::Committed(entry, prepared, plots),
+                Err(e) => Finished::Failed(e),
+            }
         }
         Err(e) => Finished::Failed(e),
     }
@@ -68,6 +77,47 @@ pub(super) fn prepare(
 /// The report's plots of an encoded run (its group in results.h5 is set when drawn).
 pub(super) fn run_plots(run: &crate::report::encoded::EncodedRun) -> RunPlots {
     profile::time(Stage::Encode, || html::encoded_plots(run))
+}
+
+/// Writes the run's figures as files when the batch asks for them (`plots`: the run's
+/// plots when already decoded for the report).
+fn figures(
+    run: &crate::report::encoded::EncodedRun,
+    source: &str,
+    plots: Option<&RunPlots>,
+    opt: &BatchOptions<'_>,
+) -> Result<(), crate::report::ReportError> {
+    use crate::report::figure_files::{folder_name, stem, write_figures, Figure};
+    let Some(f) = &opt.figures else {
+        return Ok(());
+    };
+    profile::time(Stage::Write, || {
+        let decoded;
+        let plots = match plots {
+            Some(p) => p,
+            None => {
+                decoded = html::encoded_plots(run);
+                &decoded
+            }
+        };
+        let set: Vec<Figure> = html::run_figure_set(plots, true)
+            .into_iter()
+            .enumerate()
+            .map(|(i, (title, svg))| Figure {
+                stem: stem(i, &title),
+                svg,
+            })
+            .collect();
+        // The archive's file name: runs of different archives may share a path.
+        let archive = std::path::Path::new(source)
+            .file_name()
+            .map_or_else(|| source.to_string(), |n| n.to_string_lossy().into_owned());
+        let dir = f
+            .dir
+            .join(folder_name(&archive))
+            .join(folder_name(&run.path));
+        write_figures(&dir, &set, f.format).map(|_| ())
+    })
 }
 
 /// Every method of `opt` on one run as read (or its read error), timed.

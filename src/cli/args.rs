@@ -96,6 +96,51 @@ pub(crate) struct ReportArgs {
     pub(crate) strict: bool,
 }
 
+/// `--figures`: each run's figures as files for test reports.
+#[derive(Args, Clone, Copy)]
+pub(crate) struct FiguresArgs {
+    /// Also write each run's figures as files, in DIR/figures/ARCHIVE/RUN/NN-title.EXT:
+    /// `svg` (vector, as drawn on the page), `png` (300 dpi, for word processors) or `pdf`
+    /// (vector, one page each, for LaTeX). Every figure has a title, a legend and axis
+    /// labels with units; text is set in DejaVu Sans, bundled with skelid. `run`: input and
+    /// response envelope and frequency, backbone with the fitted dead zone, restoring and
+    /// damping forces (the paper's Figs. 10–13). `gap`: measured, nominal and fitted
+    /// envelope, backbone and damping force.
+    #[arg(long, value_enum, value_name = "FORMAT")]
+    pub(crate) figures: Option<FigureArg>,
+}
+
+/// `--figures` values.
+#[derive(Clone, Copy, ValueEnum)]
+pub(crate) enum FigureArg {
+    /// Scalable vector graphics (text as text).
+    Svg,
+    /// 300 dpi raster image.
+    Png,
+    /// Vector PDF, one page per figure.
+    Pdf,
+}
+
+impl FiguresArgs {
+    /// The library's format, when figures are asked for.
+    pub(crate) fn format(self) -> Option<skelid::report::figure_files::FigureFormat> {
+        use skelid::report::figure_files::FigureFormat;
+        self.figures.map(|f| match f {
+            FigureArg::Svg => FigureFormat::Svg,
+            FigureArg::Png => FigureFormat::Png,
+            FigureArg::Pdf => FigureFormat::Pdf,
+        })
+    }
+
+    /// The batch's figure options, writing into `out/figures`.
+    pub(crate) fn batch(self, out: &std::path::Path) -> Option<skelid::batch::Figures> {
+        self.format().map(|format| skelid::batch::Figures {
+            dir: out.join("figures"),
+            format,
+        })
+    }
+}
+
 /// `--backbone` values.
 #[derive(Clone, Copy, ValueEnum)]
 pub(crate) enum BackboneArg {

@@ -139,6 +139,7 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
                 jobs: None,
                 report_runs: 100,
                 backend,
+                figures: None,
             };
             let e = skelid::bench::backends::end_to_end(
                 name,

@@ -8,7 +8,9 @@ use skelid::model::RigModel;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use super::args::{report_fallbacks, BackendArg, BackendArgs, IdentifyArgs, IngestArgs};
+use super::args::{
+    report_fallbacks, BackendArg, BackendArgs, FiguresArgs, IdentifyArgs, IngestArgs,
+};
 use skelid::gap::export as out;
 
 /// Options of `skelid gap`.
@@ -43,6 +45,8 @@ pub(crate) struct GapArgs {
     /// different paths: verdicts agree, gaps may differ in their second digit.
     #[arg(long, value_enum, default_value = "cpu", value_name = "BACKEND")]
     pub(crate) backend: BackendArg,
+    #[command(flatten)]
+    pub(crate) figures: FiguresArgs,
     /// Runs diagnosed at once (default: one per core). A run's own search is a chain of
     /// simplex steps, each waiting for the last, so one run keeps about one core busy;
     /// an archive of several runs is diagnosed N at a time. Each run in flight holds its
@@ -231,6 +235,7 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
             .expect("a valid template"),
         ),
         running: Default::default(),
+        figures: a.figures.format(),
     };
     let jobs = a
         .jobs
@@ -278,6 +283,7 @@ struct Terminal<'a> {
     effects: usize,
     bar: indicatif::ProgressBar,
     running: std::sync::Mutex<std::collections::BTreeMap<String, usize>>,
+    figures: Option<skelid::report::figure_files::FigureFormat>,
 }
 
 impl Terminal<'_> {
@@ -336,6 +342,9 @@ impl Terminal<'_> {
             RigModel::load(&path).context("the fitted model written does not read back")?;
         for w in fitted.warnings() {
             say(&self.bar, format!("warning: {}: {w}", path.display()));
+        }
+        if let Some(format) = self.figures {
+            out::write_gap_figures(self.out, r, format)?;
         }
         Ok(())
     }

@@ -10,7 +10,9 @@ use skelid::ingest::{find_archives, IngestOptions};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use super::args::{report_fallbacks, BackendArgs, IdentifyArgs, IngestArgs, ReportArgs, RunMethod};
+use super::args::{
+    report_fallbacks, BackendArgs, FiguresArgs, IdentifyArgs, IngestArgs, ReportArgs, RunMethod,
+};
 
 #[derive(Args)]
 pub(crate) struct DemoArgs {
@@ -21,6 +23,8 @@ pub(crate) struct DemoArgs {
     /// the refined estimates against the truth.
     #[arg(long)]
     pub(crate) refine: bool,
+    #[command(flatten)]
+    pub(crate) figures: FiguresArgs,
 }
 
 #[derive(Args)]
@@ -112,6 +116,8 @@ pub(crate) struct RunArgs {
     #[command(flatten)]
     pub(crate) report: ReportArgs,
     #[command(flatten)]
+    pub(crate) figures: FiguresArgs,
+    #[command(flatten)]
     pub(crate) ingest: IngestArgs,
 }
 
@@ -163,6 +169,7 @@ pub(crate) fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
         jobs: None,
         report_runs: usize::MAX,
         backend: &backend,
+        figures: a.figures.batch(&a.out),
     };
     let summary = identify_with_progress(
         std::slice::from_ref(&path),
@@ -221,6 +228,7 @@ pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         jobs: a.jobs,
         report_runs: a.report.report_runs,
         backend: &backend,
+        figures: a.figures.batch(&a.out),
     };
     let mode = if a.json_progress {
         ProgressMode::Json

@@ -13,7 +13,7 @@ use serde_json::{json, Value};
 use super::search::{signature, Score};
 use super::GapRun;
 use crate::identify::Identification;
-use crate::report::html::{css, esc, reduce, svg_plot, Mark, Series, YAxis};
+use crate::report::html::{css, esc, plot, reduce, Mark, Series, YAxis};
 use crate::report::{write_atomic, ReportError};
 use crate::units::eng;
 
@@ -154,8 +154,17 @@ fn skeleton(id: &Identification) -> [Vec<f64>; 4] {
     ]
 }
 
-/// One run's three plots.
+/// One run's three plots on the page.
 fn run_figures(r: &GapRun) -> Vec<String> {
+    gap_figure_set(r, false)
+        .into_iter()
+        .map(|(_, svg)| svg)
+        .collect()
+}
+
+/// One run's three plots (measured, nominal and fitted), each with its title; with a
+/// legend when they are drawn as files.
+pub fn gap_figure_set(r: &GapRun, files: bool) -> Vec<(String, String)> {
     // A nominal model whose response could not be identified has no lines.
     let ids = [
         Some(&r.measured),
@@ -171,33 +180,59 @@ fn run_figures(r: &GapRun) -> Vec<String> {
         .map(|i| i.map_or_else(Default::default, skeleton))
         .collect();
     let mut figs = Vec::new();
-    figs.extend(svg_plot(
+    let mut add = |title: &str, x: &str, y: &str, axis: YAxis, series: &[Series]| {
+        if let Some(svg) = plot(title, x, y, axis, series, files) {
+            figs.push((title.to_string(), svg));
+        }
+    };
+    add(
         "Relative-motion envelope over time",
         "time (s)",
         "envelope A (rad)",
         YAxis::Full,
         &three([0, 1, 2].map(|i| (env[i].0.as_slice(), env[i].1.as_slice()))),
-    ));
-    figs.extend(svg_plot(
+    );
+    add(
         "Backbone at resonance",
         "response amplitude A (rad)",
         "natural frequency f0 (Hz)",
         YAxis::Fenced,
         &three([0, 1, 2].map(|i| (sk[i][0].as_slice(), sk[i][1].as_slice()))),
-    ));
-    figs.extend(svg_plot(
+    );
+    add(
         "Damping force per unit inertia at resonance",
         "velocity amplitude A·ω (rad/s)",
         "2h0·A·ω (rad/s²)",
         YAxis::Fenced,
         &three([0, 1, 2].map(|i| (sk[i][2].as_slice(), sk[i][3].as_slice()))),
-    ));
+    );
     figs
+}
+
+/// Writes a run's three plots as files in `out/figures/RUN/` (see
+/// [`crate::report::figure_files`]); returns their paths.
+pub fn write_gap_figures(
+    out: &Path,
+    r: &GapRun,
+    format: crate::report::figure_files::FigureFormat,
+) -> Result<Vec<PathBuf>, ReportError> {
+    use crate::report::figure_files::{folder_name, stem, write_figures, Figure};
+    let figures: Vec<Figure> = gap_figure_set(r, true)
+        .into_iter()
+        .enumerate()
+        .map(|(i, (title, svg))| Figure {
+            stem: stem(i, &title),
+            svg,
+        })
+        .collect();
+    let dir = out.join("figures").join(folder_name(&r.diagnosis.run));
+    write_figures(&dir, &figures, format)
 }
 
 /// Measured, nominal and fitted as three lines.
 fn three<'a>(xy: [(&'a [f64], &'a [f64]); 3]) -> Vec<Series<'a>> {
     let colors = [MEASURED, NOMINAL, FITTED];
+    let labels = ["measured", "nominal", "fitted"];
     let widths = [2, 1, 1];
     xy.into_iter()
         .enumerate()
@@ -207,6 +242,7 @@ fn three<'a>(xy: [(&'a [f64], &'a [f64]); 3]) -> Vec<Series<'a>> {
             mark: Mark::Line,
             x,
             y,
+            label: labels[i],
         })
         .collect()
 }

@@ -197,6 +197,19 @@ impl EncodedRun {
         })
     }
 
+    /// The string attribute `name` of the dataset `dataset` of `group`, when set.
+    pub fn dataset_attr_text(&self, group: &str, dataset: &str, name: &str) -> Option<&str> {
+        self.items.iter().find_map(|i| match i {
+            Item::DatasetAttr {
+                group: g,
+                dataset: d,
+                name: n,
+                value,
+            } if g == group && d == dataset && n == name => Some(value.as_str()),
+            _ => None,
+        })
+    }
+
     /// Whether the run holds the group `group` (relative path).
     pub fn has_group(&self, group: &str) -> bool {
         self.items

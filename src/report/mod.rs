@@ -2,6 +2,7 @@
 //! results and summaries (FORMATS.md §3).
 
 pub mod encoded;
+pub mod figure_files;
 pub mod html;
 mod results;
 pub mod schema;

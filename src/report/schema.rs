@@ -98,6 +98,10 @@ pub mod name {
     pub const RESPONSE_AMPLITUDE: &str = "response_amplitude";
     /// The response's instantaneous frequency, Hz (dataset of a method's group).
     pub const RESPONSE_FREQUENCY: &str = "response_frequency";
+    /// The input's envelope.
+    pub const INPUT_AMPLITUDE: &str = "input_amplitude";
+    /// The input's frequency (Hz).
+    pub const INPUT_FREQUENCY: &str = "input_frequency";
     /// The skeleton's group inside a method's group.
     pub const SKELETON: &str = "skeleton";
     /// Skeleton columns the page draws.
@@ -156,8 +160,8 @@ pub(super) fn encode_identification(
         unit(e, m, name, units.dataset(name));
     };
     if let Some(inp) = &id.input {
-        signal(e, "input_amplitude", &inp.amplitude);
-        signal(e, "input_frequency", &inp.frequency);
+        signal(e, name::INPUT_AMPLITUDE, &inp.amplitude);
+        signal(e, name::INPUT_FREQUENCY, &inp.frequency);
     }
     signal(e, name::RESPONSE_AMPLITUDE, &id.response.amplitude);
     signal(e, name::RESPONSE_FREQUENCY, &id.response.frequency);

@@ -94,6 +94,19 @@ pub(crate) fn svg_plot(
     y_axis: YAxis,
     series: &[Series],
 ) -> Option<String> {
+    plot(title, x_label, y_label, y_axis, series, false)
+}
+
+/// [`svg_plot`], with a legend of the series' labels when `legend` (a figure file stands
+/// alone; a page's plots share the page's legend).
+pub(crate) fn plot(
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    y_axis: YAxis,
+    series: &[Series],
+    legend: bool,
+) -> Option<String> {
     let finite = |s: &&Series| {
         s.x.iter()
             .zip(s.y)
@@ -131,6 +144,7 @@ pub(crate) fn svg_plot(
             .light_line_style(RGBColor(240, 240, 240))
             .draw()?;
         for s in &drawn {
+            let mut labelled = false;
             let pts = s.x.iter().zip(s.y).map(|(&x, &y)| (x, y));
             match s.mark {
                 Mark::Line => {
@@ -140,20 +154,42 @@ pub(crate) fn svg_plot(
                         if inside(&p) {
                             segment.push(p);
                         } else if !segment.is_empty() {
-                            chart.draw_series(LineSeries::new(
+                            let drawn = chart.draw_series(LineSeries::new(
                                 std::mem::take(&mut segment),
                                 s.color.stroke_width(s.width),
                             ))?;
+                            if legend && !labelled && !s.label.is_empty() {
+                                labelled = true;
+                                let style = s.color.stroke_width(s.width.max(2));
+                                drawn.label(s.label).legend(move |(x, y)| {
+                                    PathElement::new(vec![(x, y), (x + 16, y)], style)
+                                });
+                            }
                         }
                     }
                 }
                 Mark::Points => {
-                    chart.draw_series(
+                    let drawn = chart.draw_series(
                         pts.filter(inside)
                             .map(|p| Circle::new(p, 3, s.color.stroke_width(1))),
                     )?;
+                    if legend && !s.label.is_empty() {
+                        let style = s.color.stroke_width(1);
+                        drawn
+                            .label(s.label)
+                            .legend(move |(x, y)| Circle::new((x + 8, y), 3, style));
+                    }
                 }
             }
+        }
+        if legend && drawn.iter().any(|s| !s.label.is_empty()) {
+            chart
+                .configure_series_labels()
+                .position(SeriesLabelPosition::UpperRight)
+                .background_style(WHITE.mix(0.85))
+                .border_style(RGBColor(200, 200, 200))
+                .label_font(("sans-serif", 11))
+                .draw()?;
         }
         root.present()?;
         Ok(())
@@ -215,16 +251,31 @@ pub(super) fn model_curves(m: &MethodPlots) -> Option<Curves> {
     })
 }
 
-/// The plots of one run: tracks, backbone, restoring force, damping force.
+/// The figures of one run on its page: response envelope and frequency, backbone,
+/// restoring and damping forces.
 pub(super) fn run_figures(run: &RunPlots) -> Vec<String> {
+    run_figure_set(run, false)
+        .into_iter()
+        .map(|(_, svg)| svg)
+        .collect()
+}
+
+/// The figures of one run, each with its title. As files (`files`): each with its legend,
+/// and the input's envelope and frequency first (the paper's Figs. 10–13); on the page,
+/// the response's plots only.
+pub fn run_figure_set(run: &RunPlots, files: bool) -> Vec<(String, String)> {
     // Hilbert first, so that the wavelet (the more accurate method) is drawn on top.
     let mut ms: Vec<&MethodPlots> = run.methods.iter().collect();
     ms.sort_by_key(|m| m.method == "wavelet");
     let mut figs = Vec::new();
-    let unit = ms
-        .iter()
-        .find(|m| m.error.is_none())
-        .map_or(crate::units::UNKNOWN, |m| m.unit.as_str());
+    let mut add = |title: &str, x: &str, y: &str, axis: YAxis, series: &[Series]| {
+        if let Some(svg) = plot(title, x, y, axis, series, files) {
+            figs.push((title.to_string(), svg));
+        }
+    };
+    let ok = ms.iter().find(|m| m.error.is_none());
+    let unit = ok.map_or(crate::units::UNKNOWN, |m| m.unit.as_str());
+    let input_unit = ok.map_or(crate::units::UNKNOWN, |m| m.input_unit.as_str());
     let tracks = |y: fn(&MethodPlots) -> &Vec<f64>| -> Vec<Series> {
         ms.iter()
             .map(|m| Series {
@@ -233,30 +284,48 @@ pub(super) fn run_figures(run: &RunPlots) -> Vec<String> {
                 mark: Mark::Line,
                 x: &m.time,
                 y: y(m),
+                label: &m.method,
             })
             .collect()
     };
-    figs.extend(svg_plot(
+    if files {
+        add(
+            "Input envelope",
+            "time (s)",
+            &format!("input amplitude ({input_unit})"),
+            YAxis::Full,
+            &tracks(|m| &m.input_amplitude),
+        );
+        add(
+            "Input frequency",
+            "time (s)",
+            "frequency (Hz)",
+            YAxis::Fenced,
+            &tracks(|m| &m.input_frequency),
+        );
+    }
+    add(
         "Response envelope",
         "time (s)",
         &format!("amplitude ({unit})"),
         YAxis::Full,
         &tracks(|m| &m.amplitude),
-    ));
-    figs.extend(svg_plot(
+    );
+    add(
         "Response frequency",
         "time (s)",
         "frequency (Hz)",
         YAxis::Fenced,
         &tracks(|m| &m.frequency),
-    ));
+    );
     // The fitted model over each method's skeleton amplitudes, and its damping line
     // 2h0·Aω = (c/J)·V + (4/π)·F/J over the velocity amplitudes V.
     let curves: Vec<Option<Curves>> = ms.iter().map(|m| model_curves(m)).collect();
+    let fit_labels: Vec<String> = ms.iter().map(|m| format!("{} fit", m.method)).collect();
     let with_fit = |pick: fn(&Skeleton) -> (&Vec<f64>, &Vec<f64>),
                     curve: fn(&Curves) -> (&Vec<f64>, &Vec<f64>)| {
         let mut s = Vec::new();
-        for (m, c) in ms.iter().zip(&curves) {
+        for ((m, c), fit_label) in ms.iter().zip(&curves).zip(&fit_labels) {
             let (x, y) = pick(&m.skeleton);
             s.push(Series {
                 color: method_color(&m.method),
@@ -264,6 +333,7 @@ pub(super) fn run_figures(run: &RunPlots) -> Vec<String> {
                 mark: Mark::Points,
                 x,
                 y,
+                label: &m.method,
             });
             if let Some((x, y)) = c.as_ref().map(curve).filter(|(x, _)| !x.is_empty()) {
                 s.push(Series {
@@ -272,12 +342,13 @@ pub(super) fn run_figures(run: &RunPlots) -> Vec<String> {
                     mark: Mark::Line,
                     x,
                     y,
+                    label: fit_label,
                 });
             }
         }
         s
     };
-    figs.extend(svg_plot(
+    add(
         "Backbone: skeleton (circles) and fitted dead zone (line)",
         &format!("response amplitude ({unit})"),
         "natural frequency (Hz)",
@@ -286,8 +357,8 @@ pub(super) fn run_figures(run: &RunPlots) -> Vec<String> {
             |s| (&s.amplitude, &s.natural_frequency),
             |c| (&c.amplitude, &c.frequency),
         ),
-    ));
-    figs.extend(svg_plot(
+    );
+    add(
         "Restoring force per unit inertia",
         &format!("response amplitude ({unit})"),
         &format!("A·ω0² ({unit}/s²)"),
@@ -296,8 +367,8 @@ pub(super) fn run_figures(run: &RunPlots) -> Vec<String> {
             |s| (&s.amplitude, &s.restoring_force),
             |c| (&c.amplitude, &c.restoring),
         ),
-    ));
-    figs.extend(svg_plot(
+    );
+    add(
         "Damping force per unit inertia: viscous + Coulomb fit",
         &format!("velocity amplitude A·ω ({unit}/s)"),
         &format!("2h0·A·ω ({unit}/s²)"),
@@ -306,7 +377,7 @@ pub(super) fn run_figures(run: &RunPlots) -> Vec<String> {
             |s| (&s.velocity_amplitude, &s.damping_force),
             |c| (&c.velocity, &c.damping),
         ),
-    ));
+    );
     figs
 }
 
@@ -362,4 +433,6 @@ pub(crate) struct Series<'a> {
     pub(crate) mark: Mark,
     pub(crate) x: &'a [f64],
     pub(crate) y: &'a [f64],
+    /// Its legend entry (figure files only; the pages have their own legend).
+    pub(crate) label: &'a str,
 }

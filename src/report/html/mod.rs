@@ -13,6 +13,8 @@ mod figures;
 mod stored;
 
 use crate::report::Status;
+pub(crate) use figures::plot;
+pub use figures::run_figure_set;
 pub(crate) use figures::{esc, reduce, svg_plot, Mark, Series, YAxis};
 use figures::{fit_color, method_color, run_figures};
 pub use stored::{encoded_plots, read_run, Fitted, MethodPlots, RunPlots, Skeleton};
@@ -158,6 +160,7 @@ pub fn render(page: &ReportPage) -> String {
                 mark: Mark::Points,
                 x: &w.0,
                 y: &w.1,
+                label: "",
             },
             Series {
                 color: method_color("hilbert"),
@@ -165,6 +168,7 @@ pub fn render(page: &ReportPage) -> String {
                 mark: Mark::Points,
                 x: &h.0,
                 y: &h.1,
+                label: "",
             },
         ];
         if let Some(svg) = svg_plot(
@@ -545,6 +549,7 @@ mod tests {
             mark: Mark::Line,
             x: &x,
             y: &nan,
+            label: "",
         };
         assert!(svg_plot("t", "x", "y", YAxis::Full, &[empty]).is_none());
         let y = [1.0, 2.0, f64::NAN, 3.0, 4.0];
@@ -554,6 +559,7 @@ mod tests {
             mark: Mark::Line,
             x: &x,
             y: &y,
+            label: "",
         };
         let svg = svg_plot("t", "x", "y", YAxis::Full, &[line]).unwrap();
         assert!(svg.starts_with("<svg"));

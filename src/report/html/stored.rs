@@ -56,12 +56,18 @@ pub struct MethodPlots {
     pub amplitude: Vec<f64>,
     /// Response frequency (Hz), reduced; NaN where no sample was valid.
     pub frequency: Vec<f64>,
+    /// Input envelope on the same reduced time (empty without an input track).
+    pub input_amplitude: Vec<f64>,
+    /// Input frequency (Hz) on the same reduced time (empty without an input track).
+    pub input_frequency: Vec<f64>,
     /// The skeleton over all bins.
     pub skeleton: Skeleton,
     /// The fitted model, when the dead-zone fit succeeded.
     pub fitted: Option<Fitted>,
     /// Unit of the response's displacement (`rad`, `m`, or `u` when the archive says none).
     pub unit: String,
+    /// Unit of the input's envelope.
+    pub input_unit: String,
     /// Absolute contact stiffness, viscous damping and friction with their units, where
     /// the inertia is known or estimated.
     pub absolute: Vec<(&'static str, f64, String)>,
@@ -96,6 +102,8 @@ pub(crate) trait StoredRun {
     fn bytes(&self, group: &str, name: &str) -> Vec<u8>;
     /// Whether the group exists.
     fn has(&self, group: &str) -> bool;
+    /// A string attribute of a dataset.
+    fn dataset_text(&self, group: &str, dataset: &str, name: &str) -> Option<String>;
 }
 
 /// A run's group in an open HDF5 file.
@@ -145,6 +153,14 @@ impl StoredRun for FileRun {
     fn has(&self, group: &str) -> bool {
         self.at(group).is_some()
     }
+
+    fn dataset_text(&self, group: &str, dataset: &str, name: &str) -> Option<String> {
+        let attr = self.at(group)?.dataset(dataset).ok()?.attr(name).ok()?;
+        match read_attr(&attr).ok()? {
+            AttrValue::Text(s) => Some(s),
+            _ => None,
+        }
+    }
 }
 
 impl StoredRun for EncodedRun {
@@ -178,6 +194,11 @@ impl StoredRun for EncodedRun {
 
     fn has(&self, group: &str) -> bool {
         self.has_group(group)
+    }
+
+    fn dataset_text(&self, group: &str, dataset: &str, name: &str) -> Option<String> {
+        self.dataset_attr_text(group, dataset, name)
+            .map(str::to_string)
     }
 }
 
@@ -218,6 +239,14 @@ pub(super) fn read_method(run: &dyn StoredRun, m: &str, time: &[f64]) -> MethodP
     let valid = run.bytes(m, name::VALID);
     let (t, amplitude) = reduce(time, &run.floats(m, name::RESPONSE_AMPLITUDE), &valid);
     let (_, frequency) = reduce(time, &run.floats(m, name::RESPONSE_FREQUENCY), &valid);
+    // The input's track is valid wherever it is finite: the mask is the response's.
+    let input = |n: &str| {
+        let v = run.floats(m, n);
+        let all = vec![1u8; v.len()];
+        reduce(time, &v, &all).1
+    };
+    let (input_amplitude, input_frequency) =
+        (input(name::INPUT_AMPLITUDE), input(name::INPUT_FREQUENCY));
     let sk = format!("{m}/{}", name::SKELETON);
     let skeleton = if run.has(&sk) {
         let col = |n: &str| run.floats(&sk, n);
@@ -249,6 +278,9 @@ pub(super) fn read_method(run: &dyn StoredRun, m: &str, time: &[f64]) -> MethodP
     let unit = run
         .text(m, &format!("clearance{}", name::UNITS_SUFFIX))
         .unwrap_or_else(|| crate::units::UNKNOWN.into());
+    let input_unit = run
+        .dataset_text(m, name::INPUT_AMPLITUDE, "units")
+        .unwrap_or_else(|| crate::units::UNKNOWN.into());
     let absolute = [
         ("k", "contact_stiffness"),
         ("c", "viscous_damping_absolute"),
@@ -271,9 +303,12 @@ pub(super) fn read_method(run: &dyn StoredRun, m: &str, time: &[f64]) -> MethodP
         time: t,
         amplitude,
         frequency,
+        input_amplitude,
+        input_frequency,
         skeleton,
         fitted,
         unit,
+        input_unit,
         absolute,
     }
 }
