@@ -5,9 +5,10 @@
 #   vulkan-tools              -> `vulkaninfo --summary` for diagnosing adapters
 #   chromium                  -> the headless browser the report test opens report.html in
 #   poppler-utils             -> pdftoppm/pdftotext, with which the figures test renders --figures pdf
+#   python3 + python3-venv    -> the Python package (pip install ./python) and its tests
 # Safe to run repeatedly. Uses sudo only when not already root.
 set -euo pipefail
-pkgs=(libhdf5-dev pkg-config libvulkan1 mesa-vulkan-drivers vulkan-tools chromium poppler-utils)
+pkgs=(libhdf5-dev pkg-config libvulkan1 mesa-vulkan-drivers vulkan-tools chromium poppler-utils python3 python3-venv)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# The Python package's tests, as a user gets the package: `pip install ./python` into a
+# fresh virtual environment (maturin builds the extension), then pytest over
+# python/tests. The tests compare with the command line, so they need the `skelid`
+# binary: `cargo test` has built it (target/debug/skelid); SKELID_BIN names another.
+#
+# SKELID_PYTHON_PROFILE (default: dev) is the cargo profile the extension is built with:
+# dev reuses what `cargo test` just compiled (a user's `pip install ./python` builds
+# release). Numbers do not depend on it: the tests compare with a binary of the same
+# profile, and Rust does not reorder floating-point arithmetic between profiles.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+python=${PYTHON:-python3}
+venv=target/python-venv
+rm -rf "$venv"
+"$python" -m venv "$venv"
+"$venv/bin/python" -m pip install -q --upgrade pip
+MATURIN_PEP517_ARGS="--profile ${SKELID_PYTHON_PROFILE:-dev}" \
+  "$venv/bin/python" -m pip install -q "./python[test]"
+"$venv/bin/python" -c "import skelid; print('skelid', skelid.__version__, 'for Python')"
+export SKELID_BIN=${SKELID_BIN:-$PWD/target/debug/skelid}
+[ -x "$SKELID_BIN" ] || cargo build --bin skelid
+exec "$venv/bin/python" -m pytest -q python/tests
