@@ -6,9 +6,10 @@
 #   chromium                  -> the headless browser the report test opens report.html in
 #   poppler-utils             -> pdftoppm/pdftotext, with which the figures test renders --figures pdf
 #   python3 + python3-venv    -> the Python package (pip install ./python) and its tests
+#   slurm-wlm + munge         -> the job-array recipe's test runs a single-node Slurm (scripts/slurm)
 # Safe to run repeatedly. Uses sudo only when not already root.
 set -euo pipefail
-pkgs=(libhdf5-dev pkg-config libvulkan1 mesa-vulkan-drivers vulkan-tools chromium poppler-utils python3 python3-venv)
+pkgs=(libhdf5-dev pkg-config libvulkan1 mesa-vulkan-drivers vulkan-tools chromium poppler-utils python3 python3-venv slurm-wlm munge)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
