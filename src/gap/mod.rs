@@ -44,8 +44,8 @@ pub use compare::{
     Target, GRAZING, JOIN_DECAY_TIMES, JUMP_UP_SPAN, SETTLE_DECAY_TIMES, TIME_TOLERANCE,
 };
 pub use features::{
-    lattice_step, measured_resolution, model_resolution, resolution_per_step, Features,
-    LATTICE_SHARE, SMOOTH,
+    exact_lattice_step, lattice_coherence, lattice_step, measured_resolution, model_resolution,
+    noisy_lattice_step, resolution_per_step, Features, LATTICE_SHARE, NOISY_COHERENCE, SMOOTH,
 };
 pub use finished::{GapRun, Whole};
 pub use search::{diagnose, Candidate, Diagnosis, SearchOptions};
@@ -260,6 +260,90 @@ mod tests {
         assert_eq!(lattice_step(&[0.5; 1000]), None);
         let two: Vec<f64> = (0..1000).map(|i| (i % 2) as f64 * 1e-3).collect();
         assert_eq!(lattice_step(&two), None);
+    }
+
+    /// A 30 s record at 1 kHz like a swept rig's: a chirp whose amplitude rises and falls.
+    fn sweep(amplitude: f64) -> Vec<f64> {
+        (0..30_000)
+            .map(|i| {
+                let t = i as f64 / 1000.0;
+                let env = amplitude * (0.2 + 0.8 * (std::f64::consts::PI * t / 30.0).sin());
+                env * (2.0 * std::f64::consts::PI * (0.5 * t + 0.2 * t * t)).sin()
+            })
+            .collect()
+    }
+
+    fn gaussian(n: usize, sigma: f64, seed: u64) -> Vec<f64> {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, Normal};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        let normal = Normal::new(0.0, sigma).expect("a positive deviation");
+        (0..n).map(|_| normal.sample(&mut rng)).collect()
+    }
+
+    #[test]
+    fn a_lattice_blurred_by_acquisition_noise_and_offset_is_found() {
+        let x = sweep(0.03);
+        // Encoders of 20, 17 and 12 bit per revolution; noise of 1/60 to 1/15 of a step
+        // after the quantiser, and an offset that is not a whole number of steps.
+        for bits in [20, 17, 12] {
+            let q = std::f64::consts::TAU / f64::from(1u32 << bits);
+            for (k, fraction) in [60.0, 30.0, 15.0].into_iter().enumerate() {
+                let noise = gaussian(x.len(), q / fraction, 7 + k as u64);
+                let y: Vec<f64> = x
+                    .iter()
+                    .zip(&noise)
+                    .map(|(v, e)| (v / q).round() * q + 1.7e-4 + 0.37 * q + e)
+                    .collect();
+                assert_eq!(exact_lattice_step(&y), None, "{bits} bit: not exact");
+                let step = lattice_step(&y).unwrap_or_else(|| panic!("{bits} bit, q/{fraction}"));
+                assert!(
+                    (step / q - 1.0).abs() < 1e-3,
+                    "{bits} bit, q/{fraction}: {step} against {q}"
+                );
+                let c = lattice_coherence(&y, step);
+                let expected = (-2.0 * (std::f64::consts::PI / fraction).powi(2)).exp();
+                assert!(
+                    (c - expected).abs() < 0.02,
+                    "coherence {c} against {expected}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn continuous_records_have_no_noisy_lattice() {
+        let decay: Vec<f64> = (0..30_000)
+            .map(|i| {
+                let t = i as f64 / 1000.0;
+                0.02 * (-t / 3.0).exp() * (2.0 * std::f64::consts::PI * 8.0 * t).sin()
+            })
+            .collect();
+        let cases: Vec<(&str, Vec<f64>)> = vec![
+            ("sweep", sweep(0.03)),
+            (
+                "sweep with noise",
+                sweep(0.03)
+                    .iter()
+                    .zip(gaussian(30_000, 1e-5, 3))
+                    .map(|(a, b)| a + b)
+                    .collect(),
+            ),
+            ("white noise", gaussian(30_000, 1e-3, 4)),
+            (
+                "long free decay with noise",
+                decay
+                    .iter()
+                    .zip(gaussian(30_000, 1e-7, 5))
+                    .map(|(a, b)| a + b)
+                    .collect(),
+            ),
+            ("noisy sine", noisy_sine(30_000, 1e-4)),
+        ];
+        for (name, x) in cases {
+            assert_eq!(noisy_lattice_step(&x), None, "{name}");
+            assert_eq!(lattice_step(&x), None, "{name}");
+        }
     }
 
     #[test]
