@@ -6,6 +6,9 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
+mod common;
+use common::summary_rows;
+
 fn skelid() -> Command {
     Command::new(env!("CARGO_BIN_EXE_skelid"))
 }
@@ -41,32 +44,6 @@ fn run(args: &[&str], inputs: &Path, out: &Path) -> std::process::Output {
         .args(args)
         .output()
         .expect("run skelid run")
-}
-
-/// summary.json rows without the timings, sorted: what must be identical.
-fn rows(out: &Path) -> Vec<serde_json::Value> {
-    let text = std::fs::read_to_string(out.join("summary.json")).expect("summary.json");
-    let v: serde_json::Value = serde_json::from_str(&text).unwrap();
-    let mut rows: Vec<serde_json::Value> = v["rows"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .cloned()
-        .map(|mut r| {
-            r.as_object_mut().unwrap().remove("seconds");
-            // The archive's folder differs between outputs; its name does not.
-            let src = r["source"].as_str().unwrap().to_string();
-            r["source"] = Path::new(&src)
-                .file_name()
-                .unwrap()
-                .to_str()
-                .unwrap()
-                .into();
-            r
-        })
-        .collect();
-    rows.sort_by_key(|r| format!("{}{}{}", r["source"], r["run"], r["method"]));
-    rows
 }
 
 /// Rows equal field by field; numbers to 1e-12 relative. The same run identified twice can
@@ -135,7 +112,7 @@ fn killed_batches_resume_to_the_uninterrupted_result() {
     let clean = tmp.path().join("clean");
     let o = run(&[], &inputs, &clean);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let expected_rows = rows(&clean);
+    let expected_rows = summary_rows(&clean);
     let expected = results(&clean);
     assert_eq!(expected.len(), 33, "{expected:?}");
 
@@ -179,7 +156,7 @@ fn killed_batches_resume_to_the_uninterrupted_result() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let said = String::from_utf8_lossy(&o.stdout);
     assert!(said.contains("already done earlier"), "{said}");
-    assert_same_rows(&rows(&out), &expected_rows);
+    assert_same_rows(&summary_rows(&out), &expected_rows);
     assert_same_results(&results(&out), &expected);
 
     // A second rerun does nothing new; --force redoes all, to the same result.
@@ -187,7 +164,7 @@ fn killed_batches_resume_to_the_uninterrupted_result() {
     assert!(String::from_utf8_lossy(&o.stdout).contains("33 already done"));
     let o = run(&["--force"], &inputs, &out);
     assert!(String::from_utf8_lossy(&o.stdout).contains(" 0 already done"));
-    assert_same_rows(&rows(&out), &expected_rows);
+    assert_same_rows(&summary_rows(&out), &expected_rows);
 }
 
 #[test]
@@ -233,11 +210,14 @@ fn three_shards_merged_equal_one_run() {
         .output()
         .unwrap();
     assert!(m.status.success(), "{}", String::from_utf8_lossy(&m.stderr));
-    assert_same_rows(&rows(&merged), &rows(&whole));
+    assert_same_rows(&summary_rows(&merged), &summary_rows(&whole));
     assert_same_results(&results(&merged), &results(&whole));
     // The merged folder's report lists every run of every shard.
     let page = std::fs::read_to_string(merged.join("report.html")).unwrap();
-    assert_eq!(page.matches("<tr class=").count(), rows(&whole).len());
+    assert_eq!(
+        page.matches("<tr class=").count(),
+        summary_rows(&whole).len()
+    );
 
     // A missing shard, a shard given twice, an unsharded folder among shards: refused.
     let refuse = |dirs: &[&PathBuf], what: &str| {

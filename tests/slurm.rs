@@ -8,6 +8,9 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
+mod common;
+use common::summary_rows as rows;
+
 fn skelid() -> Command {
     Command::new(env!("CARGO_BIN_EXE_skelid"))
 }
@@ -29,27 +32,6 @@ impl Drop for Cluster {
             .arg(&self.0)
             .output();
     }
-}
-
-/// summary.json's rows by (run, method), without what differs between two invocations
-/// (the seconds each took, and the source's spelling).
-fn rows(dir: &Path) -> Vec<serde_json::Value> {
-    let text = std::fs::read_to_string(dir.join("summary.json")).unwrap();
-    let v: serde_json::Value = serde_json::from_str(&text).unwrap();
-    let mut rows: Vec<serde_json::Value> = v["rows"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .cloned()
-        .map(|mut r| {
-            let o = r.as_object_mut().unwrap();
-            o.remove("seconds");
-            o.remove("source");
-            r
-        })
-        .collect();
-    rows.sort_by_key(|r| format!("{}{}", r["run"], r["method"]));
-    rows
 }
 
 /// Equal values; numbers to 1e-12 relative. A worker that identified other runs before

@@ -87,7 +87,7 @@ fn figures(
     plots: Option<&RunPlots>,
     opt: &BatchOptions<'_>,
 ) -> Result<(), crate::report::ReportError> {
-    use crate::report::figure_files::{folder_name, stem, write_figures, Figure};
+    use crate::report::figure_files::{folder_name, write_figures};
     let Some(f) = &opt.figures else {
         return Ok(());
     };
@@ -100,14 +100,6 @@ fn figures(
                 &decoded
             }
         };
-        let set: Vec<Figure> = html::run_figure_set(plots, true)
-            .into_iter()
-            .enumerate()
-            .map(|(i, (title, svg))| Figure {
-                stem: stem(i, &title),
-                svg,
-            })
-            .collect();
         // The archive's file name: runs of different archives may share a path.
         let archive = std::path::Path::new(source)
             .file_name()
@@ -116,7 +108,7 @@ fn figures(
             .dir
             .join(folder_name(&archive))
             .join(folder_name(&run.path));
-        write_figures(&dir, &set, f.format).map(|_| ())
+        write_figures(&dir, &html::run_figure_set(plots, true), f.format).map(|_| ())
     })
 }
 

@@ -216,17 +216,9 @@ pub fn write_gap_figures(
     r: &GapRun,
     format: crate::report::figure_files::FigureFormat,
 ) -> Result<Vec<PathBuf>, ReportError> {
-    use crate::report::figure_files::{folder_name, stem, write_figures, Figure};
-    let figures: Vec<Figure> = gap_figure_set(r, true)
-        .into_iter()
-        .enumerate()
-        .map(|(i, (title, svg))| Figure {
-            stem: stem(i, &title),
-            svg,
-        })
-        .collect();
+    use crate::report::figure_files::{folder_name, write_figures};
     let dir = out.join("figures").join(folder_name(&r.diagnosis.run));
-    write_figures(&dir, &figures, format)
+    write_figures(&dir, &gap_figure_set(r, true), format)
 }
 
 /// Measured, nominal and fitted as three lines.

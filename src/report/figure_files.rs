@@ -1,7 +1,7 @@
 //! Figures as files for test reports (`--figures svg|png|pdf`): the SVG that the pages
 //! draw, written as it is, rasterised at 300 dpi (PNG, resvg), or converted to vector PDF
 //! (svg2pdf). Text is laid out with DejaVu Sans, bundled in the binary: no system font is
-//! looked for, so a figure reads the same on every machine. In: named SVG figures; out:
+//! looked for, so a figure reads the same on every machine. In: titled SVG figures; out:
 //! one file per figure in a folder.
 
 use std::path::{Path, PathBuf};
@@ -41,15 +41,6 @@ const SVG_DPI: f32 = 96.0;
 
 /// The family every figure's text is set in.
 const FAMILY: &str = "DejaVu Sans";
-
-/// A figure: its file stem (`01-response-envelope`) and its SVG.
-#[derive(Debug, Clone)]
-pub struct Figure {
-    /// File name without extension.
-    pub stem: String,
-    /// The drawing.
-    pub svg: String,
-}
 
 /// The bundled fonts, loaded once per process.
 fn fonts() -> Arc<usvg::fontdb::Database> {
@@ -136,10 +127,11 @@ fn png(tree: &usvg::Tree) -> Result<Vec<u8>, String> {
     Ok(bytes)
 }
 
-/// Writes `figures` into `dir` (created) as `STEM.EXT`, each atomically; returns the paths.
+/// Writes titled figures (title, SVG) into `dir` (created), each atomically as
+/// `NN-title.EXT` ([`stem`]: numbered in order); returns the paths.
 pub fn write_figures(
     dir: &Path,
-    figures: &[Figure],
+    figures: &[(String, String)],
     format: FigureFormat,
 ) -> Result<Vec<PathBuf>, ReportError> {
     std::fs::create_dir_all(dir).map_err(|e| ReportError {
@@ -148,9 +140,10 @@ pub fn write_figures(
     })?;
     figures
         .iter()
-        .map(|f| {
-            let path = dir.join(format!("{}.{}", f.stem, format.extension()));
-            let bytes = render(&f.svg, format).map_err(|detail| ReportError {
+        .enumerate()
+        .map(|(i, (title, svg))| {
+            let path = dir.join(format!("{}.{}", stem(i, title), format.extension()));
+            let bytes = render(svg, format).map_err(|detail| ReportError {
                 file: path.display().to_string(),
                 detail,
             })?;

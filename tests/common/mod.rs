@@ -81,3 +81,29 @@ pub fn shared_real_data() -> Option<PathBuf> {
     let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/real");
     p.is_dir().then_some(p)
 }
+
+/// summary.json rows without the timings, sorted: what must be identical.
+pub fn summary_rows(out: &Path) -> Vec<serde_json::Value> {
+    let text = std::fs::read_to_string(out.join("summary.json")).expect("summary.json");
+    let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let mut rows: Vec<serde_json::Value> = v["rows"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .cloned()
+        .map(|mut r| {
+            r.as_object_mut().unwrap().remove("seconds");
+            // The archive's folder differs between outputs; its name does not.
+            let src = r["source"].as_str().unwrap().to_string();
+            r["source"] = Path::new(&src)
+                .file_name()
+                .unwrap()
+                .to_str()
+                .unwrap()
+                .into();
+            r
+        })
+        .collect();
+    rows.sort_by_key(|r| format!("{}{}{}", r["source"], r["run"], r["method"]));
+    rows
+}
