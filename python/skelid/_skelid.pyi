@@ -71,8 +71,8 @@ def gap(
     effects: Optional[Sequence[str]] = None,
     backend: Backend = "cpu",
 ) -> dict[str, Any]:
-    """One run's entry of gap.json: nominal_gap, baseline_gap, regions, candidates,
-    verdict."""
+    """The gap.json document: format, settings, runs (one entry: nominal_gap,
+    baseline_gap, regions, candidates, verdict), failed."""
 
 def read_campaign(
     path: Union[str, "PathLike[str]"],

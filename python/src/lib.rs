@@ -1,5 +1,6 @@
-//! skelid for Python: a thin layer over the skelid crate. numpy arrays in (float64 borrowed
-//! without a copy, float32 converted), numpy arrays and dicts out; the GIL is released while
+//! skelid for Python: a thin layer over the skelid crate. numpy arrays in (float64 read in
+//! place by `track`, copied once into a run by `identify` and `gap`; float32 converted),
+//! numpy arrays and dicts out; the GIL is released while
 //! skelid works; errors are `skelid.SkelidError` with the library's messages, their hints
 //! naming this module's keyword arguments. Every function calls the same library code as the
 //! command line, so both give the same numbers.
@@ -444,8 +445,9 @@ fn rig_model(py: Python<'_>, model: &Bound<'_, PyAny>) -> PyResult<RigModel> {
 /// input, output: base and link angle (rad). effects: the effect names to try (all seven
 /// by default). The rest as `skelid gap`'s options of the same names.
 ///
-/// Returns one run's entry of gap.json as a dict (nominal_gap, baseline_gap, regions,
-/// candidates best first, verdict, ...).
+/// Returns the gap.json document as a dict, as `skelid gap` writes it: format, settings,
+/// runs (one entry: run "/python", nominal_gap, baseline_gap, regions, candidates best
+/// first, verdict, ...) and failed.
 #[pyfunction]
 #[pyo3(signature = (model, input, output, fs, kind="base_motion", inertia=None, gravity_stiffness=0.0, units=None, holdout_block=1.0, baseline_evaluations=150, candidate_evaluations=45, pairs=true, fit_inertia=false, effects=None, backend="cpu"))]
 #[allow(clippy::too_many_arguments)]
@@ -522,7 +524,21 @@ fn gap<'py>(
             let d = skelid::gap::search::diagnose(&reference, &model, &opt)
                 .map_err(|e| e.to_string())?;
             let r = skelid::gap::GapRun::new(&reference, d).map_err(|e| e.to_string())?;
-            Ok(skelid::gap::export::run_json(&r).to_string())
+            let settings = serde_json::json!({
+                "holdout": format!(
+                    "alternate {holdout_block} s blocks: fits on the even ones (from t = 0), \
+                     gaps scored on the odd ones"
+                ),
+                "baseline_evaluations": opt.baseline_evaluations,
+                "candidate_evaluations": opt.candidate_evaluations,
+                "refine": opt.refine,
+                "pairs": opt.pairs,
+                "backend": if engine.is_gpu() { "gpu" } else { "cpu" },
+                "fit_inertia": opt.fit_inertia,
+                "min_shrink": skelid::gap::search::MIN_SHRINK,
+                "min_drop": skelid::gap::search::MIN_DROP,
+            });
+            Ok(skelid::gap::export::gap_document(&[&r], &[], settings).to_string())
         })
         .map_err(err)?;
     py.import("json")?.call_method1("loads", (json,))

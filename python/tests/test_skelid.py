@@ -157,7 +157,10 @@ def test_gap_names_the_missing_friction_as_the_command_line_does(demo, tmp_path)
     model = {"inertia": 3.16, "stiffness": 15000.0, "damping": 13.0, "clearance": 0.0262}
     options = dict(baseline_evaluations=40, candidate_evaluations=20, pairs=False)
     effects = ["coulomb_friction", "sensor_delay"]
-    g = skelid.gap(model, run["input"], run["output"], run["sample_rate"], effects=effects, **options)
+    doc = skelid.gap(model, run["input"], run["output"], run["sample_rate"], effects=effects, **options)
+    assert doc["format"] == "skelid-gap/1" and doc["failed"] == []
+    assert doc["settings"]["baseline_evaluations"] == 40
+    (g,) = doc["runs"]
     assert g["run"] == "/python"
     assert g["verdict"] == "coulomb_friction", g["verdict"]
     assert [c["effect"] for c in g["candidates"]][0] == "coulomb_friction"
@@ -178,7 +181,7 @@ def test_gap_names_the_missing_friction_as_the_command_line_does(demo, tmp_path)
     ]
     # A model as TOML text or a path is the same model.
     g2 = skelid.gap(str(rig), run["input"], run["output"], run["sample_rate"], effects=effects, **options)
-    assert g2["baseline_gap"] == g["baseline_gap"]
+    assert g2["runs"][0]["baseline_gap"] == g["baseline_gap"]
     with pytest.raises(skelid.SkelidError, match="stiffness"):
         skelid.gap("inertia = 3.16\n", run["input"], run["output"], run["sample_rate"])
 

@@ -82,15 +82,10 @@ pub fn run_json(r: &GapRun) -> Value {
     })
 }
 
-/// Writes `<out>/gap.json` (atomically); `settings` says how the search was run, `failed`
-/// lists the runs that could not be diagnosed, each with its error.
-pub fn write_gap_json(
-    out: &Path,
-    runs: &[&GapRun],
-    failed: &[(String, String)],
-    settings: Value,
-) -> Result<PathBuf, ReportError> {
-    let doc = json!({
+/// The gap.json document (`skelid-gap/1`): `settings` says how the search was run,
+/// `failed` lists the runs that could not be diagnosed, each with its error.
+pub fn gap_document(runs: &[&GapRun], failed: &[(String, String)], settings: Value) -> Value {
+    json!({
         "format": GAP_FORMAT,
         "skelid": env!("CARGO_PKG_VERSION"),
         "settings": settings,
@@ -99,7 +94,17 @@ pub fn write_gap_json(
             .iter()
             .map(|(run, error)| json!({"run": run, "error": error}))
             .collect::<Vec<_>>(),
-    });
+    })
+}
+
+/// Writes `<out>/gap.json` ([`gap_document`]) atomically.
+pub fn write_gap_json(
+    out: &Path,
+    runs: &[&GapRun],
+    failed: &[(String, String)],
+    settings: Value,
+) -> Result<PathBuf, ReportError> {
+    let doc = gap_document(runs, failed, settings);
     let path = out.join("gap.json");
     let text = serde_json::to_string_pretty(&doc).expect("JSON values always serialise");
     write_atomic(&path, text.as_bytes())?;
