@@ -4,6 +4,10 @@
 //! the whole model as TOML). The demo campaign, the gap's self-check and `skelid validate`
 //! draw their runs from here.
 
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, Normal};
+
 use crate::campaign::{Attr, RunData};
 use crate::model::{EffectKind, RigModel};
 use crate::run::{Quantity, RunKind};
@@ -35,6 +39,32 @@ pub fn paper_chirp() -> Excitation {
 /// branch (it never touches, like the paper's record after 16.25 s); the second jumps onto
 /// the resonant branch and rides it up to about 2.7 times the half-gap.
 pub fn two_level_chirp() -> Excitation {
+    two_level_chirp_at(0.04)
+}
+
+/// [`paper_chirp`] at another first level `level` (rad of base angle).
+pub fn paper_chirp_at(level: f64) -> Excitation {
+    match paper_chirp() {
+        Excitation::Chirp {
+            f0,
+            f1,
+            duration,
+            rolloff,
+            ..
+        } => Excitation::Chirp {
+            f0,
+            f1,
+            duration,
+            amplitude: level,
+            rolloff,
+        },
+        other => other,
+    }
+}
+
+/// [`two_level_chirp`] whose first level is `level` (rad; the paper's is 0.04), the second
+/// [`SECOND_LEVEL`] times it.
+pub fn two_level_chirp_at(level: f64) -> Excitation {
     let fs = 1000.0;
     let half = 15.0;
     let sweep = |amplitude: f64| Excitation::Chirp {
@@ -47,7 +77,7 @@ pub fn two_level_chirp() -> Excitation {
             order: 2,
         }),
     };
-    let (a, b) = (sweep(0.04), sweep(0.04 * SECOND_LEVEL));
+    let (a, b) = (sweep(level), sweep(level * SECOND_LEVEL));
     // Each sweep fades in and out over a second: the base starts and stops smoothly rather
     // than with a step of its velocity at 3 Hz.
     let taper = |u: f64| 0.5 - 0.5 * (std::f64::consts::PI * u.clamp(0.0, 1.0)).cos();
@@ -188,4 +218,116 @@ pub fn truth_attrs(m: &RigModel, description: &str, kind: RunKind) -> Vec<(Strin
         a.push((format!("true_{}_{}", k.name(), k.param()), Attr::Num(v)));
     }
     a
+}
+
+/// How a test bench measures a paper-like rig besides its encoders' resolution: noise
+/// before and after the encoders, DC offsets, and the `gravity_stiffness` attribute it
+/// writes down.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Chain {
+    /// White noise on each channel before the encoders quantise it (rad, std).
+    pub noise: f64,
+    /// White noise on each channel after the encoders, from the acquisition chain (rad,
+    /// std): it blurs the encoders' steps.
+    pub acquisition_noise: f64,
+    /// DC offsets of the input and output channels (rad).
+    pub offsets: (f64, f64),
+    /// The `gravity_stiffness` attribute the run carries (1/s²; the truth, perturbed).
+    pub gravity_attribute: f64,
+}
+
+/// A paper-like rig drawn at random over issue 20's ranges, with its measurement chain.
+#[derive(Debug, Clone)]
+pub struct RandomRig {
+    /// The truth: the joint, and its encoders as the `quantization` effect.
+    pub model: RigModel,
+    /// Encoder resolution (bit/rev).
+    pub bits: u32,
+    /// Peak base angle of the paper's chirp (rad).
+    pub amplitude: f64,
+    /// Noise, offsets and the gravity attribute.
+    pub chain: Chain,
+}
+
+/// The paper's rig inertia (kg m²), kept by random rigs: the effects' magnitudes of
+/// [`effect_value`] are torques for it.
+const INERTIA: f64 = 3.16;
+
+/// Draws a rig over issue 20's ranges: gravity stiffness C 0.5–2 1/s², contact frequency
+/// 9.7–11.4 Hz, total clearance 1.3–1.7°, viscous damping 10–21 N m s/rad, the paper's
+/// chirp at 0.032–0.048 rad, encoders of 17–20 bit/rev on both channels with DC offsets up
+/// to ±2e-4 rad and white noise of 0.1–0.5 of their step, and a `gravity_stiffness`
+/// attribute ±10 % off the truth. No acquisition noise after the encoders.
+pub fn random_rig(rng: &mut StdRng) -> RandomRig {
+    let f_contact = rng.random_range(9.7..11.4);
+    let gravity = rng.random_range(0.5..2.0);
+    let bits = rng.random_range(17..=20u32);
+    let mut model = RigModel {
+        inertia: INERTIA,
+        stiffness: INERTIA * (std::f64::consts::TAU * f_contact).powi(2),
+        damping: rng.random_range(10.0..21.0),
+        clearance: rng.random_range(1.3f64..1.7).to_radians(),
+        gravity_stiffness: gravity,
+        effects: Default::default(),
+    };
+    let step = encoder_step(bits);
+    model.effects.set(EffectKind::Quantization, Some(step));
+    RandomRig {
+        model,
+        bits,
+        amplitude: rng.random_range(0.032..0.048),
+        chain: Chain {
+            noise: step * rng.random_range(0.1..0.5),
+            acquisition_noise: 0.0,
+            offsets: (rng.random_range(-2e-4..2e-4), rng.random_range(-2e-4..2e-4)),
+            gravity_attribute: gravity * rng.random_range(0.9..1.1),
+        },
+    }
+}
+
+/// The step of an encoder of `bits` bit/rev (rad).
+pub fn encoder_step(bits: u32) -> f64 {
+    std::f64::consts::TAU / f64::from(1u32 << bits)
+}
+
+/// Simulates `model` under `drive` (30 s at 1 kHz) and measures it through `chain`: noise
+/// before the encoders (the model's `quantization`), acquisition noise after them, the
+/// offsets, and the chain's `gravity_stiffness` attribute.
+pub fn measure(
+    path: &str,
+    model: &RigModel,
+    drive: &Drive,
+    chain: &Chain,
+    seed: u64,
+    description: &str,
+) -> RunData {
+    let settings = SimSettings {
+        output_noise: chain.noise,
+        input_noise: chain.noise,
+        seed,
+        ..SimSettings::default()
+    };
+    let sim = simulate(model, drive, &settings);
+    let mut data = run_data(path, model, drive, sim, settings.sample_rate, description);
+    for (name, value) in &mut data.attrs {
+        if name == "gravity_stiffness" {
+            *value = Attr::Num(chain.gravity_attribute);
+        }
+    }
+    // The acquisition noise has its own stream: the simulation's stays as it was.
+    let mut rng = StdRng::seed_from_u64(seed ^ 0x5eed_ac9u64);
+    let blur = Normal::new(0.0, chain.acquisition_noise.max(0.0)).expect("a finite std");
+    let mut add = |x: &mut [f64], offset: f64| {
+        for v in x.iter_mut() {
+            *v += offset;
+            if chain.acquisition_noise > 0.0 {
+                *v += blur.sample(&mut rng);
+            }
+        }
+    };
+    if let Some(x) = &mut data.input {
+        add(x, chain.offsets.0);
+    }
+    add(&mut data.output, chain.offsets.1);
+    data
 }

@@ -13,8 +13,8 @@ use rand::{Rng, SeedableRng};
 use crate::identify::Identifier;
 use crate::model::{EffectKind, RigModel};
 use crate::refine::{refine, Refined};
-use crate::rig::{effect_value, paper_chirp, run_data};
-use crate::simulate::{simulate, Drive, Excitation, SimSettings};
+use crate::rig::{effect_value, measure, paper_chirp_at, random_rig, Chain};
+use crate::simulate::Drive;
 use crate::track::Method;
 
 /// One random rig, its drive and its measurement chain.
@@ -30,12 +30,8 @@ pub struct Rig {
     pub amplitude: f64,
     /// Encoder resolution (bit/rev).
     pub bits: u32,
-    /// DC offsets of the input and output encoders (rad).
-    pub offsets: (f64, f64),
-    /// White noise on each channel (rad, a fraction of a step).
-    pub noise: f64,
-    /// The `gravity_stiffness` attribute given to the identification (the truth ±10 %).
-    pub gravity_attribute: f64,
+    /// Noise, DC offsets and the `gravity_stiffness` attribute given to the identification.
+    pub chain: Chain,
     /// Noise seed.
     pub seed: u64,
 }
@@ -48,27 +44,15 @@ const EFFECTS: [Option<EffectKind>; 4] = [
     None,
 ];
 
-/// `n` rigs from `seed`.
+/// `n` rigs from `seed` ([`random_rig`]), each with one effect of [`EFFECTS`] in turn at
+/// 0.5–2 times its demo value.
 pub fn rigs(n: usize, seed: u64) -> Vec<Rig> {
     let mut rng = StdRng::seed_from_u64(seed);
     (0..n)
         .map(|index| {
-            let inertia = 3.16;
-            let f_contact = rng.random_range(9.7..11.4);
-            let k = inertia * (std::f64::consts::TAU * f_contact).powi(2);
-            let gravity = rng.random_range(0.5..2.0);
-            let bits = rng.random_range(17..=20u32);
-            let step = std::f64::consts::TAU / f64::from(1u32 << bits);
+            let r = random_rig(&mut rng);
             let effect = EFFECTS[index % EFFECTS.len()];
-            let mut truth = RigModel {
-                inertia,
-                stiffness: k,
-                damping: rng.random_range(10.0..21.0),
-                clearance: rng.random_range(1.3f64..1.7).to_radians(),
-                gravity_stiffness: gravity,
-                effects: Default::default(),
-            };
-            truth.effects.set(EffectKind::Quantization, Some(step));
+            let mut truth = r.model;
             if let Some(e) = effect {
                 let factor = rng.random_range(0.5..2.0);
                 truth.effects.set(e, Some(effect_value(e) * factor));
@@ -77,11 +61,9 @@ pub fn rigs(n: usize, seed: u64) -> Vec<Rig> {
                 index,
                 truth,
                 effect,
-                amplitude: rng.random_range(0.032..0.048),
-                bits,
-                offsets: (rng.random_range(-2e-4..2e-4), rng.random_range(-2e-4..2e-4)),
-                noise: step * rng.random_range(0.1..0.5),
-                gravity_attribute: gravity * rng.random_range(0.9..1.1),
+                amplitude: r.amplitude,
+                bits: r.bits,
+                chain: r.chain,
                 seed: rng.random(),
             }
         })
@@ -108,48 +90,16 @@ pub struct Outcome {
 /// it blind with both methods (by `identifier`) and refines it with `evaluations`
 /// simulations per half.
 pub fn run_rig(rig: &Rig, evaluations: usize, identifier: Identifier<'_>) -> Outcome {
-    let Excitation::Chirp {
-        f0,
-        f1,
-        duration,
-        rolloff,
-        ..
-    } = paper_chirp()
-    else {
-        unreachable!("the paper's drive is a chirp")
-    };
-    let drive = Drive::Base(Excitation::Chirp {
-        f0,
-        f1,
-        duration,
-        amplitude: rig.amplitude,
-        rolloff,
-    });
-    let settings = SimSettings {
-        output_noise: rig.noise,
-        input_noise: rig.noise,
-        seed: rig.seed,
-        ..SimSettings::default()
-    };
-    let sim = simulate(&rig.truth, &drive, &settings);
-    let mut data = run_data(
+    let drive = Drive::Base(paper_chirp_at(rig.amplitude));
+    let run = measure(
         &format!("/validate/rig_{:03}", rig.index),
         &rig.truth,
         &drive,
-        sim,
-        settings.sample_rate,
+        &rig.chain,
+        rig.seed,
         "validation rig",
-    );
-    for (name, value) in &mut data.attrs {
-        if name == "gravity_stiffness" {
-            *value = crate::campaign::Attr::Num(rig.gravity_attribute);
-        }
-    }
-    if let Some(x) = &mut data.input {
-        x.iter_mut().for_each(|v| *v += rig.offsets.0);
-    }
-    data.output.iter_mut().for_each(|v| *v += rig.offsets.1);
-    let run = data.into_run();
+    )
+    .into_run();
     let k_true = rig.truth.stiffness / rig.truth.inertia;
     let c_true = rig.truth.clearance;
     let errors = |c: f64, k: f64| (c / c_true - 1.0, k / k_true - 1.0);
@@ -244,7 +194,7 @@ mod tests {
             assert!((0.5..2.0).contains(&m.gravity_stiffness));
             assert!((17..=20).contains(&r.bits));
             let step = m.effects.get(EffectKind::Quantization).unwrap();
-            assert!(r.noise < step && r.offsets.0.abs() <= 2e-4);
+            assert!(r.chain.noise < step && r.chain.offsets.0.abs() <= 2e-4);
         }
     }
 }

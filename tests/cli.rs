@@ -1351,6 +1351,69 @@ fn figures_are_written_for_every_run_as_png_pdf_and_svg_with_labelled_axes() {
 }
 
 #[test]
+fn detection_limits_climb_their_ladder_and_write_it_down() {
+    let dir = tmpdir();
+    let o = skelid()
+        .args([
+            "gap",
+            "--self-check",
+            "--detection-limits",
+            "sensor_delay",
+            "--cases",
+            "1",
+            "--baseline-evaluations",
+            "20",
+            "--candidate-evaluations",
+            "10",
+            "--refine",
+            "2",
+            "--no-pairs",
+            "--out",
+        ])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    println!("{stdout}{}", String::from_utf8_lossy(&o.stderr));
+    assert!(o.status.success());
+    assert!(stdout.contains("detection limit") && stdout.contains("sensor_delay"));
+    let j: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join("detection-limits.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(j["format"], "skelid-detection-limits/1");
+    assert_eq!(j["rigs"], "paper");
+    let limits = j["limits"].as_array().unwrap();
+    assert_eq!(limits.len(), 1);
+    let l = &limits[0];
+    assert_eq!((l["effect"].as_str(), l["unit"].as_str()), (Some("sensor_delay"), Some("s")));
+    // The rungs follow the ladder: from 1, halving while named, doubling until named; the
+    // limit is the last rung of the named run.
+    let rungs = l["rungs"].as_array().unwrap();
+    let factor = |r: &serde_json::Value| r["factor"].as_f64().unwrap();
+    let named = |r: &serde_json::Value| r["named"] == 1 && r["cases"] == 1;
+    assert_eq!(factor(&rungs[0]), 1.0);
+    let step = if named(&rungs[0]) { 0.5 } else { 2.0 };
+    for w in rungs.windows(2) {
+        assert_eq!(factor(&w[1]), factor(&w[0]) * step);
+    }
+    let last_named = rungs.iter().rev().find(|r| named(r));
+    match (&l["limit"], last_named) {
+        (serde_json::Value::Null, None) => {}
+        (v, Some(r)) => assert_eq!(v.as_f64(), r["value"].as_f64()),
+        other => panic!("limit and rungs disagree: {other:?}"),
+    }
+
+    let o = skelid()
+        .args(["gap", "--self-check", "--detection-limits", "magic_grease"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(err.contains("--detection-limits: unknown effect `magic_grease`"), "{err}");
+}
+
+#[test]
 fn gap_self_check_prints_its_confusion_matrix_and_wrong_arguments_say_what_to_do() {
     let dir = tmpdir();
     let o = skelid()
@@ -1379,6 +1442,7 @@ fn gap_self_check_prints_its_confusion_matrix_and_wrong_arguments_say_what_to_do
             .unwrap();
     assert_eq!(j["summary"]["cases"], 2);
     assert_eq!(j["sweep"], "paper");
+    assert_eq!(j["rigs"], "paper");
     let cases = j["cases"].as_array().unwrap();
     assert_eq!(cases.len(), 2);
     assert_eq!(cases[0]["effect"], "coulomb_friction");

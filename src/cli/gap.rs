@@ -89,12 +89,42 @@ pub(crate) struct GapArgs {
     /// a hardening contact hides behind a stiffer contact and a wider clearance).
     #[arg(long, value_enum, default_value = "paper", requires = "self_check")]
     pub(crate) sweep: SweepArg,
+    /// Which rigs the self-check draws: `paper`, the paper's rig with encoder noise, or
+    /// `random`, paper-like rigs over issue 20's ranges (gravity stiffness 0.5-2 1/s²,
+    /// contact at 9.7-11.4 Hz, clearance 1.3-1.7°, damping 10-21 N m s/rad, the chirp at
+    /// 0.032-0.048 rad, 17-20 bit/rev encoders with DC offsets up to ±2e-4 rad and sub-step
+    /// noise, a gravity_stiffness attribute ±10 % off); their quantization cases are a
+    /// 12-14 bit/rev encoder whose steps carry acquisition noise of 1/60-1/15 of a step.
+    #[arg(long, value_enum, default_value = "paper", requires = "self_check")]
+    pub(crate) rigs: RigsArg,
+    /// With --self-check: instead of the confusion matrix, find each effect's detection
+    /// limit, the smallest parameter the diagnosis names in at least 80 % of cases, on a
+    /// ladder of factors of its demo value (1, then halves down to 1/16 while named, or
+    /// doublings up to 8 until named); --cases is the cases per rung. Optionally only the
+    /// effects listed (comma-separated). Writes detection-limits.json.
+    #[arg(
+        long,
+        value_name = "EFFECT,...",
+        num_args = 0..,
+        value_delimiter = ',',
+        requires = "self_check"
+    )]
+    pub(crate) detection_limits: Option<Vec<String>>,
     /// How the measurement and every simulation are identified (wavelet method, on the
     /// CPU): the same options as `skelid run`, with the same defaults.
     #[command(flatten)]
     pub(crate) identify: IdentifyArgs,
     #[command(flatten)]
     pub(crate) ingest: IngestArgs,
+}
+
+/// The rigs of the self-check.
+#[derive(Clone, Copy, ValueEnum)]
+pub(crate) enum RigsArg {
+    /// The paper's rig.
+    Paper,
+    /// Random paper-like rigs over issue 20's ranges, with offsets and noise.
+    Random,
 }
 
 /// The drive of the self-check's rigs.
@@ -107,25 +137,10 @@ pub(crate) enum SweepArg {
 }
 
 pub(crate) fn gap_search_options(a: &GapArgs) -> Result<skelid::gap::SearchOptions> {
-    use skelid::model::EffectKind;
     if !a.holdout_block.is_finite() || a.holdout_block <= 0.0 {
         bail!("--holdout-block must be a positive number of seconds");
     }
-    let effects = if a.effects.is_empty() {
-        EffectKind::ALL.to_vec()
-    } else {
-        a.effects
-            .iter()
-            .map(|e| {
-                EffectKind::parse(e).with_context(|| {
-                    format!(
-                        "--effects: unknown effect `{e}`; the vocabulary is {}",
-                        EffectKind::ALL.map(|k| k.name()).join(", ")
-                    )
-                })
-            })
-            .collect::<Result<_>>()?
-    };
+    let effects = parse_effects("--effects", &a.effects)?;
     if a.baseline_evaluations < 10 || a.candidate_evaluations < 5 {
         bail!(
             "--baseline-evaluations must be at least 10 and --candidate-evaluations at least 5 (a simplex needs one simulation per parameter and a few steps); the defaults are 150 and 45"
@@ -142,6 +157,26 @@ pub(crate) fn gap_search_options(a: &GapArgs) -> Result<skelid::gap::SearchOptio
         fit_inertia: a.fit_inertia,
         effects,
     })
+}
+
+/// The effects `names` lists (all of them when empty), or an error naming `flag` and the
+/// vocabulary.
+fn parse_effects(flag: &str, names: &[String]) -> Result<Vec<skelid::model::EffectKind>> {
+    use skelid::model::EffectKind;
+    if names.is_empty() {
+        return Ok(EffectKind::ALL.to_vec());
+    }
+    names
+        .iter()
+        .map(|e| {
+            EffectKind::parse(e).with_context(|| {
+                format!(
+                    "{flag}: unknown effect `{e}`; the vocabulary is {}",
+                    EffectKind::ALL.map(|k| k.name()).join(", ")
+                )
+            })
+        })
+        .collect()
 }
 
 pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
@@ -419,15 +454,31 @@ pub(crate) fn gap_self_check(
     engine: &super::Engine,
 ) -> Result<ExitCode> {
     use skelid::gap::selfcheck;
-    let cases = selfcheck::cases(a.cases, a.seed);
     let sweep = match a.sweep {
         SweepArg::Paper => selfcheck::Sweep::Paper,
         SweepArg::TwoLevel => selfcheck::Sweep::TwoLevel,
     };
+    let rigs = match a.rigs {
+        RigsArg::Paper => selfcheck::Rigs::Paper,
+        RigsArg::Random => selfcheck::Rigs::Random,
+    };
+    if let Some(names) = &a.detection_limits {
+        let effects = parse_effects("--detection-limits", names)?;
+        return detection_limits(a, opt, engine, &effects, rigs, sweep);
+    }
+    let cases = selfcheck::draw(
+        a.cases,
+        a.seed,
+        selfcheck::Draw {
+            rigs,
+            only: None,
+        },
+    );
     eprintln!(
-        "self-check: {} cases (seed {}), paper's rig under {} with encoder noise, one effect (or none) hidden from a model whose parameters are ~{:.0} % off",
+        "self-check: {} cases (seed {}), {} under {} with encoder noise, one effect (or none) hidden from a model whose parameters are ~{:.0} % off",
         cases.len(),
         a.seed,
+        rigs.describe(),
         sweep.describe(),
         100.0 * selfcheck::NOMINAL_ERROR
     );
@@ -472,8 +523,82 @@ pub(crate) fn gap_self_check(
         format: selfcheck::FORMAT,
         seed: a.seed,
         sweep: sweep.name(),
+        rigs: rigs.name(),
         summary,
         cases: lines,
+    };
+    skelid::report::write_atomic(&path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
+    println!("wrote {}", path.display());
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `--self-check --detection-limits`: each effect's ladder, the table and
+/// detection-limits.json.
+fn detection_limits(
+    a: &GapArgs,
+    opt: &skelid::gap::SearchOptions,
+    engine: &super::Engine,
+    effects: &[skelid::model::EffectKind],
+    rigs: skelid::gap::selfcheck::Rigs,
+    sweep: skelid::gap::selfcheck::Sweep,
+) -> Result<ExitCode> {
+    use skelid::gap::detection;
+    if a.cases == 0 {
+        bail!("--cases must be at least 1 (with --detection-limits it is the cases per rung; 5 is a good start)");
+    }
+    eprintln!(
+        "detection limits: {} effect(s), {} cases a rung (seed {}), {} under {}; an effect is detected where {:.0} % of a rung's cases name it",
+        effects.len(),
+        a.cases,
+        a.seed,
+        rigs.describe(),
+        sweep.describe(),
+        100.0 * detection::RATE
+    );
+    let bar = indicatif::ProgressBar::new_spinner().with_style(
+        indicatif::ProgressStyle::with_template("{spinner} {msg} ({elapsed})")
+            .expect("a valid template"),
+    );
+    let identifier = engine.get();
+    let mut limits = Vec::new();
+    for &k in effects {
+        let mut each = |rung: &detection::Rung, r: Result<&skelid::gap::selfcheck::Outcome, &skelid::gap::GapError>| {
+            let what = match r {
+                Ok(o) => format!("{} ({})", o.verdict, if o.right() { "named" } else { "missed" }),
+                Err(e) => format!("error: {e}"),
+            };
+            say(
+                &bar,
+                format!(
+                    "{:<22} {:>10.3e} {}: {what}",
+                    k.name(),
+                    rung.value,
+                    k.unit()
+                ),
+            );
+            bar.set_message(format!("{}: {} named of {} at {:.3e}", k.name(), rung.named, rung.cases, rung.value));
+            bar.tick();
+        };
+        let plan = detection::Plan {
+            per_rung: a.cases,
+            seed: a.seed,
+            rigs,
+            sweep,
+        };
+        limits.push(detection::ladder(k, plan, opt, identifier, &mut each));
+    }
+    bar.finish_and_clear();
+    report_fallbacks(engine.backend());
+    println!("\n{}", detection::table(&limits));
+    let path = a.out.join("detection-limits.json");
+    let doc = detection::Document {
+        format: detection::FORMAT,
+        seed: a.seed,
+        sweep: sweep.name(),
+        rigs: rigs.name(),
+        cases_per_rung: a.cases,
+        rate: detection::RATE,
+        limits,
     };
     skelid::report::write_atomic(&path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
     println!("wrote {}", path.display());

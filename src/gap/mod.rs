@@ -29,6 +29,7 @@
 //! whole diagnosis does on simulated rigs with a known missing effect.
 
 mod compare;
+pub mod detection;
 pub mod export;
 mod features;
 mod finished;

@@ -14,7 +14,10 @@ use super::search::{diagnose, Diagnosis, Reference, SearchOptions};
 use super::GapError;
 use crate::identify::Identifier;
 use crate::model::{EffectKind, RigModel};
-use crate::rig::{effect_value, paper_chirp, simulate_case, two_level_chirp, RigCase};
+use crate::rig::{
+    effect_value, encoder_step, measure, paper_chirp_at, random_rig, two_level_chirp_at, Chain,
+    ENCODER_NOISE,
+};
 use crate::simulate::{Drive, Excitation};
 
 /// The parameter of a case's effect is the demo's value times a factor drawn log-uniformly
@@ -24,7 +27,8 @@ pub const RANGE: f64 = 2.0;
 /// and clearance (clipped at twice this).
 pub const NOMINAL_ERROR: f64 = 0.03;
 
-/// One self-check case: the truth, and the model the diagnosis is given.
+/// One self-check case: the truth, how it is measured, and the model the diagnosis is
+/// given.
 #[derive(Debug, Clone)]
 pub struct Case {
     /// Case number.
@@ -37,21 +41,102 @@ pub struct Case {
     pub truth: RigModel,
     /// The model the diagnosis starts from (no effect, parameters a few percent off).
     pub nominal: RigModel,
+    /// First level of the sweep (rad of base angle; the paper's is 0.04).
+    pub level: f64,
+    /// Noise, offsets and the `gravity_stiffness` attribute of the measurement.
+    pub chain: Chain,
     /// Noise seed of the simulation.
     pub seed: u64,
 }
 
+/// The rigs the self-check draws.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Rigs {
+    /// The paper's rig, its chirp's level, encoder noise of 2e-5 rad.
+    #[default]
+    Paper,
+    /// Random paper-like rigs over issue 20's ranges ([`random_rig`]): joint, level,
+    /// 17–20 bit/rev encoders with DC offsets and sub-step noise, a perturbed
+    /// `gravity_stiffness`. Their `quantization` case is a coarse encoder of 12–14 bit/rev
+    /// whose steps carry acquisition noise of 1/60–1/15 of a step.
+    Random,
+}
+
+impl Rigs {
+    /// Its name on the command line and in self-check.json.
+    pub fn name(self) -> &'static str {
+        match self {
+            Rigs::Paper => "paper",
+            Rigs::Random => "random",
+        }
+    }
+
+    /// What it is, in words.
+    pub fn describe(self) -> &'static str {
+        match self {
+            Rigs::Paper => "paper's rig",
+            Rigs::Random => {
+                "random paper-like rigs (17-20 bit/rev encoders, DC offsets, a gravity attribute ±10 % off)"
+            }
+        }
+    }
+}
+
+/// What the cases hold: every class in turn, or one effect at a fixed size (a rung of the
+/// detection-limit ladder).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Draw {
+    /// The rigs.
+    pub rigs: Rigs,
+    /// Only this effect, at `factor` times its demo value ([`effect_value`]); every class
+    /// in turn at a factor log-uniform in [1/RANGE, RANGE] when `None`.
+    pub only: Option<(EffectKind, f64)>,
+}
+
 /// `n` cases from `seed`: the eight classes (seven effects and none) in turn, so that any
-/// eight consecutive cases hold one of each.
+/// eight consecutive cases hold one of each, on the paper's rig.
 pub fn cases(n: usize, seed: u64) -> Vec<Case> {
+    draw(n, seed, Draw::default())
+}
+
+/// `n` cases from `seed` as `d` says.
+pub fn draw(n: usize, seed: u64, d: Draw) -> Vec<Case> {
     let mut rng = StdRng::seed_from_u64(seed);
     let normal = Normal::new(0.0, NOMINAL_ERROR).expect("a positive deviation");
     (0..n)
         .map(|index| {
-            let effect = EffectKind::ALL.get(index % 8).copied();
-            let factor = (rng.random_range(-1.0..1.0) * RANGE.ln()).exp();
-            let value = effect.map_or(0.0, |k| effect_value(k) * factor);
-            let mut truth = RigModel::paper();
+            let (mut truth, level, mut chain) = match d.rigs {
+                Rigs::Paper => {
+                    let m = RigModel::paper();
+                    let chain = Chain {
+                        noise: ENCODER_NOISE,
+                        acquisition_noise: 0.0,
+                        offsets: (0.0, 0.0),
+                        gravity_attribute: m.gravity_stiffness,
+                    };
+                    (m, 0.04, chain)
+                }
+                Rigs::Random => {
+                    let r = random_rig(&mut rng);
+                    (r.model, r.amplitude, r.chain)
+                }
+            };
+            let (effect, factor) = match d.only {
+                Some((k, f)) => (Some(k), f),
+                None => (
+                    EffectKind::ALL.get(index % 8).copied(),
+                    (rng.random_range(-1.0..1.0) * RANGE.ln()).exp(),
+                ),
+            };
+            let mut value = effect.map_or(0.0, |k| effect_value(k) * factor);
+            if d.rigs == Rigs::Random && effect == Some(EffectKind::Quantization) {
+                // A coarse encoder in place of the fine one, blurred by the acquisition
+                // chain after it (the lattice detector's hard case).
+                if d.only.is_none() {
+                    value = encoder_step(rng.random_range(12..=14u32));
+                }
+                chain.acquisition_noise = value / rng.random_range(15.0..60.0);
+            }
             if let Some(k) = effect {
                 truth.effects.set(k, Some(value));
             }
@@ -59,7 +144,9 @@ pub fn cases(n: usize, seed: u64) -> Vec<Case> {
                 let e: f64 = normal.sample(&mut rng);
                 1.0 + e.clamp(-2.0 * NOMINAL_ERROR, 2.0 * NOMINAL_ERROR)
             };
-            let mut nominal = RigModel::paper();
+            let mut nominal = truth.clone();
+            nominal.effects = Default::default();
+            nominal.gravity_stiffness = chain.gravity_attribute;
             nominal.stiffness *= err();
             nominal.damping *= err();
             nominal.clearance *= err();
@@ -69,6 +156,8 @@ pub fn cases(n: usize, seed: u64) -> Vec<Case> {
                 value,
                 truth,
                 nominal,
+                level,
+                chain,
                 seed: rng.random(),
             }
         })
@@ -128,6 +217,11 @@ pub struct CaseRecord {
     pub seconds: f64,
     /// Simulations it took.
     pub simulations: usize,
+    /// First level of the sweep (rad).
+    pub level: f64,
+    /// DC offsets of the input and output channels (rad; an offset between them reads as
+    /// an offset clearance).
+    pub offsets: [f64; 2],
 }
 
 impl From<&Outcome> for CaseRecord {
@@ -143,6 +237,8 @@ impl From<&Outcome> for CaseRecord {
             baseline_gap: o.diagnosis.baseline.score.holdout,
             seconds: o.diagnosis.seconds,
             simulations: o.diagnosis.evaluations,
+            level: o.case.level,
+            offsets: [o.case.chain.offsets.0, o.case.chain.offsets.1],
         }
     }
 }
@@ -156,6 +252,8 @@ pub struct Document {
     pub seed: u64,
     /// The drive's name.
     pub sweep: &'static str,
+    /// The rigs' name ([`Rigs::name`]).
+    pub rigs: &'static str,
     /// The scores.
     pub summary: Summary,
     /// One record per case diagnosed.
@@ -173,11 +271,11 @@ pub enum Sweep {
 }
 
 impl Sweep {
-    /// The base motion it drives a rig with.
-    pub fn excitation(self) -> Excitation {
+    /// The base motion it drives a rig with, at its first `level` (rad; the paper's 0.04).
+    pub fn excitation_at(self, level: f64) -> Excitation {
         match self {
-            Sweep::Paper => paper_chirp(),
-            Sweep::TwoLevel => two_level_chirp(),
+            Sweep::Paper => paper_chirp_at(level),
+            Sweep::TwoLevel => two_level_chirp_at(level),
         }
     }
 
@@ -208,13 +306,15 @@ pub fn run_case(
     sweep: Sweep,
     identifier: Identifier<'_>,
 ) -> Result<Outcome, GapError> {
-    let run = simulate_case(&RigCase {
-        path: format!("/self_check/case_{:03}", case.index),
-        model: case.truth.clone(),
-        drive: Drive::Base(sweep.excitation()),
-        seed: case.seed,
-        description: "self-check case".into(),
-    })
+    let drive = Drive::Base(sweep.excitation_at(case.level));
+    let run = measure(
+        &format!("/self_check/case_{:03}", case.index),
+        &case.truth,
+        &drive,
+        &case.chain,
+        case.seed,
+        "self-check case",
+    )
     .into_run();
     let reference = Reference::new(&run, opt.blocks, identifier)?;
     let diagnosis = diagnose(&reference, &case.nominal, opt)?;
@@ -463,5 +563,53 @@ mod tests {
         }
         // Deterministic in the seed.
         assert_eq!(cases(16, 7)[5].value, c[5].value);
+    }
+
+    #[test]
+    fn random_rigs_stay_in_issue_20_s_ranges_and_their_quantization_is_a_coarse_blurred_encoder()
+    {
+        let random = Draw {
+            rigs: Rigs::Random,
+            only: None,
+        };
+        let c = draw(24, 3, random);
+        for case in &c {
+            let m = &case.truth;
+            assert!((9.7..11.4).contains(&m.contact_frequency_hz()));
+            assert!((1.3..1.7).contains(&m.clearance.to_degrees()));
+            assert!((0.032..0.048).contains(&case.level));
+            assert!(case.chain.offsets.1.abs() <= 2e-4);
+            assert_eq!(case.nominal.gravity_stiffness, case.chain.gravity_attribute);
+            let g = case.chain.gravity_attribute / m.gravity_stiffness - 1.0;
+            assert!(g.abs() <= 0.1 + 1e-12, "{g}");
+            assert!(case.nominal.effects.is_empty());
+            let step = m.effects.get(EffectKind::Quantization).unwrap();
+            if case.effect == Some(EffectKind::Quantization) {
+                // 12-14 bit/rev, steps blurred by 1/60-1/15 of a step.
+                assert_eq!(step, case.value);
+                let bits = (std::f64::consts::TAU / step).log2();
+                assert!((12.0..=14.0).contains(&bits.round()) && (bits - bits.round()).abs() < 1e-9);
+                let blur = case.chain.acquisition_noise / step;
+                assert!((1.0 / 60.0..=1.0 / 15.0).contains(&blur), "{blur}");
+            } else {
+                // The fine encoder of 17-20 bit/rev, no blur after it.
+                assert!(step < 5e-5 && case.chain.acquisition_noise == 0.0);
+                assert!(case.chain.noise < step);
+            }
+        }
+        // One effect at a fixed size: every case holds it at that size.
+        let one = draw(
+            3,
+            3,
+            Draw {
+                rigs: Rigs::Paper,
+                only: Some((EffectKind::SensorDelay, 0.25)),
+            },
+        );
+        for case in &one {
+            assert_eq!(case.effect, Some(EffectKind::SensorDelay));
+            assert_eq!(case.value, 0.25 * effect_value(EffectKind::SensorDelay));
+            assert_eq!(case.chain.offsets, (0.0, 0.0));
+        }
     }
 }

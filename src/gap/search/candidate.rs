@@ -19,7 +19,9 @@ pub fn signature(kind: EffectKind) -> &'static str {
             "preload: the link leans on one flank, so the backbone stiffens at small amplitude"
         }
         EffectKind::AsymmetricClearance => {
-            "offset clearance: contact on one flank first, the backbone bends earlier"
+            "offset clearance: contact on one flank first, the backbone bends earlier (or \
+             encoders whose zeros differ by the offset: the two are the same in the relative \
+             angle; zero both encoders together to tell them apart)"
         }
         EffectKind::CubicStiffness => "hardening contact: the backbone keeps rising with amplitude",
         EffectKind::ContactDamping => "contact damping: damping grows once the link touches",
