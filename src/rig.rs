@@ -315,7 +315,7 @@ pub fn measure(
         }
     }
     // The acquisition noise has its own stream: the simulation's stays as it was.
-    let mut rng = StdRng::seed_from_u64(seed ^ 0x5eed_ac9u64);
+    let mut rng = StdRng::seed_from_u64(seed ^ 0x05ee_dac9_u64);
     let blur = Normal::new(0.0, chain.acquisition_noise.max(0.0)).expect("a finite std");
     let mut add = |x: &mut [f64], offset: f64| {
         for v in x.iter_mut() {

@@ -1386,7 +1386,10 @@ fn detection_limits_climb_their_ladder_and_write_it_down() {
     let limits = j["limits"].as_array().unwrap();
     assert_eq!(limits.len(), 1);
     let l = &limits[0];
-    assert_eq!((l["effect"].as_str(), l["unit"].as_str()), (Some("sensor_delay"), Some("s")));
+    assert_eq!(
+        (l["effect"].as_str(), l["unit"].as_str()),
+        (Some("sensor_delay"), Some("s"))
+    );
     // The rungs follow the ladder: from 1, halving while named, doubling until named; the
     // limit is the last rung of the named run.
     let rungs = l["rungs"].as_array().unwrap();
@@ -1410,7 +1413,10 @@ fn detection_limits_climb_their_ladder_and_write_it_down() {
         .unwrap();
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success());
-    assert!(err.contains("--detection-limits: unknown effect `magic_grease`"), "{err}");
+    assert!(
+        err.contains("--detection-limits: unknown effect `magic_grease`"),
+        "{err}"
+    );
 }
 
 #[test]

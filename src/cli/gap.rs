@@ -466,14 +466,7 @@ pub(crate) fn gap_self_check(
         let effects = parse_effects("--detection-limits", names)?;
         return detection_limits(a, opt, engine, &effects, rigs, sweep);
     }
-    let cases = selfcheck::draw(
-        a.cases,
-        a.seed,
-        selfcheck::Draw {
-            rigs,
-            only: None,
-        },
-    );
+    let cases = selfcheck::draw(a.cases, a.seed, selfcheck::Draw { rigs, only: None });
     eprintln!(
         "self-check: {} cases (seed {}), {} under {} with encoder noise, one effect (or none) hidden from a model whose parameters are ~{:.0} % off",
         cases.len(),
@@ -562,23 +555,35 @@ fn detection_limits(
     let identifier = engine.get();
     let mut limits = Vec::new();
     for &k in effects {
-        let mut each = |rung: &detection::Rung, r: Result<&skelid::gap::selfcheck::Outcome, &skelid::gap::GapError>| {
-            let what = match r {
-                Ok(o) => format!("{} ({})", o.verdict, if o.right() { "named" } else { "missed" }),
-                Err(e) => format!("error: {e}"),
-            };
-            say(
-                &bar,
-                format!(
-                    "{:<22} {:>10.3e} {}: {what}",
+        let mut each =
+            |rung: &detection::Rung,
+             r: Result<&skelid::gap::selfcheck::Outcome, &skelid::gap::GapError>| {
+                let what = match r {
+                    Ok(o) => format!(
+                        "{} ({})",
+                        o.verdict,
+                        if o.right() { "named" } else { "missed" }
+                    ),
+                    Err(e) => format!("error: {e}"),
+                };
+                say(
+                    &bar,
+                    format!(
+                        "{:<22} {:>10.3e} {}: {what}",
+                        k.name(),
+                        rung.value,
+                        k.unit()
+                    ),
+                );
+                bar.set_message(format!(
+                    "{}: {} named of {} at {:.3e}",
                     k.name(),
-                    rung.value,
-                    k.unit()
-                ),
-            );
-            bar.set_message(format!("{}: {} named of {} at {:.3e}", k.name(), rung.named, rung.cases, rung.value));
-            bar.tick();
-        };
+                    rung.named,
+                    rung.cases,
+                    rung.value
+                ));
+                bar.tick();
+            };
         let plan = detection::Plan {
             per_rung: a.cases,
             seed: a.seed,

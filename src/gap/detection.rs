@@ -297,7 +297,11 @@ mod tests {
         );
         let (f, limit, below) = ladder_at(0.0);
         assert_eq!(f, vec![1.0, 0.5, 0.25, 0.125, 0.0625]);
-        assert_eq!((limit, below), (Some(0.0625), true), "named down to the end");
+        assert_eq!(
+            (limit, below),
+            (Some(0.0625), true),
+            "named down to the end"
+        );
         assert_eq!(ladder_at(3.0), (vec![1.0, 2.0, 4.0], Some(4.0), false));
         assert_eq!(ladder_at(100.0), (vec![1.0, 2.0, 4.0, 8.0], None, false));
     }

@@ -566,8 +566,7 @@ mod tests {
     }
 
     #[test]
-    fn random_rigs_stay_in_issue_20_s_ranges_and_their_quantization_is_a_coarse_blurred_encoder()
-    {
+    fn random_rigs_stay_in_issue_20_s_ranges_and_their_quantization_is_a_coarse_blurred_encoder() {
         let random = Draw {
             rigs: Rigs::Random,
             only: None,
@@ -588,7 +587,9 @@ mod tests {
                 // 12-14 bit/rev, steps blurred by 1/60-1/15 of a step.
                 assert_eq!(step, case.value);
                 let bits = (std::f64::consts::TAU / step).log2();
-                assert!((12.0..=14.0).contains(&bits.round()) && (bits - bits.round()).abs() < 1e-9);
+                assert!(
+                    (12.0..=14.0).contains(&bits.round()) && (bits - bits.round()).abs() < 1e-9
+                );
                 let blur = case.chain.acquisition_noise / step;
                 assert!((1.0 / 60.0..=1.0 / 15.0).contains(&blur), "{blur}");
             } else {
