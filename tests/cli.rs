@@ -1351,6 +1351,54 @@ fn figures_are_written_for_every_run_as_png_pdf_and_svg_with_labelled_axes() {
 }
 
 #[test]
+fn the_waveform_domain_names_a_hardening_that_one_chirp_hides_from_the_first_harmonic() {
+    // The demo's hardening run (k3 = 1e7 under the paper's chirp) against the nominal rig:
+    // without the waveform the gap cannot tell it from a stiffer, wider contact (README,
+    // "A hardening contact needs two levels"); with it, it names the hardening.
+    let dir = tmpdir();
+    let rig = dir.path().join("rig.toml");
+    std::fs::write(&rig, skelid::model::RigModel::paper().to_toml()).unwrap();
+    let out = dir.path().join("gap");
+    let o = skelid()
+        .args(["gap", "--model"])
+        .arg(&rig)
+        .arg(demo_archive())
+        .args([
+            "--run",
+            "/demo/effects/cubic_stiffness",
+            "--waveform",
+            "--baseline-evaluations",
+            "80",
+            "--candidate-evaluations",
+            "45",
+            "--no-pairs",
+            "--effects",
+            "cubic_stiffness,coulomb_friction,contact_damping",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    println!("{stdout}{}", String::from_utf8_lossy(&o.stderr));
+    assert!(o.status.success());
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("gap.json")).unwrap()).unwrap();
+    assert_eq!(j["settings"]["waveform"], true);
+    let run = &j["runs"][0];
+    assert_eq!(run["verdict"], "cubic_stiffness", "{stdout}");
+    let best = &run["candidates"][0];
+    let k3 = best["params"]["k3"].as_f64().unwrap();
+    assert!((k3 / 1e7 - 1.0).abs() < 0.25, "{k3}");
+    assert!(best["shrink"].as_f64().unwrap() >= 0.5);
+    assert!(best["domains"]["waveform"].is_number());
+    let regions = run["regions"].as_array().unwrap();
+    assert!(regions.iter().any(|r| r["domain"] == "waveform"));
+    let page = std::fs::read_to_string(out.join("gap.html")).unwrap();
+    assert!(page.contains("held out: time / backbone / damping / waveform"));
+}
+
+#[test]
 fn detection_limits_climb_their_ladder_and_write_it_down() {
     let dir = tmpdir();
     let o = skelid()

@@ -520,7 +520,8 @@ fn gap<'py>(
                 backend: engine,
             };
             let reference = skelid::gap::search::Reference::new(&run, opt.blocks, identifier)
-                .map_err(|e| e.to_string())?;
+                .map_err(|e| e.to_string())?
+                .with_waveform(opt.waveform);
             let d = skelid::gap::search::diagnose(&reference, &model, &opt)
                 .map_err(|e| e.to_string())?;
             let r = skelid::gap::GapRun::new(&reference, d).map_err(|e| e.to_string())?;

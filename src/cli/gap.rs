@@ -70,6 +70,13 @@ pub(crate) struct GapArgs {
     /// Refit the inertia too (held at the model's value otherwise).
     #[arg(long)]
     pub(crate) fit_inertia: bool,
+    /// Also score the waveform within a cycle: the third harmonic of the relative motion
+    /// against its first, at resonance, as a fourth domain of the gap beside time, backbone
+    /// and damping. Every other domain is of the first harmonic, where a hardening contact
+    /// on one sweep looks like a stiffer, wider contact; the fraction of each cycle spent in
+    /// contact does not. Base-motion runs with displacement channels only.
+    #[arg(long)]
+    pub(crate) waveform: bool,
     /// Effects to try, comma-separated (default: the whole vocabulary).
     #[arg(long, value_delimiter = ',', value_name = "EFFECT,...")]
     pub(crate) effects: Vec<String>,
@@ -156,6 +163,7 @@ pub(crate) fn gap_search_options(a: &GapArgs) -> Result<skelid::gap::SearchOptio
         pairs: !a.no_pairs,
         fit_inertia: a.fit_inertia,
         effects,
+        waveform: a.waveform,
     })
 }
 
@@ -252,6 +260,7 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
         "pairs": opt.pairs,
         "backend": if engine.backend().is_gpu() { "gpu" } else { "cpu" },
         "fit_inertia": opt.fit_inertia,
+        "waveform": opt.waveform,
         "min_shrink": skelid::gap::search::MIN_SHRINK,
         "min_drop": skelid::gap::search::MIN_DROP,
         "model_warnings": model_warnings,

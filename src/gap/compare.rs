@@ -11,6 +11,7 @@ use super::{Errors, Features, Gap, Region, AMPLITUDE_RANGES, TIME_WINDOWS};
 /// The measured side of a comparison on one part of a run, prepared once for all the
 /// models compared with it: the part's samples, the measurement's features and its jumps.
 pub struct Target {
+    pub(super) waveform: bool,
     pub(super) mask: Option<Vec<bool>>,
     pub(super) features: Features,
     pub(super) jumps: Option<Jumps>,
@@ -52,10 +53,18 @@ impl Target {
             )
         });
         Target {
+            waveform: false,
             features,
             jumps,
             mask,
         }
+    }
+
+    /// The same target, scoring the waveform domain too when `on` (the third harmonic
+    /// against the first at resonance, [`super::features::third_harmonic`]).
+    pub fn with_waveform(mut self, on: bool) -> Target {
+        self.waveform = on;
+        self
     }
 
     /// The same target with the measurement's resolution set (its RMS quantisation error,
@@ -103,19 +112,30 @@ impl Target {
                 && !settling.get(i).copied().unwrap_or(false)
                 && !jump_up.iter().any(|r| r.contains(&i))
         };
-        let domains = [
+        let mut domains = vec![
             time_errors(measured, ours, sim, &keep),
             resonance_errors(measured, &ours.f0, &sim.f0, &keep, "backbone"),
             resonance_errors(measured, &ours.force, &sim.force, &keep, "damping"),
         ];
+        if self.waveform {
+            domains.push(resonance_errors(
+                measured,
+                &ours.waveform,
+                &sim.waveform,
+                &keep,
+                "waveform",
+            ));
+        }
         combine(domains)
     }
 }
 
-/// The domains' errors as one gap with its regions.
-pub(super) fn combine(domains: [Errors; 3]) -> Gap {
+/// The domains' errors (time, backbone, damping, and the waveform when scored) as one gap
+/// with its regions: the root of the mean of the domains' mean squares.
+pub(super) fn combine(domains: Vec<Errors>) -> Gap {
     let ms: Vec<Option<f64>> = domains.iter().map(Errors::mean_square).collect();
-    let total_ms = ms.iter().flatten().sum::<f64>() / 3.0;
+    let count = domains.len() as f64;
+    let total_ms = ms.iter().flatten().sum::<f64>() / count;
     let mut regions = Vec::new();
     for (d, m) in domains.into_iter().zip(&ms) {
         if m.is_none() {
@@ -126,10 +146,11 @@ pub(super) fn combine(domains: [Errors; 3]) -> Gap {
         for &(wt, e2, r) in &d.terms {
             per[r] += wt * e2 / w;
         }
-        // A region's share of the total: its part of the domain's mean square, over 3.
+        // A region's share of the total: its part of the domain's mean square, over the
+        // number of domains.
         for (mut region, part) in d.regions.into_iter().zip(per) {
             region.share = if total_ms > 0.0 {
-                part / 3.0 / total_ms
+                part / count / total_ms
             } else {
                 0.0
             };
@@ -143,6 +164,7 @@ pub(super) fn combine(domains: [Errors; 3]) -> Gap {
         time: ms[0].map(f64::sqrt),
         backbone: ms[1].map(f64::sqrt),
         damping: ms[2].map(f64::sqrt),
+        waveform: ms.get(3).copied().flatten().map(f64::sqrt),
         regions,
     }
 }

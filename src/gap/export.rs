@@ -29,12 +29,17 @@ fn num(v: f64) -> Value {
     }
 }
 
-fn domains(d: [Option<f64>; 3]) -> Value {
-    json!({
+fn domains(d: [Option<f64>; 4]) -> Value {
+    let mut v = json!({
         "time": d[0].map_or(Value::Null, num),
         "backbone": d[1].map_or(Value::Null, num),
         "damping": d[2].map_or(Value::Null, num),
-    })
+    });
+    // Only when scored (`--waveform`): files without it stay as they were.
+    if let Some(w) = d[3] {
+        v["waveform"] = num(w);
+    }
+    v
 }
 
 fn score_json(s: &Score) -> Value {
@@ -319,15 +324,21 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
             esc(&model_text(&d.nominal)),
             esc(&model_text(&d.baseline.model))
         );
-        b.push_str(
+        // The waveform domain has a column only where it was scored (`--waveform`).
+        let scored = if d.candidates.iter().any(|c| c.score.domains[3].is_some()) {
+            4
+        } else {
+            3
+        };
+        let _ = writeln!(
+            b,
             "<table><tr><th>candidate</th><th>parameters</th><th>gap (fit)</th>\
-             <th>gap (held out)</th><th>shrink</th><th>held out: time / backbone / damping</th></tr>\n",
+             <th>gap (held out)</th><th>shrink</th><th>held out: {}</th></tr>",
+            ["time", "backbone", "damping", "waveform"][..scored].join(" / ")
         );
         for c in &d.candidates {
             let params: Vec<String> = c.params().iter().map(|(k, v)| param_text(k, *v)).collect();
-            let dom: Vec<String> = c
-                .score
-                .domains
+            let dom: Vec<String> = c.score.domains[..scored]
                 .iter()
                 .map(|x| x.map_or("–".into(), |v| format!("{v:.3}")))
                 .collect();

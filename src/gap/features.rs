@@ -22,8 +22,12 @@ pub struct Features {
     pub(super) f0: Vec<f64>,
     pub(super) force: Vec<f64>,
     pub(super) centre: Option<Vec<f64>>,
+    pub(super) waveform: Vec<f64>,
     pub(super) resolution: f64,
 }
+
+/// Cycles of the fundamental each waveform estimate spans (a Hann taper in phase over them).
+pub const WAVEFORM_CYCLES: f64 = 2.0;
 
 /// Half-width (s) of the running mean the instantaneous natural frequency and damping force
 /// are smoothed with before they are compared (the encoder noise's scatter, sample to
@@ -60,8 +64,13 @@ impl Features {
             })
             .unzip();
         let half = (SMOOTH * track.sample_rate).round() as usize;
+        let z = relative_motion(run);
         Features {
-            centre: relative_motion(run).map(|z| centre(&z, track)),
+            waveform: z.as_deref().map_or_else(
+                || vec![f64::NAN; track.len()],
+                |z| third_harmonic(z, &track.phase, &track.valid, &resonant),
+            ),
+            centre: z.map(|z| centre(&z, track)),
             ln,
             lo,
             hi,
@@ -282,6 +291,61 @@ pub(super) fn centre(z: &[f64], track: &crate::track::Track) -> Vec<f64> {
     })
 }
 
+/// The waveform within a cycle: at each valid sample where `at` holds, the third harmonic
+/// of `z` against its first, |Z3|/|Z1|, with Zk = Σ w·z·e^(−ikφ) over the valid samples
+/// within ±[`WAVEFORM_CYCLES`]/2 cycles of the unwrapped `phase` φ of its fundamental, each weighted by its phase step
+/// and a Hann taper in phase (so that a window whose ends fall between samples leaks
+/// nothing of the first harmonic into the third). NaN elsewhere.
+///
+/// Why: every other feature is of the first harmonic, and there a hardening contact on one
+/// sweep is a stiffer, wider contact; the fraction of each cycle spent in contact, which
+/// the third harmonic measures, is not (`tests/hardening.rs`).
+pub(super) fn third_harmonic(
+    z: &[f64],
+    phase: &[f64],
+    valid: &[bool],
+    at: &dyn Fn(usize) -> bool,
+) -> Vec<f64> {
+    use std::f64::consts::PI;
+    let n = z.len().min(phase.len()).min(valid.len());
+    let span = WAVEFORM_CYCLES * 2.0 * PI;
+    let mut out = vec![f64::NAN; phase.len()];
+    for (i, o) in out.iter_mut().enumerate().take(n) {
+        if !at(i) || !valid[i] {
+            continue;
+        }
+        let (lo, hi) = (phase[i] - 0.5 * span, phase[i] + 0.5 * span);
+        let (mut a, mut b) = (i, i);
+        while a > 0 && phase[a - 1] >= lo && valid[a - 1] {
+            a -= 1;
+        }
+        while b + 1 < n && phase[b + 1] <= hi && valid[b + 1] {
+            b += 1;
+        }
+        // A window cut short by the end of the record or of the valid track does not span
+        // its cycles, and would leak the first harmonic into the third.
+        let whole = a > 0 && phase[a - 1] < lo && b + 1 < n && phase[b + 1] > hi;
+        if !whole || b <= a + 2 {
+            continue;
+        }
+        let (mut z1, mut z3) = ((0.0, 0.0), (0.0, 0.0));
+        for j in a..=b {
+            let step = 0.5 * (phase[(j + 1).min(b)] - phase[j.saturating_sub(1).max(a)]);
+            let u = (phase[j] - lo) / span;
+            let w = step * (PI * u).sin().powi(2) * z[j];
+            z1.0 += w * phase[j].cos();
+            z1.1 -= w * phase[j].sin();
+            z3.0 += w * (3.0 * phase[j]).cos();
+            z3.1 -= w * (3.0 * phase[j]).sin();
+        }
+        let h1 = z1.0.hypot(z1.1);
+        if h1 > 0.0 {
+            *o = z3.0.hypot(z3.1) / h1;
+        }
+    }
+    out
+}
+
 /// For each index, the index of the nearest finite value of `x` (the earlier one on a tie),
 /// `None` when `x` has none.
 pub(super) fn nearest_finite(x: &[f64]) -> Vec<Option<usize>> {
@@ -329,4 +393,57 @@ pub(super) fn mean_around(x: &[f64], half: impl Fn(usize) -> Option<usize>) -> V
             }
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A chirp's phase (0.5 to 12 Hz in 30 s at `fs`) and a waveform on it.
+    fn chirp(fs: f64, wave: impl Fn(f64) -> f64) -> (Vec<f64>, Vec<f64>) {
+        let n = (30.0 * fs) as usize;
+        let phase: Vec<f64> = (0..n)
+            .map(|i| {
+                let t = i as f64 / fs;
+                std::f64::consts::TAU * (0.5 * t + 0.5 * (11.5 / 30.0) * t * t)
+            })
+            .collect();
+        let z = phase.iter().map(|&p| wave(p)).collect();
+        (phase, z)
+    }
+
+    #[test]
+    fn the_third_harmonic_is_read_against_the_first_along_a_chirp() {
+        // 20 samples per cycle at 12 Hz, as the gap decimates; an offset and a second
+        // harmonic beside the third leak nothing into it.
+        let fs = 240.0;
+        let (phase, z) = chirp(fs, |p| {
+            0.003 + 0.02 * p.cos() + 0.004 * (2.0 * p).sin() + 0.0014 * (3.0 * p + 0.3).cos()
+        });
+        let valid = vec![true; z.len()];
+        let r = third_harmonic(&z, &phase, &valid, &|i| i % 7 == 0);
+        let got: Vec<f64> = r.iter().copied().filter(|v| v.is_finite()).collect();
+        assert!(got.len() > 800, "{}", got.len());
+        for (i, v) in r.iter().enumerate().filter(|(_, v)| v.is_finite()) {
+            assert!((v / 0.07 - 1.0).abs() < 5e-3, "{i} {v}");
+        }
+        // Only where asked, and never over a window the valid track does not span.
+        assert!(r.iter().enumerate().all(|(i, v)| i % 7 == 0 || v.is_nan()));
+        assert!(r[0].is_nan() && r[r.len() - 1].is_nan());
+        let mut gap = valid.clone();
+        gap[3000..3010].iter_mut().for_each(|v| *v = false);
+        let r = third_harmonic(&z, &phase, &gap, &|_| true);
+        assert!(r[3005].is_nan() && r[2995].is_nan() && r[3200].is_finite());
+
+        // A pure sine has none, to the quadrature's error at 20 samples a cycle (which the
+        // measurement and a simulation, sampled alike, share).
+        let (phase, z) = chirp(fs, |p| 0.02 * p.sin());
+        let r = third_harmonic(&z, &phase, &valid, &|_| true);
+        let worst = r
+            .iter()
+            .copied()
+            .filter(|v| v.is_finite())
+            .fold(0.0, f64::max);
+        assert!(worst < 1e-3, "{worst}");
+    }
 }

@@ -74,7 +74,7 @@ pub struct Region {
     pub f_lo: f64,
     /// Highest response frequency (Hz).
     pub f_hi: f64,
-    /// `time`, `backbone` or `damping`.
+    /// `time`, `backbone`, `damping` or `waveform`.
     pub domain: &'static str,
     /// Fraction of the total squared gap in this region (all regions sum to 1).
     pub share: f64,
@@ -91,6 +91,10 @@ pub struct Gap {
     pub backbone: Option<f64>,
     /// Damping domain.
     pub damping: Option<f64>,
+    /// Waveform domain (the third harmonic against the first at resonance), when scored
+    /// (`skelid gap --waveform`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub waveform: Option<f64>,
     /// Regions, largest share first.
     pub regions: Vec<Region>,
 }

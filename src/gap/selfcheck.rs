@@ -316,7 +316,7 @@ pub fn run_case(
         "self-check case",
     )
     .into_run();
-    let reference = Reference::new(&run, opt.blocks, identifier)?;
+    let reference = Reference::new(&run, opt.blocks, identifier)?.with_waveform(opt.waveform);
     let diagnosis = diagnose(&reference, &case.nominal, opt)?;
     let verdict = diagnosis.verdict_name();
     let chosen = diagnosis.verdict.map(|i| &diagnosis.candidates[i]);

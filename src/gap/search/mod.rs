@@ -66,6 +66,10 @@ pub struct SearchOptions {
     pub fit_inertia: bool,
     /// The effects to try.
     pub effects: Vec<EffectKind>,
+    /// Whether the gap scores the waveform within a cycle as a fourth domain (the third
+    /// harmonic of the relative motion against its first, at resonance): what separates a
+    /// hardening contact from a stiffer, wider one on a single sweep. Off by default.
+    pub waveform: bool,
 }
 
 impl Default for SearchOptions {
@@ -78,6 +82,7 @@ impl Default for SearchOptions {
             pairs: true,
             fit_inertia: false,
             effects: EffectKind::ALL.to_vec(),
+            waveform: false,
         }
     }
 }
@@ -90,14 +95,14 @@ pub struct Score {
     /// Gap on the odd blocks (what fits never see).
     pub holdout: f64,
     /// The held-out gap's time, backbone and damping domains.
-    pub domains: [Option<f64>; 3],
+    pub domains: [Option<f64>; 4],
 }
 
 impl Score {
     const FAILED: Score = Score {
         fit: f64::INFINITY,
         holdout: f64::INFINITY,
-        domains: [None; 3],
+        domains: [None; 4],
     };
 }
 
@@ -173,6 +178,15 @@ impl<'a> Reference<'a> {
         self
     }
 
+    /// The same reference, scoring the waveform domain too when `on` (see
+    /// [`SearchOptions::waveform`]).
+    pub fn with_waveform(mut self, on: bool) -> Self {
+        for t in [&mut self.fit, &mut self.holdout, &mut self.whole] {
+            t.waveform = on;
+        }
+        self
+    }
+
     /// Calls `f` with the number of simulations so far after each one (progress displays).
     pub fn on_score(mut self, f: impl Fn(usize) + Send + Sync + 'a) -> Self {
         self.on_score = Some(Box::new(f));
@@ -200,7 +214,7 @@ impl<'a> Reference<'a> {
                 Score {
                     fit: self.fit.gap(m, &features).total,
                     holdout: h.total,
-                    domains: [h.time, h.backbone, h.damping],
+                    domains: [h.time, h.backbone, h.damping, h.waveform],
                 }
             }
             Err(_) => Score::FAILED,
