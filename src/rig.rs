@@ -258,7 +258,11 @@ const INERTIA: f64 = 3.16;
 /// chirp at 0.032–0.048 rad, encoders of 17–20 bit/rev on both channels with DC offsets up
 /// to ±2e-4 rad and white noise of 0.1–0.5 of their step, and a `gravity_stiffness`
 /// attribute ±10 % off the truth. No acquisition noise after the encoders.
-pub fn random_rig(rng: &mut StdRng) -> RandomRig {
+///
+/// `between` makes its own draws after the joint's and before the chain's, and its result
+/// is returned beside the rig: `skelid validate` draws its effect's size there, as it always
+/// has, so that a seed gives the rigs it gave before this function was shared.
+pub fn random_rig<T>(rng: &mut StdRng, between: impl FnOnce(&mut StdRng) -> T) -> (RandomRig, T) {
     let f_contact = rng.random_range(9.7..11.4);
     let gravity = rng.random_range(0.5..2.0);
     let bits = rng.random_range(17..=20u32);
@@ -272,17 +276,24 @@ pub fn random_rig(rng: &mut StdRng) -> RandomRig {
     };
     let step = encoder_step(bits);
     model.effects.set(EffectKind::Quantization, Some(step));
-    RandomRig {
+    let drawn = between(rng);
+    // The order of the draws is `skelid validate`'s since its first version.
+    let amplitude = rng.random_range(0.032..0.048);
+    let offsets = (rng.random_range(-2e-4..2e-4), rng.random_range(-2e-4..2e-4));
+    let noise = step * rng.random_range(0.1..0.5);
+    let gravity_attribute = gravity * rng.random_range(0.9..1.1);
+    let rig = RandomRig {
         model,
         bits,
-        amplitude: rng.random_range(0.032..0.048),
+        amplitude,
         chain: Chain {
-            noise: step * rng.random_range(0.1..0.5),
+            noise,
             acquisition_noise: 0.0,
-            offsets: (rng.random_range(-2e-4..2e-4), rng.random_range(-2e-4..2e-4)),
-            gravity_attribute: gravity * rng.random_range(0.9..1.1),
+            offsets,
+            gravity_attribute,
         },
-    }
+    };
+    (rig, drawn)
 }
 
 /// The step of an encoder of `bits` bit/rev (rad).

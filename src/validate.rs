@@ -50,11 +50,11 @@ pub fn rigs(n: usize, seed: u64) -> Vec<Rig> {
     let mut rng = StdRng::seed_from_u64(seed);
     (0..n)
         .map(|index| {
-            let r = random_rig(&mut rng);
             let effect = EFFECTS[index % EFFECTS.len()];
+            let (r, factor) =
+                random_rig(&mut rng, |rng| effect.map(|_| rng.random_range(0.5..2.0)));
             let mut truth = r.model;
-            if let Some(e) = effect {
-                let factor = rng.random_range(0.5..2.0);
+            if let (Some(e), Some(factor)) = (effect, factor) {
                 truth.effects.set(e, Some(effect_value(e) * factor));
             }
             Rig {

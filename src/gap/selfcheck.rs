@@ -117,7 +117,7 @@ pub fn draw(n: usize, seed: u64, d: Draw) -> Vec<Case> {
                     (m, 0.04, chain)
                 }
                 Rigs::Random => {
-                    let r = random_rig(&mut rng);
+                    let (r, ()) = random_rig(&mut rng, |_| ());
                     (r.model, r.amplitude, r.chain)
                 }
             };
