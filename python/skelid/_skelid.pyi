@@ -70,6 +70,7 @@ def gap(
     fit_inertia: bool = False,
     effects: Optional[Sequence[str]] = None,
     backend: Backend = "cpu",
+    waveform: bool = False,
 ) -> dict[str, Any]:
     """The gap.json document: format, settings, runs (one entry: nominal_gap,
     baseline_gap, regions, candidates, verdict), failed."""

@@ -434,7 +434,7 @@ fn rig_model(py: Python<'_>, model: &Bound<'_, PyAny>) -> PyResult<RigModel> {
 
 /// gap(model, input, output, fs, kind="base_motion", inertia=None, gravity_stiffness=0.0,
 ///     units=None, holdout_block=1.0, baseline_evaluations=150, candidate_evaluations=45,
-///     pairs=True, fit_inertia=False, effects=None, backend="cpu") -> dict
+///     pairs=True, fit_inertia=False, effects=None, backend="cpu", waveform=False) -> dict
 /// --
 ///
 /// Why a rig model's simulation does not match one measured base-motion run: the gap and
@@ -443,13 +443,15 @@ fn rig_model(py: Python<'_>, model: &Bound<'_, PyAny>) -> PyResult<RigModel> {
 ///
 /// model: a rig TOML file's path, its text, or a dict of its keys (FORMATS.md section 2).
 /// input, output: base and link angle (rad). effects: the effect names to try (all seven
-/// by default). The rest as `skelid gap`'s options of the same names.
+/// by default). waveform: also score the waveform within a cycle (the third harmonic at
+/// resonance), as `skelid gap --waveform`. The rest as `skelid gap`'s options of the same
+/// names.
 ///
 /// Returns the gap.json document as a dict, as `skelid gap` writes it: format, settings,
 /// runs (one entry: run "/python", nominal_gap, baseline_gap, regions, candidates best
 /// first, verdict, ...) and failed.
 #[pyfunction]
-#[pyo3(signature = (model, input, output, fs, kind="base_motion", inertia=None, gravity_stiffness=0.0, units=None, holdout_block=1.0, baseline_evaluations=150, candidate_evaluations=45, pairs=true, fit_inertia=false, effects=None, backend="cpu"))]
+#[pyo3(signature = (model, input, output, fs, kind="base_motion", inertia=None, gravity_stiffness=0.0, units=None, holdout_block=1.0, baseline_evaluations=150, candidate_evaluations=45, pairs=true, fit_inertia=false, effects=None, backend="cpu", waveform=false))]
 #[allow(clippy::too_many_arguments)]
 fn gap<'py>(
     py: Python<'py>,
@@ -468,6 +470,7 @@ fn gap<'py>(
     fit_inertia: bool,
     effects: Option<Vec<String>>,
     backend: &str,
+    waveform: bool,
 ) -> PyResult<Bound<'py, PyAny>> {
     let model = rig_model(py, model)?;
     let effects = match effects {
@@ -491,6 +494,7 @@ fn gap<'py>(
         pairs,
         fit_inertia,
         effects,
+        waveform,
         ..Default::default()
     };
     let args = RunArgs {
@@ -536,6 +540,7 @@ fn gap<'py>(
                 "pairs": opt.pairs,
                 "backend": if engine.is_gpu() { "gpu" } else { "cpu" },
                 "fit_inertia": opt.fit_inertia,
+                "waveform": opt.waveform,
                 "min_shrink": skelid::gap::search::MIN_SHRINK,
                 "min_drop": skelid::gap::search::MIN_DROP,
             });
