@@ -107,10 +107,12 @@ pub fn refine(
     }
     let t0 = Instant::now();
     let blocks = Blocks { seconds: 1.0 };
-    let (even, odd) = rayon::join(
-        || Reference::new(run, blocks, identifier),
-        || Reference::new(run, blocks, identifier).map(Reference::swapped),
-    );
+    // The waveform within a cycle is scored too: the fraction of each cycle in contact
+    // separates the clearance from the contact stiffness, which the first harmonic's
+    // features trade against each other (with it the validation's median errors fell from
+    // 2.5 % and 5.0 % to 0.7 % and 0.6 %; README).
+    let reference = || Reference::new(run, blocks, identifier).map(|r| r.with_waveform(true));
+    let (even, odd) = rayon::join(reference, || reference().map(Reference::swapped));
     let (even, odd) = (even?, odd?);
     let start = start_model(&even)?;
     // The joint's own parameters and its dry friction. A sensor delay is left out: fitted

@@ -243,8 +243,9 @@ fn paper_rig_clearance_stiffness_and_friction() {
 #[test]
 fn validation_rigs_are_refined_closer_to_the_truth_than_the_skeleton_reads_them() {
     // Two of `skelid validate`'s random rigs (dry friction, then contact damping), with
-    // 17-20 bit encoders, offsets and noise: the refined clearance and k/J are within 3 %
-    // and 5 % of the truth on each.
+    // 17-20 bit encoders, offsets and noise: the refined clearance and k/J are within 2 %
+    // of the truth on each (issue 20's median target; measured 0.1-0.3 %, where the
+    // skeleton is 3-13 % off).
     let rigs = skelid::validate::rigs(3, 20);
     for rig in [&rigs[0], &rigs[2]] {
         let (options, cpu) = (IdentifyOptions::default(), Backend::cpu());
@@ -258,7 +259,7 @@ fn validation_rigs_are_refined_closer_to_the_truth_than_the_skeleton_reads_them(
             rig.index, rig.effect, o.wavelet, o.refined
         );
         let (c, k) = o.refined.expect("refined");
-        assert!(c.abs() < 0.03, "clearance error {c}");
-        assert!(k.abs() < 0.05, "k/J error {k}");
+        assert!(c.abs() < 0.02, "clearance error {c}");
+        assert!(k.abs() < 0.02, "k/J error {k}");
     }
 }
