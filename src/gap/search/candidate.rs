@@ -4,7 +4,7 @@
 
 use std::collections::BTreeMap;
 
-use super::fit::{cubic_from_backbone, Coordinates, Fitted};
+use super::fit::{backbone_hardening, Coordinates, Fitted};
 use super::{Reference, Score, SearchOptions};
 use crate::identify::Identification;
 use crate::model::{EffectKind, RigModel};
@@ -48,6 +48,7 @@ pub(super) fn ready_for(
     base: &RigModel,
     identified: &Identification,
     kind: EffectKind,
+    waveform: bool,
 ) -> RigModel {
     let mut m = base.clone();
     if let (EffectKind::CoulombFriction, Some((c, _))) = (kind, identified.damping) {
@@ -57,7 +58,7 @@ pub(super) fn ready_for(
         }
     }
     if kind == EffectKind::CubicStiffness {
-        if let Some((k, _)) = cubic_from_backbone(base, identified) {
+        if let Some((k, _)) = backbone_hardening(base, identified, waveform) {
             m.stiffness = k;
         }
     }

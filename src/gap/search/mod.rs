@@ -22,6 +22,7 @@ mod fit;
 
 use candidate::{fitter, ready_for, refit, Side};
 pub use candidate::{signature, Candidate};
+use fit::start_for;
 pub use fit::{effect_start, nelder_mead, refit_baseline, refit_with, Fitted};
 
 use super::{
@@ -358,8 +359,8 @@ fn scan(
                 _ => &[1.0],
             };
             bases.into_iter().flat_map(move |(side, b)| {
-                let s = effect_start(k, &b, id);
-                let b = ready_for(&b, id, k);
+                let s = start_for(k, &b, id, opt.waveform);
+                let b = ready_for(&b, id, k, opt.waveform);
                 signs
                     .iter()
                     .flat_map(move |sign| SCAN.iter().map(move |f| sign * f))
