@@ -97,7 +97,7 @@ pub(crate) struct GapArgs {
     #[arg(long, value_enum, default_value = "paper", requires = "self_check")]
     pub(crate) sweep: SweepArg,
     /// Which rigs the self-check draws: `paper`, the paper's rig with encoder noise, or
-    /// `random`, paper-like rigs over issue 20's ranges (gravity stiffness 0.5-2 1/s²,
+    /// `random`, paper-like rigs drawn at random (gravity stiffness 0.5-2 1/s²,
     /// contact at 9.7-11.4 Hz, clearance 1.3-1.7°, damping 10-21 N m s/rad, the chirp at
     /// 0.032-0.048 rad, 17-20 bit/rev encoders with DC offsets up to ±2e-4 rad and sub-step
     /// noise, a gravity_stiffness attribute ±10 % off); their quantization cases are a
@@ -130,7 +130,7 @@ pub(crate) struct GapArgs {
 pub(crate) enum RigsArg {
     /// The paper's rig.
     Paper,
-    /// Random paper-like rigs over issue 20's ranges, with offsets and noise.
+    /// Random paper-like rigs (the ranges of `skelid validate`), with DC offsets and noise.
     Random,
 }
 
