@@ -177,7 +177,7 @@ fn r_value(rungs: &[Rung]) -> f64 {
     rungs.last().map_or(f64::NAN, |r| r.value)
 }
 
-/// The format name of detection-limits.json (FORMATS.md).
+/// The format name of detection-limits.json (README, "Detection limits").
 pub const FORMAT: &str = "skelid-detection-limits/1";
 
 /// detection-limits.json: what was run and every effect's ladder.
