@@ -520,7 +520,6 @@ pub(crate) fn gap_self_check(
     report_fallbacks(engine.backend());
     let summary = selfcheck::summarize(&outcomes, errors);
     println!("\n{summary}");
-    let path = a.out.join("self-check.json");
     let doc = selfcheck::Document {
         format: selfcheck::FORMAT,
         seed: a.seed,
@@ -529,9 +528,7 @@ pub(crate) fn gap_self_check(
         summary,
         cases: lines,
     };
-    skelid::report::write_atomic(&path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
-    println!("wrote {}", path.display());
-    Ok(ExitCode::SUCCESS)
+    write_json(&a.out.join("self-check.json"), &doc)
 }
 
 /// `--self-check --detection-limits`: each effect's ladder, the table and
@@ -604,7 +601,6 @@ fn detection_limits(
     bar.finish_and_clear();
     report_fallbacks(engine.backend());
     println!("\n{}", detection::table(&limits));
-    let path = a.out.join("detection-limits.json");
     let doc = detection::Document {
         format: detection::FORMAT,
         seed: a.seed,
@@ -614,7 +610,12 @@ fn detection_limits(
         rate: detection::RATE,
         limits,
     };
-    skelid::report::write_atomic(&path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
+    write_json(&a.out.join("detection-limits.json"), &doc)
+}
+
+/// Writes a self-check's document as pretty JSON (atomically) and says where.
+fn write_json(path: &std::path::Path, doc: &impl serde::Serialize) -> Result<ExitCode> {
+    skelid::report::write_atomic(path, serde_json::to_string_pretty(doc)?.as_bytes())?;
     println!("wrote {}", path.display());
     Ok(ExitCode::SUCCESS)
 }

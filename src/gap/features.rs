@@ -310,6 +310,14 @@ pub(super) fn third_harmonic(
     let n = z.len().min(phase.len()).min(valid.len());
     let span = WAVEFORM_CYCLES * 2.0 * PI;
     let mut out = vec![f64::NAN; phase.len()];
+    // e^(−iφ) and e^(−3iφ) once per sample, not once per window a sample falls in (a
+    // sample lies in the windows of every sample within two cycles of it, and this runs
+    // for every simulation of a search).
+    let (mut c1, mut s1, mut c3, mut s3) = (vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+    for j in (0..n).filter(|&j| valid[j]) {
+        (c1[j], s1[j]) = (phase[j].cos(), phase[j].sin());
+        (c3[j], s3[j]) = ((3.0 * phase[j]).cos(), (3.0 * phase[j]).sin());
+    }
     for (i, o) in out.iter_mut().enumerate().take(n) {
         if !at(i) || !valid[i] {
             continue;
@@ -333,10 +341,10 @@ pub(super) fn third_harmonic(
             let step = 0.5 * (phase[(j + 1).min(b)] - phase[j.saturating_sub(1).max(a)]);
             let u = (phase[j] - lo) / span;
             let w = step * (PI * u).sin().powi(2) * z[j];
-            z1.0 += w * phase[j].cos();
-            z1.1 -= w * phase[j].sin();
-            z3.0 += w * (3.0 * phase[j]).cos();
-            z3.1 -= w * (3.0 * phase[j]).sin();
+            z1.0 += w * c1[j];
+            z1.1 -= w * s1[j];
+            z3.0 += w * c3[j];
+            z3.1 -= w * s3[j];
         }
         let h1 = z1.0.hypot(z1.1);
         if h1 > 0.0 {
