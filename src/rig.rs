@@ -18,11 +18,19 @@ pub const ENCODER_NOISE: f64 = 2e-5;
 
 /// The paper's chirp: 0 → 12 Hz in 30 s, amplitude falling at high frequency (servo roll-off).
 pub fn paper_chirp() -> Excitation {
+    paper_chirp_at(PAPER_LEVEL)
+}
+
+/// The peak base angle of the paper's chirp (rad).
+pub const PAPER_LEVEL: f64 = 0.04;
+
+/// [`paper_chirp`] at another peak base angle `level` (rad).
+pub fn paper_chirp_at(level: f64) -> Excitation {
     Excitation::Chirp {
         f0: 0.0,
         f1: 12.0,
         duration: 30.0,
-        amplitude: 0.04,
+        amplitude: level,
         rolloff: Some(Rolloff {
             corner_hz: 1.8,
             order: 2,
@@ -39,30 +47,10 @@ pub fn paper_chirp() -> Excitation {
 /// branch (it never touches, like the paper's record after 16.25 s); the second jumps onto
 /// the resonant branch and rides it up to about 2.7 times the half-gap.
 pub fn two_level_chirp() -> Excitation {
-    two_level_chirp_at(0.04)
+    two_level_chirp_at(PAPER_LEVEL)
 }
 
-/// [`paper_chirp`] at another first level `level` (rad of base angle).
-pub fn paper_chirp_at(level: f64) -> Excitation {
-    match paper_chirp() {
-        Excitation::Chirp {
-            f0,
-            f1,
-            duration,
-            rolloff,
-            ..
-        } => Excitation::Chirp {
-            f0,
-            f1,
-            duration,
-            amplitude: level,
-            rolloff,
-        },
-        other => other,
-    }
-}
-
-/// [`two_level_chirp`] whose first level is `level` (rad; the paper's is 0.04), the second
+/// [`two_level_chirp`] whose first level is `level` (rad; the paper's [`PAPER_LEVEL`]), the second
 /// [`SECOND_LEVEL`] times it.
 pub fn two_level_chirp_at(level: f64) -> Excitation {
     let fs = 1000.0;
@@ -249,10 +237,6 @@ pub struct RandomRig {
     pub chain: Chain,
 }
 
-/// The paper's rig inertia (kg m²), kept by random rigs: the effects' magnitudes of
-/// [`effect_value`] are torques for it.
-const INERTIA: f64 = 3.16;
-
 /// Draws a rig over issue 20's ranges: gravity stiffness C 0.5–2 1/s², contact frequency
 /// 9.7–11.4 Hz, total clearance 1.3–1.7°, viscous damping 10–21 N m s/rad, the paper's
 /// chirp at 0.032–0.048 rad, encoders of 17–20 bit/rev on both channels with DC offsets up
@@ -266,9 +250,11 @@ pub fn random_rig<T>(rng: &mut StdRng, between: impl FnOnce(&mut StdRng) -> T) -
     let f_contact = rng.random_range(9.7..11.4);
     let gravity = rng.random_range(0.5..2.0);
     let bits = rng.random_range(17..=20u32);
+    // The paper rig's inertia: the effects' magnitudes of [`effect_value`] are torques for it.
+    let inertia = RigModel::paper().inertia;
     let mut model = RigModel {
-        inertia: INERTIA,
-        stiffness: INERTIA * (std::f64::consts::TAU * f_contact).powi(2),
+        inertia,
+        stiffness: inertia * (std::f64::consts::TAU * f_contact).powi(2),
         damping: rng.random_range(10.0..21.0),
         clearance: rng.random_range(1.3f64..1.7).to_radians(),
         gravity_stiffness: gravity,

@@ -11,7 +11,7 @@ use super::{Errors, Features, Gap, Region, AMPLITUDE_RANGES, TIME_WINDOWS};
 /// The measured side of a comparison on one part of a run, prepared once for all the
 /// models compared with it: the part's samples, the measurement's features and its jumps.
 pub struct Target {
-    pub(super) waveform: bool,
+    waveform: bool,
     pub(super) mask: Option<Vec<bool>>,
     pub(super) features: Features,
     pub(super) jumps: Option<Jumps>,
@@ -63,8 +63,15 @@ impl Target {
     /// The same target, scoring the waveform domain too when `on` (the third harmonic
     /// against the first at resonance, [`super::features::third_harmonic`]).
     pub fn with_waveform(mut self, on: bool) -> Target {
-        self.waveform = on;
+        self.set_waveform(on);
         self
+    }
+
+    /// Scores the waveform domain when `on` and the measurement has one (a run whose
+    /// channels are not displacements has no relative motion to read it from: its gap stays
+    /// the three domains', not a mean diluted by an empty fourth).
+    pub(super) fn set_waveform(&mut self, on: bool) {
+        self.waveform = on && self.features.waveform.iter().any(|v| v.is_finite());
     }
 
     /// The same target with the measurement's resolution set (its RMS quantisation error,

@@ -125,7 +125,8 @@ pub fn ladder(
         }
         rung
     };
-    let (rungs, limit, below_smallest) = climb(&mut run_rung);
+    let rungs = climb(&mut run_rung);
+    let (limit, below_smallest) = limit_of(&rungs);
     Limit {
         effect: effect.name(),
         param: effect.param(),
@@ -138,43 +139,37 @@ pub fn ladder(
 }
 
 /// The ladder's steps, each rung run by `run_rung(factor)`: from 1 down by halves while
-/// detected (to [`SMALLEST`]), or up by doublings until detected (to [`LARGEST`]). Returns
-/// the rungs in order, the limit (the value of the last rung of the unbroken detected run),
-/// and whether the ladder ended at [`SMALLEST`] still detecting.
-fn climb(run_rung: &mut dyn FnMut(f64) -> Rung) -> (Vec<Rung>, Option<f64>, bool) {
+/// detected (to [`SMALLEST`]), or up by doublings until detected (to [`LARGEST`]). The
+/// rungs in the order they were run.
+fn climb(run_rung: &mut dyn FnMut(f64) -> Rung) -> Vec<Rung> {
     let mut rungs = vec![run_rung(1.0)];
-    if rungs[0].detected() {
-        let mut limit = Some(rungs[0].value);
-        let mut factor = 0.5;
-        while factor >= SMALLEST {
-            let r = run_rung(factor);
-            let ok = r.detected();
-            rungs.push(r);
-            if !ok {
-                return (rungs, limit, false);
-            }
-            limit = Some(r_value(&rungs));
-            factor *= 0.5;
-        }
-        return (rungs, limit, true);
-    }
-    let mut factor = 2.0;
-    while factor <= LARGEST {
+    let down = rungs[0].detected();
+    let mut factor = if down { 0.5 } else { 2.0 };
+    while (SMALLEST..=LARGEST).contains(&factor) {
         let r = run_rung(factor);
-        let ok = r.detected();
+        let stop = r.detected() != down;
         rungs.push(r);
-        if ok {
-            let limit = Some(r_value(&rungs));
-            return (rungs, limit, false);
+        if stop {
+            break;
         }
-        factor *= 2.0;
+        factor *= if down { 0.5 } else { 2.0 };
     }
-    (rungs, None, false)
+    rungs
 }
 
-/// The value of the last rung.
-fn r_value(rungs: &[Rung]) -> f64 {
-    rungs.last().map_or(f64::NAN, |r| r.value)
+/// The limit a ladder's rungs give: the smallest value detected (the last rung of the
+/// unbroken detected run, since the ladder stops at the first change), and whether the
+/// ladder ended at [`SMALLEST`] still detecting (the limit is lower still).
+fn limit_of(rungs: &[Rung]) -> (Option<f64>, bool) {
+    let limit = rungs
+        .iter()
+        .filter(|r| r.detected())
+        .map(|r| r.value)
+        .min_by(f64::total_cmp);
+    let below = rungs
+        .last()
+        .is_some_and(|r| r.detected() && r.factor <= SMALLEST);
+    (limit, below)
 }
 
 /// The format name of detection-limits.json (README, "Detection limits").
@@ -281,10 +276,11 @@ mod tests {
     /// The ladder against a detector that names the effect from `threshold` times its demo
     /// value up.
     fn ladder_at(threshold: f64) -> (Vec<f64>, Option<f64>, bool) {
-        let (rungs, limit, below) = climb(&mut |f| {
+        let rungs = climb(&mut |f| {
             let named = if f >= threshold { 5 } else { 2 };
             rung(f, named, 5)
         });
+        let (limit, below) = limit_of(&rungs);
         (rungs.iter().map(|r| r.factor).collect(), limit, below)
     }
 

@@ -16,7 +16,7 @@ use crate::identify::Identifier;
 use crate::model::{EffectKind, RigModel};
 use crate::rig::{
     effect_value, encoder_step, measure, paper_chirp_at, random_rig, two_level_chirp_at, Chain,
-    ENCODER_NOISE,
+    ENCODER_NOISE, PAPER_LEVEL,
 };
 use crate::simulate::{Drive, Excitation};
 
@@ -114,7 +114,7 @@ pub fn draw(n: usize, seed: u64, d: Draw) -> Vec<Case> {
                         offsets: (0.0, 0.0),
                         gravity_attribute: m.gravity_stiffness,
                     };
-                    (m, 0.04, chain)
+                    (m, PAPER_LEVEL, chain)
                 }
                 Rigs::Random => {
                     let (r, ()) = random_rig(&mut rng, |_| ());

@@ -183,7 +183,7 @@ impl<'a> Reference<'a> {
     /// [`SearchOptions::waveform`]).
     pub fn with_waveform(mut self, on: bool) -> Self {
         for t in [&mut self.fit, &mut self.holdout, &mut self.whole] {
-            t.waveform = on;
+            t.set_waveform(on);
         }
         self
     }
