@@ -559,6 +559,7 @@ fn detection_limits(
             .expect("a valid template"),
     );
     let identifier = engine.get();
+    let path = a.out.join("detection-limits.json");
     let mut limits = Vec::new();
     for &k in effects {
         let mut each =
@@ -597,20 +598,24 @@ fn detection_limits(
             sweep,
         };
         limits.push(detection::ladder(k, plan, opt, identifier, &mut each));
+        // Rewritten after every effect: a long night's ladders stopped half-way keep every
+        // effect finished so far.
+        let doc = detection::Document {
+            format: detection::FORMAT,
+            seed: a.seed,
+            sweep: sweep.name(),
+            rigs: rigs.name(),
+            cases_per_rung: a.cases,
+            rate: detection::RATE,
+            limits: limits.clone(),
+        };
+        skelid::report::write_atomic(&path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
     }
     bar.finish_and_clear();
     report_fallbacks(engine.backend());
     println!("\n{}", detection::table(&limits));
-    let doc = detection::Document {
-        format: detection::FORMAT,
-        seed: a.seed,
-        sweep: sweep.name(),
-        rigs: rigs.name(),
-        cases_per_rung: a.cases,
-        rate: detection::RATE,
-        limits,
-    };
-    write_json(&a.out.join("detection-limits.json"), &doc)
+    println!("wrote {}", path.display());
+    Ok(ExitCode::SUCCESS)
 }
 
 /// Writes a self-check's document as pretty JSON (atomically) and says where.
