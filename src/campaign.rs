@@ -80,6 +80,7 @@ impl RunData {
                 attributes,
                 mode_band: None,
                 mode_near: None,
+                zero_tolerance: num("zero_tolerance").unwrap_or(0.0),
             },
             input: self.input,
             output: self.output,

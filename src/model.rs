@@ -147,6 +147,13 @@ impl EffectKind {
         EffectKind::Quantization,
     ];
 
+    /// Whether it changes the waveform within a cycle of the relative motion (the gap's
+    /// waveform domain): every effect of the joint and the delay between the encoders do;
+    /// the encoders' resolution only adds a noise floor.
+    pub fn shapes_waveform(self) -> bool {
+        self != EffectKind::Quantization
+    }
+
     /// Name in TOML and JSON.
     pub fn name(self) -> &'static str {
         match self {

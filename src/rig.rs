@@ -222,7 +222,14 @@ pub struct Chain {
     pub offsets: (f64, f64),
     /// The `gravity_stiffness` attribute the run carries (1/s²; the truth, perturbed).
     pub gravity_attribute: f64,
+    /// The `zero_tolerance` attribute the run carries when positive: how far apart the
+    /// bench knows its encoders' zeros may be (rad).
+    pub zero_tolerance: f64,
 }
+
+/// How far apart the zeros of a random rig's two encoders may be (rad): each is zeroed to
+/// ±2e-4 rad.
+pub const RANDOM_ZERO_TOLERANCE: f64 = 4e-4;
 
 /// A paper-like rig drawn at random over issue 20's ranges, with its measurement chain.
 #[derive(Debug, Clone)]
@@ -240,8 +247,9 @@ pub struct RandomRig {
 /// Draws a rig over issue 20's ranges: gravity stiffness C 0.5–2 1/s², contact frequency
 /// 9.7–11.4 Hz, total clearance 1.3–1.7°, viscous damping 10–21 N m s/rad, the paper's
 /// chirp at 0.032–0.048 rad, encoders of 17–20 bit/rev on both channels with DC offsets up
-/// to ±2e-4 rad and white noise of 0.1–0.5 of their step, and a `gravity_stiffness`
-/// attribute ±10 % off the truth. No acquisition noise after the encoders.
+/// to ±2e-4 rad (and a `zero_tolerance` attribute that says so) and white noise of 0.1–0.5
+/// of their step, and a `gravity_stiffness` attribute ±10 % off the truth. No acquisition
+/// noise after the encoders.
 ///
 /// `between` makes its own draws after the joint's and before the chain's, and its result
 /// is returned beside the rig: `skelid validate` draws its effect's size there, as it always
@@ -277,6 +285,7 @@ pub fn random_rig<T>(rng: &mut StdRng, between: impl FnOnce(&mut StdRng) -> T) -
             acquisition_noise: 0.0,
             offsets,
             gravity_attribute,
+            zero_tolerance: RANDOM_ZERO_TOLERANCE,
         },
     };
     (rig, drawn)
@@ -289,7 +298,7 @@ pub fn encoder_step(bits: u32) -> f64 {
 
 /// Simulates `model` under `drive` (30 s at 1 kHz) and measures it through `chain`: noise
 /// before the encoders (the model's `quantization`), acquisition noise after them, the
-/// offsets, and the chain's `gravity_stiffness` attribute.
+/// offsets, and the chain's `gravity_stiffness` and `zero_tolerance` attributes.
 pub fn measure(
     path: &str,
     model: &RigModel,
@@ -310,6 +319,10 @@ pub fn measure(
         if name == "gravity_stiffness" {
             *value = Attr::Num(chain.gravity_attribute);
         }
+    }
+    if chain.zero_tolerance > 0.0 {
+        data.attrs
+            .push(("zero_tolerance".into(), Attr::Num(chain.zero_tolerance)));
     }
     // The acquisition noise has its own stream: the simulation's stays as it was.
     let mut rng = StdRng::seed_from_u64(seed ^ 0x05ee_dac9_u64);

@@ -122,6 +122,11 @@ pub struct RunMeta {
     /// names one.
     #[serde(default)]
     pub mode_near: Option<f64>,
+    /// How far apart the zeros of the input and output encoders may be (`zero_tolerance`,
+    /// rad; 0 when not stated): a shift of the relative motion within it is the sensors',
+    /// not the joint's.
+    #[serde(default)]
+    pub zero_tolerance: f64,
 }
 
 /// A run with its samples, ready for analysis.

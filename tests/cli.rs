@@ -1142,18 +1142,22 @@ fn gap_names_the_missing_friction_and_writes_its_report_model_and_page() {
         for key in ["t0", "t1", "amp_lo", "amp_hi", "f_lo", "f_hi"] {
             assert!(r[key].is_number(), "{key}");
         }
-        assert!(["time", "backbone", "damping"].contains(&r["domain"].as_str().unwrap()));
+        assert!(
+            ["time", "backbone", "damping", "waveform"].contains(&r["domain"].as_str().unwrap())
+        );
     }
     let candidates = run["candidates"].as_array().unwrap();
     assert_eq!(candidates.len(), 3);
-    let holdout: Vec<f64> = candidates
+    // Best first: the largest shrink, each on the domains its effect acts in.
+    let shrinks: Vec<f64> = candidates
         .iter()
-        .map(|c| c["gap_holdout"].as_f64().unwrap())
+        .map(|c| c["shrink"].as_f64().unwrap())
         .collect();
     assert!(
-        holdout.windows(2).all(|w| w[0] <= w[1]),
+        shrinks.windows(2).all(|w| w[0] >= w[1]),
         "sorted best first"
     );
+    assert_eq!(j["settings"]["waveform"], true);
     let best = &candidates[0];
     for key in ["gap_fit", "gap_holdout", "shrink"] {
         assert!(best[key].is_number(), "{key}");
@@ -1354,7 +1358,8 @@ fn figures_are_written_for_every_run_as_png_pdf_and_svg_with_labelled_axes() {
 fn the_waveform_domain_names_a_hardening_that_one_chirp_hides_from_the_first_harmonic() {
     // The demo's hardening run (k3 = 1e7 under the paper's chirp) against the nominal rig:
     // without the waveform the gap cannot tell it from a stiffer, wider contact (README,
-    // "A hardening contact needs two levels"); with it, it names the hardening.
+    // "A hardening contact on one chirp needs the waveform domain"); with it (the default),
+    // it names the hardening.
     let dir = tmpdir();
     let rig = dir.path().join("rig.toml");
     std::fs::write(&rig, skelid::model::RigModel::paper().to_toml()).unwrap();
@@ -1366,7 +1371,6 @@ fn the_waveform_domain_names_a_hardening_that_one_chirp_hides_from_the_first_har
         .args([
             "--run",
             "/demo/effects/cubic_stiffness",
-            "--waveform",
             "--baseline-evaluations",
             "80",
             "--candidate-evaluations",
@@ -1501,6 +1505,14 @@ fn gap_self_check_prints_its_confusion_matrix_and_wrong_arguments_say_what_to_do
     assert_eq!(cases.len(), 2);
     assert_eq!(cases[0]["effect"], "coulomb_friction");
     assert_eq!(cases[1]["effect"], "gravity_preload");
+    // The truth scored beside the verdict: whether the record separates the effect at all.
+    for c in cases {
+        assert!(c["truth_gap"].as_f64().unwrap() >= 0.0);
+        let separable = c["truth_shrink"].as_f64().unwrap() >= 0.5
+            && c["baseline_gap"].as_f64().unwrap() - c["truth_gap"].as_f64().unwrap() >= 0.002;
+        assert_eq!(c["separable"], separable, "{c}");
+    }
+    assert!(stdout.contains("separable cases"));
 
     let o = skelid()
         .args(["gap", "--self-check", "--effects", "magic_grease"])
@@ -1515,6 +1527,12 @@ fn gap_self_check_prints_its_confusion_matrix_and_wrong_arguments_say_what_to_do
         .unwrap();
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("at least 10"));
+    let o = skelid()
+        .args(["gap", "--self-check", "--zero-tolerance=-1e-4"])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--zero-tolerance"));
     let o = skelid().args(["gap"]).output().unwrap();
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("--model"));

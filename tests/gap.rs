@@ -299,3 +299,56 @@ fn two_levels_map_the_skeleton_far_enough_to_read_a_hardening_off_its_backbone()
     // One level cannot tell: its backbone puts the hardening into the contact stiffness.
     assert!((start1 / k3 - 1.0).abs() > 0.5, "{start1}");
 }
+
+#[test]
+fn an_encoder_zero_within_the_stated_tolerance_is_not_an_offset_clearance() {
+    use skelid::gap::search::Reference;
+    use skelid::gap::Blocks;
+    use skelid::model::EffectKind;
+    let (truth, measured, _) = paper_rig();
+    // The link encoder zeroed 3e-4 rad off the base encoder: the measured relative motion
+    // oscillates about +3e-4, exactly as if the clearance's centre were there.
+    let zero = 3e-4;
+    let mut shifted = measured.clone();
+    shifted.output.iter_mut().for_each(|y| *y += zero);
+    let mut offset_clearance = truth.clone();
+    offset_clearance
+        .effects
+        .set(EffectKind::AsymmetricClearance, Some(zero));
+    let blocks = Blocks { seconds: 1.0 };
+    let strict = Reference::new(&shifted, blocks, identifier()).unwrap();
+    let (t, o) = (strict.score(&truth), strict.score(&offset_clearance));
+    println!("no tolerance: truth {t:?}, offset clearance {o:?}");
+    // The blind spot: told nothing of the encoders, the gap prefers the offset clearance.
+    assert!(o.holdout < t.holdout, "{} vs {}", o.holdout, t.holdout);
+    // Told that the zeros may be 4e-4 apart, it no longer does: the truth scores as on the
+    // record whose zeros agree, and the offset clearance gains nothing.
+    let tolerant = Reference::new(&shifted, blocks, identifier())
+        .unwrap()
+        .with_zero_tolerance(Some(4e-4));
+    let clean = Reference::new(&measured, blocks, identifier())
+        .unwrap()
+        .with_zero_tolerance(Some(4e-4));
+    let (tt, ot, tc) = (
+        tolerant.score(&truth),
+        tolerant.score(&offset_clearance),
+        clean.score(&truth),
+    );
+    println!("tolerance 4e-4: truth {tt:?}, offset clearance {ot:?}; zeros agreeing {tc:?}");
+    assert!(tt.holdout < t.holdout, "{} vs {}", tt.holdout, t.holdout);
+    assert!(
+        (tt.holdout - tc.holdout).abs() < 1e-3 * tc.holdout,
+        "{tt:?} vs {tc:?}"
+    );
+    assert!(
+        ot.holdout >= 0.99 * tt.holdout,
+        "{} vs {}",
+        ot.holdout,
+        tt.holdout
+    );
+    // The run's own attribute says the same as the option.
+    let mut attributed = shifted.clone();
+    attributed.meta.zero_tolerance = 4e-4;
+    let by_attribute = Reference::new(&attributed, blocks, identifier()).unwrap();
+    assert_eq!(by_attribute.score(&truth).holdout, tt.holdout);
+}

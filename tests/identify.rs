@@ -36,6 +36,7 @@ fn run_of(c: &RigCase, inertia: Option<f64>) -> Run {
             attributes: Default::default(),
             mode_band: None,
             mode_near: None,
+            zero_tolerance: 0.0,
         },
         input: rd.input,
         output: rd.output,

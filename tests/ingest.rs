@@ -259,6 +259,15 @@ fn every_bad_run_gets_its_specific_error_and_the_good_runs_are_still_listed() {
         let g = group(&f, "/runs/bad_kind");
         set_str(&g, "kind", "impact");
         good_run_into(&g);
+        // A negative encoders' zero tolerance.
+        let g = group(&f, "/runs/negative_zero_tolerance");
+        set_f64(&g, "zero_tolerance", -1e-4);
+        good_run_into(&g);
+        // A zero tolerance stated on the campaign's group reaches its runs.
+        let g = group(&f, "/tolerant");
+        set_f64(&g, "sample_rate", 1000.0);
+        set_f64(&g, "zero_tolerance", 4e-4);
+        good_run_into(&group(&f, "/tolerant/run"));
         // Integer counts without a scale.
         let g = group(&f, "/runs/counts_no_scale");
         let c: Vec<i16> = vec![1; 1000];
@@ -281,6 +290,7 @@ fn every_bad_run_gets_its_specific_error_and_the_good_runs_are_still_listed() {
         ("/runs/short", "too_short"),
         ("/runs/no_input", "missing_input"),
         ("/runs/bad_kind", "bad_attribute"),
+        ("/runs/negative_zero_tolerance", "bad_attribute"),
         ("/runs/counts_no_scale", "unsupported_type"),
     ];
     for (run, kind) in expect {
@@ -304,6 +314,14 @@ fn every_bad_run_gets_its_specific_error_and_the_good_runs_are_still_listed() {
     for good in ["/runs/good_1", "/runs/good_2"] {
         assert!(run_error(&a, good).is_none(), "{good} loads");
     }
+    let tol = run_error(&a, "/runs/negative_zero_tolerance")
+        .unwrap()
+        .to_string();
+    assert!(tol.contains("zero_tolerance"), "{tol}");
+    let tolerant = a.runs.iter().find(|r| r.path == "/tolerant/run").unwrap();
+    assert_eq!(tolerant.meta.as_ref().unwrap().zero_tolerance, 4e-4);
+    let good = a.runs.iter().find(|r| r.path == "/runs/good_1").unwrap();
+    assert_eq!(good.meta.as_ref().unwrap().zero_tolerance, 0.0);
 }
 
 #[test]

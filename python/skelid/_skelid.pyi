@@ -70,7 +70,8 @@ def gap(
     fit_inertia: bool = False,
     effects: Optional[Sequence[str]] = None,
     backend: Backend = "cpu",
-    waveform: bool = False,
+    waveform: bool = True,
+    zero_tolerance: Optional[float] = None,
 ) -> dict[str, Any]:
     """The gap.json document: format, settings, runs (one entry: nominal_gap,
     baseline_gap, regions, candidates, verdict), failed."""

@@ -274,6 +274,7 @@ impl RunArgs {
                 attributes: Default::default(),
                 mode_band: self.mode_band,
                 mode_near: self.mode_near,
+                zero_tolerance: 0.0,
             },
             input: input.map(<[f64]>::to_vec),
             output: output.to_vec(),
@@ -434,7 +435,8 @@ fn rig_model(py: Python<'_>, model: &Bound<'_, PyAny>) -> PyResult<RigModel> {
 
 /// gap(model, input, output, fs, kind="base_motion", inertia=None, gravity_stiffness=0.0,
 ///     units=None, holdout_block=1.0, baseline_evaluations=150, candidate_evaluations=45,
-///     pairs=True, fit_inertia=False, effects=None, backend="cpu", waveform=False) -> dict
+///     pairs=True, fit_inertia=False, effects=None, backend="cpu", waveform=True,
+///     zero_tolerance=None) -> dict
 /// --
 ///
 /// Why a rig model's simulation does not match one measured base-motion run: the gap and
@@ -443,15 +445,16 @@ fn rig_model(py: Python<'_>, model: &Bound<'_, PyAny>) -> PyResult<RigModel> {
 ///
 /// model: a rig TOML file's path, its text, or a dict of its keys (FORMATS.md section 2).
 /// input, output: base and link angle (rad). effects: the effect names to try (all seven
-/// by default). waveform: also score the waveform within a cycle (the third harmonic at
-/// resonance), as `skelid gap --waveform`. The rest as `skelid gap`'s options of the same
+/// by default). waveform: score the waveform within a cycle (the third harmonic at
+/// resonance; the default, as `skelid gap`; False as `skelid gap --no-waveform`). zero_tolerance: how far apart the two encoders'
+/// zeros may be (rad), as `skelid gap --zero-tolerance`. The rest as `skelid gap`'s options of the same
 /// names.
 ///
 /// Returns the gap.json document as a dict, as `skelid gap` writes it: format, settings,
 /// runs (one entry: run "/python", nominal_gap, baseline_gap, regions, candidates best
 /// first, verdict, ...) and failed.
 #[pyfunction]
-#[pyo3(signature = (model, input, output, fs, kind="base_motion", inertia=None, gravity_stiffness=0.0, units=None, holdout_block=1.0, baseline_evaluations=150, candidate_evaluations=45, pairs=true, fit_inertia=false, effects=None, backend="cpu", waveform=false))]
+#[pyo3(signature = (model, input, output, fs, kind="base_motion", inertia=None, gravity_stiffness=0.0, units=None, holdout_block=1.0, baseline_evaluations=150, candidate_evaluations=45, pairs=true, fit_inertia=false, effects=None, backend="cpu", waveform=true, zero_tolerance=None))]
 #[allow(clippy::too_many_arguments)]
 fn gap<'py>(
     py: Python<'py>,
@@ -471,8 +474,14 @@ fn gap<'py>(
     effects: Option<Vec<String>>,
     backend: &str,
     waveform: bool,
+    zero_tolerance: Option<f64>,
 ) -> PyResult<Bound<'py, PyAny>> {
     let model = rig_model(py, model)?;
+    if zero_tolerance.is_some_and(|t| !(t >= 0.0 && t.is_finite())) {
+        return Err(PyValueError::new_err(
+            "zero_tolerance: how far apart the encoders' zeros may be, in rad: 0 or more",
+        ));
+    }
     let effects = match effects {
         None => EffectKind::ALL.to_vec(),
         Some(names) => names
@@ -495,6 +504,7 @@ fn gap<'py>(
         fit_inertia,
         effects,
         waveform,
+        zero_tolerance,
         ..Default::default()
     };
     let args = RunArgs {
@@ -525,7 +535,7 @@ fn gap<'py>(
             };
             let reference = skelid::gap::search::Reference::new(&run, opt.blocks, identifier)
                 .map_err(|e| e.to_string())?
-                .with_waveform(opt.waveform);
+                .scored_as(&opt);
             let d = skelid::gap::search::diagnose(&reference, &model, &opt)
                 .map_err(|e| e.to_string())?;
             let r = skelid::gap::GapRun::new(&reference, d).map_err(|e| e.to_string())?;

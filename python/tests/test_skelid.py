@@ -179,15 +179,16 @@ def test_gap_names_the_missing_friction_as_the_command_line_does(demo, tmp_path)
     assert [c["gap_holdout"] for c in g["candidates"]] == [
         c["gap_holdout"] for c in expected["candidates"]
     ]
-    # The waveform domain only when asked for (`skelid gap --waveform`).
-    assert doc["settings"]["waveform"] is False
-    assert all("waveform" not in c["domains"] for c in g["candidates"])
+    # The waveform domain by default, as `skelid gap`; left out on request
+    # (`skelid gap --no-waveform`).
+    assert doc["settings"]["waveform"] is True
+    assert all(isinstance(c["domains"]["waveform"], float) for c in g["candidates"])
     w = skelid.gap(
         model, run["input"], run["output"], run["sample_rate"],
-        effects=["coulomb_friction"], waveform=True, **options,
+        effects=["coulomb_friction"], waveform=False, **options,
     )
-    assert w["settings"]["waveform"] is True
-    assert all(isinstance(c["domains"]["waveform"], float) for c in w["runs"][0]["candidates"])
+    assert w["settings"]["waveform"] is False
+    assert all("waveform" not in c["domains"] for c in w["runs"][0]["candidates"])
     # A model as TOML text or a path is the same model.
     g2 = skelid.gap(str(rig), run["input"], run["output"], run["sample_rate"], effects=effects, **options)
     assert g2["runs"][0]["baseline_gap"] == g["baseline_gap"]

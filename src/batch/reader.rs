@@ -31,6 +31,9 @@ use crate::inspect::{crash_detail, hang_detail};
 use crate::profile::Stage;
 
 /// One message of the reader's stream.
+// A frame is serialised once per run onto the reader's pipe and dropped: the run's
+// metadata inline costs nothing worth a box.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Serialize, Deserialize)]
 pub enum Frame {
     /// The archive (index into the list given) is open; its runs follow.

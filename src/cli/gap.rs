@@ -70,13 +70,25 @@ pub(crate) struct GapArgs {
     /// Refit the inertia too (held at the model's value otherwise).
     #[arg(long)]
     pub(crate) fit_inertia: bool,
-    /// Also score the waveform within a cycle: the third harmonic of the relative motion
-    /// against its first, at resonance, as a fourth domain of the gap beside time, backbone
-    /// and damping. Every other domain is of the first harmonic, where a hardening contact
-    /// on one sweep looks like a stiffer, wider contact; the fraction of each cycle spent in
-    /// contact does not. Base-motion runs with displacement channels only.
-    #[arg(long)]
+    /// Score the waveform within a cycle (the default; the flag is kept for scripts written
+    /// when it was not): the third harmonic of the relative motion against its first, at
+    /// resonance, as a fourth domain of the gap beside time, backbone and damping. Every
+    /// other domain is of the first harmonic, where a hardening contact on one sweep looks
+    /// like a stiffer, wider contact; the fraction of each cycle spent in contact does not.
+    /// Base-motion runs with displacement channels only (others keep three domains).
+    #[arg(long, overrides_with = "no_waveform")]
     pub(crate) waveform: bool,
+    /// Leave the waveform domain out: the gap of time, backbone and damping alone (the
+    /// default before the waveform was; it names a hardening on one sweep less often).
+    #[arg(long, overrides_with = "waveform")]
+    pub(crate) no_waveform: bool,
+    /// How far apart the zeros of the input and output encoders may be (rad; or m). A
+    /// difference between their zeros shifts the measured relative motion exactly as an
+    /// offset clearance does, so a shift of the motion's centre up to this is not counted
+    /// in the gap, and an offset clearance must exceed it to be named. Overrides each
+    /// run's `zero_tolerance` attribute (default: the attribute, else 0).
+    #[arg(long, value_name = "RAD")]
+    pub(crate) zero_tolerance: Option<f64>,
     /// Effects to try, comma-separated (default: the whole vocabulary).
     #[arg(long, value_delimiter = ',', value_name = "EFFECT,...")]
     pub(crate) effects: Vec<String>,
@@ -100,7 +112,8 @@ pub(crate) struct GapArgs {
     /// `random`, paper-like rigs drawn at random (gravity stiffness 0.5-2 1/s²,
     /// contact at 9.7-11.4 Hz, clearance 1.3-1.7°, damping 10-21 N m s/rad, the chirp at
     /// 0.032-0.048 rad, 17-20 bit/rev encoders with DC offsets up to ±2e-4 rad and sub-step
-    /// noise, a gravity_stiffness attribute ±10 % off); their quantization cases are a
+    /// noise, a gravity_stiffness attribute ±10 % off, a zero_tolerance attribute of 4e-4
+    /// rad); their quantization cases are a
     /// 12-14 bit/rev encoder whose steps carry acquisition noise of 1/60-1/15 of a step.
     #[arg(long, value_enum, default_value = "paper", requires = "self_check")]
     pub(crate) rigs: RigsArg,
@@ -148,6 +161,11 @@ pub(crate) fn gap_search_options(a: &GapArgs) -> Result<skelid::gap::SearchOptio
         bail!("--holdout-block must be a positive number of seconds");
     }
     let effects = parse_effects("--effects", &a.effects)?;
+    if a.zero_tolerance
+        .is_some_and(|t| !(t >= 0.0 && t.is_finite()))
+    {
+        bail!("--zero-tolerance is how far apart the encoders' zeros may be, in rad: give 0 or more (e.g. 4e-4 for two encoders zeroed to ±2e-4 rad each)");
+    }
     if a.baseline_evaluations < 10 || a.candidate_evaluations < 5 {
         bail!(
             "--baseline-evaluations must be at least 10 and --candidate-evaluations at least 5 (a simplex needs one simulation per parameter and a few steps); the defaults are 150 and 45"
@@ -163,7 +181,8 @@ pub(crate) fn gap_search_options(a: &GapArgs) -> Result<skelid::gap::SearchOptio
         pairs: !a.no_pairs,
         fit_inertia: a.fit_inertia,
         effects,
-        waveform: a.waveform,
+        waveform: !a.no_waveform,
+        zero_tolerance: a.zero_tolerance,
     })
 }
 
@@ -261,6 +280,7 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
         "backend": if engine.backend().is_gpu() { "gpu" } else { "cpu" },
         "fit_inertia": opt.fit_inertia,
         "waveform": opt.waveform,
+        "zero_tolerance": opt.zero_tolerance,
         "min_shrink": skelid::gap::search::MIN_SHRINK,
         "min_drop": skelid::gap::search::MIN_DROP,
         "model_warnings": model_warnings,

@@ -375,6 +375,7 @@ mod tests {
             attributes: Default::default(),
             mode_band: None,
             mode_near: None,
+            zero_tolerance: 0.0,
         };
         let run = Run {
             meta,

@@ -95,7 +95,7 @@ pub fn diagnose_runs(
             let run = archive.load(meta).map_err(|e| chain(&e))?;
             let reference = Reference::new(&run, opt.blocks, identifier)
                 .map_err(|e| chain(&e))?
-                .with_waveform(opt.waveform)
+                .scored_as(opt)
                 .on_score(|n| exporter.simulations(meta, n));
             let d = diagnose(&reference, model, opt).map_err(|e| chain(&e))?;
             GapRun::new(&reference, d).map_err(|e| chain(&e))

@@ -10,7 +10,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 
-use super::search::{diagnose, Diagnosis, Reference, SearchOptions};
+use super::search::{diagnose, Diagnosis, Reference, Score, SearchOptions, MIN_DROP, MIN_SHRINK};
 use super::GapError;
 use crate::identify::Identifier;
 use crate::model::{EffectKind, RigModel};
@@ -113,6 +113,7 @@ pub fn draw(n: usize, seed: u64, d: Draw) -> Vec<Case> {
                         acquisition_noise: 0.0,
                         offsets: (0.0, 0.0),
                         gravity_attribute: m.gravity_stiffness,
+                        zero_tolerance: 0.0,
                     };
                     (m, PAPER_LEVEL, chain)
                 }
@@ -128,6 +129,8 @@ pub fn draw(n: usize, seed: u64, d: Draw) -> Vec<Case> {
                     (rng.random_range(-1.0..1.0) * RANGE.ln()).exp(),
                 ),
             };
+            // The bench's own encoders (a random rig's 17–20 bit/rev), known to its model.
+            let known_encoder = truth.effects.get(EffectKind::Quantization);
             let mut value = effect.map_or(0.0, |k| effect_value(k) * factor);
             if d.rigs == Rigs::Random && effect == Some(EffectKind::Quantization) {
                 // A coarse encoder in place of the fine one, blurred by the acquisition
@@ -146,6 +149,7 @@ pub fn draw(n: usize, seed: u64, d: Draw) -> Vec<Case> {
             };
             let mut nominal = truth.clone();
             nominal.effects = Default::default();
+            nominal.effects.set(EffectKind::Quantization, known_encoder);
             nominal.gravity_stiffness = chain.gravity_attribute;
             nominal.stiffness *= err();
             nominal.damping *= err();
@@ -176,6 +180,8 @@ pub struct Outcome {
     /// |fitted| / |true| − 1 of the effect's parameter when the verdict is right (signs
     /// of a preload or an offset mirror each other's response and are not identified).
     pub param_error: Option<f64>,
+    /// The true model's gaps, scored like the candidates.
+    pub truth_score: Score,
     /// The diagnosis.
     pub diagnosis: Diagnosis,
 }
@@ -188,6 +194,26 @@ impl Outcome {
     /// Whether the verdict names the true effect (or `none` for an effect-free case).
     pub fn right(&self) -> bool {
         self.verdict == self.truth()
+    }
+
+    /// The true model's held-out shrink against the refitted baseline, on the domains its
+    /// effect acts in.
+    pub fn truth_shrink(&self) -> f64 {
+        let kinds: Vec<EffectKind> = self.case.effect.into_iter().collect();
+        let base = self.diagnosis.baseline.score.holdout_on(&kinds);
+        1.0 - self.truth_score.holdout_on(&kinds) / base
+    }
+
+    /// Whether the record separates the hidden effect from the refitted baseline at all:
+    /// the true model itself passes the verdict's rule against it (held-out shrink ≥
+    /// [`MIN_SHRINK`], drop ≥ [`MIN_DROP`]). Where it does not, no search could name the
+    /// effect under the rule: the record does not carry it.
+    pub fn separable(&self) -> bool {
+        let kinds: Vec<EffectKind> = self.case.effect.into_iter().collect();
+        let base = self.diagnosis.baseline.score.holdout_on(&kinds);
+        self.case.effect.is_some()
+            && self.truth_shrink() >= MIN_SHRINK
+            && base - self.truth_score.holdout_on(&kinds) >= MIN_DROP
     }
 }
 
@@ -222,6 +248,58 @@ pub struct CaseRecord {
     /// DC offsets of the input and output channels (rad; an offset between them reads as
     /// an offset clearance).
     pub offsets: [f64; 2],
+    /// Held-out gap of the true model.
+    pub truth_gap: f64,
+    /// The true model's held-out shrink against the baseline.
+    pub truth_shrink: f64,
+    /// Whether the true model itself passes the verdict's rule against the baseline
+    /// ([`Outcome::separable`]).
+    pub separable: bool,
+    /// The true model's gaps on the fitting and the held-out blocks, and the held-out
+    /// domains.
+    pub truth: ScoreRecord,
+    /// The refitted baseline's.
+    pub baseline: ScoreRecord,
+    /// Every candidate tried, best first: what the search saw.
+    pub candidates: Vec<CandidateRecord>,
+}
+
+/// A model's gaps in self-check.json.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ScoreRecord {
+    /// Gap on the fitting blocks.
+    pub gap_fit: f64,
+    /// Gap on the held-out blocks.
+    pub gap_holdout: f64,
+    /// The held-out gap's domains: time, backbone, damping, waveform (null where not
+    /// scored).
+    pub domains: [Option<f64>; 4],
+}
+
+impl From<&Score> for ScoreRecord {
+    fn from(s: &Score) -> ScoreRecord {
+        ScoreRecord {
+            gap_fit: s.fit,
+            gap_holdout: s.holdout,
+            domains: s.domains,
+        }
+    }
+}
+
+/// A candidate in self-check.json.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct CandidateRecord {
+    /// `effect` or `a+b`.
+    pub name: String,
+    /// Fitted effect parameters.
+    pub params: BTreeMap<String, f64>,
+    /// Held-out shrink against the baseline, on the domains its effects act in.
+    pub shrink: f64,
+    /// Whether the simplex refined it.
+    pub refined: bool,
+    /// Its gaps.
+    #[serde(flatten)]
+    pub score: ScoreRecord,
 }
 
 impl From<&Outcome> for CaseRecord {
@@ -239,6 +317,23 @@ impl From<&Outcome> for CaseRecord {
             simulations: o.diagnosis.evaluations,
             level: o.case.level,
             offsets: [o.case.chain.offsets.0, o.case.chain.offsets.1],
+            truth_gap: o.truth_score.holdout,
+            truth_shrink: o.truth_shrink(),
+            separable: o.separable(),
+            truth: (&o.truth_score).into(),
+            baseline: (&o.diagnosis.baseline.score).into(),
+            candidates: o
+                .diagnosis
+                .candidates
+                .iter()
+                .map(|c| CandidateRecord {
+                    name: c.name(),
+                    params: c.params(),
+                    shrink: c.shrink,
+                    refined: c.refined,
+                    score: (&c.score).into(),
+                })
+                .collect(),
         }
     }
 }
@@ -316,8 +411,11 @@ pub fn run_case(
         "self-check case",
     )
     .into_run();
-    let reference = Reference::new(&run, opt.blocks, identifier)?.with_waveform(opt.waveform);
+    let reference = Reference::new(&run, opt.blocks, identifier)?.scored_as(opt);
     let diagnosis = diagnose(&reference, &case.nominal, opt)?;
+    // The truth itself, scored like any candidate: whether the record can tell the hidden
+    // effect from the refitted baseline at all.
+    let truth_score = reference.score(&case.truth);
     let verdict = diagnosis.verdict_name();
     let chosen = diagnosis.verdict.map(|i| &diagnosis.candidates[i]);
     let shrink = chosen.map(|c| c.shrink);
@@ -332,6 +430,7 @@ pub fn run_case(
         verdict,
         shrink,
         param_error,
+        truth_score,
         diagnosis,
     })
 }
@@ -359,6 +458,13 @@ pub struct Summary {
     pub median_seconds: f64,
     /// Median simulations per case.
     pub median_evaluations: f64,
+    /// Cases with an effect whose true model itself passes the verdict's rule against the
+    /// refitted baseline ([`Outcome::separable`]).
+    pub separable: usize,
+    /// Right verdicts over those cases.
+    pub top1_separable: f64,
+    /// Per effect: its cases that are separable, over its cases.
+    pub separable_per_effect: BTreeMap<String, f64>,
 }
 
 fn median(mut v: Vec<f64>) -> Option<f64> {
@@ -411,7 +517,22 @@ pub fn summarize(outcomes: &[Outcome], errors: Vec<String>) -> Summary {
         })
         .collect();
     let right: Vec<&Outcome> = with.iter().copied().filter(|o| o.right()).collect();
+    let separable: Vec<&Outcome> = with.iter().copied().filter(|o| o.separable()).collect();
+    let separable_per_effect = EffectKind::ALL
+        .iter()
+        .filter_map(|k| {
+            let of: Vec<&Outcome> = with
+                .iter()
+                .copied()
+                .filter(|o| o.case.effect == Some(*k))
+                .collect();
+            (!of.is_empty()).then(|| (k.name().to_string(), rate(&of, &|o| o.separable())))
+        })
+        .collect();
     Summary {
+        separable: separable.len(),
+        top1_separable: rate(&separable, &|o| o.right()),
+        separable_per_effect,
         cases: outcomes.len() + errors.len(),
         errors,
         confusion,
@@ -509,12 +630,25 @@ impl fmt::Display for Summary {
             100.0 * self.top1
         )?;
         for (k, v) in &self.per_effect {
-            writeln!(f, "  {k:<22} {:.0} %", 100.0 * v)?;
+            let sep = self.separable_per_effect.get(k).copied().unwrap_or(0.0);
+            writeln!(
+                f,
+                "  {k:<22} {:>3.0} %   (the record separates it in {:.0} %)",
+                100.0 * v,
+                100.0 * sep
+            )?;
         }
         writeln!(
             f,
             "false alarms (effect-free cases):     {:.0} %",
             100.0 * self.false_alarms
+        )?;
+        writeln!(
+            f,
+            "separable cases (the true model itself passes the verdict's rule against the \
+             refitted baseline): {}; top-1 among them {:.0} %",
+            self.separable,
+            100.0 * self.top1_separable
         )?;
         match self.median_shrink {
             Some(s) => writeln!(
@@ -581,7 +715,11 @@ mod tests {
             assert_eq!(case.nominal.gravity_stiffness, case.chain.gravity_attribute);
             let g = case.chain.gravity_attribute / m.gravity_stiffness - 1.0;
             assert!(g.abs() <= 0.1 + 1e-12, "{g}");
-            assert!(case.nominal.effects.is_empty());
+            // The model knows the bench's fine encoders, and nothing else beyond the joint.
+            let known = case.nominal.effects.present();
+            assert_eq!(known.len(), 1);
+            assert_eq!(known[0].0, EffectKind::Quantization);
+            assert!(known[0].1 < 5e-5, "{known:?}");
             let step = m.effects.get(EffectKind::Quantization).unwrap();
             if case.effect == Some(EffectKind::Quantization) {
                 // 12-14 bit/rev, steps blurred by 1/60-1/15 of a step.

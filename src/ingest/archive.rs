@@ -254,6 +254,7 @@ pub(super) const INHERITED: &[&str] = &[
     "mode_fmin",
     "mode_fmax",
     "mode_near",
+    "zero_tolerance",
 ];
 
 impl InheritedAttrs {

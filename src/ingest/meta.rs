@@ -130,6 +130,16 @@ impl Archive {
         }
         let gravity_stiffness = number("gravity_stiffness")?.unwrap_or(0.0);
         let mode_near = number("mode_near")?;
+        let zero_tolerance = number("zero_tolerance")?.unwrap_or(0.0);
+        if zero_tolerance < 0.0 {
+            return Err(IngestError::BadAttribute {
+                file: file.clone(),
+                run,
+                name: "zero_tolerance".into(),
+                value: zero_tolerance.to_string(),
+                detail: "the encoders' zero tolerance is a distance (rad, or m), 0 or more".into(),
+            });
+        }
         let mode_band = match (number("mode_fmin")?, number("mode_fmax")?) {
             (None, None) => None,
             (Some(lo), Some(hi)) if lo > 0.0 && hi > lo => Some((lo, hi)),
@@ -186,6 +196,7 @@ impl Archive {
             attributes,
             mode_band,
             mode_near,
+            zero_tolerance,
         })
     }
 

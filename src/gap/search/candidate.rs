@@ -74,7 +74,8 @@ pub struct Candidate {
     pub model: RigModel,
     /// Its gaps.
     pub score: Score,
-    /// 1 − gap_holdout / baseline_gap.
+    /// 1 − gap_holdout / baseline_gap, both on the domains its effects act in
+    /// ([`Score::holdout_on`]).
     pub shrink: f64,
     /// Whether the simplex refined it (otherwise it is the best point of the scan).
     pub refined: bool,
@@ -85,6 +86,11 @@ impl Candidate {
     pub fn name(&self) -> String {
         let names: Vec<&str> = self.effects.iter().map(|(k, _)| k.name()).collect();
         names.join("+")
+    }
+
+    /// Its effects' kinds.
+    pub fn kinds(&self) -> Vec<EffectKind> {
+        self.effects.iter().map(|e| e.0).collect()
     }
 
     /// The fitted effect parameters by name (`effect.param` for a pair, whose parameters
@@ -107,12 +113,7 @@ impl Candidate {
 
 impl Candidate {
     /// The candidate a fit of `kinds` gave.
-    pub(super) fn from_fit(
-        f: Fitted,
-        kinds: &[EffectKind],
-        base_holdout: f64,
-        refined: bool,
-    ) -> Self {
+    pub(super) fn from_fit(f: Fitted, kinds: &[EffectKind], base: &Score, refined: bool) -> Self {
         let mut effects: Vec<(EffectKind, f64)> = kinds
             .iter()
             .map(|&k| (k, f.model.effects.get(k).unwrap_or(0.0)))
@@ -120,7 +121,7 @@ impl Candidate {
         effects.sort_by_key(|e| e.0);
         Candidate {
             effects,
-            shrink: 1.0 - f.score.holdout / base_holdout,
+            shrink: 1.0 - f.score.holdout_on(kinds) / base.holdout_on(kinds),
             model: f.model,
             score: f.score,
             refined,
@@ -135,7 +136,7 @@ pub(super) fn refit(
     from: &RigModel,
     effects: &[(EffectKind, f64)],
     opt: &SearchOptions,
-    base_holdout: f64,
+    baseline: &Score,
 ) -> Candidate {
     let mut base = from.clone();
     for &(k, _) in effects {
@@ -148,7 +149,7 @@ pub(super) fn refit(
     };
     let f = coords.fit(reference, coords.origin(), opt.candidate_evaluations);
     let kinds: Vec<EffectKind> = effects.iter().map(|e| e.0).collect();
-    Candidate::from_fit(f, &kinds, base_holdout, true)
+    Candidate::from_fit(f, &kinds, baseline, true)
 }
 
 /// Whichever of two fits of the same effects is better on the fitting blocks (marked

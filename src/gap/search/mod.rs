@@ -22,8 +22,8 @@ mod fit;
 
 use candidate::{fitter, ready_for, refit, Side};
 pub use candidate::{signature, Candidate};
-use fit::start_for;
 pub use fit::{effect_start, nelder_mead, refit_baseline, refit_with, Fitted};
+use fit::{start_for, Coordinates};
 
 use super::{
     decimate, decimation_for, measured_resolution, resolution_per_step, simulate_given, Blocks,
@@ -43,6 +43,9 @@ pub const MIN_SHRINK: f64 = 0.5;
 /// the self-check's noisy paper rigs, models that fit the fitting blocks equally well
 /// differ on the withheld ones by up to 0.0013 where no effect is missing).
 pub const MIN_DROP: f64 = 0.002;
+/// A best single effect whose held-out shrink reaches this, short of [`MIN_SHRINK`], gets
+/// one more simplex before the verdict.
+pub const BORDERLINE: f64 = 0.3;
 /// Pairs of effects are tried when the best single effect leaves more than this fraction of
 /// the baseline gap on the withheld blocks.
 pub const PAIR_WHEN_LEFT: f64 = 0.4;
@@ -69,8 +72,13 @@ pub struct SearchOptions {
     pub effects: Vec<EffectKind>,
     /// Whether the gap scores the waveform within a cycle as a fourth domain (the third
     /// harmonic of the relative motion against its first, at resonance): what separates a
-    /// hardening contact from a stiffer, wider one on a single sweep. Off by default.
+    /// hardening contact from a stiffer, wider one on a single sweep. On by default.
     pub waveform: bool,
+    /// How far apart the encoders' zeros may be (rad), overriding each run's
+    /// `zero_tolerance` attribute: a shift of the measured relative motion within it is
+    /// not counted in the gap (an offset clearance smaller than it cannot be told from the
+    /// sensors' zeros).
+    pub zero_tolerance: Option<f64>,
 }
 
 impl Default for SearchOptions {
@@ -83,7 +91,8 @@ impl Default for SearchOptions {
             pairs: true,
             fit_inertia: false,
             effects: EffectKind::ALL.to_vec(),
-            waveform: false,
+            waveform: true,
+            zero_tolerance: None,
         }
     }
 }
@@ -105,6 +114,21 @@ impl Score {
         holdout: f64::INFINITY,
         domains: [None; 4],
     };
+
+    /// The held-out gap on the domains `kinds` act in: the whole held-out gap, or, when no
+    /// effect of `kinds` shapes the waveform within a cycle ([`EffectKind::shapes_waveform`]),
+    /// the time, backbone and damping domains' alone (a fourth domain such an effect cannot
+    /// change would only dilute what it explains).
+    pub fn holdout_on(&self, kinds: &[EffectKind]) -> f64 {
+        if self.domains[3].is_none() || kinds.iter().any(|k| k.shapes_waveform()) {
+            return self.holdout;
+        }
+        if !self.holdout.is_finite() {
+            return self.holdout;
+        }
+        let ms: f64 = self.domains[..3].iter().flatten().map(|d| d * d).sum();
+        (ms / 3.0).sqrt()
+    }
 }
 
 /// A measured run, identified once, that models are scored against.
@@ -184,6 +208,24 @@ impl<'a> Reference<'a> {
     pub fn with_waveform(mut self, on: bool) -> Self {
         for t in [&mut self.fit, &mut self.holdout, &mut self.whole] {
             t.set_waveform(on);
+        }
+        self
+    }
+
+    /// The same reference scored as `opt` asks: the waveform domain and the encoders' zero
+    /// tolerance.
+    pub fn scored_as(self, opt: &SearchOptions) -> Self {
+        self.with_waveform(opt.waveform)
+            .with_zero_tolerance(opt.zero_tolerance)
+    }
+
+    /// The same reference with the encoders' zero tolerance set to `tolerance` (rad) when
+    /// given, instead of the run's attribute (see [`SearchOptions::zero_tolerance`]).
+    pub fn with_zero_tolerance(mut self, tolerance: Option<f64>) -> Self {
+        if let Some(t) = tolerance {
+            for target in [&mut self.fit, &mut self.holdout, &mut self.whole] {
+                target.set_zero_tolerance(t);
+            }
         }
         self
     }
@@ -284,11 +326,15 @@ impl Diagnosis {
 /// extends: better on the blocks it was fitted on (a scan point that fits worse but happens
 /// to score well on the withheld blocks is luck), and by the margins on the withheld ones.
 fn significant(reference: &Score, c: &Candidate) -> bool {
-    let h = c.score.holdout;
-    h.is_finite()
-        && c.score.fit < reference.fit
-        && h <= (1.0 - MIN_SHRINK) * reference.holdout
-        && reference.holdout - h >= MIN_DROP
+    let kinds = c.kinds();
+    let (h, r) = (c.score.holdout_on(&kinds), reference.holdout_on(&kinds));
+    h.is_finite() && c.score.fit < reference.fit && h <= (1.0 - MIN_SHRINK) * r && r - h >= MIN_DROP
+}
+
+/// Best first: the largest shrink of the held-out gap, each on the domains its effects act
+/// in (with every domain scored for every effect, the smallest held-out gap first).
+fn best_first(candidates: &mut [Candidate]) {
+    candidates.sort_by(|a, b| b.shrink.total_cmp(&a.shrink));
 }
 
 /// Diagnoses one measured run against the `nominal` model: baseline, candidates, verdict.
@@ -307,14 +353,15 @@ pub fn diagnose(
                 .into(),
         ));
     }
-    let base_holdout = baseline.score.holdout;
+    let base = baseline.score;
     let starts = scan(reference, nominal, &nominal_score, &baseline, opt);
-    let mut candidates = singles(reference, starts, opt, base_holdout);
-    if let Some(q) = quantization(reference, &baseline, opt, base_holdout) {
+    let mut candidates = singles(reference, starts, opt, &base);
+    if let Some(q) = quantization(reference, &baseline, opt, &base) {
         candidates.push(q);
     }
-    candidates.sort_by(|a, b| a.score.holdout.total_cmp(&b.score.holdout));
-    pairs(reference, &mut candidates, opt, base_holdout);
+    best_first(&mut candidates);
+    borderline(reference, &mut candidates, opt, &base);
+    pairs(reference, &mut candidates, opt, &base);
     let verdict = verdict(&baseline, &candidates);
     Ok(Diagnosis {
         run: reference.run.meta.path.clone(),
@@ -368,6 +415,23 @@ fn scan(
             })
         })
         .collect();
+    // Contact damping is also scanned on the baseline with its viscous damping lowered by
+    // what the contact damping dissipates at resonance: the baseline has put it into c, and
+    // added on top it only over-damps (on random rigs the simplex then stopped with a fit
+    // worse than the baseline's, three times in five).
+    let share = contact_share(id);
+    let grid: Vec<(Side, RigModel, EffectKind, f64)> = grid
+        .into_iter()
+        .flat_map(|(side, b, k, v)| {
+            let traded = (side == Side::Baseline && k == EffectKind::ContactDamping && share > 0.0)
+                .then(|| {
+                    let mut t = b.clone();
+                    t.damping = (b.damping - v * share).max(0.2 * b.damping);
+                    (side, t, k, v)
+                });
+            std::iter::once((side, b, k, v)).chain(traded)
+        })
+        .collect();
     let scanned: Vec<(Side, EffectKind, f64, Fitted)> = grid
         .par_iter()
         .map(|(side, b, k, v)| {
@@ -393,13 +457,42 @@ fn scan(
     starts
 }
 
+/// The share of a resonant cycle's viscous dissipation that falls in contact, on the
+/// measurement's resonant samples (0 without a clearance): for z = A sin ωt, contact where
+/// |z| > δ, the share of ∫ż² there is 1 − (2θ₀ + sin 2θ₀)/π with θ₀ = asin(δ/A). Contact
+/// damping c_c dissipates at resonance what a viscous c_c × share would.
+fn contact_share(id: &Identification) -> f64 {
+    let Some(dz) = id.dead_zone else {
+        return 0.0;
+    };
+    let delta = dz.half_gap.value;
+    let track = &id.response;
+    let n = id.used.len().min(track.len());
+    let shares: Vec<f64> = (0..n)
+        .filter(|&i| track.valid[i] && id.resonant(i))
+        .map(|i| {
+            let a = track.amplitude[i];
+            if a <= delta || delta <= 0.0 {
+                return 0.0;
+            }
+            let t0 = (delta / a).asin();
+            1.0 - (2.0 * t0 + (2.0 * t0).sin()) / std::f64::consts::PI
+        })
+        .collect();
+    if shares.is_empty() {
+        0.0
+    } else {
+        shares.iter().sum::<f64>() / shares.len() as f64
+    }
+}
+
 /// The single effects: the best scan starts refined by the simplex with the model's own
 /// parameters, the better fit of each effect kept, and the two best refined once more.
 fn singles(
     reference: &Reference,
     mut starts: Vec<(Side, EffectKind, f64, Fitted)>,
     opt: &SearchOptions,
-    base_holdout: f64,
+    base: &Score,
 ) -> Vec<Candidate> {
     // The best starts are refined by the simplex together with the model's own parameters;
     // each effect keeps its better fit.
@@ -409,9 +502,9 @@ fn singles(
         .into_par_iter()
         .enumerate()
         .map(|(i, (_, k, v, scanned))| {
-            let scanned = Candidate::from_fit(scanned, &[k], base_holdout, false);
+            let scanned = Candidate::from_fit(scanned, &[k], base, false);
             if i < refine {
-                let refined = refit(reference, &scanned.model, &[(k, v)], opt, base_holdout);
+                let refined = refit(reference, &scanned.model, &[(k, v)], opt, base);
                 fitter(refined, scanned)
             } else {
                 scanned
@@ -436,12 +529,7 @@ fn singles(
     let again: Vec<Candidate> = candidates
         .par_iter()
         .take(2)
-        .map(|c| {
-            fitter(
-                refit(reference, &c.model, &c.effects, opt, base_holdout),
-                c.clone(),
-            )
-        })
+        .map(|c| fitter(refit(reference, &c.model, &c.effects, opt, base), c.clone()))
         .collect();
     for (i, c) in again.into_iter().enumerate() {
         candidates[i] = c;
@@ -454,7 +542,7 @@ fn quantization(
     reference: &Reference,
     baseline: &Fitted,
     opt: &SearchOptions,
-    base_holdout: f64,
+    base: &Score,
 ) -> Option<Candidate> {
     let id = &reference.identified;
     // Quantisation is a property of the sensor, not of the dynamics: its step is read off
@@ -471,11 +559,53 @@ fn quantization(
     } else {
         effect_start(kind, &baseline.model, id)
     };
+    let known = baseline.model.effects.get(kind);
     let mut model = baseline.model.clone();
     model.effects.set(kind, Some(step));
     let score = reference.score(&model);
-    let fitted = Fitted { model, score };
-    Some(Candidate::from_fit(fitted, &[kind], base_holdout, false))
+    let scored = Candidate::from_fit(Fitted { model, score }, &[kind], base, false);
+    // A lattice the model does not know (no step, or one 10 % off): the baseline has bent
+    // its own parameters to mimic the coarse encoder's noise floor at small amplitude, so
+    // they are refitted with the step held (a 14-bit/rev case scored once shrank the gap by
+    // 15 %, the truth by 71 %). Not marked refined: the step is read, not searched, and
+    // stays out of the pairs.
+    let new = reference.resolution > 0.0 && known.is_none_or(|q| (step / q - 1.0).abs() > 0.1);
+    if !new {
+        return Some(scored);
+    }
+    let coords = Coordinates {
+        base: &scored.model,
+        inertia: opt.fit_inertia,
+        effects: Vec::new(),
+    };
+    let refitted = coords.fit(reference, coords.origin(), opt.candidate_evaluations);
+    let refitted = Candidate::from_fit(refitted, &[kind], base, false);
+    Some(if refitted.score.fit < scored.score.fit {
+        refitted
+    } else {
+        scored
+    })
+}
+
+/// Work spent once more on the best single effect when it falls just short of the rule
+/// (held-out shrink from [`BORDERLINE`] up to [`MIN_SHRINK`]): a second simplex from where
+/// it stopped. A hardening the true model separates with a 99 % shrink stopped at 49 % on a
+/// random rig: the fit had to unbend the baseline's stiffer, wider contact on the way.
+fn borderline(
+    reference: &Reference,
+    candidates: &mut [Candidate],
+    opt: &SearchOptions,
+    base: &Score,
+) {
+    let Some(c) = candidates.first() else {
+        return;
+    };
+    if !c.refined || c.shrink < BORDERLINE || significant(base, c) {
+        return;
+    }
+    let again = refit(reference, &c.model, &c.effects, opt, base);
+    candidates[0] = fitter(again, c.clone());
+    best_first(candidates);
 }
 
 /// The pairs of effects, added to `candidates` (sorted by held-out gap) when the best single
@@ -484,14 +614,14 @@ fn pairs(
     reference: &Reference,
     candidates: &mut Vec<Candidate>,
     opt: &SearchOptions,
-    base_holdout: f64,
+    base: &Score,
 ) {
     // Pairs, when the best single effect leaves much of the gap: from the better single's
     // model, the other effect at its own fitted value.
     let leaves_much = candidates
         .first()
-        .is_some_and(|s| s.score.holdout > PAIR_WHEN_LEFT * base_holdout);
-    if opt.pairs && leaves_much && base_holdout > MIN_DROP {
+        .is_some_and(|s| 1.0 - s.shrink > PAIR_WHEN_LEFT);
+    if opt.pairs && leaves_much && base.holdout > MIN_DROP {
         let singles: Vec<&Candidate> = candidates.iter().filter(|c| c.refined).take(3).collect();
         let mut pairs = Vec::new();
         for (i, a) in singles.iter().enumerate() {
@@ -507,7 +637,7 @@ fn pairs(
             .par_iter()
             .map(|(a, b)| {
                 let effects = [a.effects[0], b.effects[0]];
-                refit(reference, &a.model, &effects, opt, base_holdout)
+                refit(reference, &a.model, &effects, opt, base)
             })
             .collect();
         // Each pair without one of its effects: the pair's simplex also moved the model's
@@ -522,7 +652,7 @@ fn pairs(
                     model.effects.set(kind, None);
                     let score = reference.score(&model);
                     let keep = p.effects[1 - without].0;
-                    Candidate::from_fit(Fitted { model, score }, &[keep], base_holdout, true)
+                    Candidate::from_fit(Fitted { model, score }, &[keep], base, true)
                 })
             })
             .collect();
@@ -537,7 +667,7 @@ fn pairs(
             }
         }
         candidates.extend(fitted);
-        candidates.sort_by(|a, b| a.score.holdout.total_cmp(&b.score.holdout));
+        best_first(candidates);
     }
 }
 
