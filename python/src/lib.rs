@@ -447,7 +447,8 @@ fn rig_model(py: Python<'_>, model: &Bound<'_, PyAny>) -> PyResult<RigModel> {
 /// input, output: base and link angle (rad). effects: the effect names to try (all seven
 /// by default). waveform: score the waveform within a cycle (the third harmonic at
 /// resonance; the default, as `skelid gap`; False as `skelid gap --no-waveform`). zero_tolerance: how far apart the two encoders'
-/// zeros may be (rad), as `skelid gap --zero-tolerance`. The rest as `skelid gap`'s options of the same
+/// zeros may be (rad), as `skelid gap --zero-tolerance`; None is 0 (arrays carry no run
+/// attribute to fall back on). The rest as `skelid gap`'s options of the same
 /// names.
 ///
 /// Returns the gap.json document as a dict, as `skelid gap` writes it: format, settings,
@@ -551,6 +552,7 @@ fn gap<'py>(
                 "backend": if engine.is_gpu() { "gpu" } else { "cpu" },
                 "fit_inertia": opt.fit_inertia,
                 "waveform": opt.waveform,
+                "zero_tolerance": opt.zero_tolerance,
                 "min_shrink": skelid::gap::search::MIN_SHRINK,
                 "min_drop": skelid::gap::search::MIN_DROP,
             });

@@ -76,6 +76,7 @@ pub(crate) struct GapArgs {
     /// other domain is of the first harmonic, where a hardening contact on one sweep looks
     /// like a stiffer, wider contact; the fraction of each cycle spent in contact does not.
     /// Base-motion runs with displacement channels only (others keep three domains).
+    // Never read: the waveform is scored unless --no-waveform is given.
     #[arg(long, overrides_with = "no_waveform")]
     pub(crate) waveform: bool,
     /// Leave the waveform domain out: the gap of time, backbone and damping alone (the
@@ -380,7 +381,13 @@ impl Terminal<'_> {
             d.baseline.score.holdout,
             d.verdict.map_or(String::new(), |i| {
                 let c = &d.candidates[i];
-                format!(" → {:.4} with {} (shrink {:.0} %)", c.score.holdout, c.name(), 100.0 * c.shrink)
+                format!(
+                    " → {:.4} with {} (shrink {:.0} %{})",
+                    c.score.holdout,
+                    c.name(),
+                    100.0 * c.shrink,
+                    shrink_note(c)
+                )
             }),
             d.evaluations,
             d.seconds
@@ -392,10 +399,11 @@ impl Terminal<'_> {
                 .map(|(k, v)| out::param_text(k, *v))
                 .collect();
             text += &format!(
-                "\n    {:<40} held-out gap {:.4}  shrink {:>4.0} %  {}",
+                "\n    {:<40} held-out gap {:.4}  shrink {:>4.0} %{}  {}",
                 c.name(),
                 c.score.holdout,
                 100.0 * c.shrink,
+                shrink_note(c),
                 p.join(", ")
             );
         }
@@ -459,6 +467,16 @@ impl skelid::gap::runner::Exporter for Terminal<'_> {
 
 /// Prints the rig model's implausible values on stderr ("warning: FILE: `clearance` = …")
 /// and returns them.
+/// Where a candidate's shrink leaves the waveform domain out (a sensor effect, scored
+/// with the waveform on), so that its shrink is not read off the four-domain gaps beside it.
+fn shrink_note(c: &skelid::gap::search::Candidate) -> &'static str {
+    if c.score.scores_without_waveform(&c.kinds()) {
+        " on time/backbone/damping"
+    } else {
+        ""
+    }
+}
+
 pub(crate) fn warn_model(path: &std::path::Path, model: &RigModel) -> Vec<String> {
     let w = model.warnings();
     for line in &w {

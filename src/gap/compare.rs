@@ -1,5 +1,5 @@
 //! The measured side of a comparison ([`Target`]: the part of the run compared, its
-//! features and where it jumps) and the three domains' errors against a model's features,
+//! features and where it jumps) and the domains' errors against a model's features,
 //! combined into one [`Gap`] with its regions. In: two sets of features; out: a gap.
 
 use crate::identify::Identification;
@@ -80,6 +80,11 @@ impl Target {
     /// the centres of the measured and simulated relative motion up to it is not counted.
     pub(super) fn set_zero_tolerance(&mut self, tolerance: f64) {
         self.zero_tolerance = tolerance.max(0.0);
+    }
+
+    /// How far apart the encoders' zeros may be (rad), as this target scores.
+    pub(super) fn zero_tolerance(&self) -> f64 {
+        self.zero_tolerance
     }
 
     /// The same target with the measurement's resolution set (its RMS quantisation error,
@@ -380,6 +385,8 @@ pub(super) fn time_errors(
     // read as offset clearances). Up to the zero tolerance it is the sensors': the median
     // shift over the compared samples, limited to ±tolerance, is taken out before the
     // centres are compared, and only what an offset clearance adds beyond it is counted.
+    // It is taken on each part's own samples (the held-out blocks' too): a constant of the
+    // sensors, bounded by the tolerance, not a parameter of the model.
     let zero = if zero_tolerance > 0.0 {
         let mut shifts: Vec<f64> = (0..n)
             .filter(|&i| keep(i) && la[i].is_finite())

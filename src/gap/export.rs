@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use plotters::style::RGBColor;
 use serde_json::{json, Value};
 
-use super::search::{signature, Score};
+use super::search::{signature, Candidate, Score};
 use super::GapRun;
 use crate::identify::Identification;
 use crate::report::html::{css, esc, plot, reduce, Mark, Series, YAxis};
@@ -35,11 +35,23 @@ fn domains(d: [Option<f64>; 4]) -> Value {
         "backbone": d[1].map_or(Value::Null, num),
         "damping": d[2].map_or(Value::Null, num),
     });
-    // Only when scored (`--waveform`): files without it stay as they were.
+    // Only when scored (the default; not with `--no-waveform`).
     if let Some(w) = d[3] {
         v["waveform"] = num(w);
     }
     v
+}
+
+/// The domains a candidate's shrink is taken on ([`Score::holdout_on`]).
+fn shrink_domains(c: &Candidate) -> Vec<&'static str> {
+    let all = ["time", "backbone", "damping", "waveform"];
+    let scored = if c.score.domains[3].is_some() { 4 } else { 3 };
+    let n = if c.score.scores_without_waveform(&c.kinds()) {
+        3
+    } else {
+        scored
+    };
+    all[..n].to_vec()
 }
 
 fn score_json(s: &Score) -> Value {
@@ -60,6 +72,7 @@ pub fn run_json(r: &GapRun) -> Value {
                 "gap_fit": num(c.score.fit),
                 "gap_holdout": num(c.score.holdout),
                 "shrink": num(c.shrink),
+                "shrink_domains": shrink_domains(c),
                 "refined": c.refined,
                 "domains": domains(c.score.domains),
                 "signature": explains.join("; "),
@@ -69,6 +82,7 @@ pub fn run_json(r: &GapRun) -> Value {
     let baseline_whole = &r.baseline.gap;
     json!({
         "run": d.run,
+        "zero_tolerance": num(r.zero_tolerance),
         "nominal_gap": num(d.nominal_score.holdout),
         "baseline_gap": num(d.baseline.score.holdout),
         "regions": baseline_whole.regions,
@@ -324,7 +338,7 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
             esc(&model_text(&d.nominal)),
             esc(&model_text(&d.baseline.model))
         );
-        // The waveform domain has a column only where it was scored (`--waveform`).
+        // The waveform domain has a column only where it was scored (not `--no-waveform`).
         let scored = if d.candidates.iter().any(|c| c.score.domains[3].is_some()) {
             4
         } else {
@@ -344,12 +358,17 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
                 .collect();
             let _ = writeln!(
                 b,
-                "<tr><td>{}</td><td>{}</td><td>{:.4}</td><td>{:.4}</td><td>{:.0} %</td><td>{}</td></tr>",
+                "<tr><td>{}</td><td>{}</td><td>{:.4}</td><td>{:.4}</td><td>{:.0} %{}</td><td>{}</td></tr>",
                 esc(&c.name()),
                 esc(&params.join(", ")),
                 c.score.fit,
                 c.score.holdout,
                 100.0 * c.shrink,
+                if c.score.scores_without_waveform(&c.kinds()) {
+                    " (time/backbone/damping)"
+                } else {
+                    ""
+                },
                 dom.join(" / ")
             );
         }

@@ -26,6 +26,8 @@ pub struct GapRun {
     pub baseline: Whole,
     /// The fitted model (the verdict's; the baseline's own when the verdict is `none`).
     pub fitted: Option<Whole>,
+    /// The encoders' zero tolerance the run was scored with (rad).
+    pub zero_tolerance: f64,
 }
 
 impl GapRun {
@@ -47,6 +49,7 @@ impl GapRun {
             nominal,
             baseline: baseline?,
             fitted: fitted?,
+            zero_tolerance: reference.zero_tolerance(),
             diagnosis,
         })
     }

@@ -2,7 +2,7 @@
 //! model simulated under the measurement's own input — as one dimensionless number with its
 //! breakdown into domains and regions (DESIGN.md, "Simulation and the sim-to-real gap").
 //!
-//! The three domains compare what a model gets right or wrong, never the raw response:
+//! The domains compare what a model gets right or wrong, never the raw response:
 //! after the jump-down of a chirp, which flank of the clearance the link settles on is a
 //! coin-flip that moves z's mean, not its envelope, its backbone or its damping.
 //! - **time**: the response envelope over time, e = how far ln A_meas(t) lies outside the
@@ -15,7 +15,9 @@
 //!   resonance (|ω/ω0 − 1| < 0.1), e = (f0_sim − f0_meas) / rms f0_meas, both smoothed over
 //!   ±[`SMOOTH`], the model taken at the same instant or its nearest resonant one;
 //! - **damping**: the damping force 2h0·Aω at the same samples, e = (D_sim − D_meas) /
-//!   rms D_meas.
+//!   rms D_meas;
+//! - **waveform** (on by default): H3/H1 of the relative motion at the same samples,
+//!   e = (H_sim − H_meas) / rms H_meas, at most 1 a sample.
 //!
 //! Left out, as coin-flips of the rig's noise: the grazing band ([`GRAZING`], time domain),
 //! and in every domain the settling after a jump-down ([`SETTLE_DECAY_TIMES`]) and the
@@ -92,7 +94,7 @@ pub struct Gap {
     /// Damping domain.
     pub damping: Option<f64>,
     /// Waveform domain (the third harmonic against the first at resonance), when scored
-    /// (`skelid gap --waveform`).
+    /// (the default; not with `skelid gap --no-waveform`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub waveform: Option<f64>,
     /// Regions, largest share first.

@@ -121,7 +121,7 @@ impl Candidate {
         effects.sort_by_key(|e| e.0);
         Candidate {
             effects,
-            shrink: 1.0 - f.score.holdout_on(kinds) / base.holdout_on(kinds),
+            shrink: f.score.shrink_against(base, kinds),
             model: f.model,
             score: f.score,
             refined,

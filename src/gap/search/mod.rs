@@ -104,7 +104,8 @@ pub struct Score {
     pub fit: f64,
     /// Gap on the odd blocks (what fits never see).
     pub holdout: f64,
-    /// The held-out gap's time, backbone and damping domains.
+    /// The held-out gap's time, backbone, damping and waveform domains (`None` where not
+    /// scored).
     pub domains: [Option<f64>; 4],
 }
 
@@ -120,7 +121,7 @@ impl Score {
     /// the time, backbone and damping domains' alone (a fourth domain such an effect cannot
     /// change would only dilute what it explains).
     pub fn holdout_on(&self, kinds: &[EffectKind]) -> f64 {
-        if self.domains[3].is_none() || kinds.iter().any(|k| k.shapes_waveform()) {
+        if !self.scores_without_waveform(kinds) {
             return self.holdout;
         }
         if !self.holdout.is_finite() {
@@ -128,6 +129,32 @@ impl Score {
         }
         let ms: f64 = self.domains[..3].iter().flatten().map(|d| d * d).sum();
         (ms / 3.0).sqrt()
+    }
+
+    /// Whether [`holdout_on`](Self::holdout_on) leaves the waveform domain out for `kinds`:
+    /// it is scored, and `kinds` has effects, none of which shapes the waveform.
+    pub fn scores_without_waveform(&self, kinds: &[EffectKind]) -> bool {
+        self.domains[3].is_some() && !kinds.is_empty() && !kinds.iter().any(|k| k.shapes_waveform())
+    }
+
+    /// 1 − (this held-out gap / `base`'s), both on the domains `kinds` act in; −∞ where
+    /// either is not a finite gap above zero (a failed simulation, or no sample compared),
+    /// so such a model ranks last.
+    pub fn shrink_against(&self, base: &Score, kinds: &[EffectKind]) -> f64 {
+        let (h, b) = (self.holdout_on(kinds), base.holdout_on(kinds));
+        if h.is_finite() && b.is_finite() && b > 0.0 {
+            1.0 - h / b
+        } else {
+            f64::NEG_INFINITY
+        }
+    }
+
+    /// Whether this model clears the verdict's held-out margins against `reference` on
+    /// the domains `kinds` act in: its gap at most (1 − [`MIN_SHRINK`]) of the
+    /// reference's, and lower by at least [`MIN_DROP`].
+    pub fn clears_margins(&self, reference: &Score, kinds: &[EffectKind]) -> bool {
+        let (h, r) = (self.holdout_on(kinds), reference.holdout_on(kinds));
+        h.is_finite() && h <= (1.0 - MIN_SHRINK) * r && r - h >= MIN_DROP
     }
 }
 
@@ -156,7 +183,9 @@ pub struct Reference<'a> {
 impl<'a> Reference<'a> {
     /// Identifies `run` (wavelet method, with `identifier`'s options and backend, as every
     /// simulation will be), decimated as far as its band allows, and splits it into
-    /// `blocks`.
+    /// `blocks`. It scores as [`SearchOptions::default`] searches: the waveform domain on
+    /// (where the run has one) and the run's `zero_tolerance`; [`scored_as`](Self::scored_as)
+    /// sets both from other options.
     pub fn new(run: &'a Run, blocks: Blocks, identifier: Identifier<'a>) -> Result<Self, GapError> {
         if run.input.is_none() {
             return Err(GapError::Unusable(
@@ -180,7 +209,13 @@ impl<'a> Reference<'a> {
         };
         let (n, fs) = (compared.output.len(), compared.meta.sample_rate);
         let resolution = measured_resolution(run);
-        let target = |mask| Target::new(&identified, &compared, mask).with_resolution(resolution);
+        // Scored as the search's defaults: the waveform domain on (where the run has one),
+        // the run's own zero tolerance.
+        let target = |mask| {
+            Target::new(&identified, &compared, mask)
+                .with_resolution(resolution)
+                .with_waveform(true)
+        };
         Ok(Reference {
             run,
             fit: target(Some(blocks.mask(n, fs, Part::Fit))),
@@ -228,6 +263,11 @@ impl<'a> Reference<'a> {
             }
         }
         self
+    }
+
+    /// The encoders' zero tolerance this reference scores with (rad).
+    pub fn zero_tolerance(&self) -> f64 {
+        self.holdout.zero_tolerance()
     }
 
     /// Calls `f` with the number of simulations so far after each one (progress displays).
@@ -298,7 +338,7 @@ pub struct Diagnosis {
     pub nominal_score: Score,
     /// The model with its own parameters refitted.
     pub baseline: Fitted,
-    /// Candidates, best (smallest held-out gap) first.
+    /// Candidates, best (largest held-out shrink, [`Candidate::shrink`]) first.
     pub candidates: Vec<Candidate>,
     /// Index of the verdict in `candidates`, `None` when nothing is significant.
     pub verdict: Option<usize>,
@@ -326,15 +366,18 @@ impl Diagnosis {
 /// extends: better on the blocks it was fitted on (a scan point that fits worse but happens
 /// to score well on the withheld blocks is luck), and by the margins on the withheld ones.
 fn significant(reference: &Score, c: &Candidate) -> bool {
-    let kinds = c.kinds();
-    let (h, r) = (c.score.holdout_on(&kinds), reference.holdout_on(&kinds));
-    h.is_finite() && c.score.fit < reference.fit && h <= (1.0 - MIN_SHRINK) * r && r - h >= MIN_DROP
+    c.score.fit < reference.fit && c.score.clears_margins(reference, &c.kinds())
 }
 
 /// Best first: the largest shrink of the held-out gap, each on the domains its effects act
-/// in (with every domain scored for every effect, the smallest held-out gap first).
+/// in (with every domain scored for every effect, the smallest held-out gap first); ties,
+/// and the models with no finite shrink, by held-out gap.
 fn best_first(candidates: &mut [Candidate]) {
-    candidates.sort_by(|a, b| b.shrink.total_cmp(&a.shrink));
+    candidates.sort_by(|a, b| {
+        b.shrink
+            .total_cmp(&a.shrink)
+            .then(a.score.holdout.total_cmp(&b.score.holdout))
+    });
 }
 
 /// Diagnoses one measured run against the `nominal` model: baseline, candidates, verdict.
@@ -470,20 +513,22 @@ fn contact_share(id: &Identification) -> f64 {
     let n = id.used.len().min(track.len());
     let shares: Vec<f64> = (0..n)
         .filter(|&i| track.valid[i] && id.resonant(i))
-        .map(|i| {
-            let a = track.amplitude[i];
-            if a <= delta || delta <= 0.0 {
-                return 0.0;
-            }
-            let t0 = (delta / a).asin();
-            1.0 - (2.0 * t0 + (2.0 * t0).sin()) / std::f64::consts::PI
-        })
+        .map(|i| contact_share_at(delta, track.amplitude[i]))
         .collect();
     if shares.is_empty() {
         0.0
     } else {
         shares.iter().sum::<f64>() / shares.len() as f64
     }
+}
+
+/// The share of ∫ż² over a cycle of z = A sin ωt spent where |z| > `delta`.
+fn contact_share_at(delta: f64, a: f64) -> f64 {
+    if a <= delta || delta <= 0.0 {
+        return 0.0;
+    }
+    let t0 = (delta / a).asin();
+    1.0 - (2.0 * t0 + (2.0 * t0).sin()) / std::f64::consts::PI
 }
 
 /// The single effects: the best scan starts refined by the simplex with the model's own
@@ -600,7 +645,7 @@ fn borderline(
     let Some(c) = candidates.first() else {
         return;
     };
-    if !c.refined || c.shrink < BORDERLINE || significant(base, c) {
+    if !c.refined || !(BORDERLINE..MIN_SHRINK).contains(&c.shrink) {
         return;
     }
     let again = refit(reference, &c.model, &c.effects, opt, base);
@@ -608,7 +653,7 @@ fn borderline(
     best_first(candidates);
 }
 
-/// The pairs of effects, added to `candidates` (sorted by held-out gap) when the best single
+/// The pairs of effects, added to `candidates` (best first) when the best single
 /// effect leaves much of the gap.
 fn pairs(
     reference: &Reference,
@@ -687,6 +732,89 @@ fn verdict(baseline: &Fitted, candidates: &[Candidate]) -> Option<usize> {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn the_contact_share_of_a_sine_matches_its_integral() {
+        use super::contact_share_at;
+        // Against the integral itself, by the midpoint rule over one cycle.
+        for ratio in [0.05, 0.3, 0.6, 0.9, 0.99] {
+            let n = 200_000;
+            let (mut all, mut touching) = (0.0, 0.0);
+            for k in 0..n {
+                let t = (k as f64 + 0.5) / n as f64 * std::f64::consts::TAU;
+                let v2 = t.cos().powi(2);
+                all += v2;
+                if t.sin().abs() > ratio {
+                    touching += v2;
+                }
+            }
+            let share = contact_share_at(ratio, 1.0);
+            assert!((share - touching / all).abs() < 1e-4, "{ratio}: {share}");
+        }
+        assert_eq!(contact_share_at(1.0, 1.0), 0.0);
+        assert_eq!(contact_share_at(2.0, 1.0), 0.0);
+        assert!((contact_share_at(1e-9, 1.0) - 1.0).abs() < 1e-8);
+    }
+
+    #[test]
+    fn shrink_is_taken_on_the_domains_an_effect_acts_in_and_failures_rank_last() {
+        use super::{best_first, Candidate, Score};
+        use crate::model::{EffectKind, RigModel};
+        let score = |holdout: f64, d: [Option<f64>; 4]| Score {
+            fit: holdout,
+            holdout,
+            domains: d,
+        };
+        let rms = |d: &[f64]| (d.iter().map(|x| x * x).sum::<f64>() / d.len() as f64).sqrt();
+        let base = score(
+            rms(&[0.02, 0.01, 0.01, 0.04]),
+            [Some(0.02), Some(0.01), Some(0.01), Some(0.04)],
+        );
+        let q = [EffectKind::Quantization];
+        let f = [EffectKind::CoulombFriction];
+        // Quantization leaves the waveform out; every other effect, and none, keep it.
+        assert!((base.holdout_on(&q) - rms(&[0.02, 0.01, 0.01])).abs() < 1e-15);
+        assert_eq!(base.holdout_on(&f), base.holdout);
+        assert_eq!(base.holdout_on(&[]), base.holdout);
+        let three = score(0.02, [Some(0.02), Some(0.01), Some(0.01), None]);
+        assert_eq!(three.holdout_on(&q), three.holdout);
+        // A quantization candidate that halves the time domain and leaves the waveform as
+        // it was: its gain is read on the three domains it can change.
+        let cand = score(0.0, [Some(0.005), Some(0.01), Some(0.01), Some(0.04)]);
+        let s = cand.shrink_against(&base, &q);
+        assert!((s - (1.0 - rms(&[0.005, 0.01, 0.01]) / rms(&[0.02, 0.01, 0.01]))).abs() < 1e-12);
+        // No finite gap, or a baseline of zero: −∞, never NaN.
+        let failed = Score::FAILED;
+        assert_eq!(failed.shrink_against(&base, &f), f64::NEG_INFINITY);
+        let zero = score(0.0, [None; 4]);
+        assert_eq!(zero.shrink_against(&zero, &f), f64::NEG_INFINITY);
+        // Best first by shrink; failures last whatever their sign.
+        let m = RigModel::paper();
+        let c = |shrink: f64, holdout: f64| Candidate {
+            effects: vec![(EffectKind::CoulombFriction, 1.0)],
+            model: m.clone(),
+            score: score(holdout, [None; 4]),
+            shrink,
+            refined: true,
+        };
+        let mut v = vec![
+            c(f64::NEG_INFINITY, f64::INFINITY),
+            c(0.2, 0.8),
+            c(0.9, 0.1),
+            c(0.2, 0.7),
+        ];
+        best_first(&mut v);
+        let order: Vec<(f64, f64)> = v.iter().map(|c| (c.shrink, c.score.holdout)).collect();
+        assert_eq!(
+            order,
+            vec![
+                (0.9, 0.1),
+                (0.2, 0.7),
+                (0.2, 0.8),
+                (f64::NEG_INFINITY, f64::INFINITY)
+            ]
+        );
+    }
+
     use super::fit::{cubic_describing, Coordinates};
     use super::*;
 
