@@ -1165,6 +1165,12 @@ fn gap_names_the_missing_friction_and_writes_its_report_model_and_page() {
     let shrink =
         1.0 - best["gap_holdout"].as_f64().unwrap() / run["baseline_gap"].as_f64().unwrap();
     assert!((shrink - best["shrink"].as_f64().unwrap()).abs() < 1e-9);
+    // Friction shapes the waveform: its shrink is on all four domains, the gaps' own.
+    assert_eq!(
+        best["shrink_domains"],
+        serde_json::json!(["time", "backbone", "damping", "waveform"])
+    );
+    assert!(run["zero_tolerance"].as_f64() == Some(0.0));
     assert_eq!(run["verdict"], "coulomb_friction", "{stdout}");
     let torque = best["params"]["torque"].as_f64().unwrap();
     assert!((torque / 2.5 - 1.0).abs() < 0.3, "{torque}");

@@ -231,6 +231,10 @@ fn a_coarse_encoder_is_read_off_the_samples_and_named() {
     assert_eq!(named.name(), "quantization");
     assert!((named.effects[0].1 / q - 1.0).abs() < 1e-9);
     assert!(named.shrink > 0.5);
+    // A sensor's noise floor leaves the waveform within a cycle as it is: its shrink is
+    // taken without that domain, which its gaps (scored by default) include.
+    assert!(named.score.domains[3].is_some());
+    assert_eq!(named.shrink_domains(), ["time", "backbone", "damping"]);
     let (_, clean, _) = paper_rig();
     let reference = Reference::new(&clean, Blocks { seconds: 1.0 }, identifier()).unwrap();
     assert_eq!(reference.resolution, 0.0);

@@ -467,13 +467,12 @@ impl skelid::gap::runner::Exporter for Terminal<'_> {
 
 /// Prints the rig model's implausible values on stderr ("warning: FILE: `clearance` = …")
 /// and returns them.
-/// Where a candidate's shrink leaves the waveform domain out (a sensor effect, scored
-/// with the waveform on), so that its shrink is not read off the four-domain gaps beside it.
-fn shrink_note(c: &skelid::gap::search::Candidate) -> &'static str {
-    if c.score.scores_without_waveform(&c.kinds()) {
-        " on time/backbone/damping"
+/// The domains of a candidate's shrink where they are not those of the gaps beside it.
+fn shrink_note(c: &skelid::gap::search::Candidate) -> String {
+    if c.shrink_leaves_out_waveform() {
+        format!(" on {}", c.shrink_domains().join("/"))
     } else {
-        ""
+        String::new()
     }
 }
 

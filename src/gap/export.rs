@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use plotters::style::RGBColor;
 use serde_json::{json, Value};
 
-use super::search::{signature, Candidate, Score};
+use super::search::{signature, Score};
 use super::GapRun;
 use crate::identify::Identification;
 use crate::report::html::{css, esc, plot, reduce, Mark, Series, YAxis};
@@ -42,18 +42,6 @@ fn domains(d: [Option<f64>; 4]) -> Value {
     v
 }
 
-/// The domains a candidate's shrink is taken on ([`Score::holdout_on`]).
-fn shrink_domains(c: &Candidate) -> Vec<&'static str> {
-    let all = ["time", "backbone", "damping", "waveform"];
-    let scored = if c.score.domains[3].is_some() { 4 } else { 3 };
-    let n = if c.score.scores_without_waveform(&c.kinds()) {
-        3
-    } else {
-        scored
-    };
-    all[..n].to_vec()
-}
-
 fn score_json(s: &Score) -> Value {
     json!({"gap_fit": num(s.fit), "gap_holdout": num(s.holdout), "domains": domains(s.domains)})
 }
@@ -72,7 +60,7 @@ pub fn run_json(r: &GapRun) -> Value {
                 "gap_fit": num(c.score.fit),
                 "gap_holdout": num(c.score.holdout),
                 "shrink": num(c.shrink),
-                "shrink_domains": shrink_domains(c),
+                "shrink_domains": c.shrink_domains(),
                 "refined": c.refined,
                 "domains": domains(c.score.domains),
                 "signature": explains.join("; "),
@@ -364,10 +352,10 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
                 c.score.fit,
                 c.score.holdout,
                 100.0 * c.shrink,
-                if c.score.scores_without_waveform(&c.kinds()) {
-                    " (time/backbone/damping)"
+                if c.shrink_leaves_out_waveform() {
+                    format!(" ({})", c.shrink_domains().join("/"))
                 } else {
-                    ""
+                    String::new()
                 },
                 dom.join(" / ")
             );

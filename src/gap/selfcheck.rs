@@ -507,30 +507,24 @@ pub fn summarize(outcomes: &[Outcome], errors: Vec<String>) -> Summary {
             v.iter().filter(|o| f(o)).count() as f64 / v.len() as f64
         }
     };
-    let per_effect = EffectKind::ALL
-        .iter()
-        .filter_map(|k| {
-            let of: Vec<&Outcome> = with
-                .iter()
-                .copied()
-                .filter(|o| o.case.effect == Some(*k))
-                .collect();
-            (!of.is_empty()).then(|| (k.name().to_string(), rate(&of, &|o| o.right())))
-        })
-        .collect();
+    // Per effect: the share of its cases for which `f` holds.
+    let per_effect_rate = |f: &dyn Fn(&Outcome) -> bool| -> BTreeMap<String, f64> {
+        EffectKind::ALL
+            .iter()
+            .filter_map(|k| {
+                let of: Vec<&Outcome> = with
+                    .iter()
+                    .copied()
+                    .filter(|o| o.case.effect == Some(*k))
+                    .collect();
+                (!of.is_empty()).then(|| (k.name().to_string(), rate(&of, f)))
+            })
+            .collect()
+    };
+    let per_effect = per_effect_rate(&|o| o.right());
+    let separable_per_effect = per_effect_rate(&|o| o.separable());
     let right: Vec<&Outcome> = with.iter().copied().filter(|o| o.right()).collect();
     let separable: Vec<&Outcome> = with.iter().copied().filter(|o| o.separable()).collect();
-    let separable_per_effect = EffectKind::ALL
-        .iter()
-        .filter_map(|k| {
-            let of: Vec<&Outcome> = with
-                .iter()
-                .copied()
-                .filter(|o| o.case.effect == Some(*k))
-                .collect();
-            (!of.is_empty()).then(|| (k.name().to_string(), rate(&of, &|o| o.separable())))
-        })
-        .collect();
     Summary {
         separable: separable.len(),
         top1_separable: rate(&separable, &|o| o.right()),

@@ -93,6 +93,23 @@ impl Candidate {
         self.effects.iter().map(|e| e.0).collect()
     }
 
+    /// The domains its [`shrink`](Self::shrink) is taken on ([`Score::holdout_on`]).
+    pub fn shrink_domains(&self) -> &'static [&'static str] {
+        const ALL: [&str; 4] = ["time", "backbone", "damping", "waveform"];
+        if self.score.domains[3].is_none() || self.shrink_leaves_out_waveform() {
+            &ALL[..3]
+        } else {
+            &ALL
+        }
+    }
+
+    /// Whether its shrink leaves out a waveform domain that its gaps include (a sensor
+    /// effect scored with the waveform on): then the shrink is not read off the four-domain
+    /// gaps beside it.
+    pub fn shrink_leaves_out_waveform(&self) -> bool {
+        self.score.scores_without_waveform(&self.kinds())
+    }
+
     /// The fitted effect parameters by name (`effect.param` for a pair, whose parameters
     /// may share a name).
     pub fn params(&self) -> BTreeMap<String, f64> {

@@ -121,10 +121,7 @@ impl Score {
     /// the time, backbone and damping domains' alone (a fourth domain such an effect cannot
     /// change would only dilute what it explains).
     pub fn holdout_on(&self, kinds: &[EffectKind]) -> f64 {
-        if !self.scores_without_waveform(kinds) {
-            return self.holdout;
-        }
-        if !self.holdout.is_finite() {
+        if !self.scores_without_waveform(kinds) || !self.holdout.is_finite() {
             return self.holdout;
         }
         let ms: f64 = self.domains[..3].iter().flatten().map(|d| d * d).sum();
@@ -624,12 +621,9 @@ fn quantization(
         effects: Vec::new(),
     };
     let refitted = coords.fit(reference, coords.origin(), opt.candidate_evaluations);
-    let refitted = Candidate::from_fit(refitted, &[kind], base, false);
-    Some(if refitted.score.fit < scored.score.fit {
-        refitted
-    } else {
-        scored
-    })
+    let mut better = fitter(Candidate::from_fit(refitted, &[kind], base, false), scored);
+    better.refined = false;
+    Some(better)
 }
 
 /// Work spent once more on the best single effect when it falls just short of the rule
