@@ -44,6 +44,8 @@ pub fn cases() -> Vec<RigCase> {
     out.push(RigCase {
         path: "/demo/force_oscillator".into(),
         model: RigModel {
+            kind: crate::model::ModelKind::BaseMotion,
+            band: None,
             inertia: 2.0,
             stiffness: 2.0 * (std::f64::consts::TAU * 5.0).powi(2),
             damping: 2.0 * 0.02 * 2.0 * std::f64::consts::TAU * 5.0,

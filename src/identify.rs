@@ -182,6 +182,35 @@ impl Identification {
     pub fn amplitude_range(&self) -> Option<(f64, f64)> {
         fit::amplitude_range(&self.bins)
     }
+
+    /// The skeleton at its largest amplitude: that bin's amplitude (signal units), natural
+    /// frequency (Hz) and damping ratio ζ = h0/ω0 (NaN where its stiffness is not positive).
+    pub fn at_largest_amplitude(&self) -> Option<AtLargest> {
+        let b = self
+            .bins
+            .iter()
+            .max_by(|a, b| a.amplitude.total_cmp(&b.amplitude))?;
+        Some(AtLargest {
+            amplitude: b.amplitude,
+            frequency: b.natural_frequency(),
+            damping_ratio: if b.stiffness > 0.0 {
+                0.5 * b.damping / b.stiffness.sqrt()
+            } else {
+                f64::NAN
+            },
+        })
+    }
+}
+
+/// The skeleton at its largest amplitude ([`Identification::at_largest_amplitude`]).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct AtLargest {
+    /// The bin's amplitude (signal units).
+    pub amplitude: f64,
+    /// Natural frequency there (Hz).
+    pub frequency: f64,
+    /// Damping ratio there (1).
+    pub damping_ratio: f64,
 }
 
 /// Whether sample `i` is at resonance: |ω/ω0 − 1| below `tol`.

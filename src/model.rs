@@ -1,5 +1,6 @@
 //! The rig model of FORMATS.md §2 (TOML): a single-DOF base-motion link with a dead-zone
-//! joint, and the vocabulary of effects beyond the nominal model.
+//! joint (the default), or one mode of a structure driven by a measured force
+//! (`kind = "force"`), and the vocabulary of effects beyond the nominal model.
 
 use std::fmt;
 use std::path::Path;
@@ -24,11 +25,21 @@ pub enum ModelError {
     Invalid { file: String, detail: String },
 }
 
-/// J θ'' + c(θ'−φ') + k·D(θ−φ) − J·C·θ = 0 with D a dead zone of half-width clearance/2.
+/// J θ'' + c(θ'−φ') + k·D(θ−φ) − J·C·θ = 0 with D a dead zone of half-width clearance/2;
+/// for `kind = "force"`, m y'' + c y' + k·D(y) = f with f the measured force.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RigModel {
-    /// J, kg m² (or m, kg, for a force-input oscillator).
+    /// What drives it: the base motion (the default) or a measured force on one mode.
+    #[serde(default, skip_serializing_if = "ModelKind::is_base_motion")]
+    pub kind: ModelKind,
+    /// The band the mode lives in (`[fmin, fmax]`, Hz): a force model is driven by the
+    /// measured force band-passed to it, and the measurement and every simulation are
+    /// identified in it. `None`: the band the measured run's own mode isolation chooses.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub band: Option<[f64; 2]>,
+    /// J, kg m² (or the modal mass m, kg, of a force model; `mass` is read as this key).
+    #[serde(alias = "mass")]
     pub inertia: f64,
     /// k, N m/rad: contact stiffness outside the clearance.
     pub stiffness: f64,
@@ -70,7 +81,86 @@ pub struct Effects {
     /// Encoder resolution of both channels.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub quantization: Option<StepParam>,
+    /// A bolted joint's microslip: an Iwan element (Jenkins elements in parallel).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub microslip: Option<MicroslipParam>,
 }
+
+/// What drives a model (FORMATS.md §2, `kind`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ModelKind {
+    /// The paper's link on a moving base: driven by the measured base motion.
+    #[default]
+    BaseMotion,
+    /// One mode of a structure: driven by the measured force.
+    Force,
+}
+
+impl ModelKind {
+    /// Whether it is the default kind (left out of the TOML written).
+    pub fn is_base_motion(&self) -> bool {
+        *self == ModelKind::BaseMotion
+    }
+
+    /// Name in TOML and JSON.
+    pub fn name(self) -> &'static str {
+        match self {
+            ModelKind::BaseMotion => "base_motion",
+            ModelKind::Force => "force",
+        }
+    }
+
+    /// The effects that make sense for this kind (the search's default vocabulary): the
+    /// rig's seven, or, for one mode driven by a force, those of a joint in a structure
+    /// (no preload and no offset clearance: a band-passed force carries no static load).
+    pub fn vocabulary(self) -> &'static [EffectKind] {
+        match self {
+            ModelKind::BaseMotion => &EffectKind::ALL,
+            ModelKind::Force => &EffectKind::FORCE,
+        }
+    }
+}
+
+/// `{ slip_force = N m, joint_stiffness = N m/rad, spread = 1 }`: an Iwan element of
+/// [`IWAN_ELEMENTS`] Jenkins elements (a spring in series with a slider) in parallel,
+/// with slip displacements spread evenly about their mean u = slip_force/joint_stiffness,
+/// over ((1 − spread)·u, (1 + spread)·u]. Stuck, it is a spring of
+/// `joint_stiffness`, which is part of the model's `stiffness` (the stiffness at small
+/// amplitude); as the amplitude grows its elements slip one after another (softening and
+/// hysteretic damping growing with amplitude, the microslip of a bolted interface) until
+/// it slides as a whole at `slip_force` (macroslip: the stiffness has fallen to
+/// `stiffness − joint_stiffness`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MicroslipParam {
+    /// The joint's force when it slides as a whole, N m (N).
+    pub slip_force: f64,
+    /// The joint's stiffness while stuck, N m/rad (N/m); at most the model's `stiffness`.
+    pub joint_stiffness: f64,
+    /// How widely the elements' slip displacements spread about their mean, in (0, 1]
+    /// (1: optional, the default). At 1 the first elements slip at the smallest amplitude
+    /// (Iwan's uniform density: loss and softening grow from zero); near 0 they all slip
+    /// together at u (one Jenkins element: no loss below u, then a sudden onset, as a
+    /// bolted interface that holds until its preload gives).
+    #[serde(default = "full_spread", skip_serializing_if = "is_full_spread")]
+    pub spread: f64,
+}
+
+fn full_spread() -> f64 {
+    1.0
+}
+
+fn is_full_spread(v: &f64) -> bool {
+    *v == 1.0
+}
+
+/// Jenkins elements of a [`MicroslipParam`]'s Iwan element.
+pub const IWAN_ELEMENTS: usize = 16;
+
+/// The joint stiffness a microslip effect starts with when it is added to a model without
+/// one, as a share of the model's stiffness.
+pub const JOINT_SHARE: f64 = 0.1;
 
 /// `{ torque = N m }`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -133,10 +223,35 @@ pub enum EffectKind {
     SensorDelay,
     /// Encoder step, parameter `step`.
     Quantization,
+    /// Iwan-element microslip, parameters `slip_force` and `joint_stiffness`.
+    Microslip,
 }
 
 impl EffectKind {
-    /// Every effect, in the order of FORMATS.md.
+    /// Every effect of the vocabulary, in the order of FORMATS.md.
+    pub const EVERY: [EffectKind; 8] = [
+        EffectKind::CoulombFriction,
+        EffectKind::GravityPreload,
+        EffectKind::AsymmetricClearance,
+        EffectKind::CubicStiffness,
+        EffectKind::ContactDamping,
+        EffectKind::SensorDelay,
+        EffectKind::Quantization,
+        EffectKind::Microslip,
+    ];
+
+    /// The effects of a force model's search ([`ModelKind::vocabulary`]).
+    pub const FORCE: [EffectKind; 6] = [
+        EffectKind::CoulombFriction,
+        EffectKind::CubicStiffness,
+        EffectKind::ContactDamping,
+        EffectKind::SensorDelay,
+        EffectKind::Quantization,
+        EffectKind::Microslip,
+    ];
+
+    /// The base-motion rig's effects, in the order of FORMATS.md (the search's default for
+    /// the rig).
     pub const ALL: [EffectKind; 7] = [
         EffectKind::CoulombFriction,
         EffectKind::GravityPreload,
@@ -164,10 +279,11 @@ impl EffectKind {
             EffectKind::ContactDamping => "contact_damping",
             EffectKind::SensorDelay => "sensor_delay",
             EffectKind::Quantization => "quantization",
+            EffectKind::Microslip => "microslip",
         }
     }
 
-    /// Name of its one parameter.
+    /// Name of its (first) parameter, the one the scan sweeps.
     pub fn param(self) -> &'static str {
         match self {
             EffectKind::CoulombFriction | EffectKind::GravityPreload => "torque",
@@ -176,13 +292,16 @@ impl EffectKind {
             EffectKind::ContactDamping => "c_contact",
             EffectKind::SensorDelay => "delay",
             EffectKind::Quantization => "step",
+            EffectKind::Microslip => "slip_force",
         }
     }
 
     /// Unit of its parameter.
     pub fn unit(self) -> &'static str {
         match self {
-            EffectKind::CoulombFriction | EffectKind::GravityPreload => "N m",
+            EffectKind::CoulombFriction | EffectKind::GravityPreload | EffectKind::Microslip => {
+                "N m"
+            }
             EffectKind::AsymmetricClearance | EffectKind::Quantization => "rad",
             EffectKind::CubicStiffness => "N m/rad^3",
             EffectKind::ContactDamping => "N m s/rad",
@@ -192,7 +311,7 @@ impl EffectKind {
 
     /// Parses a vocabulary name.
     pub fn parse(name: &str) -> Option<EffectKind> {
-        EffectKind::ALL.into_iter().find(|k| k.name() == name)
+        EffectKind::EVERY.into_iter().find(|k| k.name() == name)
     }
 }
 
@@ -205,7 +324,7 @@ impl fmt::Display for EffectKind {
 impl Effects {
     /// True when no effect is set.
     pub fn is_empty(&self) -> bool {
-        EffectKind::ALL.iter().all(|&k| self.get(k).is_none())
+        EffectKind::EVERY.iter().all(|&k| self.get(k).is_none())
     }
 
     /// The parameter of an effect, if present.
@@ -218,6 +337,7 @@ impl Effects {
             EffectKind::ContactDamping => self.contact_damping.map(|p| p.c_contact),
             EffectKind::SensorDelay => self.sensor_delay.map(|p| p.delay),
             EffectKind::Quantization => self.quantization.map(|p| p.step),
+            EffectKind::Microslip => self.microslip.map(|p| p.slip_force),
         }
     }
 
@@ -239,12 +359,43 @@ impl Effects {
             }
             EffectKind::SensorDelay => self.sensor_delay = value.map(|delay| DelayParam { delay }),
             EffectKind::Quantization => self.quantization = value.map(|step| StepParam { step }),
+            // The joint stiffness is kept; a microslip set where there was none has none
+            // until `RigModel::set_effect` (or `set_joint_stiffness`) gives it one.
+            EffectKind::Microslip => {
+                let (joint_stiffness, spread) = self
+                    .microslip
+                    .map_or((0.0, 1.0), |p| (p.joint_stiffness, p.spread));
+                self.microslip = value.map(|slip_force| MicroslipParam {
+                    slip_force,
+                    joint_stiffness,
+                    spread,
+                })
+            }
+        }
+    }
+
+    /// The microslip's joint stiffness, if there is a microslip.
+    pub fn joint_stiffness(&self) -> Option<f64> {
+        self.microslip.map(|p| p.joint_stiffness)
+    }
+
+    /// Sets the microslip's joint stiffness (nothing without a microslip).
+    pub fn set_joint_stiffness(&mut self, value: f64) {
+        if let Some(p) = &mut self.microslip {
+            p.joint_stiffness = value;
+        }
+    }
+
+    /// Sets the microslip's spread (nothing without a microslip).
+    pub fn set_spread(&mut self, value: f64) {
+        if let Some(p) = &mut self.microslip {
+            p.spread = value;
         }
     }
 
     /// The effects present, with their parameters.
     pub fn present(&self) -> Vec<(EffectKind, f64)> {
-        EffectKind::ALL
+        EffectKind::EVERY
             .into_iter()
             .filter_map(|k| self.get(k).map(|v| (k, v)))
             .collect()
@@ -255,6 +406,8 @@ impl RigModel {
     /// The paper's rig: J = 3.16 kg m², 1.5° total clearance, contact natural frequency ≈ 11 Hz.
     pub fn paper() -> Self {
         RigModel {
+            kind: ModelKind::BaseMotion,
+            band: None,
             inertia: 3.16,
             stiffness: 15_000.0,
             damping: 13.0,
@@ -262,6 +415,33 @@ impl RigModel {
             gravity_stiffness: 0.0,
             effects: Effects::default(),
         }
+    }
+
+    /// Sets (or with `None` removes) an effect as [`Effects::set`] does; a microslip added
+    /// where there was none gets a joint stiffness of [`JOINT_SHARE`] of the stiffness.
+    pub fn set_effect(&mut self, kind: EffectKind, value: Option<f64>) {
+        let had = self.effects.joint_stiffness().is_some_and(|k| k > 0.0);
+        self.effects.set(kind, value);
+        if kind == EffectKind::Microslip && !had {
+            self.effects
+                .set_joint_stiffness(JOINT_SHARE * self.stiffness);
+        }
+    }
+
+    /// The effects a search of this model tries by default: its kind's vocabulary
+    /// ([`ModelKind::vocabulary`]), without contact damping where a force model has no
+    /// clearance (there it is in contact all the time: viscous damping by another name).
+    pub fn vocabulary(&self) -> Vec<EffectKind> {
+        self.kind
+            .vocabulary()
+            .iter()
+            .copied()
+            .filter(|&k| {
+                !(self.kind == ModelKind::Force
+                    && self.clearance <= 0.0
+                    && k == EffectKind::ContactDamping)
+            })
+            .collect()
     }
 
     /// Half-gap δ = clearance / 2, rad.
@@ -337,7 +517,7 @@ impl RigModel {
                 EffectKind::CoulombFriction
                 | EffectKind::ContactDamping
                 | EffectKind::SensorDelay => v >= 0.0,
-                EffectKind::Quantization => v > 0.0,
+                EffectKind::Quantization | EffectKind::Microslip => v > 0.0,
                 _ => true,
             };
             if !ok {
@@ -346,7 +526,7 @@ impl RigModel {
                     kind.name(),
                     kind.param(),
                     kind.unit(),
-                    if kind == EffectKind::Quantization {
+                    if matches!(kind, EffectKind::Quantization | EffectKind::Microslip) {
                         "> 0"
                     } else {
                         ">= 0"
@@ -354,7 +534,56 @@ impl RigModel {
                 ));
             }
         }
+        if let Some(p) = self.effects.microslip {
+            finite("spread", p.spread)?;
+            if !(p.spread > 0.0 && p.spread <= 1.0) {
+                return Err(format!(
+                    "effect `microslip`: `spread` = {} is out of range (must be > 0 and at most 1: the share of the mean slip displacement the elements' slips spread over either side of it)",
+                    p.spread
+                ));
+            }
+        }
+        if let Some(kj) = self.effects.joint_stiffness() {
+            finite("joint_stiffness", kj)?;
+            if !(kj > 0.0 && kj <= self.stiffness) {
+                return Err(format!(
+                    "effect `microslip`: `joint_stiffness` = {kj} N m/rad is out of range (must be > 0 and at most `stiffness` = {}: the joint's stiffness is part of the model's)",
+                    self.stiffness
+                ));
+            }
+        }
+        if let Some(k) = self.kind_mismatch() {
+            return Err(k);
+        }
+        if let Some([lo, hi]) = self.band {
+            if !(lo > 0.0 && hi > lo && hi.is_finite()) {
+                return Err(format!(
+                    "`band` = [{lo}, {hi}] Hz must be two increasing positive frequencies [fmin, fmax]"
+                ));
+            }
+        }
         Ok(())
+    }
+
+    /// Why this model's effects do not fit its kind, if they do not.
+    fn kind_mismatch(&self) -> Option<String> {
+        let allowed = self.kind.vocabulary();
+        self.effects
+            .present()
+            .into_iter()
+            .find(|(k, _)| !allowed.contains(k) && *k != EffectKind::Microslip)
+            .map(|(k, _)| {
+                format!(
+                    "effect `{}` is not one of a {} model's ({})",
+                    k.name(),
+                    self.kind.name(),
+                    allowed
+                        .iter()
+                        .map(|k| k.name())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                )
+            })
     }
 
     /// Values that are possible but unlikely to be meant, each naming its key: a clearance
@@ -425,10 +654,32 @@ pub fn key_unit(key: &str) -> Option<&'static str> {
         "damping" => "N m s/rad",
         "clearance" => "rad",
         "gravity_stiffness" => "1/s^2",
-        _ => EffectKind::ALL
+        "joint_stiffness" => "N m/rad",
+        _ => EffectKind::EVERY
             .into_iter()
             .find(|k| k.param() == key)?
             .unit(),
+    })
+}
+
+/// [`key_unit`] for a model of `kind`: a force model's mode moves in metres under forces
+/// in newtons (N/m for N m/rad, m for rad, kg for kg m²).
+pub fn key_unit_of(key: &str, kind: ModelKind) -> Option<&'static str> {
+    if key.rsplit('.').next() == Some("spread") {
+        return Some("");
+    }
+    let unit = key_unit(key)?;
+    Some(match kind {
+        ModelKind::BaseMotion => unit,
+        ModelKind::Force => match unit {
+            "kg m^2" => "kg",
+            "N m/rad" => "N/m",
+            "N m s/rad" => "N s/m",
+            "N m/rad^3" => "N/m^3",
+            "N m" => "N",
+            "rad" => "m",
+            other => other,
+        },
     })
 }
 
@@ -527,12 +778,71 @@ coulomb_friction = { torque = 2.5 }
     }
 
     #[test]
+    fn a_force_model_with_microslip_parses_round_trips_and_checks_its_joint() {
+        let text = r#"
+kind = "force"
+band = [6.8, 8.8]
+mass = 458.0
+stiffness = 9.68e5
+damping = 135.0
+
+[effects]
+microslip = { slip_force = 98.0, joint_stiffness = 1.0e5 }
+"#;
+        let m = RigModel::from_toml_str(text, "f16").unwrap();
+        assert_eq!(m.kind, ModelKind::Force);
+        assert_eq!(m.inertia, 458.0);
+        assert_eq!(m.band, Some([6.8, 8.8]));
+        assert_eq!(m.effects.get(EffectKind::Microslip), Some(98.0));
+        assert_eq!(m.effects.joint_stiffness(), Some(1.0e5));
+        let back = RigModel::from_toml_str(&m.to_toml(), "round-trip").unwrap();
+        assert_eq!(m, back);
+        assert!(!m.vocabulary().contains(&EffectKind::ContactDamping));
+        assert!(!m.vocabulary().contains(&EffectKind::GravityPreload));
+        let e = RigModel::from_toml_str(&text.replace("1.0e5", "2.0e6"), "f")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("joint_stiffness") && e.contains("stiffness"),
+            "{e}"
+        );
+        let e = RigModel::from_toml_str(
+            &text.replace("microslip = ", "gravity_preload = { torque = 1.0 }\nx = "),
+            "f",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("x") || e.contains("gravity_preload"), "{e}");
+        let e = RigModel::from_toml_str(
+            "kind = \"force\"\nmass = 1\nstiffness = 1\ndamping = 0\n[effects]\ngravity_preload = { torque = 1.0 }",
+            "f",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("gravity_preload") && e.contains("force model"),
+            "{e}"
+        );
+        let e = RigModel::from_toml_str(&text.replace("[6.8, 8.8]", "[8.8, 6.8]"), "f")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("band"), "{e}");
+        // Added where there was none, a microslip gets a tenth of the stiffness.
+        let mut plain = RigModel::paper();
+        plain.set_effect(EffectKind::Microslip, Some(5.0));
+        assert_eq!(
+            plain.effects.joint_stiffness(),
+            Some(JOINT_SHARE * plain.stiffness)
+        );
+    }
+
+    #[test]
     fn every_effect_round_trips_through_set_and_get() {
         let mut e = Effects::default();
-        for (i, k) in EffectKind::ALL.into_iter().enumerate() {
+        for (i, k) in EffectKind::EVERY.into_iter().enumerate() {
             e.set(k, Some(i as f64 + 0.5));
         }
-        for (i, k) in EffectKind::ALL.into_iter().enumerate() {
+        for (i, k) in EffectKind::EVERY.into_iter().enumerate() {
             assert_eq!(e.get(k), Some(i as f64 + 0.5));
             assert_eq!(EffectKind::parse(k.name()), Some(k));
         }

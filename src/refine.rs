@@ -121,7 +121,7 @@ pub fn refine(
     // instead (README, "Simulation-refined identification"), and `skelid gap` names it.
     let joint = [(
         EffectKind::CoulombFriction,
-        effect_start(EffectKind::CoulombFriction, &start, &even.identified),
+        effect_start(EffectKind::CoulombFriction, &start, even.identified()),
     )];
     let (a, b) = rayon::join(
         || refit_with(&even, &start, &joint, evaluations),
@@ -156,7 +156,7 @@ fn pair(a: f64, b: f64) -> Estimate {
 /// The model per unit inertia (J = 1) that the skeleton fit describes: where the refit
 /// starts.
 fn start_model(reference: &Reference) -> Result<RigModel, GapError> {
-    let id = &reference.identified;
+    let id = reference.identified();
     let dz = id.dead_zone.ok_or_else(|| {
         GapError::Unusable("the skeleton has no dead-zone fit to start the refinement from".into())
     })?;
@@ -174,11 +174,13 @@ fn start_model(reference: &Reference) -> Result<RigModel, GapError> {
         .filter(|c| *c > 0.0)
         .unwrap_or(0.02 * k.sqrt());
     Ok(RigModel {
+        kind: crate::model::ModelKind::BaseMotion,
+        band: None,
         inertia: 1.0,
         stiffness: k,
         damping: c,
         clearance: (2.0 * dz.half_gap.value).max(0.0),
-        gravity_stiffness: reference.run.meta.gravity_stiffness,
+        gravity_stiffness: reference.run().meta.gravity_stiffness,
         effects: Default::default(),
     })
 }

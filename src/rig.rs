@@ -50,6 +50,32 @@ pub fn two_level_chirp() -> Excitation {
     two_level_chirp_at(PAPER_LEVEL)
 }
 
+/// One of [`two_level_chirp`]'s sweeps alone, at `level` (rad): 3 to 9 Hz in 15 s at the
+/// paper's rate, faded in and out over a second (a run of its own, as a bench records
+/// each level).
+pub fn level_sweep_at(level: f64) -> Excitation {
+    let fs = 1000.0;
+    let half = 15.0;
+    let sweep = Excitation::Chirp {
+        f0: 3.0,
+        f1: 9.0,
+        duration: half,
+        amplitude: level,
+        rolloff: Some(Rolloff {
+            corner_hz: 1.8,
+            order: 2,
+        }),
+    };
+    let taper = |u: f64| 0.5 - 0.5 * (std::f64::consts::PI * u.clamp(0.0, 1.0)).cos();
+    let samples = (0..(half * fs) as usize)
+        .map(|i| {
+            let t = i as f64 / fs;
+            sweep.eval(t).v * taper(t) * taper(half - t)
+        })
+        .collect();
+    Excitation::sampled(samples, fs)
+}
+
 /// [`two_level_chirp`] whose first level is `level` (rad; the paper's [`PAPER_LEVEL`]), the second
 /// [`SECOND_LEVEL`] times it.
 pub fn two_level_chirp_at(level: f64) -> Excitation {
@@ -94,6 +120,9 @@ pub fn effect_value(kind: EffectKind) -> f64 {
         EffectKind::ContactDamping => 20.0,
         EffectKind::SensorDelay => 0.005,
         EffectKind::Quantization => 2.0e-4,
+        // With the joint stiffness at its default share (a tenth of the rig's 15 000 N m/rad)
+        // the joint slips through within the contact's first 7 mrad of deflection.
+        EffectKind::Microslip => 5.0,
     }
 }
 
@@ -261,6 +290,8 @@ pub fn random_rig<T>(rng: &mut StdRng, between: impl FnOnce(&mut StdRng) -> T) -
     // The paper rig's inertia: the effects' magnitudes of [`effect_value`] are torques for it.
     let inertia = RigModel::paper().inertia;
     let mut model = RigModel {
+        kind: crate::model::ModelKind::BaseMotion,
+        band: None,
         inertia,
         stiffness: inertia * (std::f64::consts::TAU * f_contact).powi(2),
         damping: rng.random_range(10.0..21.0),
@@ -307,10 +338,32 @@ pub fn measure(
     seed: u64,
     description: &str,
 ) -> RunData {
+    measure_over(
+        path,
+        model,
+        drive,
+        chain,
+        seed,
+        description,
+        SimSettings::default().duration,
+    )
+}
+
+/// [`measure`] over `duration` seconds.
+pub fn measure_over(
+    path: &str,
+    model: &RigModel,
+    drive: &Drive,
+    chain: &Chain,
+    seed: u64,
+    description: &str,
+    duration: f64,
+) -> RunData {
     let settings = SimSettings {
         output_noise: chain.noise,
         input_noise: chain.noise,
         seed,
+        duration,
         ..SimSettings::default()
     };
     let sim = simulate(model, drive, &settings);
@@ -339,5 +392,98 @@ pub fn measure(
         add(x, chain.offsets.0);
     }
     add(&mut data.output, chain.offsets.1);
+    data
+}
+
+/// One mode of a structure like the F-16's wing torsion, scaled to a 1 kg modal mass: 7.3 Hz,
+/// 0.5 % of critical damping, no clearance (`kind = "force"`). The force self-check's
+/// nominal model and, with an effect, its truths.
+pub fn structure_mode() -> RigModel {
+    let k = (std::f64::consts::TAU * 7.3_f64).powi(2);
+    RigModel {
+        kind: crate::model::ModelKind::Force,
+        band: None,
+        inertia: 1.0,
+        stiffness: k,
+        damping: 2.0 * 0.005 * k.sqrt(),
+        clearance: 0.0,
+        gravity_stiffness: 0.0,
+        effects: Default::default(),
+    }
+}
+
+/// The parameter each effect takes in a [`structure_mode`] where it is present (the force
+/// self-check's scale of 1); `None` for the effects a force model has no use for.
+pub fn structure_effect_value(kind: EffectKind) -> Option<f64> {
+    Some(match kind {
+        // A third of the viscous damping's force at the middle level's resonance.
+        EffectKind::CoulombFriction => 0.05,
+        // Softening by about 4 % in frequency at the top level's resonant amplitude.
+        EffectKind::CubicStiffness => -2.0e5,
+        EffectKind::SensorDelay => 0.004,
+        // An accelerometer's converter step (m/s²): its noise, q/√12, about the 1 %
+        // accelerometer noise at the lowest level.
+        EffectKind::Quantization => 0.5,
+        // A tenth of the stiffness in the joint, half of it slipping at 10 mm.
+        EffectKind::Microslip => 0.1 * structure_mode().stiffness * 0.01,
+        _ => return None,
+    })
+}
+
+/// Force levels (N) of the structure's sweeps: the fitted and held-out runs of the force
+/// self-check alternate over them.
+pub const STRUCTURE_LEVELS: [f64; 4] = [0.2, 0.4, 0.7, 1.0];
+
+/// The sweep a [`structure_mode`] is driven by: a sine sweep down from 9 to 5.5 Hz in
+/// 35 s (0.1 Hz/s) of `level` N, as a shaker does a ground-vibration test.
+pub fn structure_sweep(level: f64) -> Excitation {
+    Excitation::Chirp {
+        f0: 9.0,
+        f1: 5.5,
+        duration: 35.0,
+        amplitude: level,
+        rolloff: None,
+    }
+}
+
+/// `model` driven by [`structure_sweep`]`(level)` as a run of a ground-vibration test:
+/// 400 Hz, the force with 1 % noise, the response an accelerometer (m/s²) with white
+/// noise of `noise` of its RMS; no `inertia` attribute (a shaker test does not know its
+/// modal mass).
+pub fn structure_run(path: &str, model: &RigModel, level: f64, noise: f64, seed: u64) -> RunData {
+    let fs = 400.0;
+    let drive = Drive::Force(structure_sweep(level));
+    let settings = SimSettings {
+        sample_rate: fs,
+        duration: 35.0,
+        substeps: 4,
+        output_noise: 0.0,
+        input_noise: 0.01 * level,
+        seed,
+    };
+    // The accelerometer's converter quantises what it records, noise and all: the model's
+    // quantisation step is in m/s² and applies to the acceleration, not to the motion.
+    let step = model.effects.get(EffectKind::Quantization);
+    let mut unquantised = model.clone();
+    unquantised.effects.set(EffectKind::Quantization, None);
+    let sim = simulate(&unquantised, &drive, &settings);
+    let d = crate::simulate::derivative_4th;
+    let mut acc = d(&d(&sim.output, fs), fs);
+    let rms = (acc.iter().map(|a| a * a).sum::<f64>() / acc.len() as f64).sqrt();
+    let mut rng = StdRng::seed_from_u64(seed ^ 0x5eed);
+    let normal = Normal::new(0.0, noise * rms).expect("a finite noise level");
+    acc.iter_mut().for_each(|a| *a += normal.sample(&mut rng));
+    if let Some(q) = step.filter(|q| *q > 0.0) {
+        acc.iter_mut().for_each(|a| *a = (*a / q).round() * q);
+    }
+    let description = format!("sine sweep down 9 -> 5.5 Hz at 0.1 Hz/s, {level} N");
+    let mut data = run_data(path, model, &drive, sim, fs, &description);
+    data.output = acc;
+    data.output_quantity = Quantity::Acceleration;
+    data.attrs.retain(|(k, _)| k != "inertia");
+    data.attrs
+        .push(("units".into(), Attr::Text("input N, output m/s^2".into())));
+    data.attrs
+        .retain(|(k, v)| !(k == "units" && matches!(v, Attr::Text(t) if t == "input N, output m")));
     data
 }

@@ -422,6 +422,14 @@ struct Rig<'a> {
     offset: f64,
     k3: f64,
     c_contact: f64,
+    /// The microslip's Jenkins elements: each one's stiffness, and their slip
+    /// displacements (empty without microslip).
+    jenkins_stiffness: f64,
+    slip: Vec<f64>,
+    /// Each element's slider position on z, moved only after a step is taken: within one
+    /// step the element is elastic-perfectly-plastic on its frozen slider, which its force
+    /// clamped to ± stiffness × slip is exactly.
+    sliders: std::cell::RefCell<Vec<f64>>,
     drive: &'a Drive,
 }
 
@@ -430,9 +438,25 @@ impl<'a> Rig<'a> {
         let e = &model.effects;
         let get = |k| e.get(k).unwrap_or(0.0);
         use crate::model::EffectKind::*;
+        // The Iwan element: slip displacements spread evenly over ((1 − w)u, (1 + w)u] about
+        // u = F/kj, so that the elements' slip forces sum to F; its stiffness is part of k.
+        let (kj, slip) = match e.microslip {
+            Some(p) if p.slip_force > 0.0 && p.joint_stiffness > 0.0 => {
+                let n = crate::model::IWAN_ELEMENTS;
+                let u = p.slip_force / p.joint_stiffness;
+                let w = p.spread.clamp(1e-6, 1.0);
+                (
+                    p.joint_stiffness.min(model.stiffness),
+                    (0..n)
+                        .map(|i| u * (1.0 - w + w * (2 * i + 1) as f64 / n as f64))
+                        .collect(),
+                )
+            }
+            _ => (0.0, Vec::new()),
+        };
         Rig {
             j: model.inertia,
-            k: model.stiffness,
+            k: model.stiffness - kj,
             c: model.damping,
             delta: model.half_gap(),
             gc: model.gravity_stiffness,
@@ -441,7 +465,38 @@ impl<'a> Rig<'a> {
             offset: get(AsymmetricClearance),
             k3: get(CubicStiffness),
             c_contact: get(ContactDamping),
+            jenkins_stiffness: if slip.is_empty() {
+                0.0
+            } else {
+                kj / slip.len() as f64
+            },
+            sliders: std::cell::RefCell::new(vec![0.0; slip.len()]),
+            slip,
             drive,
+        }
+    }
+
+    /// The microslip's force on relative displacement z (its sliders as last committed).
+    fn joint(&self, z: f64) -> f64 {
+        if self.slip.is_empty() {
+            return 0.0;
+        }
+        let sliders = self.sliders.borrow();
+        let stretch: f64 = sliders
+            .iter()
+            .zip(&self.slip)
+            .map(|(x, p)| (z - x).clamp(-p, *p))
+            .sum();
+        self.jenkins_stiffness * stretch
+    }
+
+    /// Moves the microslip's sliders to where relative displacement z has dragged them.
+    fn commit(&self, z: f64) {
+        if self.slip.is_empty() {
+            return;
+        }
+        for (x, p) in self.sliders.borrow_mut().iter_mut().zip(&self.slip) {
+            *x = x.clamp(z - p, z + p);
         }
     }
 
@@ -476,7 +531,7 @@ impl<'a> Rig<'a> {
         if contact {
             c += self.c_contact;
         }
-        -c * v - spring + self.j * self.gc * s.th + self.preload + f_ext
+        -c * v - spring - self.joint(z) + self.j * self.gc * s.th + self.preload + f_ext
     }
 
     fn deriv(&self, t: f64, s: State, dir: f64) -> State {
@@ -600,6 +655,7 @@ pub fn simulate(model: &RigModel, drive: &Drive, settings: &SimSettings) -> SimO
             t = t_new;
             s = s_new;
             mode = mode_new;
+            rig.commit(rig.relative(t, s).0);
         }
         let (phi, f_ext) = rig.inputs(ti);
         let (z, v) = (s.th - phi.v, s.om - phi.d1);
@@ -830,6 +886,103 @@ pub fn mechanical_energy(model: &RigModel, theta: f64, omega: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A force model with only its microslip joint (slip force 2 N, joint stiffness 1000 N/m,
+    /// so the last element slips at 2F/kj = 4 mm).
+    fn iwan_rig(drive: &Drive) -> Rig<'_> {
+        let mut m = RigModel::paper();
+        m.kind = crate::model::ModelKind::Force;
+        m.clearance = 0.0;
+        m.stiffness = 1000.0;
+        m.set_effect(crate::model::EffectKind::Microslip, Some(2.0));
+        m.effects.set_joint_stiffness(1000.0);
+        Rig::new(&m, drive)
+    }
+
+    /// The joint's force at z after the displacement history `path` (each point committed).
+    fn joint_after(rig: &Rig, path: &[f64]) -> f64 {
+        for &z in path {
+            rig.commit(z);
+        }
+        rig.joint(*path.last().unwrap())
+    }
+
+    #[test]
+    fn the_iwan_element_is_a_spring_stuck_a_slider_at_macroslip_and_masing_between() {
+        let drive = Drive::Free {
+            initial_offset: 0.0,
+        };
+        let ramp = |a: f64, b: f64| -> Vec<f64> {
+            (0..=400).map(|i| a + (b - a) * i as f64 / 400.0).collect()
+        };
+        // Stuck (below the first element's slip at 0.125 mm): the joint stiffness itself.
+        let rig = iwan_rig(&drive);
+        let f = joint_after(&rig, &ramp(0.0, 1e-4));
+        assert!((f - 1000.0 * 1e-4).abs() < 1e-12, "{f}");
+        // Past 2F/kj every element slides: the slip force, whatever the displacement.
+        let rig = iwan_rig(&drive);
+        for z in [5e-3, 1e-2, 0.1] {
+            let f = joint_after(&rig, &ramp(0.0, z));
+            assert!((f - 2.0).abs() < 1e-9, "{z}: {f}");
+        }
+        // Virgin loading to u with slip displacements spread evenly over (0, φ] (φ = 4 mm,
+        // n elements): F(u) = kj·u − kj·u²/(2φ) up to the discretisation's O(φ/n²).
+        let rig = iwan_rig(&drive);
+        let u = 2e-3;
+        let f = joint_after(&rig, &ramp(0.0, u));
+        let phi = 4e-3;
+        let exact = 1000.0 * (u - u * u / (2.0 * phi));
+        assert!((f - exact).abs() < 0.01 * exact, "{f} vs {exact}");
+        // Masing: unloading by Δ from the turning point follows twice the virgin curve
+        // scaled by a half, F(u) − 2·F_virgin(Δ/2).
+        let delta = 1e-3;
+        let back = joint_after(&rig, &ramp(u, u - delta));
+        let virgin = |x: f64| 1000.0 * (x - x * x / (2.0 * phi));
+        let masing = f - 2.0 * virgin(0.5 * delta);
+        assert!((back - masing).abs() < 0.01 * f, "{back} vs {masing}");
+    }
+
+    #[test]
+    fn a_microslip_joint_softens_and_damps_a_free_decay_more_at_larger_amplitude() {
+        // The joint's stiffness is part of k: at small amplitude the mode rings at
+        // sqrt(k/m), and decays the faster and the lower the larger it starts.
+        let mut m = RigModel::paper();
+        m.kind = crate::model::ModelKind::Force;
+        m.clearance = 0.0;
+        m.inertia = 1.0;
+        m.stiffness = (TAU * 5.0_f64).powi(2);
+        m.damping = 0.01;
+        m.set_effect(
+            crate::model::EffectKind::Microslip,
+            Some(0.2 * m.stiffness * 1e-3),
+        );
+        let settings = SimSettings {
+            sample_rate: 1000.0,
+            duration: 4.0,
+            ..SimSettings::default()
+        };
+        let ring = |a0: f64| {
+            let out = simulate(&m, &Drive::Free { initial_offset: a0 }, &settings);
+            // The frequency from the first ten zero crossings, the decay from the peaks.
+            let y = &out.output;
+            let crossings: Vec<usize> = (1..y.len())
+                .filter(|&i| y[i - 1] > 0.0 && y[i] <= 0.0)
+                .collect();
+            let f = 1000.0 * 9.0 / (crossings[9] - crossings[0]) as f64;
+            let peak_late = y[crossings[8]..crossings[9]]
+                .iter()
+                .fold(0f64, |a, v| a.max(v.abs()));
+            (f, peak_late / a0)
+        };
+        let (f_small, keep_small) = ring(1e-5);
+        let (f_large, keep_large) = ring(5e-3);
+        assert!((f_small - 5.0).abs() < 0.02, "{f_small}");
+        assert!(f_large < 0.99 * f_small, "{f_large} vs {f_small}");
+        assert!(
+            keep_large < 0.9 * keep_small,
+            "{keep_large} vs {keep_small}"
+        );
+    }
 
     #[test]
     fn jet_derivatives_match_finite_differences() {

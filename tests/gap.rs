@@ -237,7 +237,7 @@ fn a_coarse_encoder_is_read_off_the_samples_and_named() {
     assert_eq!(named.shrink_domains(), ["time", "backbone", "damping"]);
     let (_, clean, _) = paper_rig();
     let reference = Reference::new(&clean, Blocks { seconds: 1.0 }, identifier()).unwrap();
-    assert_eq!(reference.resolution, 0.0);
+    assert_eq!(reference.resolution(), 0.0);
 }
 
 #[test]

@@ -248,6 +248,8 @@ fn every_effect_changes_the_output_in_the_expected_direction() {
 fn force_variant_matches_the_analytic_steady_state() {
     let (m, k, c) = (2.0, 2000.0, 5.0);
     let model = RigModel {
+        kind: skelid::model::ModelKind::BaseMotion,
+        band: None,
         inertia: m,
         stiffness: k,
         damping: c,

@@ -16,18 +16,32 @@ use skelid::gap::export as out;
 /// Options of `skelid gap`.
 #[derive(Args)]
 pub(crate) struct GapArgs {
-    /// Rig model to compare with the measurements (TOML, FORMATS.md §2). Its inertia is
-    /// held (unless --fit-inertia); stiffness, damping, clearance and gravity stiffness are
-    /// refitted before any effect is tried.
+    /// Rig model to compare with the measurements (TOML, FORMATS.md §2): the paper's
+    /// base-motion link, or one mode of a structure driven by a force (`kind = "force"`).
+    /// Its inertia is held (unless --fit-inertia; a force model's modal mass is always
+    /// refitted); stiffness, damping, clearance and gravity stiffness are refitted before
+    /// any effect is tried.
     #[arg(long, value_name = "RIG.toml", required_unless_present = "self_check")]
     pub(crate) model: Option<PathBuf>,
-    /// Campaign archive with the measured base-motion runs (input = base angle, output =
-    /// link angle).
+    /// Campaign archive with the measured runs: base-motion runs (input = base angle,
+    /// output = link angle) for a base-motion model, force runs (input = force, output =
+    /// displacement, velocity or acceleration) for a force model.
     #[arg(value_name = "ARCHIVE", required_unless_present = "self_check")]
     pub(crate) archive: Option<PathBuf>,
-    /// Run group to diagnose (repeatable); every base-motion run of the archive by default.
+    /// Run group to diagnose (repeatable); every run of the model's kind in the archive by
+    /// default. Each is diagnosed alone, on alternate time blocks.
     #[arg(long = "run", value_name = "PATH")]
     pub(crate) runs: Vec<String>,
+    /// Runs of one structure fitted together (paths or globs, comma-separated or
+    /// repeated, e.g. '/sine_sweep/level_[1357]'): the model's parameters and each
+    /// effect's are fitted on all of them at once, each run driven by its own measured
+    /// input, and every gap, shrink and verdict is scored on the --holdout runs, which the
+    /// fits never see. Needs --holdout.
+    #[arg(long, value_name = "RUNS", value_delimiter = ',', requires = "holdout")]
+    pub(crate) fit: Vec<String>,
+    /// Runs held out from a --fit: scored whole, never fitted on (paths or globs).
+    #[arg(long, value_name = "RUNS", value_delimiter = ',', requires = "fit")]
+    pub(crate) holdout: Vec<String>,
     /// Output folder: gap.json, gap.html, the fitted model(s); self-check.json with
     /// --self-check.
     #[arg(long, default_value = "skelid-gap", value_name = "DIR")]
@@ -155,6 +169,8 @@ pub(crate) enum SweepArg {
     Paper,
     /// 3 to 9 Hz at the paper's rate, at the paper's level then 1.75 times it.
     TwoLevel,
+    /// The same two sweeps as two runs fitted together.
+    TwoRuns,
 }
 
 pub(crate) fn gap_search_options(a: &GapArgs) -> Result<skelid::gap::SearchOptions> {
@@ -209,14 +225,11 @@ fn parse_effects(flag: &str, names: &[String]) -> Result<Vec<skelid::model::Effe
 
 pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     use skelid::run::RunKind;
-    let opt = gap_search_options(&a)?;
-    let engine = super::Engine::new(
-        a.identify.options("gap", None)?,
-        BackendArgs { backend: a.backend }.open()?,
-    );
-    std::fs::create_dir_all(&a.out)
-        .with_context(|| format!("cannot create the output folder {}", a.out.display()))?;
+    let mut opt = gap_search_options(&a)?;
+    let mut options = a.identify.options("gap", None)?;
     if a.self_check {
+        let engine = super::Engine::new(options, BackendArgs { backend: a.backend }.open()?);
+        create_out(&a.out)?;
         return gap_self_check(&a, &opt, &engine);
     }
     let (Some(model_path), Some(archive_path)) = (&a.model, &a.archive) else {
@@ -224,34 +237,68 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     };
     let model = RigModel::load(model_path)?;
     let model_warnings = warn_model(model_path, &model);
+    if a.effects.is_empty() {
+        opt.effects = model.vocabulary();
+    }
+    // The model's band isolates its mode where the command line leaves the choice open.
+    if let (Some([lo, hi]), skelid::mode::ModeChoice::ByKind) = (model.band, options.mode) {
+        options.mode = skelid::mode::ModeChoice::Band(lo, hi);
+    }
+    let engine = super::Engine::new(options, BackendArgs { backend: a.backend }.open()?);
+    create_out(&a.out)?;
     let ingest = a.ingest.options()?;
     let archive = Archive::open(archive_path, &ingest)?;
+    let wanted_kind = match model.kind {
+        skelid::model::ModelKind::BaseMotion => RunKind::BaseMotion,
+        skelid::model::ModelKind::Force => RunKind::Force,
+    };
+    let together = !a.fit.is_empty();
+    let (fit_paths, holdout_paths) = if together {
+        if !a.runs.is_empty() {
+            bail!("--run diagnoses runs one at a time; --fit/--holdout fits runs together: give one or the other");
+        }
+        let paths: Vec<&str> = archive.runs.iter().map(|e| e.path.as_str()).collect();
+        let fit = match_runs("--fit", &a.fit, &paths, archive_path)?;
+        let holdout = match_runs("--holdout", &a.holdout, &paths, archive_path)?;
+        if let Some(both) = fit.iter().find(|p| holdout.contains(p)) {
+            bail!("{both} is both in --fit and in --holdout: a held-out run must be one the fit never sees");
+        }
+        (fit, holdout)
+    } else {
+        (Vec::new(), Vec::new())
+    };
     let mut chosen = Vec::new();
     let mut failed: Vec<(String, String)> = Vec::new();
     for entry in &archive.runs {
-        let wanted = a.runs.is_empty() || a.runs.iter().any(|r| r == &entry.path);
+        let wanted = if together {
+            fit_paths.contains(&entry.path) || holdout_paths.contains(&entry.path)
+        } else {
+            a.runs.is_empty() || a.runs.iter().any(|r| r == &entry.path)
+        };
         if !wanted {
             continue;
         }
         let meta = match &entry.meta {
             Ok(meta) => meta,
-            Err(e) if a.runs.is_empty() => {
+            Err(e) if a.runs.is_empty() && !together => {
                 eprintln!("error: {}: {e} (skipped; the other runs go on)", entry.path);
                 failed.push((entry.path.clone(), e.to_string()));
                 continue;
             }
             Err(e) => bail!("{}: {e}", entry.path),
         };
-        if meta.kind != RunKind::BaseMotion {
-            if a.runs.is_empty() {
+        if meta.kind != wanted_kind {
+            if a.runs.is_empty() && !together {
                 eprintln!(
-                    "note: {} skipped: a {} run (the gap simulates base-motion runs)",
+                    "note: {} skipped: a {} run (the model is a {} model; it simulates {} runs)",
                     entry.path,
-                    meta.kind.as_str()
+                    meta.kind.as_str(),
+                    model.kind.name(),
+                    wanted_kind.as_str()
                 );
                 continue;
             }
-            bail!("{}: a {} run; skelid gap simulates the model under a measured base motion, so it needs kind = \"base_motion\"", entry.path, meta.kind.as_str());
+            bail!("{}: a {} run; the model ({}) is a {} model, simulated under a measured {}, so it needs kind = \"{}\" runs", entry.path, meta.kind.as_str(), model_path.display(), model.kind.name(), if wanted_kind == RunKind::Force { "force" } else { "base motion" }, wanted_kind.as_str());
         }
         chosen.push(meta.clone());
     }
@@ -266,14 +313,25 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     }
     if chosen.is_empty() {
         bail!(
-            "{}: no base-motion run to diagnose. skelid gap drives the rig model (a link on a moving base, FORMATS.md §2) with each run's measured base angle; force-input and free-decay runs are identified by `skelid run` only",
-            archive_path.display()
+            "{}: no {} run to diagnose. skelid gap drives the model ({}, a {} model, FORMATS.md §2) with each run's measured {}; give a model of the runs' kind (`kind = \"force\"` for force runs), or identify free decays with `skelid run`",
+            archive_path.display(),
+            wanted_kind.as_str(),
+            model_path.display(),
+            model.kind.name(),
+            if wanted_kind == RunKind::Force { "force" } else { "base angle" },
         );
     }
     let settings = serde_json::json!({
         "model": model_path.display().to_string(),
         "archive": archive_path.display().to_string(),
-        "holdout": format!("alternate {} s blocks: fits on the even ones (from t = 0), gaps scored on the odd ones", a.holdout_block),
+        "holdout": if together {
+            format!("runs fitted together: {}; held out whole: {}", fit_paths.join(", "), holdout_paths.join(", "))
+        } else {
+            format!("alternate {} s blocks: fits on the even ones (from t = 0), gaps scored on the odd ones", a.holdout_block)
+        },
+        "model_kind": model.kind.name(),
+        "fit_runs": fit_paths,
+        "holdout_runs": holdout_paths,
         "baseline_evaluations": opt.baseline_evaluations,
         "candidate_evaluations": opt.candidate_evaluations,
         "refine": opt.refine,
@@ -305,16 +363,44 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     let jobs = a
         .jobs
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    let done = skelid::gap::runner::diagnose_runs(
-        &archive,
-        &chosen,
-        &model,
-        &opt,
-        engine.get(),
-        jobs,
-        failed,
-        &exporter,
-    )
+    let done = if together {
+        let pick = |paths: &[String]| -> Vec<skelid::run::RunMeta> {
+            paths
+                .iter()
+                .filter_map(|p| chosen.iter().find(|m| &m.path == p).cloned())
+                .collect()
+        };
+        let (fit, holdout) = (pick(&fit_paths), pick(&holdout_paths));
+        if fit.is_empty() || holdout.is_empty() {
+            bail!(
+                "{}: no readable {} run left to {} (see the errors above)",
+                archive_path.display(),
+                wanted_kind.as_str(),
+                if fit.is_empty() { "fit on" } else { "hold out" }
+            );
+        }
+        skelid::gap::runner::diagnose_together(
+            &archive,
+            &fit,
+            &holdout,
+            &model,
+            &opt,
+            engine.get(),
+            failed,
+            &exporter,
+        )
+    } else {
+        skelid::gap::runner::diagnose_runs(
+            &archive,
+            &chosen,
+            &model,
+            &opt,
+            engine.get(),
+            jobs,
+            failed,
+            &exporter,
+        )
+    }
     .map_err(|e| match e {
         skelid::gap::runner::RunnerError::Export(e) => anyhow::anyhow!(e),
         other => anyhow::Error::new(other).context("--jobs"),
@@ -334,6 +420,46 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     } else {
         ExitCode::from(1)
     })
+}
+
+fn create_out(out: &std::path::Path) -> Result<()> {
+    std::fs::create_dir_all(out)
+        .with_context(|| format!("cannot create the output folder {}", out.display()))
+}
+
+/// The archive's run paths that `patterns` (paths or globs) name, in archive order; an
+/// error naming `flag` for a pattern that names none.
+fn match_runs(
+    flag: &str,
+    patterns: &[String],
+    paths: &[&str],
+    archive: &std::path::Path,
+) -> Result<Vec<String>> {
+    let mut found = Vec::new();
+    for p in patterns {
+        let pattern =
+            glob::Pattern::new(p).with_context(|| format!("{flag} {p}: not a run path or glob"))?;
+        let hits: Vec<&str> = paths
+            .iter()
+            .copied()
+            .filter(|path| *path == p || pattern.matches(path))
+            .collect();
+        if hits.is_empty() {
+            bail!(
+                "{flag} {p}: no run of {} matches (list the runs with `skelid inspect {}`)",
+                archive.display(),
+                archive.display()
+            );
+        }
+        found.extend(hits.into_iter().map(String::from));
+    }
+    let mut ordered: Vec<String> = paths
+        .iter()
+        .filter(|p| found.iter().any(|f| f == *p))
+        .map(|p| p.to_string())
+        .collect();
+    ordered.dedup();
+    Ok(ordered)
 }
 
 /// `skelid gap`'s exporter: a progress bar (runs done; each running run's simulations in its
@@ -371,11 +497,75 @@ impl Terminal<'_> {
     }
 
     /// A diagnosed run's lines on the terminal and its fitted model written (and read back).
+    /// Runs fitted together share one diagnosis and one fitted model: both come with the
+    /// first fit run, and every run adds its line of the mode at its largest amplitude.
     fn report(&self, r: &skelid::gap::GapRun) -> Result<()> {
         let d = &r.diagnosis;
+        let together = !r.together.0.is_empty();
+        let first = !together || r.together.0.first() == Some(&d.run);
+        let mut text = String::new();
+        if first {
+            text = self.diagnosis_text(r);
+        }
+        if together {
+            if first {
+                text += &format!(
+                    "\n  the mode at each run's largest amplitude (frequency Hz, damping ratio %), measured · nominal · fitted{}:",
+                    if d.verdict.is_some() { "" } else { " (the refitted baseline)" }
+                );
+            }
+            let at = |id: Option<&skelid::identify::Identification>| {
+                id.and_then(|i| i.at_largest_amplitude())
+                    .map_or("–".to_string(), |a| {
+                        format!("{:.3} Hz {:.2} %", a.frequency, 100.0 * a.damping_ratio)
+                    })
+            };
+            let line = format!(
+                "\n    {:<32} {:<8} {} · {} · {}",
+                d.run,
+                r.role.name(),
+                at(Some(&r.measured)),
+                at(r.nominal.as_ref().map(|w| &w.identified)),
+                at(Some(&r.fitted().identified)),
+            );
+            if first {
+                text += &line;
+            } else {
+                text = line.trim_start_matches('\n').to_string();
+            }
+        }
+        self.bar.suspend(|| println!("{text}"));
+        if first {
+            let several = self.several && !together;
+            let path = out::fitted_model_path(self.out, self.model_path, &d.run, several);
+            out::write_fitted_model(&path, r)?;
+            let fitted =
+                RigModel::load(&path).context("the fitted model written does not read back")?;
+            for w in fitted.warnings() {
+                say(&self.bar, format!("warning: {}: {w}", path.display()));
+            }
+        }
+        if let Some(format) = self.figures {
+            out::write_gap_figures(self.out, r, format)?;
+        }
+        Ok(())
+    }
+
+    /// The diagnosis on the terminal: the verdict, the gaps, the three best candidates.
+    fn diagnosis_text(&self, r: &skelid::gap::GapRun) -> String {
+        let d = &r.diagnosis;
+        let name = if r.together.0.is_empty() {
+            d.run.clone()
+        } else {
+            format!(
+                "fitted on {} · held out {}",
+                r.together.0.join(", "),
+                r.together.1.join(", ")
+            )
+        };
         let mut text = format!(
             "{}: verdict {} · held-out gap nominal {:.4} → baseline {:.4}{} · {} simulations, {:.1} s",
-            d.run,
+            name,
             d.verdict_name(),
             d.nominal_score.holdout,
             d.baseline.score.holdout,
@@ -396,7 +586,7 @@ impl Terminal<'_> {
             let p: Vec<String> = c
                 .params()
                 .iter()
-                .map(|(k, v)| out::param_text(k, *v))
+                .map(|(k, v)| out::param_text(k, *v, c.model.kind))
                 .collect();
             text += &format!(
                 "\n    {:<40} held-out gap {:.4}  shrink {:>4.0} %{}  {}",
@@ -407,18 +597,7 @@ impl Terminal<'_> {
                 p.join(", ")
             );
         }
-        self.bar.suspend(|| println!("{text}"));
-        let path = out::fitted_model_path(self.out, self.model_path, &d.run, self.several);
-        out::write_fitted_model(&path, r)?;
-        let fitted =
-            RigModel::load(&path).context("the fitted model written does not read back")?;
-        for w in fitted.warnings() {
-            say(&self.bar, format!("warning: {}: {w}", path.display()));
-        }
-        if let Some(format) = self.figures {
-            out::write_gap_figures(self.out, r, format)?;
-        }
-        Ok(())
+        text
     }
 }
 
@@ -503,22 +682,37 @@ pub(crate) fn gap_self_check(
     let sweep = match a.sweep {
         SweepArg::Paper => selfcheck::Sweep::Paper,
         SweepArg::TwoLevel => selfcheck::Sweep::TwoLevel,
+        SweepArg::TwoRuns => selfcheck::Sweep::TwoRuns,
     };
-    let rigs = match a.rigs {
-        RigsArg::Paper => selfcheck::Rigs::Paper,
-        RigsArg::Random => selfcheck::Rigs::Random,
+    // `--kind force` (the archive option, which a self-check has no archive for) asks for
+    // the force model's self-check.
+    use skelid::run::RunKind;
+    let rigs = match (a.ingest.kind, a.rigs) {
+        (Some(RunKind::Force), RigsArg::Paper) => selfcheck::Rigs::Structure,
+        (Some(RunKind::Force), RigsArg::Random) => {
+            bail!("--kind force draws one mode of a structure; --rigs random is for the base-motion rig (nothing was done)")
+        }
+        (Some(RunKind::Free), _) => {
+            bail!("--self-check --kind free: the free-decay model's self-check is not built yet; use --kind force or base-motion (nothing was done)")
+        }
+        (_, RigsArg::Paper) => selfcheck::Rigs::Paper,
+        (_, RigsArg::Random) => selfcheck::Rigs::Random,
     };
     if let Some(names) = &a.detection_limits {
         let effects = parse_effects("--detection-limits", names)?;
         return detection_limits(a, opt, engine, &effects, rigs, sweep);
     }
     let cases = selfcheck::draw(a.cases, a.seed, selfcheck::Draw { rigs, only: None });
+    let drive = if rigs == selfcheck::Rigs::Structure {
+        String::new()
+    } else {
+        format!(" under {} with encoder noise", sweep.describe())
+    };
     eprintln!(
-        "self-check: {} cases (seed {}), {} under {} with encoder noise, one effect (or none) hidden from a model whose parameters are ~{:.0} % off",
+        "self-check: {} cases (seed {}), {}{drive}, one effect (or none) hidden from a model whose parameters are ~{:.0} % off",
         cases.len(),
         a.seed,
         rigs.describe(),
-        sweep.describe(),
         100.0 * selfcheck::NOMINAL_ERROR
     );
     let bar = indicatif::ProgressBar::new(cases.len() as u64).with_style(

@@ -68,7 +68,12 @@ pub fn run_json(r: &GapRun) -> Value {
         })
         .collect();
     let baseline_whole = &r.baseline.gap;
-    json!({
+    let largest = |id: &crate::identify::Identification| {
+        id.at_largest_amplitude().map_or(Value::Null, |a| {
+            json!({"amplitude": num(a.amplitude), "frequency": num(a.frequency), "damping_ratio": num(a.damping_ratio)})
+        })
+    };
+    let mut entry = json!({
         "run": d.run,
         "zero_tolerance": num(r.zero_tolerance),
         "nominal_gap": num(d.nominal_score.holdout),
@@ -86,7 +91,19 @@ pub fn run_json(r: &GapRun) -> Value {
         "baseline_model": d.baseline.model,
         "fitted_model": d.fitted_model(),
         "cost": {"simulations": d.evaluations, "seconds": d.seconds},
-    })
+        "role": r.role.name(),
+        "at_largest_amplitude": {
+            "measured": largest(&r.measured),
+            "nominal": r.nominal.as_ref().map_or(Value::Null, |w| largest(&w.identified)),
+            "baseline": largest(&r.baseline.identified),
+            "fitted": largest(&r.fitted().identified),
+        },
+    });
+    if !r.together.0.is_empty() {
+        entry["fit_runs"] = json!(r.together.0);
+        entry["holdout_runs"] = json!(r.together.1);
+    }
+    entry
 }
 
 /// The gap.json document (`skelid-gap/1`): `settings` says how the search was run,
@@ -251,11 +268,11 @@ fn three<'a>(xy: [(&'a [f64], &'a [f64]); 3]) -> Vec<Series<'a>> {
         .collect()
 }
 
-/// `key = value unit` in engineering notation, for a model or effect parameter.
-pub fn param_text(key: &str, value: f64) -> String {
+/// `key = value unit` in engineering notation, for a parameter of a model of `kind`.
+pub fn param_text(key: &str, value: f64, kind: crate::model::ModelKind) -> String {
     format!(
         "{key} = {}",
-        eng(value, crate::model::key_unit(key).unwrap_or(""))
+        eng(value, crate::model::key_unit_of(key, kind).unwrap_or(""))
     )
 }
 
@@ -316,7 +333,7 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
                 ("gravity_stiffness", m.gravity_stiffness),
             ]
             .iter()
-            .map(|(k, v)| param_text(k, *v))
+            .map(|(k, v)| param_text(k, *v, m.kind))
             .collect::<Vec<_>>()
             .join(", ")
         };
@@ -339,7 +356,11 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
             ["time", "backbone", "damping", "waveform"][..scored].join(" / ")
         );
         for c in &d.candidates {
-            let params: Vec<String> = c.params().iter().map(|(k, v)| param_text(k, *v)).collect();
+            let params: Vec<String> = c
+                .params()
+                .iter()
+                .map(|(k, v)| param_text(k, *v, c.model.kind))
+                .collect();
             let dom: Vec<String> = c.score.domains[..scored]
                 .iter()
                 .map(|x| x.map_or("–".into(), |v| format!("{v:.3}")))

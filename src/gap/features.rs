@@ -276,6 +276,24 @@ pub fn model_resolution(model: &RigModel, run: &Run) -> f64 {
     q * resolution_per_step(run)
 }
 
+/// A resolution of `run`'s recorded response (in its own quantity) as the displacement
+/// the identification tracks: divided by ω² for an accelerometer, by ω for a velocity
+/// pickup, with ω the mode's peak in `identified` (unchanged for a displacement, or where
+/// no mode was isolated).
+pub fn as_displacement(resolution: f64, run: &Run, identified: Option<&Identification>) -> f64 {
+    let order = match run.meta.output_quantity {
+        crate::run::Quantity::Velocity => 1,
+        crate::run::Quantity::Acceleration => 2,
+        _ => 0,
+    };
+    match identified.and_then(|i| i.mode) {
+        Some(m) if order > 0 && m.peak > 0.0 => {
+            resolution / (std::f64::consts::TAU * m.peak).powi(order)
+        }
+        _ => resolution,
+    }
+}
+
 /// The RMS quantisation error of `run`'s response per unit of quantisation step,
 /// `sqrt(channels/12)`.
 pub fn resolution_per_step(run: &Run) -> f64 {

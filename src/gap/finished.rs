@@ -2,7 +2,7 @@
 //! the models it names (nominal, baseline, fitted), simulated here so that the output files
 //! (`gap::export`) only render what they are given.
 
-use super::search::Reference;
+use super::search::{Reference, Role};
 use super::{Diagnosis, Gap, GapError};
 use crate::identify::Identification;
 
@@ -28,24 +28,61 @@ pub struct GapRun {
     pub fitted: Option<Whole>,
     /// The encoders' zero tolerance the run was scored with (rad).
     pub zero_tolerance: f64,
+    /// How the run took part in the fit: alone on alternate blocks, or one of several
+    /// runs fitted together or held out.
+    pub role: Role,
+    /// Of runs fitted together, the fit runs and the held-out ones (empty for a run alone).
+    pub together: (Vec<String>, Vec<String>),
 }
 
 impl GapRun {
     /// Simulates the nominal, baseline and fitted models over the whole run.
     pub fn new(reference: &Reference, diagnosis: Diagnosis) -> Result<GapRun, GapError> {
+        Self::of(reference, 0, diagnosis)
+    }
+
+    /// Every run of `reference` with the nominal, baseline and fitted models simulated over
+    /// it, each carrying the diagnosis of them all (named after it).
+    pub fn every(reference: &Reference, diagnosis: &Diagnosis) -> Vec<Result<GapRun, GapError>> {
+        use rayon::prelude::*;
+        (0..reference.len())
+            .into_par_iter()
+            .map(|i| {
+                let mut d = diagnosis.clone();
+                d.run = reference.measured(i).0.meta.path.clone();
+                Self::of(reference, i, d)
+            })
+            .collect()
+    }
+
+    /// [`new`](Self::new) for run `i` of `reference`.
+    pub fn of(reference: &Reference, i: usize, diagnosis: Diagnosis) -> Result<GapRun, GapError> {
         let d = &diagnosis;
         let with_effect = d.verdict.map(|_| d.fitted_model());
         let ((nominal, baseline), fitted) = rayon::join(
             || {
                 rayon::join(
-                    || reference.whole(&d.nominal).ok(),
-                    || reference.whole(&d.baseline.model),
+                    || reference.whole_of(i, &d.nominal).ok(),
+                    || reference.whole_of(i, &d.baseline.model),
                 )
             },
-            || with_effect.map(|m| reference.whole(m)).transpose(),
+            || with_effect.map(|m| reference.whole_of(i, m)).transpose(),
         );
+        let (_, measured, role) = reference.measured(i);
+        let mut together = (Vec::new(), Vec::new());
+        if reference.len() > 1 {
+            for j in 0..reference.len() {
+                let (run, _, role) = reference.measured(j);
+                match role {
+                    Role::Holdout => together.1.push(run.meta.path.clone()),
+                    _ => together.0.push(run.meta.path.clone()),
+                }
+            }
+        }
         Ok(GapRun {
-            measured: reference.identified.clone(),
+            role,
+            together,
+            measured: measured.clone(),
             nominal,
             baseline: baseline?,
             fitted: fitted?,

@@ -47,8 +47,9 @@ pub use compare::{
     Target, GRAZING, JOIN_DECAY_TIMES, JUMP_UP_SPAN, SETTLE_DECAY_TIMES, TIME_TOLERANCE,
 };
 pub use features::{
-    exact_lattice_step, lattice_coherence, lattice_step, measured_resolution, model_resolution,
-    noisy_lattice_step, resolution_per_step, Features, LATTICE_SHARE, NOISY_COHERENCE, SMOOTH,
+    as_displacement, exact_lattice_step, lattice_coherence, lattice_step, measured_resolution,
+    model_resolution, noisy_lattice_step, resolution_per_step, Features, LATTICE_SHARE,
+    NOISY_COHERENCE, SMOOTH,
 };
 pub use finished::{GapRun, Whole};
 pub use search::{diagnose, Candidate, Diagnosis, SearchOptions};

@@ -136,6 +136,71 @@ pub fn diagnose_runs(
     })
 }
 
+/// Diagnoses the runs of one structure together: the model's parameters and each effect's
+/// are fitted on the `fit` runs at once and scored on the `holdout` runs (each whole,
+/// driven by its own measured input). Every run then ends in `exporter` with the one
+/// diagnosis, in the order given (fit runs first), its progress reported on the first fit
+/// run. The runs are simulated in parallel within each evaluation.
+#[allow(clippy::too_many_arguments)]
+pub fn diagnose_together(
+    archive: &Archive,
+    fit: &[RunMeta],
+    holdout: &[RunMeta],
+    model: &RigModel,
+    opt: &SearchOptions,
+    identifier: Identifier,
+    failed_before: Vec<(String, String)>,
+    exporter: &dyn Exporter,
+) -> Result<Diagnosed, RunnerError> {
+    let first = &fit[0];
+    exporter.started(first);
+    let all: Vec<&RunMeta> = fit.iter().chain(holdout).collect();
+    let result = (|| -> Result<Vec<Result<GapRun, String>>, String> {
+        let runs = all
+            .iter()
+            .map(|m| archive.load(m).map_err(|e| chain(&e)))
+            .collect::<Result<Vec<_>, _>>()?;
+        let (f, h) = runs.split_at(fit.len());
+        let f: Vec<&crate::run::Run> = f.iter().collect();
+        let h: Vec<&crate::run::Run> = h.iter().collect();
+        let reference = Reference::together(&f, &h, identifier)
+            .map_err(|e| chain(&e))?
+            .scored_as(opt)
+            .on_score(|n| exporter.simulations(first, n));
+        let d = diagnose(&reference, model, opt).map_err(|e| chain(&e))?;
+        Ok(GapRun::every(&reference, &d)
+            .into_iter()
+            .map(|r| r.map_err(|e| chain(&e)))
+            .collect())
+    })();
+    let per_run: Vec<Result<GapRun, String>> = match result {
+        Ok(r) => r,
+        Err(e) => all.iter().map(|_| Err(e.clone())).collect(),
+    };
+    let mut done: Vec<GapRun> = Vec::new();
+    let mut failed = failed_before;
+    for (meta, r) in all.iter().zip(per_run) {
+        match r {
+            Ok(g) => done.push(g),
+            Err(e) => failed.push((meta.path.clone(), e)),
+        }
+    }
+    let refs: Vec<&GapRun> = done.iter().collect();
+    for meta in &all {
+        let this = match done.iter().find(|g| g.diagnosis.run == meta.path) {
+            Some(g) => Ok(g),
+            None => Err(failed
+                .iter()
+                .find(|f| f.0 == meta.path)
+                .map_or("", |f| f.1.as_str())),
+        };
+        exporter
+            .finished(meta, this, &refs, &failed)
+            .map_err(RunnerError::Export)?;
+    }
+    Ok(Diagnosed { runs: done, failed })
+}
+
 /// An error with its sources, "what: why: why", as the command line shows it.
 fn chain(e: &dyn std::error::Error) -> String {
     let mut text = e.to_string();

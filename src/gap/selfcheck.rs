@@ -15,9 +15,13 @@ use super::GapError;
 use crate::identify::Identifier;
 use crate::model::{EffectKind, RigModel};
 use crate::rig::{
-    effect_value, encoder_step, measure, paper_chirp_at, random_rig, two_level_chirp_at, Chain,
-    ENCODER_NOISE, PAPER_LEVEL,
+    effect_value, encoder_step, level_sweep_at, measure, measure_over, paper_chirp_at, random_rig,
+    structure_effect_value, structure_mode, structure_run, two_level_chirp_at, Chain,
+    ENCODER_NOISE, PAPER_LEVEL, SECOND_LEVEL, STRUCTURE_LEVELS,
 };
+
+/// The accelerometer noise of a [`Rigs::Structure`] case, as a share of its RMS.
+pub const STRUCTURE_NOISE: f64 = 0.01;
 use crate::simulate::{Drive, Excitation};
 
 /// The parameter of a case's effect is the demo's value times a factor drawn log-uniformly
@@ -47,6 +51,8 @@ pub struct Case {
     pub chain: Chain,
     /// Noise seed of the simulation.
     pub seed: u64,
+    /// The rigs it was drawn from.
+    pub rigs: Rigs,
 }
 
 /// The rigs the self-check draws.
@@ -60,7 +66,24 @@ pub enum Rigs {
     /// `gravity_stiffness`. Their `quantization` case is a coarse encoder of 12–14 bit/rev
     /// whose steps carry acquisition noise of 1/60–1/15 of a step.
     Random,
+    /// One mode of a structure like the F-16's wing torsion ([`structure_mode`]: 7.3 Hz,
+    /// 0.5 % of critical, 1 kg of modal mass) under a model of `kind = "force"`, swept down
+    /// by a force at the four [`STRUCTURE_LEVELS`], measured by an accelerometer with 1 %
+    /// noise; levels 1 and 3 are fitted together, 2 and 4 held out. The classes are the
+    /// force vocabulary's effects a mode without clearance can hide ([`STRUCTURE_CLASSES`]).
+    Structure,
 }
+
+/// The classes of a [`Rigs::Structure`] self-check, in turn: the effects of a force model
+/// without clearance (contact damping needs a contact), and none.
+pub const STRUCTURE_CLASSES: [Option<EffectKind>; 6] = [
+    Some(EffectKind::CoulombFriction),
+    Some(EffectKind::CubicStiffness),
+    Some(EffectKind::SensorDelay),
+    Some(EffectKind::Quantization),
+    Some(EffectKind::Microslip),
+    None,
+];
 
 impl Rigs {
     /// Its name on the command line and in self-check.json.
@@ -68,6 +91,7 @@ impl Rigs {
         match self {
             Rigs::Paper => "paper",
             Rigs::Random => "random",
+            Rigs::Structure => "structure",
         }
     }
 
@@ -77,6 +101,9 @@ impl Rigs {
             Rigs::Paper => "paper's rig",
             Rigs::Random => {
                 "random paper-like rigs (17-20 bit/rev encoders, DC offsets, a gravity attribute ±10 % off)"
+            }
+            Rigs::Structure => {
+                "one 7.3 Hz mode of a structure swept by a force at four levels (1 and 3 fitted together, 2 and 4 held out), an accelerometer"
             }
         }
     }
@@ -121,17 +148,43 @@ pub fn draw(n: usize, seed: u64, d: Draw) -> Vec<Case> {
                     let (r, ()) = random_rig(&mut rng, |_| ());
                     (r.model, r.amplitude, r.chain)
                 }
+                Rigs::Structure => {
+                    let chain = Chain {
+                        noise: STRUCTURE_NOISE,
+                        acquisition_noise: 0.0,
+                        offsets: (0.0, 0.0),
+                        gravity_attribute: 0.0,
+                        zero_tolerance: 0.0,
+                    };
+                    (structure_mode(), STRUCTURE_LEVELS[0], chain)
+                }
             };
             let (effect, factor) = match d.only {
                 Some((k, f)) => (Some(k), f),
                 None => (
-                    EffectKind::ALL.get(index % 8).copied(),
+                    match d.rigs {
+                        Rigs::Structure => STRUCTURE_CLASSES[index % STRUCTURE_CLASSES.len()],
+                        _ => EffectKind::ALL.get(index % 8).copied(),
+                    },
                     (rng.random_range(-1.0..1.0) * RANGE.ln()).exp(),
                 ),
             };
             // The bench's own encoders (a random rig's 17–20 bit/rev), known to its model.
             let known_encoder = truth.effects.get(EffectKind::Quantization);
-            let mut value = effect.map_or(0.0, |k| effect_value(k) * factor);
+            let mut value = effect.map_or(0.0, |k| match d.rigs {
+                // A structure's cubic term softens in one round of the classes and hardens
+                // in the next: a bolted joint may do either.
+                Rigs::Structure => {
+                    let v = structure_effect_value(k).unwrap_or(0.0) * factor;
+                    let round = index / STRUCTURE_CLASSES.len();
+                    if k == EffectKind::CubicStiffness && round % 2 == 1 {
+                        -v
+                    } else {
+                        v
+                    }
+                }
+                _ => effect_value(k) * factor,
+            });
             if d.rigs == Rigs::Random && effect == Some(EffectKind::Quantization) {
                 // A coarse encoder in place of the fine one, blurred by the acquisition
                 // chain after it (the lattice detector's hard case).
@@ -141,7 +194,7 @@ pub fn draw(n: usize, seed: u64, d: Draw) -> Vec<Case> {
                 chain.acquisition_noise = value / rng.random_range(15.0..60.0);
             }
             if let Some(k) = effect {
-                truth.effects.set(k, Some(value));
+                truth.set_effect(k, Some(value));
             }
             let mut err = || {
                 let e: f64 = normal.sample(&mut rng);
@@ -154,6 +207,10 @@ pub fn draw(n: usize, seed: u64, d: Draw) -> Vec<Case> {
             nominal.stiffness *= err();
             nominal.damping *= err();
             nominal.clearance *= err();
+            if d.rigs == Rigs::Structure {
+                // A finite-element model's modal mass is no better known than its stiffness.
+                nominal.inertia *= err();
+            }
             Case {
                 index,
                 effect,
@@ -163,6 +220,7 @@ pub fn draw(n: usize, seed: u64, d: Draw) -> Vec<Case> {
                 level,
                 chain,
                 seed: rng.random(),
+                rigs: d.rigs,
             }
         })
         .collect()
@@ -365,6 +423,9 @@ pub enum Sweep {
     Paper,
     /// 3 to 9 Hz at the paper's rate, at two levels in one record ([`two_level_chirp`]).
     TwoLevel,
+    /// The same two sweeps recorded as two runs ([`level_sweep_at`]), fitted together on
+    /// their even time blocks and scored on their odd ones.
+    TwoRuns,
 }
 
 impl Sweep {
@@ -373,6 +434,7 @@ impl Sweep {
         match self {
             Sweep::Paper => paper_chirp_at(level),
             Sweep::TwoLevel => two_level_chirp_at(level),
+            Sweep::TwoRuns => level_sweep_at(level),
         }
     }
 
@@ -381,6 +443,7 @@ impl Sweep {
         match self {
             Sweep::Paper => "paper",
             Sweep::TwoLevel => "two-level",
+            Sweep::TwoRuns => "two-runs",
         }
     }
 
@@ -390,6 +453,9 @@ impl Sweep {
             Sweep::Paper => "its chirp",
             Sweep::TwoLevel => {
                 "a 3-9 Hz sweep at the paper's rate, at its level then 1.75 times it,"
+            }
+            Sweep::TwoRuns => {
+                "a 3-9 Hz sweep at the paper's rate, at its level and 1.75 times it as two runs fitted together,"
             }
         }
     }
@@ -403,17 +469,69 @@ pub fn run_case(
     sweep: Sweep,
     identifier: Identifier<'_>,
 ) -> Result<Outcome, GapError> {
-    let drive = Drive::Base(sweep.excitation_at(case.level));
-    let run = measure(
-        &format!("/self_check/case_{:03}", case.index),
-        &case.truth,
-        &drive,
-        &case.chain,
-        case.seed,
-        "self-check case",
-    )
-    .into_run();
-    let reference = Reference::new(&run, opt.blocks, identifier)?.scored_as(opt);
+    let path = format!("/self_check/case_{:03}", case.index);
+    let reference = if case.rigs == Rigs::Structure {
+        let runs: Vec<crate::run::Run> = STRUCTURE_LEVELS
+            .iter()
+            .enumerate()
+            .map(|(i, &level)| {
+                let p = format!("{path}/level_{}", i + 1);
+                structure_run(
+                    &p,
+                    &case.truth,
+                    level,
+                    case.chain.noise,
+                    case.seed + i as u64,
+                )
+                .into_run()
+            })
+            .collect();
+        Reference::together(&[&runs[0], &runs[2]], &[&runs[1], &runs[3]], identifier)?
+    } else if sweep == Sweep::TwoRuns {
+        let runs: Vec<crate::run::Run> = [1.0, SECOND_LEVEL]
+            .iter()
+            .enumerate()
+            .map(|(i, &f)| {
+                let drive = Drive::Base(sweep.excitation_at(case.level * f));
+                let p = format!("{path}/level_{}", i + 1);
+                measure_over(
+                    &p,
+                    &case.truth,
+                    &drive,
+                    &case.chain,
+                    case.seed + i as u64,
+                    "self-check case",
+                    15.0,
+                )
+                .into_run()
+            })
+            .collect();
+        Reference::blocks_together(&[&runs[0], &runs[1]], opt.blocks, identifier)?
+    } else {
+        let drive = Drive::Base(sweep.excitation_at(case.level));
+        let run = measure(
+            &path,
+            &case.truth,
+            &drive,
+            &case.chain,
+            case.seed,
+            "self-check case",
+        )
+        .into_run();
+        Reference::new(&run, opt.blocks, identifier)?
+    }
+    .scored_as(opt);
+    let vocabulary = case.nominal.vocabulary();
+    let searched;
+    let opt = if case.rigs == Rigs::Structure && opt.effects == EffectKind::ALL {
+        searched = SearchOptions {
+            effects: vocabulary,
+            ..opt.clone()
+        };
+        &searched
+    } else {
+        opt
+    };
     let diagnosis = diagnose(&reference, &case.nominal, opt)?;
     // The truth itself, scored like any candidate: whether the record can tell the hidden
     // effect from the refitted baseline at all.
@@ -509,7 +627,7 @@ pub fn summarize(outcomes: &[Outcome], errors: Vec<String>) -> Summary {
     };
     // Per effect: the share of its cases for which `f` holds.
     let per_effect_rate = |f: &dyn Fn(&Outcome) -> bool| -> BTreeMap<String, f64> {
-        EffectKind::ALL
+        EffectKind::EVERY
             .iter()
             .filter_map(|k| {
                 let of: Vec<&Outcome> = with
@@ -565,6 +683,7 @@ fn short(name: &str) -> String {
             "contact_damping" => "cdamp",
             "sensor_delay" => "delay",
             "quantization" => "quant",
+            "microslip" => "slip",
             other => other,
         })
         .collect::<Vec<_>>()
@@ -573,15 +692,17 @@ fn short(name: &str) -> String {
 
 impl fmt::Display for Summary {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let rows: Vec<&str> = EffectKind::ALL
+        let rows: Vec<&str> = EffectKind::EVERY
             .iter()
             .map(|k| k.name())
             .chain(["none"])
             .filter(|r| self.confusion.contains_key(*r))
             .collect();
-        let mut cols: Vec<String> = EffectKind::ALL
+        // The columns: the effects that are rows, then any other verdict.
+        let mut cols: Vec<String> = rows
             .iter()
-            .map(|k| k.name().to_string())
+            .filter(|r| **r != "none")
+            .map(|r| r.to_string())
             .collect();
         cols.push("none".into());
         for v in self.confusion.values().flat_map(|m| m.keys()) {
@@ -701,6 +822,49 @@ mod tests {
         }
         // Deterministic in the seed.
         assert_eq!(cases(16, 7)[5].value, c[5].value);
+    }
+
+    #[test]
+    fn structure_cases_cycle_through_the_force_vocabulary_and_soften_then_harden() {
+        let c = draw(
+            12,
+            5,
+            Draw {
+                rigs: Rigs::Structure,
+                only: None,
+            },
+        );
+        for (i, case) in c.iter().enumerate() {
+            assert_eq!(case.effect, STRUCTURE_CLASSES[i % 6]);
+            assert_eq!(case.truth.kind, crate::model::ModelKind::Force);
+            assert_eq!(
+                case.nominal.vocabulary(),
+                crate::model::EffectKind::FORCE
+                    .iter()
+                    .copied()
+                    .filter(|k| *k != EffectKind::ContactDamping)
+                    .collect::<Vec<_>>()
+            );
+            assert!(case.nominal.effects.is_empty());
+            let m = case.nominal.inertia / case.truth.inertia - 1.0;
+            assert!(m.abs() <= 2.0 * NOMINAL_ERROR + 1e-12 && m != 0.0, "{m}");
+            if let Some(k) = case.effect {
+                let f = case.value / structure_effect_value(k).unwrap();
+                let f = if k == EffectKind::CubicStiffness && i >= 6 {
+                    -f
+                } else {
+                    f
+                };
+                assert!((1.0 / RANGE..=RANGE).contains(&f), "{k}: {f}");
+                assert_eq!(case.truth.effects.get(k), Some(case.value));
+            }
+            if case.effect == Some(EffectKind::Microslip) {
+                let kj = case.truth.effects.joint_stiffness().unwrap();
+                assert!((kj / case.truth.stiffness - crate::model::JOINT_SHARE).abs() < 1e-12);
+            }
+        }
+        // The cubic term softens in the first round and hardens in the second.
+        assert!(c[1].value < 0.0 && c[7].value > 0.0);
     }
 
     #[test]

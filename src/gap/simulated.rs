@@ -4,7 +4,7 @@
 //! identification.
 
 use crate::identify::{Identification, Identifier};
-use crate::model::RigModel;
+use crate::model::{ModelKind, RigModel};
 use crate::run::Run;
 use crate::simulate::{simulate, Drive, Excitation, SimSettings, MEASURED_INPUT_CUTOFF};
 use crate::track::Method;
@@ -27,6 +27,20 @@ impl Simulated {
     /// What the gap compares of it.
     pub fn features(&self) -> Features {
         Features::of(&self.identified, &self.run).with_resolution(self.resolution)
+    }
+}
+
+/// A simulated displacement as the measured run's output channel records it: velocity and
+/// acceleration by 4th-order differences (the simulation is noise-free and sampled at
+/// the record's rate, tens of samples a cycle).
+fn as_measured(displacement: Vec<f64>, measured: &Run) -> Vec<f64> {
+    use crate::run::Quantity;
+    use crate::simulate::derivative_4th;
+    let fs = measured.meta.sample_rate;
+    match measured.meta.output_quantity {
+        Quantity::Velocity => derivative_4th(&displacement, fs),
+        Quantity::Acceleration => derivative_4th(&derivative_4th(&displacement, fs), fs),
+        _ => displacement,
     }
 }
 
@@ -99,11 +113,26 @@ pub fn simulate_given(
         GapError::Unusable("the run has no input channel to drive the model with".into())
     })?;
     let fs = measured.meta.sample_rate;
-    let drive = Drive::Base(Excitation::measured(
-        input,
-        fs,
-        MEASURED_INPUT_CUTOFF * fs / 2.0,
-    ));
+    let drive = match model.kind {
+        ModelKind::BaseMotion => Drive::Base(Excitation::measured(
+            input,
+            fs,
+            MEASURED_INPUT_CUTOFF * fs / 2.0,
+        )),
+        // One mode is driven by the force within its band: outside it the structure's other
+        // modes answer, which a one-mode model does not have.
+        ModelKind::Force => {
+            let band = model
+                .band
+                .map(|[lo, hi]| (lo, hi))
+                .or_else(|| identified.and_then(|i| i.mode).map(|b| (b.fmin, b.fmax)));
+            let force = match band {
+                Some((lo, hi)) => crate::mode::band_pass(input, fs, lo, hi),
+                None => input.clone(),
+            };
+            Drive::Force(Excitation::sampled(force, fs))
+        }
+    };
     let settings = SimSettings {
         sample_rate: fs,
         duration: input.len() as f64 / fs,
@@ -114,7 +143,8 @@ pub fn simulate_given(
     // whose noise dithers the steps away from the envelope, while a noise-free response
     // quantised turns into a staircase whose envelope and frequency jitter sample to sample
     // (the true model of a quantised rig then fitted worse than the same model without it).
-    let resolution = model_resolution(model, measured);
+    let resolution =
+        super::as_displacement(model_resolution(model, measured), measured, identified);
     let mut unquantised = model.clone();
     unquantised
         .effects
@@ -123,7 +153,7 @@ pub fn simulate_given(
     let run = Run {
         meta: measured.meta.clone(),
         input: Some(out.input),
-        output: out.output,
+        output: as_measured(out.output, measured),
     };
     let run = decimate(run, factor);
     let identified = match identified.and_then(|i| i.input.as_ref()) {

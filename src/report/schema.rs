@@ -219,11 +219,8 @@ pub fn parameters(id: &Identification, inertia: Option<f64>) -> Vec<(&'static st
     let [f, f_se] = split(id.damping.map(|d| d.1));
     let (a_lo, a_hi) = id.amplitude_range().unwrap_or((nan, nan));
     let mass = id.mass.map(|m| m.0).or(inertia);
-    let at_max = id
-        .bins
-        .iter()
-        .max_by(|a, b| a.amplitude.total_cmp(&b.amplitude))
-        .map_or(nan, |b| b.natural_frequency());
+    let largest = id.at_largest_amplitude();
+    let at_max = largest.map_or(nan, |b| b.frequency);
     // In the order of PARAMETER_NAMES, which names them once for every output.
     let values = [
         c,
@@ -246,14 +243,7 @@ pub fn parameters(id: &Identification, inertia: Option<f64>) -> Vec<(&'static st
     // The absolute values: the per-inertia ones times the inertia (given or estimated).
     let abs = |x: f64| mass.map_or(nan, |m| m * x);
     let absolute = [abs(k_se), abs(v), abs(v_se), abs(f), abs(f_se)];
-    let largest = id
-        .bins
-        .iter()
-        .max_by(|a, b| a.amplitude.total_cmp(&b.amplitude));
-    // ζ = h0/ω0, with the bin's damping 2 h0.
-    let zeta = largest
-        .filter(|b| b.stiffness > 0.0)
-        .map_or(nan, |b| 0.5 * b.damping / b.stiffness.sqrt());
+    let zeta = largest.map_or(nan, |b| b.damping_ratio);
     let mode = [
         id.mode.map_or(nan, |m| m.peak),
         id.mode.map_or(nan, |m| m.fmin),

@@ -29,6 +29,10 @@ pub fn signature(kind: EffectKind) -> &'static str {
             "sensor delay: a phase error growing with frequency distorts the relative motion"
         }
         EffectKind::Quantization => "quantization: a noise floor at small amplitude",
+        EffectKind::Microslip => {
+            "microslip: the joint slips a little more each cycle as the amplitude grows, so the \
+             backbone softens and the damping rises with amplitude without a gap ever opening"
+        }
     }
 }
 
@@ -114,15 +118,27 @@ impl Candidate {
     /// may share a name).
     pub fn params(&self) -> BTreeMap<String, f64> {
         let pair = self.effects.len() > 1;
+        let key = |k: EffectKind, param: &str| {
+            if pair {
+                format!("{}.{}", k.name(), param)
+            } else {
+                param.to_string()
+            }
+        };
         self.effects
             .iter()
-            .map(|&(k, v)| {
-                let key = if pair {
-                    format!("{}.{}", k.name(), k.param())
-                } else {
-                    k.param().to_string()
-                };
-                (key, v)
+            .flat_map(|&(k, v)| {
+                let joint = (k == EffectKind::Microslip)
+                    .then_some(self.model.effects.microslip)
+                    .flatten()
+                    .into_iter()
+                    .flat_map(move |p| {
+                        [
+                            (key(k, "joint_stiffness"), p.joint_stiffness),
+                            (key(k, "spread"), p.spread),
+                        ]
+                    });
+                std::iter::once((key(k, k.param()), v)).chain(joint)
             })
             .collect()
     }
@@ -155,9 +171,13 @@ pub(super) fn refit(
     opt: &SearchOptions,
     baseline: &Score,
 ) -> Candidate {
+    // The effects leave the base (the simplex sets them), but a microslip's joint
+    // stiffness stays to start from.
     let mut base = from.clone();
     for &(k, _) in effects {
-        base.effects.set(k, None);
+        if k != EffectKind::Microslip {
+            base.effects.set(k, None);
+        }
     }
     let coords = Coordinates {
         base: &base,

@@ -5,7 +5,7 @@
 
 use super::{Reference, Score, SearchOptions};
 use crate::identify::Identification;
-use crate::model::{EffectKind, RigModel};
+use crate::model::{EffectKind, ModelKind, RigModel, JOINT_SHARE};
 
 /// A model found by a fit, with its score.
 #[derive(Debug, Clone)]
@@ -28,9 +28,15 @@ pub(super) struct Coordinates<'a> {
 }
 
 impl Coordinates<'_> {
+    /// Whether the inertia is a coordinate: when asked, and always for a force model,
+    /// whose modal mass is a parameter like the others.
+    fn fits_inertia(&self) -> bool {
+        self.inertia || self.base.kind == ModelKind::Force
+    }
+
     /// Index of the first effect coordinate.
     pub(super) fn own(&self) -> usize {
-        4 + self.inertia as usize
+        4 + self.fits_inertia() as usize
     }
 
     pub(super) fn model(&self, x: &[f64]) -> RigModel {
@@ -48,11 +54,12 @@ impl Coordinates<'_> {
         } else {
             c.abs()
         };
-        if self.inertia {
+        if self.fits_inertia() {
             m.inertia = b.inertia * x[4].exp();
         }
-        for (i, &(kind, start)) in self.effects.iter().enumerate() {
-            let u = x[self.own() + i];
+        let mut at = self.own();
+        for &(kind, start) in &self.effects {
+            let u = x[at];
             m.effects.set(
                 kind,
                 Some(if by_log(kind) {
@@ -61,6 +68,21 @@ impl Coordinates<'_> {
                     start * u
                 }),
             );
+            at += 1;
+            // The microslip's joint stiffness moves by its logarithm from the base's (or
+            // the share a new joint starts with), never past the model's stiffness.
+            if kind == EffectKind::Microslip {
+                let kj = joint_start(b) * x[at].exp();
+                m.effects.set_joint_stiffness(kj.min(m.stiffness));
+                at += 1;
+                // The spread through a logistic map: always in (0, 1), and a step of the
+                // simplex moves it whichever end it starts near.
+                let s0 = spread_start(b);
+                let u = (s0 / (1.0 - s0)).ln() + x[at];
+                m.effects
+                    .set_spread((1.0 / (1.0 + (-u).exp())).clamp(1e-3, 1.0));
+                at += 1;
+            }
         }
         m
     }
@@ -68,21 +90,25 @@ impl Coordinates<'_> {
     /// The point of `base` itself, every effect at its starting value.
     pub(super) fn origin(&self) -> Vec<f64> {
         let mut x = vec![0.0; self.own()];
-        x.extend(
-            self.effects
-                .iter()
-                .map(|&(k, _)| if by_log(k) { 0.0 } else { 1.0 }),
-        );
+        for &(k, _) in &self.effects {
+            x.push(if by_log(k) { 0.0 } else { 1.0 });
+            if k == EffectKind::Microslip {
+                x.extend([0.0, 0.0]);
+            }
+        }
         x
     }
 
     /// A simplex around `x`: a step of 0.05 in each log parameter (0.1 % of k/J in the
     /// gravity stiffness) and of half the starting value in each effect's. Without a
-    /// clearance its coordinate is left out.
+    /// clearance its coordinate is left out, and a force model's gravity stiffness.
     pub(super) fn simplex(&self, x: &[f64]) -> Vec<Vec<f64>> {
         let mut simplex = vec![x.to_vec()];
         for d in 0..x.len() {
             if d == 2 && self.base.clearance <= 0.0 {
+                continue;
+            }
+            if d == 3 && self.base.kind == ModelKind::Force {
                 continue;
             }
             let mut v = x.to_vec();
@@ -147,7 +173,28 @@ pub(super) fn by_log(kind: EffectKind) -> bool {
             | EffectKind::ContactDamping
             | EffectKind::SensorDelay
             | EffectKind::Quantization
+            | EffectKind::Microslip
     )
+}
+
+/// The joint stiffness a microslip starts from on `model`: its own, or [`JOINT_SHARE`] of
+/// the stiffness for a model without one.
+pub(super) fn joint_start(model: &RigModel) -> f64 {
+    model
+        .effects
+        .joint_stiffness()
+        .filter(|k| *k > 0.0)
+        .unwrap_or(JOINT_SHARE * model.stiffness)
+}
+
+/// The spread a microslip's fit starts from on `model`: its own (kept off the ends of
+/// (0, 1), where the logistic map is flat), or the middle for a model without one.
+pub(super) fn spread_start(model: &RigModel) -> f64 {
+    model
+        .effects
+        .microslip
+        .map_or(0.5, |p| p.spread)
+        .clamp(0.05, 0.95)
 }
 
 /// `ln(v / nominal)`, or 0 where either is not positive.
@@ -172,7 +219,7 @@ pub fn refit_baseline(reference: &Reference, nominal: &RigModel, opt: &SearchOpt
     // Start from the nominal model or from what the identification found, whichever is
     // closer: the skeleton fit is near the truth when the nominal values are far off.
     let mut start = coords.origin();
-    let id = &reference.identified;
+    let id = reference.identified();
     if let Some(dz) = id.dead_zone {
         let j = nominal.inertia;
         let c = id.damping.map_or(nominal.damping, |(c, _)| c.value * j);
@@ -236,12 +283,56 @@ pub(super) fn start_for(
             .unwrap_or(0.01 * model.stiffness * half),
         EffectKind::GravityPreload => 0.1 * model.stiffness * half,
         EffectKind::AsymmetricClearance => 0.1 * half,
+        EffectKind::CubicStiffness if model.clearance <= 0.0 => smooth_cubic(model, identified)
+            .unwrap_or_else(|| generic_smooth_cubic(model, identified)),
         EffectKind::CubicStiffness => backbone_hardening(model, identified, waveform)
             .map_or(generic_cubic(model), |(_, k3)| k3),
+        // Half the joint's elements slipping at the largest measured amplitude.
+        EffectKind::Microslip => joint_start(model) * largest_amplitude(identified),
         EffectKind::ContactDamping => model.damping.max(1e-6),
         EffectKind::SensorDelay => 0.002,
         EffectKind::Quantization => 0.02 * half,
     }
+}
+
+/// The largest amplitude the identification tracked (signal units; 1 when it tracked none).
+fn largest_amplitude(id: &Identification) -> f64 {
+    id.amplitude_range().map_or(1.0, |(_, hi)| hi)
+}
+
+/// The cubic term of a joint without clearance that the backbone asks for: the least
+/// squares of m·ω0² = k + ¾·k3·A² over the samples at resonance (its describing
+/// function); negative for a softening. `None` with fewer than ten such samples.
+fn smooth_cubic(model: &RigModel, id: &Identification) -> Option<f64> {
+    let n = id.used.len().min(id.response.len());
+    let points: Vec<(f64, f64)> = (0..n)
+        .filter(|&i| id.resonant(i) && id.response.valid[i])
+        .map(|i| {
+            let a = id.response.amplitude[i];
+            (0.75 * a * a, model.inertia * id.modal.stiffness[i])
+        })
+        .filter(|(x, y)| x.is_finite() && y.is_finite())
+        .collect();
+    if points.len() < 10 {
+        return None;
+    }
+    let m = points.len() as f64;
+    let (sx, sy) = points
+        .iter()
+        .fold((0.0, 0.0), |(a, b), (x, y)| (a + x, b + y));
+    let (mx, my) = (sx / m, sy / m);
+    let (sxx, sxy) = points.iter().fold((0.0, 0.0), |(a, b), (x, y)| {
+        (a + (x - mx) * (x - mx), b + (x - mx) * (y - my))
+    });
+    let k3 = sxy / sxx;
+    (sxx > 0.0 && k3.is_finite() && k3 != 0.0).then_some(k3)
+}
+
+/// The cubic term of a joint without clearance that changes its stiffness by 10 % at the
+/// largest measured amplitude: the start where the backbone does not give one.
+fn generic_smooth_cubic(model: &RigModel, id: &Identification) -> f64 {
+    let a = largest_amplitude(id);
+    0.1 * model.stiffness / (a * a)
 }
 
 /// The cubic term that adds 10 % of k at one half-gap of penetration (N m/rad³): the

@@ -29,9 +29,10 @@ use super::{
     decimate, decimation_for, measured_resolution, resolution_per_step, simulate_given, Blocks,
     GapError, Part, Target,
 };
-use crate::identify::{Identification, Identifier};
+use crate::identify::{Identification, Identifier, IdentifyOptions};
+use crate::mode::ModeChoice;
 use crate::model::{EffectKind, RigModel};
-use crate::run::Run;
+use crate::run::{Run, RunKind};
 use crate::track::Method;
 
 /// A candidate's held-out shrink must reach this for a verdict: in the self-check's
@@ -155,22 +156,150 @@ impl Score {
     }
 }
 
-/// A measured run, identified once, that models are scored against.
-pub struct Reference<'a> {
-    /// The run.
-    pub run: &'a Run,
-    /// The run as compared: decimated by `factor` (see [`super::decimate`]).
-    pub compared: Run,
-    /// The decimation factor.
-    pub factor: usize,
-    /// Its identification (of `compared`).
-    pub identified: Identification,
-    /// The RMS quantisation error of its response, read from the samples as recorded
-    /// ([`super::measured_resolution`]; 0 when no channel lies on a lattice).
-    pub resolution: f64,
-    fit: Target,
-    holdout: Target,
+/// How a measured run takes part in a [`Reference`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Role {
+    /// One run alone: fits see its even time blocks, gaps are scored on the odd ones.
+    Blocks(Blocks),
+    /// Fitted on whole (one of several runs fitted together).
+    Fit,
+    /// Held out whole: scored, never fitted on.
+    Holdout,
+}
+
+impl Role {
+    /// `fit` or `holdout` for a run of several; `blocks` for one alone.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Role::Blocks(_) => "blocks",
+            Role::Fit => "fit",
+            Role::Holdout => "holdout",
+        }
+    }
+}
+
+/// One measured run of a reference, identified once, with the parts of it that fits see
+/// and that gaps are scored on.
+struct Measured {
+    /// The run as measured (a force run without an `inertia` attribute gets the modal mass
+    /// its identification estimated, so that every simulation of it is read with the same).
+    run: Run,
+    /// The decimation of the run as compared (see [`super::decimate`]).
+    factor: usize,
+    identified: Identification,
+    resolution: f64,
+    /// The user's identification options with the mode band fixed to the one the
+    /// measurement was identified in: a simulation is isolated on the same band, not on its
+    /// own largest peak.
+    options: IdentifyOptions,
+    role: Role,
+    fit: Option<Target>,
+    holdout: Option<Target>,
     whole: Target,
+}
+
+impl Measured {
+    fn new(run: &Run, role: Role, identifier: Identifier<'_>) -> Result<Self, GapError> {
+        if run.input.is_none() {
+            return Err(GapError::Unusable(format!(
+                "{}: the run has no input channel to drive the model with (a free decay cannot \
+                 be simulated under a measured input)",
+                run.meta.path
+            )));
+        }
+        let unusable = |e| GapError::Unusable(format!("the measured run {}: {e}", run.meta.path));
+        let mut full = identifier
+            .identify(run, Method::Wavelet)
+            .map_err(unusable)?;
+        let mut run = run.clone();
+        let mut options = identifier.options.clone();
+        if let Some(b) = full.mode {
+            options.mode = ModeChoice::Band(b.fmin, b.fmax);
+        }
+        if run.meta.kind == RunKind::Force && run.meta.inertia.is_none() {
+            if let Some((m, _)) = full.mass {
+                run.meta.inertia = Some(m);
+            }
+        }
+        let fixed = Identifier {
+            options: &options,
+            backend: identifier.backend,
+        };
+        if options.mode != identifier.options.mode || run.meta.inertia.is_some() {
+            full = fixed.identify(&run, Method::Wavelet).map_err(unusable)?;
+        }
+        let factor = decimation_for(&full);
+        let compared = decimate(run.clone(), factor);
+        let identified = if factor > 1 {
+            fixed
+                .identify(&compared, Method::Wavelet)
+                .map_err(unusable)?
+        } else {
+            full
+        };
+        let (n, fs) = (compared.output.len(), compared.meta.sample_rate);
+        let resolution = measured_resolution(&run);
+        // Scored as the search's defaults: the waveform domain on (where the run has one),
+        // the run's own zero tolerance.
+        // An accelerometer's lattice is in m/s²: the gap compares it with the displacement
+        // the identification tracks.
+        let tracked = super::as_displacement(resolution, &run, Some(&identified));
+        let target = |mask| {
+            Target::new(&identified, &compared, mask)
+                .with_resolution(tracked)
+                .with_waveform(true)
+        };
+        let (fit, holdout) = match role {
+            Role::Blocks(blocks) => (
+                Some(target(Some(blocks.mask(n, fs, Part::Fit)))),
+                Some(target(Some(blocks.mask(n, fs, Part::Holdout)))),
+            ),
+            Role::Fit => (Some(target(None)), None),
+            Role::Holdout => (None, Some(target(None))),
+        };
+        Ok(Measured {
+            whole: target(None),
+            fit,
+            holdout,
+            role,
+            run,
+            factor,
+            identified,
+            resolution,
+            options,
+        })
+    }
+
+    fn targets(&mut self) -> impl Iterator<Item = &mut Target> {
+        self.fit
+            .iter_mut()
+            .chain(self.holdout.iter_mut())
+            .chain(std::iter::once(&mut self.whole))
+    }
+
+    fn simulate(
+        &self,
+        model: &RigModel,
+        backend: &crate::backend::Backend,
+    ) -> Result<super::Simulated, GapError> {
+        simulate_given(
+            &self.run,
+            Some(&self.identified),
+            model,
+            self.factor,
+            Identifier {
+                options: &self.options,
+                backend,
+            },
+        )
+    }
+}
+
+/// The measured runs, identified once, that models are scored against: one run split into
+/// alternate time blocks, or several runs of one structure, some fitted together and the
+/// others held out whole.
+pub struct Reference<'a> {
+    runs: Vec<Measured>,
     evaluations: AtomicUsize,
     on_score: Option<Box<dyn Fn(usize) + Send + Sync + 'a>>,
     /// How the measurement and every simulation are identified.
@@ -183,63 +312,111 @@ impl<'a> Reference<'a> {
     /// `blocks`. It scores as [`SearchOptions::default`] searches: the waveform domain on
     /// (where the run has one) and the run's `zero_tolerance`; [`scored_as`](Self::scored_as)
     /// sets both from other options.
-    pub fn new(run: &'a Run, blocks: Blocks, identifier: Identifier<'a>) -> Result<Self, GapError> {
-        if run.input.is_none() {
+    pub fn new(run: &Run, blocks: Blocks, identifier: Identifier<'a>) -> Result<Self, GapError> {
+        Self::of(
+            vec![Measured::new(run, Role::Blocks(blocks), identifier)?],
+            identifier,
+        )
+    }
+
+    /// Several runs of one structure: models are fitted on the `fit` runs together (the
+    /// fit's gap is the RMS of theirs) and scored on the `holdout` runs (likewise), each
+    /// driven by its own measured input. The first fit run is the one the search reads
+    /// its starting values from.
+    pub fn together(
+        fit: &[&Run],
+        holdout: &[&Run],
+        identifier: Identifier<'a>,
+    ) -> Result<Self, GapError> {
+        if fit.is_empty() || holdout.is_empty() {
             return Err(GapError::Unusable(
-                "the run has no input channel to drive the model with (a free decay cannot be \
-                 simulated under a measured input)"
-                    .into(),
+                "runs fitted together need at least one fit run and one held-out run".into(),
             ));
         }
-        let unusable = |e| GapError::Unusable(format!("the measured run: {e}"));
-        let full = identifier
-            .identify(run, Method::Wavelet)
-            .map_err(unusable)?;
-        let factor = decimation_for(&full);
-        let compared = decimate(run.clone(), factor);
-        let identified = if factor > 1 {
-            identifier
-                .identify(&compared, Method::Wavelet)
-                .map_err(unusable)?
-        } else {
-            full
-        };
-        let (n, fs) = (compared.output.len(), compared.meta.sample_rate);
-        let resolution = measured_resolution(run);
-        // Scored as the search's defaults: the waveform domain on (where the run has one),
-        // the run's own zero tolerance.
-        let target = |mask| {
-            Target::new(&identified, &compared, mask)
-                .with_resolution(resolution)
-                .with_waveform(true)
-        };
+        let roles = fit
+            .iter()
+            .map(|r| (*r, Role::Fit))
+            .chain(holdout.iter().map(|r| (*r, Role::Holdout)))
+            .collect::<Vec<_>>();
+        let runs = roles
+            .par_iter()
+            .map(|(r, role)| Measured::new(r, *role, identifier))
+            .collect::<Result<Vec<_>, _>>()?;
+        Self::of(runs, identifier)
+    }
+
+    /// Several runs of one rig (levels, say) fitted together on the even time `blocks` of
+    /// each and scored on the odd ones: the one-run scheme over several records.
+    pub fn blocks_together(
+        runs: &[&Run],
+        blocks: Blocks,
+        identifier: Identifier<'a>,
+    ) -> Result<Self, GapError> {
+        if runs.is_empty() {
+            return Err(GapError::Unusable("no run to fit".into()));
+        }
+        let runs = runs
+            .par_iter()
+            .map(|r| Measured::new(r, Role::Blocks(blocks), identifier))
+            .collect::<Result<Vec<_>, _>>()?;
+        Self::of(runs, identifier)
+    }
+
+    fn of(runs: Vec<Measured>, identifier: Identifier<'a>) -> Result<Self, GapError> {
         Ok(Reference {
-            run,
-            fit: target(Some(blocks.mask(n, fs, Part::Fit))),
-            holdout: target(Some(blocks.mask(n, fs, Part::Holdout))),
-            whole: target(None),
-            resolution,
-            compared,
-            factor,
-            identified,
+            runs,
             evaluations: AtomicUsize::new(0),
             on_score: None,
             identifier,
         })
     }
 
-    /// The same reference with its parts exchanged: fits see the odd blocks and gaps are
-    /// scored on the even ones (a second, independent fit of the same record).
+    /// The (first) run: the one the search reads its starting values from.
+    pub fn run(&self) -> &Run {
+        &self.runs[0].run
+    }
+
+    /// Its identification (of the run as compared).
+    pub fn identified(&self) -> &Identification {
+        &self.runs[0].identified
+    }
+
+    /// The RMS quantisation error of its response, read from the samples as recorded
+    /// ([`super::measured_resolution`]; 0 when no channel lies on a lattice).
+    pub fn resolution(&self) -> f64 {
+        self.runs[0].resolution
+    }
+
+    /// How many measured runs it holds.
+    pub fn len(&self) -> usize {
+        self.runs.len()
+    }
+
+    /// Whether it holds no run (never: every constructor gives it one).
+    pub fn is_empty(&self) -> bool {
+        self.runs.is_empty()
+    }
+
+    /// Run `i`'s measurement, identification and role.
+    pub fn measured(&self, i: usize) -> (&Run, &Identification, Role) {
+        let m = &self.runs[i];
+        (&m.run, &m.identified, m.role)
+    }
+
+    /// The same reference with its parts exchanged: fits see the odd blocks (the held-out
+    /// runs) and gaps are scored on the even ones (the fit runs): a second, independent fit.
     pub fn swapped(mut self) -> Self {
-        std::mem::swap(&mut self.fit, &mut self.holdout);
+        for m in &mut self.runs {
+            std::mem::swap(&mut m.fit, &mut m.holdout);
+        }
         self
     }
 
     /// The same reference, scoring the waveform domain too when `on` (see
     /// [`SearchOptions::waveform`]).
     pub fn with_waveform(mut self, on: bool) -> Self {
-        for t in [&mut self.fit, &mut self.holdout, &mut self.whole] {
-            t.set_waveform(on);
+        for m in &mut self.runs {
+            m.targets().for_each(|t| t.set_waveform(on));
         }
         self
     }
@@ -255,8 +432,8 @@ impl<'a> Reference<'a> {
     /// given, instead of the run's attribute (see [`SearchOptions::zero_tolerance`]).
     pub fn with_zero_tolerance(mut self, tolerance: Option<f64>) -> Self {
         if let Some(t) = tolerance {
-            for target in [&mut self.fit, &mut self.holdout, &mut self.whole] {
-                target.set_zero_tolerance(t);
+            for m in &mut self.runs {
+                m.targets().for_each(|target| target.set_zero_tolerance(t));
             }
         }
         self
@@ -264,7 +441,7 @@ impl<'a> Reference<'a> {
 
     /// The encoders' zero tolerance this reference scores with (rad).
     pub fn zero_tolerance(&self) -> f64 {
-        self.holdout.zero_tolerance()
+        self.runs[0].whole.zero_tolerance()
     }
 
     /// Calls `f` with the number of simulations so far after each one (progress displays).
@@ -273,45 +450,65 @@ impl<'a> Reference<'a> {
         self
     }
 
-    /// Simulates `model` and scores it on both parts (infinite where its response cannot
-    /// be identified: a model that far off is simply bad).
+    /// Simulates `model` under every run and scores it on both parts (infinite where a
+    /// response cannot be identified: a model that far off is simply bad). Over several
+    /// runs each part's gap is the RMS of its runs' (each domain likewise).
     pub fn score(&self, model: &RigModel) -> Score {
         let n = self.evaluations.fetch_add(1, Ordering::Relaxed) + 1;
         if let Some(f) = &self.on_score {
             f(n);
         }
-        match simulate_given(
-            self.run,
-            Some(&self.identified),
-            model,
-            self.factor,
-            self.identifier,
-        ) {
-            Ok(s) => {
+        let gaps: Option<Vec<(Option<super::Gap>, Option<super::Gap>)>> = self
+            .runs
+            .par_iter()
+            .map(|m| {
+                let s = m.simulate(model, self.identifier.backend).ok()?;
                 let features = s.features();
-                let m = &self.identified;
-                let h = self.holdout.gap(m, &features);
-                Score {
-                    fit: self.fit.gap(m, &features).total,
-                    holdout: h.total,
-                    domains: [h.time, h.backbone, h.damping, h.waveform],
-                }
-            }
-            Err(_) => Score::FAILED,
+                let id = &m.identified;
+                Some((
+                    m.fit.as_ref().map(|t| t.gap(id, &features)),
+                    m.holdout.as_ref().map(|t| t.gap(id, &features)),
+                ))
+            })
+            .collect();
+        let Some(gaps) = gaps else {
+            return Score::FAILED;
+        };
+        let rms = |values: Vec<f64>| -> Option<f64> {
+            (!values.is_empty())
+                .then(|| (values.iter().map(|v| v * v).sum::<f64>() / values.len() as f64).sqrt())
+        };
+        let fits: Vec<f64> = gaps
+            .iter()
+            .filter_map(|g| g.0.as_ref())
+            .map(|g| g.total)
+            .collect();
+        let held: Vec<&super::Gap> = gaps.iter().filter_map(|g| g.1.as_ref()).collect();
+        let domain =
+            |d: fn(&super::Gap) -> Option<f64>| rms(held.iter().filter_map(|g| d(g)).collect());
+        Score {
+            fit: rms(fits).unwrap_or(f64::INFINITY),
+            holdout: rms(held.iter().map(|g| g.total).collect()).unwrap_or(f64::INFINITY),
+            domains: [
+                domain(|g| g.time),
+                domain(|g| g.backbone),
+                domain(|g| g.damping),
+                domain(|g| g.waveform),
+            ],
         }
     }
 
-    /// The gap of `model` over the whole run, with the simulation's identification (for
-    /// the report's regions and plots).
+    /// The gap of `model` over the whole (first) run, with the simulation's identification
+    /// (for the report's regions and plots).
     pub fn whole(&self, model: &RigModel) -> Result<super::Whole, GapError> {
-        let s = simulate_given(
-            self.run,
-            Some(&self.identified),
-            model,
-            self.factor,
-            self.identifier,
-        )?;
-        let gap = self.whole.gap(&self.identified, &s.features());
+        self.whole_of(0, model)
+    }
+
+    /// [`whole`](Self::whole) of run `i`.
+    pub fn whole_of(&self, i: usize, model: &RigModel) -> Result<super::Whole, GapError> {
+        let m = &self.runs[i];
+        let s = m.simulate(model, self.identifier.backend)?;
+        let gap = m.whole.gap(&m.identified, &s.features());
         Ok(super::Whole {
             gap,
             identified: s.identified,
@@ -404,7 +601,7 @@ pub fn diagnose(
     pairs(reference, &mut candidates, opt, &base);
     let verdict = verdict(&baseline, &candidates);
     Ok(Diagnosis {
-        run: reference.run.meta.path.clone(),
+        run: reference.run().meta.path.clone(),
         nominal: nominal.clone(),
         nominal_score,
         baseline,
@@ -424,7 +621,7 @@ fn scan(
     baseline: &Fitted,
     opt: &SearchOptions,
 ) -> Vec<(Side, EffectKind, f64, Fitted)> {
-    let id = &reference.identified;
+    let id = reference.identified();
     // Scan: each effect alone over a coarse grid of its parameter, added to the baseline and
     // to the nominal model. The baseline may have absorbed part of the missing effect by
     // bending its own parameters (dry friction or contact damping into more viscous
@@ -441,8 +638,10 @@ fn scan(
                 bases.push((Side::Nominal, nominal.clone()));
             }
             // A preload and an offset can lean either way: both signs are scanned.
+            // So can a joint's cubic term without clearance (a softening bolted joint).
             let signs: &[f64] = match k {
                 EffectKind::GravityPreload | EffectKind::AsymmetricClearance => &[1.0, -1.0],
+                EffectKind::CubicStiffness if nominal.clearance <= 0.0 => &[1.0, -1.0],
                 _ => &[1.0],
             };
             bases.into_iter().flat_map(move |(side, b)| {
@@ -477,7 +676,7 @@ fn scan(
         .map(|(side, b, k, v)| {
             let (k, v) = (*k, *v);
             let mut model = b.clone();
-            model.effects.set(k, Some(v));
+            model.set_effect(k, Some(v));
             let score = reference.score(&model);
             (*side, k, v, Fitted { model, score })
         })
@@ -586,7 +785,7 @@ fn quantization(
     opt: &SearchOptions,
     base: &Score,
 ) -> Option<Candidate> {
-    let id = &reference.identified;
+    let id = reference.identified();
     // Quantisation is a property of the sensor, not of the dynamics: its step is read off
     // the lattice the samples lie on, and the candidate is the baseline with that step,
     // scored once. Searched like the others, it only cost simulations: the simulation does
@@ -596,8 +795,8 @@ fn quantization(
         return None;
     }
     let kind = EffectKind::Quantization;
-    let step = if reference.resolution > 0.0 {
-        reference.resolution / resolution_per_step(reference.run)
+    let step = if reference.resolution() > 0.0 {
+        reference.resolution() / resolution_per_step(reference.run())
     } else {
         effect_start(kind, &baseline.model, id)
     };
@@ -611,7 +810,7 @@ fn quantization(
     // they are refitted with the step held (a 14-bit/rev case scored once shrank the gap by
     // 15 %, the truth by 71 %). Not marked refined: the step is read, not searched, and
     // stays out of the pairs.
-    let new = reference.resolution > 0.0 && known.is_none_or(|q| (step / q - 1.0).abs() > 0.1);
+    let new = reference.resolution() > 0.0 && known.is_none_or(|q| (step / q - 1.0).abs() > 0.1);
     if !new {
         return Some(scored);
     }

@@ -1,0 +1,157 @@
+//! The gap for one mode of a structure driven by a force (`kind = "force"`), with several
+//! runs (levels) fitted together and others held out: simulated structures with a known
+//! joint, through the library and through `skelid gap --fit/--holdout`.
+
+mod common;
+
+use std::process::Command;
+
+use skelid::backend::Backend;
+use skelid::gap::search::Reference;
+use skelid::identify::{Identifier, IdentifyOptions};
+use skelid::model::{EffectKind, RigModel};
+use skelid::rig::{structure_effect_value, structure_mode, structure_run, STRUCTURE_LEVELS};
+
+fn identifier() -> Identifier<'static> {
+    static ENGINE: std::sync::OnceLock<(IdentifyOptions, Backend)> = std::sync::OnceLock::new();
+    let (options, backend) = ENGINE.get_or_init(|| (IdentifyOptions::default(), Backend::cpu()));
+    Identifier { options, backend }
+}
+
+/// The structure with a microslip joint (a tenth of its stiffness, half slipping at 10 mm).
+fn jointed() -> RigModel {
+    let mut truth = structure_mode();
+    truth.set_effect(
+        EffectKind::Microslip,
+        structure_effect_value(EffectKind::Microslip),
+    );
+    truth
+}
+
+/// The structure's sweeps at every level, 1 % accelerometer noise.
+fn levels(truth: &RigModel) -> Vec<skelid::campaign::RunData> {
+    STRUCTURE_LEVELS
+        .iter()
+        .enumerate()
+        .map(|(i, &level)| {
+            structure_run(
+                &format!("/gvt/level_{}", i + 1),
+                truth,
+                level,
+                0.01,
+                7 + i as u64,
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn runs_fitted_together_are_scored_on_the_held_out_ones() {
+    let truth = jointed();
+    let runs: Vec<_> = levels(&truth).into_iter().map(|r| r.into_run()).collect();
+    let reference =
+        Reference::together(&[&runs[0], &runs[2]], &[&runs[1], &runs[3]], identifier()).unwrap();
+    assert_eq!(reference.len(), 4);
+    // The truth matches every level to within the noise and the identification's scatter;
+    // the linear mode it softens from misses the levels where the joint slips.
+    let t = reference.score(&truth);
+    let linear = reference.score(&structure_mode());
+    println!("truth {t:?}\nlinear {linear:?}");
+    assert!(t.fit < 0.03 && t.holdout < 0.03, "{t:?}");
+    assert!(linear.holdout > 5.0 * t.holdout, "{linear:?}");
+    // Swapped, the held-out runs are fitted on: the same two numbers exchanged.
+    let swapped = Reference::together(&[&runs[1], &runs[3]], &[&runs[0], &runs[2]], identifier())
+        .unwrap()
+        .score(&truth);
+    assert!((swapped.fit - t.holdout).abs() < 1e-9 && (swapped.holdout - t.fit).abs() < 1e-9);
+    // A force run's mass is estimated once per run and every simulation read with it.
+    for i in 0..4 {
+        let (run, _, _) = reference.measured(i);
+        assert!(run.meta.inertia.is_some_and(|m| m > 0.0), "{i}");
+    }
+}
+
+#[test]
+fn skelid_gap_names_the_microslip_of_a_bolted_joint_from_levels_fitted_together() {
+    let dir = common::tmpdir();
+    let archive = dir.path().join("gvt.h5");
+    skelid::campaign::write_campaign(&archive, &[], &levels(&jointed()), false).unwrap();
+    // The nominal: the linear mode, a few percent off, as a FE model would give it.
+    let mut nominal = structure_mode();
+    nominal.stiffness *= 1.02;
+    nominal.damping *= 1.1;
+    nominal.inertia *= 0.97;
+    let model = dir.path().join("mode.toml");
+    std::fs::write(&model, nominal.to_toml()).unwrap();
+    assert!(nominal.to_toml().contains("kind = \"force\""));
+    let out = dir.path().join("gap");
+    let o = Command::new(env!("CARGO_BIN_EXE_skelid"))
+        .args(["gap", "--model"])
+        .arg(&model)
+        .arg(&archive)
+        .args([
+            "--fit",
+            "/gvt/level_1,/gvt/level_3",
+            "--holdout",
+            "/gvt/level_[24]",
+        ])
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&o.stdout);
+    println!("{text}\n{}", String::from_utf8_lossy(&o.stderr));
+    assert!(o.status.success());
+    let doc: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("gap.json")).unwrap()).unwrap();
+    let runs = doc["runs"].as_array().unwrap();
+    let roles: Vec<(&str, &str)> = runs
+        .iter()
+        .map(|r| (r["run"].as_str().unwrap(), r["role"].as_str().unwrap()))
+        .collect();
+    assert_eq!(
+        roles,
+        [
+            ("/gvt/level_1", "fit"),
+            ("/gvt/level_3", "fit"),
+            ("/gvt/level_2", "holdout"),
+            ("/gvt/level_4", "holdout")
+        ]
+    );
+    assert_eq!(doc["settings"]["model_kind"], "force");
+    let r = &runs[3];
+    assert_eq!(r["verdict"], "microslip", "{r}");
+    assert_eq!(
+        r["holdout_runs"],
+        serde_json::json!(["/gvt/level_2", "/gvt/level_4"])
+    );
+    let best = &r["candidates"][0];
+    assert!(best["shrink"].as_f64().unwrap() >= 0.5, "{best}");
+    // The force model's vocabulary: no preload, no offset, no contact damping without a
+    // clearance.
+    for c in r["candidates"].as_array().unwrap() {
+        let e = c["effect"].as_str().unwrap();
+        assert!(
+            !e.contains("preload") && !e.contains("asymmetric") && !e.contains("contact"),
+            "{e}"
+        );
+    }
+    // Predicted at the top level's largest amplitude, the fitted model's backbone
+    // frequency is nearer the measured one than the baseline's.
+    let at = &r["at_largest_amplitude"];
+    let f = |k: &str| at[k]["frequency"].as_f64().unwrap();
+    assert!(
+        (f("fitted") - f("measured")).abs() < (f("baseline") - f("measured")).abs(),
+        "{at}"
+    );
+    // The fitted model reads back, a force model with its joint.
+    let fitted = std::fs::read_dir(&out)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.path())
+        .find(|p| p.to_string_lossy().ends_with(".fitted.toml"))
+        .expect("a fitted model");
+    let m = RigModel::load(&fitted).unwrap();
+    assert_eq!(m.kind, skelid::model::ModelKind::Force);
+    assert!(m.effects.joint_stiffness().is_some());
+}
