@@ -95,6 +95,9 @@ pub enum ModelKind {
     BaseMotion,
     /// One mode of a structure: driven by the measured force.
     Force,
+    /// One mode of a structure ringing down after an impact: started from the record's
+    /// own state (displacement and velocity of the mode) where its envelope peaks.
+    Free,
 }
 
 impl ModelKind {
@@ -108,6 +111,7 @@ impl ModelKind {
         match self {
             ModelKind::BaseMotion => "base_motion",
             ModelKind::Force => "force",
+            ModelKind::Free => "free",
         }
     }
 
@@ -117,7 +121,7 @@ impl ModelKind {
     pub fn vocabulary(self) -> &'static [EffectKind] {
         match self {
             ModelKind::BaseMotion => &EffectKind::ALL,
-            ModelKind::Force => &EffectKind::FORCE,
+            ModelKind::Force | ModelKind::Free => &EffectKind::FORCE,
         }
     }
 }
@@ -437,7 +441,7 @@ impl RigModel {
             .iter()
             .copied()
             .filter(|&k| {
-                !(self.kind == ModelKind::Force
+                !(self.kind != ModelKind::BaseMotion
                     && self.clearance <= 0.0
                     && k == EffectKind::ContactDamping)
             })
@@ -671,7 +675,7 @@ pub fn key_unit_of(key: &str, kind: ModelKind) -> Option<&'static str> {
     let unit = key_unit(key)?;
     Some(match kind {
         ModelKind::BaseMotion => unit,
-        ModelKind::Force => match unit {
+        ModelKind::Force | ModelKind::Free => match unit {
             "kg m^2" => "kg",
             "N m/rad" => "N/m",
             "N m s/rad" => "N s/m",

@@ -187,7 +187,7 @@ pub fn run_data(
             Some(Quantity::Displacement),
         ),
         Drive::Force(_) => (RunKind::Force, Some(sim.input), Some(Quantity::Force)),
-        Drive::Free { .. } => (RunKind::Free, None, None),
+        Drive::Free { .. } | Drive::Released { .. } => (RunKind::Free, None, None),
     };
     RunData {
         path: path.to_string(),
@@ -485,5 +485,47 @@ pub fn structure_run(path: &str, model: &RigModel, level: f64, noise: f64, seed:
         .push(("units".into(), Attr::Text("input N, output m/s^2".into())));
     data.attrs
         .retain(|(k, v)| !(k == "units" && matches!(v, Attr::Text(t) if t == "input N, output m")));
+    data
+}
+
+/// `model` (a [`structure_mode`] with its effects) ringing down from `offset` (m) after an
+/// impact, as a hammer test records it: 1 s at rest, the impact as a release from `offset`,
+/// 12 s of decay, 400 Hz, an accelerometer (m/s²) with white noise of `noise` of the
+/// decay's RMS; a free-decay run (`kind = free`, no input, no inertia).
+pub fn structure_decay(
+    path: &str,
+    model: &RigModel,
+    offset: f64,
+    noise: f64,
+    seed: u64,
+) -> RunData {
+    let fs = 400.0;
+    let drive = Drive::Free {
+        initial_offset: offset,
+    };
+    let settings = SimSettings {
+        sample_rate: fs,
+        duration: 12.0,
+        substeps: 4,
+        output_noise: 0.0,
+        input_noise: 0.0,
+        seed,
+    };
+    let sim = simulate(model, &drive, &settings);
+    let d = crate::simulate::derivative_4th;
+    let decay = d(&d(&sim.output, fs), fs);
+    let rms = (decay.iter().map(|a| a * a).sum::<f64>() / decay.len() as f64).sqrt();
+    let mut acc = vec![0.0; fs as usize];
+    acc.extend(decay);
+    let mut rng = StdRng::seed_from_u64(seed ^ 0x5eed);
+    let normal = Normal::new(0.0, noise * rms).expect("a finite noise level");
+    acc.iter_mut().for_each(|a| *a += normal.sample(&mut rng));
+    let description = format!("free decay from {offset} m after an impact");
+    let mut data = run_data(path, model, &drive, sim, fs, &description);
+    data.output = acc;
+    data.output_quantity = Quantity::Acceleration;
+    data.attrs.retain(|(k, _)| k != "inertia" && k != "units");
+    data.attrs
+        .push(("units".into(), Attr::Text("output m/s^2".into())));
     data
 }

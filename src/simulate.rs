@@ -344,6 +344,13 @@ pub enum Drive {
         /// Initial angle (displacement) of the link, released at rest.
         initial_offset: f64,
     },
+    /// Free decay from a state (base at rest): a record's own state after an impact.
+    Released {
+        /// Initial angle (displacement).
+        displacement: f64,
+        /// Initial angular velocity (velocity).
+        velocity: f64,
+    },
 }
 
 /// Sampling and integration settings.
@@ -505,7 +512,7 @@ impl<'a> Rig<'a> {
         match self.drive {
             Drive::Base(e) => (e.eval(t), 0.0),
             Drive::Force(e) => (Jet::constant(0.0), e.eval(t).v),
-            Drive::Free { .. } => (Jet::constant(0.0), 0.0),
+            Drive::Free { .. } | Drive::Released { .. } => (Jet::constant(0.0), 0.0),
         }
     }
 
@@ -620,6 +627,13 @@ pub fn simulate(model: &RigModel, drive: &Drive, settings: &SimSettings) -> SimO
             th: *initial_offset,
             om: 0.0,
         },
+        Drive::Released {
+            displacement,
+            velocity,
+        } => State {
+            th: *displacement,
+            om: *velocity,
+        },
         _ => {
             let (phi, _) = rig.inputs(0.0);
             State {
@@ -665,7 +679,7 @@ pub fn simulate(model: &RigModel, drive: &Drive, settings: &SimSettings) -> SimO
         input.push(match drive {
             Drive::Base(_) => phi.v,
             Drive::Force(_) => f_ext,
-            Drive::Free { .. } => 0.0,
+            Drive::Free { .. } | Drive::Released { .. } => 0.0,
         });
         relative.push(z);
         relative_velocity.push(v);

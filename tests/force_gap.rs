@@ -155,3 +155,46 @@ fn skelid_gap_names_the_microslip_of_a_bolted_joint_from_levels_fitted_together(
     assert_eq!(m.kind, skelid::model::ModelKind::Force);
     assert!(m.effects.joint_stiffness().is_some());
 }
+
+#[test]
+fn skelid_gap_names_the_microslip_of_a_free_decay_started_from_the_record_s_own_state() {
+    let dir = common::tmpdir();
+    let archive = dir.path().join("hammer.h5");
+    let decay = skelid::rig::structure_decay("/hammer/acc1", &jointed(), 0.02, 0.01, 3);
+    skelid::campaign::write_campaign(&archive, &[], &[decay], false).unwrap();
+    // The nominal: the linear mode, a few percent off, as a free-decay model.
+    let mut nominal = structure_mode();
+    nominal.kind = skelid::model::ModelKind::Free;
+    nominal.stiffness *= 1.02;
+    nominal.damping *= 1.1;
+    let model = dir.path().join("mode.toml");
+    std::fs::write(&model, nominal.to_toml()).unwrap();
+    assert!(nominal.to_toml().contains("kind = \"free\""));
+    let out = dir.path().join("gap");
+    let o = Command::new(env!("CARGO_BIN_EXE_skelid"))
+        .args(["gap", "--model"])
+        .arg(&model)
+        .arg(&archive)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&o.stdout);
+    println!("{text}\n{}", String::from_utf8_lossy(&o.stderr));
+    assert!(o.status.success());
+    let doc: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("gap.json")).unwrap()).unwrap();
+    assert_eq!(doc["settings"]["model_kind"], "free");
+    let r = &doc["runs"][0];
+    assert_eq!(r["verdict"], "microslip", "{r}");
+    assert!(r["candidates"][0]["shrink"].as_f64().unwrap() >= 0.5);
+    // The truth's own decay, softening and damping more at large amplitude, is what the
+    // fitted model reproduces: nearer the measurement at its largest amplitude than the
+    // linear baseline.
+    let at = &r["at_largest_amplitude"];
+    let f = |k: &str| at[k]["frequency"].as_f64().unwrap();
+    assert!(
+        (f("fitted") - f("measured")).abs() < (f("baseline") - f("measured")).abs(),
+        "{at}"
+    );
+}

@@ -251,6 +251,7 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     let wanted_kind = match model.kind {
         skelid::model::ModelKind::BaseMotion => RunKind::BaseMotion,
         skelid::model::ModelKind::Force => RunKind::Force,
+        skelid::model::ModelKind::Free => RunKind::Free,
     };
     let together = !a.fit.is_empty();
     let (fit_paths, holdout_paths) = if together {
@@ -511,7 +512,7 @@ impl Terminal<'_> {
             if first {
                 text += &format!(
                     "\n  the mode at each run's largest amplitude (frequency Hz, damping ratio %), measured · nominal · fitted{}:",
-                    if d.verdict.is_some() { "" } else { " (the refitted baseline)" }
+                    if d.verdict.is_some() { "" } else { " (the refitted baseline) · the best candidate" }
                 );
             }
             let at = |id: Option<&skelid::identify::Identification>| {
@@ -520,8 +521,12 @@ impl Terminal<'_> {
                         format!("{:.3} Hz {:.2} %", a.frequency, 100.0 * a.damping_ratio)
                     })
             };
+            let best = match (&r.best, d.candidates.first()) {
+                (Some(w), Some(c)) => format!(" · {} {}", c.name(), at(Some(&w.identified))),
+                _ => String::new(),
+            };
             let line = format!(
-                "\n    {:<32} {:<8} {} · {} · {}",
+                "\n    {:<32} {:<8} {} · {} · {}{best}",
                 d.run,
                 r.role.name(),
                 at(Some(&r.measured)),

@@ -142,7 +142,9 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<()> {
             Some(Excitation::measured(&input, fs, cutoff))
         }
     };
-    let drive = match (excitation, a.force_input) {
+    // A force model is driven by a force whether or not --force-input says so.
+    let force_input = a.force_input || model.kind == skelid::model::ModelKind::Force;
+    let drive = match (excitation, force_input) {
         (None, _) => Drive::Free {
             initial_offset: a.initial_offset,
         },

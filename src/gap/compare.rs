@@ -44,7 +44,10 @@ impl Target {
     /// when `None`).
     pub fn new(measured: &Identification, run: &Run, mask: Option<Vec<bool>>) -> Target {
         let features = Features::of(measured, run);
-        let jumps = measured.dead_zone.map(|dz| {
+        // A free decay has no sweep and so no jumps between branches: from its first
+        // sample it would read as one long jump-up and be compared nowhere.
+        let swept = run.meta.kind != crate::run::RunKind::Free;
+        let jumps = measured.dead_zone.filter(|_| swept).map(|dz| {
             let fs = measured.response.sample_rate;
             Jumps::of(
                 &features.ln,

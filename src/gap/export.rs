@@ -62,6 +62,7 @@ pub fn run_json(r: &GapRun) -> Value {
                 "shrink": num(c.shrink),
                 "shrink_domains": c.shrink_domains(),
                 "refined": c.refined,
+                "model": c.model,
                 "domains": domains(c.score.domains),
                 "signature": explains.join("; "),
             })
@@ -99,6 +100,10 @@ pub fn run_json(r: &GapRun) -> Value {
             "fitted": largest(&r.fitted().identified),
         },
     });
+    if let (Some(best), Some(c)) = (&r.best, d.candidates.first()) {
+        entry["at_largest_amplitude"]["best_candidate"] = largest(&best.identified);
+        entry["at_largest_amplitude"]["best_candidate"]["effect"] = json!(c.name());
+    }
     if !r.together.0.is_empty() {
         entry["fit_runs"] = json!(r.together.0);
         entry["holdout_runs"] = json!(r.together.1);

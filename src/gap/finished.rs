@@ -33,6 +33,9 @@ pub struct GapRun {
     pub role: Role,
     /// Of runs fitted together, the fit runs and the held-out ones (empty for a run alone).
     pub together: (Vec<String>, Vec<String>),
+    /// Where the verdict is `none`: the best candidate over the whole run (how near the
+    /// nearest explanation came, for the page and gap.json).
+    pub best: Option<Whole>,
 }
 
 impl GapRun {
@@ -59,14 +62,24 @@ impl GapRun {
     pub fn of(reference: &Reference, i: usize, diagnosis: Diagnosis) -> Result<GapRun, GapError> {
         let d = &diagnosis;
         let with_effect = d.verdict.map(|_| d.fitted_model());
-        let ((nominal, baseline), fitted) = rayon::join(
+        let best_model = d
+            .verdict
+            .is_none()
+            .then(|| d.candidates.first().map(|c| &c.model))
+            .flatten();
+        let (((nominal, baseline), fitted), best) = rayon::join(
             || {
                 rayon::join(
-                    || reference.whole_of(i, &d.nominal).ok(),
-                    || reference.whole_of(i, &d.baseline.model),
+                    || {
+                        rayon::join(
+                            || reference.whole_of(i, &d.nominal).ok(),
+                            || reference.whole_of(i, &d.baseline.model),
+                        )
+                    },
+                    || with_effect.map(|m| reference.whole_of(i, m)).transpose(),
                 )
             },
-            || with_effect.map(|m| reference.whole_of(i, m)).transpose(),
+            || best_model.and_then(|m| reference.whole_of(i, m).ok()),
         );
         let (_, measured, role) = reference.measured(i);
         let mut together = (Vec::new(), Vec::new());
@@ -86,6 +99,7 @@ impl GapRun {
             nominal,
             baseline: baseline?,
             fitted: fitted?,
+            best,
             zero_tolerance: reference.zero_tolerance(),
             diagnosis,
         })

@@ -54,7 +54,8 @@ pub use features::{
 pub use finished::{GapRun, Whole};
 pub use search::{diagnose, Candidate, Diagnosis, SearchOptions};
 pub use simulated::{
-    decimate, decimation_for, simulate_given, simulate_like, Simulated, SAMPLES_PER_CYCLE,
+    decimate, decimation_for, simulate_given, simulate_like, simulate_released, Simulated,
+    SAMPLES_PER_CYCLE,
 };
 
 /// Time windows the time domain is split into for the regions.

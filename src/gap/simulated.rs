@@ -101,7 +101,8 @@ pub fn decimate(run: Run, factor: usize) -> Run {
 
 /// [`simulate_like`], decimated by `factor` before it is identified (see [`decimate`]),
 /// reusing the measurement's input track when `identified` is given (the simulation is
-/// driven by that very input, so tracking it again only costs time).
+/// driven by that very input, so tracking it again only costs time). A free-decay model
+/// needs the record's state instead: [`simulate_released`].
 pub fn simulate_given(
     measured: &Run,
     identified: Option<&Identification>,
@@ -132,10 +133,46 @@ pub fn simulate_given(
             };
             Drive::Force(Excitation::sampled(force, fs))
         }
+        ModelKind::Free => {
+            return Err(GapError::Unusable(
+                "a free-decay model starts from the record's own state, not from an input \
+                 (skelid gap finds that state: the model's kind is \"free\")"
+                    .into(),
+            ))
+        }
     };
+    simulate_driven(measured, identified, model, drive, factor, identifier)
+}
+
+/// A free-decay model released from `state` (displacement, velocity of the mode at the
+/// record's first sample) over the length of `measured`, recorded and identified like it.
+pub fn simulate_released(
+    measured: &Run,
+    identified: Option<&Identification>,
+    model: &RigModel,
+    state: (f64, f64),
+    factor: usize,
+    identifier: Identifier<'_>,
+) -> Result<Simulated, GapError> {
+    let drive = Drive::Released {
+        displacement: state.0,
+        velocity: state.1,
+    };
+    simulate_driven(measured, identified, model, drive, factor, identifier)
+}
+
+fn simulate_driven(
+    measured: &Run,
+    identified: Option<&Identification>,
+    model: &RigModel,
+    drive: Drive,
+    factor: usize,
+    identifier: Identifier<'_>,
+) -> Result<Simulated, GapError> {
+    let fs = measured.meta.sample_rate;
     let settings = SimSettings {
         sample_rate: fs,
-        duration: input.len() as f64 / fs,
+        duration: measured.output.len() as f64 / fs,
         ..SimSettings::default()
     };
     // The encoder's quantisation enters the gap as the resolution it gives the response,
@@ -152,7 +189,7 @@ pub fn simulate_given(
     let out = simulate(&unquantised, &drive, &settings);
     let run = Run {
         meta: measured.meta.clone(),
-        input: Some(out.input),
+        input: measured.input.as_ref().map(|_| out.input),
         output: as_measured(out.output, measured),
     };
     let run = decimate(run, factor);

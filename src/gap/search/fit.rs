@@ -108,7 +108,7 @@ impl Coordinates<'_> {
             if d == 2 && self.base.clearance <= 0.0 {
                 continue;
             }
-            if d == 3 && self.base.kind == ModelKind::Force {
+            if d == 3 && self.base.kind != ModelKind::BaseMotion {
                 continue;
             }
             let mut v = x.to_vec();

@@ -193,6 +193,9 @@ struct Measured {
     /// own largest peak.
     options: IdentifyOptions,
     role: Role,
+    /// Of a free decay: the mode's displacement and velocity at the record's (cut) first
+    /// sample, where every simulation starts.
+    start: Option<(f64, f64)>,
     fit: Option<Target>,
     holdout: Option<Target>,
     whole: Target,
@@ -200,10 +203,11 @@ struct Measured {
 
 impl Measured {
     fn new(run: &Run, role: Role, identifier: Identifier<'_>) -> Result<Self, GapError> {
-        if run.input.is_none() {
+        let free = run.meta.kind == RunKind::Free;
+        if run.input.is_none() && !free {
             return Err(GapError::Unusable(format!(
-                "{}: the run has no input channel to drive the model with (a free decay cannot \
-                 be simulated under a measured input)",
+                "{}: the run has no input channel to drive the model with (a free decay is \
+                 simulated from its own state by a model of kind = \"free\")",
                 run.meta.path
             )));
         }
@@ -225,7 +229,22 @@ impl Measured {
             options: &options,
             backend: identifier.backend,
         };
-        if options.mode != identifier.options.mode || run.meta.inertia.is_some() {
+        // A free decay is compared from where its envelope peaks, after the impact: the
+        // record is cut there, and every simulation starts from the mode's state at that
+        // sample (both then have the same edge at their start).
+        let mut start = None;
+        if free {
+            let (i0, state) = release_point(&full).ok_or_else(|| {
+                GapError::Unusable(format!(
+                    "the measured run {}: no valid sample of the mode to start its decay from",
+                    run.meta.path
+                ))
+            })?;
+            run.output.drain(..i0);
+            run.meta.samples = run.output.len();
+            start = Some(state);
+            full = fixed.identify(&run, Method::Wavelet).map_err(unusable)?;
+        } else if options.mode != identifier.options.mode || run.meta.inertia.is_some() {
             full = fixed.identify(&run, Method::Wavelet).map_err(unusable)?;
         }
         let factor = decimation_for(&full);
@@ -267,6 +286,7 @@ impl Measured {
             identified,
             resolution,
             options,
+            start,
         })
     }
 
@@ -282,17 +302,47 @@ impl Measured {
         model: &RigModel,
         backend: &crate::backend::Backend,
     ) -> Result<super::Simulated, GapError> {
-        simulate_given(
-            &self.run,
-            Some(&self.identified),
-            model,
-            self.factor,
-            Identifier {
-                options: &self.options,
-                backend,
-            },
-        )
+        let identifier = Identifier {
+            options: &self.options,
+            backend,
+        };
+        match self.start {
+            Some(state) => super::simulate_released(
+                &self.run,
+                Some(&self.identified),
+                model,
+                state,
+                self.factor,
+                identifier,
+            ),
+            None => simulate_given(
+                &self.run,
+                Some(&self.identified),
+                model,
+                self.factor,
+                identifier,
+            ),
+        }
     }
+}
+
+/// Where a free decay is released from: the valid sample of its mode's largest envelope
+/// (after the impact), with the mode's displacement A·cos φ and velocity A′·cos φ −
+/// A·ω·sin φ there, from the analytic signal the identification tracked.
+fn release_point(id: &Identification) -> Option<(usize, (f64, f64))> {
+    let t = &id.response;
+    let i = (0..t.len())
+        .filter(|&i| t.valid[i] && t.amplitude[i].is_finite())
+        .max_by(|&a, &b| t.amplitude[a].total_cmp(&t.amplitude[b]))?;
+    let (a, phi) = (t.amplitude[i], t.phase[i]);
+    let w = std::f64::consts::TAU * t.frequency[i];
+    let da = t
+        .d_amplitude
+        .get(i)
+        .copied()
+        .filter(|v| v.is_finite())
+        .unwrap_or(0.0);
+    Some((i, (a * phi.cos(), da * phi.cos() - a * w * phi.sin())))
 }
 
 /// The measured runs, identified once, that models are scored against: one run split into
@@ -379,6 +429,18 @@ impl<'a> Reference<'a> {
     /// Its identification (of the run as compared).
     pub fn identified(&self) -> &Identification {
         &self.runs[0].identified
+    }
+
+    /// The identification of the fitted run (or block-split run) that reaches the largest
+    /// amplitude: where an amplitude-dependent effect (a cubic term, microslip) shows most,
+    /// and so where its starting value is read.
+    pub fn loudest(&self) -> &Identification {
+        let top = |m: &Measured| m.identified.amplitude_range().map_or(0.0, |r| r.1);
+        self.runs
+            .iter()
+            .filter(|m| m.role != Role::Holdout)
+            .max_by(|a, b| top(a).total_cmp(&top(b)))
+            .map_or(&self.runs[0].identified, |m| &m.identified)
     }
 
     /// The RMS quantisation error of its response, read from the samples as recorded
@@ -622,6 +684,7 @@ fn scan(
     opt: &SearchOptions,
 ) -> Vec<(Side, EffectKind, f64, Fitted)> {
     let id = reference.identified();
+    let loudest = reference.loudest();
     // Scan: each effect alone over a coarse grid of its parameter, added to the baseline and
     // to the nominal model. The baseline may have absorbed part of the missing effect by
     // bending its own parameters (dry friction or contact damping into more viscous
@@ -644,8 +707,13 @@ fn scan(
                 EffectKind::CubicStiffness if nominal.clearance <= 0.0 => &[1.0, -1.0],
                 _ => &[1.0],
             };
+            // Where the effect grows with amplitude, its start is read off the loudest run.
+            let from = match k {
+                EffectKind::CubicStiffness | EffectKind::Microslip => loudest,
+                _ => id,
+            };
             bases.into_iter().flat_map(move |(side, b)| {
-                let s = start_for(k, &b, id, opt.waveform);
+                let s = start_for(k, &b, from, opt.waveform);
                 let b = ready_for(&b, id, k, opt.waveform);
                 signs
                     .iter()
