@@ -431,18 +431,6 @@ impl<'a> Reference<'a> {
         &self.runs[0].identified
     }
 
-    /// The identification of the fitted run (or block-split run) that reaches the largest
-    /// amplitude: where an amplitude-dependent effect (a cubic term, microslip) shows most,
-    /// and so where its starting value is read.
-    pub fn loudest(&self) -> &Identification {
-        let top = |m: &Measured| m.identified.amplitude_range().map_or(0.0, |r| r.1);
-        self.runs
-            .iter()
-            .filter(|m| m.role != Role::Holdout)
-            .max_by(|a, b| top(a).total_cmp(&top(b)))
-            .map_or(&self.runs[0].identified, |m| &m.identified)
-    }
-
     /// The RMS quantisation error of its response, read from the samples as recorded
     /// ([`super::measured_resolution`]; 0 when no channel lies on a lattice).
     pub fn resolution(&self) -> f64 {
@@ -684,7 +672,6 @@ fn scan(
     opt: &SearchOptions,
 ) -> Vec<(Side, EffectKind, f64, Fitted)> {
     let id = reference.identified();
-    let loudest = reference.loudest();
     // Scan: each effect alone over a coarse grid of its parameter, added to the baseline and
     // to the nominal model. The baseline may have absorbed part of the missing effect by
     // bending its own parameters (dry friction or contact damping into more viscous
@@ -707,13 +694,8 @@ fn scan(
                 EffectKind::CubicStiffness if nominal.clearance <= 0.0 => &[1.0, -1.0],
                 _ => &[1.0],
             };
-            // Where the effect grows with amplitude, its start is read off the loudest run.
-            let from = match k {
-                EffectKind::CubicStiffness | EffectKind::Microslip => loudest,
-                _ => id,
-            };
             bases.into_iter().flat_map(move |(side, b)| {
-                let s = start_for(k, &b, from, opt.waveform);
+                let s = start_for(k, &b, id, opt.waveform);
                 let b = ready_for(&b, id, k, opt.waveform);
                 signs
                     .iter()
