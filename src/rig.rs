@@ -480,11 +480,9 @@ pub fn structure_run(path: &str, model: &RigModel, level: f64, noise: f64, seed:
     let mut data = run_data(path, model, &drive, sim, fs, &description);
     data.output = acc;
     data.output_quantity = Quantity::Acceleration;
-    data.attrs.retain(|(k, _)| k != "inertia");
+    data.attrs.retain(|(k, _)| k != "inertia" && k != "units");
     data.attrs
         .push(("units".into(), Attr::Text("input N, output m/s^2".into())));
-    data.attrs
-        .retain(|(k, v)| !(k == "units" && matches!(v, Attr::Text(t) if t == "input N, output m")));
     data
 }
 

@@ -18,6 +18,28 @@ fn identifier() -> Identifier<'static> {
     Identifier { options, backend }
 }
 
+/// `skelid gap --model MODEL ARCHIVE ARGS --out OUT`, its output printed; gap.json.
+fn gap(
+    model: &std::path::Path,
+    archive: &std::path::Path,
+    args: &[&str],
+    out: &std::path::Path,
+) -> serde_json::Value {
+    let o = Command::new(env!("CARGO_BIN_EXE_skelid"))
+        .args(["gap", "--model"])
+        .arg(model)
+        .arg(archive)
+        .args(args)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&o.stdout);
+    println!("{text}\n{}", String::from_utf8_lossy(&o.stderr));
+    assert!(o.status.success());
+    serde_json::from_str(&std::fs::read_to_string(out.join("gap.json")).unwrap()).unwrap()
+}
+
 /// The structure with a microslip joint (a tenth of its stiffness, half slipping at 10 mm).
 fn jointed() -> RigModel {
     let mut truth = structure_mode();
@@ -85,25 +107,17 @@ fn skelid_gap_names_the_microslip_of_a_bolted_joint_from_levels_fitted_together(
     std::fs::write(&model, nominal.to_toml()).unwrap();
     assert!(nominal.to_toml().contains("kind = \"force\""));
     let out = dir.path().join("gap");
-    let o = Command::new(env!("CARGO_BIN_EXE_skelid"))
-        .args(["gap", "--model"])
-        .arg(&model)
-        .arg(&archive)
-        .args([
+    let doc = gap(
+        &model,
+        &archive,
+        &[
             "--fit",
             "/gvt/level_1,/gvt/level_3",
             "--holdout",
             "/gvt/level_[24]",
-        ])
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&o.stdout);
-    println!("{text}\n{}", String::from_utf8_lossy(&o.stderr));
-    assert!(o.status.success());
-    let doc: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("gap.json")).unwrap()).unwrap();
+        ],
+        &out,
+    );
     let runs = doc["runs"].as_array().unwrap();
     let roles: Vec<(&str, &str)> = runs
         .iter()
@@ -171,19 +185,7 @@ fn skelid_gap_names_the_microslip_of_a_free_decay_started_from_the_record_s_own_
     std::fs::write(&model, nominal.to_toml()).unwrap();
     assert!(nominal.to_toml().contains("kind = \"free\""));
     let out = dir.path().join("gap");
-    let o = Command::new(env!("CARGO_BIN_EXE_skelid"))
-        .args(["gap", "--model"])
-        .arg(&model)
-        .arg(&archive)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&o.stdout);
-    println!("{text}\n{}", String::from_utf8_lossy(&o.stderr));
-    assert!(o.status.success());
-    let doc: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("gap.json")).unwrap()).unwrap();
+    let doc = gap(&model, &archive, &[], &out);
     assert_eq!(doc["settings"]["model_kind"], "free");
     let r = &doc["runs"][0];
     assert_eq!(r["verdict"], "microslip", "{r}");
