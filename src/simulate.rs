@@ -438,6 +438,8 @@ struct Rig<'a> {
     /// clamped to ± stiffness × slip is exactly.
     sliders: std::cell::RefCell<Vec<f64>>,
     drive: &'a Drive,
+    /// The last two (time, base jet, force) [`Rig::inputs`] computed, newest first.
+    inputs_cache: std::cell::Cell<[(f64, Jet, f64); 2]>,
 }
 
 impl<'a> Rig<'a> {
@@ -480,14 +482,25 @@ impl<'a> Rig<'a> {
             sliders: std::cell::RefCell::new(vec![0.0; slip.len()]),
             slip,
             drive,
+            // NaN never equals a time, so both entries start empty.
+            inputs_cache: std::cell::Cell::new([(f64::NAN, Jet::constant(0.0), 0.0); 2]),
         }
     }
 
     /// The microslip's force on relative displacement z (its sliders as last committed).
+    #[inline(always)]
     fn joint(&self, z: f64) -> f64 {
         if self.slip.is_empty() {
-            return 0.0;
+            0.0
+        } else {
+            self.iwan(z)
         }
+    }
+
+    /// [`Rig::joint`]'s work, kept out of line so that a rig without microslip (every
+    /// base-motion candidate but one) keeps the torque inlined into the integrator.
+    #[inline(never)]
+    fn iwan(&self, z: f64) -> f64 {
         let sliders = self.sliders.borrow();
         let stretch: f64 = sliders
             .iter()
@@ -507,8 +520,25 @@ impl<'a> Rig<'a> {
         }
     }
 
-    /// Base angle and force at t.
+    /// Base angle and force at t, from the last two times asked when t is one of them.
+    /// A slip step asks for the same two or three times six or seven times over (RK4's
+    /// midpoint twice, both ends again for the relative motion and the next step), and the
+    /// Hermite drive was a third of a diagnosis: the cache keeps results bit-identical.
+    #[inline(always)]
     fn inputs(&self, t: f64) -> (Jet, f64) {
+        let cache = self.inputs_cache.get();
+        for (tc, phi, f) in cache {
+            if tc == t {
+                return (phi, f);
+            }
+        }
+        let (phi, f) = self.evaluate_inputs(t);
+        self.inputs_cache.set([(t, phi, f), cache[0]]);
+        (phi, f)
+    }
+
+    /// [`Rig::inputs`] without the cache.
+    fn evaluate_inputs(&self, t: f64) -> (Jet, f64) {
         match self.drive {
             Drive::Base(e) => (e.eval(t), 0.0),
             Drive::Force(e) => (Jet::constant(0.0), e.eval(t).v),
@@ -521,7 +551,9 @@ impl<'a> Rig<'a> {
         (z - self.offset).abs() - self.delta
     }
 
-    /// All torques on the link except Coulomb friction.
+    /// All torques on the link except Coulomb friction. Inlined: it is the integrator's
+    /// inner loop, and out of line it cost a one-run diagnosis 15 %.
+    #[inline(always)]
     fn torque_no_friction(&self, t: f64, s: State) -> f64 {
         let (phi, f_ext) = self.inputs(t);
         let z = s.th - phi.v;
@@ -541,6 +573,7 @@ impl<'a> Rig<'a> {
         -c * v - spring - self.joint(z) + self.j * self.gc * s.th + self.preload + f_ext
     }
 
+    #[inline(always)]
     fn deriv(&self, t: f64, s: State, dir: f64) -> State {
         let torque = self.torque_no_friction(t, s) - self.friction * dir;
         State {
@@ -578,6 +611,11 @@ impl<'a> Rig<'a> {
             om: phi.d1,
         };
         self.j * phi.d2 - self.torque_no_friction(t, s)
+    }
+
+    /// Whether the rig carries a microslip joint (whose sliders move after each step).
+    fn has_microslip(&self) -> bool {
+        !self.slip.is_empty()
     }
 
     fn has_friction(&self) -> bool {
@@ -669,7 +707,9 @@ pub fn simulate(model: &RigModel, drive: &Drive, settings: &SimSettings) -> SimO
             t = t_new;
             s = s_new;
             mode = mode_new;
-            rig.commit(rig.relative(t, s).0);
+            if rig.has_microslip() {
+                rig.commit(rig.relative(t, s).0);
+            }
         }
         let (phi, f_ext) = rig.inputs(ti);
         let (z, v) = (s.th - phi.v, s.om - phi.d1);

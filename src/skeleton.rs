@@ -103,6 +103,7 @@ pub struct LocalModel {
 }
 
 /// The model's W and log-derivatives at scale `s`, for unit amplitude and zero phase.
+#[inline]
 pub fn model_value(w: &Morlet, s: f64, m: &LocalModel) -> ScaleValue {
     let a = Complex64::new(1.0 / (w.bandwidth * s * s), -PI * m.sweep);
     let b = Complex64::new(m.decay, -2.0 * PI * (m.freq - w.centre / s));
@@ -122,6 +123,7 @@ pub fn model_value(w: &Morlet, s: f64, m: &LocalModel) -> ScaleValue {
 }
 
 /// The estimator applied to the model at the scales `scales`.
+#[inline]
 pub fn model_observation(w: &Morlet, scales: [f64; 3], m: &LocalModel) -> Observation {
     estimate(scales.map(|s| model_value(w, s, m)))
 }
