@@ -649,17 +649,17 @@ impl skelid::gap::runner::Exporter for Terminal<'_> {
     }
 }
 
-/// Prints the rig model's implausible values on stderr ("warning: FILE: `clearance` = …")
-/// and returns them.
 /// The domains of a candidate's shrink where they are not those of the gaps beside it.
 fn shrink_note(c: &skelid::gap::search::Candidate) -> String {
-    if c.shrink_leaves_out_waveform() {
+    if c.shrink_on_fewer_domains() {
         format!(" on {}", c.shrink_domains().join("/"))
     } else {
         String::new()
     }
 }
 
+/// Prints the rig model's implausible values on stderr ("warning: FILE: `clearance` = …")
+/// and returns them.
 pub(crate) fn warn_model(path: &std::path::Path, model: &RigModel) -> Vec<String> {
     let w = model.warnings();
     for line in &w {

@@ -378,7 +378,7 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
                 c.score.fit,
                 c.score.holdout,
                 100.0 * c.shrink,
-                if c.shrink_leaves_out_waveform() {
+                if c.shrink_on_fewer_domains() {
                     format!(" ({})", c.shrink_domains().join("/"))
                 } else {
                     String::new()

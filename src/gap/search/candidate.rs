@@ -100,18 +100,23 @@ impl Candidate {
     /// The domains its [`shrink`](Self::shrink) is taken on ([`Score::holdout_on`]).
     pub fn shrink_domains(&self) -> &'static [&'static str] {
         const ALL: [&str; 4] = ["time", "backbone", "damping", "waveform"];
-        if self.score.domains[3].is_none() || self.shrink_leaves_out_waveform() {
+        if self.score.scores_time_alone(&self.kinds()) {
+            &ALL[..1]
+        } else if self.score.domains[3].is_none()
+            || self.score.scores_without_waveform(&self.kinds())
+        {
             &ALL[..3]
         } else {
             &ALL
         }
     }
 
-    /// Whether its shrink leaves out a waveform domain that its gaps include (a sensor
-    /// effect scored with the waveform on): then the shrink is not read off the four-domain
-    /// gaps beside it.
-    pub fn shrink_leaves_out_waveform(&self) -> bool {
-        self.score.scores_without_waveform(&self.kinds())
+    /// Whether its shrink leaves out domains that its gaps include (a sensor effect scored
+    /// with the waveform on, or a force model's converter step, read on the time domain
+    /// alone): then the shrink is not read off the gaps beside it.
+    pub fn shrink_on_fewer_domains(&self) -> bool {
+        let kinds = self.kinds();
+        self.score.scores_time_alone(&kinds) || self.score.scores_without_waveform(&kinds)
     }
 
     /// The fitted effect parameters by name (`effect.param` for a pair, whose parameters

@@ -31,7 +31,7 @@ use super::{
 };
 use crate::identify::{Identification, Identifier, IdentifyOptions};
 use crate::mode::ModeChoice;
-use crate::model::{EffectKind, RigModel};
+use crate::model::{EffectKind, ModelKind, RigModel};
 use crate::run::{Run, RunKind};
 use crate::track::Method;
 
@@ -108,6 +108,9 @@ pub struct Score {
     /// The held-out gap's time, backbone, damping and waveform domains (`None` where not
     /// scored).
     pub domains: [Option<f64>; 4],
+    /// The kind of the model scored: which domains an effect acts in depends on it
+    /// ([`EffectKind::acts_on_time_alone`]).
+    pub model_kind: ModelKind,
 }
 
 impl Score {
@@ -115,18 +118,34 @@ impl Score {
         fit: f64::INFINITY,
         holdout: f64::INFINITY,
         domains: [None; 4],
+        model_kind: ModelKind::BaseMotion,
     };
 
-    /// The held-out gap on the domains `kinds` act in: the whole held-out gap, or, when no
-    /// effect of `kinds` shapes the waveform within a cycle ([`EffectKind::shapes_waveform`]),
-    /// the time, backbone and damping domains' alone (a fourth domain such an effect cannot
-    /// change would only dilute what it explains).
+    /// The held-out gap on the domains `kinds` act in: the whole held-out gap; or, when
+    /// every effect of `kinds` acts on the time domain alone
+    /// ([`EffectKind::acts_on_time_alone`]), that domain's; or, when no effect of `kinds`
+    /// shapes the waveform within a cycle ([`EffectKind::shapes_waveform`]), the time,
+    /// backbone and damping domains' (a domain such an effect cannot change would only
+    /// dilute what it explains).
     pub fn holdout_on(&self, kinds: &[EffectKind]) -> f64 {
-        if !self.scores_without_waveform(kinds) || !self.holdout.is_finite() {
+        if !self.holdout.is_finite() {
+            return self.holdout;
+        }
+        if self.scores_time_alone(kinds) {
+            return self.domains[0].unwrap_or(self.holdout);
+        }
+        if !self.scores_without_waveform(kinds) {
             return self.holdout;
         }
         let ms: f64 = self.domains[..3].iter().flatten().map(|d| d * d).sum();
         (ms / 3.0).sqrt()
+    }
+
+    /// Whether [`holdout_on`](Self::holdout_on) reads the time domain alone for `kinds`.
+    pub fn scores_time_alone(&self, kinds: &[EffectKind]) -> bool {
+        self.domains[0].is_some()
+            && !kinds.is_empty()
+            && kinds.iter().all(|k| k.acts_on_time_alone(self.model_kind))
     }
 
     /// Whether [`holdout_on`](Self::holdout_on) leaves the waveform domain out for `kinds`:
@@ -545,6 +564,7 @@ impl<'a> Reference<'a> {
                 domain(|g| g.damping),
                 domain(|g| g.waveform),
             ],
+            model_kind: model.kind,
         }
     }
 
@@ -1006,6 +1026,7 @@ mod tests {
             fit: holdout,
             holdout,
             domains: d,
+            model_kind: crate::model::ModelKind::BaseMotion,
         };
         let rms = |d: &[f64]| (d.iter().map(|x| x * x).sum::<f64>() / d.len() as f64).sqrt();
         let base = score(
@@ -1025,6 +1046,22 @@ mod tests {
         let cand = score(0.0, [Some(0.005), Some(0.01), Some(0.01), Some(0.04)]);
         let s = cand.shrink_against(&base, &q);
         assert!((s - (1.0 - rms(&[0.005, 0.01, 0.01]) / rms(&[0.02, 0.01, 0.01]))).abs() < 1e-12);
+        // In a force model the converter's step acts on the time domain alone: its shrink
+        // is that domain's, and it leaves the other effects' as they were.
+        let force = |s: Score| Score {
+            model_kind: crate::model::ModelKind::Force,
+            ..s
+        };
+        let (fbase, fcand) = (force(base), force(cand));
+        assert!(fbase.scores_time_alone(&q) && !fbase.scores_time_alone(&f));
+        assert!(!base.scores_time_alone(&q));
+        assert_eq!(fbase.holdout_on(&q), 0.02);
+        assert!((fcand.shrink_against(&fbase, &q) - 0.75).abs() < 1e-12);
+        assert_eq!(fbase.holdout_on(&f), fbase.holdout);
+        assert!(!force(score(0.02, [None; 4])).scores_time_alone(&q));
+        // A pair with an effect of the joint is read like the joint's.
+        let qf = [EffectKind::Quantization, EffectKind::CoulombFriction];
+        assert_eq!(fbase.holdout_on(&qf), fbase.holdout);
         // No finite gap, or a baseline of zero: −∞, never NaN.
         let failed = Score::FAILED;
         assert_eq!(failed.shrink_against(&base, &f), f64::NEG_INFINITY);
