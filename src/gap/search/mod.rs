@@ -23,7 +23,7 @@ mod fit;
 use candidate::{fitter, ready_for, refit, Side};
 pub use candidate::{signature, Candidate};
 pub use fit::{effect_start, nelder_mead, refit_baseline, refit_with, Fitted};
-use fit::{start_for, Coordinates};
+use fit::{start_over, Coordinates};
 
 use super::{
     decimate, decimation_for, measured_resolution, resolution_per_step, simulate_given, Blocks,
@@ -450,6 +450,16 @@ impl<'a> Reference<'a> {
         &self.runs[0].identified
     }
 
+    /// The identifications of the runs the fits see (a run alone on alternate blocks is
+    /// one of them), the first run's first.
+    pub fn fitted_identifications(&self) -> Vec<&Identification> {
+        self.runs
+            .iter()
+            .filter(|m| m.role != Role::Holdout)
+            .map(|m| &m.identified)
+            .collect()
+    }
+
     /// The RMS quantisation error of its response, read from the samples as recorded
     /// ([`super::measured_resolution`]; 0 when no channel lies on a lattice).
     pub fn resolution(&self) -> f64 {
@@ -692,6 +702,7 @@ fn scan(
     opt: &SearchOptions,
 ) -> Vec<(Side, EffectKind, f64, Fitted)> {
     let id = reference.identified();
+    let fitted = &reference.fitted_identifications();
     // Scan: each effect alone over a coarse grid of its parameter, added to the baseline and
     // to the nominal model. The baseline may have absorbed part of the missing effect by
     // bending its own parameters (dry friction or contact damping into more viscous
@@ -715,7 +726,7 @@ fn scan(
                 _ => &[1.0],
             };
             bases.into_iter().flat_map(move |(side, b)| {
-                let s = start_for(k, &b, id, opt.waveform);
+                let s = start_over(k, &b, fitted, opt.waveform);
                 let b = ready_for(&b, id, k, opt.waveform);
                 signs
                     .iter()
