@@ -67,12 +67,16 @@ fn levels(truth: &RigModel) -> Vec<skelid::campaign::RunData> {
         .collect()
 }
 
+/// The four levels as the force self-check splits them: 1 and 3 fitted, 2 and 4 held out.
+fn fit_1_3_hold_2_4(runs: &[skelid::run::Run]) -> Reference<'static> {
+    Reference::together(&[&runs[0], &runs[2]], &[&runs[1], &runs[3]], identifier()).unwrap()
+}
+
 #[test]
 fn runs_fitted_together_are_scored_on_the_held_out_ones() {
     let truth = jointed();
     let runs: Vec<_> = levels(&truth).into_iter().map(|r| r.into_run()).collect();
-    let reference =
-        Reference::together(&[&runs[0], &runs[2]], &[&runs[1], &runs[3]], identifier()).unwrap();
+    let reference = fit_1_3_hold_2_4(&runs);
     assert_eq!(reference.len(), 4);
     // The truth matches every level to within the noise and the identification's scatter;
     // the linear mode it softens from misses the levels where the joint slips.
@@ -211,8 +215,7 @@ fn an_accelerometers_converter_step_is_read_on_the_time_domain_and_separates_the
         structure_effect_value(EffectKind::Quantization),
     );
     let runs: Vec<_> = levels(&truth).into_iter().map(|r| r.into_run()).collect();
-    let reference =
-        Reference::together(&[&runs[0], &runs[2]], &[&runs[1], &runs[3]], identifier()).unwrap();
+    let reference = fit_1_3_hold_2_4(&runs);
     assert!(
         reference.resolution() > 0.0,
         "the lattice is read off the samples"

@@ -262,18 +262,24 @@ pub fn refit_with(
 /// of the half-gap, the cubic term that adds 10 % of k at one half-gap of penetration, the
 /// viscous damping itself, 2 ms, 2 % of the half-gap. The scan spans ×1/8 to ×8 around it.
 pub fn effect_start(kind: EffectKind, model: &RigModel, identified: &Identification) -> f64 {
-    start_for(kind, model, identified, false)
+    start_for(kind, model, &[identified], false)
 }
 
-/// [`effect_start`] for a search whose gap scores the waveform domain when `waveform`:
-/// there a hardening the backbone cannot see starts from the generic value (see
-/// [`backbone_hardening`]).
+/// [`effect_start`] over every run the fits see (`ids`, the first fit run first), for a
+/// search whose gap scores the waveform domain when `waveform`: there a hardening the
+/// backbone cannot see starts from the generic value (see [`backbone_hardening`]). A joint's
+/// cubic term without clearance is read off their backbones pooled: on the force
+/// self-check's levels 1 and 3 the first level alone gave k3 from −0.03 to −0.9 times a
+/// softening's truth (once with the wrong sign), the loudest alone about 0.7 times, and the
+/// two pooled 0.8–0.93 times (the scan's ×1/8–×8 missed three of seven truths from the
+/// first). Every other start is read off the first run.
 pub(super) fn start_for(
     kind: EffectKind,
     model: &RigModel,
-    identified: &Identification,
+    ids: &[&Identification],
     waveform: bool,
 ) -> f64 {
+    let identified = ids[0];
     let half = (0.5 * model.clearance).max(1e-6);
     match kind {
         EffectKind::CoulombFriction => identified
@@ -283,8 +289,9 @@ pub(super) fn start_for(
             .unwrap_or_else(|| generic_friction(model, identified)),
         EffectKind::GravityPreload => 0.1 * model.stiffness * half,
         EffectKind::AsymmetricClearance => 0.1 * half,
-        EffectKind::CubicStiffness if model.clearance <= 0.0 => smooth_cubic(model, &[identified])
-            .unwrap_or_else(|| generic_smooth_cubic(model, identified)),
+        EffectKind::CubicStiffness if model.clearance <= 0.0 => {
+            smooth_cubic(model, ids).unwrap_or_else(|| generic_smooth_cubic(model, identified))
+        }
         EffectKind::CubicStiffness => backbone_hardening(model, identified, waveform)
             .map_or(generic_cubic(model), |(_, k3)| k3),
         // Half the joint's elements slipping at the largest measured amplitude.
@@ -298,8 +305,7 @@ pub(super) fn start_for(
 /// The dry friction to start from where the damping fit gives none. Behind a clearance, a
 /// hundredth of the force the contact spring gives at a half-gap (as before); without one
 /// (a mode of a structure) the half-gap is no length at all and that start was 1e-5 N on a
-/// 1 kg mode, thousands of times below any friction the record could show (a 0.033 N
-/// friction of the force self-check was never scanned near its basin). There: the friction
+/// 1 kg mode, thousands of times below any friction the record could show. There: the friction
 /// that dissipates a third of the viscous damping's energy per cycle at the largest
 /// measured amplitude, 4·F·A = π·c·ω·A²/3.
 fn generic_friction(model: &RigModel, identified: &Identification) -> f64 {
@@ -308,25 +314,6 @@ fn generic_friction(model: &RigModel, identified: &Identification) -> f64 {
     }
     let omega = (model.stiffness / model.inertia).sqrt();
     std::f64::consts::PI * model.damping * omega * largest_amplitude(identified) / 12.0
-}
-
-/// [`start_for`] over every run the fits see (`ids`, the first one's first). The cubic term
-/// of a joint without clearance is read off their backbones pooled: on the force
-/// self-check's levels 1 and 3 the first level alone gave k3 from −0.03 to −0.9 times a
-/// softening's truth (once with the wrong sign), the loudest alone about 0.7 times, and
-/// the two pooled 0.8–0.93 times; the scan's ×1/8–×8 then missed three of seven truths.
-pub(super) fn start_over(
-    kind: EffectKind,
-    model: &RigModel,
-    ids: &[&Identification],
-    waveform: bool,
-) -> f64 {
-    match kind {
-        EffectKind::CubicStiffness if model.clearance <= 0.0 => {
-            smooth_cubic(model, ids).unwrap_or_else(|| generic_smooth_cubic(model, ids[0]))
-        }
-        _ => start_for(kind, model, ids[0], waveform),
-    }
 }
 
 /// The largest amplitude the identification tracked (signal units; 1 when it tracked none).
@@ -550,8 +537,8 @@ mod tests {
             .collect();
         let refs: Vec<&Identification> = ids.iter().collect();
         let model = structure_mode();
-        let pooled = start_over(EffectKind::CubicStiffness, &model, &refs, true);
-        let first = start_for(EffectKind::CubicStiffness, &model, &ids[0], true);
+        let pooled = start_for(EffectKind::CubicStiffness, &model, &refs, true);
+        let first = start_for(EffectKind::CubicStiffness, &model, &refs[..1], true);
         println!("k3 start: pooled {pooled:.4e}, first level alone {first:.4e}, truth {k3:.4e}");
         assert!((pooled / k3 - 1.0).abs() < 0.3, "{pooled}");
         // The lowest level's backbone barely bends: alone it starts the scan further off.

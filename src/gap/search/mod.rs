@@ -23,7 +23,7 @@ mod fit;
 use candidate::{fitter, ready_for, refit, Side};
 pub use candidate::{signature, Candidate};
 pub use fit::{effect_start, nelder_mead, refit_baseline, refit_with, Fitted};
-use fit::{start_over, Coordinates};
+use fit::{start_for, Coordinates};
 
 use super::{
     decimate, decimation_for, measured_resolution, resolution_per_step, simulate_given, Blocks,
@@ -451,7 +451,7 @@ impl<'a> Reference<'a> {
     }
 
     /// The identifications of the runs the fits see (a run alone on alternate blocks is
-    /// one of them), the first run's first.
+    /// one of them), the first fit run's first.
     pub fn fitted_identifications(&self) -> Vec<&Identification> {
         self.runs
             .iter()
@@ -726,7 +726,7 @@ fn scan(
                 _ => &[1.0],
             };
             bases.into_iter().flat_map(move |(side, b)| {
-                let s = start_over(k, &b, fitted, opt.waveform);
+                let s = start_for(k, &b, fitted, opt.waveform);
                 let b = ready_for(&b, id, k, opt.waveform);
                 signs
                     .iter()
