@@ -8,6 +8,7 @@ use std::process::Command;
 
 use skelid::backend::Backend;
 use skelid::gap::search::Reference;
+use skelid::gap::{diagnose, SearchOptions};
 use skelid::identify::{Identifier, IdentifyOptions};
 use skelid::model::{EffectKind, RigModel};
 use skelid::rig::{structure_effect_value, structure_mode, structure_run, STRUCTURE_LEVELS};
@@ -235,4 +236,33 @@ fn an_accelerometers_converter_step_is_read_on_the_time_domain_and_separates_the
     assert!(with.clears_margins(&without, &q));
     let (dw, dwo) = (with.domains[2].unwrap(), without.domains[2].unwrap());
     assert!((dw - dwo).abs() < 0.2 * dwo, "{dw} vs {dwo}");
+    // The diagnosis from a model a few percent off, as the self-check's: the step is
+    // fitted on the time domain and weighed against the model refitted there without it.
+    let mut nominal = structure_mode();
+    nominal.inertia *= 0.97;
+    nominal.stiffness *= 1.02;
+    nominal.damping *= 0.97;
+    let opt = SearchOptions {
+        effects: q.to_vec(),
+        ..Default::default()
+    };
+    let d = diagnose(&reference, &nominal, &opt).unwrap();
+    let c = &d.candidates[0];
+    let against = c
+        .against
+        .as_ref()
+        .expect("weighed against a time-domain refit");
+    println!(
+        "baseline {:?}
+step {:?}
+against {:?}",
+        d.baseline.score, c.score, against.score
+    );
+    assert_eq!(d.verdict_name(), "quantization");
+    assert!((c.effects[0].1 / truth.effects.get(q[0]).unwrap() - 1.0).abs() < 0.05);
+    // Refitted on the time domain without the step, the model does not reach the record's
+    // floor: the step does, as far as the truth.
+    assert!(against.score.fit_on(&q) <= d.baseline.score.fit_on(&q));
+    assert!(c.shrink > 0.8, "{}", c.shrink);
+    assert!(c.score.holdout_on(&q) < 0.2 * d.baseline.score.holdout_on(&q));
 }

@@ -651,7 +651,12 @@ impl skelid::gap::runner::Exporter for Terminal<'_> {
 
 /// The domains of a candidate's shrink where they are not those of the gaps beside it.
 fn shrink_note(c: &skelid::gap::search::Candidate) -> String {
-    if c.shrink_on_fewer_domains() {
+    if c.against.is_some() {
+        format!(
+            " on {}, against the model refitted there without it",
+            c.shrink_domains().join("/")
+        )
+    } else if c.shrink_on_fewer_domains() {
         format!(" on {}", c.shrink_domains().join("/"))
     } else {
         String::new()

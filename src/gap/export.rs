@@ -54,7 +54,7 @@ pub fn run_json(r: &GapRun) -> Value {
         .iter()
         .map(|c| {
             let explains: Vec<&str> = c.effects.iter().map(|(k, _)| signature(*k)).collect();
-            json!({
+            let mut v = json!({
                 "effect": c.name(),
                 "params": c.params(),
                 "gap_fit": num(c.score.fit),
@@ -65,7 +65,14 @@ pub fn run_json(r: &GapRun) -> Value {
                 "model": c.model,
                 "domains": domains(c.score.domains),
                 "signature": explains.join("; "),
-            })
+            });
+            // Only where its shrink is not taken against the baseline.
+            if let Some(a) = &c.against {
+                let mut against = score_json(&a.score);
+                against["model"] = json!(a.model);
+                v["against"] = against;
+            }
+            v
         })
         .collect();
     let baseline_whole = &r.baseline.gap;
@@ -379,7 +386,15 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
                 c.score.holdout,
                 100.0 * c.shrink,
                 if c.shrink_on_fewer_domains() {
-                    format!(" ({})", c.shrink_domains().join("/"))
+                    format!(
+                        " ({}{})",
+                        c.shrink_domains().join("/"),
+                        if c.against.is_some() {
+                            ", against the model refitted there without it"
+                        } else {
+                            ""
+                        }
+                    )
                 } else {
                     String::new()
                 },

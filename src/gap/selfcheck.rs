@@ -353,13 +353,18 @@ pub struct CandidateRecord {
     pub name: String,
     /// Fitted effect parameters.
     pub params: BTreeMap<String, f64>,
-    /// Held-out shrink against the baseline, on the domains its effects act in.
+    /// Held-out shrink against the baseline (or `against`), on the domains its effects
+    /// act in.
     pub shrink: f64,
     /// Whether the simplex refined it.
     pub refined: bool,
     /// Its gaps.
     #[serde(flatten)]
     pub score: ScoreRecord,
+    /// The gaps of the model its shrink is taken against where that is not the baseline
+    /// ([`Candidate::against`](super::Candidate::against)).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub against: Option<ScoreRecord>,
 }
 
 impl From<&Outcome> for CaseRecord {
@@ -392,6 +397,7 @@ impl From<&Outcome> for CaseRecord {
                     shrink: c.shrink,
                     refined: c.refined,
                     score: (&c.score).into(),
+                    against: c.against.as_ref().map(|f| (&f.score).into()),
                 })
                 .collect(),
         }

@@ -4,7 +4,7 @@
 
 use std::collections::BTreeMap;
 
-use super::fit::{backbone_hardening, Coordinates, Fitted};
+use super::fit::{backbone_hardening, smooth_cubic, Coordinates, Fitted};
 use super::{Reference, Score, SearchOptions};
 use crate::identify::Identification;
 use crate::model::{EffectKind, RigModel};
@@ -47,13 +47,18 @@ pub(super) enum Side {
 /// viscous damping put back where the skeleton's damping fit separated the two (without
 /// friction the baseline has put all the damping into c); for a hardening contact, the
 /// contact stiffness the backbone asks for beside it (without it the baseline has made the
-/// contact stiffer). Computed once per model and effect, not per scan point.
+/// contact stiffer); for a joint's cubic term without clearance, the linear stiffness the
+/// fitted runs' backbones pooled ask for beside it (the baseline has averaged the
+/// softening or hardening into k, and the cubic term added on top counted it twice: the
+/// force self-check's cubic fits stopped at 0.65–0.8 times the truth). Computed once per
+/// model and effect, not per scan point.
 pub(super) fn ready_for(
     base: &RigModel,
-    identified: &Identification,
+    ids: &[&Identification],
     kind: EffectKind,
     waveform: bool,
 ) -> RigModel {
+    let identified = ids[0];
     let mut m = base.clone();
     if let (EffectKind::CoulombFriction, Some((c, _))) = (kind, identified.damping) {
         let c = c.value * base.inertia;
@@ -62,7 +67,12 @@ pub(super) fn ready_for(
         }
     }
     if kind == EffectKind::CubicStiffness {
-        if let Some((k, _)) = backbone_hardening(base, identified, waveform) {
+        let stiffness = if base.clearance > 0.0 {
+            backbone_hardening(base, identified, waveform).map(|(k, _)| k)
+        } else {
+            smooth_cubic(base, ids).map(|(k, _)| k)
+        };
+        if let Some(k) = stiffness {
             m.stiffness = k;
         }
     }
@@ -83,6 +93,10 @@ pub struct Candidate {
     pub shrink: f64,
     /// Whether the simplex refined it (otherwise it is the best point of the scan).
     pub refined: bool,
+    /// The model without its effects that its shrink and significance are taken against,
+    /// where that is not the baseline: a force model's converter step, fitted on the time
+    /// domain alone, is weighed against the model refitted there without it.
+    pub against: Option<Fitted>,
 }
 
 impl Candidate {
@@ -163,6 +177,7 @@ impl Candidate {
             model: f.model,
             score: f.score,
             refined,
+            against: None,
         }
     }
 }
@@ -188,6 +203,7 @@ pub(super) fn refit(
         base: &base,
         inertia: opt.fit_inertia,
         effects: effects.to_vec(),
+        time_alone: false,
     };
     let f = coords.fit(reference, coords.origin(), opt.candidate_evaluations);
     let kinds: Vec<EffectKind> = effects.iter().map(|e| e.0).collect();
