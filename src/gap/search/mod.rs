@@ -10,7 +10,9 @@
 //! from a guess, the dry friction fit stopped in a local minimum at two thirds of the true
 //! torque, and started from the baseline only, an effect the baseline had absorbed (contact
 //! damping into 60 % more viscous damping) stayed absorbed. Quantization is not searched:
-//! its step is read off the lattice the samples lie on, and the candidate is scored once.
+//! its step is read off the lattice the samples lie on; the mode's own parameters are
+//! refitted with the step held where the lattice is new to the model (on the time domain
+//! alone, against the model refitted there without it, in a force or free model).
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
@@ -888,8 +890,8 @@ fn quantization(
 ) -> Option<Candidate> {
     let id = reference.identified();
     // Quantisation is a property of the sensor, not of the dynamics: its step is read off
-    // the lattice the samples lie on, and the candidate is the baseline with that step,
-    // scored once. Searched like the others, it only cost simulations: the simulation does
+    // the lattice the samples lie on, and the candidate starts as the baseline with that
+    // step (refitted below where the lattice is new to the model). Searched like the others, it only cost simulations: the simulation does
     // not change with it (see [`super::simulate_given`]). Without a lattice in the data it
     // is scored at its starting value, to show it does not help.
     if !opt.effects.contains(&EffectKind::Quantization) {
