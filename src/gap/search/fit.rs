@@ -172,11 +172,7 @@ impl Coordinates<'_> {
 
     /// What the fit minimises: the fitting blocks' whole gap, or their time domain's.
     pub(super) fn cost(&self, score: &Score) -> f64 {
-        if self.time_alone {
-            score.fit_time.unwrap_or(f64::INFINITY)
-        } else {
-            score.fit
-        }
+        score.fit_gap(self.time_alone)
     }
 
     /// Minimises the gap on the fitting blocks from `start`.

@@ -135,7 +135,13 @@ impl Score {
     /// where [`holdout_on`](Self::holdout_on) reads the time domain alone, the whole fit
     /// gap otherwise (the fits of every other effect minimise the whole).
     pub fn fit_on(&self, kinds: &[EffectKind]) -> f64 {
-        if self.scores_time_alone(kinds) {
+        self.fit_gap(self.scores_time_alone(kinds))
+    }
+
+    /// The fitting blocks' time domain when `time_alone` (infinite where not scored), their
+    /// whole gap otherwise.
+    pub fn fit_gap(&self, time_alone: bool) -> f64 {
+        if time_alone {
             self.fit_time.unwrap_or(f64::INFINITY)
         } else {
             self.fit
@@ -891,9 +897,10 @@ fn quantization(
     let id = reference.identified();
     // Quantisation is a property of the sensor, not of the dynamics: its step is read off
     // the lattice the samples lie on, and the candidate starts as the baseline with that
-    // step (refitted below where the lattice is new to the model). Searched like the others, it only cost simulations: the simulation does
-    // not change with it (see [`super::simulate_given`]). Without a lattice in the data it
-    // is scored at its starting value, to show it does not help.
+    // step (refitted below where the lattice is new to the model). Searched like the
+    // others, it only cost simulations: the simulation does not change with it (see
+    // [`super::simulate_given`]). Without a lattice in the data it is scored at its
+    // starting value, to show it does not help.
     if !opt.effects.contains(&EffectKind::Quantization) {
         return None;
     }
@@ -904,8 +911,7 @@ fn quantization(
         effect_start(kind, &baseline.model, id)
     };
     let known = baseline.model.effects.get(kind);
-    let mut model = baseline.model.clone();
-    model.effects.set(kind, Some(step));
+    let model = with_step(&baseline.model, step);
     let score = reference.score(&model);
     let scored = Candidate::from_fit(Fitted { model, score }, &[kind], base, false);
     // A lattice the model does not know (no step, or one 10 % off): the baseline has bent
@@ -917,15 +923,6 @@ fn quantization(
     if !new {
         return Some(scored);
     }
-    let refit_from = |start: &RigModel, time_alone: bool| {
-        let coords = Coordinates {
-            base: start,
-            inertia: opt.fit_inertia,
-            effects: Vec::new(),
-            time_alone,
-        };
-        coords.fit(reference, coords.origin(), opt.candidate_evaluations)
-    };
     // The starts: the baseline, and the nominal model as the scan starts the other effects
     // (the baseline's parameters stay bent under the step held: force self-check,
     // time-domain shrink 20–40 % from the baseline where the truth's was 96–99 %).
@@ -933,11 +930,6 @@ fn quantization(
     if nominal_score.fit.is_finite() && nominal != &baseline.model {
         starts.push(nominal.clone());
     }
-    let with_step = |m: &RigModel| {
-        let mut m = m.clone();
-        m.effects.set(kind, Some(step));
-        m
-    };
     if scored.score.scores_time_alone(&[kind]) {
         // A step whose floor hardly moves the fitting runs' time domain on the baseline has
         // nothing to explain there, and its fits only cost simulations: the F-16's
@@ -947,17 +939,12 @@ fn quantization(
         if !moves {
             return Some(scored);
         }
-        return Some(fitted_on_time(
-            &starts,
-            &with_step,
-            &refit_from,
-            base,
-            scored,
-        ));
+        return Some(fitted_on_time(reference, opt, &starts, step, base, scored));
     }
     let mut better = scored;
     for start in &starts {
-        let c = Candidate::from_fit(refit_from(&with_step(start), false), &[kind], base, false);
+        let refitted = refit_own(reference, opt, &with_step(start, step), false);
+        let c = Candidate::from_fit(refitted, &[kind], base, false);
         better = fitter(c, better);
     }
     better.refined = false;
@@ -974,9 +961,10 @@ fn quantization(
 /// shrink and the verdict's margins are taken against that model (`against`), not the
 /// baseline.
 fn fitted_on_time(
+    reference: &Reference,
+    opt: &SearchOptions,
     starts: &[RigModel],
-    with_step: &(dyn Fn(&RigModel) -> RigModel + Sync),
-    refit_from: &(dyn Fn(&RigModel, bool) -> Fitted + Sync),
+    step: f64,
     base: &Score,
     scored: Candidate,
 ) -> Candidate {
@@ -989,7 +977,13 @@ fn fitted_on_time(
     };
     let (without, with): (Vec<Fitted>, Vec<Fitted>) = starts
         .par_iter()
-        .map(|s| (refit_from(s, true), refit_from(&with_step(s), true)))
+        .map(|s| {
+            let with = with_step(s, step);
+            (
+                refit_own(reference, opt, s, true),
+                refit_own(reference, opt, &with, true),
+            )
+        })
         .unzip();
     let (without, with) = (best(without), best(with));
     // The step alone on the baseline (scored already) may still be the best on time.
@@ -1002,14 +996,36 @@ fn fitted_on_time(
         }
     };
     // Against the better of the time-fitted model without the step and the baseline.
-    let against = if on_time(&without) < base.fit_on(&kind) {
-        without
-    } else {
+    if on_time(&without) >= base.fit_on(&kind) {
         return Candidate::from_fit(with, &kind, base, false);
-    };
-    let mut c = Candidate::from_fit(with, &kind, &against.score, false);
-    c.against = Some(against);
+    }
+    let mut c = Candidate::from_fit(with, &kind, &without.score, false);
+    c.against = Some(without);
     c
+}
+
+/// `start`'s own parameters refitted (no effect searched), on the whole fit gap or on its
+/// time domain alone.
+fn refit_own(
+    reference: &Reference,
+    opt: &SearchOptions,
+    start: &RigModel,
+    time_alone: bool,
+) -> Fitted {
+    let coords = Coordinates {
+        base: start,
+        inertia: opt.fit_inertia,
+        effects: Vec::new(),
+        time_alone,
+    };
+    coords.fit(reference, coords.origin(), opt.candidate_evaluations)
+}
+
+/// `model` with the converter step `step`.
+fn with_step(model: &RigModel, step: f64) -> RigModel {
+    let mut m = model.clone();
+    m.effects.set(EffectKind::Quantization, Some(step));
+    m
 }
 
 /// Work spent once more on the best single effect when it falls just short of the rule
