@@ -259,3 +259,78 @@ impl Profile {
             .join(", ")
     }
 }
+
+/// Whether `SKELID_GPU_TRACE` asks for the GPU dispatcher's host spans ([`span`]).
+pub fn tracing() -> bool {
+    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *ON.get_or_init(|| std::env::var_os("SKELID_GPU_TRACE").is_some_and(|v| v != "0"))
+}
+
+/// Count, wall and thread-CPU nanoseconds of each named span.
+type Spans = std::collections::BTreeMap<&'static str, (u64, u64, u64)>;
+
+static SPANS: std::sync::Mutex<Spans> = std::sync::Mutex::new(std::collections::BTreeMap::new());
+
+/// Runs `f`, adding its wall and calling-thread CPU time to the span `name` when
+/// `SKELID_GPU_TRACE` is set (a developer's view of the dispatcher's serial host work,
+/// printed by [`print_spans`]); otherwise only runs `f`.
+pub fn span<T>(name: &'static str, f: impl FnOnce() -> T) -> T {
+    if !tracing() {
+        return f();
+    }
+    let (w0, c0) = (Instant::now(), thread_cpu());
+    let out = f();
+    let (wall, cpu) = (w0.elapsed(), thread_cpu().saturating_sub(c0));
+    let mut spans = SPANS.lock().unwrap_or_else(|p| p.into_inner());
+    let e = spans.entry(name).or_default();
+    e.0 += 1;
+    e.1 += wall.as_nanos() as u64;
+    e.2 += cpu.as_nanos() as u64;
+    out
+}
+
+/// Prints the spans gathered since the last call to stderr and clears them (nothing when
+/// `SKELID_GPU_TRACE` is unset).
+pub fn print_spans(title: &str) {
+    if !tracing() {
+        return;
+    }
+    let spans = std::mem::take(&mut *SPANS.lock().unwrap_or_else(|p| p.into_inner()));
+    eprintln!("GPU trace, {title}: span, calls, wall ms, thread CPU ms");
+    for (name, (n, wall, cpu)) in spans {
+        eprintln!(
+            "  {name:<24} {n:>6} {:>10.1} {:>10.1}",
+            wall as f64 / 1e6,
+            cpu as f64 / 1e6
+        );
+    }
+}
+
+/// A span ([`span`]) that ends when dropped, for stretches of a function.
+pub struct SpanGuard {
+    name: &'static str,
+    start: Option<(Instant, Duration)>,
+}
+
+impl SpanGuard {
+    /// Starts the span `name` (a no-op unless `SKELID_GPU_TRACE` is set).
+    pub fn new(name: &'static str) -> SpanGuard {
+        SpanGuard {
+            name,
+            start: tracing().then(|| (Instant::now(), thread_cpu())),
+        }
+    }
+}
+
+impl Drop for SpanGuard {
+    fn drop(&mut self) {
+        if let Some((w0, c0)) = self.start {
+            let (wall, cpu) = (w0.elapsed(), thread_cpu().saturating_sub(c0));
+            let mut spans = SPANS.lock().unwrap_or_else(|p| p.into_inner());
+            let e = spans.entry(self.name).or_default();
+            e.0 += 1;
+            e.1 += wall.as_nanos() as u64;
+            e.2 += cpu.as_nanos() as u64;
+        }
+    }
+}

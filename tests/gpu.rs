@@ -507,3 +507,46 @@ fn gpu_refinement_matches_the_cpu_skeleton_at_every_grid_point() {
         assert!(flags * 1000 <= points, "{flags} of {points}");
     }
 }
+
+#[test]
+fn reused_work_buffers_fit_their_request_and_leave_nothing_behind() {
+    use skelid::backend::{Backend, BackendChoice};
+    use skelid::track::WaveletOptions;
+    let g = gpu();
+    for bytes in [4u64, 1000, 4096, 123_457, 10_000_000] {
+        let b = g.reusable("test", bytes);
+        assert!(b.size() >= bytes, "{bytes}: {}", b.size());
+        assert!(b.size() <= bytes + bytes / 8 + 4, "{bytes}: {}", b.size());
+        assert!(b.size() <= g.max_binding());
+        let size = b.size();
+        drop(b);
+        // Given back, the same class serves the next request of nearly the same size.
+        assert_eq!(g.reusable("again", bytes).size(), size);
+    }
+    // Work buffers come back with the last batch's values in them: a batch run again, on
+    // buffers another batch of other lengths used in between, must give the same tracks.
+    let backend = Backend::open(BackendChoice::Gpu).unwrap_or_else(|e| panic!("{e}"));
+    let signals = ridge_signals();
+    let all: Vec<skelid::backend::Signal> = signals
+        .iter()
+        .map(|(x, g)| skelid::backend::Signal {
+            samples: x,
+            sample_rate: 1000.0,
+            guide: g.as_deref(),
+        })
+        .collect();
+    let opt = WaveletOptions {
+        scales: 96,
+        ..Default::default()
+    };
+    let first = backend.track_many(&all, &opt);
+    let _between = backend.track_many(&all[1..], &opt);
+    let again = backend.track_many(&all, &opt);
+    for (a, b) in first.iter().zip(&again) {
+        let (a, b) = (a.as_ref().unwrap(), b.as_ref().unwrap());
+        assert_eq!(a.backend, skelid::track::Device::Gpu);
+        assert_eq!(a.amplitude, b.amplitude);
+        assert_eq!(a.frequency, b.frequency);
+        assert_eq!(a.valid, b.valid);
+    }
+}

@@ -259,7 +259,11 @@ fn dispatch(
                         }
                         unpanicked(|| {
                             crate::profile::time_wall(crate::profile::Stage::FirstPass, || {
-                                crate::profile::dispatcher(|| stages.first.submit(gpu, &preps))
+                                crate::profile::dispatcher(|| {
+                                    crate::profile::span("first.submit", || {
+                                        stages.first.submit(gpu, &preps)
+                                    })
+                                })
                             })
                         })
                     }
@@ -336,7 +340,7 @@ fn advance(
             let done = flight.and_then(|f| {
                 unpanicked(|| {
                     crate::profile::time_wall(crate::profile::Stage::FirstPass, || {
-                        f.finish(gpu, &preps)
+                        crate::profile::span("first.finish", || f.finish(gpu, &preps))
                     })
                 })
             });
@@ -349,19 +353,23 @@ fn advance(
                 }
             };
             // In parallel (the global rayon pool idles while the workers wait on the GPU).
-            let grids: Vec<Vec<Vec<GridPoint>>> = preps
-                .iter()
-                .zip(&ridges)
-                .map(|(p, r)| {
-                    use rayon::prelude::*;
-                    p.par_iter().zip(r).map(|(p, r)| p.grid(&r.path)).collect()
-                })
-                .collect();
+            let grids: Vec<Vec<Vec<GridPoint>>> = crate::profile::span("grids", || {
+                preps
+                    .iter()
+                    .zip(&ridges)
+                    .map(|(p, r)| {
+                        use rayon::prelude::*;
+                        p.par_iter().zip(r).map(|(p, r)| p.grid(&r.path)).collect()
+                    })
+                    .collect()
+            });
             let flight = match gpu_dead(dead) {
                 Some(e) => Err(e),
                 None => unpanicked(|| {
                     crate::profile::time_wall(crate::profile::Stage::Refine, || {
-                        stages.refine.submit(gpu, &preps, &grids)
+                        crate::profile::span("refine.submit", || {
+                            stages.refine.submit(gpu, &preps, &grids)
+                        })
                     })
                 }),
             };
@@ -383,7 +391,7 @@ fn advance(
             let refined = flight.and_then(|f| {
                 unpanicked(|| {
                     crate::profile::time_wall(crate::profile::Stage::Refine, || {
-                        f.finish(gpu, &preps, &grids)
+                        crate::profile::span("refine.finish", || f.finish(gpu, &preps, &grids))
                     })
                 })
             });
@@ -412,13 +420,15 @@ fn advance(
                 .flatten()
                 .zip(grids.into_iter().flatten())
                 .zip(refined.into_iter().flatten());
-            for (r, ((ridge, grid), est)) in all.zip(answers) {
-                let pass = GpuPass {
-                    ridge,
-                    refined: est.map(|e| (grid, e)),
-                };
-                r.answer(Ok(pass));
-            }
+            crate::profile::span("answer", || {
+                for (r, ((ridge, grid), est)) in all.zip(answers) {
+                    let pass = GpuPass {
+                        ridge,
+                        refined: est.map(|e| (grid, e)),
+                    };
+                    r.answer(Ok(pass));
+                }
+            });
             None
         }
     }

@@ -245,10 +245,13 @@ impl Backend {
         while at < signals.len() {
             let group = &signals[at..(at + size).min(signals.len())];
             at += group.len();
-            let preps: Vec<Result<WaveletPrep, TrackError>> = group
-                .par_iter()
-                .map(|s| WaveletPrep::new(s.samples, s.sample_rate, opt, s.guide))
-                .collect();
+            let preps: Vec<Result<WaveletPrep, TrackError>> =
+                crate::profile::span("host.prepare", || {
+                    group
+                        .par_iter()
+                        .map(|s| WaveletPrep::new(s.samples, s.sample_rate, opt, s.guide))
+                        .collect()
+                });
             if let Some(budget) = self.gpu.as_ref().map(|g| g.submission_budget) {
                 let (bytes, n) = preps
                     .iter()
@@ -284,12 +287,14 @@ impl Backend {
     /// A group's first passes, then its tracks finished in parallel, in order.
     fn finish_group(&self, group: Group) -> Vec<Result<Track, TrackError>> {
         use rayon::prelude::*;
-        let mut tracks = self
-            .receive(group.sent)
-            .into_par_iter()
-            .map(|p| self.finish(p.prep, p.pass))
-            .collect::<Vec<Track>>()
-            .into_iter();
+        let passed = crate::profile::span("host.receive", || self.receive(group.sent));
+        let mut tracks = crate::profile::span("host.complete", || {
+            passed
+                .into_par_iter()
+                .map(|p| self.finish(p.prep, p.pass))
+                .collect::<Vec<Track>>()
+        })
+        .into_iter();
         group
             .slots
             .into_iter()

@@ -172,6 +172,7 @@ pub fn compare(
         // Warm-up: plans, pipelines and the device's first submission, on a few signals.
         let warm = &refs[..refs.len().min(8)];
         let _ = backend.track_many(warm, opt);
+        profile::print_spans(&format!("{name}, warm-up"));
         let mut seconds = Vec::new();
         let mut tracks = Vec::new();
         profile::reset();
@@ -182,6 +183,7 @@ pub fn compare(
             seconds.push(t0.elapsed().as_secs_f64());
             tracks = out.into_iter().map(Result::ok).collect();
         }
+        profile::print_spans(&format!("{name}, {repeat} repetition(s)"));
         let fallbacks = tracks
             .iter()
             .flatten()

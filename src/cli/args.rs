@@ -373,6 +373,7 @@ pub(crate) fn report_fallbacks(b: &skelid::backend::Backend) {
              submissions each: first pass, refinement)",
             signals as f64 / batches.max(1) as f64
         );
+        skelid::profile::print_spans("the whole command");
     }
     for w in b.warnings() {
         eprintln!("warning: {w}");

@@ -84,11 +84,11 @@ impl FftStage {
 
     /// [`new`](Self::new) in the given precision (f64 needs [`Gpu::has_f64`]).
     pub fn with_real(gpu: &Gpu, real: Real) -> FftStage {
-        use super::Binding::{Read, Uniform, Write};
+        use super::Binding::{Read, UniformDynamic, Write};
         let (layout, mut pipelines) = gpu.stage(
             "fft.wgsl",
             &real.source(include_str!("../../shaders/fft.wgsl")),
-            &[Uniform, Read, Write, Read],
+            &[UniformDynamic, Read, Write, Read],
             &["stockham_pass"],
         );
         FftStage {
@@ -157,17 +157,16 @@ impl FftStage {
             });
         }
         let roots = self.roots(gpu, n);
-        // This batch's range of either buffer.
-        let range = |buffer| {
-            wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                buffer,
-                offset: (offset * elem) as u64,
-                size: wgpu::BufferSize::new(bytes),
-            })
-        };
-        let (mut from, mut to) = (data, scratch);
+        // Every pass's parameters in one uniform buffer, one record per pass at the
+        // adapter's offset alignment, and two bind groups (data → scratch and back): a
+        // buffer and a bind group per pass made the host's cost per batch grow with the
+        // number of passes (hundreds per batch), which on a fast GPU set the pace.
+        let stride = (gpu.limits.min_uniform_buffer_offset_alignment as usize)
+            .max(std::mem::size_of::<PassParams>());
+        let words = stride / 4;
+        let mut records = vec![0u32; words * plan.len().max(1)];
         let mut ns = 1usize;
-        for &r in &plan {
+        for (i, &r) in plan.iter().enumerate() {
             let params = PassParams {
                 n: n as u32,
                 radix: r,
@@ -176,14 +175,30 @@ impl FftStage {
                 inverse: u32::from(inverse),
                 _pad: [0; 3],
             };
-            let uniform = gpu.uniform("fft pass", &params);
-            let bind = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            records[i * words..i * words + 8].copy_from_slice(bytemuck::cast_slice(&[params]));
+            ns *= r as usize;
+        }
+        let uniform = gpu.upload_uniform("fft passes", &records);
+        // This batch's range of either buffer.
+        let range = |buffer| {
+            wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                buffer,
+                offset: (offset * elem) as u64,
+                size: wgpu::BufferSize::new(bytes),
+            })
+        };
+        let bind = |from, to| {
+            gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("fft pass"),
                 layout: &self.layout,
                 entries: &[
                     wgpu::BindGroupEntry {
                         binding: 0,
-                        resource: uniform.as_entire_binding(),
+                        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                            buffer: &uniform,
+                            offset: 0,
+                            size: wgpu::BufferSize::new(std::mem::size_of::<PassParams>() as u64),
+                        }),
                     },
                     wgpu::BindGroupEntry {
                         binding: 1,
@@ -198,20 +213,31 @@ impl FftStage {
                         resource: roots.as_entire_binding(),
                     },
                 ],
-            });
+            })
+        };
+        let forth = bind(data, scratch);
+        let back = (plan.len() > 1).then(|| bind(scratch, data));
+        let (mut from, mut to) = (data, scratch);
+        // One compute pass: WebGPU orders its dispatches, each seeing the last one's writes.
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("fft"),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&self.pipeline);
+        for (i, &r) in plan.iter().enumerate() {
+            let group = if i % 2 == 0 {
+                &forth
+            } else {
+                back.as_ref()
+                    .expect("a second bind group for two passes or more")
+            };
+            pass.set_bind_group(0, group, &[(i * stride) as u32]);
             let invocations = (n / r as usize * batch) as u64;
             let [x, y, z] = gpu.grid(invocations.div_ceil(u64::from(WORKGROUP)))?;
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("fft pass"),
-                timestamp_writes: None,
-            });
-            pass.set_pipeline(&self.pipeline);
-            pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(x, y, z);
-            drop(pass);
             std::mem::swap(&mut from, &mut to);
-            ns *= r as usize;
         }
+        drop(pass);
         Ok(if std::ptr::eq(from, data) {
             Holder::Data
         } else {

@@ -93,6 +93,8 @@ const NO_F64_ENV: &str = "SKELID_GPU_NO_F64";
 pub enum Binding {
     /// `var<uniform>`.
     Uniform,
+    /// `var<uniform>` bound with a dynamic offset: one buffer holds a record per dispatch.
+    UniformDynamic,
     /// `var<storage, read>`.
     Read,
     /// `var<storage, read_write>`.
@@ -116,6 +118,36 @@ pub struct Gpu {
     workgroup_cap: Option<u32>,
     /// The first failure reported by the device-lost callback or a validation error.
     failure: Arc<Mutex<Option<String>>>,
+    /// Work buffers given back by finished batches, by size, for [`Gpu::reusable`].
+    pool: Arc<Pool>,
+}
+
+/// Free work buffers by size class.
+type Pool = Mutex<std::collections::HashMap<u64, Vec<wgpu::Buffer>>>;
+
+/// A work buffer of [`Gpu::reusable`]: goes back to the device's pool when dropped. Keep it
+/// until the submission that uses it has finished, or a later batch could get it while
+/// this one still reads it.
+pub struct Pooled {
+    buffer: Option<wgpu::Buffer>,
+    class: u64,
+    pool: Arc<Pool>,
+}
+
+impl std::ops::Deref for Pooled {
+    type Target = wgpu::Buffer;
+    fn deref(&self) -> &wgpu::Buffer {
+        self.buffer.as_ref().expect("held until dropped")
+    }
+}
+
+impl Drop for Pooled {
+    fn drop(&mut self) {
+        if let Some(b) = self.buffer.take() {
+            let mut pool = self.pool.lock().unwrap_or_else(|p| p.into_inner());
+            pool.entry(self.class).or_default().push(b);
+        }
+    }
 }
 
 impl Gpu {
@@ -188,6 +220,7 @@ impl Gpu {
                 .ok()
                 .and_then(|v| v.parse().ok()),
             failure,
+            pool: Arc::new(Mutex::new(std::collections::HashMap::new())),
         })
     }
 
@@ -241,15 +274,17 @@ impl Gpu {
     /// Submits one command buffer (counted for the profile).
     pub fn submit(&self, enc: wgpu::CommandEncoder) {
         crate::profile::submitted();
-        self.queue.submit([enc.finish()]);
+        let buffer = crate::profile::span("encoder.finish", || enc.finish());
+        crate::profile::span("queue.submit", || self.queue.submit([buffer]));
     }
 
     /// Waits for all submitted work.
     pub fn wait(&self) -> Result<(), GpuError> {
         crate::profile::synced();
-        self.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Lost(e.to_string()))?;
+        crate::profile::span("wait", || {
+            self.device.poll(wgpu::PollType::wait_indefinitely())
+        })
+        .map_err(|e| GpuError::Lost(e.to_string()))?;
         self.check()
     }
 
@@ -275,11 +310,13 @@ impl Gpu {
                 visibility: wgpu::ShaderStages::COMPUTE,
                 ty: wgpu::BindingType::Buffer {
                     ty: match b {
-                        Binding::Uniform => wgpu::BufferBindingType::Uniform,
+                        Binding::Uniform | Binding::UniformDynamic => {
+                            wgpu::BufferBindingType::Uniform
+                        }
                         Binding::Read => wgpu::BufferBindingType::Storage { read_only: true },
                         Binding::Write => wgpu::BufferBindingType::Storage { read_only: false },
                     },
-                    has_dynamic_offset: false,
+                    has_dynamic_offset: matches!(b, Binding::UniformDynamic),
                     min_binding_size: None,
                 },
                 count: None,
@@ -325,10 +362,12 @@ impl Gpu {
                 resource: b.as_entire_binding(),
             })
             .collect();
-        self.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some(label),
-            layout,
-            entries: &entries,
+        crate::profile::span("bind", || {
+            self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(label),
+                layout,
+                entries: &entries,
+            })
         })
     }
 
@@ -344,30 +383,140 @@ impl Gpu {
             })
     }
 
-    /// A storage buffer initialised with `data`.
-    pub fn upload<T: bytemuck::Pod>(&self, label: &str, data: &[T]) -> wgpu::Buffer {
+    /// A uniform buffer initialised with `data` (records read at dynamic offsets).
+    pub fn upload_uniform<T: bytemuck::Pod>(&self, label: &str, data: &[T]) -> wgpu::Buffer {
         use wgpu::util::DeviceExt;
         crate::profile::uploaded(std::mem::size_of_val(data) as u64);
         self.device
             .create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(label),
                 contents: bytemuck::cast_slice(data),
+                usage: wgpu::BufferUsages::UNIFORM,
+            })
+    }
+
+    /// A storage buffer of segments of `lens[i]` values each, back to back, segment `i`
+    /// written by `fill(i, values)`. Every core fills segments and copies them straight
+    /// into the upload's mapped memory: a batch's spectra (hundreds of MB) built in one
+    /// vector and copied by one thread set the pace of the whole GPU backend.
+    pub fn upload_segments<T: bytemuck::Pod + Send>(
+        &self,
+        label: &str,
+        lens: &[usize],
+        fill: impl Fn(usize, &mut [T]) + Sync,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        use rayon::prelude::*;
+        let elem = std::mem::size_of::<T>();
+        let bytes = lens.iter().sum::<usize>() * elem;
+        crate::profile::uploaded(bytes as u64);
+        crate::profile::span("upload", || {
+            let size = (bytes as u64)
+                .next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT)
+                .max(wgpu::COPY_BUFFER_ALIGNMENT);
+            let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
                 usage: wgpu::BufferUsages::STORAGE
                     | wgpu::BufferUsages::COPY_SRC
                     | wgpu::BufferUsages::COPY_DST,
-            })
+                mapped_at_creation: true,
+            });
+            {
+                let mut view = buffer
+                    .get_mapped_range_mut(..)
+                    .map_err(|e| GpuError::Lost(e.to_string()))?;
+                // wgpu's write-only view cannot be sent to other threads; its pointer can,
+                // each thread writing only its own segment's bytes.
+                struct Base(std::ptr::NonNull<u8>);
+                // SAFETY: the threads write disjoint ranges, and the view outlives them.
+                unsafe impl Send for Base {}
+                unsafe impl Sync for Base {}
+                impl Base {
+                    fn at(&self, offset: usize) -> *mut u8 {
+                        // SAFETY: callers pass offsets inside the mapping.
+                        unsafe { self.0.as_ptr().add(offset) }
+                    }
+                }
+                let base = Base(view.slice(..bytes).as_raw_element_ptr());
+                let mut starts = Vec::with_capacity(lens.len());
+                let mut at = 0usize;
+                for &len in lens {
+                    starts.push(at);
+                    at += len * elem;
+                }
+                starts.into_par_iter().enumerate().for_each(|(i, start)| {
+                    let mut values = vec![T::zeroed(); lens[i]];
+                    fill(i, &mut values);
+                    let src: &[u8] = bytemuck::cast_slice(&values);
+                    // SAFETY: [start, start + len·elem) lies inside the mapped `bytes`
+                    // (the starts are the running sums of the lengths) and no other
+                    // thread writes it.
+                    unsafe {
+                        std::ptr::copy_nonoverlapping(src.as_ptr(), base.at(start), src.len());
+                    }
+                });
+            }
+            buffer.unmap();
+            Ok(buffer)
+        })
+    }
+
+    /// A storage buffer initialised with `data`.
+    pub fn upload<T: bytemuck::Pod>(&self, label: &str, data: &[T]) -> wgpu::Buffer {
+        use wgpu::util::DeviceExt;
+        crate::profile::uploaded(std::mem::size_of_val(data) as u64);
+        crate::profile::span("upload", || {
+            self.device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(label),
+                    contents: bytemuck::cast_slice(data),
+                    usage: wgpu::BufferUsages::STORAGE
+                        | wgpu::BufferUsages::COPY_SRC
+                        | wgpu::BufferUsages::COPY_DST,
+                })
+        })
     }
 
     /// An uninitialised storage buffer of `bytes` bytes.
     pub fn storage(&self, label: &str, bytes: u64) -> wgpu::Buffer {
-        self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some(label),
-            size: bytes.max(4),
-            usage: wgpu::BufferUsages::STORAGE
-                | wgpu::BufferUsages::COPY_SRC
-                | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
+        crate::profile::span("storage", || {
+            self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: bytes.max(4),
+                usage: wgpu::BufferUsages::STORAGE
+                    | wgpu::BufferUsages::COPY_SRC
+                    | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
         })
+    }
+
+    /// A storage buffer of at least `bytes` for work the shaders write in full before they
+    /// read it (decimated scales, FFT scratch): taken from the buffers earlier batches gave
+    /// back when one of its size class is free. Its contents are whatever the last user
+    /// left. On an H200 a fresh buffer of hundreds of MB cost ~16 ms of the dispatcher's
+    /// time, 240 ms a batch of 1000 signals.
+    pub fn reusable(&self, label: &str, bytes: u64) -> Pooled {
+        // Eight classes an octave: at most 12.5 % more than asked, and batches of similar
+        // signals land in the same class. Never beyond one binding, which the buffer is
+        // bound as whole.
+        let bytes = bytes.max(4).next_multiple_of(4);
+        let octave = bytes.next_power_of_two();
+        let step = (octave / 16).max(4);
+        let class = bytes
+            .next_multiple_of(step)
+            .min(self.max_binding())
+            .max(bytes);
+        let free = {
+            let mut pool = self.pool.lock().unwrap_or_else(|p| p.into_inner());
+            pool.get_mut(&class).and_then(Vec::pop)
+        };
+        let buffer = free.unwrap_or_else(|| self.storage(label, class));
+        Pooled {
+            buffer: Some(buffer),
+            class,
+            pool: self.pool.clone(),
+        }
     }
 
     /// Records copies of `parts` (each a buffer and the bytes wanted from its start, a
@@ -412,16 +561,29 @@ impl Gpu {
         rx.recv()
             .map_err(|e| GpuError::Lost(e.to_string()))?
             .map_err(|e| GpuError::Lost(e.to_string()))?;
-        let view = staging
-            .get_mapped_range(..)
-            .map_err(|e| GpuError::Lost(e.to_string()))?;
-        let out = ranges
-            .iter()
-            .map(|&(at, bytes)| view[at as usize..(at + bytes) as usize].to_vec())
-            .collect();
-        drop(view);
-        staging.unmap();
-        Ok(out)
+        crate::profile::span("readback.copy", || {
+            let view = staging
+                .get_mapped_range(..)
+                .map_err(|e| GpuError::Lost(e.to_string()))?;
+            // Mapped memory can be slow to read (uncached on some drivers): every core
+            // copies a share.
+            let all: &[u8] = &view;
+            let out = ranges
+                .iter()
+                .map(|&(at, bytes)| {
+                    use rayon::prelude::*;
+                    let src = &all[at as usize..(at + bytes) as usize];
+                    let mut dst = vec![0u8; src.len()];
+                    dst.par_chunks_mut(1 << 20)
+                        .zip(src.par_chunks(1 << 20))
+                        .for_each(|(d, s)| d.copy_from_slice(s));
+                    dst
+                })
+                .collect();
+            drop(view);
+            staging.unmap();
+            Ok(out)
+        })
     }
 
     /// Copies `count` elements of `buffer` back to the host (waits for the GPU).

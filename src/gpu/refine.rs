@@ -11,10 +11,11 @@
 //! overlapping ranges of scales, each serving the grid points whose five scales (ridge ± 2)
 //! it holds.
 
+use crate::profile::SpanGuard;
 use rayon::prelude::*;
 
 use super::fft::{offset_alignment_of, plannable, FftStage, Holder};
-use super::{Gpu, GpuError, Real};
+use super::{Gpu, GpuError, Pooled, Real};
 use crate::skeleton::{GridEstimate, GridPoint};
 use crate::track::WaveletPrep;
 use crate::transform::{band::ScalePlan, TAPER};
@@ -147,6 +148,8 @@ pub struct Encoded {
     records: Vec<(wgpu::Buffer, u64)>,
     at: Vec<Result<Spans, GpuError>>,
     ln_scale: Vec<f64>,
+    /// The work buffers of its submission, held until it has finished.
+    _keep: Vec<Pooled>,
 }
 
 impl Encoded {
@@ -357,11 +360,13 @@ impl RefineStage {
         let limit = gpu.max_binding();
         let elem = self.real.complex_bytes() as u64;
         // Per-run host work in parallel: the dispatcher is one thread for every worker.
-        let planned: Vec<Planned> = preps
-            .par_iter()
-            .zip(grids)
-            .map(|(p, g)| plan(p, g))
-            .collect();
+        let planned: Vec<Planned> = crate::profile::span("refine.plan", || {
+            preps
+                .par_iter()
+                .zip(grids)
+                .map(|(p, g)| plan(p, g))
+                .collect()
+        });
         let mut at: Vec<Result<Spans, GpuError>> = Vec::with_capacity(preps.len());
         let mut parts: Vec<Vec<Piece>> = Vec::new();
         let mut used = (u64::MAX, u64::MAX);
@@ -422,9 +427,11 @@ impl RefineStage {
             })
             .collect();
         let mut records = Vec::with_capacity(parts.len());
+        let mut keep = Vec::with_capacity(2 * parts.len());
         for (q, part) in parts.iter().enumerate() {
-            let (buffer, firsts) =
-                self.encode_part(gpu, enc, &uniform, preps, grids, &planned, &ln_scale, part)?;
+            let (buffer, firsts, work) = crate::profile::span("refine.encode_part", || {
+                self.encode_part(gpu, enc, &uniform, preps, grids, &planned, &ln_scale, part)
+            })?;
             let points: usize = part.iter().map(|p| p.points.len()).sum();
             for (piece, first) in part.iter().zip(firsts) {
                 if let Ok(spans) = &mut at[piece.run] {
@@ -432,11 +439,13 @@ impl RefineStage {
                 }
             }
             records.push((buffer, points as u64 * RECORD_BYTES));
+            keep.extend(work);
         }
         Ok(Encoded {
             records,
             at,
             ln_scale,
+            _keep: keep,
         })
     }
 
@@ -454,21 +463,15 @@ impl RefineStage {
         planned: &[Planned],
         ln_scale: &[f64],
         part: &[Piece],
-    ) -> Result<(wgpu::Buffer, Vec<usize>), GpuError> {
+    ) -> Result<(wgpu::Buffer, Vec<usize>, [Pooled; 2]), GpuError> {
         let align = offset_alignment_of(gpu, self.real);
+        let arrays = SpanGuard::new("refine.arrays");
         // Spectra: each piece's bins up to its run's top, scaled.
-        let bins: usize = part.iter().map(|q| planned[q.run].top + 1).sum();
-        let mut spectrum: Vec<[f64; 2]> = Vec::with_capacity(bins);
+        let mut bins = 0usize;
         let mut spec_at = Vec::with_capacity(part.len());
         for piece in part {
-            let r = piece.run;
-            spec_at.push(spectrum.len() as u32);
-            let k = ln_scale[r].exp();
-            spectrum.extend(
-                preps[r].spec.bins[..=planned[r].top]
-                    .iter()
-                    .map(|c| [c.re * k, c.im * k]),
-            );
+            spec_at.push(bins as u32);
+            bins += planned[piece.run].top + 1;
         }
         // Blocks (piece, scale) by FFT length; each block is w, w′, w″ back to back.
         let mut blocks: Vec<(usize, usize)> = part
@@ -554,21 +557,33 @@ impl RefineStage {
                 _pad: 0,
             }));
         }
+        drop(arrays);
         let elem = self.real.complex_bytes();
-        let spectra = match self.real {
-            Real::F64 => gpu.upload("refine spectra", &spectrum),
-            Real::F32 => gpu.upload(
-                "refine spectra",
-                &spectrum
-                    .iter()
-                    .map(|[a, b]| [*a as f32, *b as f32])
-                    .collect::<Vec<_>>(),
-            ),
+        // Written by every core straight into the upload's memory.
+        let lens: Vec<usize> = part.iter().map(|q| planned[q.run].top + 1).collect();
+        let scaled = |q: usize| {
+            let r = part[q].run;
+            let k = ln_scale[r].exp();
+            preps[r].spec.bins[..lens[q]]
+                .iter()
+                .map(move |c| (c.re * k, c.im * k))
         };
+        let spectra = match self.real {
+            Real::F64 => gpu.upload_segments("refine spectra", &lens, |q, out: &mut [[f64; 2]]| {
+                for (o, (a, b)) in out.iter_mut().zip(scaled(q)) {
+                    *o = [a, b];
+                }
+            }),
+            Real::F32 => gpu.upload_segments("refine spectra", &lens, |q, out: &mut [[f32; 2]]| {
+                for (o, (a, b)) in out.iter_mut().zip(scaled(q)) {
+                    *o = [a as f32, b as f32];
+                }
+            }),
+        }?;
         let data_bytes = (data_len.max(1) * elem) as u64;
         let items_buf = gpu.upload("refine items", &items);
-        let data = gpu.storage("refine scales", data_bytes);
-        let scratch = gpu.storage("refine scratch", data_bytes);
+        let data = gpu.reusable("refine scales", data_bytes);
+        let scratch = gpu.reusable("refine scratch", data_bytes);
         let table_buf = gpu.upload("refine table", &table);
         let runs_buf = gpu.upload("refine runs", &run_params);
         let points_buf = gpu.upload("grid points", &points);
@@ -598,6 +613,7 @@ impl RefineStage {
         }
         let longest = groups.iter().map(|g| g.0).max().unwrap_or(1);
         let max_x = gpu.max_workgroups() as usize;
+        let _passes = SpanGuard::new("refine.passes");
         if !items.is_empty() {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("refine scatter"),
@@ -608,9 +624,10 @@ impl RefineStage {
             pass.dispatch_workgroups(longest.div_ceil(64).min(max_x) as u32, rows, layers);
         }
         for &(m, offset, count) in &groups {
-            let holder = self
-                .fft
-                .encode(gpu, enc, m, count, true, &data, &scratch, offset)?;
+            let holder = crate::profile::span("fft.encode", || {
+                self.fft
+                    .encode(gpu, enc, m, count, true, &data, &scratch, offset)
+            })?;
             if holder == Holder::Scratch {
                 let bytes = (offset * elem) as u64;
                 enc.copy_buffer_to_buffer(&scratch, bytes, &data, bytes, (m * count * elem) as u64);
@@ -626,7 +643,7 @@ impl RefineStage {
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(x, y, z);
         }
-        Ok((records, firsts))
+        Ok((records, firsts, [data, scratch]))
     }
 }
 
@@ -693,7 +710,7 @@ impl RefineFlight {
                 let part_bytes: Vec<Vec<u8>> = (0..e.records.len())
                     .map(|_| bytes.next().expect("one read-back per records buffer"))
                     .collect();
-                e.decode(&part_bytes, preps, grids)
+                crate::profile::span("refine.decode", || e.decode(&part_bytes, preps, grids))
             })
             .collect())
     }

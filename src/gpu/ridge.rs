@@ -4,6 +4,7 @@
 //! blocking wait) per batch, and only the paths and the per-scale medians read back (a few
 //! kB per run, never the scalogram).
 
+use crate::profile::SpanGuard;
 use rayon::prelude::*;
 
 use super::fft::plannable;
@@ -151,10 +152,13 @@ impl FirstPass {
                     steps: p.steps,
                 })
                 .collect();
-            let grid = self.scales.encode(gpu, &mut enc, &wavelet, &runs)?;
-            let out = self
-                .ridge
-                .encode(gpu, &mut enc, &grid.power, &grid.offsets, preps)?;
+            let grid = crate::profile::span("scales.encode", || {
+                self.scales.encode(gpu, &mut enc, &wavelet, &runs)
+            })?;
+            let out = crate::profile::span("ridge.encode", || {
+                self.ridge
+                    .encode(gpu, &mut enc, &grid.power, &grid.offsets, preps)
+            })?;
             encoded.push(Some((grid, out)));
         }
         // Paths, statistics and (when a signal asks for it) the scalogram of every part.
@@ -331,9 +335,41 @@ impl RidgeStage {
         let mut guide: Vec<[f32; 2]> = Vec::new();
         let (mut back_len, mut path_len) = (0usize, 0usize);
         let (mut path_at, mut info_at) = (Vec::new(), Vec::new());
-        for (p, &at) in preps.iter().zip(power_at) {
+        let _info = SpanGuard::new("ridge.info");
+        // Each run's scale table and guide in parallel (the dispatcher is one thread for
+        // every worker), then laid end to end.
+        type Guide = Option<Vec<[f32; 2]>>;
+        let per_run: Vec<(Vec<ScaleInfo>, Guide)> = preps
+            .par_iter()
+            .map(|p| {
+                let scales = (0..p.freqs.len())
+                    .map(|k| {
+                        let (first, last) = p.inner_steps(k);
+                        ScaleInfo {
+                            first: first as u32,
+                            last: last as u32,
+                            mid: p
+                                .noise_steps(k)
+                                .map_or(NO_MEDIAN, |(a, b)| ((b + 1 - a) / 2) as u32),
+                            ln_f: p.freqs[k].ln() as f32,
+                        }
+                    })
+                    .collect();
+                let guided = (0..p.steps).any(|j| p.guide_at(j).is_some());
+                let guide = guided.then(|| {
+                    (0..p.steps)
+                        .map(|j| match p.guide_at(j) {
+                            Some(lg) => [lg as f32, 1.0],
+                            None => [0.0, 0.0],
+                        })
+                        .collect()
+                });
+                (scales, guide)
+            })
+            .collect();
+        for ((p, &at), (scales, run_guide)) in preps.iter().zip(power_at).zip(per_run) {
             let s = p.freqs.len();
-            let guided = (0..p.steps).any(|j| p.guide_at(j).is_some());
+            let guided = run_guide.is_some();
             let (weight, resolution) = p.guide_weight();
             params.push(RunParams {
                 power: at as u32,
@@ -351,26 +387,14 @@ impl RidgeStage {
             });
             path_at.push(path_len);
             info_at.push(info.len());
-            for k in 0..s {
-                let (first, last) = p.inner_steps(k);
-                info.push(ScaleInfo {
-                    first: first as u32,
-                    last: last as u32,
-                    mid: p
-                        .noise_steps(k)
-                        .map_or(NO_MEDIAN, |(a, b)| ((b + 1 - a) / 2) as u32),
-                    ln_f: p.freqs[k].ln() as f32,
-                });
-            }
-            if guided {
-                guide.extend((0..p.steps).map(|j| match p.guide_at(j) {
-                    Some(lg) => [lg as f32, 1.0],
-                    None => [0.0, 0.0],
-                }));
+            info.extend(scales);
+            if let Some(g) = run_guide {
+                guide.extend(g);
             }
             back_len += p.steps * s;
             path_len += p.steps;
         }
+        drop(_info);
         let back_bytes = back_len as u64 * 4;
         if back_bytes > gpu.max_binding() {
             return Err(GpuError::TooLarge {

@@ -4,10 +4,11 @@
 //! back as f32 power per scale and step. This is the first pass of the wavelet track
 //! (`track::track_wavelet`), which the CPU evaluates scale by scale.
 
+use crate::profile::SpanGuard;
 use std::collections::HashMap;
 
 use super::fft::{offset_alignment, FftStage, Holder};
-use super::{Gpu, GpuError};
+use super::{Gpu, GpuError, Pooled};
 use crate::transform::{band::ScalePlan, Morlet, Spectrum, TAPER};
 
 /// The shader's `Item`: one run × one scale.
@@ -120,12 +121,11 @@ impl ScaleStage {
         let align = offset_alignment(gpu);
         let limit = gpu.max_binding();
         // Spectra back to back.
-        let mut spectrum: Vec<[f32; 2]> =
-            Vec::with_capacity(runs.iter().map(|r| r.spectrum.bins.len()).sum());
         let mut spec_offset = Vec::with_capacity(runs.len());
+        let mut spectrum_len = 0usize;
         for r in runs {
-            spec_offset.push(spectrum.len() as u32);
-            spectrum.extend(r.spectrum.bins.iter().map(|c| [c.re as f32, c.im as f32]));
+            spec_offset.push(spectrum_len as u32);
+            spectrum_len += r.spectrum.bins.len();
         }
         let mut power_offset = Vec::with_capacity(runs.len());
         let mut power_len = 0usize;
@@ -134,7 +134,7 @@ impl ScaleStage {
             power_len += r.plans.len() * r.steps;
         }
         for (what, bytes) in [
-            ("the spectra", spectrum.len() as u64 * 8),
+            ("the spectra", spectrum_len as u64 * 8),
             ("the coarse power grid", power_len as u64 * 4),
         ] {
             if bytes > limit {
@@ -180,7 +180,12 @@ impl ScaleStage {
             _pad: 0,
         };
         let uniform = gpu.uniform("wavelet", &params);
-        let spectrum_buf = gpu.upload("spectra", &spectrum);
+        let lens: Vec<usize> = runs.iter().map(|r| r.spectrum.bins.len()).collect();
+        let spectrum_buf = gpu.upload_segments("spectra", &lens, |r, out: &mut [[f32; 2]]| {
+            for (o, c) in out.iter_mut().zip(&runs[r].spectrum.bins) {
+                *o = [c.re as f32, c.im as f32];
+            }
+        })?;
         let power = gpu.storage("power", (power_len * 4) as u64);
         let shared = Shared {
             uniform: &uniform,
@@ -189,13 +194,17 @@ impl ScaleStage {
             spec_offset: &spec_offset,
             power_offset: &power_offset,
         };
+        let mut keep = Vec::with_capacity(2 * parts.len());
         for part in &parts {
-            self.encode_part(gpu, enc, runs, part, &shared)?;
+            keep.extend(crate::profile::span("scales.part", || {
+                self.encode_part(gpu, enc, runs, part, &shared)
+            })?);
         }
         Ok(PowerGrid {
             power,
             offsets: power_offset,
             len: power_len,
+            keep,
         })
     }
 
@@ -207,7 +216,7 @@ impl ScaleStage {
         runs: &[RunScales],
         part: &[(usize, usize)],
         shared: &Shared,
-    ) -> Result<(), GpuError> {
+    ) -> Result<[Pooled; 2], GpuError> {
         let align = offset_alignment(gpu);
         let mut index: Vec<u32> = Vec::new();
         let mut frac: Vec<f32> = Vec::new();
@@ -215,6 +224,7 @@ impl ScaleStage {
         let mut items = Vec::with_capacity(part.len());
         let mut groups: Vec<(usize, usize, usize)> = Vec::new(); // (length, offset, count)
         let mut data_len = 0usize;
+        let _items = SpanGuard::new("scales.items");
         for &(r, k) in part {
             let run = &runs[r];
             let plan = &run.plans[k];
@@ -255,6 +265,7 @@ impl ScaleStage {
             });
             data_len += m;
         }
+        drop(_items);
         let data_bytes = (data_len * 8) as u64;
         // Items along y (and z past one dimension's limit), slots along x.
         let [rows, layers, deeper] = gpu.grid(items.len() as u64)?;
@@ -267,8 +278,8 @@ impl ScaleStage {
         }
         let max_x = gpu.max_workgroups() as usize;
         let items_buf = gpu.upload("items", &items);
-        let data = gpu.storage("scales", data_bytes);
-        let scratch = gpu.storage("scales scratch", data_bytes);
+        let data = gpu.reusable("scales", data_bytes);
+        let scratch = gpu.reusable("scales scratch", data_bytes);
         let index_buf = gpu.upload("positions", &index);
         let frac_buf = gpu.upload("fractions", &frac);
         let bind = gpu.bind(
@@ -296,9 +307,10 @@ impl ScaleStage {
         };
         dispatch(enc, &self.scatter, longest);
         for &(m, offset, count) in &groups {
-            let holder = self
-                .fft
-                .encode(gpu, enc, m, count, true, &data, &scratch, offset)?;
+            let holder = crate::profile::span("fft.encode", || {
+                self.fft
+                    .encode(gpu, enc, m, count, true, &data, &scratch, offset)
+            })?;
             if holder == Holder::Scratch {
                 let bytes = (offset * 8) as u64;
                 enc.copy_buffer_to_buffer(&scratch, bytes, &data, bytes, (m * count * 8) as u64);
@@ -306,7 +318,7 @@ impl ScaleStage {
         }
         let steps = part.iter().map(|&(r, _)| runs[r].steps).max().unwrap_or(1);
         dispatch(enc, &self.power, steps);
-        Ok(())
+        Ok([data, scratch])
     }
 }
 
@@ -327,4 +339,6 @@ pub struct PowerGrid {
     pub offsets: Vec<usize>,
     /// Values in all.
     pub len: usize,
+    /// The work buffers of its submission, held until it has finished.
+    pub keep: Vec<Pooled>,
 }
