@@ -359,7 +359,11 @@ fn advance(
                     .zip(&ridges)
                     .map(|(p, r)| {
                         use rayon::prelude::*;
-                        p.par_iter().zip(r).map(|(p, r)| p.grid(&r.path)).collect()
+                        p.par_iter()
+                            .zip(r)
+                            .with_min_len(crate::gpu::PAR_MIN)
+                            .map(|(p, r)| p.grid(&r.path))
+                            .collect()
                     })
                     .collect()
             });

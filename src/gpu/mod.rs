@@ -122,6 +122,13 @@ pub struct Gpu {
     pool: Arc<Pool>,
 }
 
+/// Fewest signals the dispatcher hands to rayon at once. A parallel iterator called from
+/// the dispatcher (not a pool thread) queues behind whatever the pool is doing; in `skelid
+/// run`, whose workers keep the pool busy and whose batches hold a few signals, that wait
+/// was 2 of the dispatcher's 5 busy seconds on an H200. Below this many, the work runs on
+/// the dispatcher itself.
+pub(crate) const PAR_MIN: usize = 32;
+
 /// Free work buffers by size class.
 type Pool = Mutex<std::collections::HashMap<u64, Vec<wgpu::Buffer>>>;
 
@@ -444,17 +451,21 @@ impl Gpu {
                     starts.push(at);
                     at += len * elem;
                 }
-                starts.into_par_iter().enumerate().for_each(|(i, start)| {
-                    let mut values = vec![T::zeroed(); lens[i]];
-                    fill(i, &mut values);
-                    let src: &[u8] = bytemuck::cast_slice(&values);
-                    // SAFETY: [start, start + len·elem) lies inside the mapped `bytes`
-                    // (the starts are the running sums of the lengths) and no other
-                    // thread writes it.
-                    unsafe {
-                        std::ptr::copy_nonoverlapping(src.as_ptr(), base.at(start), src.len());
-                    }
-                });
+                starts
+                    .into_par_iter()
+                    .enumerate()
+                    .with_min_len(PAR_MIN)
+                    .for_each(|(i, start)| {
+                        let mut values = vec![T::zeroed(); lens[i]];
+                        fill(i, &mut values);
+                        let src: &[u8] = bytemuck::cast_slice(&values);
+                        // SAFETY: [start, start + len·elem) lies inside the mapped `bytes`
+                        // (the starts are the running sums of the lengths) and no other
+                        // thread writes it.
+                        unsafe {
+                            std::ptr::copy_nonoverlapping(src.as_ptr(), base.at(start), src.len());
+                        }
+                    });
             }
             buffer.unmap();
             Ok(buffer)

@@ -145,7 +145,7 @@ type Spans = Vec<(usize, usize, Vec<usize>)>;
 /// where its records are (or why the GPU cannot serve it) and the log of the factor its
 /// spectrum was scaled by.
 pub struct Encoded {
-    records: Vec<(wgpu::Buffer, u64)>,
+    records: Vec<(Pooled, u64)>,
     at: Vec<Result<Spans, GpuError>>,
     ln_scale: Vec<f64>,
     /// The work buffers of its submission, held until it has finished.
@@ -155,7 +155,7 @@ pub struct Encoded {
 impl Encoded {
     /// The record buffers and their lengths (bytes), for the batch's read-back.
     pub fn buffers(&self) -> impl Iterator<Item = (&wgpu::Buffer, u64)> {
-        self.records.iter().map(|(b, n)| (b, *n))
+        self.records.iter().map(|(b, n)| (&**b, *n))
     }
 
     /// Each run's grid estimates from the read-back bytes of [`buffers`](Self::buffers), in
@@ -174,6 +174,7 @@ impl Encoded {
             .into_par_iter()
             .zip(preps.par_iter().zip(grids))
             .zip(&self.ln_scale)
+            .with_min_len(super::PAR_MIN)
             .map(|((spans, (prep, grid)), &ln_scale)| {
                 let mut out: Vec<Option<GridEstimate>> = vec![None; grid.len()];
                 let mut centres: Vec<Option<u64>> = vec![None; prep.freqs.len()];
@@ -364,6 +365,7 @@ impl RefineStage {
             preps
                 .par_iter()
                 .zip(grids)
+                .with_min_len(super::PAR_MIN)
                 .map(|(p, g)| plan(p, g))
                 .collect()
         });
@@ -414,6 +416,7 @@ impl RefineStage {
         let ln_scale: Vec<f64> = preps
             .par_iter()
             .zip(&planned)
+            .with_min_len(super::PAR_MIN)
             .map(|(p, q)| {
                 let big = p.spec.bins[..=q.top]
                     .iter()
@@ -463,7 +466,7 @@ impl RefineStage {
         planned: &[Planned],
         ln_scale: &[f64],
         part: &[Piece],
-    ) -> Result<(wgpu::Buffer, Vec<usize>, [Pooled; 2]), GpuError> {
+    ) -> Result<(Pooled, Vec<usize>, [Pooled; 2]), GpuError> {
         let align = offset_alignment_of(gpu, self.real);
         let arrays = SpanGuard::new("refine.arrays");
         // Spectra: each piece's bins up to its run's top, scaled.
@@ -587,7 +590,8 @@ impl RefineStage {
         let table_buf = gpu.upload("refine table", &table);
         let runs_buf = gpu.upload("refine runs", &run_params);
         let points_buf = gpu.upload("grid points", &points);
-        let records = gpu.storage("grid records", points.len() as u64 * RECORD_BYTES);
+        // The estimate writes every point's record.
+        let records = gpu.reusable("grid records", points.len() as u64 * RECORD_BYTES);
         let bind = gpu.bind(
             "refine",
             &self.layout,

@@ -9,7 +9,7 @@ use rayon::prelude::*;
 
 use super::fft::plannable;
 use super::scales::{PowerGrid, RunScales, ScaleStage};
-use super::{Gpu, GpuError, Readback};
+use super::{Gpu, GpuError, Pooled, Readback};
 use crate::track::{CoarseRidge, WaveletPrep};
 
 /// Most scales the ridge programme holds in workgroup memory (the shader's `MAX_SCALES`).
@@ -263,6 +263,7 @@ impl InFlight {
                 preps
                     .par_iter()
                     .enumerate()
+                    .with_min_len(super::PAR_MIN)
                     .map(|(r, p)| {
                         let (po, so) = (out.path_at[r], out.info_at[r]);
                         CoarseRidge {
@@ -293,12 +294,14 @@ impl InFlight {
 
 /// The ridge stage's outputs, on the GPU.
 struct RidgeOut {
-    path: wgpu::Buffer,
+    path: Pooled,
     path_len: usize,
     path_at: Vec<usize>,
-    stats: wgpu::Buffer,
+    stats: Pooled,
     stats_len: usize,
     info_at: Vec<usize>,
+    /// The back-pointers and carried scores, held until the submission has finished.
+    _keep: [Pooled; 2],
 }
 
 impl RidgeStage {
@@ -341,6 +344,7 @@ impl RidgeStage {
         type Guide = Option<Vec<[f32; 2]>>;
         let per_run: Vec<(Vec<ScaleInfo>, Guide)> = preps
             .par_iter()
+            .with_min_len(super::PAR_MIN)
             .map(|p| {
                 let scales = (0..p.freqs.len())
                     .map(|k| {
@@ -409,10 +413,13 @@ impl RidgeStage {
         let runs_buf = gpu.upload("ridge runs", &params);
         let info_buf = gpu.upload("scale info", &info);
         let guide_buf = gpu.upload("guide", &guide);
-        let stats = gpu.storage("column stats", (info.len() * 8) as u64);
-        let back = gpu.storage("back-pointers", back_bytes);
-        let path = gpu.storage("paths", (path_len * 4) as u64);
-        let accum = gpu.storage("carried scores", (info.len() * 4) as u64);
+        // All four are written in full before they are read (statistics per scale, a
+        // back-pointer per step after the first, the path per step, the scores at each
+        // chunk's end): reused buffers serve.
+        let stats = gpu.reusable("column stats", (info.len() * 8) as u64);
+        let back = gpu.reusable("back-pointers", back_bytes);
+        let path = gpu.reusable("paths", (path_len * 4) as u64);
+        let accum = gpu.reusable("carried scores", (info.len() * 4) as u64);
         let max_scales = preps.iter().map(|p| p.freqs.len()).max().unwrap_or(1);
         let max_steps = preps.iter().map(|p| p.steps).max().unwrap_or(1);
         // An invocation holds ⌈S/256⌉ scales and scans S predecessors for each, per step.
@@ -466,6 +473,7 @@ impl RidgeStage {
             stats,
             stats_len: info.len(),
             info_at,
+            _keep: [back, accum],
         })
     }
 }

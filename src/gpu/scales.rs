@@ -186,7 +186,8 @@ impl ScaleStage {
                 *o = [c.re as f32, c.im as f32];
             }
         })?;
-        let power = gpu.storage("power", (power_len * 4) as u64);
+        // Every run × scale item writes all its steps: a reused buffer serves.
+        let power = gpu.reusable("power", (power_len * 4) as u64);
         let shared = Shared {
             uniform: &uniform,
             spectrum: &spectrum_buf,
@@ -334,7 +335,7 @@ struct Shared<'a> {
 /// A batch's coarse |W|² on the GPU: runs back to back, each scale-major.
 pub struct PowerGrid {
     /// The values (f32).
-    pub power: wgpu::Buffer,
+    pub power: Pooled,
     /// Where each run's values start.
     pub offsets: Vec<usize>,
     /// Values in all.
