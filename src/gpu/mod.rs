@@ -560,8 +560,10 @@ impl Gpu {
     }
 
     /// Maps a read-back recorded by [`encode_readback`](Self::encode_readback) once its
-    /// submission is made: one blocking wait, then each part's bytes in order.
-    pub fn finish_readback(&self, rb: Readback) -> Result<Vec<Vec<u8>>, GpuError> {
+    /// submission is made: one blocking wait, then each part's contents in order, as
+    /// 4-byte words (every part is a multiple of 4 bytes; words keep the alignment that
+    /// the records' u32 and f32 fields need, so decoding reads them in place).
+    pub fn finish_readback(&self, rb: Readback) -> Result<Vec<Vec<u32>>, GpuError> {
         let Readback { staging, ranges } = rb;
         crate::profile::downloaded(ranges.iter().map(|r| r.1).sum());
         let (tx, rx) = std::sync::mpsc::channel();
@@ -584,10 +586,10 @@ impl Gpu {
                 .map(|&(at, bytes)| {
                     use rayon::prelude::*;
                     let src = &all[at as usize..(at + bytes) as usize];
-                    let mut dst = vec![0u8; src.len()];
-                    dst.par_chunks_mut(1 << 20)
+                    let mut dst = vec![0u32; src.len() / 4];
+                    dst.par_chunks_mut(1 << 18)
                         .zip(src.par_chunks(1 << 20))
-                        .for_each(|(d, s)| d.copy_from_slice(s));
+                        .for_each(|(d, s)| bytemuck::cast_slice_mut(d).copy_from_slice(s));
                     dst
                 })
                 .collect();
@@ -616,7 +618,7 @@ impl Gpu {
             .finish_readback(readback)?
             .pop()
             .expect("one part read back");
-        // Byte vectors carry no alignment: copy into a typed one.
+        // Words are aligned to 4 bytes only: copy into a typed vector.
         Ok(bytemuck::pod_collect_to_vec(&part))
     }
 }

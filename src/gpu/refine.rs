@@ -162,14 +162,10 @@ impl Encoded {
     /// order; `preps` and `grids` are the ones given to [`RefineStage::encode`].
     pub fn decode(
         self,
-        bytes: &[Vec<u8>],
+        words: &[Vec<u32>],
         preps: &[&WaveletPrep],
         grids: &[Vec<GridPoint>],
     ) -> Vec<Refined> {
-        let words: Vec<Vec<u32>> = bytes
-            .iter()
-            .map(|b| bytemuck::pod_collect_to_vec(b))
-            .collect();
         self.at
             .into_par_iter()
             .zip(preps.par_iter().zip(grids))
@@ -711,10 +707,10 @@ impl RefineFlight {
                 let Some(e) = e else {
                     return Vec::new();
                 };
-                let part_bytes: Vec<Vec<u8>> = (0..e.records.len())
+                let part_words: Vec<Vec<u32>> = (0..e.records.len())
                     .map(|_| bytes.next().expect("one read-back per records buffer"))
                     .collect();
-                crate::profile::span("refine.decode", || e.decode(&part_bytes, preps, grids))
+                crate::profile::span("refine.decode", || e.decode(&part_words, preps, grids))
             })
             .collect())
     }

@@ -253,9 +253,8 @@ impl InFlight {
             let mut next = || bytes.next().expect("three read-backs per part");
             let (paths, stats, power) = (next(), next(), next());
             // Byte vectors carry no alignment: copy into typed ones.
-            let paths: Vec<u32> = bytemuck::pod_collect_to_vec(&paths);
-            let stats: Vec<[f32; 2]> = bytemuck::pod_collect_to_vec(&stats);
-            let power: Vec<f32> = bytemuck::pod_collect_to_vec(&power);
+            let stats: &[[f32; 2]] = bytemuck::cast_slice(&stats);
+            let power: &[f32] = bytemuck::cast_slice(&power);
             let wavelet = preps[0].wavelet();
             // In parallel: the noise gains evaluate every scale's weights, and the
             // dispatcher is one thread for every worker.
