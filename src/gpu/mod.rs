@@ -279,17 +279,37 @@ impl Gpu {
     }
 
     /// Submits one command buffer (counted for the profile).
-    pub fn submit(&self, enc: wgpu::CommandEncoder) {
+    pub fn submit(&self, enc: wgpu::CommandEncoder) -> wgpu::SubmissionIndex {
         crate::profile::submitted();
         let buffer = crate::profile::span("encoder.finish", || enc.finish());
-        crate::profile::span("queue.submit", || self.queue.submit([buffer]));
+        crate::profile::span("queue.submit", || self.queue.submit([buffer]))
+    }
+
+    /// Submits `enc`, which holds the copies of `rb`, so that [`finish_readback`]
+    /// (Self::finish_readback) waits for this submission alone.
+    pub fn submit_reading(&self, enc: wgpu::CommandEncoder, rb: Readback) -> Readback {
+        Readback {
+            submission: Some(self.submit(enc)),
+            ..rb
+        }
     }
 
     /// Waits for all submitted work.
     pub fn wait(&self) -> Result<(), GpuError> {
+        self.wait_for(None)
+    }
+
+    /// Waits for `submission` and the work before it (all submitted work when `None`).
+    /// A batch's read-back waits for its own submission: waiting for the newest one
+    /// instead also waited for the batch submitted after it, which is what two batches in
+    /// flight are meant to overlap.
+    fn wait_for(&self, submission: Option<wgpu::SubmissionIndex>) -> Result<(), GpuError> {
         crate::profile::synced();
         crate::profile::span("wait", || {
-            self.device.poll(wgpu::PollType::wait_indefinitely())
+            self.device.poll(wgpu::PollType::Wait {
+                submission_index: submission,
+                timeout: None,
+            })
         })
         .map_err(|e| GpuError::Lost(e.to_string()))?;
         self.check()
@@ -556,7 +576,11 @@ impl Gpu {
                 enc.copy_buffer_to_buffer(buffer, 0, &staging, offset, bytes);
             }
         }
-        Readback { staging, ranges }
+        Readback {
+            staging,
+            ranges,
+            submission: None,
+        }
     }
 
     /// Maps a read-back recorded by [`encode_readback`](Self::encode_readback) once its
@@ -564,13 +588,17 @@ impl Gpu {
     /// 4-byte words (every part is a multiple of 4 bytes; words keep the alignment that
     /// the records' u32 and f32 fields need, so decoding reads them in place).
     pub fn finish_readback(&self, rb: Readback) -> Result<Vec<Vec<u32>>, GpuError> {
-        let Readback { staging, ranges } = rb;
+        let Readback {
+            staging,
+            ranges,
+            submission,
+        } = rb;
         crate::profile::downloaded(ranges.iter().map(|r| r.1).sum());
         let (tx, rx) = std::sync::mpsc::channel();
         staging.map_async(wgpu::MapMode::Read, .., move |r| {
             let _ = tx.send(r);
         });
-        self.wait()?;
+        self.wait_for(submission)?;
         rx.recv()
             .map_err(|e| GpuError::Lost(e.to_string()))?
             .map_err(|e| GpuError::Lost(e.to_string()))?;
@@ -613,7 +641,7 @@ impl Gpu {
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
         let readback = self.encode_readback(&mut enc, &[(buffer, bytes)]);
-        self.submit(enc);
+        let readback = self.submit_reading(enc, readback);
         let part = self
             .finish_readback(readback)?
             .pop()
@@ -627,6 +655,8 @@ impl Gpu {
 pub struct Readback {
     staging: wgpu::Buffer,
     ranges: Vec<(u64, u64)>,
+    /// The submission that holds the copies, once made ([`Gpu::submit_reading`]).
+    submission: Option<wgpu::SubmissionIndex>,
 }
 
 /// [`Gpu::grid`] for a given per-dimension limit.

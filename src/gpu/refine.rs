@@ -682,7 +682,7 @@ impl RefineStage {
         let wanted: Vec<(&wgpu::Buffer, u64)> =
             encoded.iter().flatten().flat_map(|e| e.buffers()).collect();
         let readback = gpu.encode_readback(&mut enc, &wanted);
-        gpu.submit(enc);
+        let readback = gpu.submit_reading(enc, readback);
         Ok(RefineFlight { encoded, readback })
     }
 }

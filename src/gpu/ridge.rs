@@ -171,7 +171,7 @@ impl FirstPass {
             wanted.push((&grid.power, if power { grid.len as u64 * 4 } else { 0 }));
         }
         let readback = gpu.encode_readback(&mut enc, &wanted);
-        gpu.submit(enc);
+        let readback = gpu.submit_reading(enc, readback);
         Ok(InFlight { encoded, readback })
     }
 
