@@ -304,6 +304,13 @@ pub fn print_spans(title: &str) {
             cpu as f64 / 1e6
         );
     }
+    let passes = std::mem::take(&mut *PASSES.lock().unwrap_or_else(|p| p.into_inner()));
+    if !passes.is_empty() {
+        eprintln!("GPU trace, {title}: device time by compute pass (timestamps): pass, passes, ms");
+        for (name, (n, ns)) in passes {
+            eprintln!("  {name:<24} {n:>6} {:>10.1}", ns / 1e6);
+        }
+    }
 }
 
 /// A span ([`span`]) that ends when dropped, for stretches of a function.
@@ -333,4 +340,17 @@ impl Drop for SpanGuard {
             e.2 += cpu.as_nanos() as u64;
         }
     }
+}
+
+/// Count and device nanoseconds of each labelled compute pass ([`device_pass`]).
+static PASSES: std::sync::Mutex<std::collections::BTreeMap<&'static str, (u64, f64)>> =
+    std::sync::Mutex::new(std::collections::BTreeMap::new());
+
+/// Adds one compute pass's device time (from GPU timestamps) under `label`, for
+/// [`print_spans`].
+pub fn device_pass(label: &'static str, ns: f64) {
+    let mut passes = PASSES.lock().unwrap_or_else(|p| p.into_inner());
+    let e = passes.entry(label).or_default();
+    e.0 += 1;
+    e.1 += ns;
 }

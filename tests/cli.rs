@@ -809,6 +809,78 @@ fn a_device_lost_mid_batch_falls_back_to_the_cpu_and_records_it() {
 }
 
 #[test]
+fn the_gpu_trace_names_the_dispatchers_host_work_and_every_compute_passs_device_time() {
+    let d = tmpdir();
+    let out = skelid()
+        .env("SKELID_GPU_TRACE", "1")
+        .arg("bench")
+        .arg(demo_archive())
+        .args([
+            "--backend",
+            "gpu",
+            "--repeat",
+            "1",
+            "--no-end-to-end",
+            "--out",
+        ])
+        .arg(d.path().join("bench.json"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    println!("{err}");
+    assert!(out.status.success(), "{err}");
+    // The timed repetition's own section: host spans, then device time by pass.
+    let rep = err
+        .split("GPU trace, gpu, 1 repetition(s): span")
+        .nth(1)
+        .expect("a trace of the timed repetition");
+    for span in [
+        "first.submit",
+        "scales.encode",
+        "upload",
+        "refine.submit",
+        "wait",
+    ] {
+        assert!(rep.contains(&format!("  {span} ")), "no span {span}");
+    }
+    let device = rep
+        .split("device time by compute pass")
+        .nth(1)
+        .expect("lavapipe has timestamp queries: a device-time section");
+    for pass in [
+        "scales.scatter",
+        "scales.power",
+        "ridge",
+        "refine.scatter",
+        "refine.estimate",
+        "fft f",
+    ] {
+        let line = device
+            .lines()
+            .find(|l| l.trim_start().starts_with(pass))
+            .unwrap_or_else(|| panic!("no pass {pass}"));
+        let ms: f64 = line.split_whitespace().last().unwrap().parse().unwrap();
+        assert!(ms > 0.0, "{line}");
+    }
+    // Without the variable, nothing of it.
+    let plain = skelid()
+        .arg("bench")
+        .arg(demo_archive())
+        .args([
+            "--backend",
+            "gpu",
+            "--repeat",
+            "1",
+            "--no-end-to-end",
+            "--out",
+        ])
+        .arg(d.path().join("plain.json"))
+        .output()
+        .unwrap();
+    assert!(!String::from_utf8_lossy(&plain.stderr).contains("GPU trace"));
+}
+
+#[test]
 fn bench_compares_the_backends_on_the_demo_campaign() {
     let d = tmpdir();
     let archive = demo_archive();

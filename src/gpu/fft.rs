@@ -219,10 +219,13 @@ impl FftStage {
         let back = (plan.len() > 1).then(|| bind(scratch, data));
         let (mut from, mut to) = (data, scratch);
         // One compute pass: WebGPU orders its dispatches, each seeing the last one's writes.
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("fft"),
-            timestamp_writes: None,
-        });
+        let mut pass = gpu.pass(
+            encoder,
+            match self.real {
+                Real::F32 => "fft f32",
+                Real::F64 => "fft f64",
+            },
+        );
         pass.set_pipeline(&self.pipeline);
         for (i, &r) in plan.iter().enumerate() {
             let group = if i % 2 == 0 {

@@ -120,6 +120,28 @@ pub struct Gpu {
     failure: Arc<Mutex<Option<String>>>,
     /// Work buffers given back by finished batches, by size, for [`Gpu::reusable`].
     pool: Arc<Pool>,
+    /// Device time of each compute pass, where `SKELID_GPU_TRACE` asks for it and the
+    /// adapter has timestamp queries.
+    timer: Option<Timer>,
+}
+
+/// Timestamps around every compute pass of a submission ([`Gpu::pass`]), resolved at its
+/// submission and read once it has finished: the device's time by pass, which host
+/// clocks cannot split.
+struct Timer {
+    set: wgpu::QuerySet,
+    /// Nanoseconds per timestamp tick.
+    period: f64,
+    /// The passes recorded since the last submission, in order (two queries each).
+    labels: Mutex<Vec<&'static str>>,
+    /// Submitted, not yet read: the read-back buffer, whether it is mapped, the passes.
+    pending: Mutex<
+        Vec<(
+            wgpu::Buffer,
+            Arc<std::sync::atomic::AtomicBool>,
+            Vec<&'static str>,
+        )>,
+    >,
 }
 
 /// Fewest signals the dispatcher hands to rayon at once. A parallel iterator called from
@@ -128,6 +150,69 @@ pub struct Gpu {
 /// was 2 of the dispatcher's 5 busy seconds on an H200. Below this many, the work runs on
 /// the dispatcher itself.
 pub(crate) const PAR_MIN: usize = 32;
+
+impl Timer {
+    /// Records the resolve of this submission's timestamps into `enc` and a copy to a
+    /// mappable buffer; `None` when no pass was timed.
+    fn resolve(
+        &self,
+        device: &wgpu::Device,
+        enc: &mut wgpu::CommandEncoder,
+    ) -> Option<(wgpu::Buffer, Vec<&'static str>)> {
+        let labels = std::mem::take(&mut *self.labels.lock().unwrap_or_else(|p| p.into_inner()));
+        if labels.is_empty() {
+            return None;
+        }
+        let queries = labels.len() as u32 * 2;
+        let bytes = u64::from(queries) * 8;
+        let resolved = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("timestamps"),
+            size: bytes,
+            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        let staging = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("timestamps read-back"),
+            size: bytes,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        enc.resolve_query_set(&self.set, 0..queries, &resolved, 0);
+        enc.copy_buffer_to_buffer(&resolved, 0, &staging, 0, bytes);
+        Some((staging, labels))
+    }
+
+    /// Asks for a submitted read-back to be mapped once its submission has finished.
+    fn read_later(&self, staging: wgpu::Buffer, labels: Vec<&'static str>) {
+        let done = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let flag = done.clone();
+        staging.map_async(wgpu::MapMode::Read, .., move |r| {
+            flag.store(r.is_ok(), std::sync::atomic::Ordering::Release);
+        });
+        let mut pending = self.pending.lock().unwrap_or_else(|p| p.into_inner());
+        pending.push((staging, done, labels));
+    }
+
+    /// Adds the passes of every finished submission to the trace.
+    fn harvest(&self) {
+        let mut pending = self.pending.lock().unwrap_or_else(|p| p.into_inner());
+        pending.retain(|(staging, done, labels)| {
+            if !done.load(std::sync::atomic::Ordering::Acquire) {
+                return true;
+            }
+            if let Ok(view) = staging.get_mapped_range(..) {
+                let ticks: &[u64] = bytemuck::cast_slice(&view);
+                for (k, label) in labels.iter().enumerate() {
+                    let (a, b) = (ticks[2 * k], ticks[2 * k + 1]);
+                    let ns = b.saturating_sub(a) as f64 * self.period;
+                    crate::profile::device_pass(label, ns);
+                }
+            }
+            staging.unmap();
+            false
+        });
+    }
+}
 
 /// Free work buffers by size class.
 type Pool = Mutex<std::collections::HashMap<u64, Vec<wgpu::Buffer>>>;
@@ -184,11 +269,16 @@ impl Gpu {
         let adapter = Self::adapter()?;
         let info = adapter.get_info();
         let limits = adapter.limits();
-        let features = if std::env::var_os(NO_F64_ENV).is_some() {
+        let mut features = if std::env::var_os(NO_F64_ENV).is_some() {
             wgpu::Features::empty()
         } else {
             adapter.features() & wgpu::Features::SHADER_F64
         };
+        let timed = crate::profile::tracing()
+            && adapter.features().contains(wgpu::Features::TIMESTAMP_QUERY);
+        if timed {
+            features |= wgpu::Features::TIMESTAMP_QUERY;
+        }
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("skelid"),
             required_features: features,
@@ -215,6 +305,16 @@ impl Gpu {
         });
         let invalid = record(&failure);
         device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| invalid(e.to_string())));
+        let timer = timed.then(|| Timer {
+            set: device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("pass timestamps"),
+                ty: wgpu::QueryType::Timestamp,
+                count: wgpu::QUERY_SET_MAX_QUERIES,
+            }),
+            period: f64::from(queue.get_timestamp_period()),
+            labels: Mutex::new(Vec::new()),
+            pending: Mutex::new(Vec::new()),
+        });
         Ok(Gpu {
             device,
             queue,
@@ -228,6 +328,7 @@ impl Gpu {
                 .and_then(|v| v.parse().ok()),
             failure,
             pool: Arc::new(Mutex::new(std::collections::HashMap::new())),
+            timer,
         })
     }
 
@@ -279,10 +380,44 @@ impl Gpu {
     }
 
     /// Submits one command buffer (counted for the profile).
-    pub fn submit(&self, enc: wgpu::CommandEncoder) -> wgpu::SubmissionIndex {
+    pub fn submit(&self, mut enc: wgpu::CommandEncoder) -> wgpu::SubmissionIndex {
         crate::profile::submitted();
+        let timed = self
+            .timer
+            .as_ref()
+            .and_then(|t| t.resolve(&self.device, &mut enc));
         let buffer = crate::profile::span("encoder.finish", || enc.finish());
-        crate::profile::span("queue.submit", || self.queue.submit([buffer]))
+        let index = crate::profile::span("queue.submit", || self.queue.submit([buffer]));
+        if let (Some(t), Some((staging, labels))) = (&self.timer, timed) {
+            t.read_later(staging, labels);
+        }
+        index
+    }
+
+    /// Begins a compute pass labelled `label`; with `SKELID_GPU_TRACE` on an adapter with
+    /// timestamp queries, its device time is added to the trace under that label.
+    pub fn pass<'e>(
+        &self,
+        enc: &'e mut wgpu::CommandEncoder,
+        label: &'static str,
+    ) -> wgpu::ComputePass<'e> {
+        let writes = self.timer.as_ref().and_then(|t| {
+            let mut labels = t.labels.lock().unwrap_or_else(|p| p.into_inner());
+            // Two queries a pass; passes beyond the set's size go untimed.
+            let at = u32::try_from(labels.len() * 2).ok()?;
+            (at + 1 < wgpu::QUERY_SET_MAX_QUERIES).then(|| {
+                labels.push(label);
+                wgpu::ComputePassTimestampWrites {
+                    query_set: &t.set,
+                    beginning_of_pass_write_index: Some(at),
+                    end_of_pass_write_index: Some(at + 1),
+                }
+            })
+        });
+        enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(label),
+            timestamp_writes: writes,
+        })
     }
 
     /// Submits `enc`, which holds the copies of `rb`, so that [`finish_readback`]
@@ -312,6 +447,9 @@ impl Gpu {
             })
         })
         .map_err(|e| GpuError::Lost(e.to_string()))?;
+        if let Some(t) = &self.timer {
+            t.harvest();
+        }
         self.check()
     }
 

@@ -615,10 +615,7 @@ impl RefineStage {
         let max_x = gpu.max_workgroups() as usize;
         let _passes = SpanGuard::new("refine.passes");
         if !items.is_empty() {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("refine scatter"),
-                timestamp_writes: None,
-            });
+            let mut pass = gpu.pass(enc, "refine.scatter");
             pass.set_pipeline(&self.scatter);
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(longest.div_ceil(64).min(max_x) as u32, rows, layers);
@@ -635,10 +632,7 @@ impl RefineStage {
         }
         if !points.is_empty() {
             let [x, y, z] = gpu.grid(points.len().div_ceil(64) as u64)?;
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("refine estimate"),
-                timestamp_writes: None,
-            });
+            let mut pass = gpu.pass(enc, "refine.estimate");
             pass.set_pipeline(&self.estimate);
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(x, y, z);

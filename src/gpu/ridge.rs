@@ -444,10 +444,7 @@ impl RidgeStage {
                 bind(&gpu.uniform("chunk", &range))
             })
             .collect();
-        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("ridge"),
-            timestamp_writes: None,
-        });
+        let mut pass = gpu.pass(enc, "ridge");
         // Each dispatch sees the previous one's writes (WebGPU orders them).
         pass.set_pipeline(&self.stats);
         pass.set_bind_group(0, &chunks[0], &[]);

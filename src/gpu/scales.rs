@@ -297,16 +297,13 @@ impl ScaleStage {
             ],
         );
         let longest = groups.iter().map(|g| g.0).max().unwrap_or(1);
-        let dispatch = |enc: &mut wgpu::CommandEncoder, pipeline, width: usize| {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("scales"),
-                timestamp_writes: None,
-            });
+        let dispatch = |enc: &mut wgpu::CommandEncoder, label, pipeline, width: usize| {
+            let mut pass = gpu.pass(enc, label);
             pass.set_pipeline(pipeline);
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(width.div_ceil(64).min(max_x) as u32, rows, layers);
         };
-        dispatch(enc, &self.scatter, longest);
+        dispatch(enc, "scales.scatter", &self.scatter, longest);
         for &(m, offset, count) in &groups {
             let holder = crate::profile::span("fft.encode", || {
                 self.fft
@@ -318,7 +315,7 @@ impl ScaleStage {
             }
         }
         let steps = part.iter().map(|&(r, _)| runs[r].steps).max().unwrap_or(1);
-        dispatch(enc, &self.power, steps);
+        dispatch(enc, "scales.power", &self.power, steps);
         Ok([data, scratch])
     }
 }
