@@ -134,15 +134,17 @@ struct Timer {
     period: f64,
     /// The passes recorded since the last submission, in order (two queries each).
     labels: Mutex<Vec<&'static str>>,
-    /// Submitted, not yet read: the read-back buffer, whether it is mapped, the passes.
-    pending: Mutex<
-        Vec<(
-            wgpu::Buffer,
-            Arc<std::sync::atomic::AtomicBool>,
-            Vec<&'static str>,
-        )>,
-    >,
+    /// Submitted, not yet read.
+    pending: Mutex<Vec<TimedSubmission>>,
 }
+
+/// A submission's timestamps on their way back: the read-back buffer, whether it is
+/// mapped, and its passes in order.
+type TimedSubmission = (
+    wgpu::Buffer,
+    Arc<std::sync::atomic::AtomicBool>,
+    Vec<&'static str>,
+);
 
 /// Fewest signals the dispatcher hands to rayon at once. A parallel iterator called from
 /// the dispatcher (not a pool thread) queues behind whatever the pool is doing; in `skelid
