@@ -811,21 +811,24 @@ fn a_device_lost_mid_batch_falls_back_to_the_cpu_and_records_it() {
 #[test]
 fn the_gpu_trace_names_the_dispatchers_host_work_and_every_compute_passs_device_time() {
     let d = tmpdir();
-    let out = skelid()
-        .env("SKELID_GPU_TRACE", "1")
-        .arg("bench")
-        .arg(demo_archive())
-        .args([
-            "--backend",
-            "gpu",
-            "--repeat",
-            "1",
-            "--no-end-to-end",
-            "--out",
-        ])
-        .arg(d.path().join("bench.json"))
-        .output()
-        .unwrap();
+    let bench = |trace: &str, json: &str| {
+        skelid()
+            .env("SKELID_GPU_TRACE", trace)
+            .arg("bench")
+            .arg(demo_archive())
+            .args([
+                "--backend",
+                "gpu",
+                "--repeat",
+                "1",
+                "--no-end-to-end",
+                "--out",
+            ])
+            .arg(d.path().join(json))
+            .output()
+            .unwrap()
+    };
+    let out = bench("1", "bench.json");
     let err = String::from_utf8_lossy(&out.stderr);
     println!("{err}");
     assert!(out.status.success(), "{err}");
@@ -862,21 +865,8 @@ fn the_gpu_trace_names_the_dispatchers_host_work_and_every_compute_passs_device_
         let ms: f64 = line.split_whitespace().last().unwrap().parse().unwrap();
         assert!(ms > 0.0, "{line}");
     }
-    // Without the variable, nothing of it.
-    let plain = skelid()
-        .arg("bench")
-        .arg(demo_archive())
-        .args([
-            "--backend",
-            "gpu",
-            "--repeat",
-            "1",
-            "--no-end-to-end",
-            "--out",
-        ])
-        .arg(d.path().join("plain.json"))
-        .output()
-        .unwrap();
+    // Set to 0, nothing of it.
+    let plain = bench("0", "plain.json");
     assert!(!String::from_utf8_lossy(&plain.stderr).contains("GPU trace"));
 }
 

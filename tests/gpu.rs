@@ -321,6 +321,18 @@ fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
     }
 }
 
+/// The ridge signals as the backend takes them, sampled at 1 kHz, each with its guide.
+fn at_1khz(signals: &[(Vec<f64>, Option<Vec<f64>>)]) -> Vec<skelid::backend::Signal<'_>> {
+    signals
+        .iter()
+        .map(|(x, g)| skelid::backend::Signal {
+            samples: x,
+            sample_rate: 1000.0,
+            guide: g.as_deref(),
+        })
+        .collect()
+}
+
 #[test]
 fn gpu_and_cpu_backends_give_the_same_tracks() {
     use skelid::backend::{Backend, BackendChoice};
@@ -336,14 +348,7 @@ fn gpu_and_cpu_backends_give_the_same_tracks() {
             (2.0 * std::f64::consts::PI * (1.0 * t + 0.05 * t * t)).sin()
         })
         .collect();
-    let mut all: Vec<skelid::backend::Signal> = signals
-        .iter()
-        .map(|(x, g)| skelid::backend::Signal {
-            samples: x,
-            sample_rate: 1000.0,
-            guide: g.as_deref(),
-        })
-        .collect();
+    let mut all = at_1khz(&signals);
     all.push(skelid::backend::Signal {
         samples: &long,
         sample_rate: 1000.0,
@@ -527,14 +532,7 @@ fn reused_work_buffers_fit_their_request_and_leave_nothing_behind() {
     // buffers another batch of other lengths used in between, must give the same tracks.
     let backend = Backend::open(BackendChoice::Gpu).unwrap_or_else(|e| panic!("{e}"));
     let signals = ridge_signals();
-    let all: Vec<skelid::backend::Signal> = signals
-        .iter()
-        .map(|(x, g)| skelid::backend::Signal {
-            samples: x,
-            sample_rate: 1000.0,
-            guide: g.as_deref(),
-        })
-        .collect();
+    let all = at_1khz(&signals);
     let opt = WaveletOptions {
         scales: 96,
         ..Default::default()
