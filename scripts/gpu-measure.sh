@@ -1,0 +1,66 @@
+#!/usr/bin/env bash
+# Both backends side by side on a GPU machine, with the GPU trace: what issue 18's figures
+# in the README were measured with. On the lent device machine, after
+# `bash ../shared/tools/device-bundle.sh` here, run it from the repository root with
+# `.device` carried (it unpacks the Vulkan loader there and uses .device/skelid):
+#
+#   bash scripts/gpu-measure.sh            # N=1000 runs; N=200 for a shorter campaign
+#
+# Elsewhere, with skelid and a Vulkan driver installed: SKELID=$(command -v skelid) bash
+# scripts/gpu-measure.sh. Prints, and writes under $OUT (default /tmp/skelid-measure):
+#   - `bench` on N simulated runs (30 000 samples) at 128 scales, traced
+#     (SKELID_GPU_TRACE=1: the dispatcher's host spans and each compute pass's device
+#     time), with the end-to-end run per backend;
+#   - `bench` at 512 scales; one 2^20-sample log sweep at 256 scales;
+#   - `skelid run` end to end, both methods, on each backend (traced on the GPU).
+set -u
+N=${N:-1000}; OUT=${OUT:-/tmp/skelid-measure}; mkdir -p "$OUT"
+exec > >(tee "$OUT/log.txt") 2>&1
+if [ -d .device ] && [ -z "${SKELID:-}" ]; then
+  for f in .device/gl/*.deb; do dpkg -x "$f" /; done; ldconfig
+  export LD_LIBRARY_PATH=$PWD/.device/lib
+  for icd in /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json /usr/share/vulkan/icd.d/nvidia_icd.json; do
+    [ -f "$icd" ] && { export VK_DRIVER_FILES=$icd; break; }
+  done
+fi
+B=${SKELID:-$PWD/.device/skelid}; W=${W:-/tmp/skelid-measure-work}; mkdir -p "$W/campaign"
+now() { date +%s.%N; }
+since() { awk "BEGIN{printf \"%.2f\", $(now) - $1}"; }
+T0=$(now)
+echo "== $(nproc) cores; $(nvidia-smi -L 2>/dev/null | head -1)"
+cat > "$W/paper.toml" <<'TOML'
+inertia = 3.16
+stiffness = 15000.0
+damping = 13.0
+clearance = 0.0262
+gravity_stiffness = 0.0
+
+[effects]
+coulomb_friction = { torque = 2.5 }
+TOML
+seq 1 "$N" | xargs -P "$(nproc)" -I{} "$B" simulate --model "$W/paper.toml" --out "$W/campaign/run_{}.h5" \
+  --seed {} --duration 30 --f0 0 --f1 12 --amplitude 0.04 --rolloff-hz 1.8 --rolloff-order 2 >/dev/null
+python3 - "$W/long.h5" 2>/dev/null <<'PY' || echo "(the 2^20-sample signal needs python3 with numpy and h5py: skipped)"
+import sys, numpy as np, h5py
+n = 2**20; fs = 1000.0; t = np.arange(n)/fs; f0, f1 = 0.5, 50.0; k = np.log(f1/f0)/t[-1]
+x = np.sin(2*np.pi*f0*(np.exp(k*t)-1)/k) + 0.01*np.random.default_rng(1).standard_normal(n)
+with h5py.File(sys.argv[1], 'w') as h:
+    g = h.create_group('sig'); g.attrs['sample_rate'] = fs; g.attrs['kind'] = 'free'; g['output'] = x
+PY
+quiet() { grep -vE "repetition|warm-up|  cpu: end|  gpu: end"; }
+echo "== bench, 128 scales (traced), with the end-to-end run"
+SKELID_GPU_TRACE=1 timeout 150 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --out "$OUT/bench-128.json" 2>&1 | quiet
+echo "== bench, 512 scales"
+timeout 100 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 512 --no-end-to-end --out "$OUT/bench-512.json" 2>&1 | quiet
+if [ -f "$W/long.h5" ]; then
+  echo "== one 2^20-sample signal, 256 scales"
+  timeout 60 "$B" bench "$W/long.h5" --backend cpu,gpu --repeat 5 --scales 256 --no-end-to-end --out "$OUT/bench-long.json" 2>&1 | quiet
+fi
+echo "== skelid run, both methods"
+for cfg in cpu gpu; do
+  s=$(now)
+  SKELID_GPU_TRACE=1 timeout 90 /usr/bin/time -f "maxrss %M kB, user %U s, sys %S s" "$B" run "$W/campaign" \
+    --out "$W/out" --force --method both --backend $cfg --quiet > "$OUT/run-$cfg.log" 2>&1
+  echo "run --backend $cfg: rc=$? wall $(since "$s") s"; grep -v "^note" "$OUT/run-$cfg.log" | tail -40
+done
+echo "== total $(since "$T0") s"
