@@ -23,23 +23,12 @@ if [ -d .device ] && [ -z "${SKELID:-}" ]; then
     [ -f "$icd" ] && { export VK_DRIVER_FILES=$icd; break; }
   done
 fi
-B=${SKELID:-$PWD/.device/skelid}; W=${W:-/tmp/skelid-measure-work}; mkdir -p "$W/campaign"
+B=${SKELID:-$PWD/.device/skelid}; W=${W:-/tmp/skelid-measure-work}
 now() { date +%s.%N; }
 since() { awk "BEGIN{printf \"%.2f\", $(now) - $1}"; }
 T0=$(now)
 echo "== $(nproc) cores; $(nvidia-smi -L 2>/dev/null | head -1)"
-cat > "$W/paper.toml" <<'TOML'
-inertia = 3.16
-stiffness = 15000.0
-damping = 13.0
-clearance = 0.0262
-gravity_stiffness = 0.0
-
-[effects]
-coulomb_friction = { torque = 2.5 }
-TOML
-seq 1 "$N" | xargs -P "$(nproc)" -I{} "$B" simulate --model "$W/paper.toml" --out "$W/campaign/run_{}.h5" \
-  --seed {} --duration 30 --f0 0 --f1 12 --amplitude 0.04 --rolloff-hz 1.8 --rolloff-order 2 >/dev/null
+bash "$(dirname "$0")/campaign.sh" "$N" "$W" "$B"
 python3 - "$W/long.h5" 2>/dev/null <<'PY' || echo "(the 2^20-sample signal needs python3 with numpy and h5py: skipped)"
 import sys, numpy as np, h5py
 n = 2**20; fs = 1000.0; t = np.arange(n)/fs; f0, f1 = 0.5, 50.0; k = np.log(f1/f0)/t[-1]
