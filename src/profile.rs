@@ -275,18 +275,8 @@ static SPANS: std::sync::Mutex<Spans> = std::sync::Mutex::new(std::collections::
 /// `SKELID_GPU_TRACE` is set (a developer's view of the dispatcher's serial host work,
 /// printed by [`print_spans`]); otherwise only runs `f`.
 pub fn span<T>(name: &'static str, f: impl FnOnce() -> T) -> T {
-    if !tracing() {
-        return f();
-    }
-    let (w0, c0) = (Instant::now(), thread_cpu());
-    let out = f();
-    let (wall, cpu) = (w0.elapsed(), thread_cpu().saturating_sub(c0));
-    let mut spans = SPANS.lock().unwrap_or_else(|p| p.into_inner());
-    let e = spans.entry(name).or_default();
-    e.0 += 1;
-    e.1 += wall.as_nanos() as u64;
-    e.2 += cpu.as_nanos() as u64;
-    out
+    let _span = SpanGuard::new(name);
+    f()
 }
 
 /// Prints the spans gathered since the last call to stderr and clears them (nothing when

@@ -161,10 +161,9 @@ impl FftStage {
         // adapter's offset alignment, and two bind groups (data → scratch and back): a
         // buffer and a bind group per pass made the host's cost per batch grow with the
         // number of passes (hundreds per batch), which on a fast GPU set the pace.
-        let stride = (gpu.limits.min_uniform_buffer_offset_alignment as usize)
-            .max(std::mem::size_of::<PassParams>());
-        let words = stride / 4;
-        let mut records = vec![0u32; words * plan.len().max(1)];
+        let size = std::mem::size_of::<PassParams>();
+        let stride = (gpu.limits.min_uniform_buffer_offset_alignment as usize).max(size);
+        let mut records = vec![0u8; stride * plan.len().max(1)];
         let mut ns = 1usize;
         for (i, &r) in plan.iter().enumerate() {
             let params = PassParams {
@@ -175,7 +174,7 @@ impl FftStage {
                 inverse: u32::from(inverse),
                 _pad: [0; 3],
             };
-            records[i * words..i * words + 8].copy_from_slice(bytemuck::cast_slice(&[params]));
+            records[i * stride..i * stride + size].copy_from_slice(bytemuck::bytes_of(&params));
             ns *= r as usize;
         }
         let uniform = gpu.upload_uniform("fft passes", &records);
@@ -197,7 +196,7 @@ impl FftStage {
                         resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
                             buffer: &uniform,
                             offset: 0,
-                            size: wgpu::BufferSize::new(std::mem::size_of::<PassParams>() as u64),
+                            size: wgpu::BufferSize::new(size as u64),
                         }),
                     },
                     wgpu::BindGroupEntry {

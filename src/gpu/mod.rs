@@ -540,26 +540,30 @@ impl Gpu {
 
     /// A uniform buffer holding `value`.
     pub fn uniform<T: bytemuck::Pod>(&self, label: &str, value: &T) -> wgpu::Buffer {
-        use wgpu::util::DeviceExt;
-        crate::profile::uploaded(std::mem::size_of::<T>() as u64);
-        self.device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: bytemuck::bytes_of(value),
-                usage: wgpu::BufferUsages::UNIFORM,
-            })
+        self.init(
+            label,
+            bytemuck::bytes_of(value),
+            wgpu::BufferUsages::UNIFORM,
+        )
     }
 
-    /// A uniform buffer initialised with `data` (records read at dynamic offsets).
-    pub fn upload_uniform<T: bytemuck::Pod>(&self, label: &str, data: &[T]) -> wgpu::Buffer {
+    /// A uniform buffer initialised with `bytes` (records read at dynamic offsets).
+    pub fn upload_uniform(&self, label: &str, bytes: &[u8]) -> wgpu::Buffer {
+        self.init(label, bytes, wgpu::BufferUsages::UNIFORM)
+    }
+
+    /// A buffer of `usage` initialised with `bytes` (counted as uploaded).
+    fn init(&self, label: &str, bytes: &[u8], usage: wgpu::BufferUsages) -> wgpu::Buffer {
         use wgpu::util::DeviceExt;
-        crate::profile::uploaded(std::mem::size_of_val(data) as u64);
-        self.device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: bytemuck::cast_slice(data),
-                usage: wgpu::BufferUsages::UNIFORM,
-            })
+        crate::profile::uploaded(bytes.len() as u64);
+        crate::profile::span("upload", || {
+            self.device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(label),
+                    contents: bytes,
+                    usage,
+                })
+        })
     }
 
     /// A storage buffer of segments of `lens[i]` values each, back to back, segment `i`
@@ -634,18 +638,13 @@ impl Gpu {
 
     /// A storage buffer initialised with `data`.
     pub fn upload<T: bytemuck::Pod>(&self, label: &str, data: &[T]) -> wgpu::Buffer {
-        use wgpu::util::DeviceExt;
-        crate::profile::uploaded(std::mem::size_of_val(data) as u64);
-        crate::profile::span("upload", || {
-            self.device
-                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some(label),
-                    contents: bytemuck::cast_slice(data),
-                    usage: wgpu::BufferUsages::STORAGE
-                        | wgpu::BufferUsages::COPY_SRC
-                        | wgpu::BufferUsages::COPY_DST,
-                })
-        })
+        self.init(
+            label,
+            bytemuck::cast_slice(data),
+            wgpu::BufferUsages::STORAGE
+                | wgpu::BufferUsages::COPY_SRC
+                | wgpu::BufferUsages::COPY_DST,
+        )
     }
 
     /// An uninitialised storage buffer of `bytes` bytes.

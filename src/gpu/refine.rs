@@ -464,7 +464,7 @@ impl RefineStage {
         part: &[Piece],
     ) -> Result<(Pooled, Vec<usize>, [Pooled; 2]), GpuError> {
         let align = offset_alignment_of(gpu, self.real);
-        let arrays = SpanGuard::new("refine.arrays");
+        let arrays_span = SpanGuard::new("refine.arrays");
         // Spectra: each piece's bins up to its run's top, scaled.
         let mut bins = 0usize;
         let mut spec_at = Vec::with_capacity(part.len());
@@ -556,7 +556,7 @@ impl RefineStage {
                 _pad: 0,
             }));
         }
-        drop(arrays);
+        drop(arrays_span);
         let elem = self.real.complex_bytes();
         // Written by every core straight into the upload's memory.
         let lens: Vec<usize> = part.iter().map(|q| planned[q.run].top + 1).collect();

@@ -337,7 +337,7 @@ impl RidgeStage {
         let mut guide: Vec<[f32; 2]> = Vec::new();
         let (mut back_len, mut path_len) = (0usize, 0usize);
         let (mut path_at, mut info_at) = (Vec::new(), Vec::new());
-        let _info = SpanGuard::new("ridge.info");
+        let info_span = SpanGuard::new("ridge.info");
         // Each run's scale table and guide in parallel (the dispatcher is one thread for
         // every worker), then laid end to end.
         type Guide = Option<Vec<[f32; 2]>>;
@@ -397,7 +397,7 @@ impl RidgeStage {
             back_len += p.steps * s;
             path_len += p.steps;
         }
-        drop(_info);
+        drop(info_span);
         let back_bytes = back_len as u64 * 4;
         if back_bytes > gpu.max_binding() {
             return Err(GpuError::TooLarge {

@@ -225,7 +225,7 @@ impl ScaleStage {
         let mut items = Vec::with_capacity(part.len());
         let mut groups: Vec<(usize, usize, usize)> = Vec::new(); // (length, offset, count)
         let mut data_len = 0usize;
-        let _items = SpanGuard::new("scales.items");
+        let items_span = SpanGuard::new("scales.items");
         for &(r, k) in part {
             let run = &runs[r];
             let plan = &run.plans[k];
@@ -266,7 +266,7 @@ impl ScaleStage {
             });
             data_len += m;
         }
-        drop(_items);
+        drop(items_span);
         let data_bytes = (data_len * 8) as u64;
         // Items along y (and z past one dimension's limit), slots along x.
         let [rows, layers, deeper] = gpu.grid(items.len() as u64)?;
