@@ -266,49 +266,99 @@ pub fn plan_len(n: usize) -> usize {
 
 /// A complex FFT plan of length `len`, shared by all threads (plans are cached).
 pub fn complex_plan(len: usize, inverse: bool) -> Arc<dyn Fft<f64>> {
-    static PLANNER: OnceLock<Mutex<FftPlanner<f64>>> = OnceLock::new();
-    let mut planner = PLANNER
-        .get_or_init(|| Mutex::new(FftPlanner::new()))
-        .lock()
-        .unwrap_or_else(|p| p.into_inner());
-    if inverse {
-        planner.plan_fft_inverse(len)
-    } else {
-        planner.plan_fft_forward(len)
-    }
+    static PLANS: Plans<dyn Fft<f64>> = OnceLock::new();
+    cached(&PLANS, (len, inverse), || {
+        let mut planner = FftPlanner::new();
+        if inverse {
+            planner.plan_fft_inverse(len)
+        } else {
+            planner.plan_fft_forward(len)
+        }
+    })
 }
 
 /// A real-to-complex FFT plan of length `len`, cached.
 pub fn real_plan(len: usize) -> Arc<dyn realfft::RealToComplex<f64>> {
-    static PLANS: RealPlans<dyn realfft::RealToComplex<f64>> = OnceLock::new();
-    cached(&PLANS, len, |p| p.plan_fft_forward(len))
+    static PLANS: Plans<dyn realfft::RealToComplex<f64>> = OnceLock::new();
+    cached(&PLANS, (len, false), || {
+        RealFftPlanner::new().plan_fft_forward(len)
+    })
 }
 
 /// A complex-to-real (inverse) FFT plan of length `len`, cached.
 pub fn real_inverse_plan(len: usize) -> Arc<dyn realfft::ComplexToReal<f64>> {
-    static PLANS: RealPlans<dyn realfft::ComplexToReal<f64>> = OnceLock::new();
-    cached(&PLANS, len, |p| p.plan_fft_inverse(len))
+    static PLANS: Plans<dyn realfft::ComplexToReal<f64>> = OnceLock::new();
+    cached(&PLANS, (len, true), || {
+        RealFftPlanner::new().plan_fft_inverse(len)
+    })
 }
 
-/// A planner and the plans it made, by length.
-type RealPlans<T> = OnceLock<Mutex<(RealFftPlanner<f64>, HashMap<usize, Arc<T>>)>>;
+/// Plans by (length, inverse), each made by a planner of its own. rustfft's planner builds
+/// a new length from the sub-FFTs it already holds, so one shared planner would make a
+/// length's plan, and its rounding, depend on which lengths were asked for before, in
+/// whatever order threads asked: the same run gave other gaps in another process.
+type Plans<T> = OnceLock<Mutex<HashMap<(usize, bool), Arc<T>>>>;
 
 fn cached<T: ?Sized>(
-    plans: &RealPlans<T>,
-    len: usize,
-    make: impl FnOnce(&mut RealFftPlanner<f64>) -> Arc<T>,
+    plans: &Plans<T>,
+    key: (usize, bool),
+    make: impl FnOnce() -> Arc<T>,
 ) -> Arc<T> {
-    let mut guard = plans
-        .get_or_init(|| Mutex::new((RealFftPlanner::new(), HashMap::new())))
+    let mut cache = plans
+        .get_or_init(|| Mutex::new(HashMap::new()))
         .lock()
         .unwrap_or_else(|p| p.into_inner());
-    let (planner, cache) = &mut *guard;
-    cache.entry(len).or_insert_with(|| make(planner)).clone()
+    cache.entry(key).or_insert_with(make).clone()
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A plan's output, bit for bit, is that of a planner that planned nothing before,
+    /// whatever lengths were planned first. 18432 = 9·2^11: rustfft's own planner, asked
+    /// for it after its divisors, builds it from them and rounds differently (most of its
+    /// bins differ in the last bits), which made one run's gap differ between processes.
+    #[test]
+    fn a_plan_rounds_the_same_whatever_was_planned_before() {
+        let len = 18432;
+        let x: Vec<Complex64> = (0..len)
+            .map(|i| {
+                Complex64::new(
+                    ((i * 7919) % 1000) as f64 / 1e3 - 0.5,
+                    (i % 97) as f64 / 97.0,
+                )
+            })
+            .collect();
+        for other in [576, 1152, 2304, 4608, 9216, 36864] {
+            complex_plan(other, false);
+            real_plan(2 * other);
+        }
+        let mut ours = x.clone();
+        complex_plan(len, false).process(&mut ours);
+        let mut fresh = x.clone();
+        FftPlanner::new().plan_fft_forward(len).process(&mut fresh);
+        assert!(
+            ours == fresh,
+            "complex plan depends on what was planned before"
+        );
+
+        let real: Vec<f64> = (0..2 * len).map(|i| x[i / 2].re + (i % 3) as f64).collect();
+        let ours = real_spectrum(&real_plan(2 * len), &real);
+        let fresh = real_spectrum(&RealFftPlanner::new().plan_fft_forward(2 * len), &real);
+        assert!(
+            ours == fresh,
+            "real plan depends on what was planned before"
+        );
+    }
+
+    fn real_spectrum(plan: &Arc<dyn realfft::RealToComplex<f64>>, x: &[f64]) -> Vec<Complex64> {
+        let mut input = x.to_vec();
+        let mut out = plan.make_output_vec();
+        plan.process(&mut input, &mut out)
+            .expect("lengths match the plan");
+        out
+    }
 
     #[test]
     fn plan_len_is_short_and_smooth() {
