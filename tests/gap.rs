@@ -356,3 +356,74 @@ fn an_encoder_zero_within_the_stated_tolerance_is_not_an_offset_clearance() {
     let by_attribute = Reference::new(&attributed, blocks, identifier()).unwrap();
     assert_eq!(by_attribute.score(&truth).holdout, tt.holdout);
 }
+
+/// Two levels of the paper's rig with dry friction recorded as two runs, fitted together:
+/// the low level never touches the contact, so its own backbone cannot measure the
+/// clearance (it gives a dead zone of noise). Both runs are scored with the clearance of
+/// the run that reached the contact, and then the true model is the one that fits: read
+/// as touching everywhere, the low run's free flight (which the friction leaves wherever
+/// the link stuck) had scored the true model worse than the model without the friction.
+#[test]
+fn runs_of_one_rig_are_scored_with_the_clearance_the_contact_showed() {
+    use skelid::gap::search::Reference;
+    use skelid::gap::Blocks;
+    use skelid::model::EffectKind;
+    use skelid::rig::{
+        level_sweep_at, measure_over, Chain, ENCODER_NOISE, PAPER_LEVEL, SECOND_LEVEL,
+    };
+    use skelid::simulate::Drive;
+    let mut truth = RigModel::paper();
+    truth.effects.set(EffectKind::CoulombFriction, Some(4.8));
+    let chain = Chain {
+        noise: ENCODER_NOISE,
+        acquisition_noise: 0.0,
+        offsets: (0.0, 0.0),
+        gravity_attribute: truth.gravity_stiffness,
+        zero_tolerance: 0.0,
+    };
+    let runs: Vec<Run> = [1.0, SECOND_LEVEL]
+        .iter()
+        .enumerate()
+        .map(|(i, f)| {
+            let drive = Drive::Base(level_sweep_at(PAPER_LEVEL * f));
+            let path = format!("/two_runs/level_{}", i + 1);
+            measure_over(&path, &truth, &drive, &chain, 7 + i as u64, "test", 15.0).into_run()
+        })
+        .collect();
+    // The low level alone: a dead zone far inside the clearance, or none.
+    let alone = identified(&runs[0])
+        .dead_zone
+        .map_or(0.0, |d| d.half_gap.value);
+    let half = truth.clearance / 2.0;
+    println!("low level's own half-gap {alone:.3e} rad, the rig's {half:.3e}");
+    assert!(alone < 0.5 * half, "{alone}");
+
+    let reference =
+        Reference::blocks_together(&[&runs[0], &runs[1]], Blocks { seconds: 1.0 }, identifier())
+            .unwrap();
+    for i in 0..2 {
+        let dz = reference
+            .measured(i)
+            .1
+            .dead_zone
+            .expect("the shared clearance");
+        let h = dz.half_gap.value;
+        assert!(
+            (h / half - 1.0).abs() < 0.1,
+            "run {i}: half-gap {h} against {half}"
+        );
+    }
+    let mut without = truth.clone();
+    without.effects.set(EffectKind::CoulombFriction, None);
+    let (t, w) = (reference.score(&truth), reference.score(&without));
+    println!(
+        "held-out gap: truth {:.4}, without the friction {:.4}",
+        t.holdout, w.holdout
+    );
+    assert!(
+        t.holdout < 0.02 && w.holdout > 5.0 * t.holdout,
+        "{} {}",
+        t.holdout,
+        w.holdout
+    );
+}

@@ -31,6 +31,7 @@ use super::{
     decimate, decimation_for, measured_resolution, resolution_per_step, simulate_given, Blocks,
     GapError, Part, Target,
 };
+use crate::fit::DeadZoneFit;
 use crate::identify::{Identification, Identifier, IdentifyOptions};
 use crate::mode::ModeChoice;
 use crate::model::{EffectKind, ModelKind, RigModel};
@@ -247,6 +248,65 @@ struct Measured {
     whole: Target,
 }
 
+/// The targets of a run as its `role` says (fit, held-out, whole), from its identification
+/// of the run decimated by `factor`, scored as the search's defaults: the waveform domain
+/// on (where the run has one), the run's own zero tolerance, and its measured
+/// `resolution`. An accelerometer's lattice is in m/s²: the gap compares it with the
+/// displacement the identification tracks.
+fn targets(
+    identified: &Identification,
+    run: &Run,
+    factor: usize,
+    role: Role,
+    resolution: f64,
+) -> (Option<Target>, Option<Target>, Target) {
+    let compared = decimate(run.clone(), factor);
+    let (n, fs) = (compared.output.len(), compared.meta.sample_rate);
+    let tracked = super::as_displacement(resolution, run, Some(identified));
+    let target = |mask| {
+        Target::new(identified, &compared, mask)
+            .with_resolution(tracked)
+            .with_waveform(true)
+    };
+    let (fit, holdout) = match role {
+        Role::Blocks(blocks) => (
+            Some(target(Some(blocks.mask(n, fs, Part::Fit)))),
+            Some(target(Some(blocks.mask(n, fs, Part::Holdout)))),
+        ),
+        Role::Fit => (Some(target(None)), None),
+        Role::Holdout => (None, Some(target(None))),
+    };
+    (fit, holdout, target(None))
+}
+
+/// Base-motion runs of one rig share its clearance: every run is scored with the dead zone
+/// identified on the run that reached furthest into the contact. A run that never touches
+/// cannot measure the clearance, and the dead zone its own backbone gives is noise (2e-5 rad
+/// on the two-run self-check's low level, against the rig's 0.013): read as the contact, it
+/// had every sample of that run "touching", and the free flight's drift, which dry friction
+/// leaves wherever the link stuck, scored as an offset clearance would — the true model
+/// with the friction scored worse than the baseline without it. One record holding both
+/// levels had one dead zone, the right one. Force and free runs (modes of structures) keep
+/// their own: their models have no clearance to share unless one is added as an effect.
+fn share_contact(runs: &mut [Measured]) {
+    if runs.len() < 2 || runs.iter().any(|m| m.run.meta.kind != RunKind::BaseMotion) {
+        return;
+    }
+    let widest = runs
+        .iter()
+        .max_by(|a, b| a.reach().total_cmp(&b.reach()))
+        .and_then(|m| m.identified.dead_zone);
+    let Some(contact) = widest else {
+        return;
+    };
+    for m in runs.iter_mut() {
+        let own = m.identified.dead_zone.map(|d| d.half_gap.value);
+        if own != Some(contact.half_gap.value) {
+            m.set_contact(Some(contact));
+        }
+    }
+}
+
 impl Measured {
     fn new(run: &Run, role: Role, identifier: Identifier<'_>) -> Result<Self, GapError> {
         let free = run.meta.kind == RunKind::Free;
@@ -294,36 +354,17 @@ impl Measured {
             full = fixed.identify(&run, Method::Wavelet).map_err(unusable)?;
         }
         let factor = decimation_for(&full);
-        let compared = decimate(run.clone(), factor);
         let identified = if factor > 1 {
             fixed
-                .identify(&compared, Method::Wavelet)
+                .identify(&decimate(run.clone(), factor), Method::Wavelet)
                 .map_err(unusable)?
         } else {
             full
         };
-        let (n, fs) = (compared.output.len(), compared.meta.sample_rate);
         let resolution = measured_resolution(&run);
-        // Scored as the search's defaults: the waveform domain on (where the run has one),
-        // the run's own zero tolerance.
-        // An accelerometer's lattice is in m/s²: the gap compares it with the displacement
-        // the identification tracks.
-        let tracked = super::as_displacement(resolution, &run, Some(&identified));
-        let target = |mask| {
-            Target::new(&identified, &compared, mask)
-                .with_resolution(tracked)
-                .with_waveform(true)
-        };
-        let (fit, holdout) = match role {
-            Role::Blocks(blocks) => (
-                Some(target(Some(blocks.mask(n, fs, Part::Fit)))),
-                Some(target(Some(blocks.mask(n, fs, Part::Holdout)))),
-            ),
-            Role::Fit => (Some(target(None)), None),
-            Role::Holdout => (None, Some(target(None))),
-        };
+        let (fit, holdout, whole) = targets(&identified, &run, factor, role, resolution);
         Ok(Measured {
-            whole: target(None),
+            whole,
             fit,
             holdout,
             role,
@@ -334,6 +375,29 @@ impl Measured {
             options,
             start,
         })
+    }
+
+    /// The largest valid amplitude of its measured response (signal units): how far into
+    /// the contact the run reached.
+    fn reach(&self) -> f64 {
+        let r = &self.identified.response;
+        (0..r.len())
+            .filter(|&i| r.valid[i])
+            .map(|i| r.amplitude[i])
+            .fold(0.0, f64::max)
+    }
+
+    /// Scores this run with `contact` as the measured clearance (its jumps, grazing band
+    /// and where the centre of the motion is compared), its targets prepared again.
+    fn set_contact(&mut self, contact: Option<DeadZoneFit>) {
+        self.identified.dead_zone = contact;
+        (self.fit, self.holdout, self.whole) = targets(
+            &self.identified,
+            &self.run,
+            self.factor,
+            self.role,
+            self.resolution,
+        );
     }
 
     fn targets(&mut self) -> impl Iterator<Item = &mut Target> {
@@ -458,7 +522,8 @@ impl<'a> Reference<'a> {
         Self::of(runs, identifier)
     }
 
-    fn of(runs: Vec<Measured>, identifier: Identifier<'a>) -> Result<Self, GapError> {
+    fn of(mut runs: Vec<Measured>, identifier: Identifier<'a>) -> Result<Self, GapError> {
+        share_contact(&mut runs);
         Ok(Reference {
             runs,
             evaluations: AtomicUsize::new(0),
