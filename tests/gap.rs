@@ -413,6 +413,14 @@ fn runs_of_one_rig_are_scored_with_the_clearance_the_contact_showed() {
             "run {i}: half-gap {h} against {half}"
         );
     }
+    // Fitted on one level and held out on the other: the clearance comes from a fitted run
+    // only, and a held-out run that reached further keeps its own.
+    let half_gap = |r: &Reference, i: usize| r.measured(i).1.dead_zone.map(|d| d.half_gap.value);
+    let high_held = Reference::together(&[&runs[0]], &[&runs[1]], identifier()).unwrap();
+    let own = half_gap(&high_held, 1).expect("the touching level's own clearance");
+    assert!((own / half - 1.0).abs() < 0.1, "held-out level: {own}");
+    let low_held = Reference::together(&[&runs[1]], &[&runs[0]], identifier()).unwrap();
+    assert_eq!(half_gap(&low_held, 1), half_gap(&low_held, 0));
     let mut without = truth.clone();
     without.effects.set(EffectKind::CoulombFriction, None);
     let (t, w) = (reference.score(&truth), reference.score(&without));

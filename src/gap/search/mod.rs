@@ -279,29 +279,33 @@ fn targets(
     (fit, holdout, target(None))
 }
 
-/// Base-motion runs of one rig share its clearance: every run is scored with the dead zone
-/// identified on the run that reached furthest into the contact. A run that never touches
-/// cannot measure the clearance, and the dead zone its own backbone gives is noise (2e-5 rad
-/// on the two-run self-check's low level, against the rig's 0.013): read as the contact, it
-/// had every sample of that run "touching", and the free flight's drift, which dry friction
-/// leaves wherever the link stuck, scored as an offset clearance would — the true model
-/// with the friction scored worse than the baseline without it. One record holding both
-/// levels had one dead zone, the right one. Force and free runs (modes of structures) keep
-/// their own: their models have no clearance to share unless one is added as an effect.
+/// Base-motion runs of one rig share its clearance: a run is scored with the dead zone
+/// identified on the fitted run that reached furthest into the contact, when that run
+/// reached further than it did. A run that never touches cannot measure the clearance, and
+/// the dead zone its own backbone gives is noise (2e-5 rad on the two-run self-check's low
+/// level, against the rig's 0.013): read as the contact, it had every sample of that run
+/// "touching", and the free flight's drift, which dry friction leaves wherever the link
+/// stuck, scored as an offset clearance would — the true model with the friction scored
+/// worse than the baseline without it. One record holding both levels had one dead zone,
+/// the right one. Held-out runs are never the source (nothing of theirs reaches a fit); one
+/// that reached further than every fitted run keeps its own. Force and free runs (modes of
+/// structures) keep their own: their models have no clearance to share unless one is added
+/// as an effect.
 fn share_contact(runs: &mut [Measured]) {
     if runs.len() < 2 || runs.iter().any(|m| m.run.meta.kind != RunKind::BaseMotion) {
         return;
     }
-    let widest = runs
+    let source = runs
         .iter()
-        .max_by(|a, b| a.reach().total_cmp(&b.reach()))
-        .and_then(|m| m.identified.dead_zone);
-    let Some(contact) = widest else {
+        .filter(|m| m.role != Role::Holdout)
+        .map(|m| (m.reach(), m.identified.dead_zone))
+        .max_by(|a, b| a.0.total_cmp(&b.0));
+    let Some((reach, Some(contact))) = source else {
         return;
     };
     for m in runs.iter_mut() {
         let own = m.identified.dead_zone.map(|d| d.half_gap.value);
-        if own != Some(contact.half_gap.value) {
+        if m.reach() < reach && own != Some(contact.half_gap.value) {
             m.set_contact(Some(contact));
         }
     }
