@@ -256,6 +256,20 @@ pub struct Chain {
     pub zero_tolerance: f64,
 }
 
+impl Chain {
+    /// Encoders with white `noise` (rad, std) before them and nothing after: no acquisition
+    /// noise, no offsets, no zero tolerance; the run carries `gravity_attribute` (1/s²).
+    pub fn encoders(noise: f64, gravity_attribute: f64) -> Chain {
+        Chain {
+            noise,
+            acquisition_noise: 0.0,
+            offsets: (0.0, 0.0),
+            gravity_attribute,
+            zero_tolerance: 0.0,
+        }
+    }
+}
+
 /// How far apart the zeros of a random rig's two encoders may be (rad): each is zeroed to
 /// ±2e-4 rad.
 pub const RANDOM_ZERO_TOLERANCE: f64 = 4e-4;

@@ -374,13 +374,7 @@ fn runs_of_one_rig_are_scored_with_the_clearance_the_contact_showed() {
     use skelid::simulate::Drive;
     let mut truth = RigModel::paper();
     truth.effects.set(EffectKind::CoulombFriction, Some(4.8));
-    let chain = Chain {
-        noise: ENCODER_NOISE,
-        acquisition_noise: 0.0,
-        offsets: (0.0, 0.0),
-        gravity_attribute: truth.gravity_stiffness,
-        zero_tolerance: 0.0,
-    };
+    let chain = Chain::encoders(ENCODER_NOISE, truth.gravity_stiffness);
     let runs: Vec<Run> = [1.0, SECOND_LEVEL]
         .iter()
         .enumerate()

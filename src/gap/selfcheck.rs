@@ -135,13 +135,7 @@ pub fn draw(n: usize, seed: u64, d: Draw) -> Vec<Case> {
             let (mut truth, level, mut chain) = match d.rigs {
                 Rigs::Paper => {
                     let m = RigModel::paper();
-                    let chain = Chain {
-                        noise: ENCODER_NOISE,
-                        acquisition_noise: 0.0,
-                        offsets: (0.0, 0.0),
-                        gravity_attribute: m.gravity_stiffness,
-                        zero_tolerance: 0.0,
-                    };
+                    let chain = Chain::encoders(ENCODER_NOISE, m.gravity_stiffness);
                     (m, PAPER_LEVEL, chain)
                 }
                 Rigs::Random => {
@@ -149,13 +143,8 @@ pub fn draw(n: usize, seed: u64, d: Draw) -> Vec<Case> {
                     (r.model, r.amplitude, r.chain)
                 }
                 Rigs::Structure => {
-                    let chain = Chain {
-                        noise: STRUCTURE_NOISE,
-                        acquisition_noise: 0.0,
-                        offsets: (0.0, 0.0),
-                        gravity_attribute: 0.0,
-                        zero_tolerance: 0.0,
-                    };
+                    // The accelerometer's noise, its share of the RMS.
+                    let chain = Chain::encoders(STRUCTURE_NOISE, 0.0);
                     (structure_mode(), STRUCTURE_LEVELS[0], chain)
                 }
             };

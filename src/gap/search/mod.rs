@@ -248,23 +248,22 @@ struct Measured {
     whole: Target,
 }
 
-/// The targets of a run as its `role` says (fit, held-out, whole), from its identification
-/// of the run decimated by `factor`, scored as the search's defaults: the waveform domain
-/// on (where the run has one), the run's own zero tolerance, and its measured
-/// `resolution`. An accelerometer's lattice is in m/s²: the gap compares it with the
-/// displacement the identification tracks.
+/// The targets of `run` as its `role` says (fit, held-out, whole), from `identified`, its
+/// identification of the run as `compared` (decimated), scored as the search's defaults:
+/// the waveform domain on (where the run has one), the run's own zero tolerance, and its
+/// measured `resolution`. An accelerometer's lattice is in m/s²: the gap compares it with
+/// the displacement the identification tracks.
 fn targets(
     identified: &Identification,
     run: &Run,
-    factor: usize,
+    compared: &Run,
     role: Role,
     resolution: f64,
 ) -> (Option<Target>, Option<Target>, Target) {
-    let compared = decimate(run.clone(), factor);
     let (n, fs) = (compared.output.len(), compared.meta.sample_rate);
     let tracked = super::as_displacement(resolution, run, Some(identified));
     let target = |mask| {
-        Target::new(identified, &compared, mask)
+        Target::new(identified, compared, mask)
             .with_resolution(tracked)
             .with_waveform(true)
     };
@@ -306,7 +305,7 @@ fn share_contact(runs: &mut [Measured]) {
     for m in runs.iter_mut() {
         let own = m.identified.dead_zone.map(|d| d.half_gap.value);
         if m.reach() < reach && own != Some(contact.half_gap.value) {
-            m.set_contact(Some(contact));
+            m.set_contact(contact);
         }
     }
 }
@@ -358,15 +357,16 @@ impl Measured {
             full = fixed.identify(&run, Method::Wavelet).map_err(unusable)?;
         }
         let factor = decimation_for(&full);
+        let compared = decimate(run.clone(), factor);
         let identified = if factor > 1 {
             fixed
-                .identify(&decimate(run.clone(), factor), Method::Wavelet)
+                .identify(&compared, Method::Wavelet)
                 .map_err(unusable)?
         } else {
             full
         };
         let resolution = measured_resolution(&run);
-        let (fit, holdout, whole) = targets(&identified, &run, factor, role, resolution);
+        let (fit, holdout, whole) = targets(&identified, &run, &compared, role, resolution);
         Ok(Measured {
             whole,
             fit,
@@ -393,12 +393,13 @@ impl Measured {
 
     /// Scores this run with `contact` as the measured clearance (its jumps, grazing band
     /// and where the centre of the motion is compared), its targets prepared again.
-    fn set_contact(&mut self, contact: Option<DeadZoneFit>) {
-        self.identified.dead_zone = contact;
+    fn set_contact(&mut self, contact: DeadZoneFit) {
+        self.identified.dead_zone = Some(contact);
+        let compared = decimate(self.run.clone(), self.factor);
         (self.fit, self.holdout, self.whole) = targets(
             &self.identified,
             &self.run,
-            self.factor,
+            &compared,
             self.role,
             self.resolution,
         );
