@@ -35,7 +35,7 @@ struct Wavelet {
 };
 
 struct Item {
-    spec: u32,      // offset of the run's spectrum bins in `spectrum`
+    spec: u32,      // offset in `spectrum` of bin lo (only the pass bands are there)
     lo: u32,        // first bin of the pass band
     hi: u32,        // last bin of the pass band
     centre: u32,    // demodulation bin c
@@ -172,7 +172,7 @@ fn scatter_one(it: Item, q: u32) {
         let df = real(it.df_hi) + real(it.df_lo);
         let w = pair(vec2<f32>(it.norm_hi, it.norm_lo))
             * psi(real(it.scale_hi) + real(it.scale_lo), real(bin) * df);
-        v = spectrum[it.spec + bin] * w;
+        v = spectrum[it.spec + d] * w;
         // (j·omega)^order, omega = 2π (f_m − f_c): the baseband derivative.
         let omega = real(2.0) * PI_R * real(i32(bin) - i32(it.centre)) * df;
         if (it.order == 1u) {

@@ -10,7 +10,7 @@
 // baseband sequence, at positions the host computed in f64 (f32 cannot hold j·h·M/L).
 
 struct Item {
-    spec: u32,      // offset of the run's spectrum bins in `spectrum`
+    spec: u32,      // offset in `spectrum` of bin lo (only the runs' pass bands are there)
     lo: u32,        // first bin of the pass band
     hi: u32,        // last bin of the pass band
     centre: u32,    // demodulation bin c
@@ -84,7 +84,7 @@ fn scatter_one(it: Item, q: u32) {
     var v = vec2<f32>(0.0, 0.0);
     if (bin <= it.hi) {
         let w = it.norm * psi(it.scale, f32(bin) * it.df);
-        v = spectrum[it.spec + bin] * w;
+        v = spectrum[it.spec + d] * w;
     }
     data[it.data + q] = v;
 }

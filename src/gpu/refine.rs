@@ -108,8 +108,17 @@ pub struct RefineStage {
 struct Planned {
     /// (scale index, plan) of every wanted scale, in scale order.
     scales: Vec<(usize, ScalePlan)>,
+    /// The lowest spectrum bin any of them uses (at most `top`).
+    bottom: usize,
     /// The highest spectrum bin any of them uses.
     top: usize,
+}
+
+impl Planned {
+    /// The bins its scales use, `bottom..=top`: all of the spectrum that is uploaded.
+    fn bins(&self) -> usize {
+        self.top + 1 - self.bottom
+    }
 }
 
 fn plan(prep: &WaveletPrep, grid: &[GridPoint]) -> Planned {
@@ -126,7 +135,17 @@ fn plan(prep: &WaveletPrep, grid: &[GridPoint]) -> Planned {
         .max()
         .unwrap_or(0)
         .min(prep.spec.bins.len() - 1);
-    Planned { scales, top }
+    let bottom = scales
+        .iter()
+        .map(|(_, p)| p.band().0)
+        .min()
+        .unwrap_or(0)
+        .min(top);
+    Planned {
+        scales,
+        bottom,
+        top,
+    }
 }
 
 /// A run's share of one sub-part: the scales it evaluates there (indices into its
@@ -275,7 +294,7 @@ impl RefineStage {
                 .map(|(_, p)| 3 * p.len as u64 * elem)
                 .sum()
         };
-        let spectrum = (planned.top as u64 + 1) * elem;
+        let spectrum = planned.bins() as u64 * elem;
         let records = grid.len() as u64 * RECORD_BYTES;
         let all = 0..planned.scales.len();
         if bytes(all.clone()) + spectrum <= limit && records <= limit {
@@ -390,7 +409,7 @@ impl RefineStage {
                     .iter()
                     .map(|(_, s)| 3 * s.len as u64 * elem)
                     .sum::<u64>()
-                    + (p.top as u64 + 1) * elem;
+                    + p.bins() as u64 * elem;
                 let records = piece.points.len() as u64 * RECORD_BYTES;
                 if used.0.saturating_add(data) > limit || used.1.saturating_add(records) > limit {
                     parts.push(Vec::new());
@@ -414,7 +433,7 @@ impl RefineStage {
             .zip(&planned)
             .with_min_len(super::PAR_MIN)
             .map(|(p, q)| {
-                let big = p.spec.bins[..=q.top]
+                let big = p.spec.bins[q.bottom..=q.top]
                     .iter()
                     .map(|c| c.re.abs().max(c.im.abs()))
                     .fold(0.0f64, f64::max);
@@ -465,12 +484,12 @@ impl RefineStage {
     ) -> Result<(Pooled, Vec<usize>, [Pooled; 2]), GpuError> {
         let align = offset_alignment_of(gpu, self.real);
         let arrays_span = SpanGuard::new("refine.arrays");
-        // Spectra: each piece's bins up to its run's top, scaled.
+        // Spectra: each piece's bins of its run's pass bands, scaled.
         let mut bins = 0usize;
         let mut spec_at = Vec::with_capacity(part.len());
         for piece in part {
-            spec_at.push(bins as u32);
-            bins += planned[piece.run].top + 1;
+            spec_at.push(bins);
+            bins += planned[piece.run].bins();
         }
         // Blocks (piece, scale) by FFT length; each block is w, w′, w″ back to back.
         let mut blocks: Vec<(usize, usize)> = part
@@ -521,7 +540,8 @@ impl RefineStage {
                 (2.0 * std::f64::consts::PI * centre as f64 * spec.sample_rate / l as f64) as f32;
             for order in 0..3u32 {
                 items.push(Item {
-                    spec: spec_at[q],
+                    // Where bin `lo` lies in the piece's segment.
+                    spec: (spec_at[q] + lo.saturating_sub(planned[r].bottom)) as u32,
                     lo: lo as u32,
                     hi: hi.min(planned[r].top) as u32,
                     centre: centre as u32,
@@ -559,11 +579,11 @@ impl RefineStage {
         drop(arrays_span);
         let elem = self.real.complex_bytes();
         // Written by every core straight into the upload's memory.
-        let lens: Vec<usize> = part.iter().map(|q| planned[q.run].top + 1).collect();
+        let lens: Vec<usize> = part.iter().map(|q| planned[q.run].bins()).collect();
         let scaled = |q: usize| {
             let r = part[q].run;
             let k = ln_scale[r].exp();
-            preps[r].spec.bins[..lens[q]]
+            preps[r].spec.bins[planned[r].bottom..=planned[r].top]
                 .iter()
                 .map(move |c| (c.re * k, c.im * k))
         };

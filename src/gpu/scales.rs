@@ -53,6 +53,23 @@ pub struct RunScales<'a> {
     pub steps: usize,
 }
 
+impl RunScales<'_> {
+    /// The bins of the spectrum that the scales' pass bands cover: the first, and how many
+    /// (none where every band lies past the spectrum's end).
+    fn bins(&self) -> (usize, usize) {
+        let last = self.spectrum.bins.len().saturating_sub(1);
+        let (lo, hi) = self.plans.iter().fold((usize::MAX, 0), |(l, h), p| {
+            let (lo, hi, _) = p.band();
+            (l.min(lo), h.max(hi.min(last)))
+        });
+        if lo > hi {
+            (0, 0)
+        } else {
+            (lo, hi + 1 - lo)
+        }
+    }
+}
+
 /// The compiled stage: scatter and power pipelines, their shared bind layout, and the FFT.
 pub struct ScaleStage {
     fft: FftStage,
@@ -120,12 +137,16 @@ impl ScaleStage {
     ) -> Result<PowerGrid, GpuError> {
         let align = offset_alignment(gpu);
         let limit = gpu.max_binding();
-        // Spectra back to back.
+        // Of each spectrum only the bins its scales' pass bands cover, back to back: the
+        // band of a record's scales is a small part of its spectrum (a chirp to 12 Hz
+        // sampled at 1 kHz: bins to 0.3 Hz above the top scale's band, under a tenth of the
+        // bins), and the upload of the whole was the dispatcher's largest host cost.
+        let bands: Vec<(usize, usize)> = runs.iter().map(RunScales::bins).collect();
         let mut spec_offset = Vec::with_capacity(runs.len());
         let mut spectrum_len = 0usize;
-        for r in runs {
-            spec_offset.push(spectrum_len as u32);
-            spectrum_len += r.spectrum.bins.len();
+        for &(_, len) in &bands {
+            spec_offset.push(spectrum_len);
+            spectrum_len += len;
         }
         let mut power_offset = Vec::with_capacity(runs.len());
         let mut power_len = 0usize;
@@ -180,9 +201,13 @@ impl ScaleStage {
             _pad: 0,
         };
         let uniform = gpu.uniform("wavelet", &params);
-        let lens: Vec<usize> = runs.iter().map(|r| r.spectrum.bins.len()).collect();
+        let lens: Vec<usize> = bands.iter().map(|b| b.1).collect();
         let spectrum_buf = gpu.upload_segments("spectra", &lens, |r, out: &mut [[f32; 2]]| {
-            for (o, c) in out.iter_mut().zip(&runs[r].spectrum.bins) {
+            let (first, len) = bands[r];
+            for (o, c) in out
+                .iter_mut()
+                .zip(&runs[r].spectrum.bins[first..first + len])
+            {
                 *o = [c.re as f32, c.im as f32];
             }
         })?;
@@ -193,6 +218,7 @@ impl ScaleStage {
             spectrum: &spectrum_buf,
             power: &power,
             spec_offset: &spec_offset,
+            bands: &bands,
             power_offset: &power_offset,
         };
         let mut keep = Vec::with_capacity(2 * parts.len());
@@ -251,7 +277,9 @@ impl ScaleStage {
             let (lo, hi, centre) = plan.band();
             let spec = run.spectrum;
             items.push(Item {
-                spec: shared.spec_offset[r],
+                // Where bin `lo` lies in the uploaded segment (never read when the band
+                // lies past the spectrum's end: then hi < lo).
+                spec: (shared.spec_offset[r] + lo.saturating_sub(shared.bands[r].0)) as u32,
                 lo: lo as u32,
                 hi: hi.min(spec.bins.len() - 1) as u32,
                 centre: centre as u32,
@@ -325,7 +353,10 @@ struct Shared<'a> {
     uniform: &'a wgpu::Buffer,
     spectrum: &'a wgpu::Buffer,
     power: &'a wgpu::Buffer,
-    spec_offset: &'a [u32],
+    /// Where each run's segment starts in `spectrum`.
+    spec_offset: &'a [usize],
+    /// Each run's first bin uploaded and how many ([`RunScales::bins`]).
+    bands: &'a [(usize, usize)],
     power_offset: &'a [usize],
 }
 
