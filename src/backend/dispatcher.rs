@@ -5,6 +5,7 @@
 //! the GPU could not serve it. What comes in: prepared signals ([`WaveletPrep`]); what goes
 //! out: one [`Answer`] per signal, on the channel it came with.
 
+use std::sync::atomic::AtomicBool;
 use std::sync::mpsc::{self, Receiver, Sender};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -19,6 +20,13 @@ use super::MAX_BATCH;
 
 /// How long the dispatcher waits for more signals once one has arrived.
 const LINGER: Duration = Duration::from_millis(4);
+
+/// How often the dispatcher, while it gathers with work on the device, looks whether the
+/// oldest submission has finished: the moment it has, the gathering stops and that
+/// submission is moved on. It used to linger the whole `LINGER` for a first request and
+/// `LINGER` more for others, and in `run`, where batches of a few signals take the device
+/// a few milliseconds, the device then stood idle for most of each round trip.
+const READY_POLL: Duration = Duration::from_micros(250);
 
 /// Most binding-sized parts in one submission: bounds the device memory one submission
 /// takes to about this many times the adapter's largest binding.
@@ -217,7 +225,14 @@ fn dispatch(
     let mut open = true;
     while open || !flying.is_empty() {
         let batch = if open {
-            let (batch, still_open) = gather(&rx, !flying.is_empty(), submission_budget);
+            let oldest_done = || {
+                flying.front().is_some_and(|u| {
+                    gpu.poll_ready();
+                    u.done.load(std::sync::atomic::Ordering::Acquire)
+                })
+            };
+            let (batch, still_open) =
+                gather(&rx, !flying.is_empty(), &oldest_done, submission_budget);
             open = still_open;
             batch
         } else {
@@ -273,6 +288,7 @@ fn dispatch(
             flying.push_back(Unit {
                 parts,
                 flight: Flight::First(flight),
+                done: gpu.work_done_flag(),
             });
         }
     }
@@ -303,6 +319,8 @@ const IN_FLIGHT: usize = 2;
 struct Unit {
     parts: Vec<Vec<Request>>,
     flight: Flight,
+    /// Raised once its submission has finished on the device ([`Gpu::work_done_flag`]).
+    done: Arc<AtomicBool>,
 }
 
 /// A batch's submission on the device (or why there is none).
@@ -333,7 +351,7 @@ fn advance(
     dead: &mut Option<String>,
     stats: &Stats,
 ) -> Option<Unit> {
-    let Unit { parts, flight } = unit;
+    let Unit { parts, flight, .. } = unit;
     let preps = part_preps(&parts);
     match flight {
         Flight::First(flight) => {
@@ -385,6 +403,7 @@ fn advance(
                     grids,
                     flight,
                 },
+                done: gpu.work_done_flag(),
             })
         }
         Flight::Refine {
@@ -458,15 +477,38 @@ fn fail(parts: Vec<Vec<Request>>, e: GpuError, dead: &mut Option<String>) {
 
 /// The requests that arrive within `LINGER` of the first, until they fill `budget` bytes of
 /// device memory (one submission's, as [`batch_bytes`] counts it) or number [`MAX_BATCH`].
-/// Blocks for the first only when nothing is in flight (`busy` false); else waits at most
-/// `LINGER`. Also says whether the queue is still open.
-fn gather(rx: &Receiver<Request>, busy: bool, budget: u64) -> (Vec<Request>, bool) {
+/// `oldest_done` says whether the oldest submission in flight has finished (false when
+/// there is none). Blocks for the first request only when nothing is in flight; else
+/// waits at most `LINGER` for it, and stops gathering, with what it has, as soon as
+/// `oldest_done` (looked at every [`READY_POLL`]). Also says whether the queue is still
+/// open.
+fn gather(
+    rx: &Receiver<Request>,
+    busy: bool,
+    oldest_done: &dyn Fn() -> bool,
+    budget: u64,
+) -> (Vec<Request>, bool) {
     use std::sync::mpsc::RecvTimeoutError;
+    // Waits for a request until `deadline`, in slices of READY_POLL while work is in
+    // flight: None when the time is up or the oldest submission has finished.
+    let next = |deadline: Instant| -> Result<Option<Request>, ()> {
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() || oldest_done() {
+                return Ok(None);
+            }
+            match rx.recv_timeout(left.min(READY_POLL)) {
+                Ok(r) => return Ok(Some(r)),
+                Err(RecvTimeoutError::Timeout) => {}
+                Err(RecvTimeoutError::Disconnected) => return Err(()),
+            }
+        }
+    };
     let first = if busy {
-        match rx.recv_timeout(LINGER) {
-            Ok(r) => r,
-            Err(RecvTimeoutError::Timeout) => return (Vec::new(), true),
-            Err(RecvTimeoutError::Disconnected) => return (Vec::new(), false),
+        match next(Instant::now() + LINGER) {
+            Ok(Some(r)) => r,
+            Ok(None) => return (Vec::new(), true),
+            Err(()) => return (Vec::new(), false),
         }
     } else {
         match rx.recv() {
@@ -478,14 +520,13 @@ fn gather(rx: &Receiver<Request>, busy: bool, budget: u64) -> (Vec<Request>, boo
     let mut batch = vec![first];
     let deadline = Instant::now() + LINGER;
     while batch.len() < MAX_BATCH && bytes < budget {
-        let left = deadline.saturating_duration_since(Instant::now());
-        match rx.recv_timeout(left) {
-            Ok(r) => {
+        match next(deadline) {
+            Ok(Some(r)) => {
                 bytes += batch_bytes(&r.prep);
                 batch.push(r)
             }
-            Err(RecvTimeoutError::Timeout) => break,
-            Err(RecvTimeoutError::Disconnected) => return (batch, false),
+            Ok(None) => break,
+            Err(()) => return (batch, false),
         }
     }
     (batch, true)

@@ -431,6 +431,24 @@ impl Gpu {
         }
     }
 
+    /// A flag that turns true once every submission made so far has finished on the
+    /// device; it is raised by a [`poll_ready`](Self::poll_ready) (or any wait) after that.
+    pub fn work_done_flag(&self) -> Arc<std::sync::atomic::AtomicBool> {
+        let flag = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let raise = Arc::clone(&flag);
+        self.queue.on_submitted_work_done(move || {
+            raise.store(true, std::sync::atomic::Ordering::Release);
+        });
+        flag
+    }
+
+    /// Raises the flags of finished work ([`work_done_flag`](Self::work_done_flag))
+    /// without blocking.
+    pub fn poll_ready(&self) {
+        // An error here is a lost device, which the next wait reports.
+        let _ = self.device.poll(wgpu::PollType::Poll);
+    }
+
     /// Waits for all submitted work.
     pub fn wait(&self) -> Result<(), GpuError> {
         self.wait_for(None)
