@@ -371,3 +371,43 @@ pub struct PowerGrid {
     /// The work buffers of its submission, held until it has finished.
     pub keep: Vec<Pooled>,
 }
+
+#[cfg(test)]
+mod tests {
+    use super::RunScales;
+    use crate::transform::{band::ScalePlan, log_frequencies, Morlet, Spectrum};
+
+    #[test]
+    fn a_runs_uploaded_bins_are_exactly_what_its_pass_bands_read() {
+        let fs = 200.0;
+        let x: Vec<f64> = (0..3001)
+            .map(|i| (2.0 * std::f64::consts::PI * 7.0 * i as f64 / fs).sin())
+            .collect();
+        let w = Morlet::default();
+        let spec = Spectrum::new(&x, fs, 800);
+        let last = spec.bins.len() - 1;
+        // Bands inside the spectrum, and one whose top scales run past its end.
+        for (fmin, fmax) in [(0.5, 15.0), (10.0, 40.0), (20.0, 99.9)] {
+            let plans: Vec<ScalePlan> = log_frequencies(fmin, fmax, 48)
+                .iter()
+                .map(|&f| ScalePlan::with_tolerance(&spec, &w, w.scale_for(f), 1.0, 1e-3))
+                .collect();
+            let run = RunScales {
+                spectrum: &spec,
+                plans: &plans,
+                h: 1,
+                steps: 1,
+            };
+            let (first, len) = run.bins();
+            let lo = plans.iter().map(|p| p.band().0).min().unwrap();
+            let hi = plans.iter().map(|p| p.band().1.min(last)).max().unwrap();
+            assert_eq!((first, first + len - 1), (lo, hi), "{fmin}-{fmax} Hz");
+            if fmin >= 10.0 {
+                assert!(
+                    first > 0,
+                    "{fmin}-{fmax} Hz: the bins below the bands stay home"
+                );
+            }
+        }
+    }
+}
