@@ -18,7 +18,8 @@ use super::fft::{offset_alignment_of, plannable, FftStage, Holder};
 use super::{Gpu, GpuError, Pooled, Real};
 use crate::skeleton::{GridEstimate, GridPoint};
 use crate::track::WaveletPrep;
-use crate::transform::{band::ScalePlan, TAPER};
+use crate::transform::band::{self, ScalePlan};
+use crate::transform::TAPER;
 
 /// The shader's `Wavelet` uniform: f_b and f_c as f32 pairs (hi + lo), the taper.
 #[repr(C)]
@@ -108,16 +109,16 @@ pub struct RefineStage {
 struct Planned {
     /// (scale index, plan) of every wanted scale, in scale order.
     scales: Vec<(usize, ScalePlan)>,
-    /// The lowest spectrum bin any of them uses (at most `top`).
-    bottom: usize,
-    /// The highest spectrum bin any of them uses.
-    top: usize,
+    /// The spectrum bins they read, the first and how many ([`band::covered`]): all of
+    /// the spectrum that is uploaded.
+    first: usize,
+    bins: usize,
 }
 
 impl Planned {
-    /// The bins its scales use, `bottom..=top`: all of the spectrum that is uploaded.
-    fn bins(&self) -> usize {
-        self.top + 1 - self.bottom
+    /// The uploaded bins.
+    fn range(&self) -> std::ops::Range<usize> {
+        self.first..self.first + self.bins
     }
 }
 
@@ -129,22 +130,11 @@ fn plan(prep: &WaveletPrep, grid: &[GridPoint]) -> Planned {
         .filter(|(_, w)| !w.is_empty())
         .map(|(k, _)| (k, prep.exact_plan(k)))
         .collect();
-    let top = scales
-        .iter()
-        .map(|(_, p)| p.band().1)
-        .max()
-        .unwrap_or(0)
-        .min(prep.spec.bins.len() - 1);
-    let bottom = scales
-        .iter()
-        .map(|(_, p)| p.band().0)
-        .min()
-        .unwrap_or(0)
-        .min(top);
+    let (first, bins) = band::covered(scales.iter().map(|(_, p)| p), prep.spec.bins.len());
     Planned {
         scales,
-        bottom,
-        top,
+        first,
+        bins,
     }
 }
 
@@ -294,7 +284,7 @@ impl RefineStage {
                 .map(|(_, p)| 3 * p.len as u64 * elem)
                 .sum()
         };
-        let spectrum = planned.bins() as u64 * elem;
+        let spectrum = planned.bins as u64 * elem;
         let records = grid.len() as u64 * RECORD_BYTES;
         let all = 0..planned.scales.len();
         if bytes(all.clone()) + spectrum <= limit && records <= limit {
@@ -409,7 +399,7 @@ impl RefineStage {
                     .iter()
                     .map(|(_, s)| 3 * s.len as u64 * elem)
                     .sum::<u64>()
-                    + p.bins() as u64 * elem;
+                    + p.bins as u64 * elem;
                 let records = piece.points.len() as u64 * RECORD_BYTES;
                 if used.0.saturating_add(data) > limit || used.1.saturating_add(records) > limit {
                     parts.push(Vec::new());
@@ -433,7 +423,7 @@ impl RefineStage {
             .zip(&planned)
             .with_min_len(super::PAR_MIN)
             .map(|(p, q)| {
-                let big = p.spec.bins[q.bottom..=q.top]
+                let big = p.spec.bins[q.range()]
                     .iter()
                     .map(|c| c.re.abs().max(c.im.abs()))
                     .fold(0.0f64, f64::max);
@@ -489,7 +479,7 @@ impl RefineStage {
         let mut spec_at = Vec::with_capacity(part.len());
         for piece in part {
             spec_at.push(bins);
-            bins += planned[piece.run].bins();
+            bins += planned[piece.run].bins;
         }
         // Blocks (piece, scale) by FFT length; each block is w, w′, w″ back to back.
         let mut blocks: Vec<(usize, usize)> = part
@@ -541,9 +531,9 @@ impl RefineStage {
             for order in 0..3u32 {
                 items.push(Item {
                     // Where bin `lo` lies in the piece's segment.
-                    spec: (spec_at[q] + lo.saturating_sub(planned[r].bottom)) as u32,
+                    spec: (spec_at[q] + lo - planned[r].first) as u32,
                     lo: lo as u32,
-                    hi: hi.min(planned[r].top) as u32,
+                    hi: hi.min(spec.bins.len() - 1) as u32,
                     centre: centre as u32,
                     m: m as u32,
                     data: (data_len + order as usize * m) as u32,
@@ -579,11 +569,11 @@ impl RefineStage {
         drop(arrays_span);
         let elem = self.real.complex_bytes();
         // Written by every core straight into the upload's memory.
-        let lens: Vec<usize> = part.iter().map(|q| planned[q.run].bins()).collect();
+        let lens: Vec<usize> = part.iter().map(|q| planned[q.run].bins).collect();
         let scaled = |q: usize| {
             let r = part[q].run;
             let k = ln_scale[r].exp();
-            preps[r].spec.bins[planned[r].bottom..=planned[r].top]
+            preps[r].spec.bins[planned[r].range()]
                 .iter()
                 .map(move |c| (c.re * k, c.im * k))
         };

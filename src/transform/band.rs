@@ -208,6 +208,22 @@ impl Decimated {
     }
 }
 
+/// The spectrum bins that the pass bands of `plans` read, in a spectrum of `bins` bins:
+/// the first and how many, from the lowest band's first bin to the highest band's last
+/// (clamped to the spectrum; none where every band lies past its end). A GPU upload of a
+/// record's spectrum holds just these.
+pub fn covered<'a>(plans: impl IntoIterator<Item = &'a ScalePlan>, bins: usize) -> (usize, usize) {
+    let last = bins.saturating_sub(1);
+    let (lo, hi) = plans.into_iter().fold((usize::MAX, 0), |(l, h), p| {
+        (l.min(p.lo), h.max(p.hi.min(last)))
+    });
+    if bins == 0 || lo > hi {
+        (0, 0)
+    } else {
+        (lo, hi + 1 - lo)
+    }
+}
+
 /// Cubic Lagrange interpolation of a periodic sequence at fractional index `x`.
 #[inline]
 pub fn interpolate(v: &[Complex64], x: f64) -> Complex64 {
