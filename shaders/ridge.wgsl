@@ -8,9 +8,10 @@
 //
 // `ridge_steps`: one workgroup per run: the penalised dynamic programme of src/ridge.rs,
 // maximising Σ score(k_j, j) − λ Σ (k_j − k_{j−1})², the O(S²) maximum per step spread over
-// the workgroup, accumulated scores in workgroup memory (shifted by their value at scale 0
-// every step, so that f32 keeps its precision over thousands of steps), back-pointers in
-// global memory. `backtrack` then follows the back-pointers. Only the path and the
+// the workgroup (several invocations a scale where S ≤ 128), accumulated scores in
+// workgroup memory (shifted by their value at scale 0 every step, so that f32 keeps its
+// precision over thousands of steps; two halves that swap, one barrier a step),
+// back-pointers in global memory. `backtrack` then follows the back-pointers. Only the path and the
 // statistics go back to the host.
 //
 // Both work on one chunk of steps per dispatch (the `chunk` uniform), carrying the scores
@@ -66,8 +67,9 @@ const NO_MEDIAN: u32 = 0xffffffffu;
 var<workgroup> lowest: array<f32, WG>;
 var<workgroup> below: atomic<u32>;
 var<workgroup> which: array<u32, WG>;
-var<workgroup> acc: array<f32, MAX_SCALES>;
-var<workgroup> nxt: array<f32, MAX_SCALES>;
+// ridge_steps' running scores, two halves: the step's own (read, less `shift`) and the
+// next step's (written); they swap every step, so one barrier a step suffices.
+var<workgroup> acc: array<f32, 2048>;
 
 // track.rs' score: half the log of the power relative to the record's, floored 380 dB down.
 fn log_score(p: f32, unit: f32) -> f32 {
@@ -192,31 +194,80 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
             acc[k] = accum[run.info + k];
         }
     }
+    // Up to 128 scales, `t` invocations share each scale's scan of its predecessors, each
+    // over its own contiguous range, and the first of them combines their maxima in order:
+    // the first maximum over q, as one scan finds it, in a fraction of the time. A batch of a
+    // few signals waits on this loop's latency (one workgroup a signal).
+    var t = 1u;
+    if (s <= WG / 2u) {
+        t = WG / s;
+    }
+    let per = (s + t - 1u) / t;
+    // The step's scores are acc[src + q] − shift: the shift by the previous step's value at
+    // scale 0 keeps f32's precision over thousands of steps (the same rounding as shifting
+    // them in place).
+    var src = 0u;
+    var shift = 0.0;
     workgroupBarrier();
     for (var j = start; j < end; j += 1u) {
-        for (var k = lid; k < s; k += WG) {
+        let dst = MAX_SCALES - src;
+        if (t > 1u) {
+            let k = lid / t;
+            let part = lid % t;
             var best = -BIG;
             var arg = 0u;
-            for (var q = 0u; q < s; q += 1u) {
-                let d = f32(k) - f32(q);
-                let v = acc[q] - run.penalty * d * d;
-                if (v > best) {
-                    best = v;
-                    arg = q;
+            var own = 0.0;
+            if (k < s) {
+                if (part == 0u) {
+                    // Loaded before the scan, so that its latency hides behind it.
+                    own = score(run, k, j);
+                }
+                let q1 = min(s, (part + 1u) * per);
+                for (var q = part * per; q < q1; q += 1u) {
+                    let d = f32(k) - f32(q);
+                    let v = (acc[src + q] - shift) - run.penalty * d * d;
+                    if (v > best) {
+                        best = v;
+                        arg = q;
+                    }
                 }
             }
-            nxt[k] = score(run, k, j) + best;
-            back[run.back + j * s + k] = arg;
+            lowest[lid] = best;
+            which[lid] = arg;
+            workgroupBarrier();
+            if (k < s && part == 0u) {
+                for (var i = 1u; i < t; i += 1u) {
+                    if (lowest[lid + i] > best) {
+                        best = lowest[lid + i];
+                        arg = which[lid + i];
+                    }
+                }
+                acc[dst + k] = own + best;
+                back[run.back + j * s + k] = arg;
+            }
+        } else {
+            for (var k = lid; k < s; k += WG) {
+                let own = score(run, k, j);
+                var best = -BIG;
+                var arg = 0u;
+                for (var q = 0u; q < s; q += 1u) {
+                    let d = f32(k) - f32(q);
+                    let v = (acc[src + q] - shift) - run.penalty * d * d;
+                    if (v > best) {
+                        best = v;
+                        arg = q;
+                    }
+                }
+                acc[dst + k] = own + best;
+                back[run.back + j * s + k] = arg;
+            }
         }
         workgroupBarrier();
-        let shift = workgroupUniformLoad(&nxt[0]);
-        for (var k = lid; k < s; k += WG) {
-            acc[k] = nxt[k] - shift;
-        }
-        workgroupBarrier();
+        shift = acc[dst];
+        src = dst;
     }
     for (var k = lid; k < s; k += WG) {
-        accum[run.info + k] = acc[k];
+        accum[run.info + k] = acc[src + k] - shift;
     }
 }
 

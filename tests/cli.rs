@@ -853,7 +853,9 @@ fn the_gpu_trace_names_the_dispatchers_host_work_and_every_compute_passs_device_
     for pass in [
         "scales.scatter",
         "scales.power",
-        "ridge",
+        "ridge.stats",
+        "ridge.steps",
+        "ridge.backtrack",
         "refine.scatter",
         "refine.estimate",
         "fft f",

@@ -259,10 +259,12 @@ fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
     let gpu = gpu();
     let stage = FirstPass::new(&gpu).unwrap();
     let signals = ridge_signals();
-    // 128 scales: the programme runs in several chunks per run (lavapipe's loop limit);
+    // 128 scales: the programme runs in several chunks per run (lavapipe's loop limit),
+    // two invocations a scale; 50: five a scale, over ranges of 10 predecessors;
     // 700 scales: many chunks and more than one scale per invocation.
     for (search, scales) in [
         (RidgeSearch::Dynamic, 128),
+        (RidgeSearch::Dynamic, 50),
         (RidgeSearch::Argmax, 64),
         (RidgeSearch::Dynamic, 700),
     ] {

@@ -444,24 +444,32 @@ impl RidgeStage {
                 bind(&gpu.uniform("chunk", &range))
             })
             .collect();
-        let mut pass = gpu.pass(enc, "ridge");
-        // Each dispatch sees the previous one's writes (WebGPU orders them).
-        pass.set_pipeline(&self.stats);
-        pass.set_bind_group(0, &chunks[0], &[]);
+        // Three passes, so that the trace times the statistics, the programme and the
+        // backtrack apart. Each dispatch sees the previous one's writes (WebGPU orders them).
         let [x, y, z] = gpu.grid((max_scales * preps.len()) as u64)?;
-        pass.dispatch_workgroups(x, y, z);
+        {
+            let mut pass = gpu.pass(enc, "ridge.stats");
+            pass.set_pipeline(&self.stats);
+            pass.set_bind_group(0, &chunks[0], &[]);
+            pass.dispatch_workgroups(x, y, z);
+        }
         let [x, y, z] = gpu.grid(preps.len() as u64)?;
-        pass.set_pipeline(&self.steps);
-        for b in &chunks {
-            pass.set_bind_group(0, b, &[]);
-            pass.dispatch_workgroups(x, y, z);
+        {
+            let mut pass = gpu.pass(enc, "ridge.steps");
+            pass.set_pipeline(&self.steps);
+            for b in &chunks {
+                pass.set_bind_group(0, b, &[]);
+                pass.dispatch_workgroups(x, y, z);
+            }
         }
-        pass.set_pipeline(&self.backtrack);
-        for b in chunks.iter().rev() {
-            pass.set_bind_group(0, b, &[]);
-            pass.dispatch_workgroups(x, y, z);
+        {
+            let mut pass = gpu.pass(enc, "ridge.backtrack");
+            pass.set_pipeline(&self.backtrack);
+            for b in chunks.iter().rev() {
+                pass.set_bind_group(0, b, &[]);
+                pass.dispatch_workgroups(x, y, z);
+            }
         }
-        drop(pass);
         Ok(RidgeOut {
             path,
             path_len,
