@@ -8,7 +8,7 @@ use std::f64::consts::PI;
 
 use rayon::prelude::*;
 
-use crate::filter::{local_line_weighted, local_slope};
+use crate::filter::local_line_weighted;
 use crate::skeleton::{GridEstimate, GridPoint};
 
 use super::{unwrap_phase, CoarseRidge, Device, Method, Scalogram, Track, WaveletPrep};
@@ -93,7 +93,8 @@ impl WaveletPrep {
 
         // The sweep rate as the frequency track's own slope over ±σ_t: where the window saw a
         // signal the local model cannot describe, it disagrees with the model's β.
-        let fslope = coarse_slope(&t, &frequency, &half);
+        // σ′ too, now: σ is not smoothed, and both slopes share their windows.
+        let [fslope, dsigma] = coarse_slopes(&t, [&frequency, &decay], &half);
         let mut valid: Vec<bool> = (0..g_count)
             .map(|g| {
                 let e = &est[g];
@@ -130,8 +131,7 @@ impl WaveletPrep {
             valid[g] = valid[g] && ln_amp[g].exp() >= opt.min_snr * noise_w[est[g].best];
         }
         unwrap_phase(&mut phase, &frequency, |g| t[g]);
-        // A'' = A (σ² − σ'); σ' by a local least-squares slope over ±σ_t of the grid.
-        let dsigma = coarse_slope(&t, &decay, &half);
+        // A'' = A (σ² − σ'), σ' (above) by a local least-squares slope over ±σ_t of the grid.
 
         // Per sample: ln A, f, σ, β, σ' linear between grid points (they vary over σ_t, the
         // grid is σ_t/8), the phase cubic (Hermite, with 2πf as its slope at both ends).
@@ -158,7 +158,13 @@ impl WaveletPrep {
             let span = (b - a).max(1) as f64;
             let dt = span / fs;
             let last = if g + 1 == g_count { a } else { b - 1 };
-            let lerp = |v: &[f64], u: f64| v[g] + u * (v[gb] - v[g]);
+            // Each series' value at g and its rise to gb, for v[g] + u (v[gb] − v[g]).
+            let ends = |v: &[f64]| (v[g], v[gb] - v[g]);
+            let (sig0, sig_d) = ends(&decay);
+            let (f0, f_d) = ends(&frequency);
+            let (ds0, ds_d) = ends(&dsigma);
+            let (b0, b_d) = ends(&sweep);
+            let (p0, p1) = (phase[g], phase[gb]);
             let w0 = 2.0 * PI * frequency[g] * dt;
             let w1 = 2.0 * PI * frequency[gb] * dt;
             let both = valid[g] && valid[gb];
@@ -167,8 +173,19 @@ impl WaveletPrep {
             let geometric = ln_amp[g].is_finite() && ln_amp[gb].is_finite();
             let ratio = ((ln_amp[gb] - ln_amp[g]) / span).exp();
             let mut next_amp = ln_amp[g].exp();
-            for i in a..=last {
-                let u = (i - a) as f64 / span;
+            // The segment's samples as slices: no bounds check per sample.
+            let r = a..last + 1;
+            let samples = out.amplitude[r.clone()]
+                .iter_mut()
+                .zip(&mut out.frequency[r.clone()])
+                .zip(&mut out.phase[r.clone()])
+                .zip(&mut out.d_amplitude[r.clone()])
+                .zip(&mut out.d2_amplitude[r.clone()])
+                .zip(&mut out.d_frequency[r.clone()])
+                .zip(&mut out.valid[r]);
+            for (k, ((((((o_amp, o_f), o_ph), o_da), o_d2a), o_df), o_valid)) in samples.enumerate()
+            {
+                let u = k as f64 / span;
                 let amp = if geometric {
                     let amp = next_amp;
                     next_amp *= ratio;
@@ -178,31 +195,62 @@ impl WaveletPrep {
                 } else {
                     ln_amp[gb].exp()
                 };
-                let sig = lerp(&decay, u);
+                let sig = sig0 + u * sig_d;
                 let (u2, u3) = (u * u, u * u * u);
-                out.amplitude[i] = amp;
-                out.frequency[i] = lerp(&frequency, u);
-                out.phase[i] = (2.0 * u3 - 3.0 * u2 + 1.0) * phase[g]
+                *o_amp = amp;
+                *o_f = f0 + u * f_d;
+                *o_ph = (2.0 * u3 - 3.0 * u2 + 1.0) * p0
                     + (u3 - 2.0 * u2 + u) * w0
-                    + (3.0 * u2 - 2.0 * u3) * phase[gb]
+                    + (3.0 * u2 - 2.0 * u3) * p1
                     + (u3 - u2) * w1;
-                out.d_amplitude[i] = -sig * amp;
-                out.d2_amplitude[i] = amp * (sig * sig - lerp(&dsigma, u));
-                out.d_frequency[i] = lerp(&sweep, u);
-                out.valid[i] = both;
+                *o_da = -sig * amp;
+                *o_d2a = amp * (sig * sig - (ds0 + u * ds_d));
+                *o_df = b0 + u * b_d;
+                *o_valid = both;
             }
         }
         out
     }
 }
 
-/// Slope of `y` at every coarse time by a least-squares line over ±`half` (0 where too few
-/// points fall in the window).
-fn coarse_slope(t: &[f64], y: &[f64], half: &[f64]) -> Vec<f64> {
-    (0..t.len())
+/// Slopes of both `ys` at every coarse time by least-squares lines over ±`half` (0 where
+/// too few points fall in the window): `filter::local_slope` of each, to the last bit, with the
+/// window's bounds and its time moments found once for both.
+fn coarse_slopes(t: &[f64], ys: [&[f64]; 2], half: &[f64]) -> [Vec<f64>; 2] {
+    let pairs: Vec<(f64, f64)> = (0..t.len())
         .into_par_iter()
-        .map(|c| local_slope(t, y, t[c], half[c]).unwrap_or(0.0))
-        .collect()
+        .with_min_len(256)
+        .map(|c| {
+            let (t0, h) = (t[c], half[c]);
+            let lo = t.partition_point(|&v| v < t0 - h);
+            let hi = t.partition_point(|&v| v <= t0 + h);
+            if hi < lo + 3 {
+                return (0.0, 0.0);
+            }
+            // The same sums in the same order as local_line_weighted's, unweighted.
+            let m: f64 = (lo..hi).map(|_| 1.0).sum();
+            let tm = (lo..hi).map(|i| t[i]).sum::<f64>() / m;
+            let slope = |y: &[f64]| {
+                let ym = (lo..hi).map(|i| y[i]).sum::<f64>() / m;
+                let (mut sxy, mut sxx) = (0.0, 0.0);
+                for i in lo..hi {
+                    let dt = t[i] - tm;
+                    sxy += dt * (y[i] - ym);
+                    sxx += dt * dt;
+                }
+                if sxx > 0.0 {
+                    sxy / sxx
+                } else {
+                    0.0
+                }
+            };
+            (slope(ys[0]), slope(ys[1]))
+        })
+        .collect();
+    [
+        pairs.iter().map(|p| p.0).collect(),
+        pairs.iter().map(|p| p.1).collect(),
+    ]
 }
 
 /// Longest averaging window, in σ_t either side, that low-SNR smoothing may use.
@@ -252,5 +300,34 @@ fn smooth_low_snr(
             ln_amp[g] = a;
             frequency[g] = b;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::filter::local_slope;
+
+    #[test]
+    fn coarse_slopes_are_local_slope_of_each_series_to_the_last_bit() {
+        // An uneven grid with varying windows, some too narrow for three points.
+        let n = 500;
+        let t: Vec<f64> = (0..n)
+            .map(|i| 0.01 * i as f64 + 0.003 * ((i * 7 % 11) as f64))
+            .collect();
+        let half: Vec<f64> = (0..n).map(|i| 0.005 + 0.04 * ((i % 13) as f64)).collect();
+        let a: Vec<f64> = t.iter().map(|&x| (3.0 * x).sin() + 0.1 * x * x).collect();
+        let b: Vec<f64> = t.iter().map(|&x| (x * 1.7).cos() * 5.0).collect();
+        let [sa, sb] = coarse_slopes(&t, [&a, &b], &half);
+        let mut zero = 0;
+        for c in 0..n {
+            let ea = local_slope(&t, &a, t[c], half[c]).unwrap_or(0.0);
+            let eb = local_slope(&t, &b, t[c], half[c]).unwrap_or(0.0);
+            assert_eq!(sa[c].to_bits(), ea.to_bits(), "point {c}");
+            assert_eq!(sb[c].to_bits(), eb.to_bits(), "point {c}");
+            zero += usize::from(ea == 0.0);
+        }
+        // Both kinds of window occur.
+        assert!(zero > 0 && zero < n / 2, "{zero}");
     }
 }
