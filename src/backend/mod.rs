@@ -60,6 +60,9 @@ fn groups_of(count: usize, fit: usize) -> usize {
     count.div_ceil(groups).clamp(GROUP.min(count.max(1)), fit)
 }
 
+/// Groups [`Backend::track_many`] hands to the GPU before it collects the oldest.
+const AHEAD: usize = 2;
+
 /// A fixed group size for [`Backend::track_many`] (`SKELID_GPU_GROUP`, signals), for tuning
 /// the pipelining of benchmarks on a new machine.
 fn fixed_group() -> Option<usize> {
@@ -262,8 +265,10 @@ impl Backend {
     ) -> Vec<Result<Track, TrackError>> {
         use rayon::prelude::*;
         let mut out = Vec::with_capacity(signals.len());
-        // At most two groups of prepared spectra in memory at once.
-        let mut pending: Option<Group> = None;
+        // Groups handed over and not yet collected: while the oldest is completed on the
+        // CPU, the next ones are on the device, so that it never waits for a preparation
+        // queued behind a completion. At most AHEAD + 1 groups of prepared spectra at once.
+        let mut pending: std::collections::VecDeque<Group> = std::collections::VecDeque::new();
         let size = fixed_group().unwrap_or_else(|| self.group_size(signals, opt));
         let mut at = 0;
         while at < signals.len() {
@@ -287,13 +292,17 @@ impl Backend {
                     Err(e) => slots.push(Some(Err(e))),
                 }
             }
-            let sent = self.send(ok);
-            if let Some(previous) = pending.replace(Group { slots, sent }) {
-                out.extend(self.finish_group(previous));
+            pending.push_back(Group {
+                slots,
+                sent: self.send(ok),
+            });
+            if pending.len() > AHEAD {
+                let oldest = pending.pop_front().expect("a pending group");
+                out.extend(self.finish_group(oldest));
             }
         }
-        if let Some(last) = pending {
-            out.extend(self.finish_group(last));
+        for group in pending {
+            out.extend(self.finish_group(group));
         }
         out
     }
