@@ -12,6 +12,11 @@ use skelid::ingest::FindError;
 
 fn main() -> ExitCode {
     skelid::hint::set_namer(cli::hints::flag);
+    // The global pool (the parallel parts of every stage) below the process's priority:
+    // see `lower_compute_priority`. Fails only if a pool was built already: then as it is.
+    let _ = rayon::ThreadPoolBuilder::new()
+        .start_handler(|_| skelid::backend::lower_compute_priority())
+        .build_global();
     let ok = |r: anyhow::Result<()>| r.map(|()| ExitCode::SUCCESS);
     let result = match Cli::parse().command {
         Command::Inspect(a) => cli::inspect::cmd_inspect(a),

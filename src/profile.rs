@@ -75,6 +75,7 @@ static GPU_SIGNALS: AtomicU64 = AtomicU64::new(0);
 static GPU_BATCHES: AtomicU64 = AtomicU64::new(0);
 static OVERLAPPED: AtomicU64 = AtomicU64::new(0);
 static DISPATCHER_NANOS: AtomicU64 = AtomicU64::new(0);
+static DISPATCHER_WAIT_NANOS: AtomicU64 = AtomicU64::new(0);
 
 /// Adds `d` to `stage`.
 pub fn add(stage: Stage, d: Duration) {
@@ -140,14 +141,26 @@ pub fn overlapped() {
 
 /// Runs `f` on the GPU dispatcher's thread, adding the CPU time it spent there (not its waits
 /// for the device, nor work it hands to rayon) to the dispatcher's serial host time.
+/// Also adds the time the thread was ready to run but waited for a core (the kernel's
+/// run delay), where the kernel reports it.
 pub fn dispatcher<T>(f: impl FnOnce() -> T) -> T {
-    let t0 = thread_cpu();
+    let (t0, w0) = (thread_cpu(), run_delay());
     let out = f();
     DISPATCHER_NANOS.fetch_add(
         thread_cpu().saturating_sub(t0).as_nanos() as u64,
         Ordering::Relaxed,
     );
+    if let (Some(w0), Some(w1)) = (w0, run_delay()) {
+        DISPATCHER_WAIT_NANOS.fetch_add(w1.saturating_sub(w0), Ordering::Relaxed);
+    }
     out
+}
+
+/// Nanoseconds this thread has spent runnable but not running (waiting for a core), from
+/// Linux's `/proc/thread-self/schedstat`; `None` where that is not available.
+pub fn run_delay() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+    text.split_whitespace().nth(1)?.parse().ok()
 }
 
 /// Counts one GPU batch (first pass and refinement of many signals) of `n` signals.
@@ -188,6 +201,9 @@ pub struct Traffic {
     /// CPU seconds of the dispatcher thread itself (encoding, uploads, laying out grids,
     /// reading back; not its waits): the serial host work every GPU batch goes through.
     pub dispatcher_cpu_s: f64,
+    /// Seconds the dispatcher thread was ready to run but waited for a core (the CPU
+    /// stages of other signals had every core), during its serial host work.
+    pub dispatcher_core_wait_s: f64,
 }
 
 impl Traffic {
@@ -225,6 +241,7 @@ pub fn snapshot() -> Profile {
             bytes_down: BYTES_DOWN.load(Ordering::Relaxed),
             overlapped: OVERLAPPED.load(Ordering::Relaxed),
             dispatcher_cpu_s: DISPATCHER_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
+            dispatcher_core_wait_s: DISPATCHER_WAIT_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
         },
     }
 }
@@ -243,6 +260,7 @@ pub fn reset() {
         &GPU_BATCHES,
         &OVERLAPPED,
         &DISPATCHER_NANOS,
+        &DISPATCHER_WAIT_NANOS,
     ] {
         c.store(0, Ordering::Relaxed);
     }

@@ -60,6 +60,30 @@ fn groups_of(count: usize, fit: usize) -> usize {
     count.div_ceil(groups).clamp(GROUP.min(count.max(1)), fit)
 }
 
+/// Nice steps below the process at which the compute pools' threads run. The GPU's
+/// dispatcher is one serial thread that every batch goes through; with every core busy
+/// preparing and completing other signals, it waited for a core as long as it ran.
+const COMPUTE_NICE: libc::c_int = 5;
+
+/// Lowers the calling thread's scheduling priority by [`COMPUTE_NICE`] steps (Linux sets
+/// it per thread): the start handler of the compute pools, so that the threads that feed
+/// the GPU and write results (at the process's own priority) get a core when they need one.
+/// Elsewhere, and where the kernel refuses, nothing changes.
+pub fn lower_compute_priority() {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: plain system calls on the calling thread's own id.
+        unsafe {
+            let tid = libc::gettid() as libc::id_t;
+            *libc::__errno_location() = 0;
+            let now = libc::getpriority(libc::PRIO_PROCESS, tid);
+            if *libc::__errno_location() == 0 {
+                libc::setpriority(libc::PRIO_PROCESS, tid, (now + COMPUTE_NICE).min(19));
+            }
+        }
+    }
+}
+
 /// Groups [`Backend::track_many`] hands to the GPU before it collects the oldest.
 const AHEAD: usize = 2;
 

@@ -253,6 +253,7 @@ pub fn run_campaigns(
     };
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(jobs)
+        .start_handler(|_| crate::backend::lower_compute_priority())
         .build()
         .map_err(|e| BatchError::Threads {
             jobs,
