@@ -362,3 +362,31 @@ pub fn device_pass(label: &'static str, ns: f64) {
     e.0 += 1;
     e.1 += ns;
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn the_wait_for_a_core_is_read_and_never_goes_back() {
+        let first = run_delay().expect("Linux reports a thread's run delay");
+        // Some work and a yield, so that the scheduler has had its chance to delay us.
+        let mut x = 0u64;
+        for i in 0..200_000u64 {
+            x = x.wrapping_mul(31).wrapping_add(i);
+        }
+        std::hint::black_box(x);
+        std::thread::yield_now();
+        let second = run_delay().expect("still reported");
+        assert!(second >= first, "{second} < {first}");
+    }
+
+    #[test]
+    fn reset_clears_the_dispatchers_core_wait() {
+        DISPATCHER_WAIT_NANOS.fetch_add(1_000_000, Ordering::Relaxed);
+        assert!(snapshot().gpu.dispatcher_core_wait_s >= 1e-3);
+        reset();
+        assert_eq!(snapshot().gpu.dispatcher_core_wait_s, 0.0);
+    }
+}

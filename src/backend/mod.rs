@@ -448,6 +448,24 @@ impl Backend {
 mod tests {
     use super::*;
 
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn a_compute_thread_runs_below_the_process_and_no_other_thread_does() {
+        // SAFETY: plain system calls on the calling thread's own id.
+        let nice =
+            || unsafe { libc::getpriority(libc::PRIO_PROCESS, libc::gettid() as libc::id_t) };
+        let here = nice();
+        let (before, after) = std::thread::spawn(move || {
+            let before = nice();
+            lower_compute_priority();
+            (before, nice())
+        })
+        .join()
+        .unwrap();
+        assert_eq!(after, (before + COMPUTE_NICE).min(19));
+        assert_eq!(nice(), here, "the calling thread only");
+    }
+
     #[test]
     fn groups_split_the_signals_evenly_within_a_submission() {
         // 2000 signals of which 4096 would fit: two groups of 1000.
