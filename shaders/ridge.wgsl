@@ -70,6 +70,7 @@ var<workgroup> which: array<u32, WG>;
 // ridge_steps' running scores, two halves: the step's own (read, less `shift`) and the
 // next step's (written); they swap every step, so one barrier a step suffices.
 var<workgroup> acc: array<f32, 2048>;
+var<workgroup> top: array<atomic<u32>, 3>;
 
 // track.rs' score: half the log of the power relative to the record's, floored 380 dB down.
 fn log_score(p: f32, unit: f32) -> f32 {
@@ -183,15 +184,26 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
         }
         return;
     }
+    // The largest score of each half, as an order-preserving u32 (`orderable`): three slots
+    // that rotate, the step's own (read), the next step's (written with atomicMax) and the
+    // one after (reset), so that no slot is reset while it is read or written.
+    if (lid == 0u) {
+        for (var i = 0u; i < 3u; i += 1u) {
+            atomicStore(&top[i], 0u);
+        }
+    }
+    workgroupBarrier();
     var start = chunk.first;
     if (start == 0u) {
         for (var k = lid; k < s; k += WG) {
             acc[k] = score(run, k, 0u);
+            atomicMax(&top[0], orderable(acc[k]));
         }
         start = 1u;
     } else {
         for (var k = lid; k < s; k += WG) {
             acc[k] = accum[run.info + k];
+            atomicMax(&top[0], orderable(acc[k]));
         }
     }
     // Up to 128 scales, `t` invocations share each scale's scan of its predecessors, each
@@ -202,15 +214,22 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
     if (s <= WG / 2u) {
         t = WG / s;
     }
-    let per = (s + t - 1u) / t;
     // The step's scores are acc[src + q] − shift: the shift by the previous step's value at
     // scale 0 keeps f32's precision over thousands of steps (the same rounding as shifting
     // them in place).
     var src = 0u;
     var shift = 0.0;
+    var slot = 0u;
     workgroupBarrier();
     for (var j = start; j < end; j += 1u) {
         let dst = MAX_SCALES - src;
+        let next = (slot + 1u) % 3u;
+        if (lid == 0u) {
+            atomicStore(&top[(slot + 2u) % 3u], 0u);
+        }
+        // The step's largest score: no predecessor further from k than `reach` can beat
+        // q = k itself (see `reach`), so each scale scans only those within it.
+        let most = from_orderable(atomicLoad(&top[slot])) - shift;
         if (t > 1u) {
             let k = lid / t;
             let part = lid % t;
@@ -222,8 +241,12 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
                     // Loaded before the scan, so that its latency hides behind it.
                     own = score(run, k, j);
                 }
-                let q1 = min(s, (part + 1u) * per);
-                for (var q = part * per; q < q1; q += 1u) {
+                let d_max = reach(most - (acc[src + k] - shift), run.penalty, s);
+                let lo = k - min(k, d_max);
+                let hi = min(s, k + d_max + 1u);
+                let per = (hi - lo + t - 1u) / t;
+                let q1 = min(hi, lo + (part + 1u) * per);
+                for (var q = lo + part * per; q < q1; q += 1u) {
                     let d = f32(k) - f32(q);
                     let v = (acc[src + q] - shift) - run.penalty * d * d;
                     if (v > best) {
@@ -243,6 +266,7 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
                     }
                 }
                 acc[dst + k] = own + best;
+                atomicMax(&top[next], orderable(own + best));
                 back[run.back + j * s + k] = arg;
             }
         } else {
@@ -250,7 +274,9 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
                 let own = score(run, k, j);
                 var best = -BIG;
                 var arg = 0u;
-                for (var q = 0u; q < s; q += 1u) {
+                let d_max = reach(most - (acc[src + k] - shift), run.penalty, s);
+                let hi = min(s, k + d_max + 1u);
+                for (var q = k - min(k, d_max); q < hi; q += 1u) {
                     let d = f32(k) - f32(q);
                     let v = (acc[src + q] - shift) - run.penalty * d * d;
                     if (v > best) {
@@ -259,16 +285,48 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
                     }
                 }
                 acc[dst + k] = own + best;
+                atomicMax(&top[next], orderable(own + best));
                 back[run.back + j * s + k] = arg;
             }
         }
         workgroupBarrier();
         shift = acc[dst];
         src = dst;
+        slot = next;
     }
     for (var k = lid; k < s; k += WG) {
         accum[run.info + k] = acc[src + k] - shift;
     }
+}
+
+// How far from scale k a predecessor can lie and still beat k itself, whose candidate is
+// its own score a_k: a predecessor d scales away scores at most (the step's largest) −
+// λd², below a_k once λd² > `gap` = largest − a_k. With 0.1 % of the gap and one scale to
+// spare, far beyond f32's rounding of scores of order ten, so that the scan finds the same
+// first maximum as a scan of every scale. All `s` scales where λ is not positive.
+fn reach(gap: f32, penalty: f32, s: u32) -> u32 {
+    if (!(penalty > 0.0)) {
+        return s;
+    }
+    let r = min(sqrt(max(gap, 0.0) * 1.001 / penalty), f32(s));
+    return min(u32(ceil(r)) + 1u, s);
+}
+
+// Non-negative and negative f32 to u32 in the same order (for atomicMax): the sign bit set
+// on non-negatives, every bit flipped on negatives.
+fn orderable(v: f32) -> u32 {
+    let b = bitcast<u32>(v);
+    if ((b & 0x80000000u) != 0u) {
+        return ~b;
+    }
+    return b | 0x80000000u;
+}
+
+fn from_orderable(u: u32) -> f32 {
+    if ((u & 0x80000000u) != 0u) {
+        return bitcast<f32>(u & 0x7fffffffu);
+    }
+    return bitcast<f32>(~u);
 }
 
 @compute @workgroup_size(256)
