@@ -61,8 +61,10 @@ fn groups_of(count: usize, fit: usize) -> usize {
 }
 
 /// Nice steps below the process at which the compute pools' threads run. The GPU's
-/// dispatcher is one serial thread that every batch goes through; with every core busy
-/// preparing and completing other signals, it waited for a core as long as it ran.
+/// dispatcher is one serial thread that every batch goes through, the writer one that every
+/// run goes through. With the pools below them, the H100's GPU `bench` took 0.51–0.54 s
+/// instead of 0.63–0.65 s; the dispatcher's measured wait for a core was tiny either way,
+/// so why is not known (README, "How a batch goes").
 const COMPUTE_NICE: libc::c_int = 5;
 
 /// Lowers the calling thread's scheduling priority by [`COMPUTE_NICE`] steps (Linux sets
@@ -96,8 +98,8 @@ fn fixed_group() -> Option<usize> {
         .filter(|&n| n > 0)
 }
 
-/// Signals in [`Backend::track_many`]'s first group (and every group on the CPU); later
-/// groups on a GPU are sized to fill one submission's device memory.
+/// Signals in each of [`Backend::track_many`]'s groups on the CPU, and the fewest in a
+/// group on a GPU (unless there are fewer signals).
 const GROUP: usize = 256;
 
 /// The chosen backend, shared by all worker threads.
