@@ -227,8 +227,8 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
         if (lid == 0u) {
             atomicStore(&top[(slot + 2u) % 3u], 0u);
         }
-        // The step's largest score: no predecessor further from k than `reach` can beat
-        // q = k itself (see `reach`), so each scale scans only those within it.
+        // The step's largest score: no predecessor further from k than its `window` can beat
+        // q = k itself (see `window`), so each scale scans only those within it.
         let most = from_orderable(atomicLoad(&top[slot])) - shift;
         if (t > 1u) {
             let k = lid / t;
@@ -241,19 +241,12 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
                     // Loaded before the scan, so that its latency hides behind it.
                     own = score(run, k, j);
                 }
-                let d_max = reach(most - (acc[src + k] - shift), run.penalty, s);
-                let lo = k - min(k, d_max);
-                let hi = min(s, k + d_max + 1u);
-                let per = (hi - lo + t - 1u) / t;
-                let q1 = min(hi, lo + (part + 1u) * per);
-                for (var q = lo + part * per; q < q1; q += 1u) {
-                    let d = f32(k) - f32(q);
-                    let v = (acc[src + q] - shift) - run.penalty * d * d;
-                    if (v > best) {
-                        best = v;
-                        arg = q;
-                    }
-                }
+                let w = window(k, s, most - (acc[src + k] - shift), run.penalty);
+                let per = (w.y - w.x + t - 1u) / t;
+                let found = scan(k, w.x + part * per, min(w.y, w.x + (part + 1u) * per), src,
+                                 shift, run.penalty);
+                best = found.value;
+                arg = found.arg;
             }
             lowest[lid] = best;
             which[lid] = arg;
@@ -265,28 +258,14 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
                         arg = which[lid + i];
                     }
                 }
-                acc[dst + k] = own + best;
-                atomicMax(&top[next], orderable(own + best));
-                back[run.back + j * s + k] = arg;
+                settle(run, k, j, dst, next, own + best, arg);
             }
         } else {
             for (var k = lid; k < s; k += WG) {
                 let own = score(run, k, j);
-                var best = -BIG;
-                var arg = 0u;
-                let d_max = reach(most - (acc[src + k] - shift), run.penalty, s);
-                let hi = min(s, k + d_max + 1u);
-                for (var q = k - min(k, d_max); q < hi; q += 1u) {
-                    let d = f32(k) - f32(q);
-                    let v = (acc[src + q] - shift) - run.penalty * d * d;
-                    if (v > best) {
-                        best = v;
-                        arg = q;
-                    }
-                }
-                acc[dst + k] = own + best;
-                atomicMax(&top[next], orderable(own + best));
-                back[run.back + j * s + k] = arg;
+                let w = window(k, s, most - (acc[src + k] - shift), run.penalty);
+                let found = scan(k, w.x, w.y, src, shift, run.penalty);
+                settle(run, k, j, dst, next, own + found.value, found.arg);
             }
         }
         workgroupBarrier();
@@ -299,17 +278,46 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
     }
 }
 
-// How far from scale k a predecessor can lie and still beat k itself, whose candidate is
-// its own score a_k: a predecessor d scales away scores at most (the step's largest) −
-// λd², below a_k once λd² > `gap` = largest − a_k. With 0.1 % of the gap and one scale to
-// spare, far beyond f32's rounding of scores of order ten, so that the scan finds the same
-// first maximum as a scan of every scale. All `s` scales where λ is not positive.
-fn reach(gap: f32, penalty: f32, s: u32) -> u32 {
-    if (!(penalty > 0.0)) {
-        return s;
+// The best predecessor of scale k among q0..q1: the first maximum of the step's scores
+// (acc[src + q] − shift) less the penalty λ(k − q)²; −BIG and 0 when the range is empty.
+struct Found {
+    value: f32,
+    arg: u32,
+};
+
+fn scan(k: u32, q0: u32, q1: u32, src: u32, shift: f32, penalty: f32) -> Found {
+    var found = Found(-BIG, 0u);
+    for (var q = q0; q < q1; q += 1u) {
+        let d = f32(k) - f32(q);
+        let v = (acc[src + q] - shift) - penalty * d * d;
+        if (v > found.value) {
+            found = Found(v, q);
+        }
     }
-    let r = min(sqrt(max(gap, 0.0) * 1.001 / penalty), f32(s));
-    return min(u32(ceil(r)) + 1u, s);
+    return found;
+}
+
+// Scale k's score at step j, `value`, and its predecessor `arg`: into the next half
+// (`dst`), the step's largest score (slot `next`) and the back-pointers.
+fn settle(run: Run, k: u32, j: u32, dst: u32, next: u32, value: f32, arg: u32) {
+    acc[dst + k] = value;
+    atomicMax(&top[next], orderable(value));
+    back[run.back + j * run.scales + k] = arg;
+}
+
+// The predecessors of scale k (of `s`) that can beat k itself, whose candidate is its own
+// score a_k, as a range [x, y): a predecessor d scales away scores at most (the step's
+// largest) − λd², below a_k once λd² > `gap` = largest − a_k. With 0.1 % of the gap and
+// one scale to spare, far beyond f32's rounding of scores of order ten, so that the scan
+// finds the same first maximum as a scan of every scale. All `s` scales where λ is not
+// positive.
+fn window(k: u32, s: u32, gap: f32, penalty: f32) -> vec2<u32> {
+    var d = s;
+    if (penalty > 0.0) {
+        let r = min(sqrt(max(gap, 0.0) * 1.001 / penalty), f32(s));
+        d = min(u32(ceil(r)) + 1u, s);
+    }
+    return vec2<u32>(k - min(k, d), min(s, k + d + 1u));
 }
 
 // Non-negative and negative f32 to u32 in the same order (for atomicMax): the sign bit set
