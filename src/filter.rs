@@ -69,6 +69,20 @@ pub fn local_line_weighted(
 ) -> Option<(f64, f64)> {
     let lo = t.partition_point(|&v| v < t0 - half);
     let hi = t.partition_point(|&v| v <= t0 + half);
+    window_line(t, y, w, lo, hi, t0)
+}
+
+/// The least-squares line through the points `lo..hi` (sorted `t`), weighted if `w` is
+/// given: (value at t0, slope); `None` under three points or with no spread in time. For
+/// callers that find the window themselves.
+pub fn window_line(
+    t: &[f64],
+    y: &[f64],
+    w: Option<&[f64]>,
+    lo: usize,
+    hi: usize,
+    t0: f64,
+) -> Option<(f64, f64)> {
     if hi < lo + 3 {
         return None;
     }

@@ -8,7 +8,7 @@ use std::f64::consts::PI;
 
 use rayon::prelude::*;
 
-use crate::filter::local_line_weighted;
+use crate::filter::{local_line_weighted, window_line};
 use crate::skeleton::{GridEstimate, GridPoint};
 
 use super::{unwrap_phase, CoarseRidge, Device, Method, Scalogram, Track, WaveletPrep};
@@ -215,7 +215,7 @@ impl WaveletPrep {
 
 /// Slopes of both `ys` at every coarse time `t` (sorted) by least-squares lines over ±`half` (0 where
 /// too few points fall in the window): `filter::local_slope` of each, to the last bit, with the
-/// window's bounds and its time moments found once for both.
+/// window's bounds found once for both.
 fn coarse_slopes(t: &[f64], ys: [&[f64]; 2], half: &[f64]) -> [Vec<f64>; 2] {
     let mut pairs = vec![(0.0, 0.0); t.len()];
     // Chunks in parallel; within one, each window's bounds are walked from the previous
@@ -249,26 +249,7 @@ fn coarse_slopes(t: &[f64], ys: [&[f64]; 2], half: &[f64]) -> [Vec<f64>; 2] {
                         hi += 1;
                     }
                 }
-                if hi < lo + 3 {
-                    continue;
-                }
-                // The same sums in the same order as local_line_weighted's, unweighted.
-                let m: f64 = (lo..hi).map(|_| 1.0).sum();
-                let tm = (lo..hi).map(|i| t[i]).sum::<f64>() / m;
-                let slope = |y: &[f64]| {
-                    let ym = (lo..hi).map(|i| y[i]).sum::<f64>() / m;
-                    let (mut sxy, mut sxx) = (0.0, 0.0);
-                    for i in lo..hi {
-                        let dt = t[i] - tm;
-                        sxy += dt * (y[i] - ym);
-                        sxx += dt * dt;
-                    }
-                    if sxx > 0.0 {
-                        sxy / sxx
-                    } else {
-                        0.0
-                    }
-                };
+                let slope = |y: &[f64]| window_line(t, y, None, lo, hi, t0).map_or(0.0, |l| l.1);
                 *o = (slope(ys[0]), slope(ys[1]));
             }
         });
