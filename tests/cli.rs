@@ -946,7 +946,9 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
     assert!(syncs <= 2.0 * batches, "{t}");
     let samples = v["samples"].as_f64().unwrap();
     assert!(t["bytes_down"].as_f64().unwrap() <= 16.0 * samples, "{t}");
-    // The same agreement from the f32 path, used where an adapter has no SHADER_F64.
+    assert!(t["dispatcher_core_wait_s"].as_f64().unwrap() >= 0.0, "{t}");
+    // The same agreement from the f32 path, used where an adapter has no SHADER_F64; a
+    // group size that is not a number is said to be ignored.
     let json32 = d.path().join("bench32.json");
     let out = skelid()
         .arg("bench")
@@ -954,9 +956,15 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
         .args(["--repeat", "1", "--no-end-to-end", "--out"])
         .arg(&json32)
         .env("SKELID_GPU_NO_F64", "1")
+        .env("SKELID_GPU_GROUP", "many")
         .output()
         .unwrap();
     assert!(out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("note: SKELID_GPU_GROUP=\"many\" is not a positive whole number"),
+        "{err}"
+    );
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json32).unwrap()).unwrap();
     let g = &v["agreement"];

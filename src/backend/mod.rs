@@ -89,10 +89,13 @@ pub fn lower_compute_priority() {
 /// Groups [`Backend::track_many`] hands to the GPU before it collects the oldest.
 const AHEAD: usize = 2;
 
+/// The environment variable that fixes [`Backend::track_many`]'s group size.
+const GROUP_ENV: &str = "SKELID_GPU_GROUP";
+
 /// A fixed group size for [`Backend::track_many`] (`SKELID_GPU_GROUP`, signals), for tuning
 /// the pipelining of benchmarks on a new machine.
 fn fixed_group() -> Option<usize> {
-    std::env::var("SKELID_GPU_GROUP")
+    std::env::var(GROUP_ENV)
         .ok()
         .and_then(|v| v.parse::<usize>().ok())
         .filter(|&n| n > 0)
@@ -186,10 +189,17 @@ impl Backend {
     }
 
     fn start_gpu() -> Result<Backend, GpuError> {
-        Ok(Backend {
+        let b = Backend {
             gpu: Some(GpuService::start()?),
             warnings: Mutex::default(),
-        })
+        };
+        if let (Ok(v), None) = (std::env::var(GROUP_ENV), fixed_group()) {
+            b.note(format!(
+                "{GROUP_ENV}={v:?} is not a positive whole number of signals: ignored, groups \
+                 are sized to the adapter"
+            ));
+        }
+        Ok(b)
     }
 
     /// Whether a GPU device is open.

@@ -50,6 +50,9 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
             _ => {}
         }
     }
+    for n in opened.iter().flat_map(|(_, b)| b.notes()) {
+        eprintln!("note: {n}");
+    }
     let opt = skelid::track::WaveletOptions {
         scales,
         ..Default::default()
