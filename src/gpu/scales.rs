@@ -7,6 +7,8 @@
 use crate::profile::SpanGuard;
 use std::collections::HashMap;
 
+use rayon::prelude::*;
+
 use super::fft::{offset_alignment, FftStage, Holder};
 use super::{Gpu, GpuError, Pooled};
 use crate::transform::band::{self, ScalePlan};
@@ -236,8 +238,8 @@ impl ScaleStage {
         shared: &Shared,
     ) -> Result<[Pooled; 2], GpuError> {
         let align = offset_alignment(gpu);
-        let mut index: Vec<u32> = Vec::new();
-        let mut frac: Vec<f32> = Vec::new();
+        let mut table_len = 0usize;
+        let mut keys: Vec<(usize, usize, usize, usize)> = Vec::new();
         let mut tables: HashMap<(usize, usize, usize, usize), u32> = HashMap::new();
         let mut items = Vec::with_capacity(part.len());
         let mut groups: Vec<(usize, usize, usize)> = Vec::new(); // (length, offset, count)
@@ -256,14 +258,10 @@ impl ScaleStage {
             }
             let l = run.spectrum.padded_len;
             let positions = *tables.entry((m, l, run.h, run.steps)).or_insert_with(|| {
-                let at = index.len() as u32;
-                for j in 0..run.steps {
-                    let x = (j * run.h) as f64 * m as f64 / l as f64;
-                    let i = x.floor();
-                    index.push((i as usize % m) as u32);
-                    frac.push((x - i) as f32);
-                }
-                at
+                let at = table_len;
+                table_len += run.steps;
+                keys.push((m, l, run.h, run.steps));
+                at as u32
             });
             let (lo, hi, centre) = plan.band();
             let spec = run.spectrum;
@@ -285,6 +283,28 @@ impl ScaleStage {
             });
             data_len += m;
         }
+        // Each table of positions (a long record's are long: 16 384 steps at 2^20 samples,
+        // one per decimated length) filled on its own core.
+        let mut index = vec![0u32; table_len];
+        let mut frac = vec![0f32; table_len];
+        let mut slots = Vec::with_capacity(keys.len());
+        let (mut index_rest, mut frac_rest) = (&mut index[..], &mut frac[..]);
+        for &key in &keys {
+            let (i, i_rest) = index_rest.split_at_mut(key.3);
+            let (f, f_rest) = frac_rest.split_at_mut(key.3);
+            slots.push((key, i, f));
+            (index_rest, frac_rest) = (i_rest, f_rest);
+        }
+        slots
+            .into_par_iter()
+            .for_each(|((m, l, h, _), index, frac)| {
+                for (j, (o_i, o_f)) in index.iter_mut().zip(frac).enumerate() {
+                    let x = (j * h) as f64 * m as f64 / l as f64;
+                    let i = x.floor();
+                    *o_i = (i as usize % m) as u32;
+                    *o_f = (x - i) as f32;
+                }
+            });
         drop(items_span);
         let data_bytes = (data_len * 8) as u64;
         // Items along y (and z past one dimension's limit), slots along x.

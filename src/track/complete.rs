@@ -58,9 +58,25 @@ impl WaveletPrep {
             let q = per_scale.len() / 4;
             *per_scale.select_nth_unstable_by(q, |a, b| a.total_cmp(b)).1
         };
-        let from_spectrum = spec
-            .white_noise_variance(1.5 * fmax, fs / 2.0)
-            .unwrap_or(f64::INFINITY);
+        let g_count = grid.len();
+        let t: Vec<f64> = grid.iter().map(|p| p.sample as f64 / fs).collect();
+        let half: Vec<f64> = est.iter().map(|e| wl.time_sigma(e.scale)).collect();
+        let mut ln_amp: Vec<f64> = est.iter().map(|e| e.ln_amp).collect();
+        let mut phase: Vec<f64> = est.iter().map(|e| e.phase).collect();
+        let decay: Vec<f64> = est.iter().map(|e| e.decay).collect();
+        let mut frequency: Vec<f64> = est.iter().map(|e| e.frequency).collect();
+        let sweep: Vec<f64> = est.iter().map(|e| e.sweep).collect();
+        // The sweep rate as the frequency track's own slope over ±σ_t: where the window saw a
+        // signal the local model cannot describe, it disagrees with the model's β.
+        // σ′ too, now: σ is not smoothed, and both slopes share their windows. Beside them,
+        // the median of the spectrum above the band (a long record's serial share).
+        let (from_spectrum, [fslope, dsigma]) = rayon::join(
+            || {
+                spec.white_noise_variance(1.5 * fmax, fs / 2.0)
+                    .unwrap_or(f64::INFINITY)
+            },
+            || coarse_slopes(&t, [&frequency, &decay], &half),
+        );
         let noise_var = from_scales.min(from_spectrum);
         let noise_var = if noise_var.is_finite() {
             noise_var
@@ -73,15 +89,6 @@ impl WaveletPrep {
             .collect();
         let offset = spec.mean;
         drop(spec);
-        let g_count = grid.len();
-
-        let t: Vec<f64> = grid.iter().map(|p| p.sample as f64 / fs).collect();
-        let half: Vec<f64> = est.iter().map(|e| wl.time_sigma(e.scale)).collect();
-        let mut ln_amp: Vec<f64> = est.iter().map(|e| e.ln_amp).collect();
-        let mut phase: Vec<f64> = est.iter().map(|e| e.phase).collect();
-        let decay: Vec<f64> = est.iter().map(|e| e.decay).collect();
-        let mut frequency: Vec<f64> = est.iter().map(|e| e.frequency).collect();
-        let sweep: Vec<f64> = est.iter().map(|e| e.sweep).collect();
         // A failed solve invalidates the grid points around it.
         let mut fix_ok = vec![true; g_count];
         for (g, e) in est.iter().enumerate() {
@@ -91,10 +98,6 @@ impl WaveletPrep {
             }
         }
 
-        // The sweep rate as the frequency track's own slope over ±σ_t: where the window saw a
-        // signal the local model cannot describe, it disagrees with the model's β.
-        // σ′ too, now: σ is not smoothed, and both slopes share their windows.
-        let [fslope, dsigma] = coarse_slopes(&t, [&frequency, &decay], &half);
         let mut valid: Vec<bool> = (0..g_count)
             .map(|g| {
                 let e = &est[g];
@@ -132,9 +135,6 @@ impl WaveletPrep {
         }
         unwrap_phase(&mut phase, &frequency, |g| t[g]);
         // A'' = A (σ² − σ'), σ' (above) by a local least-squares slope over ±σ_t of the grid.
-
-        // Per sample: ln A, f, σ, β, σ' linear between grid points (they vary over σ_t, the
-        // grid is σ_t/8), the phase cubic (Hermite, with 2πf as its slope at both ends).
         let mut out = Track {
             method: Method::Wavelet,
             sample_rate: fs,
@@ -151,7 +151,145 @@ impl WaveletPrep {
             backend,
             scalogram,
         };
-        for g in 0..g_count {
+        let grid_series = GridSeries {
+            grid,
+            fs,
+            ln_amp: &ln_amp,
+            phase: &phase,
+            decay: &decay,
+            frequency: &frequency,
+            dsigma: &dsigma,
+            sweep: &sweep,
+            valid: &valid,
+        };
+        let rows = Rows {
+            amplitude: &mut out.amplitude,
+            frequency: &mut out.frequency,
+            phase: &mut out.phase,
+            d_amplitude: &mut out.d_amplitude,
+            d2_amplitude: &mut out.d2_amplitude,
+            d_frequency: &mut out.d_frequency,
+            valid: &mut out.valid,
+        };
+        grid_series.fill_all(rows, FILL_CHUNK);
+        out
+    }
+}
+
+/// Samples filled by one task of the completion's per-sample loop (about; whole segments).
+const FILL_CHUNK: usize = 65_536;
+
+/// The track's per-sample outputs over one stretch of samples.
+struct Rows<'a> {
+    amplitude: &'a mut [f64],
+    frequency: &'a mut [f64],
+    phase: &'a mut [f64],
+    d_amplitude: &'a mut [f64],
+    d2_amplitude: &'a mut [f64],
+    d_frequency: &'a mut [f64],
+    valid: &'a mut [bool],
+}
+
+impl<'a> Rows<'a> {
+    /// The first `k` samples and the rest.
+    fn split_at(self, k: usize) -> (Rows<'a>, Rows<'a>) {
+        let (a0, a1) = self.amplitude.split_at_mut(k);
+        let (f0, f1) = self.frequency.split_at_mut(k);
+        let (p0, p1) = self.phase.split_at_mut(k);
+        let (d0, d1) = self.d_amplitude.split_at_mut(k);
+        let (e0, e1) = self.d2_amplitude.split_at_mut(k);
+        let (g0, g1) = self.d_frequency.split_at_mut(k);
+        let (v0, v1) = self.valid.split_at_mut(k);
+        (
+            Rows {
+                amplitude: a0,
+                frequency: f0,
+                phase: p0,
+                d_amplitude: d0,
+                d2_amplitude: e0,
+                d_frequency: g0,
+                valid: v0,
+            },
+            Rows {
+                amplitude: a1,
+                frequency: f1,
+                phase: p1,
+                d_amplitude: d1,
+                d2_amplitude: e1,
+                d_frequency: g1,
+                valid: v1,
+            },
+        )
+    }
+}
+
+/// The skeleton's series on the grid, from which every sample is interpolated.
+struct GridSeries<'a> {
+    grid: &'a [GridPoint],
+    fs: f64,
+    ln_amp: &'a [f64],
+    phase: &'a [f64],
+    decay: &'a [f64],
+    frequency: &'a [f64],
+    dsigma: &'a [f64],
+    sweep: &'a [f64],
+    valid: &'a [bool],
+}
+
+impl GridSeries<'_> {
+    /// Fills every sample from the first grid point's on, in tasks of whole segments of
+    /// about `chunk` samples run in parallel (a long record's loop was the completion's
+    /// whole serial time). Each sample depends on its own segment alone, so the result is
+    /// the same to the last bit whatever the chunk.
+    fn fill_all(&self, rows: Rows<'_>, chunk: usize) {
+        let grid = self.grid;
+        let Some(first) = grid.first() else {
+            return;
+        };
+        let mut tasks = Vec::new();
+        let mut base = first.sample;
+        let mut rows = rows.split_at(base).1;
+        let mut g0 = 0;
+        while g0 < grid.len() {
+            let mut g1 = g0 + 1;
+            while g1 < grid.len() && grid[g1].sample - grid[g0].sample < chunk {
+                g1 += 1;
+            }
+            // Segments g0..g1 hold the samples up to the next task's first point (the
+            // last segment its own point only).
+            let end = grid
+                .get(g1)
+                .map_or(grid[grid.len() - 1].sample + 1, |p| p.sample);
+            let (head, tail) = rows.split_at(end - base);
+            tasks.push((g0..g1, head));
+            rows = tail;
+            base = end;
+            g0 = g1;
+        }
+        tasks
+            .into_par_iter()
+            .for_each(|(range, rows)| self.fill(range, rows));
+    }
+
+    /// Fills the samples of segments `range` (from each grid point to the next), `rows`
+    /// starting at the first one's sample: ln A, f, σ, β, σ′ linear between grid points
+    /// (they vary over σ_t, the grid is σ_t/8), the phase cubic (Hermite, with 2πf as its
+    /// slope at both ends).
+    fn fill(&self, range: std::ops::Range<usize>, rows: Rows<'_>) {
+        let GridSeries {
+            grid,
+            fs,
+            ln_amp,
+            phase,
+            decay,
+            frequency,
+            dsigma,
+            sweep,
+            valid,
+        } = *self;
+        let g_count = grid.len();
+        let base = grid[range.start].sample;
+        for g in range {
             let a = grid[g].sample;
             let b = grid.get(g + 1).map_or(a, |p| p.sample);
             let gb = (g + 1).min(g_count - 1);
@@ -160,10 +298,10 @@ impl WaveletPrep {
             let last = if g + 1 == g_count { a } else { b - 1 };
             // Each series' value at g and its rise to gb, for v[g] + u (v[gb] − v[g]).
             let ends = |v: &[f64]| (v[g], v[gb] - v[g]);
-            let (sig0, sig_d) = ends(&decay);
-            let (f0, f_d) = ends(&frequency);
-            let (ds0, ds_d) = ends(&dsigma);
-            let (b0, b_d) = ends(&sweep);
+            let (sig0, sig_d) = ends(decay);
+            let (f0, f_d) = ends(frequency);
+            let (ds0, ds_d) = ends(dsigma);
+            let (b0, b_d) = ends(sweep);
             let (p0, p1) = (phase[g], phase[gb]);
             let w0 = 2.0 * PI * frequency[g] * dt;
             let w1 = 2.0 * PI * frequency[gb] * dt;
@@ -174,15 +312,15 @@ impl WaveletPrep {
             let ratio = ((ln_amp[gb] - ln_amp[g]) / span).exp();
             let mut next_amp = ln_amp[g].exp();
             // The segment's samples as slices: no bounds check per sample.
-            let r = a..last + 1;
-            let samples = out.amplitude[r.clone()]
+            let r = a - base..last + 1 - base;
+            let samples = rows.amplitude[r.clone()]
                 .iter_mut()
-                .zip(&mut out.frequency[r.clone()])
-                .zip(&mut out.phase[r.clone()])
-                .zip(&mut out.d_amplitude[r.clone()])
-                .zip(&mut out.d2_amplitude[r.clone()])
-                .zip(&mut out.d_frequency[r.clone()])
-                .zip(&mut out.valid[r]);
+                .zip(&mut rows.frequency[r.clone()])
+                .zip(&mut rows.phase[r.clone()])
+                .zip(&mut rows.d_amplitude[r.clone()])
+                .zip(&mut rows.d2_amplitude[r.clone()])
+                .zip(&mut rows.d_frequency[r.clone()])
+                .zip(&mut rows.valid[r]);
             for (k, ((((((o_amp, o_f), o_ph), o_da), o_d2a), o_df), o_valid)) in samples.enumerate()
             {
                 let u = k as f64 / span;
@@ -209,7 +347,6 @@ impl WaveletPrep {
                 *o_valid = both;
             }
         }
-        out
     }
 }
 
@@ -313,6 +450,73 @@ fn smooth_low_snr(
 mod tests {
     use super::*;
     use crate::filter::local_slope;
+
+    /// Every output of one fill of `n` samples by tasks of about `chunk` samples.
+    fn filled(series: &GridSeries<'_>, n: usize, chunk: usize) -> Vec<Vec<u64>> {
+        let mut v = vec![vec![0.0; n]; 6];
+        let mut valid = vec![false; n];
+        let [a, f, p, d, e, g] = &mut v[..] else {
+            unreachable!()
+        };
+        let rows = Rows {
+            amplitude: a,
+            frequency: f,
+            phase: p,
+            d_amplitude: d,
+            d2_amplitude: e,
+            d_frequency: g,
+            valid: &mut valid,
+        };
+        series.fill_all(rows, chunk);
+        let mut out: Vec<Vec<u64>> = v
+            .iter()
+            .map(|s| s.iter().map(|x| x.to_bits()).collect())
+            .collect();
+        out.push(valid.iter().map(|&b| u64::from(b)).collect());
+        out
+    }
+
+    #[test]
+    fn samples_filled_in_parallel_tasks_equal_one_task_to_the_last_bit() {
+        // An uneven grid starting past sample 0, some points invalid or without amplitude.
+        let n = 5000;
+        let mut grid = Vec::new();
+        let mut i = 3;
+        while i < n {
+            grid.push(GridPoint {
+                sample: i,
+                centre: 0,
+            });
+            i += 1 + (i * 13 % 29);
+        }
+        let g = grid.len();
+        let series = |k: f64| -> Vec<f64> { (0..g).map(|j| (k * j as f64).sin() + 2.0).collect() };
+        let mut ln_amp = series(0.3);
+        ln_amp[5] = f64::NEG_INFINITY;
+        let valid: Vec<bool> = (0..g).map(|j| j % 7 != 3).collect();
+        let (phase, decay, frequency) = (series(0.11), series(0.7), series(0.05));
+        let (dsigma, sweep) = (series(1.3), series(0.9));
+        let grid_series = GridSeries {
+            grid: &grid,
+            fs: 100.0,
+            ln_amp: &ln_amp,
+            phase: &phase,
+            decay: &decay,
+            frequency: &frequency,
+            dsigma: &dsigma,
+            sweep: &sweep,
+            valid: &valid,
+        };
+        let whole = filled(&grid_series, n, usize::MAX);
+        // Samples before the grid are left alone; the last point fills its own sample.
+        assert_eq!(whole[0][..3], [0; 3]);
+        let last = grid[g - 1].sample;
+        assert_ne!(whole[0][last], 0);
+        assert!(whole[0][last + 1..].iter().all(|&b| b == 0));
+        for chunk in [1, 2, 17, 100, 999] {
+            assert_eq!(filled(&grid_series, n, chunk), whole, "chunks of {chunk}");
+        }
+    }
 
     #[test]
     fn coarse_slopes_are_local_slope_of_each_series_to_the_last_bit() {

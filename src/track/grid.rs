@@ -72,7 +72,16 @@ impl WaveletPrep {
     pub fn grid(&self, path: &[usize]) -> Vec<GridPoint> {
         let wl = self.opt.wavelet;
         let (n, fs, s_count) = (self.n, self.fs, self.freqs.len());
-        let mut grid = Vec::new();
+        // Each scale's spacing once: per point it had been most of a long record's grid.
+        let spacing: Vec<usize> = self
+            .freqs
+            .iter()
+            .map(|&f| {
+                let st = wl.time_sigma(wl.scale_for(f)) * fs;
+                ((st / GRID_DIVISION).floor() as usize).max(1)
+            })
+            .collect();
+        let mut grid = Vec::with_capacity(n / spacing[s_count - 1] + 2);
         let mut i = 0usize;
         while i < n {
             let k = self.ridge_at(path, i);
@@ -80,8 +89,7 @@ impl WaveletPrep {
                 sample: i,
                 centre: k.clamp(1, s_count - 2),
             });
-            let st = wl.time_sigma(wl.scale_for(self.freqs[k])) * fs;
-            i += ((st / GRID_DIVISION).floor() as usize).max(1);
+            i += spacing[k];
         }
         if grid.last().expect("n ≥ 1").sample != n - 1 {
             let k = self.ridge_at(path, n - 1);
