@@ -11,7 +11,8 @@
 #   - `bench` on N simulated runs (30 000 samples) at 128 scales, traced
 #     (SKELID_GPU_TRACE=1: the dispatcher's host spans and each compute pass's device
 #     time), with the end-to-end run per backend;
-#   - `bench` at 512 scales; one 2^20-sample log sweep at 256 scales;
+#   - `bench` at 512 scales; one 2^20-sample log sweep at 256 scales (traced: where its
+#     host and device time goes);
 #   - `skelid run` end to end, both methods, on each backend (traced on the GPU).
 set -u
 N=${N:-1000}; OUT=${OUT:-/tmp/skelid-measure}; mkdir -p "$OUT"
@@ -43,7 +44,7 @@ echo "== bench, 512 scales"
 timeout 100 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 512 --no-end-to-end --out "$OUT/bench-512.json" 2>&1 | quiet
 if [ -f "$W/long.h5" ]; then
   echo "== one 2^20-sample signal, 256 scales"
-  timeout 60 "$B" bench "$W/long.h5" --backend cpu,gpu --repeat 5 --scales 256 --no-end-to-end --out "$OUT/bench-long.json" 2>&1 | quiet
+  SKELID_GPU_TRACE=1 timeout 60 "$B" bench "$W/long.h5" --backend cpu,gpu --repeat 5 --scales 256 --no-end-to-end --out "$OUT/bench-long.json" 2>&1 | quiet
 fi
 echo "== skelid run, both methods"
 for cfg in cpu gpu; do
