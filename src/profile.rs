@@ -76,6 +76,8 @@ static GPU_BATCHES: AtomicU64 = AtomicU64::new(0);
 static OVERLAPPED: AtomicU64 = AtomicU64::new(0);
 static DISPATCHER_NANOS: AtomicU64 = AtomicU64::new(0);
 static DISPATCHER_WAIT_NANOS: AtomicU64 = AtomicU64::new(0);
+static HOST_PREPARE_NANOS: AtomicU64 = AtomicU64::new(0);
+static HOST_COMPLETE_NANOS: AtomicU64 = AtomicU64::new(0);
 
 /// Adds `d` to `stage`.
 pub fn add(stage: Stage, d: Duration) {
@@ -112,6 +114,17 @@ pub fn thread_cpu() -> Duration {
     } else {
         Duration::ZERO
     }
+}
+
+/// The CPU's own share of a GPU batch of tracks: wall time spent preparing the signals
+/// (`complete` false) or completing the tracks (`complete` true), every core at once.
+pub fn host_share(complete: bool, d: Duration) {
+    let counter = if complete {
+        &HOST_COMPLETE_NANOS
+    } else {
+        &HOST_PREPARE_NANOS
+    };
+    counter.fetch_add(d.as_nanos() as u64, Ordering::Relaxed);
 }
 
 /// Counts one queue submission to the GPU.
@@ -204,6 +217,12 @@ pub struct Traffic {
     /// Seconds the dispatcher thread was ready to run but waited for a core (the CPU
     /// stages of other signals had every core), during its serial host work.
     pub dispatcher_core_wait_s: f64,
+    /// Wall seconds the caller of a GPU batch of tracks spent preparing its signals on
+    /// every core (checks, band, spectrum, plans) before handing them over.
+    pub host_prepare_s: f64,
+    /// Wall seconds it spent completing the tracks on every core (noise floor, validity,
+    /// smoothing, every sample from the skeleton) once the device had answered.
+    pub host_complete_s: f64,
 }
 
 impl Traffic {
@@ -242,6 +261,8 @@ pub fn snapshot() -> Profile {
             overlapped: OVERLAPPED.load(Ordering::Relaxed),
             dispatcher_cpu_s: DISPATCHER_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
             dispatcher_core_wait_s: DISPATCHER_WAIT_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
+            host_prepare_s: HOST_PREPARE_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
+            host_complete_s: HOST_COMPLETE_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
         },
     }
 }
@@ -261,6 +282,8 @@ pub fn reset() {
         &OVERLAPPED,
         &DISPATCHER_NANOS,
         &DISPATCHER_WAIT_NANOS,
+        &HOST_PREPARE_NANOS,
+        &HOST_COMPLETE_NANOS,
     ] {
         c.store(0, Ordering::Relaxed);
     }

@@ -947,6 +947,26 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
     let samples = v["samples"].as_f64().unwrap();
     assert!(t["bytes_down"].as_f64().unwrap() <= 16.0 * samples, "{t}");
     assert!(t["dispatcher_core_wait_s"].as_f64().unwrap() >= 0.0, "{t}");
+    // The CPU's share of the GPU's tracks: measured, and part of its repetition (the calling
+    // thread prepares, then completes, one after the other); none counted on the CPU backend.
+    let (prepare, complete) = (
+        t["host_prepare_s"].as_f64().unwrap(),
+        t["host_complete_s"].as_f64().unwrap(),
+    );
+    let gpu_seconds: f64 = b[1]["seconds"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s.as_f64().unwrap())
+        .sum();
+    assert!(prepare > 0.0 && complete > 0.0, "{t}");
+    assert!(prepare + complete <= gpu_seconds, "{t} {gpu_seconds}");
+    assert_eq!(b[0]["traffic"]["host_prepare_s"], 0.0);
+    assert!(
+        text.contains("gpu backend's CPU share a repetition")
+            && text.contains("cannot beat the CPU backend by more than"),
+        "{text}"
+    );
     // The same agreement from the f32 path, used where an adapter has no SHADER_F64; a
     // group size that is not a number is said to be ignored.
     let json32 = d.path().join("bench32.json");

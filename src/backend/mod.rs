@@ -310,6 +310,7 @@ impl Backend {
         while at < signals.len() {
             let group = &signals[at..(at + size).min(signals.len())];
             at += group.len();
+            let t0 = std::time::Instant::now();
             let preps: Vec<Result<WaveletPrep, TrackError>> =
                 crate::profile::span("host.prepare", || {
                     group
@@ -317,6 +318,9 @@ impl Backend {
                         .map(|s| WaveletPrep::new(s.samples, s.sample_rate, opt, s.guide))
                         .collect()
                 });
+            if self.gpu.is_some() {
+                crate::profile::host_share(false, t0.elapsed());
+            }
             let mut ok = Vec::new();
             let mut slots: Vec<Option<Result<Track, TrackError>>> = Vec::new();
             for p in preps {
@@ -363,13 +367,17 @@ impl Backend {
     fn finish_group(&self, group: Group) -> Vec<Result<Track, TrackError>> {
         use rayon::prelude::*;
         let passed = crate::profile::span("host.receive", || self.receive(group.sent));
-        let mut tracks = crate::profile::span("host.complete", || {
+        let t0 = std::time::Instant::now();
+        let tracks = crate::profile::span("host.complete", || {
             passed
                 .into_par_iter()
                 .map(|p| self.finish(p.prep, p.pass))
                 .collect::<Vec<Track>>()
-        })
-        .into_iter();
+        });
+        if self.gpu.is_some() {
+            crate::profile::host_share(true, t0.elapsed());
+        }
+        let mut tracks = tracks.into_iter();
         group
             .slots
             .into_iter()

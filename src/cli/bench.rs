@@ -118,6 +118,7 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
             );
         }
     }
+    print_host_share(&result);
     for (_, b) in &opened {
         report_fallbacks(b);
     }
@@ -165,6 +166,39 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
 }
 
 /// The end-to-end table: wall time, then each stage's CPU seconds and share per backend.
+/// The GPU backend's floor: what its tracks cost the CPU a repetition, which the device
+/// and the dispatcher cannot hide (the calling thread prepares, then completes, on every
+/// core), and the most the GPU backend can then gain over the CPU backend.
+fn print_host_share(result: &skelid::bench::backends::BackendBench) {
+    let cpu = result.backends.iter().find(|t| t.backend == "cpu");
+    for t in result.backends.iter().filter(|t| t.traffic.signals > 0) {
+        let reps = result.repeat.max(1) as f64;
+        let (prepare, complete) = (
+            t.traffic.host_prepare_s / reps,
+            t.traffic.host_complete_s / reps,
+        );
+        let floor = prepare + complete;
+        let ceiling = cpu
+            .filter(|_| floor > 0.0)
+            .map(|c| {
+                format!(
+                    "; the device and the dispatcher cannot hide these, so it cannot beat the \
+                     CPU backend by more than {:.1}x here",
+                    c.median_s / floor
+                )
+            })
+            .unwrap_or_default();
+        println!(
+            "{} backend's CPU share a repetition (wall time, every core): preparing the \
+             signals {:.3} s, completing the tracks {:.3} s ({:.0} % of its median){ceiling}",
+            t.backend,
+            prepare,
+            complete,
+            100.0 * floor / t.median_s.max(1e-12)
+        );
+    }
+}
+
 pub(crate) fn print_stages(runs: &[skelid::bench::backends::EndToEnd]) {
     let Some(first) = runs.first() else { return };
     println!("\nend to end (skelid run, both methods, read and write included):");
