@@ -13,6 +13,9 @@
 #     time), with the end-to-end run per backend;
 #   - `bench` at 512 scales; one 2^20-sample log sweep at 256 scales (traced: where its
 #     host and device time goes);
+#   - an experiment: the GPU `bench` with glibc's malloc keeping freed memory (no trims, no
+#     unmaps: do they cost a 16-core machine its shared address space's locks and TLB
+#     flushes?) against the default, back to back;
 #   - `skelid run` end to end, both methods, on each backend (traced on the GPU).
 set -u
 N=${N:-1000}; OUT=${OUT:-/tmp/skelid-measure}; mkdir -p "$OUT"
@@ -37,9 +40,15 @@ x = np.sin(2*np.pi*f0*(np.exp(k*t)-1)/k) + 0.01*np.random.default_rng(1).standar
 with h5py.File(sys.argv[1], 'w') as h:
     g = h.create_group('sig'); g.attrs['sample_rate'] = fs; g.attrs['kind'] = 'free'; g['output'] = x
 PY
-quiet() { grep -vE "repetition|warm-up|  cpu: end|  gpu: end"; }
+quiet() { grep -vE "^  (cpu|gpu): (repetition|warm-up|end)"; }
 echo "== bench, 128 scales (traced), with the end-to-end run"
 SKELID_GPU_TRACE=1 timeout 150 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --out "$OUT/bench-128.json" 2>&1 | quiet
+echo "== experiment: GPU bench, 128 scales, glibc's malloc returning freed memory (default) or keeping it"
+for t in "" "glibc.malloc.mmap_threshold=1073741824:glibc.malloc.trim_threshold=8589934592"; do
+  echo "GLIBC_TUNABLES=${t:-(unset)}"
+  GLIBC_TUNABLES=$t timeout 60 "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 --no-end-to-end \
+    --out "$OUT/bench-128-malloc${t:+-keep}.json" 2>&1 | grep -E "^ +gpu |CPU share"
+done
 echo "== bench, 512 scales"
 timeout 100 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 512 --no-end-to-end --out "$OUT/bench-512.json" 2>&1 | quiet
 if [ -f "$W/long.h5" ]; then
