@@ -35,5 +35,34 @@ fn transform(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, transform);
+/// The CPU's own share of a GPU track, which no device hides: preparing a signal (band,
+/// spectrum, plans) and completing its track from the skeleton (noise floor, validity,
+/// smoothing, every sample), for one 30 000-sample record of the throughput campaign's size.
+fn host_share(c: &mut Criterion) {
+    use skelid::track::{Device, WaveletPrep};
+    let mut group = c.benchmark_group("host_share");
+    group.sample_size(20);
+    let x = bench_signal(30_000);
+    let opt = WaveletOptions {
+        scales: 128,
+        ..WaveletOptions::default()
+    };
+    group.bench_function("prepare", |b| {
+        b.iter(|| WaveletPrep::new(&x, BENCH_FS, &opt, None).unwrap())
+    });
+    let prep = WaveletPrep::new(&x, BENCH_FS, &opt, None).unwrap();
+    let ridge = prep.coarse_ridge();
+    let grid = prep.grid(&ridge.path);
+    let est = prep.estimate_grid(&grid);
+    group.bench_function("complete", |b| {
+        b.iter_batched(
+            || (prep.clone(), ridge.clone()),
+            |(p, r)| p.complete(r, &grid, &est, Device::Gpu),
+            criterion::BatchSize::LargeInput,
+        )
+    });
+    group.finish();
+}
+
+criterion_group!(benches, transform, host_share);
 criterion_main!(benches);

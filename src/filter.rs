@@ -102,9 +102,68 @@ pub fn window_line(
     })
 }
 
+/// [`window_line`] unweighted, of two series over the same window at once: the window's
+/// own sums (count, mean time, spread) are taken once, each series' the same way as
+/// there, so that both lines are [`window_line`]'s to the last bit.
+pub fn window_lines(
+    t: &[f64],
+    ys: [&[f64]; 2],
+    lo: usize,
+    hi: usize,
+    t0: f64,
+) -> [Option<(f64, f64)>; 2] {
+    if hi < lo + 3 {
+        return [None, None];
+    }
+    // Unweighted, window_line multiplies by a weight of 1.0, which is exact, and a sum of
+    // ones is the count. Each sum below is its own chain of additions in window_line's
+    // order; the loops only run the independent chains side by side.
+    let m = (hi - lo) as f64;
+    let (t, ya, yb) = (&t[lo..hi], &ys[0][lo..hi], &ys[1][lo..hi]);
+    let (mut st, mut sa, mut sb) = (-0.0, -0.0, -0.0);
+    for ((&ti, &ai), &bi) in t.iter().zip(ya).zip(yb) {
+        st += ti;
+        sa += ai;
+        sb += bi;
+    }
+    let (tm, am, bm) = (st / m, sa / m, sb / m);
+    let (mut sxx, mut sxa, mut sxb) = (0.0, 0.0, 0.0);
+    for ((&ti, &ai), &bi) in t.iter().zip(ya).zip(yb) {
+        let dt = ti - tm;
+        sxx += dt * dt;
+        sxa += dt * (ai - am);
+        sxb += dt * (bi - bm);
+    }
+    [(am, sxa), (bm, sxb)].map(|(ym, sxy)| {
+        (sxx > 0.0).then(|| {
+            let slope = sxy / sxx;
+            (ym + slope * (t0 - tm), slope)
+        })
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn two_lines_at_once_are_window_lines_to_the_last_bit() {
+        let t: Vec<f64> = (0..300)
+            .map(|i| 0.37 * i as f64 + 0.01 * ((i * 7 % 5) as f64))
+            .collect();
+        let a: Vec<f64> = t.iter().map(|&x| (0.3 * x).sin() * 1e3 + x).collect();
+        let b: Vec<f64> = t.iter().map(|&x| (-0.01 * x).exp() - 0.5).collect();
+        for (lo, hi) in [(0, 0), (0, 2), (5, 8), (0, 300), (17, 61), (100, 299)] {
+            let t0 = t[lo.min(299)] + 0.3;
+            let both = window_lines(&t, [&a, &b], lo, hi, t0);
+            let bits = |l: Option<(f64, f64)>| l.map(|(v, s)| (v.to_bits(), s.to_bits()));
+            assert_eq!(bits(both[0]), bits(window_line(&t, &a, None, lo, hi, t0)));
+            assert_eq!(bits(both[1]), bits(window_line(&t, &b, None, lo, hi, t0)));
+        }
+        // A window with no spread in time has no line.
+        let flat = vec![2.0; 10];
+        assert_eq!(window_lines(&flat, [&a, &b], 0, 10, 2.0), [None, None]);
+    }
 
     #[test]
     fn lowpass_keeps_a_ramp_and_removes_a_fast_tone() {

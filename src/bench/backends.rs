@@ -180,6 +180,10 @@ pub fn compare(
         profile::reset();
         for r in 0..repeat {
             progress(&format!("{name}: repetition {}/{repeat}", r + 1));
+            // The last repetition's tracks are kept for the agreement; those of the one
+            // before are let go first, as a batch lets each track go once it is used: held
+            // during the next repetition, their gigabytes made it take fresh memory.
+            drop(std::mem::take(&mut tracks));
             let t0 = Instant::now();
             let out = backend.track_many(&refs, opt);
             seconds.push(t0.elapsed().as_secs_f64());

@@ -8,7 +8,7 @@ use std::f64::consts::PI;
 
 use rayon::prelude::*;
 
-use crate::filter::{local_line_weighted, window_line};
+use crate::filter::{local_line_weighted, window_lines};
 use crate::skeleton::{GridEstimate, GridPoint};
 
 use super::{unwrap_phase, CoarseRidge, Device, Method, Scalogram, Track, WaveletPrep};
@@ -98,6 +98,8 @@ impl WaveletPrep {
             }
         }
 
+        // |W| observed at each point, for the SNR (one exp a point, used twice).
+        let observed: Vec<f64> = est.iter().map(|e| e.observed_ln_amp.exp()).collect();
         let mut valid: Vec<bool> = (0..g_count)
             .map(|g| {
                 let e = &est[g];
@@ -111,14 +113,15 @@ impl WaveletPrep {
                 let in_band = frequency[g] - reach >= fmin && frequency[g] + reach <= fmax;
                 // A loose threshold first: the final one is applied after smoothing, so that
                 // noise which happens to lift a point over it does not select that point.
-                let audible = e.observed_ln_amp.exp() >= 0.5 * opt.min_snr * noise_w[e.best];
+                let audible = observed[g] >= 0.5 * opt.min_snr * noise_w[e.best];
                 e.peaked && fix_ok[g] && inside && in_band && audible && frequency[g] > 0.0
             })
             .collect();
         if opt.smooth_snr > 0.0 {
             let snr: Vec<f64> = est
                 .iter()
-                .map(|e| e.observed_ln_amp.exp() / noise_w[e.best])
+                .zip(&observed)
+                .map(|(e, o)| o / noise_w[e.best])
                 .collect();
             smooth_low_snr(
                 &t,
@@ -130,8 +133,10 @@ impl WaveletPrep {
                 opt.smooth_snr,
             );
         }
+        // A at each point, once: the final threshold and every segment's first sample.
+        let amp: Vec<f64> = ln_amp.iter().map(|v| v.exp()).collect();
         for g in 0..g_count {
-            valid[g] = valid[g] && ln_amp[g].exp() >= opt.min_snr * noise_w[est[g].best];
+            valid[g] = valid[g] && amp[g] >= opt.min_snr * noise_w[est[g].best];
         }
         unwrap_phase(&mut phase, &frequency, |g| t[g]);
         // A'' = A (σ² − σ'), σ' (above) by a local least-squares slope over ±σ_t of the grid.
@@ -155,6 +160,7 @@ impl WaveletPrep {
             grid,
             fs,
             ln_amp: &ln_amp,
+            amp: &amp,
             phase: &phase,
             decay: &decay,
             frequency: &frequency,
@@ -228,6 +234,8 @@ struct GridSeries<'a> {
     grid: &'a [GridPoint],
     fs: f64,
     ln_amp: &'a [f64],
+    /// exp(ln A) at each point.
+    amp: &'a [f64],
     phase: &'a [f64],
     decay: &'a [f64],
     frequency: &'a [f64],
@@ -280,6 +288,7 @@ impl GridSeries<'_> {
             grid,
             fs,
             ln_amp,
+            amp: amp_at,
             phase,
             decay,
             frequency,
@@ -310,7 +319,7 @@ impl GridSeries<'_> {
             // per sample (the product drifts by ~1e-14 over a segment).
             let geometric = ln_amp[g].is_finite() && ln_amp[gb].is_finite();
             let ratio = ((ln_amp[gb] - ln_amp[g]) / span).exp();
-            let mut next_amp = ln_amp[g].exp();
+            let mut next_amp = amp_at[g];
             // The segment's samples as slices: no bounds check per sample.
             let r = a - base..last + 1 - base;
             let samples = rows.amplitude[r.clone()]
@@ -329,9 +338,9 @@ impl GridSeries<'_> {
                     next_amp *= ratio;
                     amp
                 } else if u < 0.5 {
-                    ln_amp[g].exp()
+                    amp_at[g]
                 } else {
-                    ln_amp[gb].exp()
+                    amp_at[gb]
                 };
                 let sig = sig0 + u * sig_d;
                 let (u2, u3) = (u * u, u * u * u);
@@ -386,8 +395,8 @@ fn coarse_slopes(t: &[f64], ys: [&[f64]; 2], half: &[f64]) -> [Vec<f64>; 2] {
                         hi += 1;
                     }
                 }
-                let slope = |y: &[f64]| window_line(t, y, None, lo, hi, t0).map_or(0.0, |l| l.1);
-                *o = (slope(ys[0]), slope(ys[1]));
+                let [a, b] = window_lines(t, ys, lo, hi, t0).map(|l| l.map_or(0.0, |l| l.1));
+                *o = (a, b);
             }
         });
     [
@@ -496,10 +505,12 @@ mod tests {
         let valid: Vec<bool> = (0..g).map(|j| j % 7 != 3).collect();
         let (phase, decay, frequency) = (series(0.11), series(0.7), series(0.05));
         let (dsigma, sweep) = (series(1.3), series(0.9));
+        let amp: Vec<f64> = ln_amp.iter().map(|v| v.exp()).collect();
         let grid_series = GridSeries {
             grid: &grid,
             fs: 100.0,
             ln_amp: &ln_amp,
+            amp: &amp,
             phase: &phase,
             decay: &decay,
             frequency: &frequency,

@@ -42,6 +42,7 @@ pub fn track_wavelet(
 /// plans, and the coarse grid. The first pass (all scales, then the ridge) is what a
 /// backend evaluates — [`coarse_ridge`](Self::coarse_ridge) on the CPU, `gpu::ridge` on
 /// a GPU for many runs at once; [`finish`](Self::finish) does the rest on the CPU.
+#[derive(Clone)]
 pub struct WaveletPrep {
     pub(super) n: usize,
     pub(super) fs: f64,
