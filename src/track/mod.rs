@@ -296,7 +296,17 @@ fn unwrap_phase(phase: &mut [f64], freq: &[f64], time: impl Fn(usize) -> f64) {
 /// both 1e-4 of its peak and ten times the noise floor, widened by 25 %, no lower than the
 /// frequency whose cone of influence leaves half the record, no higher than 0.45 fs.
 pub fn default_band(x: &[f64], fs: f64, wavelet: &Morlet) -> Result<(f64, f64), TrackError> {
-    let spec = Spectrum::new(x, fs, 0);
+    band_with_mean(x, crate::transform::mean_of(x), fs, wavelet)
+}
+
+/// [`default_band`] of a record whose mean is already taken.
+pub(crate) fn band_with_mean(
+    x: &[f64],
+    mean: f64,
+    fs: f64,
+    wavelet: &Morlet,
+) -> Result<(f64, f64), TrackError> {
+    let spec = Spectrum::with_mean(x, mean, fs, 0);
     let p: Vec<f64> = spec.bins.iter().map(|c| c.norm_sqr()).collect();
     let w = (p.len() / 1024).max(1);
     let mut smooth = vec![0.0; p.len()];

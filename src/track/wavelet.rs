@@ -10,7 +10,7 @@ use crate::transform::band::{interpolate, ScalePlan};
 use crate::transform::{log_frequencies, Morlet, Spectrum};
 
 use super::{
-    check_signal, default_band, Device, RidgeSearch, Track, TrackError, WaveletOptions,
+    band_with_mean, check_signal, Device, RidgeSearch, Track, TrackError, WaveletOptions,
     MIN_NOISE_STEPS, PASS1_OVERSAMPLE, PASS1_TOLERANCE,
 };
 
@@ -159,10 +159,11 @@ impl WaveletPrep {
             }
         }
         let n = x.len();
+        let mean = crate::transform::mean_of(x);
         let (fmin, fmax) = match (opt.fmin, opt.fmax) {
             (Some(a), Some(b)) => (a, b),
             (a, b) => {
-                let (da, db) = default_band(x, fs, &wl)?;
+                let (da, db) = band_with_mean(x, mean, fs, &wl)?;
                 (a.unwrap_or(da), b.unwrap_or(db))
             }
         };
@@ -175,7 +176,7 @@ impl WaveletPrep {
         let freqs = log_frequencies(fmin, fmax, opt.scales);
         let s_count = freqs.len();
         let pad = (wl.support(wl.scale_for(fmin), 1e-8) * fs).ceil() as usize;
-        let spec = Spectrum::new(x, fs, pad.min(4 * n));
+        let spec = Spectrum::with_mean(x, mean, fs, pad.min(4 * n));
         let plans: Vec<ScalePlan> = freqs
             .iter()
             .map(|&f| {
