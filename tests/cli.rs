@@ -1788,10 +1788,11 @@ fn gpu_batches_are_sized_from_the_adapters_memory() {
             t["batches"].as_u64().unwrap(),
         )
     };
-    // The first group `bench` hands over is 256 signals (it measures their footprint), the
-    // rest one group sized to the submission's memory: 256 + 344, the second beyond the
-    // 256 a batch was capped at before (or one batch of 600, when the second group arrives
-    // while the dispatcher still gathers the first: a matter of timing).
+    // `bench` hands over equal groups sized to one submission (two of 300 here), and the
+    // dispatcher takes each handover whole, even when the device finishes the batch before
+    // while the group is on its way: two batches, or one of 600 when the second group
+    // arrives while the first is still gathered. Each is beyond the 256 a batch was capped
+    // at before. (A group cut in two by that moment had once made three.)
     let (signals, batches) = bench(None);
     assert_eq!(signals, 600);
     assert!((1..=2).contains(&batches), "{batches}");

@@ -85,7 +85,8 @@ pub(super) struct GpuService {
     pub(super) submission_budget: u64,
     /// Submissions made and signals they carried (successful ones).
     stats: Arc<Stats>,
-    queue: Mutex<Option<Sender<Request>>>,
+    /// Each message is one handover (a `send`'s signals), taken into a batch whole.
+    queue: Mutex<Option<Sender<Vec<Request>>>>,
     thread: Option<std::thread::JoinHandle<()>>,
 }
 
@@ -106,7 +107,7 @@ impl GpuService {
         let fail_after = std::env::var(FAIL_AFTER_ENV)
             .ok()
             .and_then(|v| v.parse::<usize>().ok());
-        let (tx, rx) = mpsc::channel::<Request>();
+        let (tx, rx) = mpsc::channel::<Vec<Request>>();
         let (ready_tx, ready_rx) = mpsc::channel();
         let stats = Arc::new(Stats::default());
         let counted = stats.clone();
@@ -174,18 +175,28 @@ impl GpuService {
     ) -> (Vec<(usize, WaveletPrep, GpuError)>, Receiver<Answer>) {
         let (reply, answers) = mpsc::channel();
         let mut unsent = Vec::new();
-        let queue = self.queue.lock().unwrap_or_else(|p| p.into_inner());
-        for (tag, prep) in preps.into_iter().enumerate() {
-            let request = Request {
+        if preps.is_empty() {
+            return (unsent, answers);
+        }
+        let requests: Vec<Request> = preps
+            .into_iter()
+            .enumerate()
+            .map(|(tag, prep)| Request {
                 tag,
                 prep,
                 reply: reply.clone(),
-            };
-            let sent = match queue.as_ref() {
-                Some(q) => q.send(request),
-                None => Err(mpsc::SendError(request)),
-            };
-            if let Err(mpsc::SendError(r)) = sent {
+            })
+            .collect();
+        // One message: the dispatcher, which may close a batch at any moment (the device
+        // has finished the one before), never takes part of a group and leaves the rest
+        // for a batch of its own.
+        let queue = self.queue.lock().unwrap_or_else(|p| p.into_inner());
+        let sent = match queue.as_ref() {
+            Some(q) => q.send(requests),
+            None => Err(mpsc::SendError(requests)),
+        };
+        if let Err(mpsc::SendError(rs)) = sent {
+            for r in rs {
                 let gone = GpuError::Lost("the GPU thread has ended".into());
                 unsent.push((r.tag, r.prep, gone));
             }
@@ -209,7 +220,7 @@ struct Stages {
 fn dispatch(
     gpu: &Gpu,
     stages: &Stages,
-    rx: Receiver<Request>,
+    rx: Receiver<Vec<Request>>,
     fail_after: Option<usize>,
     stats: &Stats,
 ) {
@@ -475,15 +486,16 @@ fn fail(parts: Vec<Vec<Request>>, e: GpuError, dead: &mut Option<String>) {
     }
 }
 
-/// The requests that arrive within `LINGER` of the first, until they fill `budget` bytes of
-/// device memory (one submission's, as [`batch_bytes`] counts it) or number [`MAX_BATCH`].
+/// The handovers that arrive within `LINGER` of the first, each taken whole, until they
+/// fill `budget` bytes of device memory (one submission's, as [`batch_bytes`] counts it;
+/// `split` divides what overshoots) or number [`MAX_BATCH`] requests.
 /// `oldest_done` says whether the oldest submission in flight has finished (false when
 /// there is none). Blocks for the first request only when nothing is in flight; else
 /// waits at most `LINGER` for it, and stops gathering, with what it has, as soon as
 /// `oldest_done` (looked at every [`READY_POLL`]). Also says whether the queue is still
 /// open.
 fn gather(
-    rx: &Receiver<Request>,
+    rx: &Receiver<Vec<Request>>,
     busy: bool,
     oldest_done: &dyn Fn() -> bool,
     budget: u64,
@@ -491,7 +503,7 @@ fn gather(
     use std::sync::mpsc::RecvTimeoutError;
     // Waits for a request until `deadline`, in slices of READY_POLL while work is in
     // flight: None when the time is up or the oldest submission has finished.
-    let next = |deadline: Instant| -> Result<Option<Request>, ()> {
+    let next = |deadline: Instant| -> Result<Option<Vec<Request>>, ()> {
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
             if left.is_zero() || oldest_done() {
@@ -516,14 +528,15 @@ fn gather(
             Err(_) => return (Vec::new(), false),
         }
     };
-    let mut bytes = batch_bytes(&first.prep);
-    let mut batch = vec![first];
+    let weigh = |h: &[Request]| h.iter().map(|r| batch_bytes(&r.prep)).sum::<u64>();
+    let mut bytes = weigh(&first);
+    let mut batch = first;
     let deadline = Instant::now() + LINGER;
     while batch.len() < MAX_BATCH && bytes < budget {
         match next(deadline) {
-            Ok(Some(r)) => {
-                bytes += batch_bytes(&r.prep);
-                batch.push(r)
+            Ok(Some(h)) => {
+                bytes += weigh(&h);
+                batch.extend(h)
             }
             Ok(None) => break,
             Err(()) => return (batch, false),
@@ -589,4 +602,51 @@ pub(crate) fn panic_message(p: &(dyn std::any::Any + Send)) -> String {
         .map(|s| s.to_string())
         .or_else(|| p.downcast_ref::<String>().cloned())
         .unwrap_or_else(|| "unknown panic".into())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::track::WaveletOptions;
+
+    /// `n` requests of one handover, answered on `reply`.
+    fn handover(n: usize, reply: &Sender<Answer>) -> Vec<Request> {
+        let x: Vec<f64> = (0..2000).map(|i| (0.3 * i as f64).sin()).collect();
+        let opt = WaveletOptions {
+            scales: 8,
+            ..Default::default()
+        };
+        (0..n)
+            .map(|tag| Request {
+                tag,
+                prep: WaveletPrep::new(&x, 100.0, &opt, None).unwrap(),
+                reply: reply.clone(),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_batch_takes_each_handover_whole() {
+        let (tx, rx) = mpsc::channel();
+        let (reply, _answers) = mpsc::channel();
+        tx.send(handover(3, &reply)).unwrap();
+        tx.send(handover(2, &reply)).unwrap();
+        // The device finishes the batch before just after the first request is taken:
+        // gathering stops there, with the whole of its handover and nothing of the next.
+        let polls = std::cell::Cell::new(0);
+        let done = || {
+            polls.set(polls.get() + 1);
+            polls.get() > 1
+        };
+        let (batch, open) = gather(&rx, true, &done, u64::MAX);
+        assert!(open);
+        assert_eq!(batch.iter().map(|r| r.tag).collect::<Vec<_>>(), [0, 1, 2]);
+        // The next handover is the next batch's, whole; a closed queue ends the gathering.
+        let (batch, open) = gather(&rx, false, &|| false, u64::MAX);
+        assert_eq!(batch.iter().map(|r| r.tag).collect::<Vec<_>>(), [0, 1]);
+        assert!(open);
+        drop(tx);
+        let (batch, open) = gather(&rx, false, &|| false, u64::MAX);
+        assert!(batch.is_empty() && !open);
+    }
 }
