@@ -187,11 +187,6 @@ pub fn mean_of(x: &[f64]) -> f64 {
     x.iter().sum::<f64>() / x.len().max(1) as f64
 }
 
-thread_local! {
-    /// Workspace of the forward real FFTs of [`Spectrum::with_mean`], one per thread.
-    static SCRATCH: std::cell::RefCell<Vec<Complex64>> = const { std::cell::RefCell::new(Vec::new()) };
-}
-
 impl Spectrum {
     /// FFT of `x` zero-padded by at least `pad` samples after its mean is removed.
     pub fn new(x: &[f64], sample_rate: f64, pad: usize) -> Spectrum {
@@ -208,13 +203,8 @@ impl Spectrum {
         buf.resize(padded_len, 0.0);
         let fft = real_plan(padded_len);
         let mut bins = fft.make_output_vec();
-        // The plan's workspace, kept by each thread: a fresh one was zeroed (and faulted
-        // in) for every record. Its contents are overwritten before they are read.
-        SCRATCH.with_borrow_mut(|scratch| {
-            scratch.resize(fft.get_scratch_len(), Complex64::new(0.0, 0.0));
-            fft.process_with_scratch(&mut buf, &mut bins, scratch)
-                .expect("buffer sizes come from the plan");
-        });
+        fft.process(&mut buf, &mut bins)
+            .expect("buffer sizes come from the plan");
         bins[0] = Complex64::new(0.0, 0.0);
         Spectrum {
             bins,
@@ -338,25 +328,6 @@ mod tests {
     /// whatever lengths were planned first. 18432 = 9·2^11: rustfft's own planner, asked
     /// for it after its divisors, builds it from them and rounds differently (most of its
     /// bins differ in the last bits), which made one run's gap differ between processes.
-    #[test]
-    fn a_spectrum_does_not_depend_on_the_threads_earlier_ones() {
-        // The thread's FFT workspace holds what earlier records left there.
-        let x: Vec<f64> = (0..5000).map(|i| (0.01 * i as f64).sin() + 0.3).collect();
-        let y: Vec<f64> = (0..7777).map(|i| (i as f64).cos() * 1e6).collect();
-        let fresh = std::thread::spawn({
-            let x = x.clone();
-            move || Spectrum::new(&x, 100.0, 300).bins
-        })
-        .join()
-        .unwrap();
-        let _ = Spectrum::new(&y, 100.0, 5000);
-        let after = Spectrum::with_mean(&x, mean_of(&x), 100.0, 300).bins;
-        let bits = |b: &[Complex64]| -> Vec<(u64, u64)> {
-            b.iter().map(|c| (c.re.to_bits(), c.im.to_bits())).collect()
-        };
-        assert_eq!(bits(&after), bits(&fresh));
-    }
-
     #[test]
     fn a_plan_rounds_the_same_whatever_was_planned_before() {
         let len = 18432;
