@@ -488,7 +488,8 @@ fn fail(parts: Vec<Vec<Request>>, e: GpuError, dead: &mut Option<String>) {
 
 /// The handovers that arrive within `LINGER` of the first, each taken whole, until they
 /// fill `budget` bytes of device memory (one submission's, as [`batch_bytes`] counts it;
-/// `split` divides what overshoots) or number [`MAX_BATCH`] requests.
+/// `split` divides what overshoots) or number [`MAX_BATCH`] requests (the last handover
+/// taken may carry it past either: the sender already holds its signals in memory).
 /// `oldest_done` says whether the oldest submission in flight has finished (false when
 /// there is none). Blocks for the first request only when nothing is in flight; else
 /// waits at most `LINGER` for it, and stops gathering, with what it has, as soon as
@@ -631,8 +632,8 @@ mod tests {
         let (reply, _answers) = mpsc::channel();
         tx.send(handover(3, &reply)).unwrap();
         tx.send(handover(2, &reply)).unwrap();
-        // The device finishes the batch before just after the first request is taken:
-        // gathering stops there, with the whole of its handover and nothing of the next.
+        // The device finishes the previous batch just after the first handover is taken:
+        // gathering stops there, with the whole of that handover and nothing of the next.
         let polls = std::cell::Cell::new(0);
         let done = || {
             polls.set(polls.get() + 1);
