@@ -307,8 +307,52 @@ pub fn tracing() -> bool {
     *ON.get_or_init(|| std::env::var_os("SKELID_GPU_TRACE").is_some_and(|v| v != "0"))
 }
 
-/// Count, wall and thread-CPU nanoseconds of each named span.
-type Spans = std::collections::BTreeMap<&'static str, (u64, u64, u64)>;
+/// Count, wall and thread-CPU nanoseconds of each named span, and its thread's events.
+type Spans = std::collections::BTreeMap<&'static str, (u64, u64, u64, Events)>;
+
+/// What the calling thread went through besides computing: page faults (minor: a fresh
+/// page; major: one read from disk), voluntary context switches (it slept: a lock, an
+/// I/O, a wait) and involuntary ones (preempted). A span whose wall time exceeds its CPU
+/// time says which of these the difference is.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Events {
+    /// Page faults, minor and major.
+    pub faults: u64,
+    /// Voluntary context switches.
+    pub slept: u64,
+    /// Involuntary context switches.
+    pub preempted: u64,
+}
+
+impl Events {
+    /// The calling thread's counts since it started (zero where `getrusage` fails).
+    pub fn now() -> Events {
+        // SAFETY: getrusage writes one rusage, which lives on this stack frame.
+        let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
+        if unsafe { libc::getrusage(libc::RUSAGE_THREAD, &mut ru) } != 0 {
+            return Events::default();
+        }
+        Events {
+            faults: (ru.ru_minflt + ru.ru_majflt) as u64,
+            slept: ru.ru_nvcsw as u64,
+            preempted: ru.ru_nivcsw as u64,
+        }
+    }
+
+    fn since(self, before: Events) -> Events {
+        Events {
+            faults: self.faults.saturating_sub(before.faults),
+            slept: self.slept.saturating_sub(before.slept),
+            preempted: self.preempted.saturating_sub(before.preempted),
+        }
+    }
+
+    fn add(&mut self, other: Events) {
+        self.faults += other.faults;
+        self.slept += other.slept;
+        self.preempted += other.preempted;
+    }
+}
 
 static SPANS: std::sync::Mutex<Spans> = std::sync::Mutex::new(std::collections::BTreeMap::new());
 
@@ -327,12 +371,18 @@ pub fn print_spans(title: &str) {
         return;
     }
     let spans = std::mem::take(&mut *SPANS.lock().unwrap_or_else(|p| p.into_inner()));
-    eprintln!("GPU trace, {title}: span, calls, wall ms, thread CPU ms");
-    for (name, (n, wall, cpu)) in spans {
+    eprintln!(
+        "GPU trace, {title}: span, calls, wall ms, thread CPU ms, page faults, \
+         sleeps, preemptions"
+    );
+    for (name, (n, wall, cpu, ev)) in spans {
         eprintln!(
-            "  {name:<24} {n:>6} {:>10.1} {:>10.1}",
+            "  {name:<24} {n:>6} {:>10.1} {:>10.1} {:>9} {:>7} {:>7}",
             wall as f64 / 1e6,
-            cpu as f64 / 1e6
+            cpu as f64 / 1e6,
+            ev.faults,
+            ev.slept,
+            ev.preempted
         );
     }
     let passes = std::mem::take(&mut *PASSES.lock().unwrap_or_else(|p| p.into_inner()));
@@ -347,7 +397,7 @@ pub fn print_spans(title: &str) {
 /// A span ([`span`]) that ends when dropped, for stretches of a function.
 pub struct SpanGuard {
     name: &'static str,
-    start: Option<(Instant, Duration)>,
+    start: Option<(Instant, Duration, Events)>,
 }
 
 impl SpanGuard {
@@ -355,20 +405,22 @@ impl SpanGuard {
     pub fn new(name: &'static str) -> SpanGuard {
         SpanGuard {
             name,
-            start: tracing().then(|| (Instant::now(), thread_cpu())),
+            start: tracing().then(|| (Instant::now(), thread_cpu(), Events::now())),
         }
     }
 }
 
 impl Drop for SpanGuard {
     fn drop(&mut self) {
-        if let Some((w0, c0)) = self.start {
+        if let Some((w0, c0, e0)) = self.start {
             let (wall, cpu) = (w0.elapsed(), thread_cpu().saturating_sub(c0));
+            let events = Events::now().since(e0);
             let mut spans = SPANS.lock().unwrap_or_else(|p| p.into_inner());
             let e = spans.entry(self.name).or_default();
             e.0 += 1;
             e.1 += wall.as_nanos() as u64;
             e.2 += cpu.as_nanos() as u64;
+            e.3.add(events);
         }
     }
 }

@@ -153,6 +153,23 @@ type TimedSubmission = (
 /// the dispatcher itself.
 pub(crate) const PAR_MIN: usize = 32;
 
+/// Fewest entries of one batch's work over steps (the positions tables) that the
+/// dispatcher hands to rayon. Below it the loop stays on the dispatcher: on an H100,
+/// `run`'s 273 batches of a few short records waited 3.4 s for the busy pool in loops
+/// whose work took 0.1 s.
+pub(crate) const PAR_MIN_ENTRIES: usize = 1 << 16;
+
+/// `with_min_len` for a loop of `pieces` pieces over `entries` entries: one piece at a time
+/// when the loop is large enough to pay for rayon's queue, otherwise all of them (no
+/// split, so the calling thread runs the loop itself).
+pub(crate) fn min_len_for(entries: usize, per_piece: usize) -> usize {
+    if entries >= PAR_MIN_ENTRIES {
+        per_piece
+    } else {
+        usize::MAX
+    }
+}
+
 impl Timer {
     /// Records the resolve of this submission's timestamps into `enc` and a copy to a
     /// mappable buffer; `None` when no pass was timed.

@@ -104,15 +104,21 @@ impl FirstPass {
         })
     }
 
-    /// The coarse ridges and noise medians of every run of every part, in one submission
-    /// and one read-back (one blocking wait): [`submit`](Self::submit), then
-    /// [`InFlight::finish`].
+    /// The coarse ridges, noise medians and noise gains of every run of every part, in one
+    /// submission and one read-back (one blocking wait): [`submit`](Self::submit), then
+    /// [`InFlight::finish`], then the gains.
     pub fn coarse_ridges(
         &self,
         gpu: &Gpu,
         parts: &[Vec<&WaveletPrep>],
     ) -> Result<Vec<Vec<CoarseRidge>>, GpuError> {
-        self.submit(gpu, parts)?.finish(gpu, parts)
+        let mut ridges = self.submit(gpu, parts)?.finish(gpu, parts)?;
+        for (preps, ridges) in parts.iter().zip(&mut ridges) {
+            for (p, r) in preps.iter().zip(ridges) {
+                r.gains = p.noise_gains();
+            }
+        }
+        Ok(ridges)
     }
 
     /// Records and submits the first pass of every run of every part, with the copies of
@@ -236,7 +242,10 @@ pub struct InFlight {
 
 impl InFlight {
     /// Waits for the submission (one blocking wait) and reads back every run's ridge and
-    /// noise medians. `parts` are the ones given to [`FirstPass::submit`].
+    /// noise medians. `parts` are the ones given to [`FirstPass::submit`]. The noise gains
+    /// are left empty, for whoever completes the track to fill with
+    /// [`WaveletPrep::noise_gains`]: they need no GPU result, and on the dispatcher, the
+    /// one thread every batch goes through, they cost `skelid run` 0.8 ms a batch.
     pub fn finish(
         self,
         gpu: &Gpu,
@@ -255,9 +264,6 @@ impl InFlight {
             // Byte vectors carry no alignment: copy into typed ones.
             let stats: &[[f32; 2]] = bytemuck::cast_slice(&stats);
             let power: &[f32] = bytemuck::cast_slice(&power);
-            let wavelet = preps[0].wavelet();
-            // In parallel: the noise gains evaluate every scale's weights, and the
-            // dispatcher is one thread for every worker.
             answers.push(
                 preps
                     .par_iter()
@@ -273,14 +279,7 @@ impl InFlight {
                             median_power: (0..p.freqs.len())
                                 .map(|k| p.noise_steps(k).map(|_| f64::from(stats[so + k][1])))
                                 .collect(),
-                            // Over the scales too: a batch of one long signal (2^20
-                            // samples, 256 scales) spent 19 ms here on one thread.
-                            gains: p
-                                .plans
-                                .par_iter()
-                                .with_min_len(8)
-                                .map(|plan| plan.noise_gain(&p.spec, &wavelet))
-                                .collect(),
+                            gains: Vec::new(),
                             power: p.keep_scalogram.then(|| {
                                 let at = grid.offsets[r];
                                 power[at..at + p.freqs.len() * p.steps].to_vec()

@@ -6,6 +6,7 @@
 
 use crate::profile::SpanGuard;
 use std::collections::HashMap;
+use std::sync::Arc;
 
 use rayon::prelude::*;
 
@@ -69,6 +70,78 @@ pub struct ScaleStage {
     scatter: wgpu::ComputePipeline,
     power: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
+    positions: PositionCache,
+}
+
+/// A table's key: decimated length m, padded length l, samples between coarse steps h,
+/// coarse steps.
+type PositionKey = (usize, usize, usize, usize);
+
+/// Where each coarse step falls in a decimated scale (index and fraction), by
+/// [`PositionKey`]: the same for every record of a campaign's length, so computed once
+/// and kept. Recomputing them every batch cost `skelid run` (a few signals a batch, 30-80
+/// tables of 1 900 steps) more of the dispatcher's time than recording the batch's passes.
+#[derive(Default)]
+struct PositionCache(std::sync::Mutex<(HashMap<PositionKey, Arc<Positions>>, usize)>);
+
+/// One table of [`PositionCache`].
+struct Positions {
+    index: Vec<u32>,
+    frac: Vec<f32>,
+}
+
+/// Entries kept at most (8 bytes each); past it the cache starts afresh.
+const POSITION_CACHE_ENTRIES: usize = 1 << 22;
+
+impl Positions {
+    fn new((m, l, h, steps): PositionKey) -> Positions {
+        let (index, frac) = (0..steps)
+            .map(|j| {
+                let x = (j * h) as f64 * m as f64 / l as f64;
+                let i = x.floor();
+                ((i as usize % m) as u32, (x - i) as f32)
+            })
+            .unzip();
+        Positions { index, frac }
+    }
+}
+
+impl PositionCache {
+    /// The tables of `keys`, back to back (index, fraction), those not kept yet computed
+    /// (each on its own core when there are many entries: a long record's, 16 384 steps at
+    /// 2^20 samples for each of up to hundreds of decimated lengths).
+    fn tables(&self, keys: &[PositionKey]) -> (Vec<u32>, Vec<f32>) {
+        let mut guard = self.0.lock().unwrap_or_else(|p| p.into_inner());
+        let (kept, entries) = &mut *guard;
+        let mut missing: Vec<PositionKey> = keys
+            .iter()
+            .filter(|k| !kept.contains_key(k))
+            .copied()
+            .collect();
+        if *entries + missing.iter().map(|k| k.3).sum::<usize>() > POSITION_CACHE_ENTRIES {
+            kept.clear();
+            *entries = 0;
+            missing = keys.to_vec();
+        }
+        let new_entries: usize = missing.iter().map(|k| k.3).sum();
+        let made: Vec<(PositionKey, Positions)> = missing
+            .into_par_iter()
+            .with_min_len(super::min_len_for(new_entries, 1))
+            .map(|k| (k, Positions::new(k)))
+            .collect();
+        for (k, p) in made {
+            *entries += k.3;
+            kept.insert(k, Arc::new(p));
+        }
+        let total: usize = keys.iter().map(|k| k.3).sum();
+        let (mut index, mut frac) = (Vec::with_capacity(total), Vec::with_capacity(total));
+        for k in keys {
+            let p = &kept[k];
+            index.extend_from_slice(&p.index);
+            frac.extend_from_slice(&p.frac);
+        }
+        (index, frac)
+    }
 }
 
 impl ScaleStage {
@@ -89,6 +162,7 @@ impl ScaleStage {
             scatter,
             power,
             layout,
+            positions: PositionCache::default(),
         }
     }
 
@@ -283,28 +357,7 @@ impl ScaleStage {
             });
             data_len += m;
         }
-        // Each table of positions (a long record's are long: 16 384 steps at 2^20 samples,
-        // one per decimated length) filled on its own core.
-        let mut index = vec![0u32; table_len];
-        let mut frac = vec![0f32; table_len];
-        let mut slots = Vec::with_capacity(keys.len());
-        let (mut index_rest, mut frac_rest) = (&mut index[..], &mut frac[..]);
-        for &key in &keys {
-            let (i, i_rest) = index_rest.split_at_mut(key.3);
-            let (f, f_rest) = frac_rest.split_at_mut(key.3);
-            slots.push((key, i, f));
-            (index_rest, frac_rest) = (i_rest, f_rest);
-        }
-        slots
-            .into_par_iter()
-            .for_each(|((m, l, h, _), index, frac)| {
-                for (j, (o_i, o_f)) in index.iter_mut().zip(frac).enumerate() {
-                    let x = (j * h) as f64 * m as f64 / l as f64;
-                    let i = x.floor();
-                    *o_i = (i as usize % m) as u32;
-                    *o_f = (x - i) as f32;
-                }
-            });
+        let (index, frac) = self.positions.tables(&keys);
         drop(items_span);
         let data_bytes = (data_len * 8) as u64;
         // Items along y (and z past one dimension's limit), slots along x.
