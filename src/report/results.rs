@@ -225,7 +225,9 @@ impl ResultsWriter {
         Ok(())
     }
 
-    /// Closes the file and renames it into place.
+    /// Closes the file and renames it into place. A file it replaces (a rerun's earlier
+    /// results) is moved aside first and deleted by a process of its own, which this one
+    /// does not wait for ([`set_aside`], [`discard`]).
     pub fn finish(self) -> Result<PathBuf, ReportError> {
         let ResultsWriter {
             file, path, tmp, ..
@@ -236,13 +238,24 @@ impl ResultsWriter {
         };
         let flushed = file.flush();
         drop(file);
-        let done = flushed
-            .map_err(|e| err(e.to_string()))
-            .and_then(|()| std::fs::rename(&tmp, &path).map_err(|e| err(e.to_string())));
-        if done.is_err() {
+        if let Err(e) = flushed {
             let _ = std::fs::remove_file(&tmp);
+            return Err(err(e.to_string()));
         }
-        done.map(|()| path)
+        let old = set_aside(&path);
+        match std::fs::rename(&tmp, &path) {
+            Ok(()) => {
+                discard(old);
+                Ok(path)
+            }
+            Err(e) => {
+                let _ = std::fs::remove_file(&tmp);
+                if let Some(old) = old {
+                    let _ = std::fs::rename(old, &path);
+                }
+                Err(err(e.to_string()))
+            }
+        }
     }
 
     /// Closes and deletes the unfinished file: a batch that stops on an error leaves no
@@ -251,6 +264,65 @@ impl ResultsWriter {
         let ResultsWriter { file, tmp, .. } = self;
         drop(file);
         let _ = std::fs::remove_file(&tmp);
+    }
+}
+
+/// Moves the file at `path`, if there is one, to a hidden name beside it, so that the new
+/// file is renamed onto a free name. Renamed over an existing file, ext4 (`auto_da_alloc`)
+/// allocates and starts writing the new file inside the rename: 0.26 s for 200 runs'
+/// results.h5 here, 2 s for 1000 runs (2 GB) on a 16-core machine, a fifth of the batch.
+/// A process killed between the two renames leaves the earlier results under the hidden
+/// name; the next batch's [`discard`] deletes it. `None` where there was no file.
+fn set_aside(path: &Path) -> Option<PathBuf> {
+    let name = path.file_name()?.to_string_lossy().into_owned();
+    let aside = path.with_file_name(format!(".{name}.replaced.{}", std::process::id()));
+    std::fs::rename(path, &aside).ok().map(|()| aside)
+}
+
+/// Deletes `old` (from [`set_aside`]) and any set aside by earlier processes that stopped
+/// before deleting theirs, in a child process that is not waited for: `rm`, its output
+/// discarded, so that nobody waiting on this process's output waits for it too. Where no
+/// child can be started, deletes them here.
+fn discard(old: Option<PathBuf>) {
+    let Some(old) = old else { return };
+    let mut doomed = vec![old.clone()];
+    if let (Some(dir), Some(name)) = (old.parent(), old.file_name()) {
+        let name = name.to_string_lossy();
+        let prefix = &name[..name.rfind('.').map_or(name.len(), |i| i + 1)];
+        if let Ok(entries) = std::fs::read_dir(dir) {
+            doomed.extend(
+                entries
+                    .filter_map(|e| e.ok())
+                    .map(|e| e.path())
+                    .filter(|p| {
+                        p != &old
+                            && p.file_name()
+                                .is_some_and(|n| n.to_string_lossy().starts_with(prefix))
+                    }),
+            );
+        }
+    }
+    let spawned = std::process::Command::new("rm")
+        .arg("-f")
+        .arg("--")
+        .args(&doomed)
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn();
+    match spawned {
+        // Reaped by a thread of its own, so that a long-lived caller (the tests) keeps no
+        // zombies; the process may end first, which leaves `rm` to finish alone.
+        Ok(mut child) => {
+            let _ = std::thread::Builder::new()
+                .name("discard".into())
+                .spawn(move || child.wait());
+        }
+        Err(_) => {
+            for p in doomed {
+                let _ = std::fs::remove_file(p);
+            }
+        }
     }
 }
 
@@ -429,4 +501,55 @@ pub(super) fn write_dataset(
         }
     }
     Ok(ds)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The runs written into a fresh file at `file` under `/runs/<name>`.
+    fn write(file: &Path, names: &[&str]) {
+        let w = ResultsWriter::create_at(file).unwrap();
+        for n in names {
+            group_path(&w.file, &format!("/runs/{n}")).unwrap();
+        }
+        w.finish().unwrap();
+    }
+
+    fn names_in(dir: &Path) -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    }
+
+    #[test]
+    fn a_replaced_file_is_set_aside_then_deleted_and_stale_ones_go_with_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("results.h5");
+        write(&file, &["old"]);
+        // What a process killed between its two renames leaves.
+        let stale = dir.path().join(".results.h5.replaced.1");
+        std::fs::copy(&file, &stale).unwrap();
+        write(&file, &["new"]);
+        let f = hdf5::File::open(&file).unwrap();
+        assert!(f.group("/runs/new").is_ok() && f.group("/runs/old").is_err());
+        // Deleted by a process not waited for: give it a few seconds.
+        let t0 = std::time::Instant::now();
+        while names_in(dir.path()) != ["results.h5"] && t0.elapsed().as_secs() < 10 {
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        assert_eq!(names_in(dir.path()), ["results.h5"]);
+    }
+
+    #[test]
+    fn a_first_file_sets_nothing_aside() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("results.h5");
+        assert_eq!(set_aside(&file), None);
+        write(&file, &["a"]);
+        assert_eq!(names_in(dir.path()), ["results.h5"]);
+    }
 }
