@@ -16,7 +16,8 @@
 #   - an experiment: the GPU `bench` with glibc's malloc keeping freed memory (no trims, no
 #     unmaps: do they cost a 16-core machine its shared address space's locks and TLB
 #     flushes?) against the default, back to back;
-#   - `skelid run` end to end, both methods, on each backend (traced on the GPU).
+#   - `skelid run` end to end, both methods, on each backend (traced on the GPU), with
+#     its log's timeline and how busy its one writer thread was.
 set -u
 N=${N:-1000}; OUT=${OUT:-/tmp/skelid-measure}; mkdir -p "$OUT"
 exec > >(tee "$OUT/log.txt") 2>&1
@@ -61,5 +62,8 @@ for cfg in cpu gpu; do
   SKELID_GPU_TRACE=1 timeout 90 /usr/bin/time -f "maxrss %M kB, user %U s, sys %S s" "$B" run "$W/campaign" \
     --out "$W/out" --force --method both --backend $cfg --quiet > "$OUT/run-$cfg.log" 2>&1
   echo "run --backend $cfg: rc=$? wall $(since "$s") s"; grep -v "^note" "$OUT/run-$cfg.log" | tail -40
+  # Where the batch's wall time went: first and last run done, the end, the one writer's load.
+  awk '/ start: /{t0=$1; n=0} / done /{if(!n)f=$1; l=$1; n++} / end: /{printf "log: first run done %.2f s, last %.2f s, end %.2f s\n", f-t0, l-t0, $1-t0}' "$W/out/skelid.log" | tail -1
+  grep "the writer" "$W/out/skelid.log" | tail -1 | cut -d' ' -f2-
 done
 echo "== total $(since "$T0") s"

@@ -165,6 +165,26 @@ fn killed_batches_resume_to_the_uninterrupted_result() {
     let o = run(&["--force"], &inputs, &out);
     assert!(String::from_utf8_lossy(&o.stdout).contains(" 0 already done"));
     assert_same_rows(&summary_rows(&out), &expected_rows);
+    // results.h5 replaced whole (the previous one set aside, then deleted).
+    assert_same_results(&results(&out), &expected);
+    // The one writer's load, logged at each batch's end: one thread's CPU time within the
+    // wall time it ran.
+    let log = std::fs::read_to_string(out.join("skelid.log")).unwrap();
+    let line = log
+        .lines()
+        .rev()
+        .find(|l| l.contains("the writer"))
+        .expect("the writer's load in the log");
+    let seconds: Vec<f64> = line
+        .split_whitespace()
+        .zip(line.split_whitespace().skip(1))
+        .filter(|(_, unit)| *unit == "s")
+        .filter_map(|(v, _)| v.parse().ok())
+        .collect();
+    assert!(
+        seconds.len() == 2 && seconds[0] > 0.0 && seconds[0] <= seconds[1] * 1.01,
+        "{line}"
+    );
 }
 
 #[test]

@@ -308,6 +308,7 @@ pub fn run_campaigns(
         skipped,
         failed,
         mut log,
+        busy: (busy_s, ran_s),
     } = written;
     let total = entries.len();
     let runs_in_inputs = counts.runs_in_inputs.load(Ordering::Relaxed);
@@ -348,6 +349,11 @@ pub fn run_campaigns(
     log.line(&format!(
         "where the time went (CPU seconds since the process started): {}",
         profile::snapshot().line()
+    ));
+    log.line(&format!(
+        "the writer (one thread: results.h5, this log, the progress) was busy {busy_s:.2} s \
+         of the {ran_s:.2} s it ran ({:.0} %); near 100 % it, not the cores, sets the pace",
+        100.0 * busy_s / ran_s.max(1e-9)
     ));
     log.line(&format!(
         "end: {total} run(s), {failed} failed, {skipped} skipped; wrote {} and the summaries, report and manifest in {:.2} s",

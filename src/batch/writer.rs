@@ -25,6 +25,7 @@ pub(super) fn write_finished(
     let (mut entries, mut skipped, mut failed) = (Vec::new(), 0, 0);
     let (mut suspect, mut bad) = (0, 0);
     let mut used = std::collections::HashSet::new();
+    let (start, cpu0) = (std::time::Instant::now(), profile::thread_cpu());
     for f in done {
         // Finishing order is not the final order: a path already used (the same path in
         // two archives) goes aside now and is put in its place at the end.
@@ -92,6 +93,10 @@ pub(super) fn write_finished(
         skipped,
         failed,
         log,
+        busy: (
+            profile::thread_cpu().saturating_sub(cpu0).as_secs_f64(),
+            start.elapsed().as_secs_f64(),
+        ),
     })
 }
 
@@ -101,6 +106,9 @@ pub(super) struct Written {
     pub(super) skipped: usize,
     pub(super) failed: usize,
     pub(super) log: Log,
+    /// The writer's CPU seconds and the wall seconds it ran: busy all the time, it sets
+    /// the batch's pace, whatever the cores.
+    pub(super) busy: (f64, f64),
 }
 
 /// The report plots of the runs that come first in the report's order (archive, then
