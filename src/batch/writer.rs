@@ -275,8 +275,9 @@ impl Log {
         let t = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0.0, |d| d.as_secs_f64());
-        // A log line that cannot be written must not stop the batch.
-        let _ = writeln!(self.file, "{t:.3} {text}");
+        // One system call a line (formatted straight to the unbuffered file, it took one
+        // a piece). A log line that cannot be written must not stop the batch.
+        let _ = self.file.write_all(format!("{t:.3} {text}\n").as_bytes());
     }
 }
 
