@@ -138,6 +138,8 @@ fn skelid_gap_names_the_microslip_of_a_bolted_joint_from_levels_fitted_together(
         ]
     );
     assert_eq!(doc["settings"]["model_kind"], "force");
+    // A force model is compared within ±2 % of resonance unless told otherwise.
+    assert_eq!(doc["settings"]["resonance"], 0.02);
     let r = &runs[3];
     assert_eq!(r["verdict"], "microslip", "{r}");
     assert_eq!(
@@ -192,6 +194,7 @@ fn skelid_gap_names_the_microslip_of_a_free_decay_started_from_the_record_s_own_
     let out = dir.path().join("gap");
     let doc = gap(&model, &archive, &[], &out);
     assert_eq!(doc["settings"]["model_kind"], "free");
+    assert_eq!(doc["settings"]["resonance"], 0.1);
     let r = &doc["runs"][0];
     assert_eq!(r["verdict"], "microslip", "{r}");
     assert!(r["candidates"][0]["shrink"].as_f64().unwrap() >= 0.5);

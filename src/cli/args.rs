@@ -170,12 +170,13 @@ pub(crate) struct IdentifyArgs {
     /// Resonance band of the backbone fit for a joint with free play: only samples with
     /// |ω/ω0 − 1| below this are fitted (off resonance, e.g. after a jump-down, the
     /// first-harmonic stiffness of a clearance depends on the forcing). `gap` compares
-    /// backbone and damping within it too. For a lightly damped mode of a structure a
-    /// narrower band is safer: off resonance ForceVib reads a phase error δ of the record
+    /// backbone and damping within it too. [default: 0.1; 0.02 for `gap` with a
+    /// `kind = "force"` model and its self-check.] A lightly damped mode of a structure
+    /// wants the narrower band: off resonance ForceVib reads a phase error δ of the record
     /// as a damping ratio of about δ·|1 − r²|/2, r = ω/ω0 (on the F-16, whose ratio is
-    /// 0.2–1.7 %, `gap --resonance 0.02` shrank the held-out gap by 47 % against 41 %).
-    #[arg(long, default_value_t = 0.1, value_name = "FRACTION")]
-    pub(crate) resonance: f64,
+    /// 0.2–1.7 %, the held-out gap shrank by 47 % at 0.02 against 41 % at 0.1).
+    #[arg(long, value_name = "FRACTION")]
+    pub(crate) resonance: Option<f64>,
     /// Backbone curve fitted to a joint with free play: `orbit` (the exact free periodic
     /// orbit, right for forced runs and lightly damped decays), `describing-function`
     /// (first harmonic of a sinusoid), or `auto` (orbit for forced runs, describing
@@ -229,7 +230,7 @@ impl IdentifyArgs {
         options.wavelet = self.wavelet.apply(options.wavelet);
         options.hilbert_cutoff = Some(self.cutoff);
         options.bins = self.bins;
-        options.resonance = self.resonance;
+        options.resonance = self.resonance.unwrap_or(options.resonance);
         options.refine = refine;
         options.backbone = match self.backbone {
             BackboneArg::Auto => None,

@@ -223,11 +223,26 @@ fn parse_effects(flag: &str, names: &[String]) -> Result<Vec<skelid::model::Effe
         .collect()
 }
 
+/// `--resonance` for a `kind = "force"` model (and its self-check) unless given: within
+/// ±2 % of ω0. The F-16's held-out gap shrank by 47 % there against 41 % at the general
+/// 0.1; the force self-check's 42 cases gave the same verdicts at both (top-1 97 %).
+const FORCE_RESONANCE: f64 = 0.02;
+
 pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     use skelid::run::RunKind;
     let mut opt = gap_search_options(&a)?;
     let mut options = a.identify.options("gap", None)?;
+    // A structure's lightly damped mode is compared near resonance unless the command
+    // line says otherwise (see `--resonance`).
+    let force_resonance = |options: &mut skelid::identify::IdentifyOptions| {
+        if a.identify.resonance.is_none() {
+            options.resonance = FORCE_RESONANCE;
+        }
+    };
     if a.self_check {
+        if a.ingest.kind == Some(RunKind::Force) {
+            force_resonance(&mut options);
+        }
         let engine = super::Engine::new(options, BackendArgs { backend: a.backend }.open()?);
         create_out(&a.out)?;
         return gap_self_check(&a, &opt, &engine);
@@ -244,6 +259,10 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     if let (Some([lo, hi]), skelid::mode::ModeChoice::ByKind) = (model.band, options.mode) {
         options.mode = skelid::mode::ModeChoice::Band(lo, hi);
     }
+    if model.kind == skelid::model::ModelKind::Force {
+        force_resonance(&mut options);
+    }
+    let resonance = options.resonance;
     let engine = super::Engine::new(options, BackendArgs { backend: a.backend }.open()?);
     create_out(&a.out)?;
     let ingest = a.ingest.options()?;
@@ -341,6 +360,7 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
         "fit_inertia": opt.fit_inertia,
         "waveform": opt.waveform,
         "zero_tolerance": opt.zero_tolerance,
+        "resonance": resonance,
         "min_shrink": skelid::gap::search::MIN_SHRINK,
         "min_drop": skelid::gap::search::MIN_DROP,
         "model_warnings": model_warnings,

@@ -159,8 +159,8 @@ pub(crate) const PAR_MIN: usize = 32;
 /// whose work took 0.1 s.
 pub(crate) const PAR_MIN_ENTRIES: usize = 1 << 16;
 
-/// `with_min_len` for a loop of `pieces` pieces over `entries` entries: one piece at a time
-/// when the loop is large enough to pay for rayon's queue, otherwise all of them (no
+/// `with_min_len` for a dispatcher's loop over `entries` entries in all: `per_piece` pieces
+/// a job when the loop is large enough to pay for rayon's queue, otherwise all of them (no
 /// split, so the calling thread runs the loop itself).
 pub(crate) fn min_len_for(entries: usize, per_piece: usize) -> usize {
     if entries >= PAR_MIN_ENTRIES {

@@ -6,7 +6,6 @@
 
 use crate::profile::SpanGuard;
 use std::collections::HashMap;
-use std::sync::Arc;
 
 use rayon::prelude::*;
 
@@ -82,7 +81,7 @@ type PositionKey = (usize, usize, usize, usize);
 /// and kept. Recomputing them every batch cost `skelid run` (a few signals a batch, 30-80
 /// tables of 1 900 steps) more of the dispatcher's time than recording the batch's passes.
 #[derive(Default)]
-struct PositionCache(std::sync::Mutex<(HashMap<PositionKey, Arc<Positions>>, usize)>);
+struct PositionCache(std::sync::Mutex<(HashMap<PositionKey, Positions>, usize)>);
 
 /// One table of [`PositionCache`].
 struct Positions {
@@ -131,7 +130,7 @@ impl PositionCache {
             .collect();
         for (k, p) in made {
             *entries += k.3;
-            kept.insert(k, Arc::new(p));
+            kept.insert(k, p);
         }
         let total: usize = keys.iter().map(|k| k.3).sum();
         let (mut index, mut frac) = (Vec::with_capacity(total), Vec::with_capacity(total));
@@ -438,7 +437,7 @@ pub struct PowerGrid {
 
 #[cfg(test)]
 mod tests {
-    use super::RunScales;
+    use super::{PositionCache, PositionKey, RunScales, POSITION_CACHE_ENTRIES};
     use crate::transform::{band::ScalePlan, log_frequencies, Morlet, Spectrum};
 
     #[test]
@@ -473,5 +472,29 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn kept_positions_are_the_formulas_also_after_the_cache_starts_afresh() {
+        let direct = |keys: &[PositionKey]| {
+            let mut out = (Vec::new(), Vec::new());
+            for &(m, l, h, steps) in keys {
+                for j in 0..steps {
+                    let x = (j * h) as f64 * m as f64 / l as f64;
+                    out.0.push((x.floor() as usize % m) as u32);
+                    out.1.push((x - x.floor()) as f32);
+                }
+            }
+            out
+        };
+        let cache = PositionCache::default();
+        let small = [(1250, 32768, 16, 1875), (625, 32768, 16, 1875)];
+        assert_eq!(cache.tables(&small), direct(&small));
+        assert_eq!(cache.tables(&small[1..]), direct(&small[1..]));
+        // Past the cap: the cache starts afresh, and the small ones come back computed.
+        let big = (3 << 20, 1 << 22, 1, (POSITION_CACHE_ENTRIES / 2) + 1);
+        let mixed = [small[0], big, small[1]];
+        assert_eq!(cache.tables(&mixed), direct(&mixed));
+        assert_eq!(cache.tables(&[big, small[0]]), direct(&[big, small[0]]));
     }
 }
