@@ -270,14 +270,14 @@ impl WaveletPrep {
     }
 
     /// Noise gain per scale ([`ScalePlan::noise_gain`]), as [`CoarseRidge::gains`] holds
-    /// them; over the scales on every core for a long record (2^20 samples at 256 scales:
-    /// 19 ms on one).
+    /// them; over the scales on every core (a long record's, 2^20 samples at 256 scales,
+    /// took 19 ms on one). Called by the worker that completes the track, a pool thread, so
+    /// a short record's few jobs queue behind nothing.
     pub fn noise_gains(&self) -> Vec<f64> {
         let wavelet = self.wavelet();
-        let long = self.spec.bins.len() >= 1 << 16;
         self.plans
             .par_iter()
-            .with_min_len(if long { 8 } else { usize::MAX })
+            .with_min_len(8)
             .map(|plan| plan.noise_gain(&self.spec, &wavelet))
             .collect()
     }
