@@ -143,12 +143,40 @@ fn plan(prep: &WaveletPrep, grid: &[GridPoint]) -> Planned {
 struct Piece {
     run: usize,
     scales: std::ops::Range<usize>,
-    points: Vec<usize>,
+    points: Points,
+}
+
+/// The grid points a piece serves, in record order. A run that fits whole serves all of
+/// its points (the usual case): kept as a count, since listing them for a batch of 1000
+/// runs was tens of MB written and read on the dispatcher's one thread.
+#[derive(Clone)]
+enum Points {
+    /// Points 0..n.
+    All(usize),
+    /// These points.
+    Listed(Vec<usize>),
+}
+
+impl Points {
+    fn len(&self) -> usize {
+        match self {
+            Points::All(n) => *n,
+            Points::Listed(v) => v.len(),
+        }
+    }
+
+    /// The `k`-th point served.
+    fn at(&self, k: usize) -> usize {
+        match self {
+            Points::All(_) => k,
+            Points::Listed(v) => v[k],
+        }
+    }
 }
 
 /// Where a run's grid points are read back: per piece its sub-part, the index of its first
 /// record there, and the points in record order.
-type Spans = Vec<(usize, usize, Vec<usize>)>;
+type Spans = Vec<(usize, usize, Points)>;
 
 /// A refinement recorded into a submission: the sub-parts' record buffers, and per run
 /// where its records are (or why the GPU cannot serve it) and the log of the factor its
@@ -185,7 +213,8 @@ impl Encoded {
                 let mut centres: Vec<Option<u64>> = vec![None; prep.freqs.len()];
                 for (part, first, points) in spans? {
                     let w = &words[part][first * 8..(first + points.len()) * 8];
-                    for (&g, rec) in points.iter().zip(w.chunks_exact(8)) {
+                    for (k, rec) in w.chunks_exact(8).enumerate() {
+                        let g = points.at(k);
                         out[g] = Some(decode(prep, grid[g], rec, ln_scale, &mut centres));
                     }
                 }
@@ -291,7 +320,7 @@ impl RefineStage {
             return Ok(vec![Piece {
                 run,
                 scales: all,
-                points: (0..grid.len()).collect(),
+                points: Points::All(grid.len()),
             }]);
         }
         let too_large = |need: u64| GpuError::TooLarge {
@@ -325,30 +354,29 @@ impl RefineStage {
             let next = (start + 1..end).find(|&i| k_of(i) >= back).unwrap_or(end);
             start = next;
         }
-        let mut pieces: Vec<Piece> = ranges
-            .into_iter()
-            .map(|scales| Piece {
-                run,
-                scales,
-                points: Vec::new(),
-            })
-            .collect();
+        let mut lists: Vec<Vec<usize>> = vec![Vec::new(); ranges.len()];
         for (g, p) in grid.iter().enumerate() {
             let (lo, hi) = (p.centre.saturating_sub(2), (p.centre + 2).min(s_count - 1));
-            let piece = pieces
-                .iter_mut()
-                .find(|q| k_of(q.scales.start) <= lo && k_of(q.scales.end - 1) >= hi)
+            let q = ranges
+                .iter()
+                .position(|q| k_of(q.start) <= lo && k_of(q.end - 1) >= hi)
                 .ok_or_else(|| too_large(limit + 1))?;
-            piece.points.push(g);
+            lists[q].push(g);
         }
         // Records of one piece are read back in one buffer.
-        if let Some(q) = pieces
-            .iter()
-            .find(|q| q.points.len() as u64 * RECORD_BYTES > limit)
-        {
-            return Err(too_large(q.points.len() as u64 * RECORD_BYTES));
+        if let Some(q) = lists.iter().find(|q| q.len() as u64 * RECORD_BYTES > limit) {
+            return Err(too_large(q.len() as u64 * RECORD_BYTES));
         }
-        pieces.retain(|q| !q.points.is_empty());
+        let mut pieces: Vec<Piece> = ranges
+            .into_iter()
+            .zip(lists)
+            .map(|(scales, points)| Piece {
+                run,
+                scales,
+                points: Points::Listed(points),
+            })
+            .collect();
+        pieces.retain(|q| q.points.len() > 0);
         Ok(pieces)
     }
 
@@ -546,9 +574,8 @@ impl RefineStage {
             data_len += 3 * m;
         }
         let mut run_params = Vec::with_capacity(part.len());
-        let mut points: Vec<PointParams> =
-            Vec::with_capacity(part.iter().map(|q| q.points.len()).sum());
         let mut firsts = Vec::with_capacity(part.len());
+        let mut point_count = 0;
         for (q, piece) in part.iter().enumerate() {
             let prep = preps[piece.run];
             run_params.push(RunParams {
@@ -557,14 +584,8 @@ impl RefineStage {
                 l: prep.spec.padded_len as u32,
                 correct: u32::from(prep.corrects()),
             });
-            firsts.push(points.len());
-            let grid = &grids[piece.run];
-            points.extend(piece.points.iter().map(|&g| PointParams {
-                sample: grid[g].sample as u32,
-                centre: grid[g].centre as u32,
-                run: q as u32,
-                _pad: 0,
-            }));
+            firsts.push(point_count);
+            point_count += piece.points.len();
         }
         drop(arrays_span);
         let elem = self.real.complex_bytes();
@@ -595,9 +616,24 @@ impl RefineStage {
         let scratch = gpu.reusable("refine scratch", data_bytes);
         let table_buf = gpu.upload("refine table", &table);
         let runs_buf = gpu.upload("refine runs", &run_params);
-        let points_buf = gpu.upload("grid points", &points);
+        // Each piece's points written by every core straight into the upload's memory.
+        let point_lens: Vec<usize> = part.iter().map(|q| q.points.len()).collect();
+        let points_buf =
+            gpu.upload_segments("grid points", &point_lens, |q, out: &mut [PointParams]| {
+                let piece = &part[q];
+                let grid = &grids[piece.run];
+                for (k, o) in out.iter_mut().enumerate() {
+                    let g = &grid[piece.points.at(k)];
+                    *o = PointParams {
+                        sample: g.sample as u32,
+                        centre: g.centre as u32,
+                        run: q as u32,
+                        _pad: 0,
+                    };
+                }
+            })?;
         // The estimate writes every point's record.
-        let records = gpu.reusable("grid records", points.len() as u64 * RECORD_BYTES);
+        let records = gpu.reusable("grid records", point_count as u64 * RECORD_BYTES);
         let bind = gpu.bind(
             "refine",
             &self.layout,
@@ -640,8 +676,8 @@ impl RefineStage {
                 enc.copy_buffer_to_buffer(&scratch, bytes, &data, bytes, (m * count * elem) as u64);
             }
         }
-        if !points.is_empty() {
-            let [x, y, z] = gpu.grid(points.len().div_ceil(64) as u64)?;
+        if point_count > 0 {
+            let [x, y, z] = gpu.grid(point_count.div_ceil(64) as u64)?;
             let mut pass = gpu.pass(enc, "refine.estimate");
             pass.set_pipeline(&self.estimate);
             pass.set_bind_group(0, &bind, &[]);

@@ -317,6 +317,7 @@ impl ScaleStage {
         let mut items = Vec::with_capacity(part.len());
         let mut groups: Vec<(usize, usize, usize)> = Vec::new(); // (length, offset, count)
         let mut data_len = 0usize;
+        let mut last: Option<((usize, usize, usize, usize), u32)> = None;
         let items_span = SpanGuard::new("scales.items");
         for &(r, k) in part {
             let run = &runs[r];
@@ -330,12 +331,22 @@ impl ScaleStage {
                 }
             }
             let l = run.spectrum.padded_len;
-            let positions = *tables.entry((m, l, run.h, run.steps)).or_insert_with(|| {
-                let at = table_len;
-                table_len += run.steps;
-                keys.push((m, l, run.h, run.steps));
-                at as u32
-            });
+            let key = (m, l, run.h, run.steps);
+            // Items come sorted by length, and a batch's runs mostly share the rest: the
+            // last item's table is usually this one's, without hashing the key again.
+            let positions = match last {
+                Some((k, at)) if k == key => at,
+                _ => {
+                    let at = *tables.entry(key).or_insert_with(|| {
+                        let at = table_len;
+                        table_len += run.steps;
+                        keys.push(key);
+                        at as u32
+                    });
+                    last = Some((key, at));
+                    at
+                }
+            };
             let (lo, hi, centre) = plan.band();
             let spec = run.spectrum;
             items.push(Item {
