@@ -516,6 +516,35 @@ fn gpu_refinement_matches_the_cpu_skeleton_at_every_grid_point() {
 }
 
 #[test]
+fn read_backs_reuse_their_staging_buffers_and_return_each_ones_own_values() {
+    let g = gpu();
+    let values = |n: usize, k: u32| -> Vec<u32> { (0..n as u32).map(|i| i * 7 + k).collect() };
+    let made = g.staging_buffers_made();
+    // The same size three times: one staging buffer, each read-back its own values (none
+    // of the last one's left in it).
+    for k in 0..3 {
+        let v = values(10_000, k);
+        let b = g.upload("test", &v);
+        assert_eq!(g.download::<u32>(&b, v.len()).unwrap(), v, "read-back {k}");
+    }
+    assert_eq!(g.staging_buffers_made(), made + 1);
+    // A size of another class gets a buffer of its own; a smaller one of the first class
+    // reads back only its own words.
+    let v = values(1_000_000, 5);
+    assert_eq!(
+        g.download::<u32>(&g.upload("test", &v), v.len()).unwrap(),
+        v
+    );
+    assert_eq!(g.staging_buffers_made(), made + 2);
+    let v = values(9_990, 9);
+    assert_eq!(
+        g.download::<u32>(&g.upload("test", &v), v.len()).unwrap(),
+        v
+    );
+    assert_eq!(g.staging_buffers_made(), made + 2);
+}
+
+#[test]
 fn reused_work_buffers_fit_their_request_and_leave_nothing_behind() {
     use skelid::backend::{Backend, BackendChoice};
     use skelid::track::WaveletOptions;

@@ -120,6 +120,11 @@ pub struct Gpu {
     failure: Arc<Mutex<Option<String>>>,
     /// Work buffers given back by finished batches, by size, for [`Gpu::reusable`].
     pool: Arc<Pool>,
+    /// Read-back staging buffers given back once read, by size, for
+    /// [`Gpu::encode_readback`].
+    staging_pool: Arc<Pool>,
+    /// Staging buffers created so far (the others were taken from `staging_pool`).
+    staging_made: std::sync::atomic::AtomicUsize,
     /// Device time of each compute pass, where `SKELID_GPU_TRACE` asks for it and the
     /// adapter has timestamp queries.
     timer: Option<Timer>,
@@ -233,6 +238,14 @@ impl Timer {
     }
 }
 
+/// The size a pooled buffer of `bytes` is made with: eight classes an octave, so at most
+/// 12.5 % more than asked, and batches of similar signals land in the same class.
+fn size_class(bytes: u64) -> u64 {
+    let bytes = bytes.max(4).next_multiple_of(4);
+    let step = (bytes.next_power_of_two() / 16).max(4);
+    bytes.next_multiple_of(step)
+}
+
 /// Free work buffers by size class.
 type Pool = Mutex<std::collections::HashMap<u64, Vec<wgpu::Buffer>>>;
 
@@ -249,6 +262,13 @@ impl std::ops::Deref for Pooled {
     type Target = wgpu::Buffer;
     fn deref(&self) -> &wgpu::Buffer {
         self.buffer.as_ref().expect("held until dropped")
+    }
+}
+
+impl Pooled {
+    /// Drops the buffer without giving it back (one left mapped or pending by a failure).
+    fn discard(mut self) {
+        self.buffer.take();
     }
 }
 
@@ -347,6 +367,8 @@ impl Gpu {
                 .and_then(|v| v.parse().ok()),
             failure,
             pool: Arc::new(Mutex::new(std::collections::HashMap::new())),
+            staging_pool: Arc::new(Mutex::new(std::collections::HashMap::new())),
+            staging_made: std::sync::atomic::AtomicUsize::new(0),
             timer,
         })
     }
@@ -702,16 +724,10 @@ impl Gpu {
     /// left. On an H200 a fresh buffer of hundreds of MB cost ~16 ms of the dispatcher's
     /// time, 240 ms a batch of 1000 signals.
     pub fn reusable(&self, label: &str, bytes: u64) -> Pooled {
-        // Eight classes an octave: at most 12.5 % more than asked, and batches of similar
-        // signals land in the same class. Never beyond one binding, which the buffer is
-        // bound as whole.
-        let bytes = bytes.max(4).next_multiple_of(4);
-        let octave = bytes.next_power_of_two();
-        let step = (octave / 16).max(4);
-        let class = bytes
-            .next_multiple_of(step)
+        // Never beyond one binding, which the buffer is bound as whole.
+        let class = size_class(bytes)
             .min(self.max_binding())
-            .max(bytes);
+            .max(bytes.max(4).next_multiple_of(4));
         let free = {
             let mut pool = self.pool.lock().unwrap_or_else(|p| p.into_inner());
             pool.get_mut(&class).and_then(Vec::pop)
@@ -721,6 +737,34 @@ impl Gpu {
             buffer: Some(buffer),
             class,
             pool: self.pool.clone(),
+        }
+    }
+
+    /// A read-back staging buffer of at least `bytes`, unmapped, from those earlier
+    /// read-backs gave back. On an H200 creating a fresh one of 74 MB for each batch of
+    /// 1000 signals cost the dispatcher about 20 ms of its serial time a batch.
+    fn staging(&self, bytes: u64) -> Pooled {
+        let class = size_class(bytes);
+        let free = {
+            let mut pool = self.staging_pool.lock().unwrap_or_else(|p| p.into_inner());
+            pool.get_mut(&class).and_then(Vec::pop)
+        };
+        let buffer = free.unwrap_or_else(|| {
+            self.staging_made
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            crate::profile::span("staging", || {
+                self.device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("read-back"),
+                    size: class,
+                    usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                    mapped_at_creation: false,
+                })
+            })
+        });
+        Pooled {
+            buffer: Some(buffer),
+            class,
+            pool: self.staging_pool.clone(),
         }
     }
 
@@ -739,12 +783,7 @@ impl Gpu {
             ranges.push((at, bytes));
             at += bytes.next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT);
         }
-        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("read-back"),
-            size: at.max(wgpu::COPY_BUFFER_ALIGNMENT),
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        let staging = self.staging(at.max(wgpu::COPY_BUFFER_ALIGNMENT));
         for (&(buffer, bytes), &(offset, _)) in parts.iter().zip(&ranges) {
             if bytes > 0 {
                 enc.copy_buffer_to_buffer(buffer, 0, &staging, offset, bytes);
@@ -772,14 +811,24 @@ impl Gpu {
         staging.map_async(wgpu::MapMode::Read, .., move |r| {
             let _ = tx.send(r);
         });
-        self.wait_for(submission)?;
-        rx.recv()
-            .map_err(|e| GpuError::Lost(e.to_string()))?
-            .map_err(|e| GpuError::Lost(e.to_string()))?;
+        let mapped = self.wait_for(submission).and_then(|()| {
+            rx.recv()
+                .map_err(|e| GpuError::Lost(e.to_string()))?
+                .map_err(|e| GpuError::Lost(e.to_string()))
+        });
+        if let Err(e) = mapped {
+            // Left pending or mapped: no later read-back may get it.
+            staging.discard();
+            return Err(e);
+        }
         crate::profile::span("readback.copy", || {
-            let view = staging
-                .get_mapped_range(..)
-                .map_err(|e| GpuError::Lost(e.to_string()))?;
+            let view = match staging.get_mapped_range(..) {
+                Ok(v) => v,
+                Err(e) => {
+                    staging.discard();
+                    return Err(GpuError::Lost(e.to_string()));
+                }
+            };
             // Mapped memory can be slow to read (uncached on some drivers): every core
             // copies a share.
             let all: &[u8] = &view;
@@ -796,9 +845,16 @@ impl Gpu {
                 })
                 .collect();
             drop(view);
+            // Unmapped, it goes back to the pool as `staging` drops.
             staging.unmap();
             Ok(out)
         })
+    }
+
+    /// How many read-back staging buffers this device has created; read-backs of a size
+    /// seen before reuse one that an earlier read-back gave back.
+    pub fn staging_buffers_made(&self) -> usize {
+        self.staging_made.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// Copies `count` elements of `buffer` back to the host (waits for the GPU).
@@ -827,7 +883,8 @@ impl Gpu {
 
 /// Copies recorded for one read-back: a staging buffer and each part's (offset, bytes).
 pub struct Readback {
-    staging: wgpu::Buffer,
+    /// Given back to the pool unmapped once read, or if never mapped.
+    staging: Pooled,
     ranges: Vec<(u64, u64)>,
     /// The submission that holds the copies, once made ([`Gpu::submit_reading`]).
     submission: Option<wgpu::SubmissionIndex>,

@@ -402,6 +402,7 @@ impl RefineStage {
                 .map(|(p, g)| plan(p, g))
                 .collect()
         });
+        let pieces_span = SpanGuard::new("refine.pieces");
         let mut at: Vec<Result<Spans, GpuError>> = Vec::with_capacity(preps.len());
         let mut parts: Vec<Vec<Piece>> = Vec::new();
         let mut used = (u64::MAX, u64::MAX);
@@ -437,6 +438,7 @@ impl RefineStage {
                 parts.last_mut().expect("a part was opened").push(piece);
             }
         }
+        drop(pieces_span);
         let wl = preps.first().map(|p| p.wavelet()).unwrap_or_default();
         let params = WaveletParams {
             bandwidth: split(wl.bandwidth),
@@ -446,6 +448,7 @@ impl RefineStage {
         };
         let uniform = gpu.uniform("refine wavelet", &params);
         // Each spectrum scaled by a power of two to a largest bin near 1.
+        let scale_span = SpanGuard::new("refine.ln_scale");
         let ln_scale: Vec<f64> = preps
             .par_iter()
             .zip(&planned)
@@ -462,6 +465,7 @@ impl RefineStage {
                 }
             })
             .collect();
+        drop(scale_span);
         let mut records = Vec::with_capacity(parts.len());
         let mut keep = Vec::with_capacity(2 * parts.len());
         for (q, part) in parts.iter().enumerate() {
@@ -719,6 +723,7 @@ impl RefineStage {
                 Some(self.encode(gpu, &mut enc, preps, grids)?)
             });
         }
+        let _span = SpanGuard::new("refine.readback");
         let wanted: Vec<(&wgpu::Buffer, u64)> =
             encoded.iter().flatten().flat_map(|e| e.buffers()).collect();
         let readback = gpu.encode_readback(&mut enc, &wanted);
