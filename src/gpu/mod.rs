@@ -625,14 +625,20 @@ impl Gpu {
 
     /// A storage buffer of segments of `lens[i]` values each, back to back, segment `i`
     /// written by `fill(i, values)`. Every core fills segments and copies them straight
-    /// into the upload's mapped memory: a batch's spectra (hundreds of MB) built in one
+    /// into the upload's staging memory: a batch's spectra (hundreds of MB) built in one
     /// vector and copied by one thread set the pace of the whole GPU backend.
+    ///
+    /// The buffer is a reused one ([`reusable`](Self::reusable); keep it until the
+    /// submission that reads it has finished) written through the queue before the next
+    /// submission: a buffer mapped at creation cost a fresh device buffer and a staging
+    /// buffer that wgpu fills with zeros first, on the dispatcher's one thread (a batch of
+    /// 1000 signals uploads about 200 MB).
     pub fn upload_segments<T: bytemuck::Pod + Send>(
         &self,
         label: &str,
         lens: &[usize],
         fill: impl Fn(usize, &mut [T]) + Sync,
-    ) -> Result<wgpu::Buffer, GpuError> {
+    ) -> Result<Pooled, GpuError> {
         use rayon::prelude::*;
         let elem = std::mem::size_of::<T>();
         let bytes = lens.iter().sum::<usize>() * elem;
@@ -641,18 +647,12 @@ impl Gpu {
             let size = (bytes as u64)
                 .next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT)
                 .max(wgpu::COPY_BUFFER_ALIGNMENT);
-            let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage: wgpu::BufferUsages::STORAGE
-                    | wgpu::BufferUsages::COPY_SRC
-                    | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: true,
-            });
+            let buffer = self.reusable(label, size);
+            let mut view = self
+                .queue
+                .write_buffer_with(&buffer, 0, wgpu::BufferSize::new(size).expect("not zero"))
+                .ok_or_else(|| GpuError::Lost(format!("cannot write {label} ({size} bytes)")))?;
             {
-                let mut view = buffer
-                    .get_mapped_range_mut(..)
-                    .map_err(|e| GpuError::Lost(e.to_string()))?;
                 // wgpu's write-only view cannot be sent to other threads; its pointer can,
                 // each thread writing only its own segment's bytes.
                 struct Base(std::ptr::NonNull<u8>);
@@ -665,7 +665,8 @@ impl Gpu {
                         unsafe { self.0.as_ptr().add(offset) }
                     }
                 }
-                let base = Base(view.slice(..bytes).as_raw_element_ptr());
+                let mut whole = view.slice(..);
+                let base = Base(whole.as_raw_element_ptr());
                 let mut starts = Vec::with_capacity(lens.len());
                 let mut at = 0usize;
                 for &len in lens {
@@ -680,16 +681,38 @@ impl Gpu {
                         let mut values = vec![T::zeroed(); lens[i]];
                         fill(i, &mut values);
                         let src: &[u8] = bytemuck::cast_slice(&values);
-                        // SAFETY: [start, start + len·elem) lies inside the mapped `bytes`
-                        // (the starts are the running sums of the lengths) and no other
-                        // thread writes it.
+                        // SAFETY: [start, start + len·elem) lies inside the staging memory's
+                        // `size` bytes (the starts are the running sums of the lengths) and
+                        // no other thread writes it.
                         unsafe {
                             std::ptr::copy_nonoverlapping(src.as_ptr(), base.at(start), src.len());
                         }
                     });
+                if size as usize > bytes {
+                    // The alignment's few bytes past the values: written, not left as
+                    // whatever the staging memory held.
+                    // SAFETY: [bytes, size) lies inside the staging memory.
+                    unsafe { std::ptr::write_bytes(base.at(bytes), 0, size as usize - bytes) };
+                }
             }
-            buffer.unmap();
+            // Dropped, the view schedules its copy before the next submission.
+            drop(view);
             Ok(buffer)
+        })
+    }
+
+    /// [`upload`](Self::upload) into a reused buffer written through the queue, as
+    /// [`upload_segments`](Self::upload_segments) does: for a batch's large tables. Keep it
+    /// until the submission that reads it has finished.
+    pub fn upload_pooled<T: bytemuck::Pod + Send + Sync>(
+        &self,
+        label: &str,
+        data: &[T],
+    ) -> Result<Pooled, GpuError> {
+        const PIECE: usize = 1 << 16;
+        let lens: Vec<usize> = data.chunks(PIECE).map(<[T]>::len).collect();
+        self.upload_segments(label, &lens, |i, out: &mut [T]| {
+            out.copy_from_slice(&data[i * PIECE..i * PIECE + out.len()]);
         })
     }
 

@@ -467,7 +467,7 @@ impl RefineStage {
             .collect();
         drop(scale_span);
         let mut records = Vec::with_capacity(parts.len());
-        let mut keep = Vec::with_capacity(2 * parts.len());
+        let mut keep = Vec::with_capacity(6 * parts.len());
         for (q, part) in parts.iter().enumerate() {
             let (buffer, firsts, work) = crate::profile::span("refine.encode_part", || {
                 self.encode_part(gpu, enc, &uniform, preps, grids, &planned, &ln_scale, part)
@@ -503,7 +503,7 @@ impl RefineStage {
         planned: &[Planned],
         ln_scale: &[f64],
         part: &[Piece],
-    ) -> Result<(Pooled, Vec<usize>, [Pooled; 2]), GpuError> {
+    ) -> Result<(Pooled, Vec<usize>, [Pooled; 6]), GpuError> {
         let align = offset_alignment_of(gpu, self.real);
         let arrays_span = SpanGuard::new("refine.arrays");
         // Spectra: each piece's bins of its run's pass bands, scaled.
@@ -615,10 +615,10 @@ impl RefineStage {
             }),
         }?;
         let data_bytes = (data_len.max(1) * elem) as u64;
-        let items_buf = gpu.upload("refine items", &items);
+        let items_buf = gpu.upload_pooled("refine items", &items)?;
         let data = gpu.reusable("refine scales", data_bytes);
         let scratch = gpu.reusable("refine scratch", data_bytes);
-        let table_buf = gpu.upload("refine table", &table);
+        let table_buf = gpu.upload_pooled("refine table", &table)?;
         let runs_buf = gpu.upload("refine runs", &run_params);
         // Each piece's points written by every core straight into the upload's memory.
         let point_lens: Vec<usize> = part.iter().map(|q| q.points.len()).collect();
@@ -687,7 +687,11 @@ impl RefineStage {
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(x, y, z);
         }
-        Ok((records, firsts, [data, scratch]))
+        Ok((
+            records,
+            firsts,
+            [data, scratch, spectra, items_buf, table_buf, points_buf],
+        ))
     }
 }
 

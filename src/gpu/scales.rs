@@ -287,12 +287,13 @@ impl ScaleStage {
             bands: &bands,
             power_offset: &power_offset,
         };
-        let mut keep = Vec::with_capacity(2 * parts.len());
+        let mut keep = Vec::with_capacity(3 * parts.len() + 1);
         for part in &parts {
             keep.extend(crate::profile::span("scales.part", || {
                 self.encode_part(gpu, enc, runs, part, &shared)
             })?);
         }
+        keep.push(spectrum_buf);
         Ok(PowerGrid {
             power,
             offsets: power_offset,
@@ -309,7 +310,7 @@ impl ScaleStage {
         runs: &[RunScales],
         part: &[(usize, usize)],
         shared: &Shared,
-    ) -> Result<[Pooled; 2], GpuError> {
+    ) -> Result<[Pooled; 3], GpuError> {
         let align = offset_alignment(gpu);
         let mut table_len = 0usize;
         let mut keys: Vec<(usize, usize, usize, usize)> = Vec::new();
@@ -380,7 +381,7 @@ impl ScaleStage {
             });
         }
         let max_x = gpu.max_workgroups() as usize;
-        let items_buf = gpu.upload("items", &items);
+        let items_buf = gpu.upload_pooled("items", &items)?;
         let data = gpu.reusable("scales", data_bytes);
         let scratch = gpu.reusable("scales scratch", data_bytes);
         let index_buf = gpu.upload("positions", &index);
@@ -418,7 +419,7 @@ impl ScaleStage {
         }
         let steps = part.iter().map(|&(r, _)| runs[r].steps).max().unwrap_or(1);
         dispatch(enc, "scales.power", &self.power, steps);
-        Ok([data, scratch])
+        Ok([data, scratch, items_buf])
     }
 }
 
