@@ -516,6 +516,45 @@ fn gpu_refinement_matches_the_cpu_skeleton_at_every_grid_point() {
 }
 
 #[test]
+fn uploads_into_reused_buffers_hold_each_ones_own_values() {
+    let g = gpu();
+    // Segments of odd lengths (the last one's bytes not a multiple of 4 in u16), written by
+    // every core, into a buffer that goes back to the pool and serves the next upload: each
+    // read-back is that upload's values, none of the last one's.
+    // First all ones, in the buffer the odd uploads below will reuse (same size class):
+    // the padding after their last value must be written, not left over.
+    let ones = vec![u32::MAX; 66_550 / 2];
+    drop(g.upload_pooled("test", &ones).unwrap());
+    for k in 0..3u16 {
+        let lens = [3usize, 0, 1000, 7, 65_537, 2];
+        let b = g
+            .upload_segments("test", &lens, |i, out: &mut [u16]| {
+                for (j, o) in out.iter_mut().enumerate() {
+                    *o = (i * 1000 + j) as u16 ^ k;
+                }
+            })
+            .unwrap();
+        let want: Vec<u16> = lens
+            .iter()
+            .enumerate()
+            .flat_map(|(i, &n)| (0..n).map(move |j| (i * 1000 + j) as u16 ^ k))
+            .collect();
+        // Whole words: the odd length's last u16 shares a word with the zero padding.
+        let words: Vec<u32> = g.download(&b, want.len().div_ceil(2)).unwrap();
+        let got: Vec<u16> = bytemuck::cast_slice::<u32, u16>(&words)[..want.len()].to_vec();
+        assert_eq!(got, want, "upload {k}");
+        assert_eq!(want.len() % 2, 1);
+        assert_eq!(
+            bytemuck::cast_slice::<u32, u16>(&words)[want.len()..],
+            [0u16]
+        );
+    }
+    let table: Vec<u32> = (0..200_000).map(|i| i * 3 + 1).collect();
+    let b = g.upload_pooled("test", &table).unwrap();
+    assert_eq!(g.download::<u32>(&b, table.len()).unwrap(), table);
+}
+
+#[test]
 fn read_backs_reuse_their_staging_buffers_and_return_each_ones_own_values() {
     let g = gpu();
     let values = |n: usize, k: u32| -> Vec<u32> { (0..n as u32).map(|i| i * 7 + k).collect() };
