@@ -552,6 +552,16 @@ fn uploads_into_reused_buffers_hold_each_ones_own_values() {
     let table: Vec<u32> = (0..200_000).map(|i| i * 3 + 1).collect();
     let b = g.upload_pooled("test", &table).unwrap();
     assert_eq!(g.download::<u32>(&b, table.len()).unwrap(), table);
+    // The buffer is its size class's (larger, its spare bytes a previous user's), but it
+    // binds exactly the bytes uploaded: shaders count items and points with `arrayLength`.
+    assert!(b.size() > 800_000);
+    match b.exact() {
+        wgpu::BindingResource::Buffer(binding) => {
+            assert_eq!(binding.offset, 0);
+            assert_eq!(binding.size.map(|s| s.get()), Some(800_000));
+        }
+        _ => panic!("a buffer binding"),
+    }
 }
 
 #[test]

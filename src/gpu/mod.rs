@@ -255,6 +255,11 @@ type Pool = Mutex<std::collections::HashMap<u64, Vec<wgpu::Buffer>>>;
 pub struct Pooled {
     buffer: Option<wgpu::Buffer>,
     class: u64,
+    /// The bytes asked for (a multiple of 4); the buffer may be up to its class's size.
+    requested: u64,
+    /// Mapped, or a map asked for: not to be given back (a read-back's copy that
+    /// panicked, or a map that failed, would fail the next user's submission).
+    mapped: bool,
     pool: Arc<Pool>,
 }
 
@@ -270,11 +275,31 @@ impl Pooled {
     fn discard(mut self) {
         self.buffer.take();
     }
+
+    /// Unmaps it, so that it goes back to the pool when dropped.
+    fn unmap_to_give_back(&mut self) {
+        self.unmap();
+        self.mapped = false;
+    }
+
+    /// Its first bytes, as many as were asked for, as a binding. A shader that counts an
+    /// array with `arrayLength` (items, grid points) must be bound to this, not to the
+    /// whole buffer, whose spare bytes past the request hold a previous user's values.
+    pub fn exact(&self) -> wgpu::BindingResource<'_> {
+        wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+            buffer: self,
+            offset: 0,
+            size: wgpu::BufferSize::new(self.requested),
+        })
+    }
 }
 
 impl Drop for Pooled {
     fn drop(&mut self) {
         if let Some(b) = self.buffer.take() {
+            if self.mapped {
+                return;
+            }
             let mut pool = self.pool.lock().unwrap_or_else(|p| p.into_inner());
             pool.entry(self.class).or_default().push(b);
         }
@@ -578,12 +603,25 @@ impl Gpu {
         layout: &wgpu::BindGroupLayout,
         buffers: &[&wgpu::Buffer],
     ) -> wgpu::BindGroup {
-        let entries: Vec<wgpu::BindGroupEntry> = buffers
-            .iter()
+        let whole: Vec<wgpu::BindingResource> =
+            buffers.iter().map(|b| b.as_entire_binding()).collect();
+        self.bind_resources(label, layout, whole)
+    }
+
+    /// [`bind`](Self::bind) with each binding given: a whole buffer
+    /// (`as_entire_binding`) or a pooled one's requested bytes ([`Pooled::exact`]).
+    pub fn bind_resources(
+        &self,
+        label: &str,
+        layout: &wgpu::BindGroupLayout,
+        resources: Vec<wgpu::BindingResource>,
+    ) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry> = resources
+            .into_iter()
             .enumerate()
-            .map(|(i, b)| wgpu::BindGroupEntry {
+            .map(|(i, resource)| wgpu::BindGroupEntry {
                 binding: i as u32,
-                resource: b.as_entire_binding(),
+                resource,
             })
             .collect();
         crate::profile::span("bind", || {
@@ -759,6 +797,8 @@ impl Gpu {
         Pooled {
             buffer: Some(buffer),
             class,
+            requested: bytes.max(4).next_multiple_of(4),
+            mapped: false,
             pool: self.pool.clone(),
         }
     }
@@ -767,7 +807,10 @@ impl Gpu {
     /// read-backs gave back. On an H200 creating a fresh one of 74 MB for each batch of
     /// 1000 signals cost the dispatcher about 20 ms of its serial time a batch.
     fn staging(&self, bytes: u64) -> Pooled {
-        let class = size_class(bytes);
+        let bytes = bytes.max(4).next_multiple_of(4);
+        let class = size_class(bytes)
+            .min(self.limits.max_buffer_size)
+            .max(bytes);
         let free = {
             let mut pool = self.staging_pool.lock().unwrap_or_else(|p| p.into_inner());
             pool.get_mut(&class).and_then(Vec::pop)
@@ -787,6 +830,8 @@ impl Gpu {
         Pooled {
             buffer: Some(buffer),
             class,
+            requested: bytes,
+            mapped: false,
             pool: self.staging_pool.clone(),
         }
     }
@@ -825,12 +870,13 @@ impl Gpu {
     /// the records' u32 and f32 fields need, so decoding reads them in place).
     pub fn finish_readback(&self, rb: Readback) -> Result<Vec<Vec<u32>>, GpuError> {
         let Readback {
-            staging,
+            mut staging,
             ranges,
             submission,
         } = rb;
         crate::profile::downloaded(ranges.iter().map(|r| r.1).sum());
         let (tx, rx) = std::sync::mpsc::channel();
+        staging.mapped = true;
         staging.map_async(wgpu::MapMode::Read, .., move |r| {
             let _ = tx.send(r);
         });
@@ -868,8 +914,7 @@ impl Gpu {
                 })
                 .collect();
             drop(view);
-            // Unmapped, it goes back to the pool as `staging` drops.
-            staging.unmap();
+            staging.unmap_to_give_back();
             Ok(out)
         })
     }

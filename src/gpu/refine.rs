@@ -638,18 +638,19 @@ impl RefineStage {
             })?;
         // The estimate writes every point's record.
         let records = gpu.reusable("grid records", point_count as u64 * RECORD_BYTES);
-        let bind = gpu.bind(
+        // Items and points exactly: the shaders count them with `arrayLength`.
+        let bind = gpu.bind_resources(
             "refine",
             &self.layout,
-            &[
-                uniform,
-                &items_buf,
-                &spectra,
-                &data,
-                &table_buf,
-                &runs_buf,
-                &points_buf,
-                &records,
+            vec![
+                uniform.as_entire_binding(),
+                items_buf.exact(),
+                spectra.as_entire_binding(),
+                data.as_entire_binding(),
+                table_buf.as_entire_binding(),
+                runs_buf.as_entire_binding(),
+                points_buf.exact(),
+                records.as_entire_binding(),
             ],
         );
         // Items along y (and z past one dimension's limit), slots along x.

@@ -386,17 +386,18 @@ impl ScaleStage {
         let scratch = gpu.reusable("scales scratch", data_bytes);
         let index_buf = gpu.upload("positions", &index);
         let frac_buf = gpu.upload("fractions", &frac);
-        let bind = gpu.bind(
+        // The items exactly: the shaders count them with `arrayLength`.
+        let bind = gpu.bind_resources(
             "scales",
             &self.layout,
-            &[
-                shared.uniform,
-                &items_buf,
-                shared.spectrum,
-                &data,
-                shared.power,
-                &index_buf,
-                &frac_buf,
+            vec![
+                shared.uniform.as_entire_binding(),
+                items_buf.exact(),
+                shared.spectrum.as_entire_binding(),
+                data.as_entire_binding(),
+                shared.power.as_entire_binding(),
+                index_buf.as_entire_binding(),
+                frac_buf.as_entire_binding(),
             ],
         );
         let longest = groups.iter().map(|g| g.0).max().unwrap_or(1);
