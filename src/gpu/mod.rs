@@ -249,6 +249,24 @@ fn size_class(bytes: u64) -> u64 {
 /// Free work buffers by size class.
 type Pool = Mutex<std::collections::HashMap<u64, Vec<wgpu::Buffer>>>;
 
+/// A buffer of at least `bytes` from `pool`, its size class's (at most `cap`, at least
+/// `bytes`): a free one given back earlier, else one `make` creates at that size.
+fn take(pool: &Arc<Pool>, bytes: u64, cap: u64, make: impl FnOnce(u64) -> wgpu::Buffer) -> Pooled {
+    let requested = bytes.max(4).next_multiple_of(4);
+    let class = size_class(requested).min(cap).max(requested);
+    let free = {
+        let mut free = pool.lock().unwrap_or_else(|p| p.into_inner());
+        free.get_mut(&class).and_then(Vec::pop)
+    };
+    Pooled {
+        buffer: Some(free.unwrap_or_else(|| make(class))),
+        class,
+        requested,
+        mapped: false,
+        pool: pool.clone(),
+    }
+}
+
 /// A work buffer of [`Gpu::reusable`]: goes back to the device's pool when dropped. Keep it
 /// until the submission that uses it has finished, or a later batch could get it while
 /// this one still reads it.
@@ -271,11 +289,6 @@ impl std::ops::Deref for Pooled {
 }
 
 impl Pooled {
-    /// Drops the buffer without giving it back (one left mapped or pending by a failure).
-    fn discard(mut self) {
-        self.buffer.take();
-    }
-
     /// Unmaps it, so that it goes back to the pool when dropped.
     fn unmap_to_give_back(&mut self) {
         self.unmap();
@@ -785,55 +798,33 @@ impl Gpu {
     /// left. On an H200 a fresh buffer of hundreds of MB cost ~16 ms of the dispatcher's
     /// time, 240 ms a batch of 1000 signals.
     pub fn reusable(&self, label: &str, bytes: u64) -> Pooled {
-        // Never beyond one binding, which the buffer is bound as whole.
-        let class = size_class(bytes)
-            .min(self.max_binding())
-            .max(bytes.max(4).next_multiple_of(4));
-        let free = {
-            let mut pool = self.pool.lock().unwrap_or_else(|p| p.into_inner());
-            pool.get_mut(&class).and_then(Vec::pop)
-        };
-        let buffer = free.unwrap_or_else(|| self.storage(label, class));
-        Pooled {
-            buffer: Some(buffer),
-            class,
-            requested: bytes.max(4).next_multiple_of(4),
-            mapped: false,
-            pool: self.pool.clone(),
-        }
+        // Never beyond one binding, which the buffer may be bound as whole.
+        take(&self.pool, bytes, self.max_binding(), |class| {
+            self.storage(label, class)
+        })
     }
 
     /// A read-back staging buffer of at least `bytes`, unmapped, from those earlier
     /// read-backs gave back. On an H200 creating a fresh one of 74 MB for each batch of
     /// 1000 signals cost the dispatcher about 20 ms of its serial time a batch.
     fn staging(&self, bytes: u64) -> Pooled {
-        let bytes = bytes.max(4).next_multiple_of(4);
-        let class = size_class(bytes)
-            .min(self.limits.max_buffer_size)
-            .max(bytes);
-        let free = {
-            let mut pool = self.staging_pool.lock().unwrap_or_else(|p| p.into_inner());
-            pool.get_mut(&class).and_then(Vec::pop)
-        };
-        let buffer = free.unwrap_or_else(|| {
-            self.staging_made
-                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            crate::profile::span("staging", || {
-                self.device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some("read-back"),
-                    size: class,
-                    usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                    mapped_at_creation: false,
+        take(
+            &self.staging_pool,
+            bytes,
+            self.limits.max_buffer_size,
+            |class| {
+                self.staging_made
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                crate::profile::span("staging", || {
+                    self.device.create_buffer(&wgpu::BufferDescriptor {
+                        label: Some("read-back"),
+                        size: class,
+                        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                        mapped_at_creation: false,
+                    })
                 })
-            })
-        });
-        Pooled {
-            buffer: Some(buffer),
-            class,
-            requested: bytes,
-            mapped: false,
-            pool: self.staging_pool.clone(),
-        }
+            },
+        )
     }
 
     /// Records copies of `parts` (each a buffer and the bytes wanted from its start, a
@@ -880,24 +871,16 @@ impl Gpu {
         staging.map_async(wgpu::MapMode::Read, .., move |r| {
             let _ = tx.send(r);
         });
-        let mapped = self.wait_for(submission).and_then(|()| {
-            rx.recv()
-                .map_err(|e| GpuError::Lost(e.to_string()))?
-                .map_err(|e| GpuError::Lost(e.to_string()))
-        });
-        if let Err(e) = mapped {
-            // Left pending or mapped: no later read-back may get it.
-            staging.discard();
-            return Err(e);
-        }
+        // On any failure from here `staging` stays marked mapped, and is dropped, not
+        // given back: no later read-back may get a buffer left pending or mapped.
+        self.wait_for(submission)?;
+        rx.recv()
+            .map_err(|e| GpuError::Lost(e.to_string()))?
+            .map_err(|e| GpuError::Lost(e.to_string()))?;
         crate::profile::span("readback.copy", || {
-            let view = match staging.get_mapped_range(..) {
-                Ok(v) => v,
-                Err(e) => {
-                    staging.discard();
-                    return Err(GpuError::Lost(e.to_string()));
-                }
-            };
+            let view = staging
+                .get_mapped_range(..)
+                .map_err(|e| GpuError::Lost(e.to_string()))?;
             // Mapped memory can be slow to read (uncached on some drivers): every core
             // copies a share.
             let all: &[u8] = &view;

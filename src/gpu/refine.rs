@@ -579,6 +579,7 @@ impl RefineStage {
         }
         let mut run_params = Vec::with_capacity(part.len());
         let mut firsts = Vec::with_capacity(part.len());
+        let mut point_lens = Vec::with_capacity(part.len());
         let mut point_count = 0;
         for (q, piece) in part.iter().enumerate() {
             let prep = preps[piece.run];
@@ -589,6 +590,7 @@ impl RefineStage {
                 correct: u32::from(prep.corrects()),
             });
             firsts.push(point_count);
+            point_lens.push(piece.points.len());
             point_count += piece.points.len();
         }
         drop(arrays_span);
@@ -621,7 +623,6 @@ impl RefineStage {
         let table_buf = gpu.upload_pooled("refine table", &table)?;
         let runs_buf = gpu.upload("refine runs", &run_params);
         // Each piece's points written by every core straight into the upload's memory.
-        let point_lens: Vec<usize> = part.iter().map(|q| q.points.len()).collect();
         let points_buf =
             gpu.upload_segments("grid points", &point_lens, |q, out: &mut [PointParams]| {
                 let piece = &part[q];

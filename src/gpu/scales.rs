@@ -313,12 +313,12 @@ impl ScaleStage {
     ) -> Result<[Pooled; 3], GpuError> {
         let align = offset_alignment(gpu);
         let mut table_len = 0usize;
-        let mut keys: Vec<(usize, usize, usize, usize)> = Vec::new();
-        let mut tables: HashMap<(usize, usize, usize, usize), u32> = HashMap::new();
+        let mut keys: Vec<PositionKey> = Vec::new();
+        let mut tables: HashMap<PositionKey, u32> = HashMap::new();
         let mut items = Vec::with_capacity(part.len());
         let mut groups: Vec<(usize, usize, usize)> = Vec::new(); // (length, offset, count)
         let mut data_len = 0usize;
-        let mut last: Option<((usize, usize, usize, usize), u32)> = None;
+        let mut last: Option<(PositionKey, u32)> = None;
         let items_span = SpanGuard::new("scales.items");
         for &(r, k) in part {
             let run = &runs[r];
