@@ -12,6 +12,7 @@ use skelid::ingest::FindError;
 
 fn main() -> ExitCode {
     skelid::hint::set_namer(cli::hints::flag);
+    skelid::backend::keep_freed_memory();
     // The global pool (the parallel parts of every stage) below the process's priority:
     // see `lower_compute_priority`. Fails only if a pool was built already: then as it is.
     let _ = rayon::ThreadPoolBuilder::new()

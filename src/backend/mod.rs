@@ -86,6 +86,28 @@ pub fn lower_compute_priority() {
     }
 }
 
+/// Largest block that glibc's malloc still takes from its heaps rather than mapping on its
+/// own (the most `mallopt` accepts on 64-bit, 32 MiB).
+const HEAP_BLOCK_MAX: libc::c_int = 32 << 20;
+
+/// Free memory at the top of a malloc heap kept for reuse rather than given back.
+const KEEP_FREED: libc::c_int = 64 << 20;
+
+/// Makes glibc's malloc keep freed blocks for reuse instead of giving them back to the
+/// kernel at once. Every track allocates and frees arrays of a few hundred kilobytes; by
+/// default glibc maps each one afresh (its threshold adapts, but not across threads), so
+/// the kernel zeroed every page again: on 2 cores 218 000 page faults and 0.54 s of system
+/// time in a `bench` of 40 runs (7.4 s of CPU), 36 000 and 0.09 s with this, the peak
+/// memory unchanged (159 MB). Called once at start-up; elsewhere than glibc, nothing.
+pub fn keep_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets the allocator's parameters; any value is checked by glibc.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, HEAP_BLOCK_MAX);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, KEEP_FREED);
+    }
+}
+
 /// Groups [`Backend::track_many`] hands to the GPU before it collects the oldest.
 const AHEAD: usize = 2;
 
@@ -474,6 +496,35 @@ impl Backend {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    #[test]
+    fn freed_arrays_are_reused_without_the_kernel_zeroing_them_again() {
+        // Minor page faults of this thread alone (the other tests run beside it).
+        let faults = || {
+            // SAFETY: getrusage fills the struct it is given.
+            unsafe {
+                let mut u: libc::rusage = std::mem::zeroed();
+                libc::getrusage(libc::RUSAGE_THREAD, &mut u);
+                u.ru_minflt
+            }
+        };
+        keep_freed_memory();
+        // A track's array: 30 000 samples of f64, written, freed, allocated again.
+        let touch = || {
+            let v = std::hint::black_box(vec![1.0f64; 30_000 * 8]);
+            drop(v);
+        };
+        touch();
+        let before = faults();
+        for _ in 0..20 {
+            touch();
+        }
+        // By default the heap grows here to take over from the first block's mapping:
+        // 469 pages faulted in, and again whenever a heap is trimmed.
+        let again = faults() - before;
+        assert!(again < 100, "{again} page faults for 20 reused arrays");
+    }
 
     #[cfg(target_os = "linux")]
     #[test]
