@@ -181,6 +181,11 @@ impl Prepared {
         &self.encoded
     }
 
+    /// Drops the encoded run's kept copies of its datasets (see [`EncodedRun::forget_kept`]).
+    pub fn forget_kept(&mut self) {
+        self.encoded.forget_kept();
+    }
+
     /// Encodes `outcome` and computes its summary rows.
     pub fn new(outcome: &RunOutcome) -> Prepared {
         Prepared {

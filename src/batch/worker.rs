@@ -63,10 +63,14 @@ pub(super) fn prepare(
     };
     let prepared = profile::time(Stage::Encode, || Prepared::new(&outcome));
     match profile::time(Stage::Write, || journal.commit(&key, prepared)) {
-        Ok((entry, prepared)) => {
+        Ok((entry, mut prepared)) => {
             let plots = drawn.wants(&entry).then(|| run_plots(prepared.encoded()));
             match figures(prepared.encoded(), &entry.source, plots.as_ref(), opt) {
-                Ok(()) => Finished::Committed(entry, prepared, plots),
+                Ok(()) => {
+                    // On to the writer's queue: the chunks alone from here.
+                    prepared.forget_kept();
+                    Finished::Committed(entry, prepared, plots)
+                }
                 Err(e) => Finished::Failed(e),
             }
         }
