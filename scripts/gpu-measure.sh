@@ -44,11 +44,11 @@ PY
 quiet() { grep -vE "^  (cpu|gpu): (repetition|warm-up|end)"; }
 echo "== bench, 128 scales (traced), with the end-to-end run"
 SKELID_GPU_TRACE=1 timeout 150 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --out "$OUT/bench-128.json" 2>&1 | quiet
-echo "== experiment: GPU bench, 128 scales, glibc's malloc returning freed memory (default) or keeping it"
-for t in "" "glibc.malloc.mmap_threshold=1073741824:glibc.malloc.trim_threshold=8589934592"; do
-  echo "GLIBC_TUNABLES=${t:-(unset)}"
-  GLIBC_TUNABLES=$t timeout 60 "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 --no-end-to-end \
-    --out "$OUT/bench-128-malloc${t:+-keep}.json" 2>&1 | grep -E "^ +gpu |CPU share"
+echo "== experiment: bench, 128 scales, glibc's malloc at its defaults (SKELID_MALLOC=default) and as skelid sets it"
+for m in default skelid; do
+  echo "SKELID_MALLOC=$m"
+  SKELID_MALLOC=$m timeout 80 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --no-end-to-end \
+    --out "$OUT/bench-128-malloc-$m.json" 2>&1 | grep -E "^ +(cpu|gpu) |CPU share|floor"
 done
 echo "== bench, 512 scales"
 timeout 100 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 512 --no-end-to-end --out "$OUT/bench-512.json" 2>&1 | quiet

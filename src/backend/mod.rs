@@ -100,7 +100,11 @@ const KEEP_FREED: libc::c_int = 64 << 20;
 /// pages again and again: on 2 cores 218 000 page faults and 0.54 s of system
 /// time in a `bench` of 40 runs (7.4 s of CPU), 36 000 and 0.09 s with this, the peak
 /// memory unchanged (159 MB). Called once at start-up; elsewhere than glibc, nothing.
+/// `SKELID_MALLOC=default` leaves glibc as it is (to measure the difference).
 pub fn keep_freed_memory() {
+    if std::env::var_os(MALLOC_ENV).is_some_and(|v| v == "default") {
+        return;
+    }
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only sets the allocator's parameters; any value is checked by glibc.
     unsafe {
@@ -108,6 +112,9 @@ pub fn keep_freed_memory() {
         libc::mallopt(libc::M_TRIM_THRESHOLD, KEEP_FREED);
     }
 }
+
+/// The environment variable that leaves glibc's malloc at its defaults.
+const MALLOC_ENV: &str = "SKELID_MALLOC";
 
 /// Groups [`Backend::track_many`] hands to the GPU before it collects the oldest.
 const AHEAD: usize = 2;
