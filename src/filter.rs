@@ -47,6 +47,60 @@ pub fn lowpass_zero_phase(x: &[f64], fraction: f64) -> Vec<f64> {
     ext[pad..pad + n].to_vec()
 }
 
+/// [`lowpass_zero_phase`] of `K` series of one length at once, each to the last bit as
+/// alone. The filter is a recurrence whose every sample waits on the one before (a few
+/// dependent multiply-adds); run side by side, the series' chains overlap in the core. The
+/// Hilbert track filters five series: one at a time, that was 3.9 % of a batch's CPU time
+/// (`perf`, 200 runs of the throughput campaign on 2 cores); together, the Hilbert stage
+/// takes 1.18–1.19 s of CPU there instead of 1.45–1.47 s.
+pub fn lowpass_zero_phase_all<const K: usize>(xs: [&[f64]; K], fraction: f64) -> [Vec<f64>; K] {
+    let n = xs.first().map_or(0, |x| x.len());
+    if K == 0 || n < 3 || !(fraction > 0.0 && fraction < 1.0) || xs.iter().any(|x| x.len() != n) {
+        return xs.map(|x| lowpass_zero_phase(x, fraction));
+    }
+    let k = (PI * fraction / 2.0).tan();
+    let q = std::f64::consts::FRAC_1_SQRT_2;
+    let norm = 1.0 / (1.0 + k / q + k * k);
+    let b0 = k * k * norm;
+    let b = [b0, 2.0 * b0, b0];
+    let a = [2.0 * (k * k - 1.0) * norm, (1.0 - k / q + k * k) * norm];
+    let pad = ((3.0 / fraction).ceil() as usize).min(n - 1);
+    let len = n + 2 * pad;
+    // Sample-major: the K series' values of one sample side by side.
+    let mut ext = vec![[0.0; K]; len];
+    for (j, x) in xs.iter().enumerate() {
+        for (e, i) in ext.iter_mut().zip((1..=pad).rev()) {
+            e[j] = 2.0 * x[0] - x[i];
+        }
+        for (e, &v) in ext[pad..pad + n].iter_mut().zip(x.iter()) {
+            e[j] = v;
+        }
+        for (e, i) in ext[pad + n..].iter_mut().zip(1..=pad) {
+            e[j] = 2.0 * x[n - 1] - x[n - 1 - i];
+        }
+    }
+    // The same transposed direct form II as `lowpass_zero_phase`, forwards then backwards.
+    let step = |e: &mut [f64; K], z1: &mut [f64; K], z2: &mut [f64; K]| {
+        for j in 0..K {
+            let xi = e[j];
+            let y = b[0] * xi + z1[j];
+            z1[j] = b[1] * xi - a[0] * y + z2[j];
+            z2[j] = b[2] * xi - a[1] * y;
+            e[j] = y;
+        }
+    };
+    let start = |c: &[f64; K]| (c.map(|c| (1.0 - b[0]) * c), c.map(|c| (b[2] - a[1]) * c));
+    let (mut z1, mut z2) = start(&ext[0]);
+    for e in ext.iter_mut() {
+        step(e, &mut z1, &mut z2);
+    }
+    let (mut z1, mut z2) = start(&ext[len - 1]);
+    for e in ext.iter_mut().rev() {
+        step(e, &mut z1, &mut z2);
+    }
+    std::array::from_fn(|j| ext[pad..pad + n].iter().map(|e| e[j]).collect())
+}
+
 /// Slope of the least-squares line through the points (t_i, y_i) with |t_i − t0| ≤ `half`,
 /// i.e. a Savitzky–Golay first derivative on a possibly non-uniform grid; `None` if fewer
 /// than three points fall in the window.
@@ -175,6 +229,33 @@ mod tests {
         for (i, v) in y.iter().enumerate().take(n - 300).skip(300) {
             assert!((v - (1.0 + 0.001 * i as f64)).abs() < 2e-3, "{i} {v}");
         }
+    }
+
+    #[test]
+    fn series_filtered_together_equal_each_filtered_alone_to_the_last_bit() {
+        let series = |n: usize, k: f64| -> Vec<f64> {
+            (0..n)
+                .map(|i| (k * i as f64).sin() * (1.0 + 1e-3 * i as f64) + k)
+                .collect()
+        };
+        // Lengths under the filter's memory (the pad is then the record), a long one, and
+        // records too short to filter.
+        for n in [0, 2, 3, 7, 150, 4001] {
+            let xs = [series(n, 0.3), series(n, 0.05), series(n, 1.7)];
+            for fraction in [0.004, 0.05, 0.6] {
+                let together = lowpass_zero_phase_all([&xs[0], &xs[1], &xs[2]], fraction);
+                for (x, t) in xs.iter().zip(&together) {
+                    let alone = lowpass_zero_phase(x, fraction);
+                    let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                    assert_eq!(bits(t), bits(&alone), "n {n}, fraction {fraction}");
+                }
+            }
+        }
+        // Series of different lengths are each filtered alone.
+        let (a, b) = (series(50, 0.2), series(60, 0.2));
+        let [fa, fb] = lowpass_zero_phase_all([&a, &b], 0.1);
+        assert_eq!(fa, lowpass_zero_phase(&a, 0.1));
+        assert_eq!(fb, lowpass_zero_phase(&b, 0.1));
     }
 
     #[test]

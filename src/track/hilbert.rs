@@ -4,7 +4,7 @@
 
 use std::f64::consts::PI;
 
-use crate::filter::lowpass_zero_phase;
+use crate::filter::lowpass_zero_phase_all;
 use crate::transform::{hilbert, Spectrum};
 
 use super::{check_signal, unwrap_phase, Device, HilbertOptions, Method, Track, TrackError};
@@ -57,15 +57,16 @@ fn hilbert_inner(x: &[f64], fs: f64, opt: &HilbertOptions) -> Result<Track, Trac
     let mut phase: Vec<f64> = an.z.iter().map(|z| z.arg()).collect();
     unwrap_phase(&mut phase, &frequency, |i| i as f64 / fs);
     if let Some(c) = opt.cutoff {
-        for v in [
-            &mut amplitude,
-            &mut frequency,
-            &mut d_amplitude,
-            &mut d2_amplitude,
-            &mut d_frequency,
-        ] {
-            *v = lowpass_zero_phase(v, c);
-        }
+        [amplitude, frequency, d_amplitude, d2_amplitude, d_frequency] = lowpass_zero_phase_all(
+            [
+                &amplitude,
+                &frequency,
+                &d_amplitude,
+                &d2_amplitude,
+                &d_frequency,
+            ],
+            c,
+        );
     }
     let mut sorted: Vec<f64> = frequency.iter().map(|f| f.abs()).collect();
     let mid = sorted.len() / 2;
