@@ -3,6 +3,34 @@
 
 use std::f64::consts::PI;
 
+/// The 2nd-order Butterworth low-pass of both zero-phase filters, and the reflection at
+/// each end of a record of `n` samples.
+struct Butterworth {
+    /// Numerator coefficients.
+    b: [f64; 3],
+    /// Denominator coefficients a1, a2 (a0 = 1).
+    a: [f64; 2],
+    /// Samples reflected at each end.
+    pad: usize,
+}
+
+impl Butterworth {
+    fn new(fraction: f64, n: usize) -> Butterworth {
+        // Bilinear transform with pre-warping; fraction of Nyquist = ω_c / π.
+        let k = (PI * fraction / 2.0).tan();
+        let q = std::f64::consts::FRAC_1_SQRT_2;
+        let norm = 1.0 / (1.0 + k / q + k * k);
+        let b0 = k * k * norm;
+        Butterworth {
+            b: [b0, 2.0 * b0, b0],
+            a: [2.0 * (k * k - 1.0) * norm, (1.0 - k / q + k * k) * norm],
+            // The filter's memory is about 1/fraction samples; reflect that much (at most
+            // the record).
+            pad: ((3.0 / fraction).ceil() as usize).min(n - 1),
+        }
+    }
+}
+
 /// Zero-phase low-pass: a 2nd-order Butterworth run forwards and backwards (4th-order
 /// magnitude, no delay), cut-off `fraction` of the Nyquist frequency (0 < fraction < 1).
 /// The ends are extended by odd reflection so that a trend continues through them.
@@ -11,15 +39,7 @@ pub fn lowpass_zero_phase(x: &[f64], fraction: f64) -> Vec<f64> {
     if n < 3 || !(fraction > 0.0 && fraction < 1.0) {
         return x.to_vec();
     }
-    // Bilinear transform with pre-warping; fraction of Nyquist = ω_c / π.
-    let k = (PI * fraction / 2.0).tan();
-    let q = std::f64::consts::FRAC_1_SQRT_2;
-    let norm = 1.0 / (1.0 + k / q + k * k);
-    let b0 = k * k * norm;
-    let b = [b0, 2.0 * b0, b0];
-    let a = [2.0 * (k * k - 1.0) * norm, (1.0 - k / q + k * k) * norm];
-    // The filter's memory is about 1/fraction samples; reflect that much (at most the record).
-    let pad = ((3.0 / fraction).ceil() as usize).min(n - 1);
+    let Butterworth { b, a, pad } = Butterworth::new(fraction, n);
     let mut ext = Vec::with_capacity(n + 2 * pad);
     for i in (1..=pad).rev() {
         ext.push(2.0 * x[0] - x[i]);
@@ -58,13 +78,7 @@ pub fn lowpass_zero_phase_all<const K: usize>(xs: [&[f64]; K], fraction: f64) ->
     if K == 0 || n < 3 || !(fraction > 0.0 && fraction < 1.0) || xs.iter().any(|x| x.len() != n) {
         return xs.map(|x| lowpass_zero_phase(x, fraction));
     }
-    let k = (PI * fraction / 2.0).tan();
-    let q = std::f64::consts::FRAC_1_SQRT_2;
-    let norm = 1.0 / (1.0 + k / q + k * k);
-    let b0 = k * k * norm;
-    let b = [b0, 2.0 * b0, b0];
-    let a = [2.0 * (k * k - 1.0) * norm, (1.0 - k / q + k * k) * norm];
-    let pad = ((3.0 / fraction).ceil() as usize).min(n - 1);
+    let Butterworth { b, a, pad } = Butterworth::new(fraction, n);
     let len = n + 2 * pad;
     // Sample-major: the K series' values of one sample side by side.
     let mut ext = vec![[0.0; K]; len];
