@@ -3,82 +3,38 @@
 
 use std::f64::consts::PI;
 
-/// The 2nd-order Butterworth low-pass of both zero-phase filters, and the reflection at
-/// each end of a record of `n` samples.
-struct Butterworth {
-    /// Numerator coefficients.
-    b: [f64; 3],
-    /// Denominator coefficients a1, a2 (a0 = 1).
-    a: [f64; 2],
-    /// Samples reflected at each end.
-    pad: usize,
-}
-
-impl Butterworth {
-    fn new(fraction: f64, n: usize) -> Butterworth {
-        // Bilinear transform with pre-warping; fraction of Nyquist = ω_c / π.
-        let k = (PI * fraction / 2.0).tan();
-        let q = std::f64::consts::FRAC_1_SQRT_2;
-        let norm = 1.0 / (1.0 + k / q + k * k);
-        let b0 = k * k * norm;
-        Butterworth {
-            b: [b0, 2.0 * b0, b0],
-            a: [2.0 * (k * k - 1.0) * norm, (1.0 - k / q + k * k) * norm],
-            // The filter's memory is about 1/fraction samples; reflect that much (at most
-            // the record).
-            pad: ((3.0 / fraction).ceil() as usize).min(n - 1),
-        }
-    }
-}
-
 /// Zero-phase low-pass: a 2nd-order Butterworth run forwards and backwards (4th-order
 /// magnitude, no delay), cut-off `fraction` of the Nyquist frequency (0 < fraction < 1).
 /// The ends are extended by odd reflection so that a trend continues through them.
 pub fn lowpass_zero_phase(x: &[f64], fraction: f64) -> Vec<f64> {
-    let n = x.len();
-    if n < 3 || !(fraction > 0.0 && fraction < 1.0) {
-        return x.to_vec();
-    }
-    let Butterworth { b, a, pad } = Butterworth::new(fraction, n);
-    let mut ext = Vec::with_capacity(n + 2 * pad);
-    for i in (1..=pad).rev() {
-        ext.push(2.0 * x[0] - x[i]);
-    }
-    ext.extend_from_slice(x);
-    for i in 1..=pad {
-        ext.push(2.0 * x[n - 1] - x[n - 1 - i]);
-    }
-    let run = |v: &mut [f64]| {
-        let c = v[0];
-        // Transposed direct form II, started in the steady state of a constant input.
-        let (mut z1, mut z2) = ((1.0 - b[0]) * c, (b[2] - a[1]) * c);
-        for s in v.iter_mut() {
-            let xi = *s;
-            let y = b[0] * xi + z1;
-            z1 = b[1] * xi - a[0] * y + z2;
-            z2 = b[2] * xi - a[1] * y;
-            *s = y;
-        }
-    };
-    run(&mut ext);
-    ext.reverse();
-    run(&mut ext);
-    ext.reverse();
-    ext[pad..pad + n].to_vec()
+    let [y] = lowpass_zero_phase_all([x], fraction);
+    y
 }
 
-/// [`lowpass_zero_phase`] of `K` series of one length at once, each to the last bit as
-/// alone. The filter is a recurrence whose every sample waits on the one before (a few
-/// dependent multiply-adds); run side by side, the series' chains overlap in the core. The
-/// Hilbert track filters five series: one at a time, that was 3.9 % of a batch's CPU time
-/// (`perf`, 200 runs of the throughput campaign on 2 cores); together, the Hilbert stage
-/// takes 1.18–1.19 s of CPU there instead of 1.45–1.47 s.
+/// [`lowpass_zero_phase`] of `K` series at once, each to the last bit as alone (series of
+/// different lengths are filtered one by one). The filter is a recurrence whose every
+/// sample waits on the one before (a few dependent multiply-adds); run side by side, the
+/// series' chains overlap in the core. The Hilbert track filters five series: one at a
+/// time, that was 3.9 % of a batch's CPU time (`perf`, 200 runs of the throughput campaign
+/// on 2 cores); together, the Hilbert stage takes 1.18–1.19 s of CPU there instead of
+/// 1.45–1.47 s.
 pub fn lowpass_zero_phase_all<const K: usize>(xs: [&[f64]; K], fraction: f64) -> [Vec<f64>; K] {
     let n = xs.first().map_or(0, |x| x.len());
-    if K == 0 || n < 3 || !(fraction > 0.0 && fraction < 1.0) || xs.iter().any(|x| x.len() != n) {
+    if n < 3 || !(fraction > 0.0 && fraction < 1.0) {
+        return xs.map(<[f64]>::to_vec);
+    }
+    if xs.iter().any(|x| x.len() != n) {
         return xs.map(|x| lowpass_zero_phase(x, fraction));
     }
-    let Butterworth { b, a, pad } = Butterworth::new(fraction, n);
+    // Bilinear transform with pre-warping; fraction of Nyquist = ω_c / π.
+    let k = (PI * fraction / 2.0).tan();
+    let q = std::f64::consts::FRAC_1_SQRT_2;
+    let norm = 1.0 / (1.0 + k / q + k * k);
+    let b0 = k * k * norm;
+    let b = [b0, 2.0 * b0, b0];
+    let a = [2.0 * (k * k - 1.0) * norm, (1.0 - k / q + k * k) * norm];
+    // The filter's memory is about 1/fraction samples; reflect that much (at most the record).
+    let pad = ((3.0 / fraction).ceil() as usize).min(n - 1);
     let len = n + 2 * pad;
     // Sample-major: the K series' values of one sample side by side.
     let mut ext = vec![[0.0; K]; len];
@@ -93,7 +49,8 @@ pub fn lowpass_zero_phase_all<const K: usize>(xs: [&[f64]; K], fraction: f64) ->
             e[j] = 2.0 * x[n - 1] - x[n - 1 - i];
         }
     }
-    // The same transposed direct form II as `lowpass_zero_phase`, forwards then backwards.
+    // Transposed direct form II, forwards then backwards, each pass started in the steady
+    // state of a constant input.
     let step = |e: &mut [f64; K], z1: &mut [f64; K], z2: &mut [f64; K]| {
         for j in 0..K {
             let xi = e[j];
@@ -245,6 +202,46 @@ mod tests {
         }
     }
 
+    /// The zero-phase Butterworth one series at a time, the plain way (the filter as it was
+    /// before series were filtered side by side), to check [`lowpass_zero_phase_all`] against.
+    fn naive_lowpass(x: &[f64], fraction: f64) -> Vec<f64> {
+        let n = x.len();
+        if n < 3 || !(fraction > 0.0 && fraction < 1.0) {
+            return x.to_vec();
+        }
+        let k = (PI * fraction / 2.0).tan();
+        let q = std::f64::consts::FRAC_1_SQRT_2;
+        let norm = 1.0 / (1.0 + k / q + k * k);
+        let b0 = k * k * norm;
+        let b = [b0, 2.0 * b0, b0];
+        let a = [2.0 * (k * k - 1.0) * norm, (1.0 - k / q + k * k) * norm];
+        let pad = ((3.0 / fraction).ceil() as usize).min(n - 1);
+        let mut ext = Vec::with_capacity(n + 2 * pad);
+        for i in (1..=pad).rev() {
+            ext.push(2.0 * x[0] - x[i]);
+        }
+        ext.extend_from_slice(x);
+        for i in 1..=pad {
+            ext.push(2.0 * x[n - 1] - x[n - 1 - i]);
+        }
+        let run = |v: &mut [f64]| {
+            let c = v[0];
+            let (mut z1, mut z2) = ((1.0 - b[0]) * c, (b[2] - a[1]) * c);
+            for s in v.iter_mut() {
+                let xi = *s;
+                let y = b[0] * xi + z1;
+                z1 = b[1] * xi - a[0] * y + z2;
+                z2 = b[2] * xi - a[1] * y;
+                *s = y;
+            }
+        };
+        run(&mut ext);
+        ext.reverse();
+        run(&mut ext);
+        ext.reverse();
+        ext[pad..pad + n].to_vec()
+    }
+
     #[test]
     fn series_filtered_together_equal_each_filtered_alone_to_the_last_bit() {
         let series = |n: usize, k: f64| -> Vec<f64> {
@@ -259,17 +256,18 @@ mod tests {
             for fraction in [0.004, 0.05, 0.6] {
                 let together = lowpass_zero_phase_all([&xs[0], &xs[1], &xs[2]], fraction);
                 for (x, t) in xs.iter().zip(&together) {
-                    let alone = lowpass_zero_phase(x, fraction);
+                    let alone = naive_lowpass(x, fraction);
                     let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
                     assert_eq!(bits(t), bits(&alone), "n {n}, fraction {fraction}");
+                    assert_eq!(bits(&lowpass_zero_phase(x, fraction)), bits(&alone));
                 }
             }
         }
         // Series of different lengths are each filtered alone.
         let (a, b) = (series(50, 0.2), series(60, 0.2));
         let [fa, fb] = lowpass_zero_phase_all([&a, &b], 0.1);
-        assert_eq!(fa, lowpass_zero_phase(&a, 0.1));
-        assert_eq!(fb, lowpass_zero_phase(&b, 0.1));
+        assert_eq!(fa, naive_lowpass(&a, 0.1));
+        assert_eq!(fb, naive_lowpass(&b, 0.1));
     }
 
     #[test]
