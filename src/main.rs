@@ -12,7 +12,9 @@ use skelid::ingest::FindError;
 
 fn main() -> ExitCode {
     skelid::hint::set_namer(cli::hints::flag);
-    skelid::backend::keep_freed_memory();
+    if let Some(note) = skelid::backend::keep_freed_memory() {
+        eprintln!("note: {note}");
+    }
     // The global pool (the parallel parts of every stage) below the process's priority:
     // see `lower_compute_priority`. Fails only if a pool was built already: then as it is.
     let _ = rayon::ThreadPoolBuilder::new()
