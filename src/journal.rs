@@ -27,8 +27,9 @@ pub const RUNS_DIR: &str = "runs";
 pub fn settings_fingerprint(methods: &[Method], options: &IdentifyOptions) -> String {
     let mut h = blake3::Hasher::new();
     h.update(env!("CARGO_PKG_VERSION").as_bytes());
-    // What a run's results hold; bumped when a run written before lacks something (units).
-    h.update(b"results layout 2\0");
+    // What a run's results hold and how: bumped when a run written before lacks something
+    // (units, layout 2) or is laid out otherwise (chunks of 32 768 elements, layout 3).
+    h.update(b"results layout 3\0");
     for m in methods {
         h.update(m.as_str().as_bytes());
         h.update(b"\0");
@@ -204,7 +205,9 @@ pub struct Journal {
 }
 
 /// First bytes of a journal file (`runs/<key>.run`): what it is and its layout's version.
-const MAGIC: &[u8; 17] = b"skelid-journal/1\n";
+/// Version 2: chunks of [`crate::report::encoded::CHUNK`] = 32 768 elements (version 1's
+/// were 4096, which this version would misplace: a version 1 file reads as damaged).
+const MAGIC: &[u8; 17] = b"skelid-journal/2\n";
 
 /// The head of a journal file: who the run is and its summary rows (JSON, so that the
 /// rows' optional fields need no fixed layout).

