@@ -451,6 +451,24 @@ mod tests {
     }
 
     #[test]
+    fn a_version_1_file_whose_chunks_this_version_would_misplace_is_absent() {
+        let dir = tempfile::tempdir().unwrap();
+        let journal = Journal::open(dir.path()).unwrap();
+        journal.commit("k1", prepared("/runs/r1")).unwrap();
+        let f = journal.file("k1");
+        let bytes = std::fs::read(&f).unwrap();
+        // The same file as version 1 wrote it: its magic, its checksum intact.
+        let mut old = bytes[..bytes.len() - 32].to_vec();
+        old[..MAGIC.len()].copy_from_slice(b"skelid-journal/1\n");
+        let hash = blake3::hash(&old);
+        old.extend_from_slice(hash.as_bytes());
+        std::fs::write(&f, &old).unwrap();
+        assert!(journal.lookup("k1").is_none());
+        std::fs::write(&f, &bytes).unwrap();
+        assert!(journal.lookup("k1").is_some());
+    }
+
+    #[test]
     fn an_hdf5_journal_file_of_an_earlier_version_is_still_read() {
         let dir = tempfile::tempdir().unwrap();
         let journal = Journal::open(dir.path()).unwrap();
