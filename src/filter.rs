@@ -26,15 +26,8 @@ pub fn lowpass_zero_phase_all<const K: usize>(xs: [&[f64]; K], fraction: f64) ->
     if xs.iter().any(|x| x.len() != n) {
         return xs.map(|x| lowpass_zero_phase(x, fraction));
     }
-    // Bilinear transform with pre-warping; fraction of Nyquist = ω_c / π.
-    let k = (PI * fraction / 2.0).tan();
-    let q = std::f64::consts::FRAC_1_SQRT_2;
-    let norm = 1.0 / (1.0 + k / q + k * k);
-    let b0 = k * k * norm;
-    let b = [b0, 2.0 * b0, b0];
-    let a = [2.0 * (k * k - 1.0) * norm, (1.0 - k / q + k * k) * norm];
-    // The filter's memory is about 1/fraction samples; reflect that much (at most the record).
-    let pad = ((3.0 / fraction).ceil() as usize).min(n - 1);
+    let (b, a) = butterworth(fraction);
+    let pad = reflection(fraction, n);
     let len = n + 2 * pad;
     // Sample-major: the K series' values of one sample side by side.
     let mut ext = vec![[0.0; K]; len];
@@ -70,6 +63,25 @@ pub fn lowpass_zero_phase_all<const K: usize>(xs: [&[f64]; K], fraction: f64) ->
         step(e, &mut z1, &mut z2);
     }
     std::array::from_fn(|j| ext[pad..pad + n].iter().map(|e| e[j]).collect())
+}
+
+/// The 2nd-order Butterworth low-pass at `fraction` of Nyquist: numerator b and
+/// denominator a₁, a₂ (a₀ = 1), by the bilinear transform with pre-warping.
+fn butterworth(fraction: f64) -> ([f64; 3], [f64; 2]) {
+    let k = (PI * fraction / 2.0).tan();
+    let q = std::f64::consts::FRAC_1_SQRT_2;
+    let norm = 1.0 / (1.0 + k / q + k * k);
+    let b0 = k * k * norm;
+    (
+        [b0, 2.0 * b0, b0],
+        [2.0 * (k * k - 1.0) * norm, (1.0 - k / q + k * k) * norm],
+    )
+}
+
+/// Samples reflected at each end of a record of `n`: the filter's memory is about
+/// 1/fraction samples, so three times that, at most the record.
+fn reflection(fraction: f64, n: usize) -> usize {
+    ((3.0 / fraction).ceil() as usize).min(n - 1)
 }
 
 /// Slope of the least-squares line through the points (t_i, y_i) with |t_i − t0| ≤ `half`,
@@ -209,13 +221,9 @@ mod tests {
         if n < 3 || !(fraction > 0.0 && fraction < 1.0) {
             return x.to_vec();
         }
-        let k = (PI * fraction / 2.0).tan();
-        let q = std::f64::consts::FRAC_1_SQRT_2;
-        let norm = 1.0 / (1.0 + k / q + k * k);
-        let b0 = k * k * norm;
-        let b = [b0, 2.0 * b0, b0];
-        let a = [2.0 * (k * k - 1.0) * norm, (1.0 - k / q + k * k) * norm];
-        let pad = ((3.0 / fraction).ceil() as usize).min(n - 1);
+        // The same design and reflection; the ends and the recurrence the plain way.
+        let (b, a) = butterworth(fraction);
+        let pad = reflection(fraction, n);
         let mut ext = Vec::with_capacity(n + 2 * pad);
         for i in (1..=pad).rev() {
             ext.push(2.0 * x[0] - x[i]);
