@@ -6,8 +6,9 @@
 //! cost (a quarter of all CPU time) under that lock, and `--jobs 2` could not beat
 //! `--jobs 1` by much. Encoding here is plain CPU work that the batch's workers do in
 //! parallel; writing an encoded run ([`super::ResultsWriter::write_encoded`]) hands finished
-//! chunks to `H5Dwrite_chunk`, which only copies them into the file. The files are the same
-//! as before for any reader: the same chunking and the same shuffle + deflate pipeline.
+//! chunks to `H5Dwrite_chunk`, which only copies them into the file. Any reader reads them
+//! as it reads libhdf5's own: chunks of [`CHUNK`] elements through the standard shuffle +
+//! deflate pipeline.
 
 /// Chunk length (elements) of a compressed dataset: a 30 000-sample track is one chunk.
 /// With 4096 (32 KiB of floats) the writer made eight chunk writes of a track where one
@@ -335,7 +336,8 @@ pub fn compress_chunks(bytes: &[u8], elem: Elem, level: u8) -> Vec<Vec<u8>> {
                 &padded
             };
             z.reset();
-            // zlib's bound: the input plus a small overhead per 16 kB block and per flush.
+            // Room for what deflate makes of any input; `deflate_into` grows it if a
+            // flush ever needs more.
             let mut out = Vec::with_capacity(chunk_bytes + chunk_bytes / 1000 + 64);
             // One zlib stream of pieces, each ended by a full flush: the deflater forgets
             // the pieces before, as it forgot the chunks of 32 KiB it used to compress.
