@@ -165,6 +165,36 @@ fn skelid_gap_names_the_microslip_of_a_bolted_joint_from_levels_fitted_together(
         (f("fitted") - f("measured")).abs() < (f("baseline") - f("measured")).abs(),
         "{at}"
     );
+    // Each run's own gap under each model, by domain: the held-out runs' together are the
+    // diagnosis's held-out gap (the root mean square of theirs), in total and domain by
+    // domain, for the verdict's model as for the baseline.
+    let held: Vec<&serde_json::Value> = runs.iter().filter(|r| r["role"] == "holdout").collect();
+    let rms = |get: &dyn Fn(&serde_json::Value) -> f64| {
+        (held.iter().map(|r| get(r).powi(2)).sum::<f64>() / held.len() as f64).sqrt()
+    };
+    let verdict = r["candidates"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["effect"] == r["verdict"])
+        .unwrap();
+    for (model, score) in [("fitted", verdict), ("baseline", &r["baseline"])] {
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 + 1e-6 * b.abs();
+        let total = rms(&|r| r["whole_run_gap"][model].as_f64().unwrap());
+        assert!(
+            close(total, score["gap_holdout"].as_f64().unwrap()),
+            "{model}: {total} {score}"
+        );
+        for domain in ["time", "backbone", "damping"] {
+            let d = rms(&|r| r["whole_run_domains"][model][domain].as_f64().unwrap());
+            assert!(
+                close(d, score["domains"][domain].as_f64().unwrap()),
+                "{model} {domain}: {d} {score}"
+            );
+        }
+    }
+    // With a verdict there is no other candidate to show beside it.
+    assert!(r["whole_run_domains"]["best_candidate"].is_null());
     // The fitted model reads back, a force model with its joint.
     let fitted = std::fs::read_dir(&out)
         .unwrap()

@@ -545,13 +545,35 @@ impl Terminal<'_> {
                 (Some(w), Some(c)) => format!(" · {} {}", c.name(), at(Some(&w.identified))),
                 _ => String::new(),
             };
+            // The run's own gap under each model, by domain: which run, and which domain of
+            // it, carries what the diagnosis leaves.
+            let gap = |w: Option<&skelid::gap::Whole>| {
+                w.map_or("–".to_string(), |w| {
+                    let g = &w.gap;
+                    let part = |v: Option<f64>| v.map_or("–".into(), |v| format!("{v:.3}"));
+                    format!(
+                        "{:.3} ({} / {} / {})",
+                        g.total,
+                        part(g.time),
+                        part(g.backbone),
+                        part(g.damping)
+                    )
+                })
+            };
+            let best_gap = match (&r.best, d.candidates.first()) {
+                (Some(w), Some(_)) => format!(" · {}", gap(Some(w))),
+                _ => String::new(),
+            };
             let line = format!(
-                "\n    {:<32} {:<8} {} · {} · {}{best}",
+                "\n    {:<32} {:<8} {} · {} · {}{best}\n    {:<41} its gap (time / backbone / damping): {} · {}{best_gap}",
                 d.run,
                 r.role.name(),
                 at(Some(&r.measured)),
                 at(r.nominal.as_ref().map(|w| &w.identified)),
                 at(Some(&r.fitted().identified)),
+                "",
+                gap(r.nominal.as_ref()),
+                gap(Some(r.fitted())),
             );
             if first {
                 text += &line;

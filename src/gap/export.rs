@@ -42,6 +42,11 @@ fn domains(d: [Option<f64>; 4]) -> Value {
     v
 }
 
+/// A whole-run gap's domains ([`domains`]).
+fn gap_domains(g: &super::Gap) -> Value {
+    domains([g.time, g.backbone, g.damping, g.waveform])
+}
+
 fn score_json(s: &Score) -> Value {
     json!({"gap_fit": num(s.fit), "gap_holdout": num(s.holdout), "domains": domains(s.domains)})
 }
@@ -107,9 +112,18 @@ pub fn run_json(r: &GapRun) -> Value {
             "fitted": largest(&r.fitted().identified),
         },
     });
+    // Each model's whole-run gap by domain: which run, and which domain of it, carries what
+    // a diagnosis of runs fitted together leaves.
+    entry["whole_run_domains"] = json!({
+        "nominal": r.nominal.as_ref().map_or(Value::Null, |w| gap_domains(&w.gap)),
+        "baseline": gap_domains(&r.baseline.gap),
+        "fitted": gap_domains(&r.fitted().gap),
+    });
     if let (Some(best), Some(c)) = (&r.best, d.candidates.first()) {
         entry["at_largest_amplitude"]["best_candidate"] = largest(&best.identified);
         entry["at_largest_amplitude"]["best_candidate"]["effect"] = json!(c.name());
+        entry["whole_run_gap"]["best_candidate"] = num(best.gap.total);
+        entry["whole_run_domains"]["best_candidate"] = gap_domains(&best.gap);
     }
     if !r.together.0.is_empty() {
         entry["fit_runs"] = json!(r.together.0);
@@ -220,6 +234,16 @@ pub fn gap_figure_set(r: &GapRun, files: bool) -> Vec<(String, String)> {
         .iter()
         .map(|i| i.map_or_else(Default::default, skeleton))
         .collect();
+    // The tracked displacement's unit: rad for the rig, m for a mode of a structure.
+    let u = crate::model::key_unit_of("clearance", r.diagnosis.nominal.kind).unwrap_or("rad");
+    let (envelope_y, amplitude_x) = (
+        format!("envelope A ({u})"),
+        format!("response amplitude A ({u})"),
+    );
+    let (velocity_x, force_y) = (
+        format!("velocity amplitude A·ω ({u}/s)"),
+        format!("2h0·A·ω ({u}/s²)"),
+    );
     let mut figs = Vec::new();
     let mut add = |title: &str, x: &str, y: &str, axis: YAxis, series: &[Series]| {
         if let Some(svg) = plot(title, x, y, axis, series, files) {
@@ -229,21 +253,25 @@ pub fn gap_figure_set(r: &GapRun, files: bool) -> Vec<(String, String)> {
     add(
         "Relative-motion envelope over time",
         "time (s)",
-        "envelope A (rad)",
+        &envelope_y,
         YAxis::Full,
         &three([0, 1, 2].map(|i| (env[i].0.as_slice(), env[i].1.as_slice()))),
     );
     add(
         "Backbone at resonance",
-        "response amplitude A (rad)",
+        &amplitude_x,
         "natural frequency f0 (Hz)",
         YAxis::Fenced,
         &three([0, 1, 2].map(|i| (sk[i][0].as_slice(), sk[i][1].as_slice()))),
     );
     add(
-        "Damping force per unit inertia at resonance",
-        "velocity amplitude A·ω (rad/s)",
-        "2h0·A·ω (rad/s²)",
+        if u == "rad" {
+            "Damping force per unit inertia at resonance"
+        } else {
+            "Damping force per unit mass at resonance"
+        },
+        &velocity_x,
+        &force_y,
         YAxis::Fenced,
         &three([0, 1, 2].map(|i| (sk[i][2].as_slice(), sk[i][3].as_slice()))),
     );
@@ -336,6 +364,35 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
             d.evaluations,
             d.seconds
         );
+        // The run's own gap under each model, domain by domain: which run of several, and
+        // which domain of it, carries what the diagnosis leaves.
+        let by_domain = |g: &super::Gap| {
+            [g.time, g.backbone, g.damping]
+                .iter()
+                .map(|x| x.map_or("–".into(), |v| format!("{v:.3}")))
+                .collect::<Vec<_>>()
+                .join(" / ")
+        };
+        let mut parts = vec![
+            format!(
+                "nominal {}",
+                r.nominal.as_ref().map_or("–".into(), |w| by_domain(&w.gap))
+            ),
+            format!("baseline {}", by_domain(&r.baseline.gap)),
+            format!("fitted {}", by_domain(&r.fitted().gap)),
+        ];
+        if let (Some(w), Some(c)) = (&r.best, d.candidates.first()) {
+            parts.push(format!(
+                "best candidate ({}) {}",
+                esc(&c.name()),
+                by_domain(&w.gap)
+            ));
+        }
+        let _ = writeln!(
+            b,
+            "<p>this run's own gap, time / backbone / damping: {}</p>",
+            parts.join(" · ")
+        );
         let model_text = |m: &crate::model::RigModel| {
             [
                 ("inertia", m.inertia),
@@ -402,6 +459,8 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
             );
         }
         b.push_str("</table>\n<p>Where the refitted model's gap lies (largest shares):</p><ul>\n");
+        // The tracked displacement's unit: rad for the rig, m for a mode of a structure.
+        let amp_unit = crate::model::key_unit_of("clearance", d.nominal.kind).unwrap_or("rad");
         for reg in r.baseline.gap.regions.iter().take(4) {
             let _ = writeln!(
                 b,
@@ -410,8 +469,8 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
                 100.0 * reg.share,
                 reg.t0,
                 reg.t1,
-                eng(reg.amp_lo, "rad"),
-                eng(reg.amp_hi, "rad"),
+                eng(reg.amp_lo, amp_unit),
+                eng(reg.amp_hi, amp_unit),
                 reg.f_lo,
                 reg.f_hi
             );
