@@ -195,6 +195,18 @@ fn skelid_gap_names_the_microslip_of_a_bolted_joint_from_levels_fitted_together(
     }
     // With a verdict there is no other candidate to show beside it.
     assert!(r["whole_run_domains"]["best_candidate"].is_null());
+    // The page says the same, in the mode's units (metres, not the rig's radians).
+    let page = std::fs::read_to_string(out.join("gap.html")).unwrap();
+    assert_eq!(
+        page.matches("this run's own gap").count(),
+        runs.len(),
+        "{page}"
+    );
+    assert!(
+        page.contains("envelope A (m)") && page.contains("A·ω (m/s)"),
+        "{page}"
+    );
+    assert!(!page.contains("(rad") && !page.contains("rad)"), "{page}");
     // The fitted model reads back, a force model with its joint.
     let fitted = std::fs::read_dir(&out)
         .unwrap()
