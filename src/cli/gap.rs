@@ -531,7 +531,7 @@ impl Terminal<'_> {
         if together {
             if first {
                 text += &format!(
-                    "\n  the mode at each run's largest amplitude (frequency Hz, damping ratio %), measured · nominal · fitted{}:",
+                    "\n  the mode at each run's largest amplitude (frequency Hz, damping ratio %), measured · nominal · fitted{}; under it, the run's own gap under each model:",
                     if d.verdict.is_some() { "" } else { " (the refitted baseline) · the best candidate" }
                 );
             }
@@ -547,31 +547,21 @@ impl Terminal<'_> {
             };
             // The run's own gap under each model, by domain: which run, and which domain of
             // it, carries what the diagnosis leaves.
-            let gap = |w: Option<&skelid::gap::Whole>| {
-                w.map_or("–".to_string(), |w| {
-                    let g = &w.gap;
-                    let part = |v: Option<f64>| v.map_or("–".into(), |v| format!("{v:.3}"));
-                    format!(
-                        "{:.3} ({} / {} / {})",
-                        g.total,
-                        part(g.time),
-                        part(g.backbone),
-                        part(g.damping)
-                    )
-                })
-            };
+            let gap =
+                |w: Option<&skelid::gap::Whole>| w.map_or("–".to_string(), |w| w.gap.by_domain());
             let best_gap = match (&r.best, d.candidates.first()) {
-                (Some(w), Some(_)) => format!(" · {}", gap(Some(w))),
+                (Some(w), Some(c)) => format!(" · {} {}", c.name(), gap(Some(w))),
                 _ => String::new(),
             };
             let line = format!(
-                "\n    {:<32} {:<8} {} · {} · {}{best}\n    {:<41} its gap (time / backbone / damping): {} · {}{best_gap}",
+                "\n    {:<32} {:<8} {} · {} · {}{best}\n    {:<41} its gap, {}: nominal {} · fitted {}{best_gap}",
                 d.run,
                 r.role.name(),
                 at(Some(&r.measured)),
                 at(r.nominal.as_ref().map(|w| &w.identified)),
                 at(Some(&r.fitted().identified)),
                 "",
+                r.baseline.gap.domains_label(),
                 gap(r.nominal.as_ref()),
                 gap(Some(r.fitted())),
             );

@@ -234,8 +234,7 @@ pub fn gap_figure_set(r: &GapRun, files: bool) -> Vec<(String, String)> {
         .iter()
         .map(|i| i.map_or_else(Default::default, skeleton))
         .collect();
-    // The tracked displacement's unit: rad for the rig, m for a mode of a structure.
-    let u = crate::model::key_unit_of("clearance", r.diagnosis.nominal.kind).unwrap_or("rad");
+    let u = r.amplitude_unit.as_str();
     let (envelope_y, amplitude_x) = (
         format!("envelope A ({u})"),
         format!("response amplitude A ({u})"),
@@ -265,7 +264,7 @@ pub fn gap_figure_set(r: &GapRun, files: bool) -> Vec<(String, String)> {
         &three([0, 1, 2].map(|i| (sk[i][0].as_slice(), sk[i][1].as_slice()))),
     );
     add(
-        if u == "rad" {
+        if r.diagnosis.nominal.kind == crate::model::ModelKind::BaseMotion {
             "Damping force per unit inertia at resonance"
         } else {
             "Damping force per unit mass at resonance"
@@ -366,13 +365,7 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
         );
         // The run's own gap under each model, domain by domain: which run of several, and
         // which domain of it, carries what the diagnosis leaves.
-        let by_domain = |g: &super::Gap| {
-            [g.time, g.backbone, g.damping]
-                .iter()
-                .map(|x| x.map_or("–".into(), |v| format!("{v:.3}")))
-                .collect::<Vec<_>>()
-                .join(" / ")
-        };
+        let by_domain = super::Gap::by_domain;
         let mut parts = vec![
             format!(
                 "nominal {}",
@@ -390,7 +383,8 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
         }
         let _ = writeln!(
             b,
-            "<p>this run's own gap, time / backbone / damping: {}</p>",
+            "<p>this run's own gap, {}: {}</p>",
+            r.baseline.gap.domains_label(),
             parts.join(" · ")
         );
         let model_text = |m: &crate::model::RigModel| {
@@ -459,8 +453,6 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
             );
         }
         b.push_str("</table>\n<p>Where the refitted model's gap lies (largest shares):</p><ul>\n");
-        // The tracked displacement's unit: rad for the rig, m for a mode of a structure.
-        let amp_unit = crate::model::key_unit_of("clearance", d.nominal.kind).unwrap_or("rad");
         for reg in r.baseline.gap.regions.iter().take(4) {
             let _ = writeln!(
                 b,
@@ -469,8 +461,8 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
                 100.0 * reg.share,
                 reg.t0,
                 reg.t1,
-                eng(reg.amp_lo, amp_unit),
-                eng(reg.amp_hi, amp_unit),
+                eng(reg.amp_lo, &r.amplitude_unit),
+                eng(reg.amp_hi, &r.amplitude_unit),
                 reg.f_lo,
                 reg.f_hi
             );

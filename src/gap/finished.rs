@@ -36,6 +36,9 @@ pub struct GapRun {
     /// Where the verdict is `none`: the best candidate over the whole run (how near the
     /// nearest explanation came, for the page and gap.json).
     pub best: Option<Whole>,
+    /// The tracked displacement's unit as the run's archive states it (`rad`, `m`, … or
+    /// `u`): the page names it as report.html does for the same run.
+    pub amplitude_unit: String,
 }
 
 impl GapRun {
@@ -81,7 +84,7 @@ impl GapRun {
             },
             || best_model.and_then(|m| reference.whole_of(i, m).ok()),
         );
-        let (_, measured, role) = reference.measured(i);
+        let (run, measured, role) = reference.measured(i);
         let mut together = (Vec::new(), Vec::new());
         if reference.len() > 1 {
             for j in 0..reference.len() {
@@ -101,6 +104,7 @@ impl GapRun {
             fitted: fitted?,
             best,
             zero_tolerance: reference.zero_tolerance(),
+            amplitude_unit: crate::units::Units::of(&run.meta).displacement,
             diagnosis,
         })
     }

@@ -103,6 +103,29 @@ pub struct Gap {
     pub regions: Vec<Region>,
 }
 
+impl Gap {
+    /// `total (time / backbone / damping[ / waveform])` to three decimals, `–` for a domain
+    /// with nothing compared: one run's gap on the terminal and the page, after
+    /// [`Gap::domains_label`].
+    pub fn by_domain(&self) -> String {
+        let part = |v: Option<f64>| v.map_or("–".into(), |v| format!("{v:.3}"));
+        let mut parts = vec![part(self.time), part(self.backbone), part(self.damping)];
+        if self.waveform.is_some() {
+            parts.push(part(self.waveform));
+        }
+        format!("{:.3} ({})", self.total, parts.join(" / "))
+    }
+
+    /// What [`Gap::by_domain`] lists: the total, then its domains by name.
+    pub fn domains_label(&self) -> &'static str {
+        if self.waveform.is_some() {
+            "total (time / backbone / damping / waveform)"
+        } else {
+            "total (time / backbone / damping)"
+        }
+    }
+}
+
 /// One domain's squared errors with their weights and where they lie.
 pub(super) struct Errors {
     /// (weight, squared error, region index)
