@@ -323,3 +323,62 @@ against {:?}",
     assert!(c.shrink > 0.8, "{}", c.shrink);
     assert!(c.score.holdout_on(&q) < 0.2 * d.baseline.score.holdout_on(&q));
 }
+
+#[test]
+fn with_no_verdict_each_run_shows_the_best_candidate_s_own_gap() {
+    // The linear mode itself at the four levels, a microslip searched for on a small budget:
+    // nothing to find, no verdict, and the best candidate is shown beside the baseline run by
+    // run (the F-16's case).
+    let runs: Vec<_> = levels(&structure_mode())
+        .into_iter()
+        .map(|r| r.into_run())
+        .collect();
+    let reference = fit_1_3_hold_2_4(&runs);
+    let opt = SearchOptions {
+        baseline_evaluations: 10,
+        candidate_evaluations: 5,
+        refine: 1,
+        pairs: false,
+        effects: vec![EffectKind::Microslip],
+        ..SearchOptions::default()
+    };
+    let d = diagnose(&reference, &structure_mode(), &opt).unwrap();
+    assert_eq!(d.verdict, None, "{:?}", d.candidates[0].shrink);
+    let best = &d.candidates[0];
+    let held: Vec<serde_json::Value> = skelid::gap::GapRun::every(&reference, &d)
+        .into_iter()
+        .map(Result::unwrap)
+        .filter(|r| r.role == skelid::gap::search::Role::Holdout)
+        .map(|r| skelid::gap::export::run_json(&r))
+        .collect();
+    assert_eq!(held.len(), 2);
+    // Its held-out gap is the root mean square of the held-out runs' own, in total and by
+    // domain, as the baseline's is.
+    let rms = |get: &dyn Fn(&serde_json::Value) -> Option<f64>| {
+        let v: Vec<f64> = held.iter().filter_map(get).collect();
+        assert_eq!(v.len(), held.len());
+        (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt()
+    };
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 + 1e-6 * b.abs();
+    let total = rms(&|r| r["whole_run_gap"]["best_candidate"].as_f64());
+    assert!(close(total, best.score.holdout), "{total} {:?}", best.score);
+    for (i, domain) in ["time", "backbone", "damping"].into_iter().enumerate() {
+        let got = rms(&|r| r["whole_run_domains"]["best_candidate"][domain].as_f64());
+        assert!(
+            close(got, best.score.domains[i].unwrap()),
+            "{domain}: {got}"
+        );
+    }
+    // The fitted model is the baseline's, and so are its gaps.
+    for r in &held {
+        assert_eq!(r["whole_run_gap"]["fitted"], r["whole_run_gap"]["baseline"]);
+        assert_eq!(
+            r["whole_run_domains"]["fitted"],
+            r["whole_run_domains"]["baseline"]
+        );
+        assert_eq!(
+            r["at_largest_amplitude"]["best_candidate"]["effect"],
+            best.name()
+        );
+    }
+}
