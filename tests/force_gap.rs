@@ -186,6 +186,10 @@ fn skelid_gap_names_the_microslip_of_a_bolted_joint_from_levels_fitted_together(
     for (model, score) in [("fitted", verdict), ("baseline", &r["baseline"])] {
         let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 + 1e-6 * b.abs();
         let total = rms(&|r| r["whole_run_gap"][model].as_f64());
+        println!(
+            "{model}: held-out runs' RMS {total:.6}, held-out gap {}",
+            score["gap_holdout"]
+        );
         assert!(
             close(total, score["gap_holdout"].as_f64().unwrap()),
             "{model}: {total} {score}"
@@ -361,6 +365,11 @@ fn with_no_verdict_each_run_shows_the_best_candidate_s_own_gap() {
     };
     let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 + 1e-6 * b.abs();
     let total = rms(&|r| r["whole_run_gap"]["best_candidate"].as_f64());
+    println!(
+        "best candidate {}: held-out runs' RMS {total:.6}, held-out gap {:.6}",
+        best.name(),
+        best.score.holdout
+    );
     assert!(close(total, best.score.holdout), "{total} {:?}", best.score);
     for (i, domain) in ["time", "backbone", "damping"].into_iter().enumerate() {
         let got = rms(&|r| r["whole_run_domains"]["best_candidate"][domain].as_f64());

@@ -541,20 +541,18 @@ impl Terminal<'_> {
                         format!("{:.3} Hz {:.2} %", a.frequency, 100.0 * a.damping_ratio)
                     })
             };
-            let best = match (&r.best, d.candidates.first()) {
-                (Some(w), Some(c)) => format!(" · {} {}", c.name(), at(Some(&w.identified))),
-                _ => String::new(),
-            };
+            let best = r.best_candidate().map_or(String::new(), |(name, w)| {
+                format!(" · {name} {}", at(Some(&w.identified)))
+            });
             // The run's own gap under each model, by domain: which run, and which domain of
             // it, carries what the diagnosis leaves.
-            let gap =
-                |w: Option<&skelid::gap::Whole>| w.map_or("–".to_string(), |w| w.gap.by_domain());
-            let best_gap = match (&r.best, d.candidates.first()) {
-                (Some(w), Some(c)) => format!(" · {} {}", c.name(), gap(Some(w))),
-                _ => String::new(),
-            };
+            let gaps: Vec<String> = r
+                .own_gaps()
+                .into_iter()
+                .map(|(name, g)| format!("{name} {}", g.by_domain()))
+                .collect();
             let line = format!(
-                "\n    {:<32} {:<8} {} · {} · {}{best}\n    {:<41} its gap, {}: nominal {} · fitted {}{best_gap}",
+                "\n    {:<32} {:<8} {} · {} · {}{best}\n    {:<41} its gap, {}: {}",
                 d.run,
                 r.role.name(),
                 at(Some(&r.measured)),
@@ -562,8 +560,7 @@ impl Terminal<'_> {
                 at(Some(&r.fitted().identified)),
                 "",
                 r.baseline.gap.domains_label(),
-                gap(r.nominal.as_ref()),
-                gap(Some(r.fitted())),
+                gaps.join(" · "),
             );
             if first {
                 text += &line;

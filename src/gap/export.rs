@@ -119,9 +119,9 @@ pub fn run_json(r: &GapRun) -> Value {
         "baseline": gap_domains(&r.baseline.gap),
         "fitted": gap_domains(&r.fitted().gap),
     });
-    if let (Some(best), Some(c)) = (&r.best, d.candidates.first()) {
+    if let Some((name, best)) = r.best_candidate() {
         entry["at_largest_amplitude"]["best_candidate"] = largest(&best.identified);
-        entry["at_largest_amplitude"]["best_candidate"]["effect"] = json!(c.name());
+        entry["at_largest_amplitude"]["best_candidate"]["effect"] = json!(name);
         entry["whole_run_gap"]["best_candidate"] = num(best.gap.total);
         entry["whole_run_domains"]["best_candidate"] = gap_domains(&best.gap);
     }
@@ -365,22 +365,11 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
         );
         // The run's own gap under each model, domain by domain: which run of several, and
         // which domain of it, carries what the diagnosis leaves.
-        let by_domain = super::Gap::by_domain;
-        let mut parts = vec![
-            format!(
-                "nominal {}",
-                r.nominal.as_ref().map_or("–".into(), |w| by_domain(&w.gap))
-            ),
-            format!("baseline {}", by_domain(&r.baseline.gap)),
-            format!("fitted {}", by_domain(&r.fitted().gap)),
-        ];
-        if let (Some(w), Some(c)) = (&r.best, d.candidates.first()) {
-            parts.push(format!(
-                "best candidate ({}) {}",
-                esc(&c.name()),
-                by_domain(&w.gap)
-            ));
-        }
+        let parts: Vec<String> = r
+            .own_gaps()
+            .into_iter()
+            .map(|(name, g)| format!("{} {}", esc(&name), g.by_domain()))
+            .collect();
         let _ = writeln!(
             b,
             "<p>this run's own gap, {}: {}</p>",

@@ -113,4 +113,29 @@ impl GapRun {
     pub fn fitted(&self) -> &Whole {
         self.fitted.as_ref().unwrap_or(&self.baseline)
     }
+
+    /// Where the verdict is `none`, the best candidate over the whole run with its name.
+    pub fn best_candidate(&self) -> Option<(String, &Whole)> {
+        let c = self.diagnosis.candidates.first()?;
+        self.best.as_ref().map(|w| (c.name(), w))
+    }
+
+    /// This run's own gap under each model, named, as the terminal and gap.html show it:
+    /// the nominal (when its response could be identified), the baseline only where a
+    /// verdict makes the fitted model another, the fitted model, and the best candidate
+    /// where there is no verdict.
+    pub fn own_gaps(&self) -> Vec<(String, &Gap)> {
+        let mut gaps = Vec::new();
+        if let Some(w) = &self.nominal {
+            gaps.push(("nominal".to_string(), &w.gap));
+        }
+        if self.fitted.is_some() {
+            gaps.push(("baseline".to_string(), &self.baseline.gap));
+        }
+        gaps.push(("fitted".to_string(), &self.fitted().gap));
+        if let Some((name, w)) = self.best_candidate() {
+            gaps.push((name, &w.gap));
+        }
+        gaps
+    }
 }
