@@ -149,6 +149,29 @@ pub struct MicroslipParam {
     /// bolted interface that holds until its preload gives).
     #[serde(default = "full_spread", skip_serializing_if = "is_full_spread")]
     pub spread: f64,
+    /// The stiffness of a second, fine population of the joint, N m/rad (N/m; 0:
+    /// optional, the default, none): [`FINE_ELEMENTS`] Jenkins elements whose slip
+    /// displacements spread evenly over (0, `fine_slip`], part of the model's `stiffness`
+    /// like `joint_stiffness`. The small asperities of an interface that have finished
+    /// slipping long before its bolt gives: loss that rises from zero amplitude and
+    /// saturates at `fine_slip`, beside a joint that holds until a sharp onset.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub fine_stiffness: f64,
+    /// The fine population's largest slip displacement, rad (m): every one of its elements
+    /// slides beyond it (with `fine_stiffness`; 0 without a fine population).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub fine_slip: f64,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
+}
+
+impl MicroslipParam {
+    /// Whether the joint has a fine population.
+    pub fn has_fine(&self) -> bool {
+        self.fine_stiffness > 0.0 && self.fine_slip > 0.0
+    }
 }
 
 fn full_spread() -> f64 {
@@ -161,6 +184,9 @@ fn is_full_spread(v: &f64) -> bool {
 
 /// Jenkins elements of a [`MicroslipParam`]'s Iwan element.
 pub const IWAN_ELEMENTS: usize = 16;
+
+/// Jenkins elements of a [`MicroslipParam`]'s fine population.
+pub const FINE_ELEMENTS: usize = 8;
 
 /// The joint stiffness a microslip effect starts with when it is added to a model without
 /// one, as a share of the model's stiffness.
@@ -378,14 +404,14 @@ impl Effects {
             // The joint stiffness is kept; a microslip set where there was none has none
             // until `RigModel::set_effect` (or `set_joint_stiffness`) gives it one.
             EffectKind::Microslip => {
-                let (joint_stiffness, spread) = self
-                    .microslip
-                    .map_or((0.0, 1.0), |p| (p.joint_stiffness, p.spread));
-                self.microslip = value.map(|slip_force| MicroslipParam {
-                    slip_force,
-                    joint_stiffness,
-                    spread,
-                })
+                let kept = self.microslip.unwrap_or(MicroslipParam {
+                    slip_force: 0.0,
+                    joint_stiffness: 0.0,
+                    spread: 1.0,
+                    fine_stiffness: 0.0,
+                    fine_slip: 0.0,
+                });
+                self.microslip = value.map(|slip_force| MicroslipParam { slip_force, ..kept })
             }
         }
     }
@@ -406,6 +432,15 @@ impl Effects {
     pub fn set_spread(&mut self, value: f64) {
         if let Some(p) = &mut self.microslip {
             p.spread = value;
+        }
+    }
+
+    /// Sets the microslip's fine population, stiffness and largest slip (nothing without a
+    /// microslip; zeros remove it).
+    pub fn set_fine(&mut self, stiffness: f64, slip: f64) {
+        if let Some(p) = &mut self.microslip {
+            p.fine_stiffness = stiffness;
+            p.fine_slip = slip;
         }
     }
 
@@ -568,6 +603,29 @@ impl RigModel {
                 ));
             }
         }
+        if let Some(p) = self.effects.microslip {
+            finite("fine_stiffness", p.fine_stiffness)?;
+            finite("fine_slip", p.fine_slip)?;
+            if p.fine_stiffness < 0.0 || p.fine_slip < 0.0 {
+                return Err(format!(
+                    "effect `microslip`: `fine_stiffness` = {} N m/rad and `fine_slip` = {} rad must not be negative",
+                    p.fine_stiffness, p.fine_slip
+                ));
+            }
+            if (p.fine_stiffness > 0.0) != (p.fine_slip > 0.0) {
+                return Err(format!(
+                    "effect `microslip`: a fine population needs both `fine_stiffness` and `fine_slip` (got {} N m/rad and {} rad): give both, or neither",
+                    p.fine_stiffness, p.fine_slip
+                ));
+            }
+            if p.joint_stiffness + p.fine_stiffness > self.stiffness {
+                return Err(format!(
+                    "effect `microslip`: `joint_stiffness` + `fine_stiffness` = {} N m/rad is more than `stiffness` = {} (both populations are part of the model's stiffness)",
+                    p.joint_stiffness + p.fine_stiffness,
+                    self.stiffness
+                ));
+            }
+        }
         if let Some(k) = self.kind_mismatch() {
             return Err(k);
         }
@@ -670,7 +728,8 @@ pub fn key_unit(key: &str) -> Option<&'static str> {
         "damping" => "N m s/rad",
         "clearance" => "rad",
         "gravity_stiffness" => "1/s^2",
-        "joint_stiffness" => "N m/rad",
+        "joint_stiffness" | "fine_stiffness" => "N m/rad",
+        "fine_slip" => "rad",
         _ => EffectKind::EVERY
             .into_iter()
             .find(|k| k.param() == key)?
@@ -843,6 +902,32 @@ microslip = { slip_force = 98.0, joint_stiffness = 1.0e5 }
             .unwrap_err()
             .to_string();
         assert!(e.contains("band"), "{e}");
+        // A fine population: both keys, round-tripped, kept when the slip force is set;
+        // one key alone, or both populations stiffer than the model, refused.
+        let fine = text.replace(
+            "joint_stiffness = 1.0e5 }",
+            "joint_stiffness = 1.0e5, fine_stiffness = 5.0e3, fine_slip = 4.0e-4 }",
+        );
+        let mut m = RigModel::from_toml_str(&fine, "f").unwrap();
+        let p = m.effects.microslip.unwrap();
+        assert!(p.has_fine() && p.fine_stiffness == 5.0e3 && p.fine_slip == 4.0e-4);
+        assert_eq!(RigModel::from_toml_str(&m.to_toml(), "rt").unwrap(), m);
+        m.effects.set(EffectKind::Microslip, Some(120.0));
+        assert_eq!(m.effects.microslip.unwrap().fine_slip, 4.0e-4);
+        // A joint without one writes no fine keys (older readers of the model stay happy).
+        let plain_joint = RigModel::from_toml_str(text, "f").unwrap();
+        assert!(!plain_joint.to_toml().contains("fine"));
+        let e = RigModel::from_toml_str(&fine.replace(", fine_slip = 4.0e-4", ""), "f")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("fine_slip") && e.contains("both"), "{e}");
+        let e = RigModel::from_toml_str(&fine.replace("5.0e3", "9.0e5"), "f")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("fine_stiffness") && e.contains("stiffness"),
+            "{e}"
+        );
         // Added where there was none, a microslip gets a tenth of the stiffness.
         let mut plain = RigModel::paper();
         plain.set_effect(EffectKind::Microslip, Some(5.0));

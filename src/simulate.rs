@@ -429,9 +429,10 @@ struct Rig<'a> {
     offset: f64,
     k3: f64,
     c_contact: f64,
-    /// The microslip's Jenkins elements: each one's stiffness, and their slip
-    /// displacements (empty without microslip).
-    jenkins_stiffness: f64,
+    /// The microslip's Jenkins elements: the stiffness of each of the joint's
+    /// [`crate::model::IWAN_ELEMENTS`] and of each of its fine population's (which follow
+    /// them in `slip`), and every element's slip displacement (empty without microslip).
+    jenkins: [f64; 2],
     slip: Vec<f64>,
     /// Each element's slider position on z, moved only after a step is taken: within one
     /// step the element is elastic-perfectly-plastic on its frozen slider, which its force
@@ -449,19 +450,30 @@ impl<'a> Rig<'a> {
         use crate::model::EffectKind::*;
         // The Iwan element: slip displacements spread evenly over ((1 − w)u, (1 + w)u] about
         // u = F/kj, so that the elements' slip forces sum to F; its stiffness is part of k.
-        let (kj, slip) = match e.microslip {
+        // A fine population adds elements whose slips spread evenly over (0, fine_slip].
+        let (kj, jenkins, slip) = match e.microslip {
             Some(p) if p.slip_force > 0.0 && p.joint_stiffness > 0.0 => {
                 let n = crate::model::IWAN_ELEMENTS;
                 let u = p.slip_force / p.joint_stiffness;
                 let w = p.spread.clamp(1e-6, 1.0);
-                (
-                    p.joint_stiffness.min(model.stiffness),
-                    (0..n)
-                        .map(|i| u * (1.0 - w + w * (2 * i + 1) as f64 / n as f64))
-                        .collect(),
-                )
+                let kj = p.joint_stiffness.min(model.stiffness);
+                let mut jenkins = [kj / n as f64, 0.0];
+                let mut slip: Vec<f64> = (0..n)
+                    .map(|i| u * (1.0 - w + w * (2 * i + 1) as f64 / n as f64))
+                    .collect();
+                let kf = if p.has_fine() {
+                    p.fine_stiffness.min(model.stiffness - kj)
+                } else {
+                    0.0
+                };
+                if kf > 0.0 {
+                    let m = crate::model::FINE_ELEMENTS;
+                    jenkins[1] = kf / m as f64;
+                    slip.extend((0..m).map(|i| p.fine_slip * (i + 1) as f64 / m as f64));
+                }
+                (kj + kf, jenkins, slip)
             }
-            _ => (0.0, Vec::new()),
+            _ => (0.0, [0.0; 2], Vec::new()),
         };
         Rig {
             j: model.inertia,
@@ -474,11 +486,7 @@ impl<'a> Rig<'a> {
             offset: get(AsymmetricClearance),
             k3: get(CubicStiffness),
             c_contact: get(ContactDamping),
-            jenkins_stiffness: if slip.is_empty() {
-                0.0
-            } else {
-                kj / slip.len() as f64
-            },
+            jenkins,
             sliders: std::cell::RefCell::new(vec![0.0; slip.len()]),
             slip,
             drive,
@@ -502,12 +510,23 @@ impl<'a> Rig<'a> {
     #[inline(never)]
     fn iwan(&self, z: f64) -> f64 {
         let sliders = self.sliders.borrow();
-        let stretch: f64 = sliders
-            .iter()
-            .zip(&self.slip)
-            .map(|(x, p)| (z - x).clamp(-p, *p))
-            .sum();
-        self.jenkins_stiffness * stretch
+        // Each population's stretches summed before its one element stiffness multiplies
+        // them: a joint without a fine population gives the same bits as before it existed.
+        let stretch = |from: usize, to: usize| -> f64 {
+            sliders[from..to]
+                .iter()
+                .zip(&self.slip[from..to])
+                .map(|(x, p)| (z - x).clamp(-p, *p))
+                .sum()
+        };
+        let (n, all) = (crate::model::IWAN_ELEMENTS, self.slip.len());
+        let [kj, kf] = self.jenkins;
+        let joint = kj * stretch(0, n);
+        if all > n {
+            joint + kf * stretch(n, all)
+        } else {
+            joint
+        }
     }
 
     /// Moves the microslip's sliders to where relative displacement z has dragged them.
@@ -941,16 +960,31 @@ pub fn mechanical_energy(model: &RigModel, theta: f64, omega: f64) -> f64 {
 mod tests {
     use super::*;
 
-    /// A force model with only its microslip joint (slip force 2 N, joint stiffness 1000 N/m,
-    /// so the last element slips at 2F/kj = 4 mm).
-    fn iwan_rig(drive: &Drive) -> Rig<'_> {
+    /// A force model of `stiffness` with only its microslip joint (slip force 2 N, joint
+    /// stiffness 1000 N/m, so the last element slips at 2F/kj = 4 mm) and, where given,
+    /// a fine population (stiffness, largest slip).
+    fn iwan_model(stiffness: f64, fine: Option<(f64, f64)>) -> RigModel {
         let mut m = RigModel::paper();
         m.kind = crate::model::ModelKind::Force;
         m.clearance = 0.0;
-        m.stiffness = 1000.0;
+        m.stiffness = stiffness;
         m.set_effect(crate::model::EffectKind::Microslip, Some(2.0));
         m.effects.set_joint_stiffness(1000.0);
-        Rig::new(&m, drive)
+        if let Some((k, slip)) = fine {
+            m.effects.set_fine(k, slip);
+        }
+        m.validate().unwrap();
+        m
+    }
+
+    /// [`iwan_model`]'s rig without a fine population, all of its stiffness in the joint.
+    fn iwan_rig(drive: &Drive) -> Rig<'_> {
+        Rig::new(&iwan_model(1000.0, None), drive)
+    }
+
+    /// 401 displacements from a to b.
+    fn ramp(a: f64, b: f64) -> Vec<f64> {
+        (0..=400).map(|i| a + (b - a) * i as f64 / 400.0).collect()
     }
 
     /// The joint's force at z after the displacement history `path` (each point committed).
@@ -965,9 +999,6 @@ mod tests {
     fn the_iwan_element_is_a_spring_stuck_a_slider_at_macroslip_and_masing_between() {
         let drive = Drive::Free {
             initial_offset: 0.0,
-        };
-        let ramp = |a: f64, b: f64| -> Vec<f64> {
-            (0..=400).map(|i| a + (b - a) * i as f64 / 400.0).collect()
         };
         // Stuck (below the first element's slip at 0.125 mm): the joint stiffness itself.
         let rig = iwan_rig(&drive);
@@ -994,6 +1025,56 @@ mod tests {
         let virgin = |x: f64| 1000.0 * (x - x * x / (2.0 * phi));
         let masing = f - 2.0 * virgin(0.5 * delta);
         assert!((back - masing).abs() < 0.01 * f, "{back} vs {masing}");
+    }
+
+    #[test]
+    fn a_fine_population_adds_a_uniform_iwan_that_saturates_at_its_largest_slip() {
+        let drive = Drive::Free {
+            initial_offset: 0.0,
+        };
+        // The joint of `iwan_rig` with a fine population of 200 N/m slipping over (0, 0.5 mm].
+        let (kf, phi_f) = (200.0, 5e-4);
+        let model = iwan_model(1500.0, Some((kf, phi_f)));
+        let fine_rig = |drive| Rig::new(&model, drive);
+        // Its stiffness is part of the model's: the linear spring is what is left.
+        let rig = fine_rig(&drive);
+        assert!((rig.k - 300.0).abs() < 1e-12, "{}", rig.k);
+        // Below the first fine element's slip (φ_f/8): both populations are springs.
+        let f = joint_after(&rig, &ramp(0.0, 2e-5));
+        assert!((f - 1200.0 * 2e-5).abs() < 1e-12, "{f}");
+        // Virgin loading within the fine population's range: the main joint's curve plus
+        // the fine one's, each within its discretisation. The fine population's elements
+        // slip at φ_f·i/m (i = 1..m), so at u its force is kf/m·Σ min(u, φ_f·i/m).
+        let virgin = |u: f64, k: f64, phi: f64| k * (u - u * u / (2.0 * phi));
+        let fine_exact = |u: f64| {
+            let m = crate::model::FINE_ELEMENTS;
+            (1..=m)
+                .map(|i| kf / m as f64 * u.min(phi_f * i as f64 / m as f64))
+                .sum::<f64>()
+        };
+        let rig = fine_rig(&drive);
+        let u = 3e-4;
+        let f = joint_after(&rig, &ramp(0.0, u));
+        let exact = virgin(u, 1000.0, 4e-3) + fine_exact(u);
+        assert!((f - exact).abs() < 0.01 * exact, "{f} vs {exact}");
+        // Past φ_f the fine population slides as a whole at its slip force, the sum of its
+        // elements' (kf·φ_f·(m + 1)/(2m)), on top of the main joint's virgin curve.
+        let rig = fine_rig(&drive);
+        let u = 2e-3;
+        let f = joint_after(&rig, &ramp(0.0, u));
+        let m = crate::model::FINE_ELEMENTS as f64;
+        let exact = virgin(u, 1000.0, 4e-3) + kf * phi_f * (m + 1.0) / (2.0 * m);
+        assert!((f - exact).abs() < 0.01 * exact, "{f} vs {exact}");
+        assert!((fine_exact(u) - kf * phi_f * (m + 1.0) / (2.0 * m)).abs() < 1e-12);
+        // Without a fine population the joint is bit for bit the one before it existed.
+        let plain = iwan_rig(&drive);
+        let unset_model = iwan_model(1000.0, Some((0.0, 0.0)));
+        let unset = Rig::new(&unset_model, &drive);
+        let path = ramp(0.0, 3e-3);
+        assert_eq!(
+            joint_after(&plain, &path).to_bits(),
+            joint_after(&unset, &path).to_bits()
+        );
     }
 
     #[test]

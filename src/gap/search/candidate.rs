@@ -152,10 +152,18 @@ impl Candidate {
                     .flatten()
                     .into_iter()
                     .flat_map(move |p| {
+                        let fine = p.has_fine().then(|| {
+                            [
+                                (key(k, "fine_stiffness"), p.fine_stiffness),
+                                (key(k, "fine_slip"), p.fine_slip),
+                            ]
+                        });
                         [
                             (key(k, "joint_stiffness"), p.joint_stiffness),
                             (key(k, "spread"), p.spread),
                         ]
+                        .into_iter()
+                        .chain(fine.into_iter().flatten())
                     });
                 std::iter::once((key(k, k.param()), v)).chain(joint)
             })

@@ -87,6 +87,19 @@ impl Coordinates<'_> {
                 m.effects
                     .set_spread((1.0 / (1.0 + (-u).exp())).clamp(1e-3, 1.0));
                 at += 1;
+                // A fine population (where the base has one) moves by the logarithms of
+                // its stiffness and of its largest slip; both populations together stay
+                // within the model's stiffness.
+                if let Some(p) = b.effects.microslip.filter(|p| p.has_fine()) {
+                    let kj = m.effects.joint_stiffness().unwrap_or(0.0);
+                    let kf = (p.fine_stiffness * x[at].exp() * gain).min(m.stiffness - kj);
+                    if kf > 0.0 {
+                        m.effects.set_fine(kf, p.fine_slip * x[at + 1].exp());
+                    } else {
+                        m.effects.set_fine(0.0, 0.0);
+                    }
+                    at += 2;
+                }
             }
         }
         m
@@ -116,6 +129,9 @@ impl Coordinates<'_> {
             x.push(if by_log(k) { 0.0 } else { 1.0 });
             if k == EffectKind::Microslip {
                 x.extend([0.0, 0.0]);
+                if has_fine(self.base) {
+                    x.extend([0.0, 0.0]);
+                }
             }
         }
         x
@@ -227,6 +243,12 @@ pub(super) fn joint_start(model: &RigModel) -> f64 {
         .joint_stiffness()
         .filter(|k| *k > 0.0)
         .unwrap_or(JOINT_SHARE * model.stiffness)
+}
+
+/// Whether `model`'s microslip has a fine population (whose two parameters are then
+/// coordinates of its fits).
+fn has_fine(model: &RigModel) -> bool {
+    model.effects.microslip.is_some_and(|p| p.has_fine())
 }
 
 /// The spread a microslip's fit starts from on `model`: its own (kept off the ends of

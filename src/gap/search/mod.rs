@@ -12,7 +12,9 @@
 //! damping into 60 % more viscous damping) stayed absorbed. Quantization is not searched:
 //! its step is read off the lattice the samples lie on; the mode's own parameters are
 //! refitted with the step held where the lattice is new to the model (on the time domain
-//! alone, against the model refitted there without it, in a force or free model).
+//! alone, against the model refitted there without it, in a force or free model). A force
+//! or free model's `cubic_stiffness + microslip` pair gets a second start in the basin of
+//! a bolted joint that holds until a sharp onset ([`joint`]).
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
@@ -21,6 +23,7 @@ use rayon::prelude::*;
 
 mod candidate;
 mod fit;
+mod joint;
 
 use candidate::{fitter, ready_for, refit, Side};
 pub use candidate::{signature, Candidate};
@@ -774,7 +777,10 @@ pub fn diagnose(
     }
     best_first(&mut candidates);
     borderline(reference, &mut candidates, opt, &base);
-    pairs(reference, &mut candidates, opt, &base);
+    if pairs(reference, &mut candidates, opt, &base) && joint::applies(nominal, opt) {
+        joint::second_start(reference, &mut candidates, &baseline, opt, &base);
+        best_first(&mut candidates);
+    }
     let verdict = verdict(&baseline, &candidates);
     Ok(Diagnosis {
         run: reference.run().meta.path.clone(),
@@ -1120,13 +1126,13 @@ fn borderline(
 }
 
 /// The pairs of effects, added to `candidates` (best first) when the best single
-/// effect leaves much of the gap.
+/// effect leaves much of the gap; whether they were.
 fn pairs(
     reference: &Reference,
     candidates: &mut Vec<Candidate>,
     opt: &SearchOptions,
     base: &Score,
-) {
+) -> bool {
     // Pairs, when the best single effect leaves much of the gap: from the better single's
     // model, the other effect at its own fitted value.
     let leaves_much = candidates
@@ -1179,7 +1185,9 @@ fn pairs(
         }
         candidates.extend(fitted);
         best_first(candidates);
+        return true;
     }
+    false
 }
 
 /// The verdict, an index into `candidates`: the best single effect if significant against
