@@ -134,7 +134,10 @@ impl ModelKind {
 /// amplitude); as the amplitude grows its elements slip one after another (softening and
 /// hysteretic damping growing with amplitude, the microslip of a bolted interface) until
 /// it slides as a whole at `slip_force` (macroslip: the stiffness has fallen to
-/// `stiffness − joint_stiffness`).
+/// `stiffness − joint_stiffness`). Optional, `fine_stiffness` and `fine_slip`: a second,
+/// fine population beside it (then macroslip leaves `stiffness − joint_stiffness −
+/// fine_stiffness`, and the joint slides at `slip_force` plus the fine population's
+/// fine_stiffness·fine_slip·(m + 1)/(2m), m = [`FINE_ELEMENTS`]).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MicroslipParam {
@@ -151,10 +154,10 @@ pub struct MicroslipParam {
     pub spread: f64,
     /// The stiffness of a second, fine population of the joint, N m/rad (N/m; 0:
     /// optional, the default, none): [`FINE_ELEMENTS`] Jenkins elements whose slip
-    /// displacements spread evenly over (0, `fine_slip`], part of the model's `stiffness`
-    /// like `joint_stiffness`. The small asperities of an interface that have finished
-    /// slipping long before its bolt gives: loss that rises from zero amplitude and
-    /// saturates at `fine_slip`, beside a joint that holds until a sharp onset.
+    /// displacements lie at `fine_slip`·i/m (i = 1..m: evenly over (0, `fine_slip`]), part
+    /// of the model's `stiffness` like `joint_stiffness`. The small asperities of an
+    /// interface: loss that rises from zero amplitude and saturates at `fine_slip`, beside
+    /// a joint that holds until a sharp onset (below the onset or beyond it, as fitted).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub fine_stiffness: f64,
     /// The fine population's largest slip displacement, rad (m): every one of its elements
@@ -618,7 +621,8 @@ impl RigModel {
                     p.fine_stiffness, p.fine_slip
                 ));
             }
-            if p.joint_stiffness + p.fine_stiffness > self.stiffness {
+            // A relative margin: a fit shrinks both populations to within 1e-9 of it.
+            if p.joint_stiffness + p.fine_stiffness > self.stiffness * (1.0 + 1e-12) {
                 return Err(format!(
                     "effect `microslip`: `joint_stiffness` + `fine_stiffness` = {} N m/rad is more than `stiffness` = {} (both populations are part of the model's stiffness)",
                     p.joint_stiffness + p.fine_stiffness,

@@ -1042,37 +1042,51 @@ mod tests {
         // Below the first fine element's slip (φ_f/8): both populations are springs.
         let f = joint_after(&rig, &ramp(0.0, 2e-5));
         assert!((f - 1200.0 * 2e-5).abs() < 1e-12, "{f}");
-        // Virgin loading within the fine population's range: the main joint's curve plus
-        // the fine one's, each within its discretisation. The fine population's elements
-        // slip at φ_f·i/m (i = 1..m), so at u its force is kf/m·Σ min(u, φ_f·i/m).
-        let virgin = |u: f64, k: f64, phi: f64| k * (u - u * u / (2.0 * phi));
+        // The fine population's force alone, the same joint without it taken away: its
+        // elements slip at φ_f·i/m (i = 1..m), so on virgin loading to u its force is
+        // kf/m·Σ min(u, φ_f·i/m), and past φ_f it slides as a whole at the sum of its
+        // elements' slip forces, kf·φ_f·(m + 1)/(2m).
+        let m = crate::model::FINE_ELEMENTS;
         let fine_exact = |u: f64| {
-            let m = crate::model::FINE_ELEMENTS;
             (1..=m)
                 .map(|i| kf / m as f64 * u.min(phi_f * i as f64 / m as f64))
                 .sum::<f64>()
         };
-        let rig = fine_rig(&drive);
-        let u = 3e-4;
-        let f = joint_after(&rig, &ramp(0.0, u));
-        let exact = virgin(u, 1000.0, 4e-3) + fine_exact(u);
-        assert!((f - exact).abs() < 0.01 * exact, "{f} vs {exact}");
-        // Past φ_f the fine population slides as a whole at its slip force, the sum of its
-        // elements' (kf·φ_f·(m + 1)/(2m)), on top of the main joint's virgin curve.
-        let rig = fine_rig(&drive);
-        let u = 2e-3;
-        let f = joint_after(&rig, &ramp(0.0, u));
-        let m = crate::model::FINE_ELEMENTS as f64;
-        let exact = virgin(u, 1000.0, 4e-3) + kf * phi_f * (m + 1.0) / (2.0 * m);
-        assert!((f - exact).abs() < 0.01 * exact, "{f} vs {exact}");
-        assert!((fine_exact(u) - kf * phi_f * (m + 1.0) / (2.0 * m)).abs() < 1e-12);
-        // Without a fine population the joint is bit for bit the one before it existed.
+        let without = iwan_model(1500.0, None);
+        let fine_alone = |u: f64| {
+            let path = ramp(0.0, u);
+            joint_after(&fine_rig(&drive), &path) - joint_after(&Rig::new(&without, &drive), &path)
+        };
+        for u in [1e-4, 3e-4, 4.9e-4] {
+            let (got, exact) = (fine_alone(u), fine_exact(u));
+            assert!((got - exact).abs() < 1e-12, "{u}: {got} vs {exact}");
+        }
+        let slides = kf * phi_f * (m + 1) as f64 / (2 * m) as f64;
+        for u in [6e-4, 2e-3] {
+            assert!((fine_alone(u) - slides).abs() < 1e-12, "{u}");
+        }
+        // Without a fine population the joint is bit for bit the one before it existed:
+        // one element stiffness times the sum of the 16 elements' stretches.
         let plain = iwan_rig(&drive);
+        let path = ramp(0.0, 3e-3);
+        let z = 2.5e-3;
+        for &x in &path {
+            plain.commit(x);
+        }
+        plain.commit(z);
+        let before: f64 = 1000.0 / 16.0
+            * plain
+                .sliders
+                .borrow()
+                .iter()
+                .zip(&plain.slip)
+                .map(|(x, p)| (z - x).clamp(-p, *p))
+                .sum::<f64>();
+        assert_eq!(plain.joint(z).to_bits(), before.to_bits());
         let unset_model = iwan_model(1000.0, Some((0.0, 0.0)));
         let unset = Rig::new(&unset_model, &drive);
-        let path = ramp(0.0, 3e-3);
         assert_eq!(
-            joint_after(&plain, &path).to_bits(),
+            joint_after(&iwan_rig(&drive), &path).to_bits(),
             joint_after(&unset, &path).to_bits()
         );
     }

@@ -88,20 +88,17 @@ impl Coordinates<'_> {
                     .set_spread((1.0 / (1.0 + (-u).exp())).clamp(1e-3, 1.0));
                 at += 1;
                 // A fine population (where the base has one) moves by the logarithms of
-                // its stiffness and of its largest slip; both populations together stay
-                // within the model's stiffness.
+                // its stiffness and of its largest slip.
                 if let Some(p) = b.effects.microslip.filter(|p| p.has_fine()) {
-                    let kj = m.effects.joint_stiffness().unwrap_or(0.0);
-                    let kf = (p.fine_stiffness * x[at].exp() * gain).min(m.stiffness - kj);
-                    if kf > 0.0 {
-                        m.effects.set_fine(kf, p.fine_slip * x[at + 1].exp());
-                    } else {
-                        m.effects.set_fine(0.0, 0.0);
-                    }
+                    m.effects.set_fine(
+                        p.fine_stiffness * x[at].exp() * gain,
+                        p.fine_slip * x[at + 1].exp(),
+                    );
                     at += 2;
                 }
             }
         }
+        within_stiffness(&mut m);
         m
     }
 
@@ -243,6 +240,25 @@ pub(super) fn joint_start(model: &RigModel) -> f64 {
         .joint_stiffness()
         .filter(|k| *k > 0.0)
         .unwrap_or(JOINT_SHARE * model.stiffness)
+}
+
+/// A joint with a fine population shrunk, both populations in proportion, to within the
+/// model's stiffness (with a margin that rounding cannot cross, so that the model written
+/// validates), whichever coordinates moved it: the joint's own, or the stiffness under a
+/// joint held (a baseline refit). Never to zero: a population clamped away would lose its
+/// coordinates in the restarted simplex. A joint without a fine population is left as
+/// before ([`Coordinates::model`] clamps its stiffness alone, and the rig again).
+fn within_stiffness(m: &mut RigModel) {
+    let Some(p) = m.effects.microslip.filter(|p| p.has_fine()) else {
+        return;
+    };
+    let room = m.stiffness * (1.0 - 1e-9);
+    let total = p.joint_stiffness + p.fine_stiffness;
+    if total > room {
+        let scale = room / total;
+        m.effects.set_joint_stiffness(p.joint_stiffness * scale);
+        m.effects.set_fine(p.fine_stiffness * scale, p.fine_slip);
+    }
 }
 
 /// Whether `model`'s microslip has a fine population (whose two parameters are then
@@ -643,6 +659,71 @@ mod tests {
         let moved = coords.model(&x);
         assert_eq!(moved.stiffness, rig.stiffness);
         assert!((moved.inertia / rig.inertia - 0.3f64.exp()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_fine_population_has_two_coordinates_of_its_own_and_stays_within_the_stiffness() {
+        let mut base = structure_mode();
+        base.set_effect(EffectKind::Microslip, Some(2.0));
+        base.effects.set_fine(0.01 * base.stiffness, 3e-3);
+        // A spread the logistic map gives back exactly (a full one starts at 0.95).
+        base.effects.set_spread(0.5);
+        // The microslip first, so that the cubic term's coordinate follows the fine ones.
+        let coords = Coordinates {
+            base: &base,
+            inertia: false,
+            effects: vec![
+                (EffectKind::Microslip, 2.0),
+                (EffectKind::CubicStiffness, -2e5),
+            ],
+            time_alone: false,
+        };
+        let x0 = coords.origin();
+        // Own (5), the slip force, joint stiffness, spread, the fine pair, the cubic term.
+        assert_eq!(x0.len(), coords.own() + 6);
+        let m0 = coords.model(&x0);
+        assert_eq!(m0.effects.microslip, base.effects.microslip);
+        assert_eq!(m0.effects.get(EffectKind::CubicStiffness), Some(-2e5));
+        // Each fine coordinate moves its parameter by its logarithm, and nothing else.
+        let at = coords.own() + 3;
+        for (d, stiff) in [(0, true), (1, false)] {
+            let mut x = x0.clone();
+            x[at + d] = 0.5;
+            let m = coords.model(&x);
+            let (p, q) = (m.effects.microslip.unwrap(), m0.effects.microslip.unwrap());
+            let (moved, kept) = if stiff {
+                (
+                    (p.fine_stiffness, q.fine_stiffness),
+                    (p.fine_slip, q.fine_slip),
+                )
+            } else {
+                (
+                    (p.fine_slip, q.fine_slip),
+                    (p.fine_stiffness, q.fine_stiffness),
+                )
+            };
+            assert!((moved.0 / moved.1 - 0.5f64.exp()).abs() < 1e-12);
+            assert_eq!(kept.0, kept.1);
+            assert_eq!(p.joint_stiffness, q.joint_stiffness);
+            assert_eq!(m.effects.get(EffectKind::CubicStiffness), Some(-2e5));
+        }
+        // The mass coordinate carries the fine population's stiffness with it.
+        let mut x = x0.clone();
+        x[4] = 0.3;
+        let m = coords.model(&x);
+        let ratio = m.effects.microslip.unwrap().fine_stiffness
+            / m0.effects.microslip.unwrap().fine_stiffness;
+        assert!((ratio - 0.3f64.exp()).abs() < 1e-12);
+        // Both populations pushed past the stiffness: shrunk together, both left, and the
+        // model validates.
+        let mut x = x0.clone();
+        x[coords.own() + 1] = 3.0; // the joint to 20 times its start (2·k)
+        x[at] = 3.0;
+        let m = coords.model(&x);
+        let p = m.effects.microslip.unwrap();
+        assert!(p.joint_stiffness + p.fine_stiffness <= m.stiffness);
+        assert!(p.fine_stiffness > 0.0 && p.has_fine());
+        m.validate().unwrap();
     }
 
     #[test]

@@ -778,8 +778,16 @@ pub fn diagnose(
     best_first(&mut candidates);
     borderline(reference, &mut candidates, opt, &base);
     if pairs(reference, &mut candidates, opt, &base) && joint::applies(nominal, opt) {
-        joint::second_start(reference, &mut candidates, &baseline, opt, &base);
-        best_first(&mut candidates);
+        if let Some(pair) = joint::second_start(reference, &baseline, opt, &base) {
+            reduce(
+                reference,
+                &mut candidates,
+                std::slice::from_ref(&pair),
+                &base,
+            );
+            joint::put(&mut candidates, pair);
+            best_first(&mut candidates);
+        }
     }
     let verdict = verdict(&baseline, &candidates);
     Ok(Diagnosis {
@@ -1157,37 +1165,43 @@ fn pairs(
                 refit(reference, &a.model, &effects, opt, base)
             })
             .collect();
-        // Each pair without one of its effects: the pair's simplex also moved the model's
-        // own parameters further, and that gain belongs to the single effect, not to the
-        // second one (a hardening contact once came out as cubic_stiffness+quantization).
-        let reduced: Vec<Candidate> = fitted
-            .par_iter()
-            .flat_map(|p| {
-                (0..2).into_par_iter().map(move |without| {
-                    let (kind, _) = p.effects[without];
-                    let mut model = p.model.clone();
-                    model.effects.set(kind, None);
-                    let score = reference.score(&model);
-                    let keep = p.effects[1 - without].0;
-                    Candidate::from_fit(Fitted { model, score }, &[keep], base, true)
-                })
-            })
-            .collect();
-        for r in reduced {
-            if let Some(c) = candidates
-                .iter_mut()
-                .find(|c| c.effects.len() == 1 && c.effects[0].0 == r.effects[0].0)
-            {
-                if r.score.fit < c.score.fit {
-                    *c = r;
-                }
-            }
-        }
+        reduce(reference, candidates, &fitted, base);
         candidates.extend(fitted);
         best_first(candidates);
         return true;
     }
     false
+}
+
+/// Each pair of `fitted` without one of its effects, put in place of that single effect's
+/// candidate where it fits the fitting blocks better: the pair's simplex also moved the
+/// model's own parameters further (or started them in another basin), and that gain
+/// belongs to the single effect, not to the second one (a hardening contact once came out
+/// as cubic_stiffness+quantization).
+fn reduce(reference: &Reference, candidates: &mut [Candidate], fitted: &[Candidate], base: &Score) {
+    let reduced: Vec<Candidate> = fitted
+        .par_iter()
+        .flat_map(|p| {
+            (0..2).into_par_iter().map(move |without| {
+                let (kind, _) = p.effects[without];
+                let mut model = p.model.clone();
+                model.effects.set(kind, None);
+                let score = reference.score(&model);
+                let keep = p.effects[1 - without].0;
+                Candidate::from_fit(Fitted { model, score }, &[keep], base, true)
+            })
+        })
+        .collect();
+    for r in reduced {
+        if let Some(c) = candidates
+            .iter_mut()
+            .find(|c| c.effects.len() == 1 && c.effects[0].0 == r.effects[0].0)
+        {
+            if r.score.fit < c.score.fit {
+                *c = r;
+            }
+        }
+    }
 }
 
 /// The verdict, an index into `candidates`: the best single effect if significant against
