@@ -609,22 +609,25 @@ impl RigModel {
         if let Some(p) = self.effects.microslip {
             finite("fine_stiffness", p.fine_stiffness)?;
             finite("fine_slip", p.fine_slip)?;
+            // In the model kind's own units (N/m and m for a mode of a structure).
+            let unit = |key| key_unit_of(key, self.kind).unwrap_or("");
+            let (ks, ls) = (unit("fine_stiffness"), unit("fine_slip"));
             if p.fine_stiffness < 0.0 || p.fine_slip < 0.0 {
                 return Err(format!(
-                    "effect `microslip`: `fine_stiffness` = {} N m/rad and `fine_slip` = {} rad must not be negative",
+                    "effect `microslip`: `fine_stiffness` = {} {ks} and `fine_slip` = {} {ls} must not be negative",
                     p.fine_stiffness, p.fine_slip
                 ));
             }
             if (p.fine_stiffness > 0.0) != (p.fine_slip > 0.0) {
                 return Err(format!(
-                    "effect `microslip`: a fine population needs both `fine_stiffness` and `fine_slip` (got {} N m/rad and {} rad): give both, or neither",
+                    "effect `microslip`: a fine population needs both `fine_stiffness` and `fine_slip` (got {} {ks} and {} {ls}): give both, or neither",
                     p.fine_stiffness, p.fine_slip
                 ));
             }
             // A relative margin: a fit shrinks both populations to within 1e-9 of it.
             if p.joint_stiffness + p.fine_stiffness > self.stiffness * (1.0 + 1e-12) {
                 return Err(format!(
-                    "effect `microslip`: `joint_stiffness` + `fine_stiffness` = {} N m/rad is more than `stiffness` = {} (both populations are part of the model's stiffness)",
+                    "effect `microslip`: `joint_stiffness` + `fine_stiffness` = {} {ks} is more than `stiffness` = {} {ks} (both populations are part of the model's stiffness)",
                     p.joint_stiffness + p.fine_stiffness,
                     self.stiffness
                 ));
@@ -924,7 +927,10 @@ microslip = { slip_force = 98.0, joint_stiffness = 1.0e5 }
         let e = RigModel::from_toml_str(&fine.replace(", fine_slip = 4.0e-4", ""), "f")
             .unwrap_err()
             .to_string();
-        assert!(e.contains("fine_slip") && e.contains("both"), "{e}");
+        assert!(
+            e.contains("fine_slip") && e.contains("both") && e.contains("N/m"),
+            "{e}"
+        );
         let e = RigModel::from_toml_str(&fine.replace("5.0e3", "9.0e5"), "f")
             .unwrap_err()
             .to_string();

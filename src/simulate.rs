@@ -512,21 +512,22 @@ impl<'a> Rig<'a> {
         let sliders = self.sliders.borrow();
         // Each population's stretches summed before its one element stiffness multiplies
         // them: a joint without a fine population gives the same bits as before it existed.
-        let stretch = |from: usize, to: usize| -> f64 {
-            sliders[from..to]
+        let stretch = |sliders: &[f64], slip: &[f64]| -> f64 {
+            sliders
                 .iter()
-                .zip(&self.slip[from..to])
+                .zip(slip)
                 .map(|(x, p)| (z - x).clamp(-p, *p))
                 .sum()
         };
-        let (n, all) = (crate::model::IWAN_ELEMENTS, self.slip.len());
         let [kj, kf] = self.jenkins;
-        let joint = kj * stretch(0, n);
-        if all > n {
-            joint + kf * stretch(n, all)
-        } else {
-            joint
+        // The joint alone over whole vectors, as before the fine population (split at
+        // IWAN_ELEMENTS every time, a microslip diagnosis took 2 % longer).
+        if self.slip.len() == crate::model::IWAN_ELEMENTS {
+            return kj * stretch(&sliders, &self.slip);
         }
+        let (joint, fine) = sliders.split_at(crate::model::IWAN_ELEMENTS);
+        let (joint_slip, fine_slip) = self.slip.split_at(crate::model::IWAN_ELEMENTS);
+        kj * stretch(joint, joint_slip) + kf * stretch(fine, fine_slip)
     }
 
     /// Moves the microslip's sliders to where relative displacement z has dragged them.

@@ -19,6 +19,8 @@ use super::fit::{smooth_cubic, Coordinates};
 use super::{Candidate, Fitted, Reference, Score, SearchOptions};
 use crate::model::{EffectKind, ModelKind, RigModel, JOINT_SHARE};
 
+/// The pair the second start fits.
+const PAIR: [EffectKind; 2] = [EffectKind::CubicStiffness, EffectKind::Microslip];
 /// The sharp joint's onset scanned, as shares of the largest amplitude the fitting runs
 /// tracked (the F-16's bolt gives near 1.6 mm of a largest 3.0 mm).
 const ONSETS: [f64; 3] = [0.35, 0.5, 0.65];
@@ -123,9 +125,6 @@ pub(super) fn put(candidates: &mut Vec<Candidate>, pair: Candidate) {
         None => candidates.push(pair),
     }
 }
-
-/// The pair the second start fits.
-const PAIR: [EffectKind; 2] = [EffectKind::CubicStiffness, EffectKind::Microslip];
 
 #[cfg(test)]
 mod tests {
