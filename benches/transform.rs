@@ -40,6 +40,9 @@ fn transform(c: &mut Criterion) {
 /// smoothing, every sample), for one 30 000-sample record of the throughput campaign's size.
 fn host_share(c: &mut Criterion) {
     use skelid::track::{Device, WaveletPrep};
+    // As skelid runs: malloc keeps freed blocks, so a track's arrays are reused memory,
+    // not pages the kernel must fault in and zero.
+    skelid::backend::keep_freed_memory();
     let mut group = c.benchmark_group("host_share");
     group.sample_size(20);
     let x = bench_signal(30_000);
