@@ -4,12 +4,12 @@
 //! it ends — with every run ended so far, in archive order, so that outputs rewritten then
 //! keep a night's work stopped half-way — and all of them at the end ([`Diagnosed`]).
 //!
-//! A run's own search is a chain of simplex steps, each waiting for the last, so one run
-//! keeps about one core busy; runs are diagnosed `jobs` at a time.
+//! A run's own search is a chain of simplex steps, each waiting for the last, with its
+//! candidates' fits and each simulation's identification in parallel; runs are diagnosed
+//! up to `jobs` at a time, each on a thread pool of its own (see [`pool_sizes`]).
 
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Mutex;
-
-use rayon::prelude::*;
 
 use super::search::Reference;
 use super::{diagnose, GapRun, SearchOptions};
@@ -81,9 +81,10 @@ pub fn diagnose_runs(
     exporter: &dyn Exporter,
 ) -> Result<Diagnosed, RunnerError> {
     let jobs = jobs.max(1);
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(jobs)
-        .build()
+    let pools = pool_sizes(jobs, runs.len())
+        .into_iter()
+        .map(|n| rayon::ThreadPoolBuilder::new().num_threads(n).build())
+        .collect::<Result<Vec<_>, _>>()
         .map_err(|e| RunnerError::Threads {
             jobs,
             detail: e.to_string(),
@@ -126,7 +127,32 @@ pub fn diagnose_runs(
             .finished(meta, this, &done, &failed)
             .map_err(RunnerError::Export)
     };
-    pool.install(|| runs.par_iter().enumerate().try_for_each(one))?;
+    // Each pool takes the next run in archive order when its last one ends; the first error
+    // (an exporter's) stops every pool from taking another.
+    let next = AtomicUsize::new(0);
+    let stop = AtomicBool::new(false);
+    let first_error: Mutex<Option<RunnerError>> = Mutex::default();
+    std::thread::scope(|scope| {
+        for pool in &pools {
+            let (next, stop, first_error, one) = (&next, &stop, &first_error, &one);
+            scope.spawn(move || {
+                while !stop.load(Ordering::Relaxed) {
+                    let i = next.fetch_add(1, Ordering::Relaxed);
+                    let Some(meta) = runs.get(i) else { break };
+                    if let Err(e) = pool.install(|| one((i, meta))) {
+                        stop.store(true, Ordering::Relaxed);
+                        first_error
+                            .lock()
+                            .unwrap_or_else(|p| p.into_inner())
+                            .get_or_insert(e);
+                    }
+                }
+            });
+        }
+    });
+    if let Some(e) = first_error.into_inner().unwrap_or_else(|p| p.into_inner()) {
+        return Err(e);
+    }
     let (done, errors) = ended.into_inner().unwrap_or_else(|p| p.into_inner());
     let mut failed = failed_before;
     failed.extend(errors.into_iter().map(|f| (f.1, f.2)));
@@ -134,6 +160,23 @@ pub fn diagnose_runs(
         runs: done.into_iter().map(|r| r.1).collect(),
         failed,
     })
+}
+
+/// The thread pools `jobs` threads make for `runs` runs: one per run in flight, as many as
+/// runs up to `jobs`, the threads shared out evenly (the first pools one more).
+///
+/// A pool per run, not one for all: a thread of a shared pool that waits for its run's
+/// parallel work (the candidates' fits, a simulation's identification) takes on any other
+/// queued work meanwhile, another run's fit of several seconds included, and its own run,
+/// whose simplex chain only that thread carries on, waits until that fit ends. On a 16-core
+/// H200, nine demo runs sharing one pool of 16 threads kept 5.6 cores busy and took 76 s,
+/// each run 66–76 s against 9.6 s alone.
+pub fn pool_sizes(jobs: usize, runs: usize) -> Vec<usize> {
+    let jobs = jobs.max(1);
+    let at_once = jobs.min(runs).max(1);
+    (0..at_once)
+        .map(|p| jobs / at_once + usize::from(p < jobs % at_once))
+        .collect()
 }
 
 /// Diagnoses the runs of one structure together: the model's parameters and each effect's
@@ -210,4 +253,33 @@ fn chain(e: &dyn std::error::Error) -> String {
         source = s.source();
     }
     text
+}
+
+#[cfg(test)]
+mod tests {
+    use super::pool_sizes;
+
+    #[test]
+    fn pools_share_every_thread_and_never_outnumber_the_runs() {
+        for jobs in 1..=20 {
+            for runs in 0..=25 {
+                let sizes = pool_sizes(jobs, runs);
+                assert_eq!(
+                    sizes.len(),
+                    jobs.min(runs).max(1),
+                    "{jobs} jobs, {runs} runs"
+                );
+                assert_eq!(
+                    sizes.iter().sum::<usize>(),
+                    jobs,
+                    "{jobs} jobs, {runs} runs"
+                );
+                let (lo, hi) = (sizes.iter().min().unwrap(), sizes.iter().max().unwrap());
+                assert!(*lo >= 1 && hi - lo <= 1, "{sizes:?}");
+            }
+        }
+        assert_eq!(pool_sizes(16, 9), [2, 2, 2, 2, 2, 2, 2, 1, 1]);
+        assert_eq!(pool_sizes(16, 1), [16]);
+        assert_eq!(pool_sizes(2, 4), [1, 1]);
+    }
 }
