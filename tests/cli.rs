@@ -2208,3 +2208,57 @@ fn impossible_results_on_the_f16_are_flagged_with_their_reasons() {
     );
     assert!(said.contains("2 bad"), "{said}");
 }
+
+#[test]
+fn gap_over_several_runs_gives_the_same_report_in_archive_order_whatever_the_jobs() {
+    // Three runs with a quick search: three pools (of 2, 1 and 1 threads) at --jobs 4, two
+    // at --jobs 2, one at --jobs 1 (src/gap/runner.rs). The diagnosis of a run does not depend on the threads
+    // it is given, nor on which run ends first.
+    let dir = tmpdir();
+    let rig = dir.path().join("rig.toml");
+    std::fs::write(&rig, skelid::model::RigModel::paper().to_toml()).unwrap();
+    let report = |jobs: &str| -> serde_json::Value {
+        let out = dir.path().join(format!("gap-{jobs}"));
+        let o = skelid()
+            .args(["gap", "--model"])
+            .arg(&rig)
+            .arg(demo_archive())
+            .args(["--run-glob", "/demo/effects/c*"])
+            .args([
+                "--baseline-evaluations",
+                "10",
+                "--candidate-evaluations",
+                "5",
+            ])
+            .args(["--no-pairs", "--effects", "coulomb_friction,sensor_delay"])
+            .args(["--jobs", jobs, "--out"])
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let mut j: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("gap.json")).unwrap()).unwrap();
+        for run in j["runs"].as_array_mut().unwrap() {
+            run.as_object_mut().unwrap().remove("cost");
+        }
+        j.as_object_mut().unwrap().remove("settings");
+        j
+    };
+    let one = report("1");
+    let runs: Vec<&str> = one["runs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["run"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        runs,
+        [
+            "/demo/effects/contact_damping",
+            "/demo/effects/coulomb_friction",
+            "/demo/effects/cubic_stiffness",
+        ]
+    );
+    assert_eq!(report("2"), one);
+    assert_eq!(report("4"), one);
+}
