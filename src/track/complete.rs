@@ -153,46 +153,40 @@ impl WaveletPrep {
             sweep: &sweep,
             valid: &valid,
         };
-        let PerSample {
-            amplitude,
-            frequency,
-            phase,
-            d_amplitude,
-            d2_amplitude,
-            d_frequency,
-            valid,
-        } = grid_series.per_sample(n, FILL_CHUNK);
-        Track {
+        let mut out = Track {
             method: Method::Wavelet,
             sample_rate: fs,
-            amplitude,
-            frequency,
-            phase,
-            d_amplitude,
-            d2_amplitude,
-            d_frequency,
-            valid,
+            amplitude: Vec::new(),
+            frequency: Vec::new(),
+            phase: Vec::new(),
+            d_amplitude: Vec::new(),
+            d2_amplitude: Vec::new(),
+            d_frequency: Vec::new(),
+            valid: Vec::new(),
             offset,
             noise: noise_var.sqrt(),
             band: (fmin, fmax),
             backend,
             scalogram,
-        }
+        };
+        grid_series.per_sample(&mut out, n, FILL_CHUNK);
+        out
     }
 }
 
 /// Samples filled by one task of the completion's per-sample loop (about; whole segments).
 const FILL_CHUNK: usize = 65_536;
 
-/// The track's per-sample series, every sample set.
-struct PerSample {
-    amplitude: Vec<f64>,
-    frequency: Vec<f64>,
-    phase: Vec<f64>,
-    d_amplitude: Vec<f64>,
-    d2_amplitude: Vec<f64>,
-    d_frequency: Vec<f64>,
-    valid: Vec<bool>,
+/// A track's six per-sample series of reals (all but `valid`).
+fn real_series(t: &mut Track) -> [&mut Vec<f64>; 6] {
+    [
+        &mut t.amplitude,
+        &mut t.frequency,
+        &mut t.phase,
+        &mut t.d_amplitude,
+        &mut t.d2_amplitude,
+        &mut t.d_frequency,
+    ]
 }
 
 /// The track's per-sample outputs over one stretch of samples, not yet written: the
@@ -273,19 +267,14 @@ struct GridSeries<'a> {
 }
 
 impl GridSeries<'_> {
-    /// Every one of `n` samples: from the grid's first point to its last by [`Self::fill_all`]
-    /// in tasks of about `chunk` samples, zero and not valid outside it.
-    fn per_sample(&self, n: usize, chunk: usize) -> PerSample {
-        let series = || Vec::<f64>::with_capacity(n);
-        let mut out = PerSample {
-            amplitude: series(),
-            frequency: series(),
-            phase: series(),
-            d_amplitude: series(),
-            d2_amplitude: series(),
-            d_frequency: series(),
-            valid: Vec::with_capacity(n),
-        };
+    /// Sets `out`'s seven per-sample series to `n` samples: from the grid's first point to
+    /// its last by [`Self::fill_all`] in tasks of about `chunk` samples, zero and not valid
+    /// outside it.
+    fn per_sample(&self, out: &mut Track, n: usize, chunk: usize) {
+        for v in real_series(out) {
+            *v = Vec::with_capacity(n);
+        }
+        out.valid = Vec::with_capacity(n);
         let rows = Rows {
             amplitude: &mut out.amplitude.spare_capacity_mut()[..n],
             frequency: &mut out.frequency.spare_capacity_mut()[..n],
@@ -316,29 +305,25 @@ impl GridSeries<'_> {
         // head and tail by `clear`, the samples between by `fill_all` (see above), or all of
         // them by `clear`.
         unsafe {
-            out.amplitude.set_len(n);
-            out.frequency.set_len(n);
-            out.phase.set_len(n);
-            out.d_amplitude.set_len(n);
-            out.d2_amplitude.set_len(n);
-            out.d_frequency.set_len(n);
+            for v in real_series(out) {
+                v.set_len(n);
+            }
             out.valid.set_len(n);
         }
-        out
     }
 
     /// Fills every sample from the first grid point's to the last one's (`rows` starts at
-    /// the first's), in tasks of whole segments of about `chunk` samples run in parallel (a long record's loop was the completion's
-    /// whole serial time). Each sample depends on its own segment alone, so the result is
-    /// the same to the last bit whatever the chunk.
-    fn fill_all(&self, rows: Rows<'_>, chunk: usize) {
+    /// the first's), in tasks of whole segments of about `chunk` samples run in parallel
+    /// (a long record's loop was the completion's whole serial time). Each sample depends
+    /// on its own segment alone, so the result is the same to the last bit whatever the
+    /// chunk.
+    fn fill_all(&self, mut rows: Rows<'_>, chunk: usize) {
         let grid = self.grid;
         let Some(first) = grid.first() else {
             return;
         };
         let mut tasks = Vec::new();
         let mut base = first.sample;
-        let mut rows = rows;
         let mut g0 = 0;
         while g0 < grid.len() {
             let mut g1 = g0 + 1;
@@ -546,7 +531,25 @@ mod tests {
 
     /// Every output of one fill of `n` samples by tasks of about `chunk` samples.
     fn filled(series: &GridSeries<'_>, n: usize, chunk: usize) -> Vec<Vec<u64>> {
-        let o = series.per_sample(n, chunk);
+        // Series left over from elsewhere are replaced whole.
+        let stale = vec![9.0; 7];
+        let mut o = Track {
+            method: Method::Wavelet,
+            sample_rate: series.fs,
+            amplitude: stale.clone(),
+            frequency: stale.clone(),
+            phase: stale.clone(),
+            d_amplitude: stale.clone(),
+            d2_amplitude: stale.clone(),
+            d_frequency: stale,
+            valid: vec![true; 7],
+            offset: 0.0,
+            noise: 0.0,
+            band: (0.0, 1.0),
+            backend: Device::Cpu,
+            scalogram: None,
+        };
+        series.per_sample(&mut o, n, chunk);
         let mut out: Vec<Vec<u64>> = [
             o.amplitude,
             o.frequency,
