@@ -170,7 +170,7 @@ pub fn diagnose_runs(
 /// queued work meanwhile, another run's fit of several seconds included, and its own run,
 /// whose simplex chain only that thread carries on, waits until that fit ends. On a 16-core
 /// H200, nine demo runs sharing one pool of 16 threads kept 5.6 cores busy and took 76 s,
-/// each run 66–76 s against 9.6 s alone.
+/// each run 66–76 s against 9.8 s alone.
 pub fn pool_sizes(jobs: usize, runs: usize) -> Vec<usize> {
     let jobs = jobs.max(1);
     let at_once = jobs.min(runs).max(1);
