@@ -15,8 +15,20 @@ venv=target/python-venv
 rm -rf "$venv"
 "$python" -m venv "$venv"
 "$venv/bin/python" -m pip install -q --upgrade pip
-MATURIN_PEP517_ARGS="--profile ${SKELID_PYTHON_PROFILE:-dev}" \
-  "$venv/bin/python" -m pip install -q "./python[test]"
+# The build's own output goes to a log (shown if it fails), so that we can say whether
+# it reused what `cargo test` compiled: it should compile skelid-python alone.
+log=target/python-build.log
+if ! MATURIN_PEP517_ARGS="--profile ${SKELID_PYTHON_PROFILE:-dev}" \
+  "$venv/bin/python" -m pip install -v "./python[test]" >"$log" 2>&1; then
+  tail -n 60 "$log"
+  echo "error: pip install ./python failed; its whole output is in $log" >&2
+  exit 1
+fi
+again=$(grep -E '^ *Compiling ' "$log" | grep -cv 'Compiling skelid-python ' || true)
+if [ "$again" -gt 0 ]; then
+  echo "note: the Python build compiled $again crates besides skelid-python ($log);" \
+    "after cargo test it should reuse them: see [build-dependencies] in Cargo.toml" >&2
+fi
 "$venv/bin/python" -c "import skelid; print('skelid', skelid.__version__, 'for Python')"
 export SKELID_BIN=${SKELID_BIN:-$PWD/target/debug/skelid}
 [ -x "$SKELID_BIN" ] || cargo build --bin skelid
