@@ -16,7 +16,8 @@ rm -rf "$venv"
 "$python" -m venv "$venv"
 "$venv/bin/python" -m pip install -q --upgrade pip
 # The build's own output goes to a log (shown if it fails), so that we can say whether
-# it reused what `cargo test` compiled: it should compile skelid-python alone.
+# it reused what `cargo test` compiled: it should compile only the crates the Python
+# package alone uses (pyo3 and its kin, numpy, skelid-python).
 log=target/python-build.log
 if ! MATURIN_PEP517_ARGS="--profile ${SKELID_PYTHON_PROFILE:-dev}" \
   "$venv/bin/python" -m pip install -v "./python[test]" >"$log" 2>&1; then

@@ -249,8 +249,9 @@ impl Excitation {
     }
 }
 
-/// The interval of a Hermite interpolation at t: (index, fraction, 1/fs, p0, p1, m0, m1),
-/// or the constant value of a signal too short to interpolate.
+/// The interval of a Hermite interpolation at t: its fraction s, 1/fs, and
+/// [p0, p1, m0, m1] (the values at its ends and the slopes scaled by 1/fs); `Err` carries
+/// the constant a signal of fewer than two samples is taken as.
 #[inline(always)]
 fn hermite_interval(y: &[f64], dy: &[f64], fs: f64, t: f64) -> Result<(f64, f64, [f64; 4]), f64> {
     let n = y.len();
@@ -288,12 +289,13 @@ fn hermite_value(y: &[f64], dy: &[f64], fs: f64, t: f64) -> f64 {
 
 /// Cubic Hermite interpolation with its exact first and second derivative.
 fn hermite(y: &[f64], dy: &[f64], fs: f64, t: f64) -> Jet {
-    let (s, h, [p0, p1, m0, m1]) = match hermite_interval(y, dy, fs, t) {
+    let (s, h, p) = match hermite_interval(y, dy, fs, t) {
         Ok(i) => i,
         Err(c) => return Jet::constant(c),
     };
+    let v = hermite_on(s, p);
+    let [p0, p1, m0, m1] = p;
     let s2 = s * s;
-    let v = hermite_on(s, [p0, p1, m0, m1]);
     let d1 = (6.0 * s2 - 6.0 * s) * p0
         + (3.0 * s2 - 4.0 * s + 1.0) * m0
         + (-6.0 * s2 + 6.0 * s) * p1
