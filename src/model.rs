@@ -209,12 +209,43 @@ pub struct OffsetParam {
     /// rad.
     pub offset: f64,
 }
-/// `{ k3 = N m/rad³ }`.
+/// `{ k3 = N m/rad³, limit = rad }`: the contact law k·D + k3·D³, optionally with the
+/// cubic term's stiffness saturating beyond a deflection.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CubicParam {
     /// N m/rad³.
     pub k3: f64,
+    /// Where the cubic term stops stiffening or softening, rad (m; 0: optional, the
+    /// default, nowhere): beyond |D| = `limit` its force goes on along its tangent,
+    /// k3·(3·limit²·D − 2·limit³·sgn D), so its stiffness stays at 3·k3·limit². An
+    /// elastic softening that saturates, as a bolted joint's once its slip has finished.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub limit: f64,
+}
+
+impl CubicParam {
+    /// The cubic term's force at the deflection `d` (with its limit, if any).
+    #[inline]
+    pub fn force(&self, d: f64) -> f64 {
+        let l = self.limit;
+        if l > 0.0 && d.abs() > l {
+            self.k3 * (3.0 * l * l * d - 2.0 * l * l * l * d.signum())
+        } else {
+            self.k3 * d * d * d
+        }
+    }
+
+    /// The cubic term's potential energy at the deflection `d` (the integral of
+    /// [`force`](Self::force) from 0).
+    pub fn energy(&self, d: f64) -> f64 {
+        let (l, a) = (self.limit, d.abs());
+        if l > 0.0 && a > l {
+            self.k3 * (0.25 * l.powi(4) + 1.5 * l * l * (a * a - l * l) - 2.0 * l.powi(3) * (a - l))
+        } else {
+            0.25 * self.k3 * d.powi(4)
+        }
+    }
 }
 /// `{ c_contact = N m s/rad }`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -398,7 +429,11 @@ impl Effects {
             EffectKind::AsymmetricClearance => {
                 self.asymmetric_clearance = value.map(|offset| OffsetParam { offset })
             }
-            EffectKind::CubicStiffness => self.cubic_stiffness = value.map(|k3| CubicParam { k3 }),
+            // The limit is kept, as the microslip keeps its joint.
+            EffectKind::CubicStiffness => {
+                let limit = self.cubic_stiffness.map_or(0.0, |p| p.limit);
+                self.cubic_stiffness = value.map(|k3| CubicParam { k3, limit })
+            }
             EffectKind::ContactDamping => {
                 self.contact_damping = value.map(|c_contact| ContactDampingParam { c_contact })
             }
@@ -435,6 +470,18 @@ impl Effects {
     pub fn set_spread(&mut self, value: f64) {
         if let Some(p) = &mut self.microslip {
             p.spread = value;
+        }
+    }
+
+    /// The cubic term's limit (0 without one), if there is a cubic term.
+    pub fn cubic_limit(&self) -> Option<f64> {
+        self.cubic_stiffness.map(|p| p.limit)
+    }
+
+    /// Sets the cubic term's limit (nothing without a cubic term; 0 removes it).
+    pub fn set_cubic_limit(&mut self, value: f64) {
+        if let Some(p) = &mut self.cubic_stiffness {
+            p.limit = value;
         }
     }
 
@@ -633,6 +680,15 @@ impl RigModel {
                 ));
             }
         }
+        if let Some(l) = self.effects.cubic_limit() {
+            finite("limit", l)?;
+            if l < 0.0 {
+                let unit = key_unit_of("limit", self.kind).unwrap_or("");
+                return Err(format!(
+                    "effect `cubic_stiffness`: `limit` = {l} {unit} must not be negative (0 or left out: no limit)"
+                ));
+            }
+        }
         if let Some(k) = self.kind_mismatch() {
             return Err(k);
         }
@@ -736,7 +792,7 @@ pub fn key_unit(key: &str) -> Option<&'static str> {
         "clearance" => "rad",
         "gravity_stiffness" => "1/s^2",
         "joint_stiffness" | "fine_stiffness" => "N m/rad",
-        "fine_slip" => "rad",
+        "fine_slip" | "limit" => "rad",
         _ => EffectKind::EVERY
             .into_iter()
             .find(|k| k.param() == key)?
@@ -957,5 +1013,58 @@ microslip = { slip_force = 98.0, joint_stiffness = 1.0e5 }
             assert_eq!(e.get(k), Some(i as f64 + 0.5));
             assert_eq!(EffectKind::parse(k.name()), Some(k));
         }
+    }
+
+    #[test]
+    fn a_limited_cubic_term_goes_on_along_its_tangent_and_stores_its_work() {
+        let (k3, l) = (-5.0e9, 2.0e-3);
+        let free = CubicParam { k3, limit: 0.0 };
+        let limited = CubicParam { k3, limit: l };
+        for i in -300..=300 {
+            let d = i as f64 * 1e-5;
+            // Without a limit, and within one, the plain cubic to the bit.
+            assert_eq!(free.force(d).to_bits(), (k3 * d * d * d).to_bits());
+            assert_eq!(free.energy(d), 0.25 * k3 * d.powi(4));
+            if d.abs() <= l {
+                assert_eq!(limited.force(d).to_bits(), free.force(d).to_bits());
+            } else {
+                // Beyond it, the tangent at the limit: stiffness 3·k3·l², odd in d.
+                let tangent = k3 * l.powi(3) * d.signum() + 3.0 * k3 * l * l * (d - l * d.signum());
+                assert!((limited.force(d) - tangent).abs() <= 1e-9 * tangent.abs());
+                assert_eq!(limited.force(-d), -limited.force(d));
+            }
+            // The energy is the force's integral (central differences) and even.
+            let h = 1e-7;
+            let slope = (limited.energy(d + h) - limited.energy(d - h)) / (2.0 * h);
+            let scale = (3.0 * k3 * l * l * h).abs() + 1e-6 * limited.force(d).abs();
+            assert!((slope - limited.force(d)).abs() <= scale, "{d}");
+            assert_eq!(limited.energy(-d), limited.energy(d));
+        }
+        // Continuous at the limit, in force and stiffness.
+        let (below, above) = (
+            limited.force(l * (1.0 - 1e-12)),
+            limited.force(l * (1.0 + 1e-12)),
+        );
+        assert!((below - above).abs() <= 1e-9 * below.abs());
+    }
+
+    #[test]
+    fn a_cubic_terms_limit_is_optional_kept_and_checked() {
+        let text = "kind = \"force\"\nmass = 300\nstiffness = 6.0e5\ndamping = 150\n\n[effects]\ncubic_stiffness = { k3 = -5.0e9, limit = 2.0e-3 }\n";
+        let mut m = RigModel::from_toml_str(text, "f").unwrap();
+        assert_eq!(m.effects.cubic_limit(), Some(2.0e-3));
+        assert_eq!(RigModel::from_toml_str(&m.to_toml(), "rt").unwrap(), m);
+        // Setting k3 keeps the limit; a term without one writes no `limit` key.
+        m.effects.set(EffectKind::CubicStiffness, Some(-4.0e9));
+        assert_eq!(m.effects.cubic_limit(), Some(2.0e-3));
+        m.effects.set_cubic_limit(0.0);
+        assert!(!m.to_toml().contains("limit"));
+        let e = RigModel::from_toml_str(&text.replace("2.0e-3", "-1.0e-3"), "f")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("limit") && e.contains(" m ") && e.contains("negative"),
+            "{e}"
+        );
     }
 }

@@ -468,7 +468,8 @@ struct Rig<'a> {
     friction: f64,
     preload: f64,
     offset: f64,
-    k3: f64,
+    /// The cubic term (k3 = 0 without one).
+    cubic: crate::model::CubicParam,
     c_contact: f64,
     /// The microslip's Jenkins elements: the stiffness of each of the joint's
     /// [`crate::model::IWAN_ELEMENTS`] and of each of its fine population's (which follow
@@ -525,7 +526,10 @@ impl<'a> Rig<'a> {
             friction: get(CoulombFriction),
             preload: get(GravityPreload),
             offset: get(AsymmetricClearance),
-            k3: get(CubicStiffness),
+            cubic: e.cubic_stiffness.unwrap_or(crate::model::CubicParam {
+                k3: 0.0,
+                limit: 0.0,
+            }),
             c_contact: get(ContactDamping),
             jenkins,
             sliders: std::cell::RefCell::new(vec![0.0; slip.len()]),
@@ -623,7 +627,7 @@ impl<'a> Rig<'a> {
         let pen = zc.abs() - self.delta;
         let (spring, contact) = if pen > 0.0 {
             let d = pen.copysign(zc);
-            (self.k * d + self.k3 * d * d * d, true)
+            (self.k * d + self.cubic.force(d), true)
         } else {
             (0.0, false)
         };
@@ -982,19 +986,17 @@ fn quantize(x: &mut [f64], step: f64) {
     }
 }
 
-/// Total mechanical energy ½Jθ'² + ½k·D² (+ ¼k3·D⁴) of an unforced rig at rest base.
+/// Total mechanical energy ½Jθ'² + ½k·D² (+ ¼k3·D⁴, or its limited form) of an unforced
+/// rig at rest base.
 pub fn mechanical_energy(model: &RigModel, theta: f64, omega: f64) -> f64 {
     let offset = model
         .effects
         .get(crate::model::EffectKind::AsymmetricClearance)
         .unwrap_or(0.0);
-    let k3 = model
-        .effects
-        .get(crate::model::EffectKind::CubicStiffness)
-        .unwrap_or(0.0);
     let zc = theta - offset;
     let d = (zc.abs() - model.half_gap()).max(0.0);
-    0.5 * model.inertia * omega * omega + 0.5 * model.stiffness * d * d + 0.25 * k3 * d.powi(4)
+    let cubic = model.effects.cubic_stiffness.map_or(0.0, |p| p.energy(d));
+    0.5 * model.inertia * omega * omega + 0.5 * model.stiffness * d * d + cubic
         - 0.5 * model.inertia * model.gravity_stiffness * theta * theta
 }
 

@@ -165,7 +165,13 @@ impl Candidate {
                         .into_iter()
                         .chain(fine.into_iter().flatten())
                     });
-                std::iter::once((key(k, k.param()), v)).chain(joint)
+                let limit = (k == EffectKind::CubicStiffness)
+                    .then(|| self.model.effects.cubic_limit().filter(|&l| l > 0.0))
+                    .flatten()
+                    .map(|l| (key(k, "limit"), l));
+                std::iter::once((key(k, k.param()), v))
+                    .chain(joint)
+                    .chain(limit)
             })
             .collect()
     }
@@ -200,10 +206,11 @@ pub(super) fn refit(
     baseline: &Score,
 ) -> Candidate {
     // The effects leave the base (the simplex sets them), but a microslip's joint
-    // stiffness stays to start from.
+    // stiffness stays to start from, and a cubic term's limit (the simplex sets k3 alone,
+    // and fits the limit where the base has one).
     let mut base = from.clone();
     for &(k, _) in effects {
-        if k != EffectKind::Microslip {
+        if !matches!(k, EffectKind::Microslip | EffectKind::CubicStiffness) {
             base.effects.set(k, None);
         }
     }

@@ -97,6 +97,13 @@ impl Coordinates<'_> {
                     at += 2;
                 }
             }
+            // A cubic term's limit (where the base has one) moves by its logarithm.
+            if kind == EffectKind::CubicStiffness {
+                if let Some(l) = cubic_limit(b) {
+                    m.effects.set_cubic_limit(l * x[at].exp());
+                    at += 1;
+                }
+            }
         }
         within_stiffness(&mut m);
         m
@@ -129,6 +136,9 @@ impl Coordinates<'_> {
                 if has_fine(self.base) {
                     x.extend([0.0, 0.0]);
                 }
+            }
+            if k == EffectKind::CubicStiffness && cubic_limit(self.base).is_some() {
+                x.push(0.0);
             }
         }
         x
@@ -265,6 +275,11 @@ fn within_stiffness(m: &mut RigModel) {
 /// coordinates of its fits).
 fn has_fine(model: &RigModel) -> bool {
     model.effects.microslip.is_some_and(|p| p.has_fine())
+}
+
+/// The cubic term's limit, where `model` has a cubic term with one.
+fn cubic_limit(model: &RigModel) -> Option<f64> {
+    model.effects.cubic_limit().filter(|&l| l > 0.0)
 }
 
 /// The spread a microslip's fit starts from on `model`: its own (kept off the ends of
@@ -659,6 +674,45 @@ mod tests {
         let moved = coords.model(&x);
         assert_eq!(moved.stiffness, rig.stiffness);
         assert!((moved.inertia / rig.inertia - 0.3f64.exp()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_cubic_terms_limit_has_a_coordinate_of_its_own_and_is_no_force() {
+        let mut base = structure_mode();
+        base.set_effect(EffectKind::CubicStiffness, Some(-2e5));
+        base.effects.set_cubic_limit(4e-3);
+        let coords = Coordinates {
+            base: &base,
+            inertia: true,
+            effects: vec![(EffectKind::CubicStiffness, -2e5)],
+            time_alone: false,
+        };
+        let x0 = coords.origin();
+        assert_eq!(x0.len(), coords.own() + 2);
+        assert_eq!(
+            coords.model(&x0).effects.cubic_stiffness,
+            base.effects.cubic_stiffness
+        );
+        // Its coordinate moves the limit by its logarithm, and nothing else.
+        let mut x = x0.clone();
+        x[coords.own() + 1] = 0.5;
+        let p = coords.model(&x).effects.cubic_stiffness.unwrap();
+        assert!((p.limit / 4e-3 - 0.5f64.exp()).abs() < 1e-12);
+        assert_eq!(p.k3, -2e5);
+        // The mass coordinate scales k3 (a force) but not the limit (a displacement).
+        let mut x = x0.clone();
+        x[4] = 0.3;
+        let p = coords.model(&x).effects.cubic_stiffness.unwrap();
+        assert!((p.k3 / -2e5 - 0.3f64.exp()).abs() < 1e-12);
+        assert_eq!(p.limit, 4e-3);
+        // A cubic term without a limit has no such coordinate.
+        let mut unlimited = base.clone();
+        unlimited.effects.set_cubic_limit(0.0);
+        let coords = Coordinates {
+            base: &unlimited,
+            ..coords
+        };
+        assert_eq!(coords.origin().len(), coords.own() + 1);
     }
 
     #[test]
