@@ -473,9 +473,9 @@ impl Effects {
         }
     }
 
-    /// The cubic term's limit (0 without one), if there is a cubic term.
+    /// The cubic term's limit, where there is a cubic term with one (> 0).
     pub fn cubic_limit(&self) -> Option<f64> {
-        self.cubic_stiffness.map(|p| p.limit)
+        self.cubic_stiffness.map(|p| p.limit).filter(|&l| l > 0.0)
     }
 
     /// Sets the cubic term's limit (nothing without a cubic term; 0 removes it).
@@ -680,7 +680,8 @@ impl RigModel {
                 ));
             }
         }
-        if let Some(l) = self.effects.cubic_limit() {
+        // Read whole: `cubic_limit` leaves out the values this refuses.
+        if let Some(l) = self.effects.cubic_stiffness.map(|p| p.limit) {
             finite("limit", l)?;
             if l < 0.0 {
                 let unit = key_unit_of("limit", self.kind).unwrap_or("");
@@ -1058,6 +1059,7 @@ microslip = { slip_force = 98.0, joint_stiffness = 1.0e5 }
         m.effects.set(EffectKind::CubicStiffness, Some(-4.0e9));
         assert_eq!(m.effects.cubic_limit(), Some(2.0e-3));
         m.effects.set_cubic_limit(0.0);
+        assert_eq!(m.effects.cubic_limit(), None);
         assert!(!m.to_toml().contains("limit"));
         let e = RigModel::from_toml_str(&text.replace("2.0e-3", "-1.0e-3"), "f")
             .unwrap_err()

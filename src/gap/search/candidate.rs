@@ -166,7 +166,7 @@ impl Candidate {
                         .chain(fine.into_iter().flatten())
                     });
                 let limit = (k == EffectKind::CubicStiffness)
-                    .then(|| self.model.effects.cubic_limit().filter(|&l| l > 0.0))
+                    .then(|| self.model.effects.cubic_limit())
                     .flatten()
                     .map(|l| (key(k, "limit"), l));
                 std::iter::once((key(k, k.param()), v))

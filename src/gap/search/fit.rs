@@ -99,7 +99,7 @@ impl Coordinates<'_> {
             }
             // A cubic term's limit (where the base has one) moves by its logarithm.
             if kind == EffectKind::CubicStiffness {
-                if let Some(l) = cubic_limit(b) {
+                if let Some(l) = b.effects.cubic_limit() {
                     m.effects.set_cubic_limit(l * x[at].exp());
                     at += 1;
                 }
@@ -137,7 +137,7 @@ impl Coordinates<'_> {
                     x.extend([0.0, 0.0]);
                 }
             }
-            if k == EffectKind::CubicStiffness && cubic_limit(self.base).is_some() {
+            if k == EffectKind::CubicStiffness && self.base.effects.cubic_limit().is_some() {
                 x.push(0.0);
             }
         }
@@ -275,11 +275,6 @@ fn within_stiffness(m: &mut RigModel) {
 /// coordinates of its fits).
 fn has_fine(model: &RigModel) -> bool {
     model.effects.microslip.is_some_and(|p| p.has_fine())
-}
-
-/// The cubic term's limit, where `model` has a cubic term with one.
-fn cubic_limit(model: &RigModel) -> Option<f64> {
-    model.effects.cubic_limit().filter(|&l| l > 0.0)
 }
 
 /// The spread a microslip's fit starts from on `model`: its own (kept off the ends of
