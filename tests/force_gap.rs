@@ -138,6 +138,7 @@ fn skelid_gap_names_the_microslip_of_a_bolted_joint_from_levels_fitted_together(
         ]
     );
     assert_eq!(doc["settings"]["model_kind"], "force");
+    assert_eq!(doc["settings"]["refit_effects"], false);
     // A force model is compared within ±2 % of resonance unless told otherwise.
     assert_eq!(doc["settings"]["resonance"], 0.02);
     let r = &runs[3];

@@ -72,6 +72,7 @@ def gap(
     backend: Backend = "cpu",
     waveform: bool = True,
     zero_tolerance: Optional[float] = None,
+    refit_effects: bool = False,
 ) -> dict[str, Any]:
     """The gap.json document: format, settings, runs (one entry: nominal_gap,
     baseline_gap, regions, candidates, verdict), failed."""

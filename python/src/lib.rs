@@ -436,7 +436,7 @@ fn rig_model(py: Python<'_>, model: &Bound<'_, PyAny>) -> PyResult<RigModel> {
 /// gap(model, input, output, fs, kind="base_motion", inertia=None, gravity_stiffness=0.0,
 ///     units=None, holdout_block=1.0, baseline_evaluations=150, candidate_evaluations=45,
 ///     pairs=True, fit_inertia=False, effects=None, backend="cpu", waveform=True,
-///     zero_tolerance=None) -> dict
+///     zero_tolerance=None, refit_effects=False) -> dict
 /// --
 ///
 /// Why a rig model's simulation does not match one measured base-motion run: the gap and
@@ -448,14 +448,15 @@ fn rig_model(py: Python<'_>, model: &Bound<'_, PyAny>) -> PyResult<RigModel> {
 /// by default). waveform: score the waveform within a cycle (the third harmonic at
 /// resonance; the default, as `skelid gap`; False as `skelid gap --no-waveform`). zero_tolerance: how far apart the two encoders'
 /// zeros may be (rad), as `skelid gap --zero-tolerance`; None is 0 (arrays carry no run
-/// attribute to fall back on). The rest as `skelid gap`'s options of the same
+/// attribute to fall back on). refit_effects: refit the effects the model already has in
+/// the baseline, as `skelid gap --refit-effects`. The rest as `skelid gap`'s options of the same
 /// names.
 ///
 /// Returns the gap.json document as a dict, as `skelid gap` writes it: format, settings,
 /// runs (one entry: run "/python", nominal_gap, baseline_gap, regions, candidates best
 /// first, verdict, ...) and failed.
 #[pyfunction]
-#[pyo3(signature = (model, input, output, fs, kind="base_motion", inertia=None, gravity_stiffness=0.0, units=None, holdout_block=1.0, baseline_evaluations=150, candidate_evaluations=45, pairs=true, fit_inertia=false, effects=None, backend="cpu", waveform=true, zero_tolerance=None))]
+#[pyo3(signature = (model, input, output, fs, kind="base_motion", inertia=None, gravity_stiffness=0.0, units=None, holdout_block=1.0, baseline_evaluations=150, candidate_evaluations=45, pairs=true, fit_inertia=false, effects=None, backend="cpu", waveform=true, zero_tolerance=None, refit_effects=false))]
 #[allow(clippy::too_many_arguments)]
 fn gap<'py>(
     py: Python<'py>,
@@ -476,6 +477,7 @@ fn gap<'py>(
     backend: &str,
     waveform: bool,
     zero_tolerance: Option<f64>,
+    refit_effects: bool,
 ) -> PyResult<Bound<'py, PyAny>> {
     let model = rig_model(py, model)?;
     if zero_tolerance.is_some_and(|t| !(t >= 0.0 && t.is_finite())) {
@@ -503,6 +505,7 @@ fn gap<'py>(
         candidate_evaluations,
         pairs,
         fit_inertia,
+        refit_effects,
         effects,
         waveform,
         zero_tolerance,
@@ -551,6 +554,7 @@ fn gap<'py>(
                 "pairs": opt.pairs,
                 "backend": if engine.is_gpu() { "gpu" } else { "cpu" },
                 "fit_inertia": opt.fit_inertia,
+                "refit_effects": opt.refit_effects,
                 "waveform": opt.waveform,
                 "zero_tolerance": opt.zero_tolerance,
                 "min_shrink": skelid::gap::search::MIN_SHRINK,

@@ -182,6 +182,8 @@ def test_gap_names_the_missing_friction_as_the_command_line_does(demo, tmp_path)
     # The waveform domain by default, as `skelid gap`; left out on request
     # (`skelid gap --no-waveform`).
     assert doc["settings"]["waveform"] is True
+    # The model's own effects held in the baseline unless asked (`--refit-effects`).
+    assert doc["settings"]["refit_effects"] is False
     assert all(isinstance(c["domains"]["waveform"], float) for c in g["candidates"])
     w = skelid.gap(
         model, run["input"], run["output"], run["sample_rate"],

@@ -84,6 +84,13 @@ pub(crate) struct GapArgs {
     /// Refit the inertia too (held at the model's value otherwise).
     #[arg(long)]
     pub(crate) fit_inertia: bool,
+    /// Refit the effects the model already has (its [effects.*] tables) with its own
+    /// parameters in the baseline, instead of holding them at the model's values: a
+    /// fitted model from an earlier diagnosis updated on these runs. The candidates then
+    /// add effects to that baseline. More parameters: consider a larger
+    /// --baseline-evaluations (the F-16's verdict model, 12 parameters, took 300)
+    #[arg(long)]
+    pub(crate) refit_effects: bool,
     /// Score the waveform within a cycle (the default; the flag is kept for scripts written
     /// when it was not): the third harmonic of the relative motion against its first, at
     /// resonance, as a fourth domain of the gap beside time, backbone and damping. Every
@@ -197,6 +204,7 @@ pub(crate) fn gap_search_options(a: &GapArgs) -> Result<skelid::gap::SearchOptio
         candidate_evaluations: a.candidate_evaluations,
         pairs: !a.no_pairs,
         fit_inertia: a.fit_inertia,
+        refit_effects: a.refit_effects,
         effects,
         waveform: !a.no_waveform,
         zero_tolerance: a.zero_tolerance,
@@ -358,6 +366,7 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
         "pairs": opt.pairs,
         "backend": if engine.backend().is_gpu() { "gpu" } else { "cpu" },
         "fit_inertia": opt.fit_inertia,
+        "refit_effects": opt.refit_effects,
         "waveform": opt.waveform,
         "zero_tolerance": opt.zero_tolerance,
         "resonance": resonance,

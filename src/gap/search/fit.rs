@@ -296,15 +296,30 @@ pub(super) fn log_ratio(v: f64, nominal: f64) -> f64 {
     }
 }
 
+/// The effects `model` has, each with its parameter: what the baseline moves beside the
+/// model's own parameters with [`SearchOptions::refit_effects`].
+pub(super) fn own_effects(model: &RigModel) -> Vec<(EffectKind, f64)> {
+    EffectKind::EVERY
+        .iter()
+        .filter_map(|&k| model.effects.get(k).map(|v| (k, v)))
+        .collect()
+}
+
 /// The baseline: the model's own parameters — stiffness, damping, clearance, gravity
 /// stiffness, and the inertia when asked — refitted on the fitting blocks, so that a
-/// mis-set parameter is never taken for a missing effect. The simplex restarts once from
-/// its best point (a fresh simplex escapes the collapsed one's stall).
+/// mis-set parameter is never taken for a missing effect; with
+/// [`SearchOptions::refit_effects`], the effects the model already has too. The simplex
+/// restarts once from its best point (a fresh simplex escapes the collapsed one's stall).
 pub fn refit_baseline(reference: &Reference, nominal: &RigModel, opt: &SearchOptions) -> Fitted {
+    let effects = if opt.refit_effects {
+        own_effects(nominal)
+    } else {
+        Vec::new()
+    };
     let coords = Coordinates {
         base: nominal,
         inertia: opt.fit_inertia,
-        effects: Vec::new(),
+        effects,
         time_alone: false,
     };
     // Start from the nominal model or from what the identification found, whichever is
@@ -775,13 +790,70 @@ mod tests {
         m.validate().unwrap();
     }
 
+    /// The force self-check's structure with a cubic term k3 (N/m³ per kg).
+    fn softening(k3: f64) -> RigModel {
+        let mut m = structure_mode();
+        m.set_effect(EffectKind::CubicStiffness, Some(k3));
+        m
+    }
+
+    /// `--refit-effects`: a nominal model whose cubic term is 2.5 times the truth's. The
+    /// ordinary baseline holds the term and bends the mode's own parameters around it; the
+    /// baseline with the model's effects refitted finds the truth's term and fits better.
+    #[test]
+    fn the_baseline_refits_the_models_own_effects_only_when_asked() {
+        let k3 = -2.0e5;
+        let truth = softening(k3);
+        let (options, backend) = (IdentifyOptions::default(), Backend::cpu());
+        let identifier = Identifier {
+            options: &options,
+            backend: &backend,
+        };
+        let runs: Vec<crate::run::Run> = [0, 2, 3]
+            .iter()
+            .map(|&i| {
+                let path = format!("/gvt/level_{}", i + 1);
+                structure_run(&path, &truth, STRUCTURE_LEVELS[i], 0.01, 5 + i as u64).into_run()
+            })
+            .collect();
+        let reference =
+            Reference::together(&[&runs[0], &runs[2]], &[&runs[1]], identifier).unwrap();
+        let mut nominal = truth.clone();
+        nominal.set_effect(EffectKind::CubicStiffness, Some(2.5 * k3));
+        assert_eq!(
+            own_effects(&nominal),
+            [(EffectKind::CubicStiffness, 2.5 * k3)]
+        );
+        assert!(own_effects(&structure_mode()).is_empty());
+        let fitted = |refit_effects| {
+            let opt = SearchOptions {
+                baseline_evaluations: 100,
+                refit_effects,
+                ..SearchOptions::default()
+            };
+            refit_baseline(&reference, &nominal, &opt)
+        };
+        let (held, refitted) = (fitted(false), fitted(true));
+        let k3_of = |f: &Fitted| f.model.effects.get(EffectKind::CubicStiffness).unwrap();
+        println!(
+            "k3: held {:.4e} (fit gap {:.4}), refitted {:.4e} (fit gap {:.4}), truth {k3:.4e} (fit gap {:.4})",
+            k3_of(&held),
+            held.score.fit,
+            k3_of(&refitted),
+            refitted.score.fit,
+            reference.score(&truth).fit
+        );
+        assert_eq!(k3_of(&held), 2.5 * k3);
+        assert!((k3_of(&refitted) / k3 - 1.0).abs() < 0.25);
+        assert!(refitted.score.fit < 0.8 * held.score.fit);
+    }
+
     #[test]
     fn a_joints_cubic_term_starts_near_the_truth_from_the_fitted_levels_backbones_pooled() {
         // The force self-check's structure softening by about 4 % at the top level, its
         // levels 1 and 3 as the fits see them.
         let k3 = -2.0e5;
-        let mut truth = structure_mode();
-        truth.set_effect(EffectKind::CubicStiffness, Some(k3));
+        let truth = softening(k3);
         let (options, backend) = (IdentifyOptions::default(), Backend::cpu());
         let identifier = Identifier {
             options: &options,

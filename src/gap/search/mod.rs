@@ -79,6 +79,10 @@ pub struct SearchOptions {
     pub pairs: bool,
     /// Whether the inertia is refitted too (it is held at the model's value otherwise).
     pub fit_inertia: bool,
+    /// Whether the baseline refits the effects the nominal model already has beside its own
+    /// parameters (they are held at the model's values otherwise): a model from an earlier
+    /// diagnosis updated on other runs.
+    pub refit_effects: bool,
     /// The effects to try.
     pub effects: Vec<EffectKind>,
     /// Whether the gap scores the waveform within a cycle as a fourth domain (the third
@@ -101,6 +105,7 @@ impl Default for SearchOptions {
             candidate_evaluations: 45,
             pairs: true,
             fit_inertia: false,
+            refit_effects: false,
             effects: EffectKind::ALL.to_vec(),
             waveform: true,
             zero_tolerance: None,
