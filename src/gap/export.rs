@@ -172,6 +172,11 @@ pub fn write_fitted_model(path: &Path, r: &GapRun) -> Result<(), ReportError> {
             d.baseline.score.holdout,
             100.0 * d.candidates[i].shrink
         ),
+        // With `--refit-effects` the baseline has refitted the model's effects too.
+        None if d.baseline.model.effects != d.nominal.effects => {
+            "verdict none: the model's own parameters and its effects refitted, no effect added"
+                .into()
+        }
         None => "verdict none: the model's own parameters refitted, no effect added".into(),
     };
     let text = format!(
