@@ -88,7 +88,7 @@ pub(crate) struct GapArgs {
     /// parameters in the baseline, instead of holding them at the model's values: a
     /// fitted model from an earlier diagnosis updated on these runs. The candidates then
     /// add effects to that baseline. More parameters: consider a larger
-    /// --baseline-evaluations (the F-16's verdict model's 9 parameters, took 300)
+    /// --baseline-evaluations (300 for the F-16's verdict model, whose 9 parameters move)
     #[arg(long)]
     pub(crate) refit_effects: bool,
     /// Score the waveform within a cycle (the default; the flag is kept for scripts written
