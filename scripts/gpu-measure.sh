@@ -13,6 +13,8 @@
 #     time), with the end-to-end run per backend;
 #   - `bench` at 512 scales; one 2^20-sample log sweep at 256 scales (traced: where its
 #     host and device time goes);
+#   - an experiment: the ridge programme narrow (256 invocations a run) and wide (1024),
+#     on the 2^20-sample signal and on the campaign (SKELID_GPU_RIDGE);
 #   - an experiment: the GPU `bench` with glibc's malloc keeping freed memory (no trims, no
 #     unmaps: do they cost a 16-core machine its shared address space's locks and TLB
 #     flushes?) against the default, back to back;
@@ -55,6 +57,22 @@ timeout 100 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 512 -
 if [ -f "$W/long.h5" ]; then
   echo "== one 2^20-sample signal, 256 scales"
   SKELID_GPU_TRACE=1 timeout 60 "$B" bench "$W/long.h5" --backend cpu,gpu --repeat 5 --scales 256 --no-end-to-end --out "$OUT/bench-long.json" 2>&1 | quiet
+fi
+if [ -f "$W/long.h5" ]; then
+  # A batch of few runs leaves most of a GPU idle, one workgroup a run, and each step of the
+  # ridge programme lasts as long as its longest scan: the wide programme (1024 invocations,
+  # four a scale at 256 scales) is what `auto` takes for up to 128 runs. Both, side by side.
+  echo "== experiment: the ridge programme's width, SKELID_GPU_RIDGE=narrow and wide (traced)"
+  for w in narrow wide narrow wide; do
+    echo "SKELID_GPU_RIDGE=$w, the 2^20-sample signal"
+    SKELID_GPU_RIDGE=$w SKELID_GPU_TRACE=1 timeout 40 "$B" bench "$W/long.h5" --backend gpu --repeat 5 --scales 256 \
+      --no-end-to-end --out "$OUT/bench-long-$w.json" 2>&1 | grep -E "^ +gpu |ridge.steps" | tail -2
+  done
+  for w in narrow wide; do
+    echo "SKELID_GPU_RIDGE=$w, the campaign at 128 scales"
+    SKELID_GPU_RIDGE=$w SKELID_GPU_TRACE=1 timeout 40 "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 \
+      --no-end-to-end --out "$OUT/bench-128-$w.json" 2>&1 | grep -E "^ +gpu |ridge.steps" | tail -2
+  done
 fi
 echo "== skelid run, both methods"
 for cfg in cpu gpu; do

@@ -8,7 +8,8 @@
 //
 // `ridge_steps`: one workgroup per run: the penalised dynamic programme of src/ridge.rs,
 // maximising Σ score(k_j, j) − λ Σ (k_j − k_{j−1})², the O(S²) maximum per step spread over
-// the workgroup (several invocations a scale where S ≤ 128), accumulated scores in
+// the workgroup (several invocations a scale where S is at most half the workgroup: 256
+// invocations, or 1024 in the host's wide programme), accumulated scores in
 // workgroup memory (shifted by their value at scale 0 every step, so that f32 keeps its
 // precision over thousands of steps; two halves that swap, one barrier a step),
 // back-pointers in global memory. `backtrack` then follows the back-pointers. Only the path and the
@@ -59,6 +60,11 @@ struct Chunk {
 @group(0) @binding(8) var<storage, read_write> accum: array<f32>;
 
 const WG: u32 = 256u;
+// ridge_steps' invocations. The host compiles this file a second time with 1024 here (the
+// `wide` programme, src/gpu/ridge.rs): a step waits for its longest scan of predecessors,
+// so four invocations a scale at 256 scales (t below) shorten each step for a batch of few
+// runs, where one workgroup a run leaves most of a GPU idle.
+const STEPS_WG: u32 = 256u;
 const MAX_SCALES: u32 = 1024u;
 const MIN_POSITIVE: f32 = 1.17549435e-38;
 const BIG: f32 = 3.40282e38;
@@ -70,6 +76,9 @@ var<workgroup> which: array<u32, WG>;
 // ridge_steps' running scores, two halves: the step's own (read, less `shift`) and the
 // next step's (written); they swap every step, so one barrier a step suffices.
 var<workgroup> acc: array<f32, 2048>;
+// ridge_steps' partial maxima, one per invocation, where several share a scale's scan.
+var<workgroup> part_best: array<f32, STEPS_WG>;
+var<workgroup> part_arg: array<u32, STEPS_WG>;
 var<workgroup> top: array<atomic<u32>, 3>;
 
 // track.rs' score: half the log of the power relative to the record's, floored 380 dB down.
@@ -154,7 +163,7 @@ fn score(run: Run, k: u32, j: u32) -> f32 {
     return v;
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(STEPS_WG)
 fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
                @builtin(num_workgroups) groups: vec3<u32>,
                @builtin(local_invocation_index) lid: u32) {
@@ -170,7 +179,7 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
     }
     if ((run.flags & 2u) == 0u) {
         // Per-step argmax (the first maximum): one step per invocation, no programme.
-        for (var j = chunk.first + lid; j < end; j += WG) {
+        for (var j = chunk.first + lid; j < end; j += STEPS_WG) {
             var best = -BIG;
             var arg = 0u;
             for (var k = 0u; k < s; k += 1u) {
@@ -195,13 +204,13 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
     workgroupBarrier();
     var start = chunk.first;
     if (start == 0u) {
-        for (var k = lid; k < s; k += WG) {
+        for (var k = lid; k < s; k += STEPS_WG) {
             acc[k] = score(run, k, 0u);
             atomicMax(&top[0], orderable(acc[k]));
         }
         start = 1u;
     } else {
-        for (var k = lid; k < s; k += WG) {
+        for (var k = lid; k < s; k += STEPS_WG) {
             acc[k] = accum[run.info + k];
             atomicMax(&top[0], orderable(acc[k]));
         }
@@ -211,8 +220,8 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
     // the first maximum over q, as one scan finds it, in a fraction of the time. A batch of a
     // few signals waits on this loop's latency (one workgroup a signal).
     var t = 1u;
-    if (s <= WG / 2u) {
-        t = WG / s;
+    if (s <= STEPS_WG / 2u) {
+        t = STEPS_WG / s;
     }
     // The step's scores are acc[src + q] − shift: the shift by the previous step's value at
     // scale 0 keeps f32's precision over thousands of steps (the same rounding as shifting
@@ -248,20 +257,20 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
                 best = found.value;
                 arg = found.arg;
             }
-            lowest[lid] = best;
-            which[lid] = arg;
+            part_best[lid] = best;
+            part_arg[lid] = arg;
             workgroupBarrier();
             if (k < s && part == 0u) {
                 for (var i = 1u; i < t; i += 1u) {
-                    if (lowest[lid + i] > best) {
-                        best = lowest[lid + i];
-                        arg = which[lid + i];
+                    if (part_best[lid + i] > best) {
+                        best = part_best[lid + i];
+                        arg = part_arg[lid + i];
                     }
                 }
                 settle(run, k, j, dst, next, own + best, arg);
             }
         } else {
-            for (var k = lid; k < s; k += WG) {
+            for (var k = lid; k < s; k += STEPS_WG) {
                 let own = score(run, k, j);
                 let w = window(k, s, most - (acc[src + k] - shift), run.penalty);
                 let found = scan(k, w.x, w.y, src, shift, run.penalty);
@@ -273,7 +282,7 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
         src = dst;
         slot = next;
     }
-    for (var k = lid; k < s; k += WG) {
+    for (var k = lid; k < s; k += STEPS_WG) {
         accum[run.info + k] = acc[src + k] - shift;
     }
 }

@@ -254,19 +254,23 @@ fn ridge_signals() -> Vec<(Vec<f64>, Option<Vec<f64>>)> {
 
 #[test]
 fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
-    use skelid::gpu::ridge::FirstPass;
+    use skelid::gpu::ridge::{FirstPass, RidgeWidth};
     use skelid::track::{RidgeSearch, WaveletOptions, WaveletPrep};
     let gpu = gpu();
-    let stage = FirstPass::new(&gpu).unwrap();
+    let narrow = FirstPass::with_width(&gpu, RidgeWidth::Narrow).unwrap();
+    let wide = FirstPass::with_width(&gpu, RidgeWidth::Wide).unwrap();
     let signals = ridge_signals();
     // 128 scales: the programme runs in several chunks per run (lavapipe's loop limit),
-    // two invocations a scale; 50: five a scale, over ranges of 10 predecessors;
-    // 700 scales: many chunks and more than one scale per invocation.
+    // two invocations a scale (eight in the wide programme); 50: five a scale, over ranges
+    // of 10 predecessors; 700 scales: many chunks and more than one scale per invocation
+    // (one in the wide programme); 8: 32 and 128 invocations a scale, whose combining
+    // loops the chunks must allow for.
     for (search, scales) in [
         (RidgeSearch::Dynamic, 128),
         (RidgeSearch::Dynamic, 50),
         (RidgeSearch::Argmax, 64),
         (RidgeSearch::Dynamic, 700),
+        (RidgeSearch::Dynamic, 8),
     ] {
         let opt = WaveletOptions {
             scales,
@@ -280,12 +284,27 @@ fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
         // Two parts in one submission.
         let refs: Vec<&WaveletPrep> = preps.iter().collect();
         let parts = vec![refs[..2].to_vec(), refs[2..].to_vec()];
-        let ours: Vec<_> = stage
+        let ours: Vec<_> = narrow
             .coarse_ridges(&gpu, &parts)
             .unwrap()
             .into_iter()
             .flatten()
             .collect();
+        // The wide programme splits each scan differently and combines the parts in
+        // order: the same first maximum, so the same paths to the last step.
+        let widened: Vec<_> = wide
+            .coarse_ridges(&gpu, &parts)
+            .unwrap()
+            .into_iter()
+            .flatten()
+            .collect();
+        for (o, w) in ours.iter().zip(&widened) {
+            assert_eq!(
+                o.path, w.path,
+                "{search:?}, {scales} scales: wide against narrow"
+            );
+            assert_eq!(o.median_power, w.median_power);
+        }
         for (p, o) in preps.iter().zip(&ours) {
             let cpu = p.coarse_ridge();
             let differ = cpu.path.iter().zip(&o.path).filter(|(a, b)| a != b).count();

@@ -417,6 +417,12 @@ impl Gpu {
         self.device.features().contains(wgpu::Features::SHADER_F64)
     }
 
+    /// Whether the adapter is a software one (lavapipe): its invocations run one after
+    /// another on the CPU, so a shader costs its total work, not its longest thread.
+    pub fn is_software(&self) -> bool {
+        self.info.device_type == wgpu::DeviceType::Cpu
+    }
+
     /// The adapter's name and kind, e.g. `llvmpipe (LLVM 15.0.6, 256 bits) (Cpu, Vulkan)`.
     pub fn adapter_name(&self) -> String {
         describe(&self.info)
@@ -588,25 +594,54 @@ impl Gpu {
             label: Some(label),
             entries: &layout_entries,
         });
+        let pipelines = self.pipelines(label, &module, &layout, entries);
+        (layout, pipelines)
+    }
+
+    /// More pipelines for a stage's bind `layout`, from another version of its shader (the
+    /// ridge's wide programme): one per entry point of `entries`, in that order.
+    pub fn stage_variant(
+        &self,
+        label: &str,
+        wgsl: &str,
+        layout: &wgpu::BindGroupLayout,
+        entries: &[&str],
+    ) -> Vec<wgpu::ComputePipeline> {
+        let module = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(label),
+                source: wgpu::ShaderSource::Wgsl(wgsl.into()),
+            });
+        self.pipelines(label, &module, layout, entries)
+    }
+
+    fn pipelines(
+        &self,
+        label: &str,
+        module: &wgpu::ShaderModule,
+        layout: &wgpu::BindGroupLayout,
+        entries: &[&str],
+    ) -> Vec<wgpu::ComputePipeline> {
+        let device = &self.device;
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some(label),
-            bind_group_layouts: &[Some(&layout)],
+            bind_group_layouts: &[Some(layout)],
             immediate_size: 0,
         });
-        let pipelines = entries
+        entries
             .iter()
             .map(|entry| {
                 device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                     label: Some(entry),
                     layout: Some(&pipeline_layout),
-                    module: &module,
+                    module,
                     entry_point: Some(entry),
                     compilation_options: Default::default(),
                     cache: None,
                 })
             })
-            .collect();
-        (layout, pipelines)
+            .collect()
     }
 
     /// A bind group of `layout` with whole `buffers` at bindings 0, 1, … in order.

@@ -61,17 +61,85 @@ struct Chunk {
 /// nest after 65 535, whatever the shader says; this leaves room for the bookkeeping.
 const LOOP_BUDGET: usize = 60_000;
 
-/// Workgroup memory the ridge shader declares: two score rows of `MAX_SCALES` f32 and
-/// two reduction arrays of 256 plus a counter.
-const WORKGROUP_BYTES: u32 = (2 * MAX_SCALES as u32 + 2 * 256 + 1) * 4;
+/// Workgroup memory `ridge_steps` takes with `width` invocations (the most of any entry
+/// point): two score rows of `MAX_SCALES` f32, a partial maximum and its scale per
+/// invocation, and three rotating maxima.
+const fn workgroup_bytes(width: u32) -> u32 {
+    (2 * MAX_SCALES as u32 + 2 * width + 3) * 4
+}
+
+/// Workgroup memory the ridge shader needs as written (256 invocations).
+const WORKGROUP_BYTES: u32 = workgroup_bytes(256);
+
+/// Invocations of the wide programme's workgroup: `ridge_steps` compiled with `STEPS_WG`
+/// this large, four invocations sharing each scale's scan at 256 scales, eight at 128.
+const WIDE: u32 = 1024;
+
+/// Runs in a dispatch up to which [`RidgeWidth::Auto`] takes the wide programme. One
+/// workgroup a run: with fewer than a GPU has multiprocessors (132 on an H100), each
+/// workgroup has one to itself and a step lasts as long as its longest scan (halving that
+/// scan by sharing it between two invocations halved the H100's programme for batches of
+/// 5 runs, 5.2 → 2.6 ms); with many runs the device is full either way, and the narrow
+/// programme is the one measured there.
+const WIDE_RUNS: usize = 128;
+
+/// The environment variable that fixes the ridge programme's width (for measuring).
+const WIDTH_ENV: &str = "SKELID_GPU_RIDGE";
+
+/// Which ridge programme a dispatch runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RidgeWidth {
+    /// Wide for dispatches of up to [`WIDE_RUNS`] runs where the adapter allows it and is
+    /// a hardware GPU, narrow otherwise: on lavapipe, which runs the invocations one after
+    /// another, the wide programme took 43 % longer (one 2^17-sample record, 256 scales).
+    Auto,
+    /// 256 invocations a run.
+    Narrow,
+    /// 1024 invocations a run where the adapter allows it (else narrow).
+    Wide,
+}
+
+impl RidgeWidth {
+    /// `SKELID_GPU_RIDGE` (`auto`, `narrow` or `wide`), or `Auto` when it is unset; any
+    /// other value is an error that names the three.
+    pub fn from_env() -> Result<RidgeWidth, GpuError> {
+        match std::env::var(WIDTH_ENV).ok().as_deref() {
+            None | Some("auto") => Ok(RidgeWidth::Auto),
+            Some("narrow") => Ok(RidgeWidth::Narrow),
+            Some("wide") => Ok(RidgeWidth::Wide),
+            Some(v) => Err(GpuError::Unsupported(format!(
+                "{WIDTH_ENV}={v:?}: use auto (the default), narrow (256 invocations a run) or \
+                 wide (1024)"
+            ))),
+        }
+    }
+}
 
 /// Most coarse steps per run: the median's radix selection loops 32 × steps/256 times.
 pub const MAX_STEPS: usize = 1 << 18;
+
+/// Loop iterations an invocation of `ridge_steps` runs per step, at most, for a run of
+/// `scales` scales in a workgroup of `width`: `t` invocations share a scale where it is at
+/// most half the workgroup (each scans its share of the scale's predecessors, and the first
+/// then reads the others' maxima), else each holds ⌈S/width⌉ scales and scans up to S
+/// predecessors for each; four for the bookkeeping. Lavapipe's loop limit counts these.
+fn loops_per_step(scales: usize, width: usize) -> usize {
+    let s = scales.max(1);
+    if s <= width / 2 {
+        let t = width / s;
+        s.div_ceil(t) + 1 + t + 4
+    } else {
+        s.div_ceil(width) * (s + 2) + 4
+    }
+}
 
 /// The compiled ridge stage.
 pub struct RidgeStage {
     stats: wgpu::ComputePipeline,
     steps: wgpu::ComputePipeline,
+    /// `ridge_steps` with [`WIDE`] invocations, where the adapter allows that many.
+    wide: Option<wgpu::ComputePipeline>,
+    width: RidgeWidth,
     backtrack: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
 }
@@ -85,6 +153,11 @@ pub struct FirstPass {
 impl FirstPass {
     /// Compiles both stages, once the device is known to hold the ridge shader's workgroup.
     pub fn new(gpu: &Gpu) -> Result<FirstPass, GpuError> {
+        Self::with_width(gpu, RidgeWidth::from_env()?)
+    }
+
+    /// [`new`](Self::new) with the ridge programme's width fixed (tests compare them).
+    pub fn with_width(gpu: &Gpu, width: RidgeWidth) -> Result<FirstPass, GpuError> {
         let limits = &gpu.limits;
         if limits.max_compute_workgroup_storage_size < WORKGROUP_BYTES
             || limits.max_compute_invocations_per_workgroup < 256
@@ -100,7 +173,7 @@ impl FirstPass {
         }
         Ok(FirstPass {
             scales: ScaleStage::new(gpu),
-            ridge: RidgeStage::new(gpu),
+            ridge: RidgeStage::new(gpu, width),
         })
     }
 
@@ -308,21 +381,49 @@ struct RidgeOut {
 impl RidgeStage {
     /// Compiles `ridge.wgsl` and declares its bindings: runs, scale info, power, guide,
     /// statistics, back-pointers, paths, the chunk, and the scores carried between chunks.
-    pub fn new(gpu: &Gpu) -> RidgeStage {
+    pub fn new(gpu: &Gpu, width: RidgeWidth) -> RidgeStage {
         use super::Binding::{Read, Uniform, Write};
+        const SOURCE: &str = include_str!("../../shaders/ridge.wgsl");
+        const NARROW: &str = "const STEPS_WG: u32 = 256u;";
         let (layout, pipelines) = gpu.stage(
             "ridge.wgsl",
-            include_str!("../../shaders/ridge.wgsl"),
+            SOURCE,
             &[Read, Read, Read, Read, Write, Write, Write, Uniform, Write],
             &["column_stats", "ridge_steps", "backtrack"],
         );
         let [stats, steps, backtrack]: [wgpu::ComputePipeline; 3] =
             pipelines.try_into().expect("three entry points");
+        let limits = &gpu.limits;
+        let fits = limits.max_compute_invocations_per_workgroup >= WIDE
+            && limits.max_compute_workgroup_size_x >= WIDE
+            && limits.max_compute_workgroup_storage_size >= workgroup_bytes(WIDE);
+        let width = match width {
+            RidgeWidth::Auto if gpu.is_software() => RidgeWidth::Narrow,
+            w => w,
+        };
+        let wide = (fits && width != RidgeWidth::Narrow).then(|| {
+            assert!(SOURCE.contains(NARROW), "ridge.wgsl declares {NARROW}");
+            let source = SOURCE.replace(NARROW, &format!("const STEPS_WG: u32 = {WIDE}u;"));
+            let mut p = gpu.stage_variant("ridge.wgsl (wide)", &source, &layout, &["ridge_steps"]);
+            p.pop().expect("one entry point")
+        });
         RidgeStage {
             stats,
             steps,
+            wide,
+            width,
             backtrack,
             layout,
+        }
+    }
+
+    /// The `ridge_steps` pipeline for a dispatch of `runs` runs (see [`RidgeWidth`]), and
+    /// its invocations a workgroup.
+    fn steps_for(&self, runs: usize) -> (&wgpu::ComputePipeline, usize) {
+        match (&self.wide, self.width) {
+            (Some(w), RidgeWidth::Wide) => (w, WIDE as usize),
+            (Some(w), RidgeWidth::Auto) if runs <= WIDE_RUNS => (w, WIDE as usize),
+            _ => (&self.steps, 256),
         }
     }
 
@@ -423,8 +524,12 @@ impl RidgeStage {
         let accum = gpu.reusable("carried scores", (info.len() * 4) as u64);
         let max_scales = preps.iter().map(|p| p.freqs.len()).max().unwrap_or(1);
         let max_steps = preps.iter().map(|p| p.steps).max().unwrap_or(1);
-        // An invocation holds ⌈S/256⌉ scales and scans S predecessors for each, per step.
-        let per_step = max_scales.div_ceil(256) * (max_scales + 2) + 4;
+        let (steps_pipeline, width) = self.steps_for(preps.len());
+        let per_step = preps
+            .iter()
+            .map(|p| loops_per_step(p.freqs.len(), width))
+            .max()
+            .unwrap_or(1);
         let per_chunk = (LOOP_BUDGET / per_step).max(1);
         let bind = |chunk: &wgpu::Buffer| {
             gpu.bind(
@@ -457,8 +562,14 @@ impl RidgeStage {
         }
         let [x, y, z] = gpu.grid(preps.len() as u64)?;
         {
-            let mut pass = gpu.pass(enc, "ridge.steps");
-            pass.set_pipeline(&self.steps);
+            // The trace names the wide programme apart, to compare the two on a device.
+            let label = if width == 256 {
+                "ridge.steps"
+            } else {
+                "ridge.steps wide"
+            };
+            let mut pass = gpu.pass(enc, label);
+            pass.set_pipeline(steps_pipeline);
             for b in &chunks {
                 pass.set_bind_group(0, b, &[]);
                 pass.dispatch_workgroups(x, y, z);
