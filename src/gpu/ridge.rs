@@ -401,12 +401,32 @@ impl RidgeStage {
             RidgeWidth::Auto if gpu.is_software() => RidgeWidth::Narrow,
             w => w,
         };
-        let wide = (fits && width != RidgeWidth::Narrow).then(|| {
-            assert!(SOURCE.contains(NARROW), "ridge.wgsl declares {NARROW}");
-            let source = SOURCE.replace(NARROW, &format!("const STEPS_WG: u32 = {WIDE}u;"));
-            let mut p = gpu.stage_variant("ridge.wgsl (wide)", &source, &layout, &["ridge_steps"]);
-            p.pop().expect("one entry point")
-        });
+        let wide = (fits && width != RidgeWidth::Narrow)
+            .then(|| {
+                assert!(SOURCE.contains(NARROW), "ridge.wgsl declares {NARROW}");
+                let source = SOURCE.replace(NARROW, &format!("const STEPS_WG: u32 = {WIDE}u;"));
+                // A driver that refuses the wide programme must not take the GPU backend
+                // down with it (an uncaptured error fails every batch): the narrow one
+                // serves instead.
+                let validation = gpu.device.push_error_scope(wgpu::ErrorFilter::Validation);
+                let internal = gpu.device.push_error_scope(wgpu::ErrorFilter::Internal);
+                let mut p =
+                    gpu.stage_variant("ridge.wgsl (wide)", &source, &layout, &["ridge_steps"]);
+                let refused = pollster::block_on(internal.pop())
+                    .or_else(|| pollster::block_on(validation.pop()));
+                match refused {
+                    None => p.pop(),
+                    Some(e) => {
+                        if width == RidgeWidth::Wide || crate::profile::tracing() {
+                            eprintln!(
+                                "note: the wide ridge programme is off, the narrow one serves: {e}"
+                            );
+                        }
+                        None
+                    }
+                }
+            })
+            .flatten();
         RidgeStage {
             stats,
             steps,
