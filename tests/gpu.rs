@@ -284,20 +284,14 @@ fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
         // Two parts in one submission.
         let refs: Vec<&WaveletPrep> = preps.iter().collect();
         let parts = vec![refs[..2].to_vec(), refs[2..].to_vec()];
-        let ours: Vec<_> = narrow
-            .coarse_ridges(&gpu, &parts)
-            .unwrap()
-            .into_iter()
-            .flatten()
-            .collect();
+        let ridges = |stage: &FirstPass| -> Vec<_> {
+            let found = stage.coarse_ridges(&gpu, &parts).unwrap();
+            found.into_iter().flatten().collect()
+        };
+        let ours = ridges(&narrow);
         // The wide programme splits each scan differently and combines the parts in
         // order: the same first maximum, so the same paths to the last step.
-        let widened: Vec<_> = wide
-            .coarse_ridges(&gpu, &parts)
-            .unwrap()
-            .into_iter()
-            .flatten()
-            .collect();
+        let widened = ridges(&wide);
         for (o, w) in ours.iter().zip(&widened) {
             assert_eq!(
                 o.path, w.path,
