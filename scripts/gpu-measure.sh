@@ -15,6 +15,8 @@
 #     host and device time goes);
 #   - an experiment: the ridge programme narrow (256 invocations a run) and wide (1024),
 #     on the 2^20-sample signal and on the campaign (SKELID_GPU_RIDGE);
+#   - an experiment: the GPU backend's host share (preparing, completing) on 2 to 16
+#     threads, to see whether the completion stops scaling;
 #   - an experiment: the GPU `bench` with glibc's malloc keeping freed memory (no trims, no
 #     unmaps: do they cost a 16-core machine its shared address space's locks and TLB
 #     flushes?) against the default, back to back;
@@ -74,6 +76,15 @@ if [ -f "$W/long.h5" ]; then
       --no-end-to-end --out "$OUT/bench-128-$w.json" 2>&1 | grep -E "^ +gpu |ridge.steps" | tail -2
   done
 fi
+# The completion took 0.18–0.22 s for 2000 tracks on the H200's 16 cores, about three
+# times a track's one-thread cost on a slower 2-core machine: does it stop scaling (memory
+# traffic, 1.5 MB of series written a track)? The GPU backend's host share by thread count.
+echo "== experiment: the GPU backend's host share (preparing, completing) by RAYON_NUM_THREADS"
+for t in 2 4 8 16; do
+  echo -n "RAYON_NUM_THREADS=$t: "
+  RAYON_NUM_THREADS=$t timeout 40 "$B" bench "$W/campaign" --backend gpu --repeat 2 --scales 128 --no-end-to-end \
+    --out "$OUT/bench-128-threads-$t.json" 2>&1 | grep -E "CPU share" | tail -1
+done
 echo "== skelid run, both methods"
 for cfg in cpu gpu; do
   s=$(now)
