@@ -500,6 +500,19 @@ pub fn structure_run(path: &str, model: &RigModel, level: f64, noise: f64, seed:
     data
 }
 
+/// The [`structure_run`]s of `model` at the levels `levels` (indices into
+/// [`STRUCTURE_LEVELS`]), named `/gvt/level_{index + 1}`, with 1 % response noise and
+/// seeds `seed + index`: the runs the gap's tests fit and hold out.
+pub fn structure_levels(model: &RigModel, levels: &[usize], seed: u64) -> Vec<crate::run::Run> {
+    levels
+        .iter()
+        .map(|&i| {
+            let path = format!("/gvt/level_{}", i + 1);
+            structure_run(&path, model, STRUCTURE_LEVELS[i], 0.01, seed + i as u64).into_run()
+        })
+        .collect()
+}
+
 /// `model` (a [`structure_mode`] with its effects) ringing down from `offset` (m) after an
 /// impact, as a hammer test records it: 1 s at rest, the impact as a release from `offset`,
 /// 12 s of decay, 400 Hz, an accelerometer (m/s²) with white noise of `noise` of the

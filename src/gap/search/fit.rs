@@ -618,7 +618,7 @@ mod tests {
     use super::*;
     use crate::backend::Backend;
     use crate::identify::{Identifier, IdentifyOptions};
-    use crate::rig::{structure_mode, structure_run, STRUCTURE_LEVELS};
+    use crate::rig::{structure_levels, structure_mode};
     use crate::track::Method;
 
     #[test]
@@ -809,13 +809,7 @@ mod tests {
             options: &options,
             backend: &backend,
         };
-        let runs: Vec<crate::run::Run> = [0, 2, 3]
-            .iter()
-            .map(|&i| {
-                let path = format!("/gvt/level_{}", i + 1);
-                structure_run(&path, &truth, STRUCTURE_LEVELS[i], 0.01, 5 + i as u64).into_run()
-            })
-            .collect();
+        let runs = structure_levels(&truth, &[0, 2, 3], 5);
         let reference =
             Reference::together(&[&runs[0], &runs[2]], &[&runs[1]], identifier).unwrap();
         let mut nominal = truth.clone();
@@ -859,15 +853,9 @@ mod tests {
             options: &options,
             backend: &backend,
         };
-        let ids: Vec<Identification> = [0, 2]
+        let ids: Vec<Identification> = structure_levels(&truth, &[0, 2], 3)
             .iter()
-            .map(|&i| {
-                let path = format!("/gvt/level_{}", i + 1);
-                let run = structure_run(&path, &truth, STRUCTURE_LEVELS[i], 0.01, 3 + i as u64);
-                identifier
-                    .identify(&run.into_run(), Method::Wavelet)
-                    .unwrap()
-            })
+            .map(|run| identifier.identify(run, Method::Wavelet).unwrap())
             .collect();
         let refs: Vec<&Identification> = ids.iter().collect();
         let model = structure_mode();

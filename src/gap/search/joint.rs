@@ -131,8 +131,7 @@ mod tests {
     use super::*;
     use crate::backend::Backend;
     use crate::identify::{Identifier, IdentifyOptions};
-    use crate::rig::{structure_mode, structure_run, STRUCTURE_LEVELS};
-    use crate::run::Run;
+    use crate::rig::{structure_levels, structure_mode};
 
     /// The force self-check's structure with a bolted joint as the F-16's: a softening cubic
     /// term, a joint of a tenth of the stiffness holding until 20 mm (the levels' resonant
@@ -153,14 +152,7 @@ mod tests {
     #[test]
     fn the_second_start_reaches_a_sharp_joint_the_ordinary_start_does_not() {
         let truth = bolted();
-        let runs: Vec<Run> = STRUCTURE_LEVELS
-            .iter()
-            .enumerate()
-            .map(|(i, &level)| {
-                let path = format!("/gvt/level_{}", i + 1);
-                structure_run(&path, &truth, level, 0.01, 11 + i as u64).into_run()
-            })
-            .collect();
+        let runs = structure_levels(&truth, &[0, 1, 2, 3], 11);
         let (options, backend) = (IdentifyOptions::default(), Backend::cpu());
         let identifier = Identifier {
             options: &options,
