@@ -641,3 +641,33 @@ fn reused_work_buffers_fit_their_request_and_leave_nothing_behind() {
         assert_eq!(a.valid, b.valid);
     }
 }
+
+#[test]
+fn a_refused_shader_variant_is_reported_and_the_device_goes_on() {
+    use skelid::gpu::Binding;
+    let g = gpu();
+    const DOUBLE: &str = "@group(0) @binding(0) var<storage, read_write> v: array<f32>;
+@compute @workgroup_size(64)
+fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    if (id.x < arrayLength(&v)) { v[id.x] = 2.0 * v[id.x]; }
+}";
+    let (layout, _) = g.stage("double", DOUBLE, &[Binding::Write], &["main"]);
+    // As the ridge's wide programme would be on a driver with smaller limits: a workgroup
+    // beyond what any adapter allows, and then a shader that does not parse.
+    let too_wide = DOUBLE.replace("workgroup_size(64)", "workgroup_size(65536)");
+    let refused = g.try_stage_variant("too wide", &too_wide, &layout, &["main"]);
+    println!("refused: {:?}", refused.as_ref().err());
+    assert!(refused.is_err());
+    let broken = DOUBLE.replace("fn main", "fn main(");
+    assert!(g
+        .try_stage_variant("broken", &broken, &layout, &["main"])
+        .is_err());
+    // Nothing reached the device's uncaptured-error handler, which fails every later batch.
+    g.check().unwrap();
+    let same = g.try_stage_variant("same", DOUBLE, &layout, &["main"]);
+    assert_eq!(same.map(|p| p.len()), Ok(1));
+    g.check().unwrap();
+    // And the device still computes: an FFT against rustfft, as the test above.
+    let stage = FftStage::new(&g);
+    assert!(fft_error(&g, &stage, 64, 2, false, 1) < 1e-5);
+}

@@ -83,6 +83,8 @@ pub(super) struct GpuService {
     /// Device memory (bytes, as [`batch_bytes`] counts it) one submission may take: half the
     /// adapter's largest binding times [`SUBMISSION_PARTS`]. Batches are sized to it.
     pub(super) submission_budget: u64,
+    /// What the user should know of how the stages were compiled (a programme refused).
+    pub(super) notes: Vec<String>,
     /// Submissions made and signals they carried (successful ones).
     stats: Arc<Stats>,
     /// Each message is one handover (a `send`'s signals), taken into a batch whole.
@@ -125,7 +127,8 @@ impl GpuService {
                 match opened {
                     Ok((gpu, stages)) => {
                         let budget = gpu.max_binding() / 2 * SUBMISSION_PARTS;
-                        let _ = ready_tx.send(Ok((gpu.adapter_name(), budget)));
+                        let notes = stages.first.notes();
+                        let _ = ready_tx.send(Ok((gpu.adapter_name(), budget, notes)));
                         dispatch(&gpu, &stages, rx, fail_after, &counted);
                     }
                     Err(e) => {
@@ -141,7 +144,7 @@ impl GpuService {
             .recv()
             .map_err(|_| GpuError::Lost("the GPU thread ended while opening the device".into()))
             .and_then(|r| r);
-        let (adapter, submission_budget) = match ready {
+        let (adapter, submission_budget, notes) = match ready {
             Ok(a) => a,
             Err(e) => {
                 let _ = thread.join();
@@ -151,6 +154,7 @@ impl GpuService {
         Ok(GpuService {
             adapter,
             submission_budget,
+            notes,
             stats,
             queue: Mutex::new(Some(tx)),
             thread: Some(thread),

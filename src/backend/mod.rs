@@ -227,10 +227,15 @@ impl Backend {
     }
 
     fn start_gpu() -> Result<Backend, GpuError> {
+        let service = GpuService::start()?;
+        let notes = service.notes.clone();
         let b = Backend {
-            gpu: Some(GpuService::start()?),
+            gpu: Some(service),
             warnings: Mutex::default(),
         };
+        for n in notes {
+            b.note(n);
+        }
         if let (Ok(v), None) = (std::env::var(GROUP_ENV), fixed_group()) {
             b.note(format!(
                 "{GROUP_ENV}={v:?} is not a positive whole number of signals: ignored, groups \

@@ -599,21 +599,36 @@ impl Gpu {
     }
 
     /// More pipelines for a stage's bind `layout`, from another version of its shader (the
-    /// ridge's wide programme): one per entry point of `entries`, in that order.
-    pub fn stage_variant(
+    /// ridge's wide programme): one per entry point of `entries`, in that order, or why the
+    /// device refused them. The refusal is caught in error scopes, so that an optional
+    /// variant never fails the device for every later batch (see [`check`](Self::check)).
+    pub fn try_stage_variant(
         &self,
         label: &str,
         wgsl: &str,
         layout: &wgpu::BindGroupLayout,
         entries: &[&str],
-    ) -> Vec<wgpu::ComputePipeline> {
+    ) -> Result<Vec<wgpu::ComputePipeline>, String> {
+        let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let internal = self.device.push_error_scope(wgpu::ErrorFilter::Internal);
         let module = self
             .device
             .create_shader_module(wgpu::ShaderModuleDescriptor {
                 label: Some(label),
                 source: wgpu::ShaderSource::Wgsl(wgsl.into()),
             });
-        self.pipelines(label, &module, layout, entries)
+        let pipelines = self.pipelines(label, &module, layout, entries);
+        let refused =
+            pollster::block_on(internal.pop()).or_else(|| pollster::block_on(validation.pop()));
+        match refused {
+            None => Ok(pipelines),
+            // wgpu's report runs over several indented lines: one line for a note.
+            Some(e) => Err(e
+                .to_string()
+                .split_whitespace()
+                .collect::<Vec<_>>()
+                .join(" ")),
+        }
     }
 
     fn pipelines(

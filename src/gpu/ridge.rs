@@ -68,8 +68,11 @@ const fn workgroup_bytes(width: u32) -> u32 {
     (2 * MAX_SCALES as u32 + 2 * width + 3) * 4
 }
 
-/// Workgroup memory the ridge shader needs as written (256 invocations).
-const WORKGROUP_BYTES: u32 = workgroup_bytes(256);
+/// Invocations of `ridge_steps`' workgroup as `ridge.wgsl` is written (`STEPS_WG`).
+const NARROW: u32 = 256;
+
+/// Workgroup memory the ridge shader needs as written.
+const WORKGROUP_BYTES: u32 = workgroup_bytes(NARROW);
 
 /// Invocations of the wide programme's workgroup: `ridge_steps` compiled with `STEPS_WG`
 /// this large, four invocations sharing each scale's scan at 256 scales, eight at 128.
@@ -133,15 +136,28 @@ fn loops_per_step(scales: usize, width: usize) -> usize {
     }
 }
 
+/// One compiled `ridge_steps`: its pipeline, its invocations a workgroup, and the name of
+/// its pass in the trace (the two apart, to compare them on a device).
+struct Programme {
+    pipeline: wgpu::ComputePipeline,
+    width: usize,
+    label: &'static str,
+}
+
+/// `ridge.wgsl`, compiled as written and, for the wide programme, with `STEPS_WG` changed.
+const SOURCE: &str = include_str!("../../shaders/ridge.wgsl");
+
 /// The compiled ridge stage.
 pub struct RidgeStage {
     stats: wgpu::ComputePipeline,
-    steps: wgpu::ComputePipeline,
+    narrow: Programme,
     /// `ridge_steps` with [`WIDE`] invocations, where the adapter allows that many.
-    wide: Option<wgpu::ComputePipeline>,
+    wide: Option<Programme>,
     width: RidgeWidth,
     backtrack: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
+    /// Why the driver refused the wide programme, when it did.
+    refused: Option<String>,
 }
 
 /// The first pass of the wavelet track, scales and ridge, on one device.
@@ -175,6 +191,11 @@ impl FirstPass {
             scales: ScaleStage::new(gpu),
             ridge: RidgeStage::new(gpu, width),
         })
+    }
+
+    /// What a user should know of how the first pass was compiled ([`RidgeStage::notes`]).
+    pub fn notes(&self) -> Vec<String> {
+        self.ridge.notes()
     }
 
     /// The coarse ridges, noise medians and noise gains of every run of every part, in one
@@ -383,8 +404,6 @@ impl RidgeStage {
     /// statistics, back-pointers, paths, the chunk, and the scores carried between chunks.
     pub fn new(gpu: &Gpu, width: RidgeWidth) -> RidgeStage {
         use super::Binding::{Read, Uniform, Write};
-        const SOURCE: &str = include_str!("../../shaders/ridge.wgsl");
-        const NARROW: &str = "const STEPS_WG: u32 = 256u;";
         let (layout, pipelines) = gpu.stage(
             "ridge.wgsl",
             SOURCE,
@@ -401,49 +420,63 @@ impl RidgeStage {
             RidgeWidth::Auto if gpu.is_software() => RidgeWidth::Narrow,
             w => w,
         };
-        let wide = (fits && width != RidgeWidth::Narrow)
-            .then(|| {
-                assert!(SOURCE.contains(NARROW), "ridge.wgsl declares {NARROW}");
-                let source = SOURCE.replace(NARROW, &format!("const STEPS_WG: u32 = {WIDE}u;"));
-                // A driver that refuses the wide programme must not take the GPU backend
-                // down with it (an uncaptured error fails every batch): the narrow one
-                // serves instead.
-                let validation = gpu.device.push_error_scope(wgpu::ErrorFilter::Validation);
-                let internal = gpu.device.push_error_scope(wgpu::ErrorFilter::Internal);
-                let mut p =
-                    gpu.stage_variant("ridge.wgsl (wide)", &source, &layout, &["ridge_steps"]);
-                let refused = pollster::block_on(internal.pop())
-                    .or_else(|| pollster::block_on(validation.pop()));
-                match refused {
-                    None => p.pop(),
-                    Some(e) => {
-                        if width == RidgeWidth::Wide || crate::profile::tracing() {
-                            eprintln!(
-                                "note: the wide ridge programme is off, the narrow one serves: {e}"
-                            );
-                        }
-                        None
-                    }
-                }
-            })
-            .flatten();
+        let (wide, refused) = if fits && width != RidgeWidth::Narrow {
+            match Self::compile_wide(gpu, &layout) {
+                Ok(p) => (Some(p), None),
+                Err(why) => (None, Some(why)),
+            }
+        } else {
+            (None, None)
+        };
         RidgeStage {
             stats,
-            steps,
+            narrow: Programme {
+                pipeline: steps,
+                width: NARROW as usize,
+                label: "ridge.steps",
+            },
             wide,
             width,
             backtrack,
             layout,
+            refused,
         }
     }
 
-    /// The `ridge_steps` pipeline for a dispatch of `runs` runs (see [`RidgeWidth`]), and
-    /// its invocations a workgroup.
-    fn steps_for(&self, runs: usize) -> (&wgpu::ComputePipeline, usize) {
+    /// `ridge_steps` compiled with [`WIDE`] invocations, or why the driver refused it (the
+    /// narrow programme then serves).
+    fn compile_wide(gpu: &Gpu, layout: &wgpu::BindGroupLayout) -> Result<Programme, String> {
+        let narrow = format!("const STEPS_WG: u32 = {NARROW}u;");
+        assert!(SOURCE.contains(&narrow), "ridge.wgsl declares {narrow}");
+        let source = SOURCE.replace(&narrow, &format!("const STEPS_WG: u32 = {WIDE}u;"));
+        let mut pipelines =
+            gpu.try_stage_variant("ridge.wgsl (wide)", &source, layout, &["ridge_steps"])?;
+        Ok(Programme {
+            pipeline: pipelines.pop().expect("one entry point"),
+            width: WIDE as usize,
+            label: "ridge.steps wide",
+        })
+    }
+
+    /// What a user should know of this stage: the driver's refusal of the wide programme.
+    pub fn notes(&self) -> Vec<String> {
+        self.refused
+            .iter()
+            .map(|why| {
+                format!(
+                    "the GPU driver refused the wide ridge programme ({WIDE} invocations), so \
+                     the narrow one ({NARROW}) serves; results are the same: {why}"
+                )
+            })
+            .collect()
+    }
+
+    /// The `ridge_steps` programme for a dispatch of `runs` runs (see [`RidgeWidth`]).
+    fn programme_for(&self, runs: usize) -> &Programme {
         match (&self.wide, self.width) {
-            (Some(w), RidgeWidth::Wide) => (w, WIDE as usize),
-            (Some(w), RidgeWidth::Auto) if runs <= WIDE_RUNS => (w, WIDE as usize),
-            _ => (&self.steps, 256),
+            (Some(w), RidgeWidth::Wide) => w,
+            (Some(w), RidgeWidth::Auto) if runs <= WIDE_RUNS => w,
+            _ => &self.narrow,
         }
     }
 
@@ -544,10 +577,10 @@ impl RidgeStage {
         let accum = gpu.reusable("carried scores", (info.len() * 4) as u64);
         let max_scales = preps.iter().map(|p| p.freqs.len()).max().unwrap_or(1);
         let max_steps = preps.iter().map(|p| p.steps).max().unwrap_or(1);
-        let (steps_pipeline, width) = self.steps_for(preps.len());
+        let programme = self.programme_for(preps.len());
         let per_step = preps
             .iter()
-            .map(|p| loops_per_step(p.freqs.len(), width))
+            .map(|p| loops_per_step(p.freqs.len(), programme.width))
             .max()
             .unwrap_or(1);
         let per_chunk = (LOOP_BUDGET / per_step).max(1);
@@ -582,14 +615,8 @@ impl RidgeStage {
         }
         let [x, y, z] = gpu.grid(preps.len() as u64)?;
         {
-            // The trace names the wide programme apart, to compare the two on a device.
-            let label = if width == 256 {
-                "ridge.steps"
-            } else {
-                "ridge.steps wide"
-            };
-            let mut pass = gpu.pass(enc, label);
-            pass.set_pipeline(steps_pipeline);
+            let mut pass = gpu.pass(enc, programme.label);
+            pass.set_pipeline(&programme.pipeline);
             for b in &chunks {
                 pass.set_bind_group(0, b, &[]);
                 pass.dispatch_workgroups(x, y, z);
