@@ -17,9 +17,9 @@
 #     on the 2^20-sample signal and on the campaign (SKELID_GPU_RIDGE);
 #   - an experiment: the GPU backend's host share (preparing, completing) on 2 to 16
 #     threads, to see whether the completion stops scaling;
-#   - an experiment: the GPU `bench` with glibc's malloc keeping freed memory (no trims, no
-#     unmaps: do they cost a 16-core machine its shared address space's locks and TLB
-#     flushes?) against the default, back to back;
+#   - an experiment: the GPU `bench` with glibc's malloc keeping freed memory (no trims, and
+#     since 2026-11-28 no unmapped thread heaps either: the top pad) against the default,
+#     back to back, with each backend's page faults and system time a repetition;
 #   - `skelid run` end to end, both methods, on each backend (traced on the GPU), with
 #     its log's timeline and how busy its one writer thread was.
 set -u
@@ -52,7 +52,7 @@ echo "== experiment: bench, 128 scales, glibc's malloc at its defaults (SKELID_M
 for m in default skelid; do
   echo "SKELID_MALLOC=$m"
   SKELID_MALLOC=$m timeout 80 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --no-end-to-end \
-    --out "$OUT/bench-128-malloc-$m.json" 2>&1 | grep -E "^ +(cpu|gpu) |CPU share|floor"
+    --out "$OUT/bench-128-malloc-$m.json" 2>&1 | grep -E "^ +(cpu|gpu) |CPU share|kernel share|floor"
 done
 echo "== bench, 512 scales"
 timeout 100 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 512 --no-end-to-end --out "$OUT/bench-512.json" 2>&1 | quiet

@@ -116,6 +116,20 @@ pub fn thread_cpu() -> Duration {
     }
 }
 
+/// What the kernel did for the whole process so far: page faults that mapped memory
+/// without reading a file (minor faults: mostly fresh pages zeroed), and system CPU
+/// seconds over every thread. Zeros where `getrusage` fails.
+pub fn kernel_share() -> (u64, f64) {
+    // SAFETY: getrusage writes one rusage, which lives on this stack frame; all-zero
+    // bytes are a valid rusage.
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) } != 0 {
+        return (0, 0.0);
+    }
+    let system = u.ru_stime.tv_sec as f64 + 1e-6 * u.ru_stime.tv_usec as f64;
+    (u.ru_minflt as u64, system)
+}
+
 /// The CPU's own share of a GPU batch of tracks: wall time spent preparing the signals
 /// (`complete` false) or completing the tracks (`complete` true), every core at once.
 pub fn host_share(complete: bool, d: Duration) {

@@ -962,6 +962,16 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
     assert!(prepare > 0.0 && complete > 0.0, "{t}");
     assert!(prepare + complete <= gpu_seconds, "{t} {gpu_seconds}");
     assert_eq!(b[0]["traffic"]["host_prepare_s"], 0.0);
+    // What the kernel did a repetition, for each backend (fresh memory, system time).
+    for t in b {
+        let faults = t["page_faults_per_repetition"].as_f64().unwrap();
+        let system = t["system_s_per_repetition"].as_f64().unwrap();
+        assert!(faults >= 0.0 && system >= 0.0, "{t}");
+    }
+    assert!(
+        text.contains("cpu backend's kernel share a repetition"),
+        "{text}"
+    );
     assert!(
         text.contains("gpu backend's CPU share a repetition")
             && text.contains("cannot beat the CPU backend by more than"),

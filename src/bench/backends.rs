@@ -35,6 +35,11 @@ pub struct BackendTiming {
     pub traffic: Traffic,
     /// Per signal on the GPU: signals per batch, blocking syncs, bytes up, bytes down.
     pub per_signal: Option<PerSignal>,
+    /// Minor page faults of the whole process a timed repetition: fresh memory the kernel
+    /// mapped and zeroed (a repetition that reuses its memory faults next to none).
+    pub page_faults_per_repetition: f64,
+    /// System CPU seconds of the whole process a timed repetition, every thread.
+    pub system_s_per_repetition: f64,
 }
 
 /// GPU traffic per signal.
@@ -178,6 +183,7 @@ pub fn compare(
         let mut seconds = Vec::new();
         let mut tracks = Vec::new();
         profile::reset();
+        let kernel0 = profile::kernel_share();
         for r in 0..repeat {
             progress(&format!("{name}: repetition {}/{repeat}", r + 1));
             // The last repetition's tracks are kept for the agreement; those of the one
@@ -189,6 +195,7 @@ pub fn compare(
             seconds.push(t0.elapsed().as_secs_f64());
             tracks = out.into_iter().map(Result::ok).collect();
         }
+        let kernel1 = profile::kernel_share();
         profile::print_spans(&format!("{name}, {repeat} repetition(s)"));
         let fallbacks = tracks
             .iter()
@@ -214,6 +221,8 @@ pub fn compare(
                 .collect(),
             per_signal: PerSignal::of(&prof.gpu),
             traffic: prof.gpu,
+            page_faults_per_repetition: kernel1.0.saturating_sub(kernel0.0) as f64 / repeat as f64,
+            system_s_per_repetition: (kernel1.1 - kernel0.1) / repeat as f64,
         });
         last.push(tracks);
     }

@@ -119,6 +119,13 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
         }
     }
     print_host_share(&result);
+    for t in &result.backends {
+        println!(
+            "{} backend's kernel share a repetition (the whole process): {:.0} page faults \
+             (fresh memory mapped and zeroed), {:.3} s of system CPU time",
+            t.backend, t.page_faults_per_repetition, t.system_s_per_repetition
+        );
+    }
     for (_, b) in &opened {
         report_fallbacks(b);
     }
