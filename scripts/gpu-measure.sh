@@ -17,9 +17,10 @@
 #     on the 2^20-sample signal and on the campaign (SKELID_GPU_RIDGE);
 #   - an experiment: the GPU backend's host share (preparing, completing) on 2 to 16
 #     threads, to see whether the completion stops scaling;
-#   - an experiment: the GPU `bench` with glibc's malloc keeping freed memory (no trims, and
-#     since 2026-11-28 no unmapped thread heaps either: the top pad) against the default,
-#     back to back, with each backend's page faults and system time a repetition;
+#   - an experiment: the GPU `bench` with glibc's malloc keeping freed memory (no trims, no
+#     unmaps: do they cost a 16-core machine its shared address space's locks and TLB
+#     flushes?) against the default, back to back, with each backend's page faults and
+#     system time a repetition (the kernel share);
 #   - `skelid run` end to end, both methods, on each backend (traced on the GPU), with
 #     its log's timeline and how busy its one writer thread was.
 set -u

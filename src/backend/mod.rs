@@ -93,26 +93,13 @@ const HEAP_BLOCK_MAX: libc::c_int = 32 << 20;
 /// Free memory at the top of a malloc heap kept for reuse rather than given back.
 const KEEP_FREED: libc::c_int = 64 << 20;
 
-/// Pad kept at the top of every malloc heap: as large as a thread's heap can be (64 MiB on
-/// 64-bit), so that glibc never unmaps a thread's emptied heap.
-const TOP_PAD: libc::c_int = 64 << 20;
-
 /// Makes glibc's malloc keep freed blocks for reuse instead of giving them back to the
 /// kernel at once. Every track allocates and frees arrays of a few hundred kilobytes; by
 /// default glibc maps blocks above an adaptive threshold on their own and gives a heap's
 /// free top back once it exceeds twice that threshold, so the kernel zeroed the same
 /// pages again and again: on 2 cores 218 000 page faults and 0.54 s of system
 /// time in a `bench` of 40 runs (7.4 s of CPU), 36 000 and 0.09 s with this, the peak
-/// memory unchanged (159 MB). The trim threshold alone does not hold the compute threads'
-/// memory: their arenas grow by further 64 MiB heaps, and glibc unmaps an emptied one
-/// whatever the threshold, unless the top pad would not fit beside the heap before it
-/// (glibc's `heap_trim`); a pad as large as a heap never fits. In the CPU backend's
-/// `bench` of 200 runs on 2 cores, whose repetitions hold their tracks (1.5 MB each), a
-/// repetition took 40 000 page faults and 0.16 s of system time without the pad (51 000
-/// and 0.14 s with glibc at its defaults),
-/// 654 and 0.005 s with it; the peak memory the same (0.70–0.74 GB), and `run`'s
-/// (0.20 GB, whose runs let their tracks go) unchanged.
-/// Called once at start-up; elsewhere than glibc, nothing.
+/// memory unchanged (159 MB). Called once at start-up; elsewhere than glibc, nothing.
 /// `SKELID_MALLOC=default` leaves glibc as it is (to measure the difference); any other
 /// value of it is answered with a note to print, and the setting applied.
 pub fn keep_freed_memory() -> Option<String> {
@@ -125,7 +112,6 @@ pub fn keep_freed_memory() -> Option<String> {
     unsafe {
         libc::mallopt(libc::M_MMAP_THRESHOLD, HEAP_BLOCK_MAX);
         libc::mallopt(libc::M_TRIM_THRESHOLD, KEEP_FREED);
-        libc::mallopt(libc::M_TOP_PAD, TOP_PAD);
     }
     asked.filter(|v| v != "skelid").map(|v| {
         format!(
@@ -570,41 +556,6 @@ mod tests {
             again < 100,
             "{again} page faults for 20 rounds of reused arrays"
         );
-    }
-
-    #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    #[test]
-    fn a_compute_thread_keeps_the_heaps_it_emptied() {
-        keep_freed_memory();
-        // A compute thread completing many tracks of 1.5 MB, held until the batch lets them
-        // go (as `bench` holds a repetition's): more than one 64 MiB heap of its arena.
-        // Its own thread, so that the arena is its alone (a new one or one left by a thread
-        // that ended), and its own page faults.
-        let second = std::thread::spawn(|| {
-            let faults = || {
-                // SAFETY: getrusage fills the struct it is given.
-                unsafe {
-                    let mut u: libc::rusage = std::mem::zeroed();
-                    libc::getrusage(libc::RUSAGE_THREAD, &mut u);
-                    u.ru_minflt
-                }
-            };
-            let hold = || {
-                let v: Vec<Vec<f64>> = (0..600).map(|_| vec![1.0f64; 30_000]).collect();
-                drop(std::hint::black_box(v));
-            };
-            hold();
-            let before = faults();
-            hold();
-            faults() - before
-        })
-        .join()
-        .unwrap();
-        // 144 MB held, then let go: without the top pad glibc unmapped emptied 64 MiB heaps
-        // of the arena (strace: munmap), whatever the trim threshold, and the second round
-        // faulted 2 520 pages in again (2 cores); with it, none.
-        println!("{second} page faults holding 144 MB a second time (without the pad: 2 520)");
-        assert!(second < 500, "{second} page faults for memory held before");
     }
 
     #[cfg(target_os = "linux")]
