@@ -120,10 +120,14 @@ pub fn thread_cpu() -> Duration {
 /// without reading a file (minor faults: mostly fresh pages zeroed), and system CPU
 /// seconds over every thread. Zeros where `getrusage` fails.
 pub fn kernel_share() -> (u64, f64) {
-    // SAFETY: getrusage writes one rusage, which lives on this stack frame; all-zero
-    // bytes are a valid rusage.
-    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
-    if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) } != 0 {
+    // SAFETY: all-zero bytes are a valid rusage, and getrusage writes the one on this
+    // stack frame.
+    let (u, ok) = unsafe {
+        let mut u: libc::rusage = std::mem::zeroed();
+        let ok = libc::getrusage(libc::RUSAGE_SELF, &mut u) == 0;
+        (u, ok)
+    };
+    if !ok {
         return (0, 0.0);
     }
     let system = u.ru_stime.tv_sec as f64 + 1e-6 * u.ru_stime.tv_usec as f64;

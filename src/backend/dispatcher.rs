@@ -83,7 +83,8 @@ pub(super) struct GpuService {
     /// Device memory (bytes, as [`batch_bytes`] counts it) one submission may take: half the
     /// adapter's largest binding times [`SUBMISSION_PARTS`]. Batches are sized to it.
     pub(super) submission_budget: u64,
-    /// What the user should know of how the stages were compiled (a programme refused).
+    /// What the user should know of how the stages were compiled (a programme refused);
+    /// the backend takes them when it opens.
     pub(super) notes: Vec<String>,
     /// Submissions made and signals they carried (successful ones).
     stats: Arc<Stats>,

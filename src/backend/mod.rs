@@ -227,8 +227,8 @@ impl Backend {
     }
 
     fn start_gpu() -> Result<Backend, GpuError> {
-        let service = GpuService::start()?;
-        let notes = service.notes.clone();
+        let mut service = GpuService::start()?;
+        let notes = std::mem::take(&mut service.notes);
         let b = Backend {
             gpu: Some(service),
             warnings: Mutex::default(),

@@ -35,10 +35,11 @@ pub struct BackendTiming {
     pub traffic: Traffic,
     /// Per signal on the GPU: signals per batch, blocking syncs, bytes up, bytes down.
     pub per_signal: Option<PerSignal>,
-    /// Minor page faults of the whole process a timed repetition: fresh memory the kernel
-    /// mapped and zeroed (a repetition that reuses its memory faults next to none).
+    /// Minor page faults of the whole process a timed repetition, letting the previous
+    /// repetition's tracks go included: fresh memory the kernel mapped and zeroed.
     pub page_faults_per_repetition: f64,
-    /// System CPU seconds of the whole process a timed repetition, every thread.
+    /// System CPU seconds of the whole process a timed repetition (as the faults), every
+    /// thread.
     pub system_s_per_repetition: f64,
 }
 
