@@ -15,6 +15,8 @@
 #     host and device time goes);
 #   - an experiment: the ridge programme narrow (256 invocations a run) and wide (1024),
 #     on the 2^20-sample signal and on the campaign (SKELID_GPU_RIDGE);
+#   - an experiment: the 2^20-sample signal's ridge programme and backtrack in lanes side by
+#     side (the default) against one workgroup through every step (SKELID_GPU_RIDGE_LANES=1);
 #   - an experiment: the GPU backend's host share (preparing, completing) on 2 to 16
 #     threads, to see whether the completion stops scaling;
 #   - an experiment: the GPU `bench` with glibc's malloc keeping freed memory (no trims, no
@@ -71,6 +73,17 @@ if [ -f "$W/long.h5" ]; then
     SKELID_GPU_RIDGE=$w SKELID_GPU_TRACE=1 timeout 40 "$B" bench "$W/long.h5" --backend gpu --repeat 5 --scales 256 \
       --no-end-to-end --out "$OUT/bench-long-$w.json" 2>&1 | grep -E "^ +gpu |ridge.steps" | tail -2
   done
+  # The long record's programme cut into lanes that run side by side (the default on a GPU:
+  # up to 256 lanes in all, here 32 of 512 steps) against one workgroup through every step
+  # (SKELID_GPU_RIDGE_LANES=1), alternating; the same paths either way.
+  echo "== experiment: the ridge programme in lanes, SKELID_GPU_RIDGE_LANES=1 and the default (traced)"
+  for l in 1 default 1 default; do
+    echo "SKELID_GPU_RIDGE_LANES=$l, the 2^20-sample signal"
+    if [ "$l" = default ]; then unset SKELID_GPU_RIDGE_LANES; else export SKELID_GPU_RIDGE_LANES=$l; fi
+    SKELID_GPU_TRACE=1 timeout 40 "$B" bench "$W/long.h5" --backend cpu,gpu --repeat 5 --scales 256 \
+      --no-end-to-end --out "$OUT/bench-long-lanes-$l.json" 2>&1 | grep -E "^ +(cpu|gpu) |ridge\.(steps|repair|backtrack)" | tail -7
+  done
+  unset SKELID_GPU_RIDGE_LANES
   for w in narrow wide; do
     echo "SKELID_GPU_RIDGE=$w, the campaign at 128 scales"
     SKELID_GPU_RIDGE=$w SKELID_GPU_TRACE=1 timeout 40 "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 \

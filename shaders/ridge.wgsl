@@ -19,6 +19,25 @@
 // (`accum`) or the path from one chunk to the next: Mesa's lavapipe ends any loop nest
 // after 65 535 iterations in all (gallivm's loop limiter), and a real GPU's watchdog
 // dislikes long dispatches. The host sizes chunks to stay under that limit.
+//
+// Lanes: one long record is a programme of thousands of steps, one after another, in one
+// workgroup, while the rest of the GPU idles. The host may cut a run's steps into lanes that
+// run side by side (Maleki, Musuvathi and Mytkowicz, PPoPP 2014: rank convergence). A lane
+// after the first starts `warm` steps early from its own first scores, writing no
+// back-pointers, and keeps its scores (less the shift) at the step before its own. Those
+// started elsewhere forget their start within a few dozen steps: the scores become the
+// same, bit for bit, as the lane before ends with; from that step on, each step computes
+// exactly what one workgroup going through every step computes. A repair pass then takes
+// lane 1, 2, … in order: a lane whose kept scores are not bit for bit the lane before's
+// final ones runs its own steps again, seeded with those, so the back-pointers and the
+// path are always the sequential programme's.
+//
+// The backtrack of a run cut into lanes goes the same way (`backtrack_lanes`): each lane
+// but the last starts `warm` steps past its end, at the step's best score, and follows the
+// back-pointers down through its own steps; paths that start apart meet within a few
+// steps, and from there on are one. It keeps the scale it passed at the next lane's first
+// step (`probe`); the repair, from the last lane down, redoes a lane whose probe is not
+// where the next lane's path begins.
 
 struct Run {
     power: u32,        // offset of the run's power grid
@@ -28,11 +47,23 @@ struct Run {
     path: u32,         // offset of its path (one scale index per step)
     guide: u32,        // offset of its guide (one (ln f, usable) per step)
     info: u32,         // offset of its per-scale ScaleInfo and statistics
-    flags: u32,        // bit 0: guided; bit 1: penalised path (else per-step argmax)
+    flags: u32,        // bit 0: guided; 1: penalised path (else per-step argmax); 2: a
+                       // repair lane; 3: a run cut into lanes (traced by backtrack_lanes)
     unit: f32,         // 1 / mean power of the record
     penalty: f32,      // λ per squared scale step
     guide_weight: f32, // weight of the guide's pull
     resolution: f32,   // wavelet's relative frequency resolution
+    // ridge_steps' lane of the run (see "Lanes" above): the steps origin..end, its
+    // back-pointers from step `own` on, its carried scores at `slot` (and, for a lane that
+    // warms up, the scores of its step own − 1 at slot + scales).
+    origin: u32,
+    own: u32,
+    end: u32,
+    slot: u32,
+    seed: u32,         // a repair lane: the slot of the lane before, whose scores it starts from
+    lane: u32,         // the lane's number within its run
+    probe: u32,        // backtrack_lanes: where in `path` the lane keeps its probe
+    reach: u32,        // backtrack_lanes: steps past its end a lane's own start lies
 };
 
 struct ScaleInfo {
@@ -43,10 +74,10 @@ struct ScaleInfo {
 };
 
 struct Chunk {
-    first: u32,        // first step of this dispatch
+    first: u32,        // first step of this dispatch (ridge_steps: counted from each lane's origin)
     last: u32,         // one past its last step
     scales: u32,       // the most scales of any run (column_stats' items per run)
-    _pad1: u32,
+    lane: u32,         // ridge_steps' repair: the lanes of this number alone
 };
 
 @group(0) @binding(0) var<storage, read> runs: array<Run>;
@@ -69,6 +100,8 @@ const MAX_SCALES: u32 = 1024u;
 const MIN_POSITIVE: f32 = 1.17549435e-38;
 const BIG: f32 = 3.40282e38;
 const NO_MEDIAN: u32 = 0xffffffffu;
+// Chunk::lane of a dispatch that repairs nothing.
+const NO_LANE: u32 = 0xffffffffu;
 
 var<workgroup> lowest: array<f32, WG>;
 var<workgroup> below: atomic<u32>;
@@ -80,6 +113,8 @@ var<workgroup> acc: array<f32, 2048>;
 var<workgroup> part_best: array<f32, STEPS_WG>;
 var<workgroup> part_arg: array<u32, STEPS_WG>;
 var<workgroup> top: array<atomic<u32>, 3>;
+// ridge_steps' repair: the scales at which a lane's kept scores differ from its seed.
+var<workgroup> differ: atomic<u32>;
 
 // track.rs' score: half the log of the power relative to the record's, floored 380 dB down.
 fn log_score(p: f32, unit: f32) -> f32 {
@@ -173,13 +208,36 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
     }
     let run = runs[r];
     let s = run.scales;
-    let end = min(chunk.last, run.steps);
-    if (chunk.first >= end) {
+    // This dispatch's steps of the lane, counted from its origin.
+    let begin = run.origin + chunk.first;
+    let end = min(run.origin + chunk.last, run.end);
+    if (begin >= end) {
         return;
+    }
+    if ((run.flags & 4u) != 0u) {
+        // A repair lane: its number's turn only, and only where its warm-up did not end on
+        // the seed's scores (both are final before this lane's turn).
+        if (run.lane != chunk.lane) {
+            return;
+        }
+        if (lid == 0u) {
+            atomicStore(&differ, 0u);
+        }
+        workgroupBarrier();
+        var d = 0u;
+        for (var k = lid; k < s; k += STEPS_WG) {
+            if (bitcast<u32>(accum[run.slot + s + k]) != bitcast<u32>(accum[run.seed + k])) {
+                d += 1u;
+            }
+        }
+        atomicAdd(&differ, d);
+        if (workgroupUniformLoad(&differ) == 0u) {
+            return;
+        }
     }
     if ((run.flags & 2u) == 0u) {
         // Per-step argmax (the first maximum): one step per invocation, no programme.
-        for (var j = chunk.first + lid; j < end; j += STEPS_WG) {
+        for (var j = begin + lid; j < end; j += STEPS_WG) {
             var best = -BIG;
             var arg = 0u;
             for (var k = 0u; k < s; k += 1u) {
@@ -202,16 +260,23 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
         }
     }
     workgroupBarrier();
-    var start = chunk.first;
-    if (start == 0u) {
+    var start = begin;
+    if (start == run.origin) {
+        // The lane's first step: its own scores, or a repair lane's seed (scores less their
+        // shift, as carried between chunks).
+        let seeded = (run.flags & 4u) != 0u;
         for (var k = lid; k < s; k += STEPS_WG) {
-            acc[k] = score(run, k, 0u);
+            if (seeded) {
+                acc[k] = accum[run.seed + k];
+            } else {
+                acc[k] = score(run, k, start);
+            }
             atomicMax(&top[0], orderable(acc[k]));
         }
-        start = 1u;
+        start += 1u;
     } else {
         for (var k = lid; k < s; k += STEPS_WG) {
-            acc[k] = accum[run.info + k];
+            acc[k] = accum[run.slot + k];
             atomicMax(&top[0], orderable(acc[k]));
         }
     }
@@ -281,9 +346,15 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
         shift = acc[dst];
         src = dst;
         slot = next;
+        if (j + 1u == run.own) {
+            // The end of a lane's warm-up: its scores, to compare with the lane before's.
+            for (var k = lid; k < s; k += STEPS_WG) {
+                accum[run.slot + s + k] = acc[src + k] - shift;
+            }
+        }
     }
     for (var k = lid; k < s; k += STEPS_WG) {
-        accum[run.info + k] = acc[src + k] - shift;
+        accum[run.slot + k] = acc[src + k] - shift;
     }
 }
 
@@ -311,7 +382,9 @@ fn scan(k: u32, q0: u32, q1: u32, src: u32, shift: f32, penalty: f32) -> Found {
 fn settle(run: Run, k: u32, j: u32, dst: u32, next: u32, value: f32, arg: u32) {
     acc[dst + k] = value;
     atomicMax(&top[next], orderable(value));
-    back[run.back + j * run.scales + k] = arg;
+    if (j >= run.own) {
+        back[run.back + j * run.scales + k] = arg;
+    }
 }
 
 // The predecessors of scale k (of `s`) that can beat k itself, whose candidate is its own
@@ -357,7 +430,8 @@ fn backtrack(@builtin(workgroup_id) wid: vec3<u32>,
     let run = runs[r];
     let s = run.scales;
     let end = min(chunk.last, run.steps);
-    if (chunk.first >= end || (run.flags & 2u) == 0u) {
+    // A run cut into lanes (flag 8) is traced by backtrack_lanes.
+    if (chunk.first >= end || (run.flags & 2u) == 0u || (run.flags & 8u) != 0u) {
         return;
     }
     var k = 0u;
@@ -367,7 +441,7 @@ fn backtrack(@builtin(workgroup_id) wid: vec3<u32>,
         var best = -BIG;
         var arg = 0u;
         for (var q = lid; q < s; q += WG) {
-            let v = accum[run.info + q];
+            let v = accum[run.slot + q];
             if (v > best) {
                 best = v;
                 arg = q;
@@ -398,6 +472,74 @@ fn backtrack(@builtin(workgroup_id) wid: vec3<u32>,
             if (j > 1u) {
                 k = back[run.back + (j - 1u) * s + k];
             }
+        }
+    }
+}
+
+// One lane of a run cut into lanes (`runs` holds the lanes): its path over own..end (the
+// first lane's from step 0), from its own start (chunk.lane = NO_LANE), or in the repair
+// (chunk.lane = the lane's number; the host goes from the last lanes down) from where the
+// next lane's path begins, where its probe missed that.
+@compute @workgroup_size(1)
+fn backtrack_lanes(@builtin(workgroup_id) wid: vec3<u32>,
+                   @builtin(num_workgroups) groups: vec3<u32>) {
+    let r = (wid.z * groups.y + wid.y) * groups.x + wid.x;
+    if (r >= arrayLength(&runs)) {
+        return;
+    }
+    let run = runs[r];
+    let s = run.scales;
+    // The lane's first step on the path (the first lane's is step 0).
+    var low = run.own;
+    if (run.lane == 0u) {
+        low = 0u;
+    }
+    let last = run.end == run.steps;
+    var k = 0u;
+    var top = run.end;
+    if (chunk.lane == NO_LANE) {
+        if (last) {
+            // The best final score (the first, on ties, as src/ridge.rs).
+            var best = -BIG;
+            for (var q = 0u; q < s; q += 1u) {
+                let v = accum[run.slot + q];
+                if (v > best) {
+                    best = v;
+                    k = q;
+                }
+            }
+        } else {
+            // Past the lane's end, at that step's best score.
+            top = min(run.end + run.reach, run.steps);
+            var best = -BIG;
+            for (var q = 0u; q < s; q += 1u) {
+                let v = score(run, q, top - 1u);
+                if (v > best) {
+                    best = v;
+                    k = q;
+                }
+            }
+        }
+    } else {
+        if (run.lane != chunk.lane || last) {
+            return;
+        }
+        let next = path[run.path + run.end];
+        if (path[run.probe] == next) {
+            return;
+        }
+        // The path at step end − 1, from the next lane's first step.
+        k = back[run.back + run.end * s + next];
+    }
+    for (var j = top; j > low; j -= 1u) {
+        let step = j - 1u;
+        if (step < run.end) {
+            path[run.path + step] = k;
+        } else if (step == run.end) {
+            path[run.probe] = k;
+        }
+        if (step > 0u) {
+            k = back[run.back + step * s + k];
         }
     }
 }

@@ -336,6 +336,79 @@ fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
     }
 }
 
+/// A long record's programme cut into lanes that run side by side gives the sequential
+/// programme's paths to the last step: with warm-ups long enough to end on the sequential
+/// scores, and with warm-ups of 2 steps, which do not, so that the repair must redo lanes.
+#[test]
+fn gpu_ridge_lanes_give_the_sequential_paths() {
+    use skelid::gpu::ridge::{FirstPass, Lanes, RidgeWidth};
+    use skelid::track::{WaveletOptions, WaveletPrep};
+    let gpu = gpu();
+    let signals = ridge_signals();
+    let one = Lanes {
+        target: 1,
+        warm: 128,
+        min_len: 512,
+    };
+    for scales in [128, 50, 700] {
+        let opt = WaveletOptions {
+            scales,
+            ..Default::default()
+        };
+        let preps: Vec<WaveletPrep> = signals
+            .iter()
+            .map(|(x, g)| WaveletPrep::new(x, 1000.0, &opt, g.as_deref()).unwrap())
+            .collect();
+        let refs: Vec<&WaveletPrep> = preps.iter().collect();
+        let parts = vec![refs];
+        let paths = |width, lanes| -> Vec<Vec<usize>> {
+            let stage = FirstPass::with_lanes(&gpu, width, lanes).unwrap();
+            let found = stage.coarse_ridges(&gpu, &parts).unwrap();
+            found.into_iter().flatten().map(|r| r.path).collect()
+        };
+        let sequential = paths(RidgeWidth::Narrow, one);
+        for (width, lanes, what) in [
+            (
+                RidgeWidth::Narrow,
+                Lanes {
+                    target: 12,
+                    warm: 96,
+                    min_len: 64,
+                },
+                "warm-ups of 96 steps",
+            ),
+            (
+                RidgeWidth::Narrow,
+                Lanes {
+                    target: 24,
+                    warm: 2,
+                    min_len: 16,
+                },
+                "warm-ups of 2 steps (repaired)",
+            ),
+            (
+                RidgeWidth::Wide,
+                Lanes {
+                    target: 24,
+                    warm: 2,
+                    min_len: 16,
+                },
+                "the wide programme, warm-ups of 2 steps (repaired)",
+            ),
+        ] {
+            let cut = paths(width, lanes);
+            for ((p, a), b) in preps.iter().zip(&sequential).zip(&cut) {
+                let differ = a.iter().zip(b).filter(|(x, y)| x != y).count();
+                println!(
+                    "{scales} scales, {} steps, {what}: {differ} steps differ",
+                    p.steps
+                );
+                assert_eq!(a, b, "{scales} scales, {} steps, {what}", p.steps);
+            }
+        }
+    }
+}
+
 /// The ridge signals as the backend takes them, sampled at 1 kHz, each with its guide.
 fn at_1khz(signals: &[(Vec<f64>, Option<Vec<f64>>)]) -> Vec<skelid::backend::Signal<'_>> {
     signals

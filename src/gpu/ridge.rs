@@ -31,6 +31,95 @@ struct RunParams {
     penalty: f32,
     guide_weight: f32,
     resolution: f32,
+    /// `ridge_steps`' lane: its first step, its first back-pointer, one past its last step.
+    origin: u32,
+    own: u32,
+    end: u32,
+    /// Its carried scores (and, after them, the scores at the end of its warm-up).
+    slot: u32,
+    /// A repair lane's seed: the slot of the lane before.
+    seed: u32,
+    /// The lane's number within its run.
+    lane: u32,
+    /// `backtrack_lanes`: the word of the paths buffer where the lane keeps its probe.
+    probe: u32,
+    /// `backtrack_lanes`: steps past its end where a lane but the last starts.
+    reach: u32,
+}
+
+/// `RunParams::flags`: the run's ridge is guided.
+const GUIDED: u32 = 1;
+/// `RunParams::flags`: the penalised programme (else the per-step argmax).
+const DYNAMIC: u32 = 2;
+/// `RunParams::flags`: a repair lane, seeded with the lane before's final scores.
+const REPAIR: u32 = 4;
+/// `RunParams::flags`: a run cut into lanes, traced by `backtrack_lanes`.
+const SPLIT: u32 = 8;
+
+/// Most steps a lane owns: `backtrack_lanes` walks a lane's steps in one dispatch, within
+/// lavapipe's loop limit with its warm-up and the scan of a step's scales.
+const MAX_LANE: usize = 32_768;
+
+/// How `ridge_steps` cuts long runs into lanes that run side by side, each after the first
+/// warming up on steps of the one before, then checked and, where needed, repaired in
+/// order: the same back-pointers, bit for bit, as one workgroup going through every step
+/// (`ridge.wgsl`, "Lanes").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Lanes {
+    /// Lanes a dispatch aims at, all runs together (a run gets its share); 1 never cuts.
+    pub target: usize,
+    /// Steps a lane after the first runs before its own (at least 2).
+    pub warm: usize,
+    /// Fewest steps of a lane's own.
+    pub min_len: usize,
+}
+
+/// The environment variable that fixes [`Lanes::target`] (for measuring; 1 never cuts).
+const LANES_ENV: &str = "SKELID_GPU_RIDGE_LANES";
+
+impl Lanes {
+    /// The default for `gpu`: on a hardware GPU up to 256 lanes in all (a GPU has of the
+    /// order of a hundred multiprocessors, and a run's workgroup fills one); on a software
+    /// adapter, which runs a workgroup on one thread, one lane a thread. A lane warms up on
+    /// 128 steps: at 256 scales, lanes started 30–84 steps early on a 2^20-sample log
+    /// sweep, and 51–68 on white noise, ended their warm-up on the sequential scores, bit
+    /// for bit. `SKELID_GPU_RIDGE_LANES=N` fixes the target (a value that is not a positive
+    /// number is an error).
+    pub fn for_gpu(gpu: &Gpu) -> Result<Lanes, GpuError> {
+        let target = match std::env::var(LANES_ENV).ok() {
+            Some(v) => v.parse::<usize>().ok().filter(|&n| n > 0).ok_or_else(|| {
+                GpuError::Unsupported(format!(
+                    "{LANES_ENV}={v:?}: give the ridge programme's lanes as a positive number (1 \
+                     never cuts a run)"
+                ))
+            })?,
+            None if gpu.is_software() => {
+                std::thread::available_parallelism().map_or(1, |n| n.get())
+            }
+            None => 256,
+        };
+        Ok(Lanes {
+            target,
+            warm: 128,
+            min_len: 512,
+        })
+    }
+
+    /// The lanes of a run of `steps` steps in a dispatch of `runs` runs, as the steps each
+    /// owns (`[b_c, b_{c+1})`, the first from step 0).
+    fn bounds(&self, steps: usize, runs: usize) -> Vec<usize> {
+        let warm = self.warm.max(2);
+        let share = (self.target / runs.max(1)).max(1);
+        let most = steps / self.min_len.max(warm).max(1);
+        let mut n = share.min(most).max(1);
+        if n > 1 {
+            n = n.max(steps.div_ceil(MAX_LANE));
+        }
+        let len = steps.div_ceil(n);
+        let mut b: Vec<usize> = (0..n).map(|c| c * len).take_while(|&x| x < steps).collect();
+        b.push(steps);
+        b
+    }
 }
 
 /// The shader's `NO_MEDIAN`: a scale whose noise floor is not estimated.
@@ -54,8 +143,12 @@ struct Chunk {
     last: u32,
     /// The most scales of any run: `column_stats` flattens run × scale with it.
     scales: u32,
-    _pad: u32,
+    /// A repair dispatch's lane number ([`NO_LANE`] otherwise).
+    lane: u32,
 }
+
+/// `Chunk::lane` of a dispatch that repairs nothing.
+const NO_LANE: u32 = u32::MAX;
 
 /// Loop iterations one invocation may run in a dispatch: lavapipe (gallivm) ends a loop
 /// nest after 65 535, whatever the shader says; this leaves room for the bookkeeping.
@@ -63,9 +156,9 @@ const LOOP_BUDGET: usize = 60_000;
 
 /// Workgroup memory `ridge_steps` takes with `width` invocations (the most of any entry
 /// point): two score rows of `MAX_SCALES` f32, a partial maximum and its scale per
-/// invocation, and three rotating maxima.
+/// invocation, three rotating maxima and the repair's count.
 const fn workgroup_bytes(width: u32) -> u32 {
-    (2 * MAX_SCALES as u32 + 2 * width + 3) * 4
+    (2 * MAX_SCALES as u32 + 2 * width + 4) * 4
 }
 
 /// Invocations of `ridge_steps`' workgroup as `ridge.wgsl` is written (`STEPS_WG`).
@@ -155,9 +248,11 @@ pub struct RidgeStage {
     wide: Option<Programme>,
     width: RidgeWidth,
     backtrack: wgpu::ComputePipeline,
+    backtrack_lanes: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
     /// Why the driver refused the wide programme, when it did.
     refused: Option<String>,
+    lanes: Lanes,
 }
 
 /// The first pass of the wavelet track, scales and ridge, on one device.
@@ -174,6 +269,11 @@ impl FirstPass {
 
     /// [`new`](Self::new) with the ridge programme's width fixed (tests compare them).
     pub fn with_width(gpu: &Gpu, width: RidgeWidth) -> Result<FirstPass, GpuError> {
+        Self::with_lanes(gpu, width, Lanes::for_gpu(gpu)?)
+    }
+
+    /// [`with_width`](Self::with_width) with the ridge programme's lanes fixed too.
+    pub fn with_lanes(gpu: &Gpu, width: RidgeWidth, lanes: Lanes) -> Result<FirstPass, GpuError> {
         let limits = &gpu.limits;
         if limits.max_compute_workgroup_storage_size < WORKGROUP_BYTES
             || limits.max_compute_invocations_per_workgroup < 256
@@ -189,7 +289,7 @@ impl FirstPass {
         }
         Ok(FirstPass {
             scales: ScaleStage::new(gpu),
-            ridge: RidgeStage::new(gpu, width),
+            ridge: RidgeStage::new(gpu, width, lanes),
         })
     }
 
@@ -402,16 +502,21 @@ struct RidgeOut {
 impl RidgeStage {
     /// Compiles `ridge.wgsl` and declares its bindings: runs, scale info, power, guide,
     /// statistics, back-pointers, paths, the chunk, and the scores carried between chunks.
-    pub fn new(gpu: &Gpu, width: RidgeWidth) -> RidgeStage {
+    pub fn new(gpu: &Gpu, width: RidgeWidth, lanes: Lanes) -> RidgeStage {
         use super::Binding::{Read, Uniform, Write};
         let (layout, pipelines) = gpu.stage(
             "ridge.wgsl",
             SOURCE,
             &[Read, Read, Read, Read, Write, Write, Write, Uniform, Write],
-            &["column_stats", "ridge_steps", "backtrack"],
+            &[
+                "column_stats",
+                "ridge_steps",
+                "backtrack",
+                "backtrack_lanes",
+            ],
         );
-        let [stats, steps, backtrack]: [wgpu::ComputePipeline; 3] =
-            pipelines.try_into().expect("three entry points");
+        let [stats, steps, backtrack, backtrack_lanes]: [wgpu::ComputePipeline; 4] =
+            pipelines.try_into().expect("four entry points");
         let limits = &gpu.limits;
         let fits = limits.max_compute_invocations_per_workgroup >= WIDE
             && limits.max_compute_workgroup_size_x >= WIDE
@@ -438,8 +543,10 @@ impl RidgeStage {
             wide,
             width,
             backtrack,
+            backtrack_lanes,
             layout,
             refused,
+            lanes,
         }
     }
 
@@ -488,7 +595,7 @@ impl RidgeStage {
         power_at: &[usize],
         preps: &[&WaveletPrep],
     ) -> Result<RidgeOut, GpuError> {
-        let mut params = Vec::with_capacity(preps.len());
+        let mut params: Vec<RunParams> = Vec::with_capacity(preps.len());
         let mut info = Vec::new();
         let mut guide: Vec<[f32; 2]> = Vec::new();
         let (mut back_len, mut path_len) = (0usize, 0usize);
@@ -526,11 +633,20 @@ impl RidgeStage {
                 (scales, guide)
             })
             .collect();
+        // Each run's lanes (one, unless it is long and the dispatch has few runs), each with
+        // a slot of 2 S carried scores; the run's own entry (statistics, backtrack) carries
+        // its last lane's slot.
+        let dynamic_runs = preps.iter().filter(|p| p.dynamic_ridge()).count();
+        let mut lanes: Vec<RunParams> = Vec::with_capacity(preps.len());
+        let mut repairs: Vec<RunParams> = Vec::new();
+        // The lanes of runs cut in several, which `backtrack_lanes` traces.
+        let mut traced: Vec<usize> = Vec::new();
+        let mut slots = 0usize;
         for ((p, &at), (scales, run_guide)) in preps.iter().zip(power_at).zip(per_run) {
             let s = p.freqs.len();
             let guided = run_guide.is_some();
             let (weight, resolution) = p.guide_weight();
-            params.push(RunParams {
+            let whole = RunParams {
                 power: at as u32,
                 steps: p.steps as u32,
                 scales: s as u32,
@@ -538,12 +654,62 @@ impl RidgeStage {
                 path: path_len as u32,
                 guide: guide.len() as u32,
                 info: info.len() as u32,
-                flags: u32::from(guided) | (u32::from(p.dynamic_ridge()) << 1),
+                flags: if guided { GUIDED } else { 0 }
+                    | if p.dynamic_ridge() { DYNAMIC } else { 0 },
                 unit: p.unit as f32,
                 penalty: p.penalty(),
                 guide_weight: weight as f32,
                 resolution: resolution as f32,
+                origin: 0,
+                own: 1,
+                end: p.steps as u32,
+                slot: slots as u32,
+                seed: 0,
+                lane: 0,
+                probe: 0,
+                reach: 0,
+            };
+            let bounds = if p.dynamic_ridge() {
+                self.lanes.bounds(p.steps, dynamic_runs)
+            } else {
+                vec![0, p.steps]
+            };
+            let warm = self.lanes.warm.max(2);
+            let split = bounds.len() > 2;
+            for (c, b) in bounds.windows(2).enumerate() {
+                let lane = RunParams {
+                    origin: if c == 0 {
+                        0
+                    } else {
+                        (b[0] - warm.min(b[0])) as u32
+                    },
+                    own: b[0].max(1) as u32,
+                    end: b[1] as u32,
+                    slot: (slots + 2 * s * c) as u32,
+                    lane: c as u32,
+                    reach: warm as u32,
+                    ..whole
+                };
+                if split {
+                    traced.push(lanes.len());
+                }
+                if c > 0 {
+                    repairs.push(RunParams {
+                        flags: lane.flags | REPAIR,
+                        origin: lane.own - 1,
+                        seed: lane.slot - 2 * s as u32,
+                        ..lane
+                    });
+                }
+                lanes.push(lane);
+            }
+            let last = (bounds.len() - 2) * 2 * s;
+            params.push(RunParams {
+                slot: (slots + last) as u32,
+                flags: whole.flags | if split { SPLIT } else { 0 },
+                ..whole
             });
+            slots += 2 * s * (bounds.len() - 1);
             path_at.push(path_len);
             info_at.push(info.len());
             info.extend(scales);
@@ -553,6 +719,15 @@ impl RidgeStage {
             back_len += p.steps * s;
             path_len += p.steps;
         }
+        // Each traced lane's probe, after the paths.
+        let probes: Vec<RunParams> = traced
+            .iter()
+            .enumerate()
+            .map(|(i, &l)| RunParams {
+                probe: (path_len + i) as u32,
+                ..lanes[l]
+            })
+            .collect();
         drop(info_span);
         let back_bytes = back_len as u64 * 4;
         if back_bytes > gpu.max_binding() {
@@ -566,46 +741,93 @@ impl RidgeStage {
             guide.push([0.0, 0.0]);
         }
         let runs_buf = gpu.upload("ridge runs", &params);
+        let lanes_buf = gpu.upload("ridge lanes", &lanes);
+        let repairs_buf = (!repairs.is_empty()).then(|| gpu.upload("ridge repairs", &repairs));
+        let probes_buf = (!probes.is_empty()).then(|| gpu.upload("ridge traced lanes", &probes));
         let info_buf = gpu.upload("scale info", &info);
         let guide_buf = gpu.upload("guide", &guide);
         // All four are written in full before they are read (statistics per scale, a
         // back-pointer per step after the first, the path per step, the scores at each
-        // chunk's end): reused buffers serve.
+        // chunk's end and each warm-up's): reused buffers serve.
         let stats = gpu.reusable("column stats", (info.len() * 8) as u64);
         let back = gpu.reusable("back-pointers", back_bytes);
-        let path = gpu.reusable("paths", (path_len * 4) as u64);
-        let accum = gpu.reusable("carried scores", (info.len() * 4) as u64);
+        let path = gpu.reusable("paths", ((path_len + probes.len()) * 4) as u64);
+        let accum = gpu.reusable("carried scores", (slots.max(1) * 4) as u64);
         let max_scales = preps.iter().map(|p| p.freqs.len()).max().unwrap_or(1);
         let max_steps = preps.iter().map(|p| p.steps).max().unwrap_or(1);
-        let programme = self.programme_for(preps.len());
+        let programme = self.programme_for(lanes.len());
         let per_step = preps
             .iter()
             .map(|p| loops_per_step(p.freqs.len(), programme.width))
             .max()
             .unwrap_or(1);
         let per_chunk = (LOOP_BUDGET / per_step).max(1);
-        let bind = |chunk: &wgpu::Buffer| {
+        let bind = |runs: &wgpu::Buffer, first: usize, last: usize, lane: u32| {
+            let range = Chunk {
+                first: first as u32,
+                last: last as u32,
+                scales: max_scales as u32,
+                lane,
+            };
             gpu.bind(
                 "ridge",
                 &self.layout,
                 &[
-                    &runs_buf, &info_buf, power, &guide_buf, &stats, &back, &path, chunk, &accum,
+                    runs,
+                    &info_buf,
+                    power,
+                    &guide_buf,
+                    &stats,
+                    &back,
+                    &path,
+                    &gpu.uniform("chunk", &range),
+                    &accum,
                 ],
             )
         };
-        let chunks: Vec<wgpu::BindGroup> = (0..max_steps.div_ceil(per_chunk))
+        // The statistics and the backtrack go over whole runs, in chunks of absolute steps;
+        // the backtrack over the runs not cut into lanes (the others' are traced apart).
+        let whole_steps = params
+            .iter()
+            .filter(|r| r.flags & SPLIT == 0)
+            .map(|r| r.steps as usize)
+            .max()
+            .unwrap_or(0);
+        let chunks: Vec<wgpu::BindGroup> = (0..whole_steps.div_ceil(per_chunk).max(1))
             .map(|c| {
-                let range = Chunk {
-                    first: (c * per_chunk) as u32,
-                    last: ((c + 1) * per_chunk).min(max_steps) as u32,
-                    scales: max_scales as u32,
-                    _pad: 0,
-                };
-                bind(&gpu.uniform("chunk", &range))
+                bind(
+                    &runs_buf,
+                    c * per_chunk,
+                    ((c + 1) * per_chunk).min(max_steps),
+                    NO_LANE,
+                )
             })
             .collect();
-        // Three passes, so that the trace times the statistics, the programme and the
-        // backtrack apart. Each dispatch sees the previous one's writes (WebGPU orders them).
+        // The programme over lanes, in chunks of steps counted from each lane's origin.
+        let longest = |ls: &[RunParams]| {
+            ls.iter()
+                .map(|l| (l.end - l.origin) as usize)
+                .max()
+                .unwrap_or(0)
+        };
+        let lane_chunks: Vec<wgpu::BindGroup> = (0..longest(&lanes).div_ceil(per_chunk))
+            .map(|c| bind(&lanes_buf, c * per_chunk, (c + 1) * per_chunk, NO_LANE))
+            .collect();
+        // The repair: lane 1 of every run, then lane 2, …, each in its chunks.
+        let mut repair_chunks: Vec<wgpu::BindGroup> = Vec::new();
+        if let Some(buf) = &repairs_buf {
+            let most = repairs.iter().map(|l| l.lane).max().unwrap_or(0);
+            for c in 1..=most {
+                let these: Vec<RunParams> =
+                    repairs.iter().filter(|l| l.lane == c).copied().collect();
+                for d in 0..longest(&these).div_ceil(per_chunk) {
+                    repair_chunks.push(bind(buf, d * per_chunk, (d + 1) * per_chunk, c));
+                }
+            }
+        }
+        // Four passes, so that the trace times the statistics, the programme, its repair
+        // and the backtrack apart. Each dispatch sees the previous one's writes (WebGPU
+        // orders them).
         let [x, y, z] = gpu.grid((max_scales * preps.len()) as u64)?;
         {
             let mut pass = gpu.pass(enc, "ridge.stats");
@@ -613,19 +835,45 @@ impl RidgeStage {
             pass.set_bind_group(0, &chunks[0], &[]);
             pass.dispatch_workgroups(x, y, z);
         }
-        let [x, y, z] = gpu.grid(preps.len() as u64)?;
+        let [x, y, z] = gpu.grid(lanes.len() as u64)?;
         {
             let mut pass = gpu.pass(enc, programme.label);
             pass.set_pipeline(&programme.pipeline);
-            for b in &chunks {
+            for b in &lane_chunks {
                 pass.set_bind_group(0, b, &[]);
                 pass.dispatch_workgroups(x, y, z);
             }
         }
+        if !repair_chunks.is_empty() {
+            let [x, y, z] = gpu.grid(repairs.len() as u64)?;
+            let mut pass = gpu.pass(enc, "ridge.repair");
+            pass.set_pipeline(&programme.pipeline);
+            for b in &repair_chunks {
+                pass.set_bind_group(0, b, &[]);
+                pass.dispatch_workgroups(x, y, z);
+            }
+        }
+        let [x, y, z] = gpu.grid(preps.len() as u64)?;
         {
             let mut pass = gpu.pass(enc, "ridge.backtrack");
             pass.set_pipeline(&self.backtrack);
             for b in chunks.iter().rev() {
+                pass.set_bind_group(0, b, &[]);
+                pass.dispatch_workgroups(x, y, z);
+            }
+        }
+        if let Some(buf) = &probes_buf {
+            // Every traced lane from its own start, then the repair from the last lanes
+            // down: a lane's turn comes once the next lane's path is final.
+            let [x, y, z] = gpu.grid(probes.len() as u64)?;
+            let most = probes.iter().map(|l| l.lane).max().unwrap_or(0);
+            let turns: Vec<wgpu::BindGroup> = std::iter::once(NO_LANE)
+                .chain((0..most).rev())
+                .map(|c| bind(buf, 0, 0, c))
+                .collect();
+            let mut pass = gpu.pass(enc, "ridge.backtrack lanes");
+            pass.set_pipeline(&self.backtrack_lanes);
+            for b in &turns {
                 pass.set_bind_group(0, b, &[]);
                 pass.dispatch_workgroups(x, y, z);
             }
@@ -639,5 +887,53 @@ impl RidgeStage {
             info_at,
             _keep: [back, accum],
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lanes_cover_every_step_once_within_their_limits() {
+        let lanes = Lanes {
+            target: 256,
+            warm: 128,
+            min_len: 512,
+        };
+        // One long run: 32 lanes of 512 steps; a campaign's: never cut.
+        assert_eq!(lanes.bounds(16_384, 1).len() - 1, 32);
+        assert_eq!(lanes.bounds(938, 1), vec![0, 938]);
+        assert_eq!(lanes.bounds(16_384, 1000), vec![0, 16_384]);
+        let never = Lanes { target: 1, ..lanes };
+        assert_eq!(never.bounds(1 << 18, 1), vec![0, 1 << 18]);
+        for (lanes, steps, runs) in [
+            (lanes, 16_384, 1),
+            (lanes, 16_383, 3),
+            (lanes, 1_025, 1),
+            (Lanes { target: 2, ..lanes }, 1 << 18, 1),
+            (
+                Lanes {
+                    target: 24,
+                    warm: 2,
+                    min_len: 16,
+                },
+                94,
+                3,
+            ),
+        ] {
+            let b = lanes.bounds(steps, runs);
+            assert_eq!((b[0], *b.last().unwrap()), (0, steps));
+            for w in b.windows(2) {
+                let len = w[1] - w[0];
+                assert!(len > 0 && len <= MAX_LANE, "{b:?}");
+                if b.len() > 2 {
+                    // Each lane's warm-up lies inside the lane before.
+                    assert!(w[0] == 0 || w[0] >= lanes.warm.max(2), "{b:?}");
+                    assert!(len >= lanes.min_len.min(steps), "{b:?}");
+                }
+            }
+            assert!(b.len() - 1 <= (lanes.target / runs).max(1).max(steps.div_ceil(MAX_LANE)));
+        }
     }
 }
