@@ -252,10 +252,27 @@ fn ridge_signals() -> Vec<(Vec<f64>, Option<Vec<f64>>)> {
     vec![(chirp, Some(guide)), (decay, None), (short, None)]
 }
 
+/// The ridge signals prepared at 1 kHz for `scales` scales and the ridge search `search`.
+fn prepared(
+    signals: &[(Vec<f64>, Option<Vec<f64>>)],
+    scales: usize,
+    search: skelid::track::RidgeSearch,
+) -> Vec<skelid::track::WaveletPrep> {
+    let opt = skelid::track::WaveletOptions {
+        scales,
+        ridge: search,
+        ..Default::default()
+    };
+    signals
+        .iter()
+        .map(|(x, g)| skelid::track::WaveletPrep::new(x, 1000.0, &opt, g.as_deref()).unwrap())
+        .collect()
+}
+
 #[test]
 fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
     use skelid::gpu::ridge::{FirstPass, RidgeWidth};
-    use skelid::track::{RidgeSearch, WaveletOptions, WaveletPrep};
+    use skelid::track::{RidgeSearch, WaveletPrep};
     let gpu = gpu();
     let narrow = FirstPass::with_width(&gpu, RidgeWidth::Narrow).unwrap();
     let wide = FirstPass::with_width(&gpu, RidgeWidth::Wide).unwrap();
@@ -272,15 +289,7 @@ fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
         (RidgeSearch::Dynamic, 700),
         (RidgeSearch::Dynamic, 8),
     ] {
-        let opt = WaveletOptions {
-            scales,
-            ridge: search,
-            ..Default::default()
-        };
-        let preps: Vec<WaveletPrep> = signals
-            .iter()
-            .map(|(x, g)| WaveletPrep::new(x, 1000.0, &opt, g.as_deref()).unwrap())
-            .collect();
+        let preps = prepared(&signals, scales, search);
         // Two parts in one submission.
         let refs: Vec<&WaveletPrep> = preps.iter().collect();
         let parts = vec![refs[..2].to_vec(), refs[2..].to_vec()];
@@ -342,7 +351,7 @@ fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
 #[test]
 fn gpu_ridge_lanes_give_the_sequential_paths() {
     use skelid::gpu::ridge::{FirstPass, Lanes, RidgeWidth};
-    use skelid::track::{WaveletOptions, WaveletPrep};
+    use skelid::track::{RidgeSearch, WaveletPrep};
     let gpu = gpu();
     let signals = ridge_signals();
     let one = Lanes {
@@ -351,14 +360,7 @@ fn gpu_ridge_lanes_give_the_sequential_paths() {
         min_len: 512,
     };
     for scales in [128, 50, 700] {
-        let opt = WaveletOptions {
-            scales,
-            ..Default::default()
-        };
-        let preps: Vec<WaveletPrep> = signals
-            .iter()
-            .map(|(x, g)| WaveletPrep::new(x, 1000.0, &opt, g.as_deref()).unwrap())
-            .collect();
+        let preps = prepared(&signals, scales, RidgeSearch::Dynamic);
         let refs: Vec<&WaveletPrep> = preps.iter().collect();
         let parts = vec![refs];
         let paths = |width, lanes| -> Vec<Vec<usize>> {
