@@ -102,6 +102,9 @@ const BIG: f32 = 3.40282e38;
 const NO_MEDIAN: u32 = 0xffffffffu;
 // Chunk::lane of a dispatch that repairs nothing.
 const NO_LANE: u32 = 0xffffffffu;
+// Run::flags of lanes (src/gpu/ridge.rs): a repair lane; a run cut into lanes.
+const REPAIR: u32 = 4u;
+const SPLIT: u32 = 8u;
 
 var<workgroup> lowest: array<f32, WG>;
 var<workgroup> below: atomic<u32>;
@@ -214,7 +217,7 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
     if (begin >= end) {
         return;
     }
-    if ((run.flags & 4u) != 0u) {
+    if ((run.flags & REPAIR) != 0u) {
         // A repair lane: its number's turn only, and only where its warm-up did not end on
         // the seed's scores (both are final before this lane's turn).
         if (run.lane != chunk.lane) {
@@ -264,7 +267,7 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
     if (start == run.origin) {
         // The lane's first step: its own scores, or a repair lane's seed (scores less their
         // shift, as carried between chunks).
-        let seeded = (run.flags & 4u) != 0u;
+        let seeded = (run.flags & REPAIR) != 0u;
         for (var k = lid; k < s; k += STEPS_WG) {
             if (seeded) {
                 acc[k] = accum[run.seed + k];
@@ -430,8 +433,8 @@ fn backtrack(@builtin(workgroup_id) wid: vec3<u32>,
     let run = runs[r];
     let s = run.scales;
     let end = min(chunk.last, run.steps);
-    // A run cut into lanes (flag 8) is traced by backtrack_lanes.
-    if (chunk.first >= end || (run.flags & 2u) == 0u || (run.flags & 8u) != 0u) {
+    // A run cut into lanes is traced by backtrack_lanes.
+    if (chunk.first >= end || (run.flags & 2u) == 0u || (run.flags & SPLIT) != 0u) {
         return;
     }
     var k = 0u;
@@ -498,26 +501,22 @@ fn backtrack_lanes(@builtin(workgroup_id) wid: vec3<u32>,
     var k = 0u;
     var top = run.end;
     if (chunk.lane == NO_LANE) {
-        if (last) {
-            // The best final score (the first, on ties, as src/ridge.rs).
-            var best = -BIG;
-            for (var q = 0u; q < s; q += 1u) {
-                let v = accum[run.slot + q];
-                if (v > best) {
-                    best = v;
-                    k = q;
-                }
-            }
-        } else {
-            // Past the lane's end, at that step's best score.
+        // The last lane from the best final score (the first, on ties, as src/ridge.rs);
+        // the others from past their end, at that step's best score.
+        if (!last) {
             top = min(run.end + run.reach, run.steps);
-            var best = -BIG;
-            for (var q = 0u; q < s; q += 1u) {
-                let v = score(run, q, top - 1u);
-                if (v > best) {
-                    best = v;
-                    k = q;
-                }
+        }
+        var best = -BIG;
+        for (var q = 0u; q < s; q += 1u) {
+            var v: f32;
+            if (last) {
+                v = accum[run.slot + q];
+            } else {
+                v = score(run, q, top - 1u);
+            }
+            if (v > best) {
+                best = v;
+                k = q;
             }
         }
     } else {

@@ -105,20 +105,23 @@ impl Lanes {
         })
     }
 
+    /// Steps of a lane's warm-up: [`Lanes::warm`], at least 2 (the warm-up's last step,
+    /// whose scores are kept, comes after its first).
+    fn warm_up(&self) -> usize {
+        self.warm.max(2)
+    }
+
     /// The lanes of a run of `steps` steps in a dispatch of `runs` runs, as the steps each
-    /// owns (`[b_c, b_{c+1})`, the first from step 0).
+    /// owns (`[b_c, b_{c+1})`, the first from step 0): as equal as steps allow, so each
+    /// owns at least `min_len` (and its warm-up) and at most [`MAX_LANE`].
     fn bounds(&self, steps: usize, runs: usize) -> Vec<usize> {
-        let warm = self.warm.max(2);
         let share = (self.target / runs.max(1)).max(1);
-        let most = steps / self.min_len.max(warm).max(1);
+        let most = steps / self.min_len.max(self.warm_up());
         let mut n = share.min(most).max(1);
         if n > 1 {
             n = n.max(steps.div_ceil(MAX_LANE));
         }
-        let len = steps.div_ceil(n);
-        let mut b: Vec<usize> = (0..n).map(|c| c * len).take_while(|&x| x < steps).collect();
-        b.push(steps);
-        b
+        (0..=n).map(|c| c * steps / n).collect()
     }
 }
 
@@ -674,7 +677,7 @@ impl RidgeStage {
             } else {
                 vec![0, p.steps]
             };
-            let warm = self.lanes.warm.max(2);
+            let warm = self.lanes.warm_up();
             let split = bounds.len() > 2;
             for (c, b) in bounds.windows(2).enumerate() {
                 let lane = RunParams {
@@ -804,13 +807,10 @@ impl RidgeStage {
             })
             .collect();
         // The programme over lanes, in chunks of steps counted from each lane's origin.
-        let longest = |ls: &[RunParams]| {
-            ls.iter()
-                .map(|l| (l.end - l.origin) as usize)
-                .max()
-                .unwrap_or(0)
+        let longest = |ls: &mut dyn Iterator<Item = &RunParams>| {
+            ls.map(|l| (l.end - l.origin) as usize).max().unwrap_or(0)
         };
-        let lane_chunks: Vec<wgpu::BindGroup> = (0..longest(&lanes).div_ceil(per_chunk))
+        let lane_chunks: Vec<wgpu::BindGroup> = (0..longest(&mut lanes.iter()).div_ceil(per_chunk))
             .map(|c| bind(&lanes_buf, c * per_chunk, (c + 1) * per_chunk, NO_LANE))
             .collect();
         // The repair: lane 1 of every run, then lane 2, …, each in its chunks.
@@ -818,9 +818,8 @@ impl RidgeStage {
         if let Some(buf) = &repairs_buf {
             let most = repairs.iter().map(|l| l.lane).max().unwrap_or(0);
             for c in 1..=most {
-                let these: Vec<RunParams> =
-                    repairs.iter().filter(|l| l.lane == c).copied().collect();
-                for d in 0..longest(&these).div_ceil(per_chunk) {
+                let these = longest(&mut repairs.iter().filter(|l| l.lane == c));
+                for d in 0..these.div_ceil(per_chunk) {
                     repair_chunks.push(bind(buf, d * per_chunk, (d + 1) * per_chunk, c));
                 }
             }
@@ -921,6 +920,16 @@ mod tests {
                 94,
                 3,
             ),
+            // Lanes of ⌈33/4⌉ = 9 steps would leave the last 6, under min_len.
+            (
+                Lanes {
+                    target: 24,
+                    warm: 2,
+                    min_len: 8,
+                },
+                33,
+                1,
+            ),
         ] {
             let b = lanes.bounds(steps, runs);
             assert_eq!((b[0], *b.last().unwrap()), (0, steps));
@@ -929,7 +938,7 @@ mod tests {
                 assert!(len > 0 && len <= MAX_LANE, "{b:?}");
                 if b.len() > 2 {
                     // Each lane's warm-up lies inside the lane before.
-                    assert!(w[0] == 0 || w[0] >= lanes.warm.max(2), "{b:?}");
+                    assert!(w[0] == 0 || w[0] >= lanes.warm_up(), "{b:?}");
                     assert!(len >= lanes.min_len.min(steps), "{b:?}");
                 }
             }
