@@ -70,6 +70,14 @@ pub enum BatchError {
         /// The system's reason.
         detail: String,
     },
+    /// The batch's reader or writer thread could not be started.
+    #[error("cannot start the batch's {role} thread: {detail}")]
+    Serial {
+        /// `reader` or `writer`.
+        role: &'static str,
+        /// The system's reason.
+        detail: String,
+    },
 }
 
 /// A share of the runs: the K-th of N (1-based).
@@ -273,14 +281,28 @@ pub fn run_campaigns(
     let drawn = Drawn::new(opt.report_runs);
     let written = std::thread::scope(|scope| {
         let counts = &counts;
-        scope.spawn(move || {
-            reader::read_all(files, ingest, opt.shard, isolate, counts, &mut |d| {
-                work_tx.send(d).map_err(|_| reader::Stopped)
+        // Named, so that `perf`, `top -H` and the traces tell the serial threads apart.
+        std::thread::Builder::new()
+            .name("skelid-reader".into())
+            .spawn_scoped(scope, move || {
+                reader::read_all(files, ingest, opt.shard, isolate, counts, &mut |d| {
+                    work_tx.send(d).map_err(|_| reader::Stopped)
+                })
             })
-        });
+            .map_err(|e| BatchError::Serial {
+                role: "reader",
+                detail: e.to_string(),
+            })?;
         let drawn = &drawn;
-        let writer =
-            scope.spawn(|| write_finished(&results, done_rx, log, counts, progress, drawn));
+        let writer = std::thread::Builder::new()
+            .name("skelid-writer".into())
+            .spawn_scoped(scope, || {
+                write_finished(&results, done_rx, log, counts, progress, drawn)
+            })
+            .map_err(|e| BatchError::Serial {
+                role: "writer",
+                detail: e.to_string(),
+            })?;
         // A failed send means the writer stopped on an error, which it returns; the
         // workers then stop, and the reader with them.
         let _ = pool.install(|| {
