@@ -72,7 +72,7 @@ pub enum BatchError {
     },
     /// The batch's reader or writer thread could not be started.
     #[error("cannot start the batch's {role} thread: {detail}")]
-    Serial {
+    SerialThread {
         /// `reader` or `writer`.
         role: &'static str,
         /// The system's reason.
@@ -281,28 +281,15 @@ pub fn run_campaigns(
     let drawn = Drawn::new(opt.report_runs);
     let written = std::thread::scope(|scope| {
         let counts = &counts;
-        // Named, so that `perf`, `top -H` and the traces tell the serial threads apart.
-        std::thread::Builder::new()
-            .name("skelid-reader".into())
-            .spawn_scoped(scope, move || {
-                reader::read_all(files, ingest, opt.shard, isolate, counts, &mut |d| {
-                    work_tx.send(d).map_err(|_| reader::Stopped)
-                })
+        serial_thread(scope, "reader", move || {
+            reader::read_all(files, ingest, opt.shard, isolate, counts, &mut |d| {
+                work_tx.send(d).map_err(|_| reader::Stopped)
             })
-            .map_err(|e| BatchError::Serial {
-                role: "reader",
-                detail: e.to_string(),
-            })?;
+        })?;
         let drawn = &drawn;
-        let writer = std::thread::Builder::new()
-            .name("skelid-writer".into())
-            .spawn_scoped(scope, || {
-                write_finished(&results, done_rx, log, counts, progress, drawn)
-            })
-            .map_err(|e| BatchError::Serial {
-                role: "writer",
-                detail: e.to_string(),
-            })?;
+        let writer = serial_thread(scope, "writer", || {
+            write_finished(&results, done_rx, log, counts, progress, drawn)
+        })?;
         // A failed send means the writer stopped on an error, which it returns; the
         // workers then stop, and the reader with them.
         let _ = pool.install(|| {
@@ -390,6 +377,22 @@ pub fn run_campaigns(
         skipped,
         not_runs,
     })
+}
+
+/// Starts one of the batch's serial threads, named `skelid-ROLE` so that `perf --comm`,
+/// `top -H` and the traces tell it apart from the workers.
+fn serial_thread<'scope, T: Send + 'scope>(
+    scope: &'scope std::thread::Scope<'scope, '_>,
+    role: &'static str,
+    f: impl FnOnce() -> T + Send + 'scope,
+) -> Result<std::thread::ScopedJoinHandle<'scope, T>, BatchError> {
+    std::thread::Builder::new()
+        .name(format!("skelid-{role}"))
+        .spawn_scoped(scope, f)
+        .map_err(|e| BatchError::SerialThread {
+            role,
+            detail: e.to_string(),
+        })
 }
 
 #[cfg(test)]
