@@ -188,7 +188,8 @@ mod tests {
     /// types, chunking, filters and values.
     #[test]
     fn raw_created_attributes_and_datasets_match_the_binding_s() {
-        // A whole chunk and part of one (each deflated in pieces), read back by libhdf5.
+        // A whole chunk and part of one, read back by libhdf5: each a zlib stream of byte
+        // planes, the cosine's low ones (noise to deflate) stored, the others deflated.
         let x: Vec<f64> = (0..40_000).map(|i| (i as f64 * 0.003).cos()).collect();
         let mask: Vec<u8> = (0..40_000).map(|i| u8::from(i % 3 == 0)).collect();
         let run = |path: &str, scale: f64| {
