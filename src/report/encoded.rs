@@ -20,6 +20,8 @@ pub const CHUNK: usize = 32_768;
 /// Bytes of a chunk deflated at a time ([`compress_chunks`]), at most: the fast level
 /// deflates a chunk's 256 KiB 40 % slower than as eight independent pieces of 32 KiB. A
 /// shuffled chunk's pieces are its byte planes (a chunk is at most [`CHUNK`] elements).
+/// Keep pieces under 64 KiB: zlib-rs's stored level (level 0) may return from a flush with
+/// a larger piece's tail still buffered, which [`deflate_into`]'s loop would take for done.
 const PIECE: usize = 32 * 1024;
 
 /// A byte plane whose sample slices deflate to at least this share of their length is
