@@ -238,6 +238,18 @@ fn three_shards_merged_equal_one_run() {
         page.matches("<tr class=").count(),
         summary_rows(&whole).len()
     );
+    // Its runs, read back from results.h5 and drawn at the end, are drawn as the batch's
+    // workers drew them as they finished: the same text and figures, to the byte.
+    let sections = |page: &str| -> Vec<String> {
+        page.split("<section id=\"run-")
+            .skip(1)
+            .map(|s| s.split("</section>").next().unwrap().to_string())
+            .collect()
+    };
+    let whole_page = std::fs::read_to_string(whole.join("report.html")).unwrap();
+    assert_eq!(sections(&whole_page).len(), 33);
+    assert!(sections(&whole_page)[0].contains("<svg"));
+    assert_eq!(sections(&page), sections(&whole_page));
 
     // A missing shard, a shard given twice, an unsharded folder among shards: refused.
     let refuse = |dirs: &[&PathBuf], what: &str| {

@@ -27,7 +27,10 @@ pub use manifest::{GroupNotRun, Manifest, ManifestRun, MANIFEST};
 pub use merge::merge;
 pub use worker::guarded;
 use worker::prepare;
-use writer::{place_runs, unreadable, write_finished, write_outputs, Drawn, Log, Written};
+use writer::{
+    page_runs, place_runs, unreadable, write_finished, write_manifest, write_outputs, write_pages,
+    Drawn, Log, Written,
+};
 
 use crate::backend::Backend;
 use crate::hint::Hint;
@@ -37,7 +40,7 @@ use crate::journal::{
     settings_fingerprint, settings_record, Entry, Journal, Prepared, Stored, RUNS_DIR,
 };
 use crate::profile::{self, Stage};
-use crate::report::html::RunPlots;
+use crate::report::html::DrawnRun;
 use crate::report::{ReportError, ResultsWriter, SummaryRow};
 use crate::track::Method;
 
@@ -217,9 +220,9 @@ pub struct BatchSummary {
 pub(super) enum Finished {
     /// A run found committed by an earlier invocation, with its stored results (and its
     /// report plots, decoded by the worker, when it may be drawn).
-    Skipped(Entry, Stored, Option<RunPlots>),
+    Skipped(Entry, Stored, Option<DrawnRun>),
     /// A run identified and committed to the journal now, with its report plots.
-    Committed(Entry, Prepared, Option<RunPlots>),
+    Committed(Entry, Prepared, Option<DrawnRun>),
     /// A run identified now whose journal file could not be written.
     Failed(ReportError),
 }
@@ -328,7 +331,6 @@ pub fn run_campaigns(
         results.abandon();
         return Err(stopped(e));
     }
-    let results = results.finish().map_err(|e| stopped(e.into()))?;
     let not_runs: Vec<GroupNotRun> =
         std::mem::take(&mut *counts.not_runs.lock().unwrap_or_else(|p| p.into_inner()))
             .into_iter()
@@ -345,15 +347,31 @@ pub fn run_campaigns(
         not_runs.clone(),
         Some(record),
     );
-    let (rows, failed_runs) = write_outputs(
-        &results,
-        out,
-        &entries,
-        &manifest,
-        opt.report_runs,
-        Some(&drawn),
-    )
-    .map_err(stopped)?;
+    let held = drawn.take_shown(&entries, opt.report_runs);
+    let (results, rows) = if held.iter().all(Option::is_some) {
+        // The page reads nothing back: results.h5 is closed (its metadata flushed, a third
+        // of this end) while the summaries and the page are written.
+        let runs = held.into_iter().flatten().map(Ok).collect();
+        let (closed, pages) = std::thread::scope(|s| {
+            let closing = s.spawn(|| results.finish());
+            let pages = write_pages(out, &entries, &manifest, runs);
+            (closing.join(), pages)
+        });
+        let results = match closed {
+            Ok(r) => r.map_err(|e| stopped(e.into()))?,
+            Err(panic) => std::panic::resume_unwind(panic),
+        };
+        (results, pages.map_err(stopped)?)
+    } else {
+        let results = results.finish().map_err(|e| stopped(e.into()))?;
+        let runs = page_runs(&results, &entries, held);
+        (
+            results,
+            write_pages(out, &entries, &manifest, runs).map_err(stopped)?,
+        )
+    };
+    write_manifest(out, &manifest).map_err(stopped)?;
+    let failed_runs = entries.iter().filter(|e| e.failed).count();
     profile::add(Stage::Write, profile::thread_cpu().saturating_sub(cpu0));
     log.line(&format!(
         "where the time went (CPU seconds since the process started): {}",
@@ -409,14 +427,14 @@ mod tests {
         }
     }
 
-    fn plots(source: &str) -> RunPlots {
-        RunPlots {
+    fn plots(source: &str) -> DrawnRun {
+        DrawnRun::new(crate::report::html::RunPlots {
             path: "/runs/r".into(),
             source: source.into(),
             status: crate::report::Status::Ok,
             error: None,
             methods: Vec::new(),
-        }
+        })
     }
 
     #[test]
@@ -436,7 +454,7 @@ mod tests {
         assert!(drawn.take(&entry("a.h5"), "/runs/r").is_none());
         let b = drawn.take(&entry("b.h5"), "/runs/r@b.h5").expect("kept");
         assert_eq!(
-            (b.source.as_str(), b.path.as_str()),
+            (b.run.source.as_str(), b.run.path.as_str()),
             ("b.h5", "/runs/r@b.h5")
         );
         assert!(drawn.take(&entry("c.h5"), "/runs/r").is_none());

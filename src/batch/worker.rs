@@ -9,7 +9,7 @@ use crate::backend::Backend;
 use crate::identify::{identify, IdentifyOptions};
 use crate::journal::{failed_key, run_key, Journal, Prepared, Stored};
 use crate::profile::{self, Stage};
-use crate::report::html::{self, RunPlots};
+use crate::report::html::{self, DrawnRun, RunPlots};
 use crate::report::RunOutcome;
 use crate::track::Method;
 
@@ -50,7 +50,7 @@ pub(super) fn prepare(
                     if let Err(err) = figures(run, &e.source, plots.as_ref(), opt) {
                         return Finished::Failed(err);
                     }
-                    plots
+                    plots.map(draw)
                 }
                 Stored::Legacy(_) => None,
             };
@@ -69,7 +69,7 @@ pub(super) fn prepare(
                 Ok(()) => {
                     // On to the writer's queue: the chunks alone from here.
                     prepared.forget_kept();
-                    Finished::Committed(entry, prepared, plots)
+                    Finished::Committed(entry, prepared, plots.map(draw))
                 }
                 Err(e) => Finished::Failed(e),
             }
@@ -81,6 +81,12 @@ pub(super) fn prepare(
 /// The report's plots of an encoded run (its group in results.h5 is set when drawn).
 pub(super) fn run_plots(run: &crate::report::encoded::EncodedRun) -> RunPlots {
     profile::time(Stage::Encode, || html::encoded_plots(run))
+}
+
+/// The run's figures for report.html, drawn here on the worker rather than at the batch's
+/// end.
+fn draw(plots: RunPlots) -> DrawnRun {
+    profile::time(Stage::Write, || DrawnRun::new(plots))
 }
 
 /// Writes the run's figures as files when the batch asks for them (`plots`: the run's

@@ -7,7 +7,7 @@ use std::path::Path;
 
 use crate::journal::{placements, results_group, Entry, Stored};
 use crate::profile::{self, Stage};
-use crate::report::html::{self, RunPlots};
+use crate::report::html::{self, DrawnRun};
 use crate::report::{write_summary, ReportError, ResultsWriter, RunOutcome, SummaryRow};
 
 use super::*;
@@ -123,7 +123,7 @@ pub(super) struct Drawn {
     pub(super) keep: usize,
     /// `None` where the plots must be read back: none were decoded (a legacy journal
     /// file), or two runs share the archive name and path.
-    pub(super) plots: std::sync::Mutex<BTreeMap<(String, String), Option<RunPlots>>>,
+    pub(super) plots: std::sync::Mutex<BTreeMap<(String, String), Option<DrawnRun>>>,
 }
 
 impl Drawn {
@@ -136,7 +136,7 @@ impl Drawn {
 
     pub(super) fn held(
         &self,
-    ) -> std::sync::MutexGuard<'_, BTreeMap<(String, String), Option<RunPlots>>> {
+    ) -> std::sync::MutexGuard<'_, BTreeMap<(String, String), Option<DrawnRun>>> {
         self.plots.lock().unwrap_or_else(|p| p.into_inner())
     }
 
@@ -155,7 +155,7 @@ impl Drawn {
     }
 
     /// Keeps `plots` of the run `e` if it is among the first `keep` so far.
-    pub(super) fn offer(&self, e: &Entry, plots: Option<RunPlots>) {
+    pub(super) fn offer(&self, e: &Entry, plots: Option<DrawnRun>) {
         if self.keep == 0 {
             return;
         }
@@ -173,13 +173,28 @@ impl Drawn {
         }
     }
 
+    /// The held runs among the first `report_runs` of `entries` (in the report's order),
+    /// each named by its group in results.h5; `None` for one that must be read back.
+    pub(super) fn take_shown(
+        &self,
+        entries: &[Entry],
+        report_runs: usize,
+    ) -> Vec<Option<DrawnRun>> {
+        let shown = &entries[..entries.len().min(report_runs)];
+        placements(shown)
+            .iter()
+            .zip(shown)
+            .map(|(group, e)| self.take(e, group))
+            .collect()
+    }
+
     /// The plots of run `e`, drawn as the run at `group` of results.h5.
-    pub(super) fn take(&self, e: &Entry, group: &str) -> Option<RunPlots> {
+    pub(super) fn take(&self, e: &Entry, group: &str) -> Option<DrawnRun> {
         let mut p = self
             .held()
             .get_mut(&(e.source.clone(), e.path.clone()))?
             .take()?;
-        p.path = group.to_string();
+        p.run.path = group.to_string();
         Some(p)
     }
 }
@@ -218,37 +233,77 @@ pub(super) fn write_outputs(
     entries: &[Entry],
     manifest: &Manifest,
     report_runs: usize,
-    drawn_plots: Option<&Drawn>,
+    drawn: Option<&Drawn>,
 ) -> Result<(Vec<SummaryRow>, usize), BatchError> {
+    let held = match drawn {
+        Some(d) => d.take_shown(entries, report_runs),
+        None => vec![None; entries.len().min(report_runs)],
+    };
+    let runs = page_runs(results, entries, held);
+    let rows = write_pages(out, entries, manifest, runs)?;
+    write_manifest(out, manifest)?;
+    Ok((rows, entries.iter().filter(|e| e.failed).count()))
+}
+
+/// The runs report.html draws (the first of `entries`, as many as `held`): each held one
+/// as it is, the others read back from `results` (under libhdf5's lock) and drawn, in
+/// parallel.
+pub(super) fn page_runs(
+    results: &Path,
+    entries: &[Entry],
+    held: Vec<Option<DrawnRun>>,
+) -> Vec<Result<DrawnRun, String>> {
+    use rayon::prelude::*;
+    let shown = held.len();
+    placements(&entries[..shown])
+        .into_par_iter()
+        .zip(held)
+        .map(|(group, h)| match h {
+            Some(d) => Ok(d),
+            None => html::read_run(results, &group).map(DrawnRun::new),
+        })
+        .collect()
+}
+
+/// The summaries and report.html (drawing `runs`, the first of `entries`), side by side:
+/// neither reads results.h5.
+pub(super) fn write_pages(
+    out: &Path,
+    entries: &[Entry],
+    manifest: &Manifest,
+    runs: Vec<Result<DrawnRun, String>>,
+) -> Result<Vec<SummaryRow>, BatchError> {
     let rows: Vec<SummaryRow> = entries.iter().flat_map(|e| e.rows.clone()).collect();
-    write_summary(out, &rows)?;
-    let drawn = entries.len().min(report_runs);
+    let omitted = entries.len() - runs.len();
     let title = std::fs::canonicalize(out).unwrap_or_else(|_| out.to_path_buf());
-    html::write_report(
-        out,
-        &html::ReportPage {
-            title: &title.display().to_string(),
-            settings: &manifest.settings,
-            rows: &rows,
-            runs: placements(&entries[..drawn])
-                .iter()
-                .zip(entries)
-                .map(
-                    |(group, e)| match drawn_plots.and_then(|d| d.take(e, group)) {
-                        Some(p) => Ok(p),
-                        None => html::read_run(results, group),
-                    },
-                )
-                .collect(),
-            omitted: entries.len() - drawn,
+    let (summary, report) = rayon::join(
+        || write_summary(out, &rows),
+        || {
+            html::write_report(
+                out,
+                &html::ReportPage {
+                    title: &title.display().to_string(),
+                    settings: &manifest.settings,
+                    rows: &rows,
+                    runs,
+                    omitted,
+                },
+            )
         },
-    )?;
+    );
+    summary?;
+    report?;
+    Ok(rows)
+}
+
+/// `manifest.json`, written last: a folder with one is complete.
+pub(super) fn write_manifest(out: &Path, manifest: &Manifest) -> Result<(), BatchError> {
     let text = serde_json::to_string_pretty(manifest).map_err(|e| ReportError {
         file: MANIFEST.into(),
         detail: e.to_string(),
     })?;
     crate::report::write_atomic(&out.join(MANIFEST), text.as_bytes())?;
-    Ok((rows, entries.iter().filter(|e| e.failed).count()))
+    Ok(())
 }
 
 /// `<out>/skelid.log`: one line per event, appended, with seconds since the Unix epoch.
