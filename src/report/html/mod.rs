@@ -61,9 +61,18 @@ pub struct DrawnRun {
 }
 
 impl DrawnRun {
-    /// Draws the figures of `run`.
-    pub fn new(run: RunPlots) -> DrawnRun {
+    /// Draws the figures of `run`, then lets go of its curves: the page's text needs the
+    /// fitted values alone, and a batch holds up to `--report-runs` of these until its end.
+    pub fn new(mut run: RunPlots) -> DrawnRun {
         let figures = run_figures(&run);
+        for m in &mut run.methods {
+            m.time = Vec::new();
+            m.amplitude = Vec::new();
+            m.frequency = Vec::new();
+            m.input_amplitude = Vec::new();
+            m.input_frequency = Vec::new();
+            m.skeleton = Skeleton::default();
+        }
         DrawnRun { run, figures }
     }
 }
