@@ -130,7 +130,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         first.settings_full.clone(),
     );
     let results = journal.assemble(out, &entries, manifest.settings_full.as_ref())?;
-    let (rows, failed_runs) = write_outputs(&results, out, &entries, &manifest, report_runs, None)?;
+    let (rows, failed_runs) = write_outputs(&results, out, &entries, &manifest, report_runs)?;
     Ok(BatchSummary {
         rows,
         results,

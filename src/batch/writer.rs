@@ -224,22 +224,16 @@ pub(super) fn place_runs(
     Ok(())
 }
 
-/// The summaries, report.html (the first `report_runs` runs drawn, from `drawn` where it
-/// holds them, else read back from results.h5) and the manifest of a folder's entries
-/// (results.h5 is written by then).
+/// The summaries, report.html (the first `report_runs` runs read back from results.h5,
+/// which is written by then, and drawn) and the manifest of a merged folder's entries.
 pub(super) fn write_outputs(
     results: &Path,
     out: &Path,
     entries: &[Entry],
     manifest: &Manifest,
     report_runs: usize,
-    drawn: Option<&Drawn>,
 ) -> Result<(Vec<SummaryRow>, usize), BatchError> {
-    let held = match drawn {
-        Some(d) => d.take_shown(entries, report_runs),
-        None => vec![None; entries.len().min(report_runs)],
-    };
-    let runs = page_runs(results, entries, held);
+    let runs = page_runs(results, entries, vec![None; entries.len().min(report_runs)]);
     let rows = write_pages(out, entries, manifest, runs)?;
     write_manifest(out, manifest)?;
     Ok((rows, entries.iter().filter(|e| e.failed).count()))
