@@ -381,8 +381,14 @@ fn write_frame(
     if let Some((input, output)) = samples {
         for v in input.iter().chain(std::iter::once(output)) {
             out.write_all(&(v.len() as u64).to_le_bytes())?;
-            for x in v {
-                out.write_all(&x.to_le_bytes())?;
+            // The samples' bytes as they lie in memory where that is little-endian (one
+            // copy, not 60 000 calls: a tenth of the reader's CPU time).
+            if cfg!(target_endian = "little") {
+                out.write_all(bytemuck::cast_slice(v))?;
+            } else {
+                for x in v {
+                    out.write_all(&x.to_le_bytes())?;
+                }
             }
         }
     }
@@ -423,12 +429,15 @@ fn read_vector(inp: &mut impl Read) -> std::io::Result<Vec<f64>> {
     let mut n = [0u8; 8];
     inp.read_exact(&mut n)?;
     let n = u64::from_le_bytes(n) as usize;
-    let mut bytes = vec![0u8; n * 8];
-    inp.read_exact(&mut bytes)?;
-    Ok(bytes
-        .chunks_exact(8)
-        .map(|b| f64::from_le_bytes(b.try_into().expect("8 bytes")))
-        .collect())
+    // Read straight into the values, little-endian bits put in order where need be.
+    let mut v = vec![0f64; n];
+    inp.read_exact(bytemuck::cast_slice_mut(&mut v))?;
+    if cfg!(target_endian = "big") {
+        for x in &mut v {
+            *x = f64::from_bits(u64::from_le(x.to_bits()));
+        }
+    }
+    Ok(v)
 }
 
 /// How one reading child ended.
