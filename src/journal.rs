@@ -123,8 +123,11 @@ pub struct Entry {
     pub rows: Vec<SummaryRow>,
 }
 
-/// Where each of `entries` goes in results.h5: its own path, or `PATH@ARCHIVE` for the
-/// second and later runs of the same path from different archives.
+/// Where each of `entries` goes in results.h5: its own path, or, for the second and later
+/// runs of the same path from different archives, `PATH@FILE` beside it, FILE the
+/// archive's file name (`/runs/run_001@run_10.h5`), then `PATH@FILE~2`, `~3`, … where
+/// archives in different folders share that name too. The archive's whole path would put
+/// its slashes into the name and the run in groups nested below `/runs/run_001@`.
 pub fn placements(entries: &[Entry]) -> Vec<String> {
     let mut seen = std::collections::HashSet::new();
     entries
@@ -132,10 +135,17 @@ pub fn placements(entries: &[Entry]) -> Vec<String> {
         .map(|e| {
             let group = results_group(&e.path, &e.source);
             if seen.insert(group.clone()) {
-                group
-            } else {
-                format!("{group}@{}", e.source)
+                return group;
             }
+            let named = format!("{group}@{}", base_name(&e.source));
+            let mut at = named.clone();
+            for n in 2.. {
+                if seen.insert(at.clone()) {
+                    break;
+                }
+                at = format!("{named}~{n}");
+            }
+            at
         })
         .collect()
 }
@@ -396,6 +406,40 @@ fn lookup_legacy(f: &Path, key: &str) -> Option<Entry> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn runs_sharing_a_path_are_placed_beside_it_by_archive_file_name() {
+        let entry = |source: &str, path: &str| Entry {
+            key: String::new(),
+            path: path.into(),
+            source: source.into(),
+            failed: false,
+            rows: Vec::new(),
+        };
+        let entries = [
+            entry("/data/a/run_1.h5", "/runs/r"),
+            entry("/data/a/run_2.h5", "/runs/r"),
+            entry("/data/b/run_2.h5", "/runs/r"),
+            entry("/data/c/run_2.h5", "/runs/r"),
+            entry("/data/c/run_2.h5", "/runs/r@run_2.h5~2x"),
+            entry("rel/run_3.h5", "/runs/s"),
+            entry("/data/bench.mat", "/"),
+            entry("/other/bench.mat", "/"),
+        ];
+        assert_eq!(
+            placements(&entries),
+            [
+                "/runs/r",
+                "/runs/r@run_2.h5",
+                "/runs/r@run_2.h5~2",
+                "/runs/r@run_2.h5~3",
+                "/runs/r@run_2.h5~2x",
+                "/runs/s",
+                "/bench",
+                "/bench@bench.mat",
+            ]
+        );
+    }
 
     fn prepared(path: &str) -> Prepared {
         let mut run = EncodedRun::new(path);

@@ -232,6 +232,35 @@ fn three_shards_merged_equal_one_run() {
     assert!(m.status.success(), "{}", String::from_utf8_lossy(&m.stderr));
     assert_same_rows(&summary_rows(&merged), &summary_rows(&whole));
     assert_same_results(&results(&merged), &results(&whole));
+    // Every run path is in all three archives: a.h5's run at the path itself, the others
+    // beside it, named after their archive's file and saying where they came from.
+    let found = results(&whole);
+    let plain: Vec<&str> = found
+        .iter()
+        .map(|r| r.0.as_str())
+        .filter(|p| !p.contains('@'))
+        .collect();
+    assert_eq!((found.len(), plain.len()), (33, 11), "{found:?}");
+    let file = hdf5::File::open(whole.join("results.h5")).unwrap();
+    for p in plain {
+        for archive in ["a.h5", "b.h5", "c.h5"] {
+            let at = if archive == "a.h5" {
+                p.to_string()
+            } else {
+                format!("{p}@{archive}")
+            };
+            let source: hdf5::types::VarLenUnicode = file
+                .group(&at)
+                .and_then(|g| g.attr("source"))
+                .and_then(|a| a.read_scalar())
+                .unwrap_or_else(|e| panic!("{at}: {e}"));
+            assert!(
+                source.as_str().ends_with(&format!("/{archive}")),
+                "{at}: {source}"
+            );
+        }
+    }
+    assert!(file.group("/_skelid_staging").is_err());
     // The merged folder's report lists every run of every shard.
     let page = std::fs::read_to_string(merged.join("report.html")).unwrap();
     assert_eq!(

@@ -29,16 +29,16 @@ pub(super) fn write_finished(
     for f in done {
         // Finishing order is not the final order: a path already used (the same path in
         // two archives) goes aside now and is put in its place at the end.
-        let (path, source) = match f {
+        let path = match f {
             Finished::Skipped(ref e, ..) | Finished::Committed(ref e, ..) => {
-                (results_group(&e.path, &e.source), e.source.clone())
+                results_group(&e.path, &e.source)
             }
             Finished::Failed(e) => return Err(e.into()),
         };
         let dst = if used.insert(path.clone()) {
             path
         } else {
-            format!("{path}@{source}#{}", entries.len())
+            pending(entries.len())
         };
         let t0 = profile::thread_cpu();
         let (e, was_skipped, plots) = match f {
@@ -199,14 +199,23 @@ impl Drawn {
     }
 }
 
+/// Where results.h5 holds a run until [`place_runs`] moves it to its group: one whose path
+/// was already used when it finished (the same path in another archive), the `n`th to
+/// finish. Inside the staging group, which is gone at the end: no run path can clash.
+fn pending(n: usize) -> String {
+    format!("{STAGING}/pending{n}")
+}
+
+/// The group of results.h5 that runs pass through on their way to their own.
+const STAGING: &str = "/_skelid_staging";
+
 /// Puts every run of `results` at its final group (see [`placements`]): link moves, through
-/// a staging group so that two runs may trade places.
+/// [`STAGING`] so that two runs may trade places.
 pub(super) fn place_runs(
     results: &ResultsWriter,
     entries: &[Entry],
     written_at: &[String],
 ) -> Result<(), BatchError> {
-    const STAGING: &str = "/_skelid_staging";
     let moves: Vec<(&String, String)> = written_at
         .iter()
         .zip(placements(entries))
