@@ -52,12 +52,11 @@ fn no_gpu_device() -> Option<String> {
     if !cfg!(target_os = "linux") {
         return None;
     }
-    let names: Vec<String> = std::fs::read_dir("/dev")
+    let any_node = std::fs::read_dir("/dev")
         .ok()?
-        .filter_map(|e| e.ok())
-        .map(|e| e.file_name().to_string_lossy().into_owned())
-        .collect();
-    (!names.iter().any(|n| is_gpu_node(n))).then(|| {
+        .filter_map(Result::ok)
+        .any(|e| is_gpu_node(&e.file_name().to_string_lossy()));
+    (!any_node).then(|| {
         format!(
             "no GPU device on this machine (/dev has no {}): using the CPU backend; {} \
              looks for an adapter anyway, a software one included",

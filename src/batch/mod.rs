@@ -219,9 +219,9 @@ pub struct BatchSummary {
 /// What the workers hand the writer.
 pub(super) enum Finished {
     /// A run found committed by an earlier invocation, with its stored results (and its
-    /// report plots, decoded by the worker, when it may be drawn).
+    /// report figures, drawn by the worker, when it may be shown).
     Skipped(Entry, Stored, Option<DrawnRun>),
-    /// A run identified and committed to the journal now, with its report plots.
+    /// A run identified and committed to the journal now, with its report figures.
     Committed(Entry, Prepared, Option<DrawnRun>),
     /// A run identified now whose journal file could not be written.
     Failed(ReportError),

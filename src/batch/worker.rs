@@ -1,6 +1,6 @@
 //! A worker's share of the batch: a delivered run prepared (its journal key, skipped when
 //! committed by an earlier invocation), identified by every method, encoded and committed to
-//! the journal, with its report plots decoded while the run can still be drawn. In: a
+//! the journal, with its report figures drawn while the run can still be shown. In: a
 //! delivery; out: what the writer receives. Panics in one run fail that run alone.
 
 use std::time::Instant;
