@@ -31,6 +31,7 @@ pub mod inspect;
 pub mod journal;
 pub mod mode;
 pub mod model;
+pub mod pagecache;
 pub mod profile;
 pub mod quality;
 pub mod refine;

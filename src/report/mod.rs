@@ -163,18 +163,38 @@ impl RunOutcome {
 
 /// Writes a file through a temporary file renamed into place.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
+    write_atomic_inner(path, bytes, false)
+}
+
+/// [`write_atomic`] for a file that will not be read again soon (a journal's run file):
+/// its page-cache pages are handed back once it is on disk ([`crate::pagecache`]).
+pub fn write_atomic_released(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
+    write_atomic_inner(path, bytes, true)
+}
+
+fn write_atomic_inner(path: &Path, bytes: &[u8], release: bool) -> Result<(), ReportError> {
     let err = |detail: String| ReportError {
         file: path.display().to_string(),
         detail,
     };
     let tmp = tmp_path(path);
-    let done = std::fs::write(&tmp, bytes)
-        .and_then(|()| std::fs::rename(&tmp, path))
-        .map_err(|e| err(e.to_string()));
-    if done.is_err() {
-        let _ = std::fs::remove_file(&tmp);
+    let done = std::fs::File::create(&tmp).and_then(|mut f| {
+        std::io::Write::write_all(&mut f, bytes)?;
+        std::fs::rename(&tmp, path)?;
+        Ok(f)
+    });
+    match done {
+        Ok(f) => {
+            if release {
+                crate::pagecache::release_file(f);
+            }
+            Ok(())
+        }
+        Err(e) => {
+            let _ = std::fs::remove_file(&tmp);
+            Err(err(e.to_string()))
+        }
     }
-    done
 }
 
 #[cfg(test)]

@@ -20,6 +20,9 @@ pub struct ResultsWriter {
     tmp: PathBuf,
     attrs: AttrMaker,
     layouts: Layouts,
+    /// The chunks written so far, released from the page cache in rounds (`None` where
+    /// the file could not be opened a second time).
+    extents: std::sync::Mutex<Option<crate::pagecache::Extents>>,
 }
 
 impl ResultsWriter {
@@ -45,12 +48,14 @@ impl ResultsWriter {
             .map_err(|e| err(e.to_string()))?;
         let attrs = AttrMaker::new().map_err(|e| err(e.to_string()))?;
         let layouts = Layouts::new().map_err(|e| err(e.to_string()))?;
+        let extents = std::sync::Mutex::new(crate::pagecache::Extents::open(&tmp));
         Ok(ResultsWriter {
             file,
             path,
             tmp,
             attrs,
             layouts,
+            extents,
         })
     }
 
@@ -202,7 +207,15 @@ impl ResultsWriter {
                     }
                 }
                 Item::Dataset(d) => {
-                    let ds = write_dataset(&at(&mut groups, &d.group)?, d, &self.layouts)?;
+                    let ds = write_dataset(
+                        &at(&mut groups, &d.group)?,
+                        d,
+                        &self.layouts,
+                        self.extents
+                            .lock()
+                            .unwrap_or_else(|e| e.into_inner())
+                            .as_mut(),
+                    )?;
                     last = Some((d.group.as_str(), d.name.as_str(), ds));
                 }
                 Item::DatasetAttr {
@@ -439,11 +452,13 @@ impl Layouts {
 
 /// Creates one encoded dataset in `g`: contiguous values written as usual, or the dataset
 /// created with the same chunking and filters the chunks were encoded for, then each chunk
-/// handed to libhdf5 as it is (`H5Dwrite_chunk`, no filtering under the lock).
+/// handed to libhdf5 as it is (`H5Dwrite_chunk`, no filtering under the lock), and its place
+/// in the file noted in `extents` for release from the page cache.
 pub(super) fn write_dataset(
     g: &hdf5::Group,
     d: &encoded::Dataset,
     layouts: &Layouts,
+    mut extents: Option<&mut crate::pagecache::Extents>,
 ) -> hdf5::Result<hdf5::Dataset> {
     let (level, chunks) = match &d.storage {
         Storage::Plain(v) => {
@@ -481,18 +496,36 @@ pub(super) fn write_dataset(
     let step = encoded::chunk_len(d.len) as u64;
     for (i, c) in chunks.iter().enumerate() {
         let offset = [i as u64 * step];
+        let (mut addr, mut size, mut mask) = (0, 0, 0);
         // The hdf5 crate serialises every libhdf5 call behind one lock; a raw call must
         // take the same lock.
         let status = hdf5::sync::sync(|| unsafe {
-            hdf5_sys::h5d::H5Dwrite_chunk(
+            let status = hdf5_sys::h5d::H5Dwrite_chunk(
                 ds.id(),
                 hdf5_sys::h5p::H5P_DEFAULT,
                 0,
                 offset.as_ptr(),
                 c.len(),
                 c.as_ptr().cast(),
-            )
+            );
+            if status >= 0 && extents.is_some() {
+                // Where libhdf5 put the chunk: a lookup in the chunk index it just updated.
+                let found = hdf5_sys::h5d::H5Dget_chunk_info_by_coord(
+                    ds.id(),
+                    offset.as_ptr(),
+                    &mut mask,
+                    &mut addr,
+                    &mut size,
+                );
+                if found < 0 || addr == hdf5_sys::h5::HADDR_UNDEF {
+                    size = 0;
+                }
+            }
+            status
         });
+        if let Some(e) = extents.as_deref_mut() {
+            e.wrote(addr, size);
+        }
         if status < 0 {
             return Err(hdf5::Error::from(format!(
                 "H5Dwrite_chunk failed for {} chunk {i}",
@@ -542,6 +575,55 @@ mod tests {
             std::thread::sleep(std::time::Duration::from_millis(20));
         }
         assert_eq!(names_in(dir.path()), ["results.h5"]);
+    }
+
+    /// The extents noted for release from the page cache are where libhdf5 put the
+    /// chunks: the finished file holds, over those extents in order, exactly the chunks
+    /// written, byte for byte.
+    #[test]
+    fn the_extents_noted_for_release_hold_the_chunks_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("results.h5");
+        let w = ResultsWriter::create_at(&file).unwrap();
+        let mut written = Vec::new();
+        for r in 0..3 {
+            let mut e = encoded::EncodedRun::new(&format!("/runs/r{r}"));
+            e.group("wavelet");
+            // Three chunks each (70 000 samples), distinct per run and dataset.
+            let v: Vec<f64> = (0..70_000)
+                .map(|i| (i as f64 * 1e-3 + r as f64).sin())
+                .collect();
+            e.signal("wavelet", "a", &v, true);
+            e.signal(
+                "",
+                "b",
+                &v.iter().map(|x| x * 3.0).collect::<Vec<_>>(),
+                true,
+            );
+            e.bytes("wavelet", "valid", &vec![r as u8; 70_000], 4);
+            for item in &e.items {
+                if let Item::Dataset(d) = item {
+                    if let Storage::Chunked { chunks, .. } = &d.storage {
+                        written.extend(chunks.iter().flat_map(|c| c.iter().copied()));
+                    }
+                }
+            }
+            w.write_encoded(&e).unwrap();
+        }
+        let extents: Vec<(u64, u64)> = {
+            let held = w.extents.lock().unwrap();
+            held.as_ref().unwrap().held().copied().collect()
+        };
+        // Consecutive chunks were merged, and the datasets' headers sit between runs.
+        assert!(extents.len() > 1 && extents.len() < 27, "{extents:?}");
+        w.finish().unwrap();
+        let bytes = std::fs::read(&file).unwrap();
+        let found: Vec<u8> = extents
+            .iter()
+            .flat_map(|&(o, l)| bytes[o as usize..(o + l) as usize].iter().copied())
+            .collect();
+        assert_eq!(found.len(), written.len());
+        assert!(found == written);
     }
 
     #[test]
