@@ -1,30 +1,36 @@
 //! Written data handed back to the kernel once it is on its way to disk, so that the next
 //! writes reuse its page-cache pages instead of taking fresh ones.
 //!
-//! Why: on a virtual machine whose host takes freed guest memory back (virtio-balloon free
-//! page reporting, as on this project's 2-core machines), every page the page cache takes
-//! from the free lists is a fresh host page, faulted in during the copy. Writing 400 MB
-//! there cost 0.88 s of kernel time; written in rounds whose pages are dropped once on
-//! disk, 0.11 s. A batch writes each run twice (its journal file and results.h5, about
-//! 2 MB each for the throughput campaign's runs), and those copies were a fifth of the
-//! batch's CPU time, the writer thread's included, which no number of cores shares.
+//! Why: on a virtual machine whose memory the host backs only when first touched (as on
+//! this project's 2-core machines and the device machines, each started fresh), every page
+//! the page cache takes from untouched memory costs a fault in the host during the copy:
+//! 400 MB written cost 0.88 s of kernel time there, against 0.11 s when written in rounds
+//! whose pages are dropped once on disk and reused. A batch writes each run twice (its
+//! journal file and its chunks in results.h5, about 2 MB each for the throughput campaign),
+//! and on fresh memory those copies doubled the time of the writer thread, which no number
+//! of cores shares.
 //!
-//! So the data a batch will not read again is started to disk without waiting
-//! (`sync_file_range`) and its pages dropped a round later (`posix_fadvise(DONTNEED)`,
-//! which leaves dirty, locked and partly covered pages alone). Correctness never depends
-//! on it: a dropped page is read back from disk if it is ever needed. Linux only; elsewhere
-//! these calls do nothing.
+//! So the data a batch will not read again is handed to one background thread, which
+//! starts it to disk without waiting (`sync_file_range`) and drops its pages once
+//! [`WINDOW_BYTES`] more have followed (`posix_fadvise(DONTNEED)`, which leaves dirty,
+//! locked and partly covered pages alone). The writing threads only queue it. Correctness
+//! never depends on it: a dropped page is read back from disk if it is ever needed. Linux
+//! only; elsewhere the calls do nothing. `SKELID_PAGECACHE=keep` turns it off.
 
-use std::cell::RefCell;
 use std::collections::VecDeque;
 use std::fs::File;
+use std::sync::mpsc::{channel, RecvTimeoutError, Sender};
+use std::sync::{Arc, Mutex, OnceLock};
 
-/// How many of a thread's whole files stay cached: the newest may still be under
-/// writeback, which `DONTNEED` would skip.
-const FILES_KEPT: usize = 2;
+/// Bytes handed over and not yet dropped: what was handed over last may still be under
+/// writeback, which `DONTNEED` skips.
+const WINDOW_BYTES: u64 = 16 << 20;
 
-/// Bytes of a growing file written between two rounds of [`Extents`].
-const ROUND_BYTES: u64 = 8 << 20;
+/// How long the releaser waits for more before it lets go of what it holds.
+const IDLE: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// Bytes of a growing file noted by [`Extents`] before they are handed over together.
+const ROUND_BYTES: u64 = 4 << 20;
 
 /// Starts writing the dirty pages of `len` bytes at `offset` (0: to the end) to disk,
 /// without waiting for them.
@@ -65,32 +71,94 @@ fn start_writeback(_file: &File, _offset: u64, _len: u64) {}
 #[cfg(not(target_os = "linux"))]
 fn drop_clean(_file: &File, _offset: u64, _len: u64) {}
 
-thread_local! {
-    /// The calling thread's files handed to [`release_file`], oldest first.
-    static RECENT: RefCell<VecDeque<File>> = const { RefCell::new(VecDeque::new()) };
+/// Whether written data is released at all: not with `SKELID_PAGECACHE=keep` in the
+/// environment, which leaves it in the page cache as before (for side-by-side timings).
+pub fn releasing() -> bool {
+    static ON: OnceLock<bool> = OnceLock::new();
+    *ON.get_or_init(|| std::env::var_os("SKELID_PAGECACHE").is_none_or(|v| v != "keep"))
 }
 
-/// Hands a file just written in full (a journal's run file) over for release: its writing
-/// to disk starts now, and its pages are dropped once this thread has written a few more.
-pub fn release_file(file: File) {
-    start_writeback(&file, 0, 0);
-    RECENT.with(|recent| {
-        let mut recent = recent.borrow_mut();
-        recent.push_back(file);
-        while recent.len() > FILES_KEPT {
-            if let Some(old) = recent.pop_front() {
-                drop_clean(&old, 0, 0);
-            }
-        }
+/// Part of a file handed over for release: `len` bytes at `offset`, `len` 0 for the whole
+/// file, whose size is then `size`.
+struct Part {
+    file: Arc<File>,
+    offset: u64,
+    len: u64,
+    size: u64,
+}
+
+/// The releaser's queue: one thread for the process, started by the first hand-over, that
+/// does the system calls so that the threads that write (the batch's workers and its one
+/// writer) neither spend their time on them nor wait in them.
+fn releaser() -> Option<&'static Mutex<Sender<Part>>> {
+    static QUEUE: OnceLock<Option<Mutex<Sender<Part>>>> = OnceLock::new();
+    QUEUE
+        .get_or_init(|| {
+            let (tx, rx) = channel::<Part>();
+            std::thread::Builder::new()
+                .name("skelid-release".into())
+                .spawn(move || {
+                    let mut held = VecDeque::new();
+                    let mut held_bytes = 0;
+                    loop {
+                        let limit = match rx.recv_timeout(IDLE) {
+                            Ok(part) => {
+                                start_writeback(&part.file, part.offset, part.len);
+                                held_bytes += part.size;
+                                held.push_back(part);
+                                WINDOW_BYTES
+                            }
+                            // Nothing new for a while: the rest is on disk by now, and its
+                            // files (a deleted one's space included) are let go.
+                            Err(RecvTimeoutError::Timeout) => 0,
+                            Err(RecvTimeoutError::Disconnected) => break,
+                        };
+                        while held_bytes > limit || (limit == 0 && !held.is_empty()) {
+                            let Some(old) = held.pop_front() else { break };
+                            drop_clean(&old.file, old.offset, old.len);
+                            held_bytes -= old.size;
+                        }
+                    }
+                })
+                .ok()
+                .map(|_| Mutex::new(tx))
+        })
+        .as_ref()
+}
+
+/// Hands `part` to the releaser; without one (its thread could not start) nothing is
+/// released, which costs speed only.
+fn hand_over(part: Part) {
+    if let Some(queue) = releaser() {
+        let _ = queue.lock().unwrap_or_else(|e| e.into_inner()).send(part);
+    }
+}
+
+/// Hands over a file just written in full (a journal's run file) for release: it is
+/// started to disk, and its pages are dropped once some more data has followed.
+pub fn release_file(file: File, size: u64) {
+    hand_over(Part {
+        file: Arc::new(file),
+        offset: 0,
+        len: 0,
+        size,
     });
 }
 
+/// Writes `bytes` as the whole of a new file at `path` and hands it over for release.
+pub fn write_new_file(path: &std::path::Path, bytes: &[u8]) -> std::io::Result<()> {
+    let mut f = File::create(path)?;
+    std::io::Write::write_all(&mut f, bytes)?;
+    if releasing() {
+        release_file(f, bytes.len() as u64);
+    }
+    Ok(())
+}
+
 /// The extents of a growing file that will not be read or written again (results.h5's
-/// chunks), released in rounds: each round starts the last one's extents to disk and
-/// drops the pages of the round before, by then on disk.
+/// chunks), handed over for release a few megabytes at a time.
 pub struct Extents {
-    file: File,
-    started: Vec<(u64, u64)>,
+    file: Arc<File>,
     pending: Vec<(u64, u64)>,
     pending_bytes: u64,
 }
@@ -99,10 +167,12 @@ impl Extents {
     /// Follows the file at `path` (opened for reading: the calls need no more), or `None`
     /// where it cannot be opened.
     pub fn open(path: &std::path::Path) -> Option<Extents> {
-        let file = File::open(path).ok()?;
+        if !releasing() {
+            return None;
+        }
+        let file = Arc::new(File::open(path).ok()?);
         Some(Extents {
             file,
-            started: Vec::new(),
             pending: Vec::new(),
             pending_bytes: 0,
         })
@@ -121,24 +191,21 @@ impl Extents {
         }
         self.pending_bytes += len;
         if self.pending_bytes >= ROUND_BYTES {
-            self.round();
+            for (offset, len) in self.pending.drain(..) {
+                hand_over(Part {
+                    file: self.file.clone(),
+                    offset,
+                    len,
+                    size: len,
+                });
+            }
+            self.pending_bytes = 0;
         }
     }
 
-    fn round(&mut self) {
-        for &(o, l) in &self.started {
-            drop_clean(&self.file, o, l);
-        }
-        for &(o, l) in &self.pending {
-            start_writeback(&self.file, o, l);
-        }
-        self.started = std::mem::take(&mut self.pending);
-        self.pending_bytes = 0;
-    }
-
-    /// Extents noted and not yet dropped, as (offset, length).
-    pub fn held(&self) -> impl Iterator<Item = &(u64, u64)> {
-        self.started.iter().chain(&self.pending)
+    /// Extents noted and not yet handed over, as (offset, length).
+    pub fn pending(&self) -> &[(u64, u64)] {
+        &self.pending
     }
 }
 
@@ -148,9 +215,9 @@ mod tests {
     use std::io::Write;
 
     /// Extents that follow one another merge; a gap (metadata between two chunks) starts
-    /// a new one; a round hands the pending extents to `started` and drops the older ones.
+    /// a new one; a round's worth hands them all over.
     #[test]
-    fn extents_merge_when_adjacent_and_rotate_by_rounds() {
+    fn extents_merge_when_adjacent_and_go_by_rounds() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("f");
         std::fs::write(&path, vec![7u8; 1 << 16]).unwrap();
@@ -159,15 +226,12 @@ mod tests {
         e.wrote(100, 50);
         e.wrote(4096, 10);
         e.wrote(5000, 0);
-        assert_eq!(e.pending, vec![(0, 150), (4096, 10)]);
-        assert!(e.started.is_empty());
-        e.wrote(8192, ROUND_BYTES);
-        assert!(e.pending.is_empty());
-        assert_eq!(e.started, vec![(0, 150), (4096, 10), (8192, ROUND_BYTES)]);
-        e.wrote(1 << 30, ROUND_BYTES);
-        assert_eq!(e.started, vec![(1 << 30, ROUND_BYTES)]);
-        assert_eq!(e.held().count(), 1);
-        // The data are untouched by all of it.
+        assert_eq!(e.pending(), [(0, 150), (4096, 10)]);
+        e.wrote(4106, ROUND_BYTES);
+        assert!(e.pending().is_empty());
+        e.wrote(1 << 30, 10);
+        assert_eq!(e.pending(), [(1 << 30, 10)]);
+        // Nothing of it touches the data.
         assert_eq!(std::fs::read(&path).unwrap(), vec![7u8; 1 << 16]);
     }
 
@@ -228,22 +292,40 @@ mod tests {
         assert_eq!(std::fs::read(&path).unwrap(), vec![3u8; len]);
     }
 
-    /// Files handed over stay readable and whole; only the newest few stay open.
+    /// A file handed over is dropped from the page cache once more than the window has
+    /// followed it, and every file stays whole. On the build folder's file system, as above.
+    #[cfg(target_os = "linux")]
     #[test]
-    fn released_files_keep_their_contents() {
-        let dir = tempfile::tempdir().unwrap();
-        for i in 0..5u8 {
-            let path = dir.path().join(format!("{i}"));
-            let mut f = File::create(&path).unwrap();
-            f.write_all(&vec![i; 10_000]).unwrap();
-            release_file(f);
+    fn released_files_leave_the_cache_and_keep_their_contents() {
+        let dir = tempfile::tempdir_in(env!("CARGO_MANIFEST_DIR")).unwrap();
+        let write = |name: &str, byte: u8, len: usize| {
+            let mut f = File::create(dir.path().join(name)).unwrap();
+            f.write_all(&vec![byte; len]).unwrap();
+            f
+        };
+        // Already on disk, so that the drop cannot meet it under writeback.
+        let first = write("first", 1, 1 << 20);
+        first.sync_all().unwrap();
+        let probe = File::open(dir.path().join("first")).unwrap();
+        assert_eq!(resident_pages(&probe, 1 << 20), 256);
+        release_file(first, 1 << 20);
+        let more = WINDOW_BYTES as usize / (4 << 20) + 1;
+        for i in 0..more {
+            let f = write(&format!("more{i}"), 2, 4 << 20);
+            release_file(f, 4 << 20);
         }
-        RECENT.with(|r| assert_eq!(r.borrow().len(), FILES_KEPT));
-        for i in 0..5u8 {
-            assert_eq!(
-                std::fs::read(dir.path().join(format!("{i}"))).unwrap(),
-                vec![i; 10_000]
-            );
+        let t0 = std::time::Instant::now();
+        while resident_pages(&probe, 1 << 20) > 0 && t0.elapsed().as_secs() < 10 {
+            std::thread::sleep(std::time::Duration::from_millis(10));
+        }
+        assert_eq!(resident_pages(&probe, 1 << 20), 0);
+        assert_eq!(
+            std::fs::read(dir.path().join("first")).unwrap(),
+            vec![1u8; 1 << 20]
+        );
+        for i in 0..more {
+            let back = std::fs::read(dir.path().join(format!("more{i}"))).unwrap();
+            assert!(back.len() == 4 << 20 && back.iter().all(|&b| b == 2));
         }
     }
 }

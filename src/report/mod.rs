@@ -167,34 +167,29 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
 }
 
 /// [`write_atomic`] for a file that will not be read again soon (a journal's run file):
-/// its page-cache pages are handed back once it is on disk ([`crate::pagecache`]).
-pub fn write_atomic_released(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
+/// written around the page cache where the file system allows ([`crate::pagecache`]).
+pub fn write_atomic_uncached(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
     write_atomic_inner(path, bytes, true)
 }
 
-fn write_atomic_inner(path: &Path, bytes: &[u8], release: bool) -> Result<(), ReportError> {
+fn write_atomic_inner(path: &Path, bytes: &[u8], uncached: bool) -> Result<(), ReportError> {
     let err = |detail: String| ReportError {
         file: path.display().to_string(),
         detail,
     };
     let tmp = tmp_path(path);
-    let done = std::fs::File::create(&tmp).and_then(|mut f| {
-        std::io::Write::write_all(&mut f, bytes)?;
-        std::fs::rename(&tmp, path)?;
-        Ok(f)
-    });
-    match done {
-        Ok(f) => {
-            if release {
-                crate::pagecache::release_file(f);
-            }
-            Ok(())
-        }
-        Err(e) => {
-            let _ = std::fs::remove_file(&tmp);
-            Err(err(e.to_string()))
-        }
+    let written = if uncached {
+        crate::pagecache::write_new_file(&tmp, bytes)
+    } else {
+        std::fs::write(&tmp, bytes)
+    };
+    let done = written
+        .and_then(|()| std::fs::rename(&tmp, path))
+        .map_err(|e| err(e.to_string()));
+    if done.is_err() {
+        let _ = std::fs::remove_file(&tmp);
     }
+    done
 }
 
 #[cfg(test)]

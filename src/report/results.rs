@@ -612,7 +612,7 @@ mod tests {
         }
         let extents: Vec<(u64, u64)> = {
             let held = w.extents.lock().unwrap();
-            held.as_ref().unwrap().held().copied().collect()
+            held.as_ref().unwrap().pending().to_vec()
         };
         // Consecutive chunks were merged, and the datasets' headers sit between runs.
         assert!(extents.len() > 1 && extents.len() < 27, "{extents:?}");
