@@ -167,7 +167,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
 }
 
 /// [`write_atomic`] for a file that will not be read again soon (a journal's run file):
-/// written around the page cache where the file system allows ([`crate::pagecache`]).
+/// its pages are released from the page cache once on disk ([`crate::pagecache`]).
 pub fn write_atomic_uncached(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
     write_atomic_inner(path, bytes, true)
 }
