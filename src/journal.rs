@@ -311,7 +311,7 @@ impl Journal {
             summary: serde_json::to_string(&run.rows).map_err(|e| err(e.to_string()))?,
         };
         let bytes = encode(&head, &run.encoded).map_err(err)?;
-        crate::report::write_atomic_uncached(&f, &bytes)?;
+        crate::report::write_atomic_released(&f, &bytes)?;
         let entry = Entry {
             key: key.to_string(),
             path: run.path.clone(),

@@ -168,17 +168,17 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
 
 /// [`write_atomic`] for a file that will not be read again soon (a journal's run file):
 /// its pages are released from the page cache once on disk ([`crate::pagecache`]).
-pub fn write_atomic_uncached(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
+pub fn write_atomic_released(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
     write_atomic_inner(path, bytes, true)
 }
 
-fn write_atomic_inner(path: &Path, bytes: &[u8], uncached: bool) -> Result<(), ReportError> {
+fn write_atomic_inner(path: &Path, bytes: &[u8], release: bool) -> Result<(), ReportError> {
     let err = |detail: String| ReportError {
         file: path.display().to_string(),
         detail,
     };
     let tmp = tmp_path(path);
-    let written = if uncached {
+    let written = if release {
         crate::pagecache::write_new_file(&tmp, bytes)
     } else {
         std::fs::write(&tmp, bytes)
