@@ -36,44 +36,48 @@ const IDLE: std::time::Duration = std::time::Duration::from_secs(1);
 /// Bytes of a growing file noted by [`Extents`] before they are handed over together.
 const ROUND_BYTES: u64 = 4 << 20;
 
-/// Starts writing the dirty pages of `len` bytes at `offset` (0: to the end) to disk,
-/// without waiting for them.
-#[cfg(target_os = "linux")]
-fn start_writeback(file: &File, offset: u64, len: u64) {
-    use std::os::fd::AsRawFd;
-    // SAFETY: a plain system call on an open descriptor; a failure (a file system without
-    // writeback, e.g. tmpfs) only means nothing is started.
-    unsafe {
-        libc::sync_file_range(
-            file.as_raw_fd(),
-            offset as libc::off64_t,
-            len as libc::off64_t,
-            libc::SYNC_FILE_RANGE_WRITE,
-        );
-    }
+/// What the kernel is asked to do with a range of a file's cached pages.
+#[derive(Clone, Copy)]
+enum Hint {
+    /// Start writing its dirty pages to disk, without waiting for them
+    /// (`sync_file_range(WRITE)`).
+    StartWriteback,
+    /// Drop its clean pages (`posix_fadvise(DONTNEED)`, which keeps every page that is
+    /// dirty, under writeback, or only partly inside the range).
+    DropClean,
 }
 
-/// Drops the clean cached pages wholly inside `len` bytes at `offset` (0: to the end).
+/// Gives the kernel `hint` for `len` bytes at `offset` (0: to the end). Only a hint: a
+/// failure (a file system without writeback, e.g. tmpfs, or a range beyond what `off_t`
+/// holds on a 32-bit target) means nothing is done, and correctness never depends on it.
 #[cfg(target_os = "linux")]
-fn drop_clean(file: &File, offset: u64, len: u64) {
+fn give(file: &File, offset: u64, len: u64, hint: Hint) {
     use std::os::fd::AsRawFd;
-    // SAFETY: as above; the kernel keeps every page that is dirty, under writeback, or
-    // only partly inside the range.
-    unsafe {
-        libc::posix_fadvise(
-            file.as_raw_fd(),
-            offset as libc::off_t,
-            len as libc::off_t,
-            libc::POSIX_FADV_DONTNEED,
-        );
+    let fd = file.as_raw_fd();
+    match hint {
+        Hint::StartWriteback => {
+            let (Ok(offset), Ok(len)) = (
+                libc::off64_t::try_from(offset),
+                libc::off64_t::try_from(len),
+            ) else {
+                return;
+            };
+            // SAFETY: a plain system call on an open descriptor.
+            unsafe { libc::sync_file_range(fd, offset, len, libc::SYNC_FILE_RANGE_WRITE) };
+        }
+        Hint::DropClean => {
+            let (Ok(offset), Ok(len)) = (libc::off_t::try_from(offset), libc::off_t::try_from(len))
+            else {
+                return;
+            };
+            // SAFETY: as above.
+            unsafe { libc::posix_fadvise(fd, offset, len, libc::POSIX_FADV_DONTNEED) };
+        }
     }
 }
 
 #[cfg(not(target_os = "linux"))]
-fn start_writeback(_file: &File, _offset: u64, _len: u64) {}
-
-#[cfg(not(target_os = "linux"))]
-fn drop_clean(_file: &File, _offset: u64, _len: u64) {}
+fn give(_file: &File, _offset: u64, _len: u64, _hint: Hint) {}
 
 /// Whether written data is released at all: not with `SKELID_PAGECACHE=keep` in the
 /// environment, which leaves it in the page cache as before (for side-by-side timings).
@@ -94,6 +98,40 @@ struct Part {
     size: u64,
 }
 
+/// The parts the releaser holds, oldest first: each was started to disk when it came, and
+/// leaves once [`WINDOW_BYTES`] more have followed it (by then it is most likely on disk,
+/// and its pages can be dropped), or once more than [`WINDOW_PARTS`] are held.
+#[derive(Default)]
+struct Window {
+    held: VecDeque<Part>,
+    /// Bytes of the parts held.
+    bytes: u64,
+}
+
+impl Window {
+    /// Takes `part` in and returns the oldest parts that have left the window.
+    fn push(&mut self, part: Part) -> Vec<Part> {
+        self.bytes += part.size;
+        self.held.push_back(part);
+        let mut gone = Vec::new();
+        while let Some(oldest) = self.held.front() {
+            let after = self.bytes - oldest.size;
+            if after < WINDOW_BYTES && self.held.len() <= WINDOW_PARTS {
+                break;
+            }
+            self.bytes = after;
+            gone.extend(self.held.pop_front());
+        }
+        gone
+    }
+
+    /// Lets go of every part held.
+    fn drain(&mut self) -> Vec<Part> {
+        self.bytes = 0;
+        self.held.drain(..).collect()
+    }
+}
+
 /// The releaser's queue: one thread for the process, started by the first hand-over, that
 /// does the system calls so that the threads that write (the batch's workers and its one
 /// writer) neither spend their time on them nor wait in them.
@@ -105,29 +143,21 @@ fn releaser() -> Option<&'static Mutex<Sender<Part>>> {
             std::thread::Builder::new()
                 .name("skelid-release".into())
                 .spawn(move || {
-                    let mut held = VecDeque::new();
-                    let mut held_bytes = 0;
+                    let mut window = Window::default();
                     loop {
-                        let limit = match rx.recv_timeout(IDLE) {
+                        let gone = match rx.recv_timeout(IDLE) {
                             Ok(part) => {
-                                start_writeback(&part.file, part.offset, part.len);
-                                held_bytes += part.size;
-                                held.push_back(part);
-                                WINDOW_BYTES
+                                give(&part.file, part.offset, part.len, Hint::StartWriteback);
+                                window.push(part)
                             }
                             // Nothing new for a while: what is on disk by now is dropped
                             // (pages still under writeback are simply kept), and the files
                             // (a deleted one's space included) are let go.
-                            Err(RecvTimeoutError::Timeout) => 0,
+                            Err(RecvTimeoutError::Timeout) => window.drain(),
                             Err(RecvTimeoutError::Disconnected) => break,
                         };
-                        while held_bytes > limit
-                            || held.len() > WINDOW_PARTS
-                            || (limit == 0 && !held.is_empty())
-                        {
-                            let Some(old) = held.pop_front() else { break };
-                            drop_clean(&old.file, old.offset, old.len);
-                            held_bytes -= old.size;
+                        for old in gone {
+                            give(&old.file, old.offset, old.len, Hint::DropClean);
                         }
                     }
                 })
@@ -207,16 +237,21 @@ impl Extents {
         }
         self.pending_bytes += len;
         if self.pending_bytes >= ROUND_BYTES {
-            for (offset, len) in self.pending.drain(..) {
-                hand_over(Part {
-                    file: self.file.clone(),
-                    offset,
-                    len,
-                    size: len,
-                });
-            }
-            self.pending_bytes = 0;
+            self.hand_over_pending();
         }
+    }
+
+    /// Hands every extent noted so far over to the releaser.
+    fn hand_over_pending(&mut self) {
+        for (offset, len) in self.pending.drain(..) {
+            hand_over(Part {
+                file: self.file.clone(),
+                offset,
+                len,
+                size: len,
+            });
+        }
+        self.pending_bytes = 0;
     }
 
     /// Extents noted and not yet handed over, as (offset, length).
@@ -224,6 +259,45 @@ impl Extents {
     pub(crate) fn pending(&self) -> &[(u64, u64)] {
         &self.pending
     }
+}
+
+impl Drop for Extents {
+    /// The last round, shorter than [`ROUND_BYTES`], goes too: the file is finished (or
+    /// abandoned) when its writer lets go of this.
+    fn drop(&mut self) {
+        self.hand_over_pending();
+    }
+}
+
+/// Which of the 4 KiB pages of the first `len` bytes of `file` are in the page cache
+/// (`mincore` over a mapping): for the tests of what is released.
+#[cfg(all(test, target_os = "linux"))]
+pub(crate) fn resident(file: &File, len: usize) -> Vec<bool> {
+    use std::os::fd::AsRawFd;
+    let mut vec = vec![0u8; len.div_ceil(4096)];
+    // SAFETY: a read-only shared mapping of an open file, unmapped before returning; `vec`
+    // has one byte per page of it.
+    unsafe {
+        let p = libc::mmap(
+            std::ptr::null_mut(),
+            len,
+            libc::PROT_READ,
+            libc::MAP_SHARED,
+            file.as_raw_fd(),
+            0,
+        );
+        assert_ne!(p, libc::MAP_FAILED);
+        assert_eq!(libc::mincore(p, len, vec.as_mut_ptr()), 0);
+        libc::munmap(p, len);
+    }
+    vec.iter().map(|&b| b & 1 == 1).collect()
+}
+
+/// The size of a page of memory, which the page counts of the tests assume is 4 KiB.
+#[cfg(all(test, target_os = "linux"))]
+pub(crate) fn page_size() -> usize {
+    // SAFETY: a query without side effects.
+    unsafe { libc::sysconf(libc::_SC_PAGESIZE) as usize }
 }
 
 #[cfg(test)]
@@ -252,35 +326,54 @@ mod tests {
         assert_eq!(std::fs::read(&path).unwrap(), vec![7u8; 1 << 16]);
     }
 
-    #[cfg(target_os = "linux")]
-    fn page_size() -> usize {
-        // SAFETY: a query without side effects.
-        unsafe { libc::sysconf(libc::_SC_PAGESIZE) as usize }
+    /// A part leaves the window when the bytes that followed it reach [`WINDOW_BYTES`], not
+    /// before; or, whatever their size, when more than [`WINDOW_PARTS`] are held; and all
+    /// leave when the releaser goes idle.
+    #[test]
+    fn parts_leave_the_window_once_enough_has_followed() {
+        let file = Arc::new(tempfile::tempfile().unwrap());
+        let part = |offset: u64, size: u64| Part {
+            file: file.clone(),
+            offset,
+            len: size,
+            size,
+        };
+        let offsets = |parts: Vec<Part>| parts.iter().map(|p| p.offset).collect::<Vec<_>>();
+        let mut w = Window::default();
+        let quarter = WINDOW_BYTES / 4;
+        assert!(w.push(part(0, 1 << 20)).is_empty());
+        for i in 1..4 {
+            assert!(w.push(part(i, quarter)).is_empty(), "part {i}");
+        }
+        // Three quarters followed the first part: it stays; the fourth makes the window.
+        assert_eq!(offsets(w.push(part(4, quarter))), [0]);
+        // One part larger than the window pushes out all before it, and stays itself.
+        assert_eq!(offsets(w.push(part(5, WINDOW_BYTES + 1))), [1, 2, 3, 4]);
+        assert_eq!(offsets(w.push(part(6, 1))), [] as [u64; 0]);
+        assert_eq!(offsets(w.drain()), [5, 6]);
+        assert_eq!(w.bytes, 0);
+        // Tiny parts: by count.
+        for i in 0..WINDOW_PARTS as u64 {
+            assert!(w.push(part(i, 1)).is_empty());
+        }
+        assert_eq!(offsets(w.push(part(999, 1))), [0]);
+        assert_eq!(w.held.len(), WINDOW_PARTS);
     }
 
-    /// How many of the file's pages are in the page cache (`mincore` over a mapping).
+    /// Whether pages are 4 KiB, as the counts assume; if not, says the test is skipped.
+    #[cfg(target_os = "linux")]
+    fn four_kib_pages() -> bool {
+        let four = page_size() == 4096;
+        if !four {
+            eprintln!("skipped: the counts assume 4 KiB pages");
+        }
+        four
+    }
+
+    /// How many of the file's pages are in the page cache.
     #[cfg(target_os = "linux")]
     fn resident_pages(file: &File, len: usize) -> usize {
-        use std::os::fd::AsRawFd;
-        let page = 4096;
-        let pages = len.div_ceil(page);
-        let mut vec = vec![0u8; pages];
-        // SAFETY: a read-only shared mapping of an open file, unmapped before returning;
-        // `vec` has one byte per page of it.
-        unsafe {
-            let p = libc::mmap(
-                std::ptr::null_mut(),
-                len,
-                libc::PROT_READ,
-                libc::MAP_SHARED,
-                file.as_raw_fd(),
-                0,
-            );
-            assert_ne!(p, libc::MAP_FAILED);
-            assert_eq!(libc::mincore(p, len, vec.as_mut_ptr()), 0);
-            libc::munmap(p, len);
-        }
-        vec.iter().filter(|&&b| b & 1 == 1).count()
+        resident(file, len).into_iter().filter(|&r| r).count()
     }
 
     /// The pages of data on disk are dropped, those of a part-covered page kept: the
@@ -289,8 +382,7 @@ mod tests {
     #[cfg(target_os = "linux")]
     #[test]
     fn clean_pages_are_dropped_and_part_covered_ones_kept() {
-        if page_size() != 4096 {
-            eprintln!("skipped: the counts assume 4 KiB pages");
+        if !four_kib_pages() {
             return;
         }
         let dir = tempfile::tempdir_in(env!("CARGO_MANIFEST_DIR")).unwrap();
@@ -312,21 +404,21 @@ mod tests {
         f.sync_all().unwrap();
         assert_eq!(resident_pages(&f, len), 64);
         // Bytes 12 289..40 961: pages 4 to 9 wholly inside, 3 and 10 only partly.
-        drop_clean(&f, 3 * 4096 + 1, 7 * 4096);
+        give(&f, 3 * 4096 + 1, 7 * 4096, Hint::DropClean);
         assert_eq!(resident_pages(&f, len), 64 - 6);
-        drop_clean(&f, 0, 0);
+        give(&f, 0, 0, Hint::DropClean);
         assert_eq!(resident_pages(&f, len), 0);
         assert_eq!(std::fs::read(&path).unwrap(), vec![3u8; len]);
     }
 
     /// A file handed over is dropped from the page cache once more than the window has
     /// followed it (or the releaser has gone idle), and every file stays whole. Polled
-    /// every 50 ms: `mincore` holds a page for an instant, and a drop meeting it keeps it. On the source tree's file system, as above.
+    /// every 50 ms: `mincore` holds a page for an instant, and a drop meeting it keeps it.
+    /// On the source tree's file system, as above.
     #[cfg(target_os = "linux")]
     #[test]
     fn released_files_leave_the_cache_and_keep_their_contents() {
-        if page_size() != 4096 {
-            eprintln!("skipped: the counts assume 4 KiB pages");
+        if !four_kib_pages() {
             return;
         }
         let dir = tempfile::tempdir_in(env!("CARGO_MANIFEST_DIR")).unwrap();
