@@ -24,7 +24,9 @@
 #     flushes?) against the default, back to back, with each backend's page faults and
 #     system time a repetition (the kernel share);
 #   - `skelid run` end to end, both methods, on each backend (traced on the GPU), with
-#     its log's timeline and how busy its one writer thread was.
+#     its log's timeline and how busy its one writer thread was;
+#   - an experiment: `run` on the CPU backend with written data released from the page
+#     cache (the default) against SKELID_PAGECACHE=keep, alternating.
 set -u
 N=${N:-1000}; OUT=${OUT:-/tmp/skelid-measure}; mkdir -p "$OUT"
 exec > >(tee "$OUT/log.txt") 2>&1
@@ -108,5 +110,18 @@ for cfg in cpu gpu; do
   # Where the batch's wall time went: first and last run done, the end, the one writer's load.
   awk '/ start: /{t0=$1; n=0} / done /{if(!n)f=$1; l=$1; n++} / end: /{printf "log: first run done %.2f s, last %.2f s, end %.2f s\n", f-t0, l-t0, $1-t0}' "$W/out/skelid.log" | tail -1
   grep "the writer" "$W/out/skelid.log" | tail -1 | cut -d' ' -f2-
+done
+# The writer bounds `run` on 16 cores, and a fresh machine's untouched memory made its copies
+# into the page cache cost a host fault a page (2-core machine: 1.05 s of system time for
+# 400 MB). The release of written data (src/pagecache.rs) against SKELID_PAGECACHE=keep,
+# alternating, on the CPU backend: wall time, the writer's busy time and the system time.
+echo "== experiment: the page-cache release, SKELID_PAGECACHE=keep and the default, CPU backend" \
+  "($W on $(df -T "$W" | awk 'NR==2{print $2}'): on tmpfs there is nothing to release)"
+for pc in keep default keep default; do
+  s=$(now)
+  SKELID_PAGECACHE=$pc timeout 60 /usr/bin/time -f "user %U s, sys %S s" "$B" run "$W/campaign" \
+    --out "$W/out-pc" --force --method both --backend cpu --quiet > "$OUT/run-pagecache-$pc.log" 2>&1
+  echo "SKELID_PAGECACHE=$pc: rc=$? wall $(since "$s") s; $(tail -1 "$OUT/run-pagecache-$pc.log");" \
+    "$(grep -o 'busy [0-9.]* s of the [0-9.]* s' "$W/out-pc/skelid.log" | tail -1)"
 done
 echo "== total $(since "$T0") s"
