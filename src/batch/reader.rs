@@ -342,6 +342,12 @@ pub fn serve(
     }
 }
 
+/// Bytes buffered on each side of the reading child's pipe. Small on purpose: a frame's
+/// header goes through the buffer, but a run's samples (hundreds of kilobytes) are longer,
+/// so the buffers pass them straight between the pipe and the values instead of copying
+/// them once more on each side, as a 1 MB buffer did.
+const FRAME_BUFFER: usize = 64 << 10;
+
 /// The child's main: archive paths from standard input, frames to standard output.
 pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Result<()> {
     let files: Vec<PathBuf> = std::io::stdin()
@@ -352,7 +358,7 @@ pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Re
         .filter(|l| !l.is_empty())
         .map(PathBuf::from)
         .collect();
-    let mut out = std::io::BufWriter::with_capacity(1 << 20, std::io::stdout().lock());
+    let mut out = std::io::BufWriter::with_capacity(FRAME_BUFFER, std::io::stdout().lock());
     let mut failure = None;
     serve(&files, options, shard, &mut |frame, samples| {
         match write_frame(&mut out, &frame, samples.as_ref()) {
@@ -478,7 +484,7 @@ fn read_in_child(
     };
     let mut stdin = child.stdin.take().expect("piped stdin");
     let mut stdout =
-        std::io::BufReader::with_capacity(1 << 20, child.stdout.take().expect("piped"));
+        std::io::BufReader::with_capacity(FRAME_BUFFER, child.stdout.take().expect("piped"));
     let mut stderr = child.stderr.take().expect("piped stderr");
     let list: String = files.iter().map(|f| format!("{}\n", f.display())).collect();
     // The child reads its whole list before it writes anything, so this cannot deadlock.
