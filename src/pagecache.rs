@@ -293,11 +293,36 @@ pub(crate) fn resident(file: &File, len: usize) -> Vec<bool> {
     vec.iter().map(|&b| b & 1 == 1).collect()
 }
 
-/// The size of a page of memory, which the page counts of the tests assume is 4 KiB.
+/// A temporary folder on the source tree's file system (tmpfs, which may hold /tmp, has no
+/// disk to drop pages to), for the tests of what is released; `None`, with a note that the
+/// test is skipped, where pages are not the 4 KiB their counts assume.
 #[cfg(all(test, target_os = "linux"))]
-pub(crate) fn page_size() -> usize {
+pub(crate) fn disk_tempdir() -> Option<tempfile::TempDir> {
     // SAFETY: a query without side effects.
-    unsafe { libc::sysconf(libc::_SC_PAGESIZE) as usize }
+    if unsafe { libc::sysconf(libc::_SC_PAGESIZE) } != 4096 {
+        eprintln!("skipped: the page counts assume 4 KiB pages");
+        return None;
+    }
+    Some(tempfile::tempdir_in(env!("CARGO_MANIFEST_DIR")).unwrap())
+}
+
+/// Waits (up to 10 s, looking every 50 ms) until at most `at_most` of the pages `pages`
+/// of `file` are in the page cache, and returns how many are. Polled: `mincore` holds a
+/// page for an instant, and a drop that meets it keeps it.
+#[cfg(all(test, target_os = "linux"))]
+pub(crate) fn cached_after_release(file: &File, pages: &[usize], at_most: usize) -> usize {
+    let len = file.metadata().unwrap().len() as usize;
+    let cached = || {
+        let map = resident(file, len);
+        pages.iter().filter(|&&p| map[p]).count()
+    };
+    let t0 = std::time::Instant::now();
+    while cached() > at_most && t0.elapsed().as_secs() < 10 {
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let n = cached();
+    eprintln!("{n} of {} pages still cached", pages.len());
+    n
 }
 
 #[cfg(test)]
@@ -360,16 +385,6 @@ mod tests {
         assert_eq!(w.held.len(), WINDOW_PARTS);
     }
 
-    /// Whether pages are 4 KiB, as the counts assume; if not, says the test is skipped.
-    #[cfg(target_os = "linux")]
-    fn four_kib_pages() -> bool {
-        let four = page_size() == 4096;
-        if !four {
-            eprintln!("skipped: the counts assume 4 KiB pages");
-        }
-        four
-    }
-
     /// How many of the file's pages are in the page cache.
     #[cfg(target_os = "linux")]
     fn resident_pages(file: &File, len: usize) -> usize {
@@ -377,15 +392,11 @@ mod tests {
     }
 
     /// The pages of data on disk are dropped, those of a part-covered page kept: the
-    /// point of the module, checked on the file system of the source tree (tmpfs, which
-    /// may hold /tmp, has no disk to drop pages to).
+    /// point of the module, checked on the file system of the source tree.
     #[cfg(target_os = "linux")]
     #[test]
     fn clean_pages_are_dropped_and_part_covered_ones_kept() {
-        if !four_kib_pages() {
-            return;
-        }
-        let dir = tempfile::tempdir_in(env!("CARGO_MANIFEST_DIR")).unwrap();
+        let Some(dir) = disk_tempdir() else { return };
         let path = dir.path().join("f");
         let len = 64 * 4096;
         // Readable too: the check maps it.
@@ -412,16 +423,12 @@ mod tests {
     }
 
     /// A file handed over is dropped from the page cache once more than the window has
-    /// followed it (or the releaser has gone idle), and every file stays whole. Polled
-    /// every 50 ms: `mincore` holds a page for an instant, and a drop meeting it keeps it.
-    /// On the source tree's file system, as above.
+    /// followed it (or the releaser has gone idle), and every file stays whole. On the
+    /// source tree's file system, as above.
     #[cfg(target_os = "linux")]
     #[test]
     fn released_files_leave_the_cache_and_keep_their_contents() {
-        if !four_kib_pages() {
-            return;
-        }
-        let dir = tempfile::tempdir_in(env!("CARGO_MANIFEST_DIR")).unwrap();
+        let Some(dir) = disk_tempdir() else { return };
         let write = |name: &str, byte: u8, len: usize| {
             let mut f = File::create(dir.path().join(name)).unwrap();
             f.write_all(&vec![byte; len]).unwrap();
@@ -438,11 +445,8 @@ mod tests {
             let f = write(&format!("more{i}"), 2, 4 << 20);
             release_file(f, 4 << 20);
         }
-        let t0 = std::time::Instant::now();
-        while resident_pages(&probe, 1 << 20) > 0 && t0.elapsed().as_secs() < 10 {
-            std::thread::sleep(std::time::Duration::from_millis(50));
-        }
-        assert_eq!(resident_pages(&probe, 1 << 20), 0);
+        let every: Vec<usize> = (0..256).collect();
+        assert_eq!(cached_after_release(&probe, &every, 0), 0);
         assert_eq!(
             std::fs::read(dir.path().join("first")).unwrap(),
             vec![1u8; 1 << 20]
