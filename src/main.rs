@@ -12,6 +12,7 @@ use skelid::ingest::FindError;
 
 fn main() -> ExitCode {
     skelid::hint::set_namer(cli::hints::flag);
+    skelid::gpu::quiet_headless_vulkan();
     if let Some(note) = skelid::backend::keep_freed_memory() {
         eprintln!("note: {note}");
     }

@@ -755,6 +755,38 @@ fn backend_gpu_without_an_adapter_is_an_error_and_auto_falls_back() {
     assert!(String::from_utf8_lossy(&auto.stdout).contains("backend cpu"));
 }
 
+/// A GPU command where no display session exists (cron, `ssh`, a scheduler's slot) prints
+/// nothing from the graphics libraries: Mesa's device-selection layer, which asks Wayland
+/// and printed "error: XDG_RUNTIME_DIR is invalid or not set" twice, is turned off there.
+#[test]
+fn a_gpu_command_without_a_display_session_prints_no_graphics_errors() {
+    let d = tmpdir();
+    let o = skelid()
+        .args(["track"])
+        .arg(demo_archive())
+        .args([
+            "--dataset",
+            "/demo/linear",
+            "--backend",
+            "gpu",
+            "--scales",
+            "16",
+        ])
+        .arg("--out")
+        .arg(d.path().join("track.csv"))
+        .env_remove("XDG_RUNTIME_DIR")
+        .env_remove("NODEVICE_SELECT")
+        .env_remove("MESA_VK_DEVICE_SELECT")
+        .env_remove("DRI_PRIME")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    println!("{err}");
+    assert!(o.status.success(), "{err}");
+    assert!(String::from_utf8_lossy(&o.stdout).contains("backend gpu"));
+    assert!(!err.contains("XDG_RUNTIME_DIR"), "{err}");
+}
+
 #[test]
 fn a_device_lost_mid_batch_falls_back_to_the_cpu_and_records_it() {
     let d = tmpdir();

@@ -49,6 +49,35 @@ pub enum GpuError {
     Unsupported(String),
 }
 
+/// Turns off Mesa's Vulkan device-selection layer for this process when no display
+/// session could be asked; call at the start of `main`, before any thread exists.
+///
+/// The layer (`VK_LAYER_MESA_device_select`, installed with Mesa's Vulkan drivers) puts
+/// the GPU that drives the display first by asking Wayland and X11. Without
+/// `XDG_RUNTIME_DIR` (a cron job, an `ssh` session, a scheduler's batch slot) libwayland
+/// prints "error: XDG_RUNTIME_DIR is invalid or not set in the environment." twice on
+/// every `--backend gpu` command, a line that reads like a failure in an overnight log,
+/// and the layer then falls back to the boot VGA device, an order that wgpu's own choice
+/// (the most powerful adapter) overrides anyway. Left alone when the user steers the layer
+/// (`MESA_VK_DEVICE_SELECT`, `DRI_PRIME`) or has set `NODEVICE_SELECT` either way.
+pub fn quiet_headless_vulkan() {
+    if cfg!(target_os = "linux") && headless(|k| std::env::var_os(k).is_some()) {
+        std::env::set_var(NO_DEVICE_SELECT_ENV, "1");
+    }
+}
+
+/// Mesa's switch for its device-selection layer (the layer's manifest names it).
+const NO_DEVICE_SELECT_ENV: &str = "NODEVICE_SELECT";
+
+/// Whether no display session can be asked and nobody steers the selection layer, given
+/// which environment variables are set.
+fn headless(is_set: impl Fn(&str) -> bool) -> bool {
+    !is_set("XDG_RUNTIME_DIR")
+        && ![NO_DEVICE_SELECT_ENV, "MESA_VK_DEVICE_SELECT", "DRI_PRIME"]
+            .iter()
+            .any(|k| is_set(k))
+}
+
 /// An adapter's name, kind and graphics backend, as the user reads it.
 fn describe(info: &wgpu::AdapterInfo) -> String {
     format!("{} ({:?}, {:?})", info.name, info.device_type, info.backend)
@@ -1011,7 +1040,18 @@ pub fn grid(groups: u64, max: u32) -> Result<[u32; 3], GpuError> {
 
 #[cfg(test)]
 mod tests {
-    use super::grid;
+    use super::{grid, headless};
+
+    #[test]
+    fn the_selection_layer_is_turned_off_only_without_a_session_and_unsteered() {
+        let with = |set: &[&str]| headless(|k| set.contains(&k));
+        assert!(with(&[]));
+        assert!(with(&["DISPLAY", "HOME"]));
+        assert!(!with(&["XDG_RUNTIME_DIR"]));
+        for steer in ["NODEVICE_SELECT", "MESA_VK_DEVICE_SELECT", "DRI_PRIME"] {
+            assert!(!with(&[steer]), "{steer}");
+        }
+    }
 
     #[test]
     fn the_grid_covers_every_workgroup_within_the_limit() {
