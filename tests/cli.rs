@@ -943,6 +943,9 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
         (Some("cpu"), Some("gpu"))
     );
     assert!(b[1]["adapter"].as_str().is_some_and(|a| !a.is_empty()));
+    // A software adapter's speed-up comes with the reason it says nothing of a GPU's.
+    let software = b[1]["adapter"].as_str().unwrap().contains("(Cpu, ");
+    assert_eq!(text.contains("(a software adapter:"), software, "{text}");
     assert_eq!(b[1]["fallbacks"], 0);
     assert!(v["gpu_speedup"].as_f64().unwrap() > 0.0);
     // The agreement: envelope ≤ 1e-4 relative, frequency ≤ 1e-3 Hz.

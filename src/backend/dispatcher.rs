@@ -80,6 +80,8 @@ impl Request {
 /// The GPU's dispatcher thread, which owns the device, and the queue to it.
 pub(super) struct GpuService {
     pub(super) adapter: String,
+    /// Whether the adapter is a software one (lavapipe), running on the host's own cores.
+    pub(super) software: bool,
     /// Device memory (bytes, as [`batch_bytes`] counts it) one submission may take: half the
     /// adapter's largest binding times [`SUBMISSION_PARTS`]. Batches are sized to it.
     pub(super) submission_budget: u64,
@@ -129,7 +131,12 @@ impl GpuService {
                     Ok((gpu, stages)) => {
                         let budget = gpu.max_binding() / 2 * SUBMISSION_PARTS;
                         let notes = stages.first.notes();
-                        let _ = ready_tx.send(Ok((gpu.adapter_name(), budget, notes)));
+                        let _ = ready_tx.send(Ok((
+                            gpu.adapter_name(),
+                            gpu.is_software(),
+                            budget,
+                            notes,
+                        )));
                         dispatch(&gpu, &stages, rx, fail_after, &counted);
                     }
                     Err(e) => {
@@ -145,7 +152,7 @@ impl GpuService {
             .recv()
             .map_err(|_| GpuError::Lost("the GPU thread ended while opening the device".into()))
             .and_then(|r| r);
-        let (adapter, submission_budget, notes) = match ready {
+        let (adapter, software, submission_budget, notes) = match ready {
             Ok(a) => a,
             Err(e) => {
                 let _ = thread.join();
@@ -154,6 +161,7 @@ impl GpuService {
         };
         Ok(GpuService {
             adapter,
+            software,
             submission_budget,
             notes,
             stats,

@@ -303,6 +303,12 @@ impl Backend {
         self.gpu.as_ref().map(|g| g.adapter.as_str())
     }
 
+    /// Whether the open GPU adapter is a software one (Mesa's lavapipe), which runs its
+    /// invocations on the host's own cores: it shows the GPU code correct, never fast.
+    pub fn is_software_gpu(&self) -> bool {
+        self.gpu.as_ref().is_some_and(|g| g.software)
+    }
+
     /// Signals the GPU has done and the batches they took (two submissions each: first
     /// pass, refinement), when a GPU is open.
     pub fn gpu_work(&self) -> Option<(usize, usize)> {

@@ -89,6 +89,13 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
     }
     if let Some(r) = result.gpu_speedup {
         println!("\nGPU speed-up over the CPU (median time ratio): {r:.2}x");
+        if opened.iter().any(|(_, b)| b.is_software_gpu()) {
+            println!(
+                "(a software adapter: it runs the shaders on these same CPU cores, so it shows \
+                 the GPU code correct, not fast; run this on a machine with a hardware GPU \
+                 and its Vulkan driver for the speed-up)"
+            );
+        }
     }
     if let Some(g) = &result.agreement {
         println!(
