@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 
 use crate::identify::IdentifyOptions;
 use crate::report::encoded::EncodedRun;
-use crate::report::{encode_run, summary_rows, ReportError, ResultsWriter, RunOutcome, SummaryRow};
+use crate::report::{encode_run, summary_rows, ReportError, ResultsFile, RunOutcome, SummaryRow};
 use crate::run::Run;
 use crate::track::Method;
 
@@ -260,6 +260,16 @@ impl Journal {
         }
     }
 
+    /// Whether the journal holds any run committed by a version before the `.run` files
+    /// (a `<key>.h5`): such runs are copied with libhdf5 ([`crate::report::ResultsFile`]).
+    pub fn has_legacy_files(&self) -> bool {
+        std::fs::read_dir(&self.dir).is_ok_and(|entries| {
+            entries
+                .filter_map(|e| e.ok())
+                .any(|e| e.path().extension().is_some_and(|x| x == "h5"))
+        })
+    }
+
     fn legacy_file(&self, key: &str) -> PathBuf {
         self.dir.join(format!("{key}.h5"))
     }
@@ -331,7 +341,7 @@ impl Journal {
         entries: &[Entry],
         settings: Option<&serde_json::Value>,
     ) -> Result<PathBuf, ReportError> {
-        let w = ResultsWriter::create(out)?;
+        let w = ResultsFile::create(out, self.has_legacy_files())?;
         if let Some(s) = settings {
             w.write_settings(s)?;
         }
@@ -406,6 +416,7 @@ fn lookup_legacy(f: &Path, key: &str) -> Option<Entry> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::report::ResultsWriter;
 
     #[test]
     fn runs_sharing_a_path_are_placed_beside_it_by_archive_file_name() {

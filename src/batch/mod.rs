@@ -41,7 +41,7 @@ use crate::journal::{
 };
 use crate::profile::{self, Stage};
 use crate::report::html::DrawnRun;
-use crate::report::{ReportError, ResultsWriter, SummaryRow};
+use crate::report::{ReportError, ResultsFile, SummaryRow};
 use crate::track::Method;
 
 /// Why a batch or a merge could not go on.
@@ -279,7 +279,7 @@ pub fn run_campaigns(
     let (work_tx, work_rx) = std::sync::mpsc::sync_channel::<reader::Delivery>(jobs);
     let (done_tx, done_rx) = std::sync::mpsc::sync_channel::<Finished>(jobs);
     let record = settings_record(&opt.methods, &opt.identify, ingest);
-    let results = ResultsWriter::create(out)?;
+    let results = ResultsFile::create(out, journal.has_legacy_files())?;
     results.write_settings(&record)?;
     let drawn = Drawn::new(opt.report_runs);
     let written = std::thread::scope(|scope| {

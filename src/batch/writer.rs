@@ -8,14 +8,14 @@ use std::path::Path;
 use crate::journal::{placements, results_group, Entry, Stored};
 use crate::profile::{self, Stage};
 use crate::report::html::{self, DrawnRun};
-use crate::report::{write_summary, ReportError, ResultsWriter, RunOutcome, SummaryRow};
+use crate::report::{write_summary, ReportError, ResultsFile, RunOutcome, SummaryRow};
 
 use super::*;
 
 /// The writer: commits each finished run, logs it and reports progress. Returns the
 /// entries, the skipped and failed counts and the log; stops at the first write error.
 pub(super) fn write_finished(
-    results: &ResultsWriter,
+    results: &ResultsFile,
     done: std::sync::mpsc::Receiver<Finished>,
     mut log: Log,
     counts: &reader::Counts,
@@ -212,7 +212,7 @@ const STAGING: &str = "/_skelid_staging";
 /// Puts every run of `results` at its final group (see [`placements`]): link moves, through
 /// [`STAGING`] so that two runs may trade places.
 pub(super) fn place_runs(
-    results: &ResultsWriter,
+    results: &ResultsFile,
     entries: &[Entry],
     written_at: &[String],
 ) -> Result<(), BatchError> {

@@ -1,16 +1,21 @@
 //! Output files for people and other programs: tracks (FORMATS.md §4), identification
 //! results and summaries (FORMATS.md §3).
 
+mod direct;
 pub mod encoded;
 pub mod figure_files;
+mod hdf5_format;
 pub mod html;
 mod results;
 pub mod schema;
+mod sink;
 mod summary;
 mod track_file;
 
+pub use direct::DirectWriter;
 pub use results::ResultsWriter;
 pub use schema::{encode_run, parameters, ABSOLUTE_NAMES, MODE_NAMES, PARAMETER_NAMES};
+pub use sink::ResultsFile;
 pub use summary::{summary_rows, write_summary, SummaryRow};
 pub use track_file::write_track;
 

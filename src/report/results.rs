@@ -255,20 +255,7 @@ impl ResultsWriter {
             let _ = std::fs::remove_file(&tmp);
             return Err(err(e.to_string()));
         }
-        let old = set_aside(&path);
-        match std::fs::rename(&tmp, &path) {
-            Ok(()) => {
-                discard(old);
-                Ok(path)
-            }
-            Err(e) => {
-                let _ = std::fs::remove_file(&tmp);
-                if let Some(old) = old {
-                    let _ = std::fs::rename(old, &path);
-                }
-                Err(err(e.to_string()))
-            }
-        }
+        put_in_place(&tmp, &path)
     }
 
     /// Closes and deletes the unfinished file: a batch that stops on an error leaves no
@@ -277,6 +264,29 @@ impl ResultsWriter {
         let ResultsWriter { file, tmp, .. } = self;
         drop(file);
         let _ = std::fs::remove_file(&tmp);
+    }
+}
+
+/// Renames the finished `tmp` to `path`: a file it replaces (a rerun's earlier results) is
+/// moved aside first and deleted by a process of its own, which this one does not wait
+/// for ([`set_aside`], [`discard`]). On failure `tmp` is deleted and the old file put back.
+pub(super) fn put_in_place(tmp: &Path, path: &Path) -> Result<PathBuf, ReportError> {
+    let old = set_aside(path);
+    match std::fs::rename(tmp, path) {
+        Ok(()) => {
+            discard(old);
+            Ok(path.to_path_buf())
+        }
+        Err(e) => {
+            let _ = std::fs::remove_file(tmp);
+            if let Some(old) = old {
+                let _ = std::fs::rename(old, path);
+            }
+            Err(ReportError {
+                file: path.display().to_string(),
+                detail: e.to_string(),
+            })
+        }
     }
 }
 

@@ -1,0 +1,764 @@
+//! `results.h5` laid out byte by byte, without libhdf5: the batch's one writer puts each
+//! encoded run's chunks, dataset headers and strings into the file as it arrives, and
+//! the groups above the runs when the batch ends. In: encoded runs; out: the file, which
+//! any HDF5 reader (libhdf5 1.8 and later) reads as it reads [`super::ResultsWriter`]'s.
+//!
+//! Why: libhdf5 makes the 6 groups, 51 datasets and 172 attributes of a run one call at a
+//! time under its one lock, 2.2–2.9 ms a run, and that serial writer was most of what kept
+//! `--jobs 2` from 1.8× `--jobs 1` on two cores (README, throughput). Here a run is a few
+//! buffered writes: its chunks, one heap of its strings, its headers.
+//!
+//! Groups are version 2 object headers holding their links (a "compact" HDF5 1.8 group,
+//! with no limit on their number); datasets are version 1 headers with the messages
+//! libhdf5 writes ([`super::hdf5_format`]). A run's group is written once its run is: the
+//! groups above it stay in memory (a name and an address per run) until [`finish`]
+//! writes them, so that runs can still be moved into the report's order. A group written
+//! earlier that must change (a run whose path lies inside another run's group) is read
+//! back and written again.
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::Write;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+
+use super::encoded::{self, EncodedRun, Item, Scalar};
+use super::hdf5_format::{self as h5, AttrValue, HeapId, Message};
+use super::ReportError;
+
+/// Metadata bytes gathered before they are written (chunks go straight to the file).
+const META_FLUSH: usize = 1 << 20;
+
+/// A results file being written without libhdf5 (see the module's comment): written as
+/// `<path>.tmp` and renamed into place by [`finish`](Self::finish).
+pub struct DirectWriter {
+    path: PathBuf,
+    tmp: PathBuf,
+    inner: std::sync::Mutex<Inner>,
+}
+
+struct Inner {
+    io: Io,
+    root: Group,
+}
+
+/// The file being written: everything is appended at `pos`, metadata through a buffer.
+struct Io {
+    file: File,
+    /// Bytes that belong just before `pos`, not yet written.
+    meta: Vec<u8>,
+    pos: u64,
+    /// The chunks written so far, released from the page cache in rounds.
+    extents: Option<crate::pagecache::Extents>,
+}
+
+/// A group not yet written: its attribute messages and its links by name.
+#[derive(Default)]
+struct Group {
+    attrs: Vec<Message>,
+    links: BTreeMap<String, Node>,
+}
+
+/// What a link points to.
+enum Node {
+    /// A group still in memory.
+    Open(Group),
+    /// An object header written at `addr`; `group` when it is a group's.
+    Written { addr: u64, group: bool },
+}
+
+impl DirectWriter {
+    /// Starts `<dir>/results.h5`.
+    pub fn create(dir: &Path) -> Result<DirectWriter, ReportError> {
+        Self::create_at(&dir.join("results.h5"))
+    }
+
+    /// Starts a results file at `path` (written as `path.tmp` until [`finish`](Self::finish)).
+    pub fn create_at(path: &Path) -> Result<DirectWriter, ReportError> {
+        let err = |detail: String| ReportError {
+            file: path.display().to_string(),
+            detail,
+        };
+        if let Some(dir) = path.parent() {
+            std::fs::create_dir_all(dir).map_err(|e| err(e.to_string()))?;
+        }
+        let tmp = crate::campaign::tmp_path(path);
+        // Read too: a group written earlier may be read back ([`Io::unseal`]).
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .open(&tmp)
+            .map_err(|e| err(e.to_string()))?;
+        let extents = crate::pagecache::Extents::open(&tmp);
+        // The superblock is written last, when the root's address and the end are known.
+        let io = Io {
+            file,
+            meta: vec![0; h5::SUPERBLOCK_LEN],
+            pos: h5::SUPERBLOCK_LEN as u64,
+            extents,
+        };
+        let w = DirectWriter {
+            path: path.to_path_buf(),
+            tmp,
+            inner: std::sync::Mutex::new(Inner {
+                io,
+                root: Group::default(),
+            }),
+        };
+        w.set_root_attr("format", "skelid-results/1")?;
+        w.set_root_attr("skelid_version", env!("CARGO_PKG_VERSION"))?;
+        Ok(w)
+    }
+
+    fn err(&self, detail: String) -> ReportError {
+        ReportError {
+            file: self.path.display().to_string(),
+            detail,
+        }
+    }
+
+    fn inner(&self) -> std::sync::MutexGuard<'_, Inner> {
+        self.inner.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Sets (or replaces) a string attribute on the file's root.
+    pub fn set_root_attr(&self, name: &str, value: &str) -> Result<(), ReportError> {
+        let mut inner = self.inner();
+        let Inner { io, root } = &mut *inner;
+        let id = io
+            .strings(&[value])
+            .map_err(|e| self.err(e))?
+            .pop()
+            .expect("one string");
+        root.attrs.retain(|m| m.attribute_name() != Some(name));
+        root.attrs.push(h5::attribute(name, AttrValue::Text(id)));
+        Ok(())
+    }
+
+    /// Stores a batch's settings on the file's root: `settings` (the fingerprint) and
+    /// `settings_json` (everything, [`crate::journal::settings_record`]).
+    pub fn write_settings(&self, record: &serde_json::Value) -> Result<(), ReportError> {
+        if let Some(f) = record.get("fingerprint").and_then(|f| f.as_str()) {
+            self.set_root_attr("settings", f)?;
+        }
+        self.set_root_attr("settings_json", &record.to_string())
+    }
+
+    /// Adds one encoded run under the group path `dst` (its own path, or another).
+    pub fn write_encoded_as(&self, run: &EncodedRun, dst: &str) -> Result<(), ReportError> {
+        self.inner()
+            .write_run(run, dst)
+            .map_err(|e| self.err(format!("run {}: {e}", run.path)))
+    }
+
+    /// Adds one encoded run under its own path.
+    pub fn write_encoded(&self, run: &EncodedRun) -> Result<(), ReportError> {
+        self.write_encoded_as(run, &run.path)
+    }
+
+    /// Moves the object at group path `from` to `to` (no data is copied), creating `to`'s
+    /// parent groups.
+    pub fn move_run(&self, from: &str, to: &str) -> Result<(), ReportError> {
+        let mut inner = self.inner();
+        let Inner { io, root } = &mut *inner;
+        let moved = (|| {
+            let (parent, name) = split(from)?;
+            let node = open(io, root, &parent, false)?
+                .links
+                .remove(name)
+                .ok_or_else(|| format!("{from} does not exist"))?;
+            let (parent, name) = split(to)?;
+            let g = open(io, root, &parent, true)?;
+            if g.links.contains_key(name) {
+                return Err(format!("{to} exists already"));
+            }
+            g.links.insert(name.to_string(), node);
+            Ok(())
+        })();
+        moved.map_err(|e: String| self.err(format!("moving {from} to {to}: {e}")))
+    }
+
+    /// Removes the object at `path` (a group and everything under it).
+    pub fn remove(&self, path: &str) -> Result<(), ReportError> {
+        let mut inner = self.inner();
+        let Inner { io, root } = &mut *inner;
+        let removed = (|| {
+            let (parent, name) = split(path)?;
+            open(io, root, &parent, false)?
+                .links
+                .remove(name)
+                .map(|_| ())
+                .ok_or_else(|| format!("{path} does not exist"))
+        })();
+        removed.map_err(|e| self.err(format!("removing {path}: {e}")))
+    }
+
+    /// Writes the groups still in memory and the superblock, closes the file and renames
+    /// it into place (as [`super::ResultsWriter::finish`] does).
+    pub fn finish(self) -> Result<PathBuf, ReportError> {
+        let DirectWriter { path, tmp, inner } = self;
+        let Inner { mut io, root } = inner.into_inner().unwrap_or_else(|p| p.into_inner());
+        let closed = (|| -> std::io::Result<()> {
+            let root = io.seal(root)?;
+            io.flush()?;
+            io.file.write_all_at(&h5::superblock(root, io.pos), 0)?;
+            Ok(())
+        })();
+        let Io { file, extents, .. } = io;
+        drop(file);
+        drop(extents);
+        if let Err(e) = closed {
+            let _ = std::fs::remove_file(&tmp);
+            return Err(ReportError {
+                file: path.display().to_string(),
+                detail: e.to_string(),
+            });
+        }
+        super::results::put_in_place(&tmp, &path)
+    }
+
+    /// Closes and deletes the unfinished file.
+    pub fn abandon(self) {
+        let DirectWriter { tmp, inner, .. } = self;
+        drop(inner);
+        let _ = std::fs::remove_file(&tmp);
+    }
+}
+
+/// A path's parent components and last name; an error for the root.
+fn split(path: &str) -> Result<(Vec<&str>, &str), String> {
+    let mut parts: Vec<&str> = path.split('/').filter(|p| !p.is_empty()).collect();
+    let name = parts
+        .pop()
+        .ok_or_else(|| "a run path must name a group below the root".to_string())?;
+    Ok((parts, name))
+}
+
+/// The group at `parts` below `g`, read back into memory where it was written; created
+/// (with its parents) where absent when `create`, an error otherwise.
+fn open<'g>(
+    io: &mut Io,
+    mut g: &'g mut Group,
+    parts: &[&str],
+    create: bool,
+) -> Result<&'g mut Group, String> {
+    for part in parts {
+        let node = match g.links.entry(part.to_string()) {
+            std::collections::btree_map::Entry::Occupied(o) => o.into_mut(),
+            std::collections::btree_map::Entry::Vacant(v) if create => {
+                v.insert(Node::Open(Group::default()))
+            }
+            std::collections::btree_map::Entry::Vacant(_) => {
+                return Err(format!("no group {part}"))
+            }
+        };
+        if let Node::Written { addr, group } = *node {
+            if !group {
+                return Err(format!("{part} is a dataset, not a group"));
+            }
+            *node = Node::Open(io.unseal(addr).map_err(|e| e.to_string())?);
+        }
+        g = match node {
+            Node::Open(g) => g,
+            Node::Written { .. } => unreachable!("opened above"),
+        };
+    }
+    Ok(g)
+}
+
+impl Inner {
+    fn write_run(&mut self, run: &EncodedRun, dst: &str) -> Result<(), String> {
+        let Inner { io, root } = self;
+        // Every string of the run in one heap collection (or a few), written first: the
+        // attributes name their strings by address.
+        let texts: Vec<&str> = run
+            .items
+            .iter()
+            .filter_map(|i| match i {
+                Item::Attr {
+                    value: Scalar::Str(s),
+                    ..
+                } => Some(s.as_str()),
+                Item::DatasetAttr { value, .. } => Some(value.as_str()),
+                _ => None,
+            })
+            .collect();
+        let mut ids = io.strings(&texts)?.into_iter();
+        let (parts, name) = split(dst)?;
+        let parent = open(io, root, &parts, true)?;
+        let fresh = !parent.links.contains_key(name);
+        let g = open(io, parent, &[name], true)?;
+        // The datasets' headers wait for their attributes (a dataset's units follow it).
+        let mut datasets: Vec<(String, String, Vec<Message>)> = Vec::new();
+        for item in &run.items {
+            match item {
+                Item::Group(rel) => {
+                    let (parts, last) = split(rel)?;
+                    let at = open(io, g, &parts, true)?;
+                    if at.links.contains_key(last) {
+                        return Err(format!("group {rel} exists already"));
+                    }
+                    at.links
+                        .insert(last.to_string(), Node::Open(Group::default()));
+                }
+                Item::Attr { group, name, value } => {
+                    let at = open(io, g, &rel_parts(group), true)?;
+                    if at.attrs.iter().any(|m| m.attribute_name() == Some(name)) {
+                        return Err(format!("attribute {name} of {group:?} set twice"));
+                    }
+                    let v = match value {
+                        Scalar::F64(x) => AttrValue::F64(*x),
+                        Scalar::Str(_) => AttrValue::Text(ids.next().expect("counted")),
+                    };
+                    at.attrs.push(h5::attribute(name, v));
+                }
+                Item::Dataset(d) => {
+                    let messages = io.dataset(d).map_err(|e| e.to_string())?;
+                    datasets.push((d.group.clone(), d.name.clone(), messages));
+                }
+                Item::DatasetAttr {
+                    group,
+                    dataset,
+                    name,
+                    ..
+                } => {
+                    let id = ids.next().expect("counted");
+                    let (.., m) = datasets
+                        .iter_mut()
+                        .rev()
+                        .find(|(g, n, _)| g == group && n == dataset)
+                        .ok_or_else(|| format!("no dataset {dataset} in {group:?} for {name}"))?;
+                    m.push(h5::attribute(name, AttrValue::Text(id)));
+                }
+            }
+        }
+        for (group, name, messages) in datasets {
+            let addr = io
+                .put_meta(&h5::header_v1(&messages))
+                .map_err(|e| e.to_string())?;
+            let at = open(io, g, &rel_parts(&group), true)?;
+            if at.links.contains_key(&name) {
+                return Err(format!("{name} exists already in {group:?}"));
+            }
+            at.links.insert(name, Node::Written { addr, group: false });
+        }
+        // A run's group is final once written, unless it already held something.
+        if fresh {
+            let parent = open(io, root, &parts, false)?;
+            if let Some(Node::Open(g)) = parent.links.remove(name) {
+                let addr = io.seal(g).map_err(|e| e.to_string())?;
+                parent
+                    .links
+                    .insert(name.to_string(), Node::Written { addr, group: true });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The components of a path relative to a run's group ("" for the group itself).
+fn rel_parts(rel: &str) -> Vec<&str> {
+    rel.split('/').filter(|p| !p.is_empty()).collect()
+}
+
+impl Io {
+    /// Appends metadata; its address.
+    fn put_meta(&mut self, bytes: &[u8]) -> std::io::Result<u64> {
+        let at = self.pos;
+        self.meta.extend_from_slice(bytes);
+        self.pos += bytes.len() as u64;
+        if self.meta.len() >= META_FLUSH {
+            self.flush()?;
+        }
+        Ok(at)
+    }
+
+    /// Appends raw data (a chunk, a contiguous dataset): written at once with the
+    /// buffered metadata before it, in one call and without copying it; its address.
+    fn put_data(&mut self, bytes: &[u8]) -> std::io::Result<u64> {
+        let at = self.pos;
+        let mut parts = [
+            std::io::IoSlice::new(&self.meta),
+            std::io::IoSlice::new(bytes),
+        ];
+        let mut left = &mut parts[..];
+        std::io::IoSlice::advance_slices(&mut left, 0);
+        while !left.is_empty() {
+            match self.file.write_vectored(left) {
+                Ok(0) => return Err(std::io::ErrorKind::WriteZero.into()),
+                Ok(n) => std::io::IoSlice::advance_slices(&mut left, n),
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e),
+            }
+        }
+        self.meta.clear();
+        self.pos += bytes.len() as u64;
+        if let Some(e) = self.extents.as_mut() {
+            e.wrote(at, bytes.len() as u64);
+        }
+        Ok(at)
+    }
+
+    /// Writes the buffered metadata.
+    fn flush(&mut self) -> std::io::Result<()> {
+        if !self.meta.is_empty() {
+            self.file.write_all(&self.meta)?;
+            self.meta.clear();
+        }
+        Ok(())
+    }
+
+    /// Writes `texts` into global heap collections; their heap IDs, in order.
+    fn strings(&mut self, texts: &[&str]) -> Result<Vec<HeapId>, String> {
+        let mut ids = Vec::with_capacity(texts.len());
+        for part in texts.chunks(h5::HEAP_OBJECTS) {
+            if let Some(t) = part.iter().find(|t| t.contains('\0')) {
+                return Err(format!("a string attribute holds a NUL byte: {t:?}"));
+            }
+            let objects: Vec<&[u8]> = part.iter().map(|t| t.as_bytes()).collect();
+            let collection = self
+                .put_meta(&h5::heap_collection(&objects))
+                .map_err(|e| e.to_string())?;
+            ids.extend(part.iter().enumerate().map(|(i, t)| HeapId {
+                collection,
+                index: i as u32 + 1,
+                len: t.len() as u32,
+            }));
+        }
+        Ok(ids)
+    }
+
+    /// Writes a dataset's data (and chunk index); the messages of its header.
+    fn dataset(&mut self, d: &encoded::Dataset) -> std::io::Result<Vec<Message>> {
+        let elem = match d.elem {
+            encoded::Elem::F64 => h5::Elem::F64,
+            encoded::Elem::U8 => h5::Elem::U8,
+        };
+        let storage = match &d.storage {
+            // An empty dataset is made chunked by the hdf5 crate (libhdf5 has no
+            // contiguous storage of no bytes): chunks of one element, none written.
+            encoded::Storage::Plain(v) if v.is_empty() => h5::Storage::Chunked {
+                btree: h5::UNDEF,
+                chunk: 1,
+                shuffle: false,
+                level: None,
+            },
+            encoded::Storage::Plain(v) => {
+                let bytes: Vec<u8> = v.iter().flat_map(|x| x.to_le_bytes()).collect();
+                h5::Storage::Contiguous {
+                    addr: self.put_data(&bytes)?,
+                    len: bytes.len() as u64,
+                }
+            }
+            encoded::Storage::Chunked { level, chunks } => {
+                let step = encoded::chunk_len(d.len) as u64;
+                let mut index = Vec::with_capacity(chunks.len());
+                for (i, c) in chunks.iter().enumerate() {
+                    let len = u32::try_from(c.len()).map_err(|_| {
+                        std::io::Error::other(format!("chunk {i} of {} over 4 GB", d.name))
+                    })?;
+                    index.push(h5::Chunk {
+                        addr: self.put_data(c)?,
+                        len,
+                        offset: i as u64 * step,
+                    });
+                }
+                let btree = if index.is_empty() {
+                    h5::UNDEF
+                } else {
+                    let (nodes, root) = h5::chunk_btree(&index, step, elem.size() as u64, self.pos);
+                    self.put_meta(&nodes)?;
+                    root
+                };
+                h5::Storage::Chunked {
+                    btree,
+                    chunk: step as u32,
+                    shuffle: elem != h5::Elem::U8,
+                    level: Some(*level),
+                }
+            }
+        };
+        Ok(h5::dataset(elem, d.len as u64, &storage))
+    }
+
+    /// Writes group `g` and the groups below it still in memory; its header's address.
+    fn seal(&mut self, g: Group) -> std::io::Result<u64> {
+        let mut messages = h5::group_opening();
+        for (name, node) in g.links {
+            let addr = match node {
+                Node::Open(child) => self.seal(child)?,
+                Node::Written { addr, .. } => addr,
+            };
+            messages.push(h5::link(&name, addr));
+        }
+        messages.extend(g.attrs);
+        self.put_meta(&h5::header_v2(&messages))
+    }
+
+    /// The group whose header was written at `addr`, back in memory.
+    fn unseal(&mut self, addr: u64) -> std::io::Result<Group> {
+        self.flush()?;
+        let bad = || std::io::Error::other(format!("no group header at {addr}"));
+        let mut prefix = [0u8; 10];
+        self.file.read_exact_at(&mut prefix, addr)?;
+        let mut bytes = vec![0; h5::v2_len(&prefix).ok_or_else(bad)?];
+        self.file.read_exact_at(&mut bytes, addr)?;
+        let mut g = Group::default();
+        for m in h5::parse_v2(&bytes).ok_or_else(bad)? {
+            if let Some((name, target)) = m.as_link() {
+                let mut sig = [0u8; 4];
+                self.file.read_exact_at(&mut sig, target)?;
+                g.links.insert(
+                    name,
+                    Node::Written {
+                        addr: target,
+                        group: &sig == b"OHDR",
+                    },
+                );
+            } else if m.attribute_name().is_some() {
+                g.attrs.push(m);
+            } else if !m.opens_group() {
+                return Err(bad());
+            }
+        }
+        Ok(g)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::h5util::all_attrs;
+    use crate::report::ResultsWriter;
+
+    /// A run with what results.h5 holds: groups two deep, number and text attributes (an
+    /// empty and a non-ASCII one among them), compressed signals of one and of several
+    /// chunks, a short contiguous one and an empty one, a mask, units on datasets.
+    fn run(path: &str, seed: f64) -> EncodedRun {
+        let mut e = EncodedRun::new(path);
+        e.str_attr("", "status", "ok");
+        e.str_attr("", "error", "");
+        e.f64_attr("", "sample_rate", 1000.0 + seed);
+        e.f64_attr("", "nan", f64::NAN);
+        e.group("wavelet");
+        e.group("wavelet/skeleton");
+        e.str_attr("wavelet", "note", "amplitude in µm, ±5 %");
+        let v: Vec<f64> = (0..70_000)
+            .map(|i| (i as f64 * 1e-3 + seed).sin())
+            .collect();
+        e.signal("wavelet", "amplitude", &v, true);
+        e.dataset_attr("wavelet", "amplitude", "units", "m");
+        e.signal("wavelet", "short", &v[..40], true);
+        e.dataset_attr("wavelet", "short", "units", "Hz");
+        e.signal("wavelet/skeleton", "empty", &[], false);
+        e.signal("", "plain", &v[..1000], false);
+        e.bytes("wavelet", "valid", &vec![seed as u8 % 2; 30_000], 4);
+        e.f64_attr("wavelet/skeleton", "bins", 40.0);
+        e
+    }
+
+    /// Writes `runs` (each at its path) with a writer made by `make`, then moves each of
+    /// `moves`; the file.
+    fn write_with<W>(
+        file: &Path,
+        runs: &[EncodedRun],
+        moves: &[(&str, &str)],
+        make: impl Fn(&Path) -> W,
+        put: impl Fn(&W, &EncodedRun),
+        mv: impl Fn(&W, &str, &str),
+        finish: impl Fn(W),
+    ) {
+        let w = make(file);
+        for r in runs {
+            put(&w, r);
+        }
+        for (from, to) in moves {
+            mv(&w, from, to);
+        }
+        finish(w);
+    }
+
+    fn both(dir: &Path, runs: &[EncodedRun], moves: &[(&str, &str)]) -> (PathBuf, PathBuf) {
+        let (a, b) = (dir.join("direct.h5"), dir.join("libhdf5.h5"));
+        write_with(
+            &a,
+            runs,
+            moves,
+            |p| DirectWriter::create_at(p).unwrap(),
+            |w, r| w.write_encoded(r).unwrap(),
+            |w, f, t| w.move_run(f, t).unwrap(),
+            |w| {
+                w.finish().unwrap();
+            },
+        );
+        write_with(
+            &b,
+            runs,
+            moves,
+            |p| ResultsWriter::create_at(p).unwrap(),
+            |w, r| w.write_encoded(r).unwrap(),
+            |w, f, t| w.move_run(f, t).unwrap(),
+            |w| {
+                w.finish().unwrap();
+            },
+        );
+        (a, b)
+    }
+
+    /// Everything a reader sees of `g`, libhdf5 reading: its members by name, and for each
+    /// attribute and dataset its type, shape, chunking, filters and values, as text.
+    fn seen(g: &hdf5::Group, at: &str, out: &mut Vec<String>) {
+        let info = g.loc_info().unwrap();
+        out.push(format!("{at}: {} attributes", info.num_attrs));
+        for (name, value) in all_attrs(g) {
+            out.push(format!("{at} @{name} = {value:?}"));
+        }
+        let mut names = g.member_names().unwrap();
+        names.sort();
+        for name in names {
+            let path = format!("{at}/{name}");
+            if let Ok(sub) = g.group(&name) {
+                seen(&sub, &path, out);
+                continue;
+            }
+            let d = g.dataset(&name).unwrap();
+            let values = match d.dtype().unwrap().size() {
+                1 => format!("{:?}", d.read_raw::<u8>().unwrap()),
+                _ => format!("{:?}", d.read_raw::<f64>().unwrap()),
+            };
+            out.push(format!(
+                "{path}: {:?} {:?} chunk {:?} filters {:?} {} attributes\n{values}",
+                d.dtype().unwrap().to_descriptor().unwrap(),
+                d.shape(),
+                d.chunk(),
+                d.filters(),
+                d.loc_info().unwrap().num_attrs,
+            ));
+            for (name, value) in all_attrs(&d) {
+                out.push(format!("{path} @{name} = {value:?}"));
+            }
+        }
+    }
+
+    fn read(file: &Path) -> Vec<String> {
+        let f = hdf5::File::open(file).unwrap();
+        let mut out = Vec::new();
+        seen(&f.group("/").unwrap(), "", &mut out);
+        out
+    }
+
+    fn assert_same(a: &Path, b: &Path) {
+        let (x, y) = (read(a), read(b));
+        assert_eq!(x.len(), y.len());
+        for (p, q) in x.iter().zip(&y) {
+            assert!(p == q, "direct: {:.300}\nlibhdf5: {:.300}", p, q);
+        }
+    }
+
+    /// The reference is libhdf5's own writer: the same runs read back through libhdf5
+    /// from the two files give the same groups, attributes, types, layouts and values.
+    #[test]
+    fn libhdf5_reads_the_same_file_from_both_writers() {
+        let dir = tempfile::tempdir().unwrap();
+        let runs: Vec<EncodedRun> = (0..12)
+            .map(|i| run(&format!("/runs/run_{i:03}"), i as f64))
+            .chain([run("/other/ünï", 20.0)])
+            .collect();
+        let (a, b) = both(dir.path(), &runs, &[]);
+        assert_same(&a, &b);
+        let seen = read(&a);
+        assert!(seen
+            .iter()
+            .any(|s| s.contains("@format = Text(\"skelid-results/1\")")));
+        assert!(seen.iter().any(|s| s.starts_with("/runs: 0 attributes")));
+        assert!(seen
+            .iter()
+            .any(|s| s.starts_with("/runs/run_011: 4 attributes")));
+    }
+
+    /// Runs moved (into the report's order, through a staging group), and a run whose
+    /// path lies inside another run's group, written before or after it: the groups
+    /// written already are read back and extended.
+    #[test]
+    fn moved_and_nested_runs_land_where_libhdf5_puts_them() {
+        let dir = tempfile::tempdir().unwrap();
+        let runs = [
+            run("/a", 1.0),
+            run("/a/b", 2.0),
+            run("/x/y/z", 3.0),
+            run("/x/y", 4.0),
+            run("/s/pending0", 5.0),
+        ];
+        let moves = [
+            ("/a/b", "/stage/0"),
+            ("/s/pending0", "/stage/1"),
+            ("/stage/0", "/a/b@two.h5"),
+            ("/stage/1", "/a/wavelet/deep"),
+        ];
+        let (a, b) = both(dir.path(), &runs, &moves);
+        assert_same(&a, &b);
+        let seen = read(&a);
+        assert!(seen
+            .iter()
+            .any(|s| s.starts_with("/a/wavelet/deep/wavelet/amplitude:")));
+    }
+
+    /// A dataset of more chunks than one B-tree node indexes (64) gets a tree of two
+    /// levels, and a group of hundreds of links (past what a version 1 header counts on
+    /// compact groups) reads whole.
+    #[test]
+    fn many_chunks_and_many_links_read_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut big = EncodedRun::new("/big");
+        let mask: Vec<u8> = (0..65 * encoded::CHUNK + 5)
+            .map(|i| (i % 7) as u8)
+            .collect();
+        big.bytes("", "mask", &mask, 1);
+        let file = dir.path().join("r.h5");
+        let w = DirectWriter::create_at(&file).unwrap();
+        w.write_encoded(&big).unwrap();
+        for i in 0..600 {
+            let mut e = EncodedRun::new(&format!("/runs/r{i}"));
+            e.f64_attr("", "i", i as f64);
+            w.write_encoded(&e).unwrap();
+        }
+        w.write_settings(&serde_json::json!({"fingerprint": "abc", "n": 1}))
+            .unwrap();
+        w.finish().unwrap();
+        let f = hdf5::File::open(&file).unwrap();
+        let d = f.dataset("big/mask").unwrap();
+        assert_eq!(d.read_raw::<u8>().unwrap(), mask);
+        let runs = f.group("runs").unwrap();
+        assert_eq!(runs.member_names().unwrap().len(), 600);
+        let r = runs.group("r599").unwrap();
+        assert_eq!(
+            all_attrs(&r),
+            [("i".to_string(), crate::h5util::AttrValue::Number(599.0))]
+        );
+        let root = all_attrs(&f.group("/").unwrap());
+        let names: Vec<&str> = root.iter().map(|(n, _)| n.as_str()).collect();
+        assert_eq!(
+            names,
+            ["format", "settings", "settings_json", "skelid_version"]
+        );
+    }
+
+    /// A writer that stops leaves nothing behind, and errors name what went wrong.
+    #[test]
+    fn an_abandoned_file_is_deleted_and_bad_moves_are_errors() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("results.h5");
+        let w = DirectWriter::create_at(&file).unwrap();
+        w.write_encoded(&run("/r", 0.0)).unwrap();
+        let e = w.move_run("/nowhere", "/x").unwrap_err();
+        assert!(e.detail.contains("/nowhere does not exist"), "{e}");
+        let e = w
+            .write_encoded(&run("/r/wavelet/amplitude/x", 0.0))
+            .unwrap_err();
+        assert!(e.detail.contains("is a dataset"), "{e}");
+        w.abandon();
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+}
