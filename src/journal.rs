@@ -263,7 +263,9 @@ impl Journal {
     /// Whether the journal holds any run committed by a version before the `.run` files
     /// (a `<key>.h5`): such runs are copied with libhdf5 ([`crate::report::ResultsFile`]).
     pub fn has_legacy_files(&self) -> bool {
-        std::fs::read_dir(&self.dir).is_ok_and(|entries| {
+        // A folder that cannot be listed counts as holding some: libhdf5's writer copes
+        // with either kind of run.
+        std::fs::read_dir(&self.dir).map_or(true, |entries| {
             entries
                 .filter_map(|e| e.ok())
                 .any(|e| e.path().extension().is_some_and(|x| x == "h5"))

@@ -66,6 +66,7 @@ const GROUP_INFO: u16 = 0x0a;
 const FILTERS: u16 = 0x0b;
 const ATTRIBUTE: u16 = 0x0c;
 const ATTRIBUTE_INFO: u16 = 0x15;
+const SYMBOL_TABLE: u16 = 0x11;
 
 /// A dataset's element type.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -475,19 +476,76 @@ pub struct Chunk {
 
 /// Bytes of one node of a chunk B-tree of a one-dimensional dataset (libhdf5 reads nodes
 /// whole, used or not).
-pub const CHUNK_NODE_LEN: usize = 24 + 2 * CHUNK_BTREE_K * 8 + (2 * CHUNK_BTREE_K + 1) * 24;
+#[cfg(test)]
+pub const CHUNK_NODE_LEN: usize = node_len(CHUNK_BTREE_K, 24);
+
+/// Half the number of children a group B-tree node holds, and half the entries of a
+/// symbol table node (libhdf5's defaults, which the superblock states).
+const GROUP_BTREE_K: usize = 16;
+const GROUP_LEAF_K: usize = 4;
+
+/// Bytes of a version 1 B-tree node of rank `k` whose keys are `key_len` bytes.
+const fn node_len(k: usize, key_len: usize) -> usize {
+    24 + 2 * k * 8 + (2 * k + 1) * key_len
+}
+
+/// A version 1 B-tree of node type `kind` and rank `k` over `children` (in order), child
+/// i holding what lies between `keys[i]` and the next key, `closing` after the last; its
+/// nodes placed one after another from `at`, level by level. The nodes' bytes and the
+/// root's address (the last node).
+fn btree_v1(
+    kind: u8,
+    k: usize,
+    mut keys: Vec<Vec<u8>>,
+    mut children: Vec<u64>,
+    closing: &[u8],
+    at: u64,
+) -> (Vec<u8>, u64) {
+    let len = node_len(k, closing.len());
+    let mut bytes = Vec::new();
+    let mut depth = 0u8;
+    loop {
+        let per = 2 * k;
+        let nodes = children.len().div_ceil(per).max(1);
+        let base = at + bytes.len() as u64;
+        let addr = |i: usize| base + (i * len) as u64;
+        let (mut up_keys, mut up_children) = (Vec::new(), Vec::new());
+        for i in 0..nodes {
+            let lo = i * per;
+            let hi = ((i + 1) * per).min(children.len());
+            let start = bytes.len();
+            bytes.extend_from_slice(b"TREE");
+            bytes.extend_from_slice(&[kind, depth]);
+            bytes.extend_from_slice(&((hi - lo) as u16).to_le_bytes());
+            let left = if i == 0 { UNDEF } else { addr(i - 1) };
+            let right = if i + 1 == nodes { UNDEF } else { addr(i + 1) };
+            bytes.extend_from_slice(&left.to_le_bytes());
+            bytes.extend_from_slice(&right.to_le_bytes());
+            for j in lo..hi {
+                bytes.extend_from_slice(&keys[j]);
+                bytes.extend_from_slice(&children[j].to_le_bytes());
+            }
+            bytes.extend_from_slice(keys.get(hi).map_or(closing, |k| k));
+            bytes.resize(start + len, 0);
+            up_keys.push(keys.get(lo).map_or(closing.to_vec(), |k| k.clone()));
+            up_children.push(addr(i));
+        }
+        if nodes == 1 {
+            return (bytes, base);
+        }
+        (keys, children) = (up_keys, up_children);
+        depth += 1;
+    }
+}
 
 /// The version 1 B-tree indexing `chunks` (in order, of `chunk` elements of `elem_size`
 /// bytes), its nodes placed one after another from `at`: the nodes' bytes, and the
 /// root's address (the last node).
 pub fn chunk_btree(chunks: &[Chunk], chunk: u64, elem_size: u64, at: u64) -> (Vec<u8>, u64) {
-    // A node's keys and children: key i is the left key of child i; one more key closes.
-    struct Level {
-        keys: Vec<[u8; 24]>,
-        children: Vec<u64>,
-    }
+    // A chunk's key: its filtered size, its filter mask, and its offset in each dimension,
+    // the datatype's included.
     let key = |len: u32, offset: u64, elem: u64| {
-        let mut k = [0u8; 24];
+        let mut k = vec![0u8; 24];
         k[..4].copy_from_slice(&len.to_le_bytes());
         k[8..16].copy_from_slice(&offset.to_le_bytes());
         k[16..24].copy_from_slice(&elem.to_le_bytes());
@@ -497,48 +555,84 @@ pub fn chunk_btree(chunks: &[Chunk], chunk: u64, elem_size: u64, at: u64) -> (Ve
     // The right key libhdf5 writes past the last chunk: one chunk on, and one element's
     // size on in the datatype's dimension.
     let closing = key(0, last + chunk, elem_size);
-    let mut level = Level {
-        keys: chunks.iter().map(|c| key(c.len, c.offset, 0)).collect(),
-        children: chunks.iter().map(|c| c.addr).collect(),
-    };
-    let mut bytes = Vec::new();
-    let mut depth = 0u8;
-    loop {
-        let per = 2 * CHUNK_BTREE_K;
-        let nodes = level.children.len().div_ceil(per).max(1);
-        let base = at + bytes.len() as u64;
-        let addr = |i: usize| base + (i * CHUNK_NODE_LEN) as u64;
-        let mut up = Level {
-            keys: Vec::new(),
-            children: Vec::new(),
-        };
-        for i in 0..nodes {
-            let lo = i * per;
-            let hi = ((i + 1) * per).min(level.children.len());
-            let mut n = Vec::with_capacity(CHUNK_NODE_LEN);
-            n.extend_from_slice(b"TREE");
-            n.extend_from_slice(&[1, depth]);
-            n.extend_from_slice(&((hi - lo) as u16).to_le_bytes());
-            let left = if i == 0 { UNDEF } else { addr(i - 1) };
-            let right = if i + 1 == nodes { UNDEF } else { addr(i + 1) };
-            n.extend_from_slice(&left.to_le_bytes());
-            n.extend_from_slice(&right.to_le_bytes());
-            for j in lo..hi {
-                n.extend_from_slice(&level.keys[j]);
-                n.extend_from_slice(&level.children[j].to_le_bytes());
-            }
-            n.extend_from_slice(level.keys.get(hi).unwrap_or(&closing));
-            n.resize(CHUNK_NODE_LEN, 0);
-            bytes.extend_from_slice(&n);
-            up.keys.push(level.keys.get(lo).copied().unwrap_or(closing));
-            up.children.push(addr(i));
-        }
-        if nodes == 1 {
-            return (bytes, base);
-        }
-        level = up;
-        depth += 1;
+    btree_v1(
+        1,
+        CHUNK_BTREE_K,
+        chunks.iter().map(|c| key(c.len, c.offset, 0)).collect(),
+        chunks.iter().map(|c| c.addr).collect(),
+        &closing,
+        at,
+    )
+}
+
+/// Bytes of a symbol table node (libhdf5 reads nodes whole).
+const SYMBOL_NODE_LEN: usize = 8 + 2 * GROUP_LEAF_K * 40;
+
+/// A group as libhdf5 writes it at the earliest format, placed from `at`: a local heap of
+/// its link names, symbol table nodes of 8 entries, a B-tree over them (lookups by name in
+/// logarithmic time, where a compact group's are linear), and a version 1 object header
+/// holding the symbol table message and `attrs`. `links` must be sorted by name, as
+/// `strcmp` orders them (byte order). The bytes, and the header's address.
+pub fn symbol_table_group(links: &[(&str, u64)], attrs: &[Message], at: u64) -> (Vec<u8>, u64) {
+    // The heap's data: the empty name at 0 (the first key), then each name, each
+    // NUL-terminated and padded to 8 bytes.
+    let mut names = vec![0u8; 8];
+    let mut offsets = Vec::with_capacity(links.len());
+    for (name, _) in links {
+        offsets.push(names.len() as u64);
+        names.extend_from_slice(name.as_bytes());
+        names.push(0);
+        names.resize(names.len().next_multiple_of(8), 0);
     }
+    let heap = at;
+    let mut b = Vec::new();
+    b.extend_from_slice(b"HEAP");
+    b.extend_from_slice(&[0; 4]);
+    b.extend_from_slice(&(names.len() as u64).to_le_bytes());
+    // No free block: libhdf5 writes 1 for none.
+    b.extend_from_slice(&1u64.to_le_bytes());
+    b.extend_from_slice(&(heap + 32).to_le_bytes());
+    b.extend_from_slice(&names);
+    // Symbol table nodes, full but the last.
+    let per = 2 * GROUP_LEAF_K;
+    let mut node_keys = vec![0u64.to_le_bytes().to_vec()];
+    let mut nodes = Vec::new();
+    for (i, part) in links.chunks(per).enumerate() {
+        nodes.push(at + b.len() as u64);
+        let start = b.len();
+        b.extend_from_slice(b"SNOD");
+        b.extend_from_slice(&[1, 0]);
+        b.extend_from_slice(&(part.len() as u16).to_le_bytes());
+        for (j, (_, addr)) in part.iter().enumerate() {
+            b.extend_from_slice(&offsets[i * per + j].to_le_bytes());
+            b.extend_from_slice(&addr.to_le_bytes());
+            // Nothing cached: readers open the object's header.
+            b.extend_from_slice(&[0; 24]);
+        }
+        b.resize(start + SYMBOL_NODE_LEN, 0);
+        node_keys.push(offsets[i * per + part.len() - 1].to_le_bytes().to_vec());
+    }
+    let closing = node_keys.pop().expect("the first key");
+    let (tree, root) = btree_v1(
+        0,
+        GROUP_BTREE_K,
+        node_keys,
+        nodes,
+        &closing,
+        at + b.len() as u64,
+    );
+    b.extend_from_slice(&tree);
+    let mut stab = root.to_le_bytes().to_vec();
+    stab.extend_from_slice(&heap.to_le_bytes());
+    let mut messages = vec![Message {
+        kind: SYMBOL_TABLE,
+        flags: 0,
+        body: stab,
+    }];
+    messages.extend_from_slice(attrs);
+    let header = at + b.len() as u64;
+    b.extend_from_slice(&header_v1(&messages));
+    (b, header)
 }
 
 /// Bob Jenkins' lookup3 `hashlittle`, the checksum of HDF5's metadata.
@@ -775,6 +869,49 @@ mod tests {
         assert_eq!((r[5], u16::from_le_bytes([r[6], r[7]])), (1, 3));
         let leaf3 = &b[2 * CHUNK_NODE_LEN..];
         assert_eq!(u16::from_le_bytes([leaf3[6], leaf3[7]]), 2);
+        let u64_at = |n: &[u8], at: usize| u64::from_le_bytes(n[at..at + 8].try_into().unwrap());
+        let node = CHUNK_NODE_LEN as u64;
+        // Siblings: each leaf names its neighbours; the root has none.
+        let leaf2 = &b[CHUNK_NODE_LEN..];
+        assert_eq!((u64_at(leaf2, 8), u64_at(leaf2, 16)), (0, 2 * node));
+        assert_eq!((u64_at(r, 8), u64_at(r, 16)), (UNDEF, UNDEF));
+        // The root's keys: each leaf's first chunk (offsets 0, 256, 512), then the closing
+        // key past the last chunk (129 × 4 + 4 = 520), with the element size.
+        let key = |i: usize| (u64_at(r, 24 + i * 32 + 8), u64_at(r, 24 + i * 32 + 16));
+        assert_eq!(
+            [key(0), key(1), key(2), key(3)],
+            [(0, 0), (256, 0), (512, 0), (520, 1)]
+        );
+        assert_eq!(
+            [u64_at(r, 48), u64_at(r, 80), u64_at(r, 112)],
+            [0, node, 2 * node]
+        );
+    }
+
+    /// A symbol-table group laid out as libhdf5 lays one out (its heap's header as in a
+    /// results.h5 libhdf5 wrote: no free block is 1); 20 links make three nodes of
+    /// eight, and the tree's keys are the last name of each node.
+    #[test]
+    fn a_symbol_table_group_is_libhdf5s_layout() {
+        let names: Vec<String> = (0..20).map(|i| format!("run_{i:06}")).collect();
+        let links: Vec<(&str, u64)> = names.iter().map(|n| (n.as_str(), 7)).collect();
+        let (b, header) = symbol_table_group(&links, &[attribute("x", AttrValue::F64(1.0))], 1000);
+        let u64_at = |at: usize| u64::from_le_bytes(b[at..at + 8].try_into().unwrap());
+        assert_eq!(&b[..8], b"HEAP\0\0\0\0");
+        let data = 8 + 20 * 16;
+        assert_eq!((u64_at(8), u64_at(16), u64_at(24)), (data as u64, 1, 1032));
+        assert_eq!(&b[40..51], b"run_000000\0");
+        let snod = 32 + data;
+        assert_eq!(&b[snod..snod + 8], b"SNOD\x01\0\x08\0");
+        let third = snod + 2 * SYMBOL_NODE_LEN;
+        assert_eq!(&b[third + 6..third + 8], [4, 0]);
+        // The B-tree: one leaf over three nodes, keys "" then the last name of each.
+        let tree = snod + 3 * SYMBOL_NODE_LEN;
+        assert_eq!(&b[tree..tree + 8], b"TREE\0\0\x03\0");
+        let keys: Vec<u64> = (0..4).map(|i| u64_at(tree + 24 + 16 * i)).collect();
+        assert_eq!(keys, [0, 8 + 7 * 16, 8 + 15 * 16, 8 + 19 * 16]);
+        assert_eq!(header as usize - 1000, tree + node_len(GROUP_BTREE_K, 8));
+        assert_eq!(&b[header as usize - 1000..][..4], [1, 0, 2, 0]);
     }
 
     #[test]

@@ -84,7 +84,7 @@ impl ResultsFile {
     }
 }
 
-/// Whether `SKELID_LIBHDF5_WRITER` asks for libhdf5's writer (set, and not `0`).
+/// Whether `SKELID_LIBHDF5_WRITER` asks for libhdf5's writer (set, neither empty nor `0`).
 fn library_asked() -> bool {
-    std::env::var_os("SKELID_LIBHDF5_WRITER").is_some_and(|v| v != "0")
+    std::env::var_os("SKELID_LIBHDF5_WRITER").is_some_and(|v| !v.is_empty() && v != "0")
 }
