@@ -8,13 +8,14 @@
 //! `--jobs 2` from 1.8× `--jobs 1` on two cores (README, throughput). Here a run is a few
 //! buffered writes: its chunks, one heap of its strings, its headers.
 //!
-//! Groups are version 2 object headers holding their links (a "compact" HDF5 1.8 group,
-//! with no limit on their number); datasets are version 1 headers with the messages
-//! libhdf5 writes ([`super::hdf5_format`]). A run's group is written once its run is: the
-//! groups above it stay in memory (a name and an address per run) until [`finish`]
-//! writes them, so that runs can still be moved into the report's order. A group written
-//! earlier that must change (a run whose path lies inside another run's group) is read
-//! back and written again.
+//! Datasets are version 1 headers with the messages libhdf5 writes; a run's groups are
+//! version 2 headers holding their links (HDF5 1.8's "compact" groups); the groups above
+//! the runs, written at the end, get a symbol table as libhdf5 writes one where they hold
+//! more than [`COMPACT_MAX`] links ([`super::hdf5_format`]). A run's group is written once
+//! its run is: the groups above it stay in memory (a name and an address per run) until
+//! [`DirectWriter::finish`] writes them, so that runs can still be moved into the
+//! report's order. A group written earlier that must change (a run whose path lies inside
+//! another run's group) is read back and written again.
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -303,15 +304,15 @@ fn open<'g>(
     create: bool,
 ) -> Result<&'g mut Group, String> {
     for part in parts {
-        let node = match g.links.entry(part.to_string()) {
-            std::collections::btree_map::Entry::Occupied(o) => o.into_mut(),
-            std::collections::btree_map::Entry::Vacant(v) if create => {
-                v.insert(Node::Open(Group::default()))
+        // Looked up by `&str`: a name is allocated only for a group created here.
+        if !g.links.contains_key(*part) {
+            if !create {
+                return Err(format!("no group {part}"));
             }
-            std::collections::btree_map::Entry::Vacant(_) => {
-                return Err(format!("no group {part}"))
-            }
-        };
+            g.links
+                .insert(part.to_string(), Node::Open(Group::default()));
+        }
+        let node = g.links.get_mut(*part).expect("inserted above");
         if let Node::Written { addr, group } = *node {
             if !group {
                 return Err(format!("{part} is a dataset, not a group"));
@@ -497,10 +498,7 @@ impl Io {
 
     /// Writes a dataset's data (and chunk index); the messages of its header.
     fn dataset(&mut self, d: &encoded::Dataset) -> std::io::Result<Vec<Message>> {
-        let elem = match d.elem {
-            encoded::Elem::F64 => h5::Elem::F64,
-            encoded::Elem::U8 => h5::Elem::U8,
-        };
+        let elem = d.elem;
         let storage = match &d.storage {
             // An empty dataset is made chunked by the hdf5 crate (libhdf5 has no
             // contiguous storage of no bytes): chunks of one element, none written.
@@ -510,10 +508,12 @@ impl Io {
                 shuffle: false,
                 level: None,
             },
+            // The datatype says little-endian: the floats' bytes as they are in memory (as
+            // `encoded` compresses them).
             encoded::Storage::Plain(v) => {
-                let bytes: Vec<u8> = v.iter().flat_map(|x| x.to_le_bytes()).collect();
+                let bytes: &[u8] = bytemuck::cast_slice(v);
                 h5::Storage::Contiguous {
-                    addr: self.put_data(&bytes)?,
+                    addr: self.put_data(bytes)?,
                     len: bytes.len() as u64,
                 }
             }
@@ -540,7 +540,7 @@ impl Io {
                 h5::Storage::Chunked {
                     btree,
                     chunk: step as u32,
-                    shuffle: elem != h5::Elem::U8,
+                    shuffle: elem != encoded::Elem::U8,
                     level: Some(*level),
                 }
             }
@@ -608,7 +608,7 @@ impl Io {
 mod tests {
     use super::*;
     use crate::h5util::all_attrs;
-    use crate::report::ResultsWriter;
+    use crate::report::{ResultsFile, ResultsWriter};
 
     /// A run with what results.h5 holds: groups two deep, number and text attributes (an
     /// empty and a non-ASCII one among them), compressed signals of one and of several
@@ -636,51 +636,22 @@ mod tests {
         e
     }
 
-    /// Writes `runs` (each at its path) with a writer made by `make`, then moves each of
-    /// `moves`; the file.
-    fn write_with<W>(
-        file: &Path,
-        runs: &[EncodedRun],
-        moves: &[(&str, &str)],
-        make: impl Fn(&Path) -> W,
-        put: impl Fn(&W, &EncodedRun),
-        mv: impl Fn(&W, &str, &str),
-        finish: impl Fn(W),
-    ) {
-        let w = make(file);
-        for r in runs {
-            put(&w, r);
-        }
-        for (from, to) in moves {
-            mv(&w, from, to);
-        }
-        finish(w);
-    }
-
+    /// `runs` (each at its path) then each of `moves`, written once by each writer (the
+    /// batch's [`crate::report::ResultsFile`] dispatches the same calls): the two files.
     fn both(dir: &Path, runs: &[EncodedRun], moves: &[(&str, &str)]) -> (PathBuf, PathBuf) {
         let (a, b) = (dir.join("direct.h5"), dir.join("libhdf5.h5"));
-        write_with(
-            &a,
-            runs,
-            moves,
-            |p| DirectWriter::create_at(p).unwrap(),
-            |w, r| w.write_encoded(r).unwrap(),
-            |w, f, t| w.move_run(f, t).unwrap(),
-            |w| {
-                w.finish().unwrap();
-            },
-        );
-        write_with(
-            &b,
-            runs,
-            moves,
-            |p| ResultsWriter::create_at(p).unwrap(),
-            |w, r| w.write_encoded(r).unwrap(),
-            |w, f, t| w.move_run(f, t).unwrap(),
-            |w| {
-                w.finish().unwrap();
-            },
-        );
+        for w in [
+            ResultsFile::Direct(DirectWriter::create_at(&a).unwrap()),
+            ResultsFile::Library(ResultsWriter::create_at(&b).unwrap()),
+        ] {
+            for r in runs {
+                w.write_encoded_as(r, &r.path).unwrap();
+            }
+            for (from, to) in moves {
+                w.move_run(from, to).unwrap();
+            }
+            w.finish().unwrap();
+        }
         (a, b)
     }
 

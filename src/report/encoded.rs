@@ -74,7 +74,8 @@ pub enum Elem {
 }
 
 impl Elem {
-    fn size(self) -> usize {
+    /// Bytes of one element.
+    pub fn size(self) -> usize {
         match self {
             Elem::F64 => 8,
             Elem::U8 => 1,

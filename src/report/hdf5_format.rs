@@ -1,14 +1,17 @@
 //! The few on-disk structures of the HDF5 file format that `results.h5` is made of,
 //! encoded byte by byte (HDF5 File Format Specification 3.0), for [`super::direct`]: the
-//! version 0 superblock, version 1 object headers for datasets (as libhdf5 1.8–1.14 write
-//! them at the default, earliest format), version 2 object headers for groups (their links
-//! stored in the header, a "compact" group of HDF5 1.8, which has no limit on the number
-//! of links), a global heap collection for variable-length strings, and a version 1 B-tree
-//! indexing a dataset's chunks.
+//! version 0 superblock; version 1 object headers for datasets (as libhdf5 1.8–1.14 write
+//! them at the default, earliest format); groups either as version 2 object headers that
+//! hold their links (a "compact" group of HDF5 1.8) or with a symbol table (a local heap
+//! of names, symbol table nodes and a B-tree, as libhdf5 writes them); a global heap
+//! collection for variable-length strings; and a version 1 B-tree indexing a dataset's
+//! chunks.
 //!
 //! Every structure here is one HDF5 1.8 and later read; the encodings of the messages
 //! that libhdf5 itself writes for results.h5 (types, fill values, filters, layouts) are
 //! the bytes it writes, checked in the tests below against a file libhdf5 wrote.
+
+use super::encoded::Elem;
 
 /// Bytes of an address or a length in the file (the superblock says 8).
 const SIZE: u8 = 8;
@@ -38,7 +41,8 @@ pub fn superblock(root: u64, eof: u64) -> Vec<u8> {
     b.extend_from_slice(&UNDEF.to_le_bytes()); // free-space info
     b.extend_from_slice(&eof.to_le_bytes());
     b.extend_from_slice(&UNDEF.to_le_bytes()); // driver info
-                                               // The root's symbol table entry: no name, its header, nothing cached.
+
+    // The root's symbol table entry: no name, its header, nothing cached.
     b.extend_from_slice(&0u64.to_le_bytes());
     b.extend_from_slice(&root.to_le_bytes());
     b.extend_from_slice(&[0; 24]);
@@ -68,35 +72,16 @@ const ATTRIBUTE: u16 = 0x0c;
 const ATTRIBUTE_INFO: u16 = 0x15;
 const SYMBOL_TABLE: u16 = 0x11;
 
-/// A dataset's element type.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Elem {
-    /// IEEE 754 binary64, little-endian.
-    F64,
-    /// Unsigned 8-bit integer.
-    U8,
-}
-
-impl Elem {
-    /// Bytes of one element.
-    pub fn size(self) -> usize {
-        match self {
-            Elem::F64 => 8,
-            Elem::U8 => 1,
-        }
-    }
-
-    /// The datatype message body.
-    fn datatype(self) -> Vec<u8> {
-        match self {
-            // Floating point, version 1: little-endian, implied leading mantissa bit, sign
-            // at bit 63; 64 bits from bit 0, exponent at 52 (11 bits), mantissa at 0 (52
-            // bits), bias 1023.
-            Elem::F64 => vec![
-                0x11, 0x20, 0x3f, 0x00, 8, 0, 0, 0, 0, 0, 64, 0, 52, 11, 0, 52, 0xff, 0x03, 0, 0,
-            ],
-            Elem::U8 => unsigned_byte(),
-        }
+/// The datatype message body of an element type (little-endian, as skelid stores them).
+fn datatype(elem: Elem) -> Vec<u8> {
+    match elem {
+        // Floating point, version 1: little-endian, implied leading mantissa bit, sign at
+        // bit 63; 64 bits from bit 0, exponent at 52 (11 bits), mantissa at 0 (52 bits),
+        // bias 1023.
+        Elem::F64 => vec![
+            0x11, 0x20, 0x3f, 0x00, 8, 0, 0, 0, 0, 0, 64, 0, 52, 11, 0, 52, 0xff, 0x03, 0, 0,
+        ],
+        Elem::U8 => unsigned_byte(),
     }
 }
 
@@ -152,7 +137,7 @@ pub enum AttrValue {
 /// An attribute message (version 3: its name's character set UTF-8), scalar.
 pub fn attribute(name: &str, value: AttrValue) -> Message {
     let (dtype, data) = match value {
-        AttrValue::F64(x) => (Elem::F64.datatype(), x.to_le_bytes().to_vec()),
+        AttrValue::F64(x) => (datatype(Elem::F64), x.to_le_bytes().to_vec()),
         AttrValue::Text(id) => {
             let mut d = id.len.to_le_bytes().to_vec();
             d.extend_from_slice(&id.collection.to_le_bytes());
@@ -208,7 +193,7 @@ pub fn dataset(elem: Elem, len: u64, storage: &Storage) -> Vec<Message> {
             flags: 0,
             body: dataspace(Some(len)),
         },
-        constant(DATATYPE, elem.datatype()),
+        constant(DATATYPE, datatype(elem)),
     ];
     match *storage {
         Storage::Contiguous { addr, len } => {
@@ -391,7 +376,8 @@ pub fn parse_v2(bytes: &[u8]) -> Option<Vec<Message>> {
     Some(m)
 }
 
-/// Bytes of a version 2 header of `size` bytes of messages: its prefix and checksum.
+/// The whole length (prefix, messages, checksum) of the version 2 header whose first 10
+/// bytes are `prefix`; `None` where they are not a version 2 header's.
 pub fn v2_len(prefix: &[u8]) -> Option<usize> {
     (prefix.len() >= 10 && &prefix[..4] == b"OHDR")
         .then(|| 14 + u32::from_le_bytes(prefix[6..10].try_into().expect("4 bytes")) as usize)
