@@ -682,6 +682,35 @@ fn read_backs_reuse_their_staging_buffers_and_return_each_ones_own_values() {
 }
 
 #[test]
+fn uploads_reuse_their_staging_memory_once_its_copy_has_run() {
+    let g = gpu();
+    let values = |n: usize, k: u32| -> Vec<u32> { (0..n as u32).map(|i| i * 11 + k).collect() };
+    let made = g.upload_staging_made();
+    // Two uploads before one submission: a staging buffer each, each target its own values
+    // (the copies run at the start of the download's submission).
+    let (a, b) = (values(50_000, 1), values(50_000, 2));
+    let ba = g.upload_pooled("a", &a).unwrap();
+    let bb = g.upload_pooled("b", &b).unwrap();
+    assert_eq!(g.upload_staging_made(), made + 2);
+    assert_eq!(g.download::<u32>(&ba, a.len()).unwrap(), a);
+    assert_eq!(g.download::<u32>(&bb, b.len()).unwrap(), b);
+    drop((ba, bb));
+    // That submission has finished and been waited for: later uploads of the size take
+    // the same staging memory, each overwriting the last one's values.
+    for k in 3..7 {
+        let v = values(50_000 - k as usize, k);
+        let buf = g.upload_pooled("again", &v).unwrap();
+        assert_eq!(g.download::<u32>(&buf, v.len()).unwrap(), v, "upload {k}");
+    }
+    assert_eq!(g.upload_staging_made(), made + 2);
+    // A size of another class gets a staging buffer of its own.
+    let v = values(3_000_000, 9);
+    let buf = g.upload_pooled("large", &v).unwrap();
+    assert_eq!(g.download::<u32>(&buf, v.len()).unwrap(), v);
+    assert_eq!(g.upload_staging_made(), made + 3);
+}
+
+#[test]
 fn reused_work_buffers_fit_their_request_and_leave_nothing_behind() {
     use skelid::backend::{Backend, BackendChoice};
     use skelid::track::WaveletOptions;

@@ -154,9 +154,109 @@ pub struct Gpu {
     staging_pool: Arc<Pool>,
     /// Staging buffers created so far (the others were taken from `staging_pool`).
     staging_made: std::sync::atomic::AtomicUsize,
+    /// Upload staging memory kept mapped between batches, for [`Gpu::upload_segments`].
+    uploads: Uploads,
     /// Device time of each compute pass, where `SKELID_GPU_TRACE` asks for it and the
     /// adapter has timestamp queries.
     timer: Option<Timer>,
+}
+
+/// Upload staging buffers (`MAP_WRITE | COPY_SRC`) reused from batch to batch.
+///
+/// wgpu's own `write_buffer_with` stages every write in a fresh allocation that it frees
+/// once the copy is done: on lavapipe a batch of 400 signals' spectra (45 MB) faulted in
+/// about 11 000 fresh pages on the dispatcher's serial path, and a Vulkan driver pins each
+/// new host allocation. These are mapped once, written, copied from at the start of the
+/// next submission, then mapped again for a later batch.
+#[derive(Default)]
+struct Uploads {
+    /// Mapped for writing and free, by size class.
+    free: Mutex<std::collections::HashMap<u64, Vec<wgpu::Buffer>>>,
+    /// Written and unmapped: copied into their targets at the start of the next submission.
+    copies: Mutex<Vec<StagedCopy>>,
+    /// Copied (or on their way to be): a map for writing asked for, which completes once
+    /// that submission has finished; 0 while pending, 1 mapped, 2 failed.
+    returning: Mutex<Vec<(wgpu::Buffer, u64, Arc<std::sync::atomic::AtomicU8>)>>,
+    /// Upload staging buffers created so far.
+    made: std::sync::atomic::AtomicUsize,
+}
+
+/// One upload waiting for the next submission: its staging buffer (of size class
+/// `class`), the buffer it fills and the bytes copied from the start of both.
+struct StagedCopy {
+    staging: wgpu::Buffer,
+    class: u64,
+    target: wgpu::Buffer,
+    bytes: u64,
+}
+
+impl Uploads {
+    /// A staging buffer of at least `bytes` (a multiple of 4), mapped for writing: a free
+    /// one of its size class when an earlier batch's has come back, else a new one.
+    fn take(&self, device: &wgpu::Device, bytes: u64, cap: u64) -> (wgpu::Buffer, u64) {
+        use std::sync::atomic::Ordering;
+        let class = size_class(bytes).min(cap).max(bytes);
+        {
+            let mut free = self.free.lock().unwrap_or_else(|p| p.into_inner());
+            let mut returning = self.returning.lock().unwrap_or_else(|p| p.into_inner());
+            // Those whose map has completed are free again; a failed map's is dropped.
+            returning.retain(
+                |(buffer, class, state)| match state.load(Ordering::Acquire) {
+                    0 => true,
+                    1 => {
+                        free.entry(*class).or_default().push(buffer.clone());
+                        false
+                    }
+                    _ => false,
+                },
+            );
+            if let Some(b) = free.get_mut(&class).and_then(Vec::pop) {
+                return (b, class);
+            }
+        }
+        self.made.fetch_add(1, Ordering::Relaxed);
+        let buffer = crate::profile::span("staging", || {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("upload staging"),
+                size: class,
+                usage: wgpu::BufferUsages::MAP_WRITE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: true,
+            })
+        });
+        (buffer, class)
+    }
+
+    /// The copies written since the last submission, recorded into one command buffer.
+    fn record(&self, device: &wgpu::Device) -> Option<(wgpu::CommandBuffer, Vec<StagedCopy>)> {
+        let copies = std::mem::take(&mut *self.copies.lock().unwrap_or_else(|p| p.into_inner()));
+        if copies.is_empty() {
+            return None;
+        }
+        let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("uploads"),
+        });
+        for c in &copies {
+            enc.copy_buffer_to_buffer(&c.staging, 0, &c.target, 0, c.bytes);
+        }
+        Some((enc.finish(), copies))
+    }
+
+    /// Asks for the staging buffers of submitted copies to be mapped again; each is free
+    /// for a later upload once its submission has finished and a poll has seen it.
+    fn give_back(&self, copies: Vec<StagedCopy>) {
+        let mut returning = self.returning.lock().unwrap_or_else(|p| p.into_inner());
+        for c in copies {
+            let state = Arc::new(std::sync::atomic::AtomicU8::new(0));
+            let flag = state.clone();
+            c.staging.map_async(wgpu::MapMode::Write, .., move |r| {
+                flag.store(
+                    if r.is_ok() { 1 } else { 2 },
+                    std::sync::atomic::Ordering::Release,
+                );
+            });
+            returning.push((c.staging, c.class, state));
+        }
+    }
 }
 
 /// Timestamps around every compute pass of a submission ([`Gpu::pass`]), resolved at its
@@ -436,6 +536,7 @@ impl Gpu {
             pool: Arc::new(Mutex::new(std::collections::HashMap::new())),
             staging_pool: Arc::new(Mutex::new(std::collections::HashMap::new())),
             staging_made: std::sync::atomic::AtomicUsize::new(0),
+            uploads: Uploads::default(),
             timer,
         })
     }
@@ -501,7 +602,17 @@ impl Gpu {
             .as_ref()
             .and_then(|t| t.resolve(&self.device, &mut enc));
         let buffer = crate::profile::span("encoder.finish", || enc.finish());
-        let index = crate::profile::span("queue.submit", || self.queue.submit([buffer]));
+        // The uploads made since the last submission are copied first, in the same
+        // submission, as wgpu does with its own queue writes.
+        let uploads = self.uploads.record(&self.device);
+        let (copies, staged) = match uploads {
+            Some((b, c)) => (Some(b), c),
+            None => (None, Vec::new()),
+        };
+        let index = crate::profile::span("queue.submit", || {
+            self.queue.submit(copies.into_iter().chain([buffer]))
+        });
+        self.uploads.give_back(staged);
         if let (Some(t), Some((staging, labels))) = (&self.timer, timed) {
             t.read_later(staging, labels);
         }
@@ -759,10 +870,10 @@ impl Gpu {
     /// vector and copied by one thread set the pace of the whole GPU backend.
     ///
     /// The buffer is a reused one ([`reusable`](Self::reusable); keep it until the
-    /// submission that reads it has finished) written through the queue before the next
-    /// submission: a buffer mapped at creation cost a fresh device buffer and a staging
-    /// buffer that wgpu fills with zeros first, on the dispatcher's one thread (a batch of
-    /// 1000 signals uploads about 200 MB).
+    /// submission that reads it has finished), filled from reused staging memory
+    /// ([`Uploads`]) by a copy at the start of the next submission: a buffer mapped at
+    /// creation cost a fresh device buffer and a staging buffer that wgpu fills with zeros
+    /// first, on the dispatcher's one thread (a batch of 1000 signals uploads about 200 MB).
     pub fn upload_segments<T: bytemuck::Pod + Send>(
         &self,
         label: &str,
@@ -778,10 +889,12 @@ impl Gpu {
                 .next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT)
                 .max(wgpu::COPY_BUFFER_ALIGNMENT);
             let buffer = self.reusable(label, size);
-            let mut view = self
-                .queue
-                .write_buffer_with(&buffer, 0, wgpu::BufferSize::new(size).expect("not zero"))
-                .ok_or_else(|| GpuError::Lost(format!("cannot write {label} ({size} bytes)")))?;
+            let (staging, class) =
+                self.uploads
+                    .take(&self.device, size, self.limits.max_buffer_size);
+            let mut view = staging
+                .get_mapped_range_mut(..size)
+                .map_err(|e| GpuError::Lost(format!("cannot write {label} ({size} bytes): {e}")))?;
             {
                 // wgpu's write-only view cannot be sent to other threads; its pointer can,
                 // each thread writing only its own segment's bytes.
@@ -825,8 +938,18 @@ impl Gpu {
                     unsafe { std::ptr::write_bytes(base.at(bytes), 0, size as usize - bytes) };
                 }
             }
-            // Dropped, the view schedules its copy before the next submission.
             drop(view);
+            staging.unmap();
+            self.uploads
+                .copies
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .push(StagedCopy {
+                    staging,
+                    class,
+                    target: (*buffer).clone(),
+                    bytes: size,
+                });
             Ok(buffer)
         })
     }
@@ -985,6 +1108,12 @@ impl Gpu {
     /// seen before reuse one that an earlier read-back gave back.
     pub fn staging_buffers_made(&self) -> usize {
         self.staging_made.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// How many upload staging buffers this device has created; uploads of a size seen
+    /// before reuse one that an earlier batch's submission has finished with.
+    pub fn upload_staging_made(&self) -> usize {
+        self.uploads.made.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// Copies `count` elements of `buffer` back to the host (waits for the GPU).
