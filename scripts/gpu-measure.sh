@@ -11,6 +11,9 @@
 #   - `bench` on N simulated runs (30 000 samples) at 128 scales, traced
 #     (SKELID_GPU_TRACE=1: the dispatcher's host spans and each compute pass's device
 #     time), with the end-to-end run per backend;
+#   - an experiment: the FFTs that fit one workgroup held in its memory (the default on a
+#     GPU) against the passes through global memory (SKELID_GPU_FFT_LOCAL=0), alternating,
+#     traced, on the campaign and on the 2^20-sample signal;
 #   - `bench` at 512 scales; one 2^20-sample log sweep at 256 scales (traced: where its
 #     host and device time goes);
 #   - an experiment: the ridge programme narrow (256 invocations a run) and wide (1024),
@@ -53,6 +56,21 @@ PY
 quiet() { grep -vE "^  (cpu|gpu): (repetition|warm-up|end)"; }
 echo "== bench, 128 scales (traced), with the end-to-end run"
 SKELID_GPU_TRACE=1 timeout 150 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --out "$OUT/bench-128.json" 2>&1 | quiet
+# The refinement's f64 FFTs were the device's largest share (69 of 143 ms on an H100), one
+# dispatch a radix pass, each reading and writing every sequence in global memory.
+echo "== experiment: the FFTs in workgroup memory (the default) and SKELID_GPU_FFT_LOCAL=0 (the passes), traced"
+for f in 0 default 0 default; do
+  if [ "$f" = default ]; then unset SKELID_GPU_FFT_LOCAL; else export SKELID_GPU_FFT_LOCAL=$f; fi
+  echo "SKELID_GPU_FFT_LOCAL=$f, the campaign at 128 scales"
+  SKELID_GPU_TRACE=1 timeout 40 "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 --no-end-to-end \
+    --out "$OUT/bench-128-fft-$f.json" 2>&1 | grep -E "^ +gpu |^  fft f" | tail -5
+  if [ -f "$W/long.h5" ]; then
+    echo "SKELID_GPU_FFT_LOCAL=$f, the 2^20-sample signal at 256 scales"
+    SKELID_GPU_TRACE=1 timeout 40 "$B" bench "$W/long.h5" --backend gpu --repeat 5 --scales 256 --no-end-to-end \
+      --out "$OUT/bench-long-fft-$f.json" 2>&1 | grep -E "^ +gpu |^  fft f" | tail -5
+  fi
+done
+unset SKELID_GPU_FFT_LOCAL
 echo "== experiment: bench, 128 scales, glibc's malloc at its defaults (SKELID_MALLOC=default) and as skelid sets it"
 for m in default skelid; do
   echo "SKELID_MALLOC=$m"

@@ -1118,6 +1118,55 @@ fn dispatches_beyond_the_workgroup_limit_are_split_not_refused() {
     }
 }
 
+#[test]
+fn the_workgroup_memory_fft_gives_the_cpu_backends_track() {
+    // The refinement's transforms (and the first pass's that fit) held in one workgroup's
+    // memory, as on a hardware GPU: lavapipe keeps the passes unless told.
+    let d = tmpdir();
+    let track = |backend| {
+        track_csv(
+            d.path(),
+            demo_archive(),
+            256,
+            backend,
+            (skelid::gpu::fft::LOCAL_ENV, 1),
+        )
+    };
+    let worst = track_difference(&track("cpu"), &track("gpu"));
+    println!(
+        "workgroup-memory FFT: envelope within {:.1e}, frequency within {:.1e} Hz, {} samples valid in one only",
+        worst.0, worst.1, worst.2
+    );
+    assert!(
+        worst.0 <= 1e-4 && worst.1 <= 1e-3 && worst.2 == 0,
+        "{worst:?}"
+    );
+    // And it was that transform: the trace names its passes.
+    let o = skelid()
+        .arg("track")
+        .arg(demo_archive())
+        .args([
+            "--dataset",
+            "/demo/linear",
+            "--scales",
+            "256",
+            "--backend",
+            "gpu",
+        ])
+        .arg("--out")
+        .arg(d.path().join("traced.csv"))
+        .env(skelid::gpu::fft::LOCAL_ENV, "1")
+        .env("SKELID_GPU_TRACE", "1")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("fft f64 local") || err.contains("fft f32 local"),
+        "{err}"
+    );
+}
+
 /// `skelid track` of /demo/linear with `scales` on `backend` and one environment setting;
 /// asserts it ran on that backend with no warning (no fallback) and returns the CSV.
 fn track_csv(

@@ -4,7 +4,7 @@
 
 use num_complex::{Complex32, Complex64};
 use rand::{Rng, SeedableRng};
-use skelid::gpu::fft::FftStage;
+use skelid::gpu::fft::{Algorithm, FftStage};
 use skelid::gpu::Gpu;
 
 fn gpu() -> Gpu {
@@ -12,7 +12,15 @@ fn gpu() -> Gpu {
 }
 
 /// Largest |GPU − rustfft (f64)| over the batch, relative to the largest |X|.
-fn fft_error(gpu: &Gpu, stage: &FftStage, n: usize, batch: usize, inverse: bool, seed: u64) -> f64 {
+fn fft_error(
+    gpu: &Gpu,
+    stage: &FftStage,
+    algorithm: Algorithm,
+    n: usize,
+    batch: usize,
+    inverse: bool,
+    seed: u64,
+) -> f64 {
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
     let x: Vec<Complex64> = (0..n * batch)
         .map(|_| Complex64::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)))
@@ -21,7 +29,9 @@ fn fft_error(gpu: &Gpu, stage: &FftStage, n: usize, batch: usize, inverse: bool,
         .iter()
         .map(|c| Complex32::new(c.re as f32, c.im as f32))
         .collect();
-    stage.transform(gpu, &mut ours, n, inverse).unwrap();
+    stage
+        .transform_with(algorithm, gpu, &mut ours, n, inverse)
+        .unwrap();
     let mut planner = rustfft::FftPlanner::<f64>::new();
     let plan = if inverse {
         planner.plan_fft_inverse(n)
@@ -29,7 +39,9 @@ fn fft_error(gpu: &Gpu, stage: &FftStage, n: usize, batch: usize, inverse: bool,
         planner.plan_fft_forward(n)
     };
     let mut truth = x.clone();
-    plan.process(&mut truth);
+    for chunk in truth.chunks_mut(n) {
+        plan.process(chunk);
+    }
     let scale = truth.iter().map(|c| c.norm()).fold(0.0, f64::max);
     truth
         .iter()
@@ -51,22 +63,61 @@ fn gpu_fft_matches_rustfft_for_every_radix_length_and_batch() {
         2, 3, 4, 5, 8, 9, 15, 16, 25, 27, 30, 60, 64, 100, 243, 625, 1000, 1024, 1152, 2560, 3840,
         4096, 45_000, 65_536, 1_048_576,
     ];
+    // Every length by the passes through global memory, and those that fit a workgroup by
+    // the workgroup-memory transform too (the one `encode` picks for them).
+    let cap = stage.local_cap();
+    let mut local_lengths = 0;
     for (i, &n) in lengths.iter().enumerate() {
-        for (batch, inverse) in [(1, false), (3, true), (7, false)] {
-            if n * batch > 2_000_000 {
+        for algorithm in [Algorithm::Passes, Algorithm::Local] {
+            if algorithm == Algorithm::Local && n > cap {
                 continue;
             }
-            let e = fft_error(&gpu, &stage, n, batch, inverse, i as u64);
-            // f32 round-off grows like log n; 2e-6 per pass is generous for passes ≤ 20.
-            let passes = skelid::gpu::fft::radices(n).unwrap().len().max(1) as f64;
-            assert!(
-                e < 2e-6 * passes,
-                "n = {n}, batch {batch}, inverse {inverse}: error {e:.2e}"
-            );
-            worst = worst.max(e);
+            local_lengths += usize::from(algorithm == Algorithm::Local);
+            for (batch, inverse) in [(1, false), (3, true), (7, false)] {
+                if n * batch > 2_000_000 {
+                    continue;
+                }
+                let e = fft_error(&gpu, &stage, algorithm, n, batch, inverse, i as u64);
+                // f32 round-off grows like log n; 2e-6 per pass is generous for passes ≤ 20.
+                let passes = skelid::gpu::fft::radices(n).unwrap().len().max(1) as f64;
+                assert!(
+                    e < 2e-6 * passes,
+                    "{algorithm:?}, n = {n}, batch {batch}, inverse {inverse}: error {e:.2e}"
+                );
+                worst = worst.max(e);
+            }
         }
     }
     println!("worst relative error over all lengths and batches: {worst:.2e}");
+    // WebGPU guarantees 16 kB of workgroup memory: 2048 complex f32 values.
+    assert!(cap >= 2048, "workgroup-memory FFT up to {cap} points");
+    // The lengths up to 2048 at least (19 of them) went through it.
+    assert!(local_lengths >= 19, "{local_lengths}");
+    // The planner: a hardware GPU holds what fits in workgroup memory; lavapipe, where
+    // the passes are faster, keeps them (the test hook aside).
+    let hook = std::env::var(skelid::gpu::fft::LOCAL_ENV).ok();
+    let local = match hook.as_deref().map(str::trim) {
+        Some("1") => true,
+        Some("0") => false,
+        _ => !gpu.is_software(),
+    };
+    assert_eq!(
+        stage.algorithm(cap),
+        if local {
+            Algorithm::Local
+        } else {
+            Algorithm::Passes
+        }
+    );
+    assert_eq!(stage.algorithm(cap + 1), Algorithm::Passes);
+    let too_long = (cap + 1..)
+        .find(|&n| skelid::gpu::fft::plannable(n))
+        .unwrap();
+    let mut x = vec![Complex32::new(0.0, 0.0); 2 * too_long];
+    let e = stage
+        .transform_with(Algorithm::Local, &gpu, &mut x, too_long, false)
+        .unwrap_err();
+    assert!(e.to_string().contains("one workgroup"), "{e}");
 }
 
 #[test]
@@ -82,17 +133,22 @@ fn gpu_f64_fft_matches_rustfft_to_double_precision() {
     }
     let stage = FftStage::with_real(&gpu, Real::F64);
     let mut worst: f64 = 0.0;
-    for (i, &n) in [2usize, 3, 5, 16, 27, 1152, 3840, 45_000]
-        .iter()
-        .enumerate()
-    {
+    // 16 kB of workgroup memory hold 1024 complex f64 values.
+    assert!(stage.local_cap() >= 1024, "{}", stage.local_cap());
+    let cases = [2usize, 3, 5, 16, 27, 40, 1152, 2000, 3072, 3840, 45_000]
+        .into_iter()
+        .flat_map(|n| [(n, Algorithm::Passes), (n, Algorithm::Local)])
+        .filter(|&(n, a)| a == Algorithm::Passes || n <= stage.local_cap());
+    for (i, (n, algorithm)) in cases.enumerate() {
         for (batch, inverse) in [(1, true), (3, false)] {
             let mut rng = rand::rngs::StdRng::seed_from_u64(100 + i as u64);
             let x: Vec<Complex64> = (0..n * batch)
                 .map(|_| Complex64::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)))
                 .collect();
             let mut ours = x.clone();
-            stage.transform_f64(&gpu, &mut ours, n, inverse).unwrap();
+            stage
+                .transform_f64_with(algorithm, &gpu, &mut ours, n, inverse)
+                .unwrap();
             let mut planner = rustfft::FftPlanner::<f64>::new();
             let plan = if inverse {
                 planner.plan_fft_inverse(n)
@@ -110,7 +166,7 @@ fn gpu_f64_fft_matches_rustfft_to_double_precision() {
                 .map(|(a, b)| (a - b).norm())
                 .fold(0.0, f64::max)
                 / scale;
-            assert!(e < 1e-13, "n = {n}: {e:.2e}");
+            assert!(e < 1e-13, "{algorithm:?}, n = {n}: {e:.2e}");
             worst = worst.max(e);
         }
     }
@@ -773,5 +829,5 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     g.check().unwrap();
     // And the device still computes: an FFT against rustfft, as the test above.
     let stage = FftStage::new(&g);
-    assert!(fft_error(&g, &stage, 64, 2, false, 1) < 1e-5);
+    assert!(fft_error(&g, &stage, Algorithm::Passes, 64, 2, false, 1) < 1e-5);
 }

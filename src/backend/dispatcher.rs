@@ -130,7 +130,8 @@ impl GpuService {
                 match opened {
                     Ok((gpu, stages)) => {
                         let budget = gpu.max_binding() / 2 * SUBMISSION_PARTS;
-                        let notes = stages.first.notes();
+                        let mut notes = stages.first.notes();
+                        notes.extend(stages.refine.notes());
                         let _ = ready_tx.send(Ok((
                             gpu.adapter_name(),
                             gpu.is_software(),

@@ -1,8 +1,9 @@
-//! Host side of `shaders/fft.wgsl`: batched complex FFTs of any length 2^a·3^b·5^c (the
-//! lengths [`plan_len`](crate::transform::plan_len) chooses), in f32 or (where the adapter
-//! has SHADER_F64) f64, one dispatch per radix pass, ping-ponging between two buffers.
-//! Lengths beyond one workgroup need no special case: every pass reads and writes global
-//! memory.
+//! Host side of `shaders/fft.wgsl` and `shaders/fft_local.wgsl`: batched complex FFTs of
+//! any length 2^a·3^b·5^c (the lengths [`plan_len`](crate::transform::plan_len) chooses),
+//! in f32 or (where the adapter has SHADER_F64) f64, by one of two [`Algorithm`]s that
+//! [`FftStage::algorithm`] picks per length: every transform that fits one workgroup's
+//! memory in one dispatch ([`Algorithm::Local`]), longer ones one dispatch per radix pass
+//! through global memory, ping-ponging between two buffers ([`Algorithm::Passes`]).
 
 use std::collections::HashMap;
 use std::sync::Mutex;
@@ -25,6 +26,90 @@ struct PassParams {
 
 /// Invocations per workgroup (the shader's `@workgroup_size`).
 const WORKGROUP: u32 = 64;
+
+/// Invocations per workgroup of `fft_local.wgsl` (its `WG` and `@workgroup_size`).
+const LOCAL_WORKGROUP: usize = 256;
+
+/// The longest transform [`Algorithm::Local`] takes, whatever the adapter's workgroup
+/// memory: it bounds the values an invocation holds in registers in a pass.
+const LOCAL_MAX: usize = 8192;
+
+/// Test and measurement hook: `1` sends every length that fits a workgroup to
+/// [`Algorithm::Local`] whatever the adapter, `0` sends every length to
+/// [`Algorithm::Passes`]; unset, [`FftStage::algorithm`] chooses. One binary can so
+/// measure both algorithms side by side, and lavapipe test the local one end to end.
+pub const LOCAL_ENV: &str = "SKELID_GPU_FFT_LOCAL";
+
+/// How a length is transformed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Algorithm {
+    /// One dispatch per radix pass (`fft.wgsl`), each reading and writing every sequence
+    /// in global memory: any length.
+    Passes,
+    /// One dispatch for all the passes (`fft_local.wgsl`), each sequence held in one
+    /// workgroup's memory: lengths up to [`FftStage::local_cap`]. The refinement's
+    /// transforms (40 to 3072 points) are of this kind.
+    Local,
+}
+
+/// The shader `fft_local.wgsl`'s `Local` uniform, declared once here for the host.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct LocalParams {
+    n: u32,
+    batch: u32,
+    inverse: u32,
+    passes: u32,
+    radix: [u32; 16],
+}
+
+/// The compiled `fft_local.wgsl` and the longest length it takes on this adapter.
+struct LocalStage {
+    pipeline: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+    cap: usize,
+}
+
+impl LocalStage {
+    /// Compiled for the adapter's workgroup memory; `Ok(None)` where that holds too few
+    /// values to be worth a dispatch of its own (or the hook turns it off), `Err` with the
+    /// driver's reason where it refused the shader (caught, so that the passes serve and
+    /// the device stays usable).
+    fn new(gpu: &Gpu, real: Real) -> Result<Option<LocalStage>, String> {
+        use super::Binding::{Read, Uniform, Write};
+        let limits = &gpu.limits;
+        let cap = (limits.max_compute_workgroup_storage_size as usize / real.complex_bytes())
+            .min(LOCAL_MAX);
+        let fits = limits.max_compute_invocations_per_workgroup as usize >= LOCAL_WORKGROUP
+            && limits.max_compute_workgroup_size_x as usize >= LOCAL_WORKGROUP;
+        let off = std::env::var(LOCAL_ENV).is_ok_and(|v| v.trim() == "0");
+        if cap < 64 || !fits || off {
+            return Ok(None);
+        }
+        let maxv = cap.div_ceil(LOCAL_WORKGROUP) + 4;
+        let source = real.source(include_str!("../../shaders/fft_local.wgsl"));
+        for line in ["const CAP: u32 = 1024u;", "const MAXV: u32 = 8u;"] {
+            assert!(source.contains(line), "fft_local.wgsl declares {line}");
+        }
+        let wgsl = source
+            .replace(
+                "const CAP: u32 = 1024u;",
+                &format!("const CAP: u32 = {cap}u;"),
+            )
+            .replace(
+                "const MAXV: u32 = 8u;",
+                &format!("const MAXV: u32 = {maxv}u;"),
+            );
+        let layout = gpu.layout("fft_local.wgsl", &[Uniform, Write, Read]);
+        let mut pipelines =
+            gpu.try_stage_variant("fft_local.wgsl", &wgsl, &layout, &["local_fft"])?;
+        Ok(Some(LocalStage {
+            pipeline: pipelines.pop().expect("one entry point"),
+            layout,
+            cap,
+        }))
+    }
+}
 
 /// Whether the GPU FFT plans length `n` (no prime factor above 5), without allocating: the
 /// dispatcher asks it of every scale of every signal.
@@ -67,10 +152,16 @@ pub enum Holder {
     Scratch,
 }
 
-/// The compiled FFT pass and the root tables of the lengths used so far.
+/// The compiled FFT passes, the workgroup-memory transform where the adapter has room for
+/// it, and the root tables of the lengths used so far.
 pub struct FftStage {
     pipeline: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
+    local: Option<LocalStage>,
+    /// Whether [`algorithm`](FftStage::algorithm) picks the local transform where it fits.
+    prefer_local: bool,
+    /// Why the driver refused the local transform, if it did.
+    refused: Option<String>,
     roots: Mutex<HashMap<usize, wgpu::Buffer>>,
     real: Real,
 }
@@ -91,11 +182,58 @@ impl FftStage {
             &[UniformDynamic, Read, Write, Read],
             &["stockham_pass"],
         );
+        let (local, refused) = match LocalStage::new(gpu, real) {
+            Ok(local) => (local, None),
+            Err(why) => (None, Some(why)),
+        };
+        // A software adapter (lavapipe) runs a workgroup's invocations one after another
+        // on a CPU core and pays for every barrier and register-held value: there the
+        // passes were faster (200 runs at 128 scales, device time: f32 3.6 s against 6.3 s,
+        // f64 22.6 s against 27.6 s). A GPU's workgroup memory is the reason to hold a
+        // sequence there.
+        let prefer_local = match std::env::var(LOCAL_ENV) {
+            Ok(v) if v.trim() == "1" => true,
+            _ => !gpu.is_software(),
+        };
         FftStage {
             pipeline: pipelines.pop().expect("one entry point"),
             layout,
+            local,
+            prefer_local,
+            refused,
             roots: Mutex::new(HashMap::new()),
             real,
+        }
+    }
+
+    /// What a user should know of how the stage was compiled: the driver's refusal of the
+    /// workgroup-memory transform.
+    pub fn notes(&self) -> Vec<String> {
+        self.refused
+            .iter()
+            .map(|why| {
+                format!(
+                    "the GPU driver refused the workgroup-memory FFT ({:?}), so every length \
+                     takes the passes through global memory; results are the same: {why}",
+                    self.real
+                )
+            })
+            .collect()
+    }
+
+    /// The longest length [`Algorithm::Local`] takes on this adapter (0: none).
+    pub fn local_cap(&self) -> usize {
+        self.local.as_ref().map_or(0, |l| l.cap)
+    }
+
+    /// The algorithm [`encode`](Self::encode) uses for length `n`: on a hardware GPU the
+    /// workgroup-memory transform where the sequence fits, else the passes through global
+    /// memory (see [`LOCAL_ENV`]).
+    pub fn algorithm(&self, n: usize) -> Algorithm {
+        if self.prefer_local && n <= self.local_cap() {
+            Algorithm::Local
+        } else {
+            Algorithm::Passes
         }
     }
 
@@ -126,13 +264,34 @@ impl FftStage {
             .clone()
     }
 
-    /// Records the passes that transform `batch` sequences of length `n`, held back to back
-    /// in `data` from element `offset` on (a multiple of [`offset_alignment`] for the
-    /// stage's precision), using the same range of `scratch` for the ping-pong; returns
-    /// which buffer holds the result.
+    /// Records the transforms of `batch` sequences of length `n`, held back to back in
+    /// `data` from element `offset` on (a multiple of [`offset_alignment`] for the stage's
+    /// precision), by the length's [`algorithm`](Self::algorithm), using the same range of
+    /// `scratch` for a ping-pong; returns which buffer holds the result.
     #[allow(clippy::too_many_arguments)]
     pub fn encode(
         &self,
+        gpu: &Gpu,
+        encoder: &mut wgpu::CommandEncoder,
+        n: usize,
+        batch: usize,
+        inverse: bool,
+        data: &wgpu::Buffer,
+        scratch: &wgpu::Buffer,
+        offset: usize,
+    ) -> Result<Holder, GpuError> {
+        let algorithm = self.algorithm(n);
+        self.encode_with(
+            algorithm, gpu, encoder, n, batch, inverse, data, scratch, offset,
+        )
+    }
+
+    /// [`encode`](Self::encode) by the given algorithm; `Unsupported` when it cannot take
+    /// the length on this adapter.
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode_with(
+        &self,
+        algorithm: Algorithm,
         gpu: &Gpu,
         encoder: &mut wgpu::CommandEncoder,
         n: usize,
@@ -157,6 +316,9 @@ impl FftStage {
             });
         }
         let roots = self.roots(gpu, n);
+        if algorithm == Algorithm::Local {
+            return self.encode_local(gpu, encoder, &plan, batch, inverse, data, offset, &roots);
+        }
         // Every pass's parameters in one uniform buffer, one record per pass at the
         // adapter's offset alignment, and two bind groups (data → scratch and back): a
         // buffer and a bind group per pass made the host's cost per batch grow with the
@@ -247,6 +409,77 @@ impl FftStage {
         })
     }
 
+    /// [`Algorithm::Local`]: one dispatch, a workgroup per sequence, in place.
+    #[allow(clippy::too_many_arguments)]
+    fn encode_local(
+        &self,
+        gpu: &Gpu,
+        encoder: &mut wgpu::CommandEncoder,
+        plan: &[u32],
+        batch: usize,
+        inverse: bool,
+        data: &wgpu::Buffer,
+        offset: usize,
+        roots: &wgpu::Buffer,
+    ) -> Result<Holder, GpuError> {
+        let n: usize = plan.iter().map(|&r| r as usize).product();
+        let local = match &self.local {
+            Some(l) if n <= l.cap && plan.len() <= 16 => l,
+            _ => {
+                return Err(GpuError::Unsupported(format!(
+                    "FFT length {n} does not fit one workgroup's memory on this adapter \
+                     (at most {} values)",
+                    self.local_cap()
+                )))
+            }
+        };
+        let mut radix = [0u32; 16];
+        radix[..plan.len()].copy_from_slice(plan);
+        let params = LocalParams {
+            n: n as u32,
+            batch: batch as u32,
+            inverse: u32::from(inverse),
+            passes: plan.len() as u32,
+            radix,
+        };
+        let uniform = gpu.uniform("fft local", &params);
+        let elem = self.real.complex_bytes();
+        let group = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("fft local"),
+            layout: &local.layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: uniform.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: data,
+                        offset: (offset * elem) as u64,
+                        size: wgpu::BufferSize::new((n * batch * elem) as u64),
+                    }),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: roots.as_entire_binding(),
+                },
+            ],
+        });
+        let [x, y, z] = gpu.grid(batch as u64)?;
+        let mut pass = gpu.pass(
+            encoder,
+            match self.real {
+                Real::F32 => "fft f32 local",
+                Real::F64 => "fft f64 local",
+            },
+        );
+        pass.set_pipeline(&local.pipeline);
+        pass.set_bind_group(0, &group, &[]);
+        pass.dispatch_workgroups(x, y, z);
+        Ok(Holder::Data)
+    }
+
     /// Transforms host data in place: `data` holds `data.len() / n` sequences of length
     /// `n` back to back. Uploads, runs and reads back; for tests and benchmarks.
     pub fn transform(
@@ -256,8 +489,20 @@ impl FftStage {
         n: usize,
         inverse: bool,
     ) -> Result<(), GpuError> {
+        self.transform_with(self.algorithm(n), gpu, data, n, inverse)
+    }
+
+    /// [`transform`](Self::transform) by the given algorithm.
+    pub fn transform_with(
+        &self,
+        algorithm: Algorithm,
+        gpu: &Gpu,
+        data: &mut [Complex32],
+        n: usize,
+        inverse: bool,
+    ) -> Result<(), GpuError> {
         let flat: Vec<[f32; 2]> = data.iter().map(|c| [c.re, c.im]).collect();
-        let out = self.round_trip(gpu, flat, n, inverse)?;
+        let out = self.round_trip(algorithm, gpu, flat, n, inverse)?;
         for (d, o) in data.iter_mut().zip(out) {
             *d = Complex32::new(o[0], o[1]);
         }
@@ -273,13 +518,25 @@ impl FftStage {
         n: usize,
         inverse: bool,
     ) -> Result<(), GpuError> {
+        self.transform_f64_with(self.algorithm(n), gpu, data, n, inverse)
+    }
+
+    /// [`transform_f64`](Self::transform_f64) by the given algorithm.
+    pub fn transform_f64_with(
+        &self,
+        algorithm: Algorithm,
+        gpu: &Gpu,
+        data: &mut [Complex64],
+        n: usize,
+        inverse: bool,
+    ) -> Result<(), GpuError> {
         if self.real != Real::F64 {
             return Err(GpuError::Unsupported(
                 "transform_f64 needs a stage made with Real::F64".into(),
             ));
         }
         let flat: Vec<[f64; 2]> = data.iter().map(|c| [c.re, c.im]).collect();
-        let out = self.round_trip(gpu, flat, n, inverse)?;
+        let out = self.round_trip(algorithm, gpu, flat, n, inverse)?;
         for (d, o) in data.iter_mut().zip(out) {
             *d = Complex64::new(o[0], o[1]);
         }
@@ -290,6 +547,7 @@ impl FftStage {
     /// sequences of length `n` and reads it back.
     fn round_trip<T: bytemuck::Pod>(
         &self,
+        algorithm: Algorithm,
         gpu: &Gpu,
         flat: Vec<[T; 2]>,
         n: usize,
@@ -306,7 +564,17 @@ impl FftStage {
         let mut enc = gpu
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("fft") });
-        let holder = self.encode(gpu, &mut enc, n, flat.len() / n, inverse, &a, &b, 0)?;
+        let holder = self.encode_with(
+            algorithm,
+            gpu,
+            &mut enc,
+            n,
+            flat.len() / n,
+            inverse,
+            &a,
+            &b,
+            0,
+        )?;
         gpu.submit(enc);
         gpu.download(
             match holder {

@@ -705,11 +705,19 @@ impl Gpu {
         bindings: &[Binding],
         entries: &[&str],
     ) -> (wgpu::BindGroupLayout, Vec<wgpu::ComputePipeline>) {
-        let device = &self.device;
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some(label),
-            source: wgpu::ShaderSource::Wgsl(wgsl.into()),
-        });
+        let module = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(label),
+                source: wgpu::ShaderSource::Wgsl(wgsl.into()),
+            });
+        let layout = self.layout(label, bindings);
+        let pipelines = self.pipelines(label, &module, &layout, entries);
+        (layout, pipelines)
+    }
+
+    /// A stage's bind layout: `bindings` in binding order (0, 1, …).
+    pub fn layout(&self, label: &str, bindings: &[Binding]) -> wgpu::BindGroupLayout {
         let layout_entries: Vec<wgpu::BindGroupLayoutEntry> = bindings
             .iter()
             .enumerate()
@@ -730,12 +738,11 @@ impl Gpu {
                 count: None,
             })
             .collect();
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some(label),
-            entries: &layout_entries,
-        });
-        let pipelines = self.pipelines(label, &module, &layout, entries);
-        (layout, pipelines)
+        self.device
+            .create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                label: Some(label),
+                entries: &layout_entries,
+            })
     }
 
     /// More pipelines for a stage's bind `layout`, from another version of its shader (the

@@ -290,6 +290,11 @@ impl RefineStage {
         }
     }
 
+    /// What a user should know of how the stage was compiled ([`FftStage::notes`]).
+    pub fn notes(&self) -> Vec<String> {
+        self.fft.notes()
+    }
+
     /// The precision of the spectrum, the FFTs and the ratios.
     pub fn real(&self) -> Real {
         self.real

@@ -296,9 +296,12 @@ impl FirstPass {
         })
     }
 
-    /// What a user should know of how the first pass was compiled ([`RidgeStage::notes`]).
+    /// What a user should know of how the first pass was compiled ([`ScaleStage::notes`],
+    /// [`RidgeStage::notes`]).
     pub fn notes(&self) -> Vec<String> {
-        self.ridge.notes()
+        let mut notes = self.scales.notes();
+        notes.extend(self.ridge.notes());
+        notes
     }
 
     /// The coarse ridges, noise medians and noise gains of every run of every part, in one

@@ -165,6 +165,11 @@ impl ScaleStage {
         }
     }
 
+    /// What a user should know of how the stage was compiled ([`FftStage::notes`]).
+    pub fn notes(&self) -> Vec<String> {
+        self.fft.notes()
+    }
+
     /// |W|² on each run's coarse grid: per run, scale-major (`[k · steps + j]`), the
     /// values `track`'s first pass interpolates from the band-limited baseband. All runs
     /// go in one submission; split a campaign into batches that fit the adapter first.
