@@ -2,7 +2,9 @@
 // of `fft.wgsl` (same radices, twiddles, output order and roots table) run between
 // barriers on the sequence held in `sh`, so that the data crosses global memory twice (in
 // and out) instead of twice a pass. For lengths up to CAP, which the host sets from the
-// adapter's workgroup storage (`src/gpu/fft.rs`); longer ones take `fft.wgsl`'s passes.
+// adapter's workgroup storage (`src/gpu/fft.rs`, which compiles a few capacities so that
+// short sequences reserve less); longer ones take `fft.wgsl`'s passes. The host turns off
+// wgpu's zeroing of `sh`: every value is written before it is read.
 //
 // In a pass each invocation first reads and twists the R inputs of its butterflies into
 // registers, then, after a barrier, writes their R outputs: one buffer suffices because no
@@ -65,12 +67,13 @@ fn local_fft(
     }
     workgroupBarrier();
     var ns = 1u;
+    // Declared once: a `var` is zeroed where it is declared.
+    var v: array<vec2<real>, MAXV>;
     for (var s = 0u; s < p.passes; s = s + 1u) {
         let r = p.radix[s / 4u][s % 4u];
         let per = n / r;
         // e^{∓j2π i k/(ns R)} = root(i·k·n/(ns R)), as in fft.wgsl.
         let twist = n / (ns * r);
-        var v: array<vec2<real>, MAXV>;
         var c = 0u;
         for (var j = local; j < per; j = j + WG) {
             let k = j % ns;

@@ -54,7 +54,7 @@ fn fft_error(
 #[test]
 fn gpu_fft_matches_rustfft_for_every_radix_length_and_batch() {
     let gpu = gpu();
-    let stage = FftStage::new(&gpu);
+    let stage = FftStage::with_local(&gpu, skelid::gpu::Real::F32);
     println!("adapter: {}", gpu.adapter_name());
     let mut worst: f64 = 0.0;
     // Single radices, their mixtures, the plan lengths of the transform (2^a·{9,10,12,15}),
@@ -131,7 +131,7 @@ fn gpu_f64_fft_matches_rustfft_to_double_precision() {
         );
         return;
     }
-    let stage = FftStage::with_real(&gpu, Real::F64);
+    let stage = FftStage::with_local(&gpu, Real::F64);
     let mut worst: f64 = 0.0;
     // 16 kB of workgroup memory hold 1024 complex f64 values.
     assert!(stage.local_cap() >= 1024, "{}", stage.local_cap());

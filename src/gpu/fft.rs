@@ -47,8 +47,8 @@ pub enum Algorithm {
     /// in global memory: any length.
     Passes,
     /// One dispatch for all the passes (`fft_local.wgsl`), each sequence held in one
-    /// workgroup's memory: lengths up to [`FftStage::local_cap`]. The refinement's
-    /// transforms (40 to 3072 points) are of this kind.
+    /// workgroup's memory: lengths up to [`FftStage::local_cap`]. On an adapter with 48 kB of
+    /// it, every one of the refinement's transforms (40 to 3072 points, f64).
     Local,
 }
 
@@ -63,29 +63,37 @@ struct LocalParams {
     radix: [u32; 16],
 }
 
-/// The compiled `fft_local.wgsl` and the longest length it takes on this adapter.
+/// One compiled `fft_local.wgsl` and the longest length it takes.
 struct LocalStage {
     pipeline: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
     cap: usize,
 }
 
+/// The capacities `fft_local.wgsl` is compiled with on this adapter, smallest first: short
+/// sequences get a workgroup that reserves (and holds in registers) no more than they need,
+/// so that more workgroups share a multiprocessor. Empty where the adapter's workgroup
+/// memory holds too few values to be worth a dispatch of its own, or the hook says `0`.
+fn local_caps(gpu: &Gpu, real: Real) -> Vec<usize> {
+    let limits = &gpu.limits;
+    let most =
+        (limits.max_compute_workgroup_storage_size as usize / real.complex_bytes()).min(LOCAL_MAX);
+    let fits = limits.max_compute_invocations_per_workgroup as usize >= LOCAL_WORKGROUP
+        && limits.max_compute_workgroup_size_x as usize >= LOCAL_WORKGROUP;
+    let off = std::env::var(LOCAL_ENV).is_ok_and(|v| v.trim() == "0");
+    if most < 64 || !fits || off {
+        return Vec::new();
+    }
+    let mut caps: Vec<usize> = [256, 1024].into_iter().filter(|&c| c < most).collect();
+    caps.push(most);
+    caps
+}
+
 impl LocalStage {
-    /// Compiled for the adapter's workgroup memory; `Ok(None)` where that holds too few
-    /// values to be worth a dispatch of its own (or the hook turns it off), `Err` with the
-    /// driver's reason where it refused the shader (caught, so that the passes serve and
-    /// the device stays usable).
-    fn new(gpu: &Gpu, real: Real) -> Result<Option<LocalStage>, String> {
+    /// Compiled to hold `cap` values; `Err` with the driver's reason where it refused the
+    /// shader (caught, so that the passes serve and the device stays usable).
+    fn new(gpu: &Gpu, real: Real, cap: usize) -> Result<LocalStage, String> {
         use super::Binding::{Read, Uniform, Write};
-        let limits = &gpu.limits;
-        let cap = (limits.max_compute_workgroup_storage_size as usize / real.complex_bytes())
-            .min(LOCAL_MAX);
-        let fits = limits.max_compute_invocations_per_workgroup as usize >= LOCAL_WORKGROUP
-            && limits.max_compute_workgroup_size_x as usize >= LOCAL_WORKGROUP;
-        let off = std::env::var(LOCAL_ENV).is_ok_and(|v| v.trim() == "0");
-        if cap < 64 || !fits || off {
-            return Ok(None);
-        }
         let maxv = cap.div_ceil(LOCAL_WORKGROUP) + 4;
         let source = real.source(include_str!("../../shaders/fft_local.wgsl"));
         for line in ["const CAP: u32 = 1024u;", "const MAXV: u32 = 8u;"] {
@@ -101,13 +109,15 @@ impl LocalStage {
                 &format!("const MAXV: u32 = {maxv}u;"),
             );
         let layout = gpu.layout("fft_local.wgsl", &[Uniform, Write, Read]);
+        // Every value of the workgroup array is written before it is read: wgpu's zeroing
+        // of it would be one more pass over it for each sequence.
         let mut pipelines =
-            gpu.try_stage_variant("fft_local.wgsl", &wgsl, &layout, &["local_fft"])?;
-        Ok(Some(LocalStage {
+            gpu.try_stage_variant_unzeroed("fft_local.wgsl", &wgsl, &layout, &["local_fft"])?;
+        Ok(LocalStage {
             pipeline: pipelines.pop().expect("one entry point"),
             layout,
             cap,
-        }))
+        })
     }
 }
 
@@ -157,7 +167,8 @@ pub enum Holder {
 pub struct FftStage {
     pipeline: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
-    local: Option<LocalStage>,
+    /// The workgroup-memory transform by capacity, smallest first (empty: not compiled).
+    local: Vec<LocalStage>,
     /// Whether [`algorithm`](FftStage::algorithm) picks the local transform where it fits.
     prefer_local: bool,
     /// Why the driver refused the local transform, if it did.
@@ -173,8 +184,22 @@ impl FftStage {
         Self::with_real(gpu, Real::F32)
     }
 
-    /// [`new`](Self::new) in the given precision (f64 needs [`Gpu::has_f64`]).
+    /// [`new`](Self::new) in the given precision (f64 needs [`Gpu::has_f64`]). The
+    /// workgroup-memory transform is compiled where [`algorithm`](Self::algorithm) would
+    /// take it (on a hardware GPU, or as [`LOCAL_ENV`] says).
     pub fn with_real(gpu: &Gpu, real: Real) -> FftStage {
+        Self::build(gpu, real, false)
+    }
+
+    /// [`with_real`](Self::with_real) with the workgroup-memory transform compiled on any
+    /// adapter whose workgroup memory holds it, for [`encode_with`](Self::encode_with) to
+    /// be asked for it (tests, benchmarks); [`algorithm`](Self::algorithm) chooses as
+    /// before.
+    pub fn with_local(gpu: &Gpu, real: Real) -> FftStage {
+        Self::build(gpu, real, true)
+    }
+
+    fn build(gpu: &Gpu, real: Real, always_local: bool) -> FftStage {
         use super::Binding::{Read, UniformDynamic, Write};
         let (layout, mut pipelines) = gpu.stage(
             "fft.wgsl",
@@ -182,18 +207,27 @@ impl FftStage {
             &[UniformDynamic, Read, Write, Read],
             &["stockham_pass"],
         );
-        let (local, refused) = match LocalStage::new(gpu, real) {
-            Ok(local) => (local, None),
-            Err(why) => (None, Some(why)),
-        };
         // A software adapter (lavapipe) runs a workgroup's invocations one after another
         // on a CPU core and pays for every barrier and register-held value: there the
-        // passes were faster (200 runs at 128 scales, device time: f32 3.6 s against 6.3 s,
-        // f64 22.6 s against 27.6 s). A GPU's workgroup memory is the reason to hold a
-        // sequence there.
+        // passes were faster (20 runs at 128 scales, device time: f32 0.61 s against
+        // 0.82 s, f64 3.7 s against 4.2 s). A GPU's workgroup memory is the reason to hold
+        // a sequence there.
         let prefer_local = match std::env::var(LOCAL_ENV) {
             Ok(v) if v.trim() == "1" => true,
             _ => !gpu.is_software(),
+        };
+        let caps = if prefer_local || always_local {
+            local_caps(gpu, real)
+        } else {
+            Vec::new()
+        };
+        let (local, refused) = match caps
+            .into_iter()
+            .map(|cap| LocalStage::new(gpu, real, cap))
+            .collect::<Result<Vec<_>, _>>()
+        {
+            Ok(local) => (local, None),
+            Err(why) => (Vec::new(), Some(why)),
         };
         FftStage {
             pipeline: pipelines.pop().expect("one entry point"),
@@ -223,7 +257,7 @@ impl FftStage {
 
     /// The longest length [`Algorithm::Local`] takes on this adapter (0: none).
     pub fn local_cap(&self) -> usize {
-        self.local.as_ref().map_or(0, |l| l.cap)
+        self.local.last().map_or(0, |l| l.cap)
     }
 
     /// The algorithm [`encode`](Self::encode) uses for length `n`: on a hardware GPU the
@@ -423,8 +457,8 @@ impl FftStage {
         roots: &wgpu::Buffer,
     ) -> Result<Holder, GpuError> {
         let n: usize = plan.iter().map(|&r| r as usize).product();
-        let local = match &self.local {
-            Some(l) if n <= l.cap && plan.len() <= 16 => l,
+        let local = match self.local.iter().find(|l| n <= l.cap) {
+            Some(l) if plan.len() <= 16 => l,
             _ => {
                 return Err(GpuError::Unsupported(format!(
                     "FFT length {n} does not fit one workgroup's memory on this adapter \

@@ -181,6 +181,11 @@ struct Uploads {
     made: std::sync::atomic::AtomicUsize,
 }
 
+/// The most upload staging memory kept idle between batches (bytes): two batches in flight
+/// of 1000 throughput-campaign signals upload about 220 MB. Host memory, or a GPU's own
+/// where its driver maps that for the host (resizable BAR).
+const UPLOAD_IDLE_MAX: u64 = 256 << 20;
+
 /// One upload waiting for the next submission: its staging buffer (of size class
 /// `class`), the buffer it fills and the bytes copied from the start of both.
 struct StagedCopy {
@@ -199,12 +204,18 @@ impl Uploads {
         {
             let mut free = self.free.lock().unwrap_or_else(|p| p.into_inner());
             let mut returning = self.returning.lock().unwrap_or_else(|p| p.into_inner());
-            // Those whose map has completed are free again; a failed map's is dropped.
+            // Those whose map has completed are free again, up to UPLOAD_IDLE_MAX bytes
+            // idle (batches of changing sizes leave buffers in classes no longer asked
+            // for); a failed map's is dropped.
+            let mut idle: u64 = free.iter().map(|(c, b)| c * b.len() as u64).sum();
             returning.retain(
                 |(buffer, class, state)| match state.load(Ordering::Acquire) {
                     0 => true,
                     1 => {
-                        free.entry(*class).or_default().push(buffer.clone());
+                        if idle + class <= UPLOAD_IDLE_MAX {
+                            idle += class;
+                            free.entry(*class).or_default().push(buffer.clone());
+                        }
                         false
                     }
                     _ => false,
@@ -226,19 +237,40 @@ impl Uploads {
         (buffer, class)
     }
 
-    /// The copies written since the last submission, recorded into one command buffer.
-    fn record(&self, device: &wgpu::Device) -> Option<(wgpu::CommandBuffer, Vec<StagedCopy>)> {
-        let copies = std::mem::take(&mut *self.copies.lock().unwrap_or_else(|p| p.into_inner()));
+    /// Submits `buffer` after the copies written since the last submission, in one
+    /// submission, then asks for their staging buffers back. The list stays locked until
+    /// the submission is made: another thread's submission could otherwise take these
+    /// copies and go in after this one, whose work would then read its uploads before they
+    /// had landed.
+    fn submit_after(
+        &self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        buffer: wgpu::CommandBuffer,
+    ) -> wgpu::SubmissionIndex {
+        let mut pending = self.copies.lock().unwrap_or_else(|p| p.into_inner());
+        let copies = std::mem::take(&mut *pending);
+        let recorded = Self::record(device, &copies);
+        let index = crate::profile::span("queue.submit", || {
+            queue.submit(recorded.into_iter().chain([buffer]))
+        });
+        drop(pending);
+        self.give_back(copies);
+        index
+    }
+
+    /// `copies` recorded into one command buffer (none when there are none).
+    fn record(device: &wgpu::Device, copies: &[StagedCopy]) -> Option<wgpu::CommandBuffer> {
         if copies.is_empty() {
             return None;
         }
         let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("uploads"),
         });
-        for c in &copies {
+        for c in copies {
             enc.copy_buffer_to_buffer(&c.staging, 0, &c.target, 0, c.bytes);
         }
-        Some((enc.finish(), copies))
+        Some(enc.finish())
     }
 
     /// Asks for the staging buffers of submitted copies to be mapped again; each is free
@@ -604,15 +636,7 @@ impl Gpu {
         let buffer = crate::profile::span("encoder.finish", || enc.finish());
         // The uploads made since the last submission are copied first, in the same
         // submission, as wgpu does with its own queue writes.
-        let uploads = self.uploads.record(&self.device);
-        let (copies, staged) = match uploads {
-            Some((b, c)) => (Some(b), c),
-            None => (None, Vec::new()),
-        };
-        let index = crate::profile::span("queue.submit", || {
-            self.queue.submit(copies.into_iter().chain([buffer]))
-        });
-        self.uploads.give_back(staged);
+        let index = self.uploads.submit_after(&self.device, &self.queue, buffer);
         if let (Some(t), Some((staging, labels))) = (&self.timer, timed) {
             t.read_later(staging, labels);
         }
@@ -712,7 +736,7 @@ impl Gpu {
                 source: wgpu::ShaderSource::Wgsl(wgsl.into()),
             });
         let layout = self.layout(label, bindings);
-        let pipelines = self.pipelines(label, &module, &layout, entries);
+        let pipelines = self.pipelines(label, &module, &layout, entries, true);
         (layout, pipelines)
     }
 
@@ -756,6 +780,31 @@ impl Gpu {
         layout: &wgpu::BindGroupLayout,
         entries: &[&str],
     ) -> Result<Vec<wgpu::ComputePipeline>, String> {
+        self.try_variant(label, wgsl, layout, entries, true)
+    }
+
+    /// [`try_stage_variant`](Self::try_stage_variant) without wgpu's zeroing of workgroup
+    /// memory at the start of every workgroup: for shaders that write every workgroup
+    /// value before they read it (`fft_local.wgsl`, whose whole array would be zeroed for
+    /// each sequence, however short).
+    pub fn try_stage_variant_unzeroed(
+        &self,
+        label: &str,
+        wgsl: &str,
+        layout: &wgpu::BindGroupLayout,
+        entries: &[&str],
+    ) -> Result<Vec<wgpu::ComputePipeline>, String> {
+        self.try_variant(label, wgsl, layout, entries, false)
+    }
+
+    fn try_variant(
+        &self,
+        label: &str,
+        wgsl: &str,
+        layout: &wgpu::BindGroupLayout,
+        entries: &[&str],
+        zero_workgroup_memory: bool,
+    ) -> Result<Vec<wgpu::ComputePipeline>, String> {
         let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let internal = self.device.push_error_scope(wgpu::ErrorFilter::Internal);
         let module = self
@@ -764,7 +813,7 @@ impl Gpu {
                 label: Some(label),
                 source: wgpu::ShaderSource::Wgsl(wgsl.into()),
             });
-        let pipelines = self.pipelines(label, &module, layout, entries);
+        let pipelines = self.pipelines(label, &module, layout, entries, zero_workgroup_memory);
         let refused =
             pollster::block_on(internal.pop()).or_else(|| pollster::block_on(validation.pop()));
         match refused {
@@ -784,6 +833,7 @@ impl Gpu {
         module: &wgpu::ShaderModule,
         layout: &wgpu::BindGroupLayout,
         entries: &[&str],
+        zero_workgroup_memory: bool,
     ) -> Vec<wgpu::ComputePipeline> {
         let device = &self.device;
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -799,7 +849,10 @@ impl Gpu {
                     layout: Some(&pipeline_layout),
                     module,
                     entry_point: Some(entry),
-                    compilation_options: Default::default(),
+                    compilation_options: wgpu::PipelineCompilationOptions {
+                        zero_initialize_workgroup_memory: zero_workgroup_memory,
+                        ..Default::default()
+                    },
                     cache: None,
                 })
             })
@@ -961,7 +1014,7 @@ impl Gpu {
         })
     }
 
-    /// [`upload`](Self::upload) into a reused buffer written through the queue, as
+    /// [`upload`](Self::upload) into a reused buffer, through reused staging memory, as
     /// [`upload_segments`](Self::upload_segments) does: for a batch's large tables. Keep it
     /// until the submission that reads it has finished.
     pub fn upload_pooled<T: bytemuck::Pod + Send + Sync>(
