@@ -95,12 +95,7 @@ fn gpu_fft_matches_rustfft_for_every_radix_length_and_batch() {
     assert!(local_lengths >= 19, "{local_lengths}");
     // The planner: a hardware GPU holds what fits in workgroup memory; lavapipe, where
     // the passes are faster, keeps them (the test hook aside).
-    let hook = std::env::var(skelid::gpu::fft::LOCAL_ENV).ok();
-    let local = match hook.as_deref().map(str::trim) {
-        Some("1") => true,
-        Some("0") => false,
-        _ => !gpu.is_software(),
-    };
+    let local = skelid::gpu::fft::local_hook().unwrap_or(!gpu.is_software());
     assert_eq!(
         stage.algorithm(cap),
         if local {

@@ -40,6 +40,16 @@ const LOCAL_MAX: usize = 8192;
 /// measure both algorithms side by side, and lavapipe test the local one end to end.
 pub const LOCAL_ENV: &str = "SKELID_GPU_FFT_LOCAL";
 
+/// What [`LOCAL_ENV`] asks for: `Some(true)` for `1`, `Some(false)` for `0`, `None`
+/// (the planner's choice) when unset or anything else.
+pub fn local_hook() -> Option<bool> {
+    match std::env::var(LOCAL_ENV).ok()?.trim() {
+        "1" => Some(true),
+        "0" => Some(false),
+        _ => None,
+    }
+}
+
 /// How a length is transformed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Algorithm {
@@ -80,8 +90,7 @@ fn local_caps(gpu: &Gpu, real: Real) -> Vec<usize> {
         (limits.max_compute_workgroup_storage_size as usize / real.complex_bytes()).min(LOCAL_MAX);
     let fits = limits.max_compute_invocations_per_workgroup as usize >= LOCAL_WORKGROUP
         && limits.max_compute_workgroup_size_x as usize >= LOCAL_WORKGROUP;
-    let off = std::env::var(LOCAL_ENV).is_ok_and(|v| v.trim() == "0");
-    if most < 64 || !fits || off {
+    if most < 64 || !fits || local_hook() == Some(false) {
         return Vec::new();
     }
     let mut caps: Vec<usize> = [256, 1024].into_iter().filter(|&c| c < most).collect();
@@ -212,10 +221,7 @@ impl FftStage {
         // passes were faster (20 runs at 128 scales, device time: f32 0.61 s against
         // 0.82 s, f64 3.7 s against 4.2 s). A GPU's workgroup memory is the reason to hold
         // a sequence there.
-        let prefer_local = match std::env::var(LOCAL_ENV) {
-            Ok(v) if v.trim() == "1" => true,
-            _ => !gpu.is_software(),
-        };
+        let prefer_local = local_hook().unwrap_or(!gpu.is_software());
         let caps = if prefer_local || always_local {
             local_caps(gpu, real)
         } else {
@@ -351,7 +357,7 @@ impl FftStage {
         }
         let roots = self.roots(gpu, n);
         if algorithm == Algorithm::Local {
-            return self.encode_local(gpu, encoder, &plan, batch, inverse, data, offset, &roots);
+            return self.encode_local(gpu, encoder, n, &plan, batch, inverse, data, offset, &roots);
         }
         // Every pass's parameters in one uniform buffer, one record per pass at the
         // adapter's offset alignment, and two bind groups (data → scratch and back): a
@@ -449,6 +455,7 @@ impl FftStage {
         &self,
         gpu: &Gpu,
         encoder: &mut wgpu::CommandEncoder,
+        n: usize,
         plan: &[u32],
         batch: usize,
         inverse: bool,
@@ -456,7 +463,6 @@ impl FftStage {
         offset: usize,
         roots: &wgpu::Buffer,
     ) -> Result<Holder, GpuError> {
-        let n: usize = plan.iter().map(|&r| r as usize).product();
         let local = match self.local.iter().find(|l| n <= l.cap) {
             Some(l) if plan.len() <= 16 => l,
             _ => {

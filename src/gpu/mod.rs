@@ -171,7 +171,7 @@ pub struct Gpu {
 #[derive(Default)]
 struct Uploads {
     /// Mapped for writing and free, by size class.
-    free: Mutex<std::collections::HashMap<u64, Vec<wgpu::Buffer>>>,
+    free: Pool,
     /// Written and unmapped: copied into their targets at the start of the next submission.
     copies: Mutex<Vec<StagedCopy>>,
     /// Copied (or on their way to be): a map for writing asked for, which completes once
@@ -200,7 +200,7 @@ impl Uploads {
     /// one of its size class when an earlier batch's has come back, else a new one.
     fn take(&self, device: &wgpu::Device, bytes: u64, cap: u64) -> (wgpu::Buffer, u64) {
         use std::sync::atomic::Ordering;
-        let class = size_class(bytes).min(cap).max(bytes);
+        let class = pooled_size(bytes, cap);
         {
             let mut free = self.free.lock().unwrap_or_else(|p| p.into_inner());
             let mut returning = self.returning.lock().unwrap_or_else(|p| p.into_inner());
@@ -407,6 +407,12 @@ fn size_class(bytes: u64) -> u64 {
     bytes.next_multiple_of(step)
 }
 
+/// The size a pooled buffer for `bytes` (a multiple of 4) is made with: its size class,
+/// at most `cap`, never less than `bytes`.
+fn pooled_size(bytes: u64, cap: u64) -> u64 {
+    size_class(bytes).min(cap).max(bytes)
+}
+
 /// Free work buffers by size class.
 type Pool = Mutex<std::collections::HashMap<u64, Vec<wgpu::Buffer>>>;
 
@@ -414,7 +420,7 @@ type Pool = Mutex<std::collections::HashMap<u64, Vec<wgpu::Buffer>>>;
 /// `bytes`): a free one given back earlier, else one `make` creates at that size.
 fn take(pool: &Arc<Pool>, bytes: u64, cap: u64, make: impl FnOnce(u64) -> wgpu::Buffer) -> Pooled {
     let requested = bytes.max(4).next_multiple_of(4);
-    let class = size_class(requested).min(cap).max(requested);
+    let class = pooled_size(requested, cap);
     let free = {
         let mut free = pool.lock().unwrap_or_else(|p| p.into_inner());
         free.get_mut(&class).and_then(Vec::pop)
