@@ -40,6 +40,7 @@ impl WaveletPrep {
             fmin,
             fmax,
             spec,
+            noise_above_band,
             ..
         } = self;
         let opt = &opt;
@@ -69,15 +70,9 @@ impl WaveletPrep {
         let sweep: Vec<f64> = est.iter().map(|e| e.sweep).collect();
         // The sweep rate as the frequency track's own slope over ±σ_t: where the window saw a
         // signal the local model cannot describe, it disagrees with the model's β.
-        // σ′ too, now: σ is not smoothed, and both slopes share their windows. Beside them,
-        // the median of the spectrum above the band (a long record's serial share).
-        let (from_spectrum, [fslope, dsigma]) = rayon::join(
-            || {
-                spec.white_noise_variance(1.5 * fmax, fs / 2.0)
-                    .unwrap_or(f64::INFINITY)
-            },
-            || coarse_slopes(&t, [&frequency, &decay], &half),
-        );
+        // σ′ too, now: σ is not smoothed, and both slopes share their windows.
+        let [fslope, dsigma] = coarse_slopes(&t, [&frequency, &decay], &half);
+        let from_spectrum = noise_above_band.unwrap_or(f64::INFINITY);
         let noise_var = from_scales.min(from_spectrum);
         let noise_var = if noise_var.is_finite() {
             noise_var

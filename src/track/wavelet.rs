@@ -65,6 +65,9 @@ pub struct WaveletPrep {
     pub unit: f64,
     /// Keep the first pass's |W| grid in the track (costs S × steps × 4 bytes).
     pub keep_scalogram: bool,
+    /// White-noise variance per sample from the spectrum above the band (from 1.5 fmax to
+    /// fs/2; `None` where too few bins lie there), for the completion's noise floor.
+    pub(super) noise_above_band: Option<f64>,
 }
 
 /// What the first pass finds: the ridge on the coarse grid and the noise level per scale.
@@ -177,13 +180,22 @@ impl WaveletPrep {
         let s_count = freqs.len();
         let pad = (wl.support(wl.scale_for(fmin), 1e-8) * fs).ceil() as usize;
         let spec = Spectrum::with_mean(x, mean, fs, pad.min(4 * n));
-        let plans: Vec<ScalePlan> = freqs
-            .iter()
-            .map(|&f| {
-                let s = wl.scale_for(f);
-                ScalePlan::with_tolerance(&spec, &wl, s, PASS1_OVERSAMPLE, PASS1_TOLERANCE)
-            })
-            .collect();
+        // The median above the band is taken here, while the FFT has just left the spectrum
+        // in the cache: the completion, which needs it, comes after the transforms (and on
+        // a GPU, after the batch), and read the bins back from memory. Beside the plans, so
+        // that a long record's (700 000 bins at 2^20 samples) is not serial.
+        let (noise_above_band, plans) = rayon::join(
+            || spec.white_noise_variance(1.5 * fmax, fs / 2.0),
+            || -> Vec<ScalePlan> {
+                freqs
+                    .iter()
+                    .map(|&f| {
+                        let s = wl.scale_for(f);
+                        ScalePlan::with_tolerance(&spec, &wl, s, PASS1_OVERSAMPLE, PASS1_TOLERANCE)
+                    })
+                    .collect()
+            },
+        );
         let sigma_t_min = wl.time_sigma(wl.scale_for(fmax)) * fs;
         let h = ((sigma_t_min / 2.0).floor() as usize)
             .max(s_count.div_ceil(4))
@@ -217,6 +229,7 @@ impl WaveletPrep {
             steps,
             unit: 1.0 / variance.max(f64::MIN_POSITIVE),
             keep_scalogram: false,
+            noise_above_band,
         })
     }
 
