@@ -8,7 +8,7 @@ use num_complex::Complex64;
 use rayon::prelude::*;
 
 use crate::skeleton::{self, GridEstimate, GridPoint, ScaleValue};
-use crate::transform::band::{interpolate, ScalePlan};
+use crate::transform::band::{ScalePlan, Taps};
 use crate::transform::Spectrum;
 
 use super::{WaveletPrep, GRID_DIVISION, PASS2_OVERSAMPLE};
@@ -40,9 +40,10 @@ impl ScaleData {
     fn value(&self, spec: &Spectrum, n: usize) -> Option<ScaleValue> {
         let seg = self.segment(n)?;
         let x = n as f64 / self.step - seg.first as f64;
-        let w = interpolate(&seg.w, x);
-        let w1 = interpolate(&seg.d1, x);
-        let w2 = interpolate(&seg.d2, x);
+        let taps = Taps::new(seg.w.len(), x);
+        let w = taps.apply(&seg.w);
+        let w1 = taps.apply(&seg.d1);
+        let w2 = taps.apply(&seg.d2);
         let d1 = w1 / w;
         Some(ScaleValue {
             scale: self.plan.scale,

@@ -288,7 +288,7 @@ fn unwrap_phase(phase: &mut [f64], freq: &[f64], time: impl Fn(usize) -> f64) {
         let dt = time(i) - time(i - 1);
         let predicted = phase[i - 1] + PI * (freq[i - 1] + freq[i]) * dt;
         let d = phase[i] - predicted;
-        phase[i] -= 2.0 * PI * ((d + PI) / (2.0 * PI)).floor();
+        phase[i] -= 2.0 * PI * crate::transform::exact_floor((d + PI) / (2.0 * PI));
     }
 }
 
