@@ -182,7 +182,7 @@ impl WaveletPrep {
         let spec = Spectrum::with_mean(x, mean, fs, pad.min(4 * n));
         // The median above the band is taken here, while the FFT has just left the spectrum
         // in the cache: the completion, which needs it, comes after the transforms (and on
-        // a GPU, after the batch), and read the bins back from memory. Beside the plans, so
+        // a GPU, after the batch), used to read the bins back from memory. Beside the plans, so
         // that a long record's (700 000 bins at 2^20 samples) is not serial.
         let (noise_above_band, plans) = rayon::join(
             || spec.white_noise_variance(1.5 * fmax, fs / 2.0),

@@ -240,8 +240,8 @@ impl Spectrum {
 /// The `rank`-th smallest (from 0) of the bins' |X|², exactly the value that sorting them
 /// by `total_cmp` puts there. Non-negative floats order as their bit patterns, so the
 /// selection compares integers: a third cheaper than comparing by `total_cmp` (60 against
-/// 90 µs for the 21 000 bins above a campaign run's band, whose median was a fifth of a
-/// wavelet track's completion, the GPU backend's largest host share).
+/// 90 µs for the 21 000 bins above a campaign run's band, whose median was then a fifth
+/// of a wavelet track's completion; it is taken in the preparation now).
 pub fn nth_power(bins: &[Complex64], rank: usize) -> f64 {
     assert!(rank < bins.len(), "rank {rank} of {} bins", bins.len());
     let mut signs = 0u64;
