@@ -142,7 +142,7 @@ fn gpu_f64_fft_matches_rustfft_to_double_precision() {
                 .collect();
             let mut ours = x.clone();
             stage
-                .transform_f64_with(algorithm, &gpu, &mut ours, n, inverse)
+                .transform_with(algorithm, &gpu, &mut ours, n, inverse)
                 .unwrap();
             let mut planner = rustfft::FftPlanner::<f64>::new();
             let plan = if inverse {
@@ -175,6 +175,14 @@ fn gpu_fft_refuses_lengths_it_cannot_plan() {
     let mut x = vec![Complex32::new(0.0, 0.0); 14];
     let e = stage.transform(&gpu, &mut x, 7, false).unwrap_err();
     assert!(e.to_string().contains("prime factor above 5"), "{e}");
+    // Values of another precision than the stage's are refused, not reinterpreted.
+    let mut wide = vec![num_complex::Complex64::new(0.0, 0.0); 8];
+    let e = stage.transform(&gpu, &mut wide, 8, false).unwrap_err();
+    assert!(
+        e.to_string()
+            .contains("16 bytes given to a stage made with F32"),
+        "{e}"
+    );
 }
 
 /// The first pass of the wavelet track, CPU path: each scale's baseband by the CPU plan,

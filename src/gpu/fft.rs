@@ -8,7 +8,7 @@
 use std::collections::HashMap;
 use std::sync::Mutex;
 
-use num_complex::{Complex32, Complex64};
+use num_complex::Complex;
 
 use super::{Gpu, GpuError, Real};
 
@@ -521,11 +521,13 @@ impl FftStage {
     }
 
     /// Transforms host data in place: `data` holds `data.len() / n` sequences of length
-    /// `n` back to back. Uploads, runs and reads back; for tests and benchmarks.
-    pub fn transform(
+    /// `n` back to back, in the stage's precision (`Complex32` for [`Real::F32`],
+    /// `Complex64` for [`Real::F64`]). Uploads, runs and reads back; for tests and
+    /// benchmarks.
+    pub fn transform<T: bytemuck::Pod>(
         &self,
         gpu: &Gpu,
-        data: &mut [Complex32],
+        data: &mut [Complex<T>],
         n: usize,
         inverse: bool,
     ) -> Result<(), GpuError> {
@@ -533,52 +535,25 @@ impl FftStage {
     }
 
     /// [`transform`](Self::transform) by the given algorithm.
-    pub fn transform_with(
+    pub fn transform_with<T: bytemuck::Pod>(
         &self,
         algorithm: Algorithm,
         gpu: &Gpu,
-        data: &mut [Complex32],
+        data: &mut [Complex<T>],
         n: usize,
         inverse: bool,
     ) -> Result<(), GpuError> {
-        let flat: Vec<[f32; 2]> = data.iter().map(|c| [c.re, c.im]).collect();
+        if 2 * std::mem::size_of::<T>() != self.real.complex_bytes() {
+            return Err(GpuError::Unsupported(format!(
+                "values of {} bytes given to a stage made with {:?}",
+                2 * std::mem::size_of::<T>(),
+                self.real
+            )));
+        }
+        let flat: Vec<[T; 2]> = data.iter().map(|c| [c.re, c.im]).collect();
         let out = self.round_trip(algorithm, gpu, flat, n, inverse)?;
         for (d, o) in data.iter_mut().zip(out) {
-            *d = Complex32::new(o[0], o[1]);
-        }
-        Ok(())
-    }
-
-    /// Transforms host data in place in f64 (a stage made with [`Real::F64`]): `data`
-    /// holds `data.len() / n` sequences of length `n`. For tests and benchmarks.
-    pub fn transform_f64(
-        &self,
-        gpu: &Gpu,
-        data: &mut [Complex64],
-        n: usize,
-        inverse: bool,
-    ) -> Result<(), GpuError> {
-        self.transform_f64_with(self.algorithm(n), gpu, data, n, inverse)
-    }
-
-    /// [`transform_f64`](Self::transform_f64) by the given algorithm.
-    pub fn transform_f64_with(
-        &self,
-        algorithm: Algorithm,
-        gpu: &Gpu,
-        data: &mut [Complex64],
-        n: usize,
-        inverse: bool,
-    ) -> Result<(), GpuError> {
-        if self.real != Real::F64 {
-            return Err(GpuError::Unsupported(
-                "transform_f64 needs a stage made with Real::F64".into(),
-            ));
-        }
-        let flat: Vec<[f64; 2]> = data.iter().map(|c| [c.re, c.im]).collect();
-        let out = self.round_trip(algorithm, gpu, flat, n, inverse)?;
-        for (d, o) in data.iter_mut().zip(out) {
-            *d = Complex64::new(o[0], o[1]);
+            *d = Complex::new(o[0], o[1]);
         }
         Ok(())
     }
