@@ -818,16 +818,16 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     // As the ridge's wide programme would be on a driver with smaller limits: a workgroup
     // beyond what any adapter allows, and then a shader that does not parse.
     let too_wide = DOUBLE.replace("workgroup_size(64)", "workgroup_size(65536)");
-    let refused = g.try_stage_variant("too wide", &too_wide, &layout, &["main"]);
+    let refused = g.try_stage_variant("too wide", &too_wide, &layout, &["main"], true);
     println!("refused: {:?}", refused.as_ref().err());
     assert!(refused.is_err());
     let broken = DOUBLE.replace("fn main", "fn main(");
     assert!(g
-        .try_stage_variant("broken", &broken, &layout, &["main"])
+        .try_stage_variant("broken", &broken, &layout, &["main"], true)
         .is_err());
     // Nothing reached the device's uncaptured-error handler, which fails every later batch.
     g.check().unwrap();
-    let same = g.try_stage_variant("same", DOUBLE, &layout, &["main"]);
+    let same = g.try_stage_variant("same", DOUBLE, &layout, &["main"], true);
     assert_eq!(same.map(|p| p.len()), Ok(1));
     g.check().unwrap();
     // And the device still computes: an FFT against rustfft, as the test above.

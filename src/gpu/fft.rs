@@ -121,7 +121,7 @@ impl LocalStage {
         // Every value of the workgroup array is written before it is read: wgpu's zeroing
         // of it would be one more pass over it for each sequence.
         let mut pipelines =
-            gpu.try_stage_variant_unzeroed("fft_local.wgsl", &wgsl, &layout, &["local_fft"])?;
+            gpu.try_stage_variant("fft_local.wgsl", &wgsl, &layout, &["local_fft"], false)?;
         Ok(LocalStage {
             pipeline: pipelines.pop().expect("one entry point"),
             layout,

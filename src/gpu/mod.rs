@@ -776,34 +776,14 @@ impl Gpu {
     }
 
     /// More pipelines for a stage's bind `layout`, from another version of its shader (the
-    /// ridge's wide programme): one per entry point of `entries`, in that order, or why the
-    /// device refused them. The refusal is caught in error scopes, so that an optional
-    /// variant never fails the device for every later batch (see [`check`](Self::check)).
+    /// ridge's wide programme, the workgroup-memory FFT): one per entry point of `entries`,
+    /// in that order, or why the device refused them. The refusal is caught in error
+    /// scopes, so that an optional variant never fails the device for every later batch
+    /// (see [`check`](Self::check)). `zero_workgroup_memory: false` leaves out wgpu's
+    /// zeroing of workgroup memory at the start of every workgroup, for shaders that write
+    /// every workgroup value before they read it (`fft_local.wgsl`, whose whole array would
+    /// be zeroed for each sequence, however short).
     pub fn try_stage_variant(
-        &self,
-        label: &str,
-        wgsl: &str,
-        layout: &wgpu::BindGroupLayout,
-        entries: &[&str],
-    ) -> Result<Vec<wgpu::ComputePipeline>, String> {
-        self.try_variant(label, wgsl, layout, entries, true)
-    }
-
-    /// [`try_stage_variant`](Self::try_stage_variant) without wgpu's zeroing of workgroup
-    /// memory at the start of every workgroup: for shaders that write every workgroup
-    /// value before they read it (`fft_local.wgsl`, whose whole array would be zeroed for
-    /// each sequence, however short).
-    pub fn try_stage_variant_unzeroed(
-        &self,
-        label: &str,
-        wgsl: &str,
-        layout: &wgpu::BindGroupLayout,
-        entries: &[&str],
-    ) -> Result<Vec<wgpu::ComputePipeline>, String> {
-        self.try_variant(label, wgsl, layout, entries, false)
-    }
-
-    fn try_variant(
         &self,
         label: &str,
         wgsl: &str,

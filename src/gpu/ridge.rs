@@ -563,7 +563,7 @@ impl RidgeStage {
         assert!(SOURCE.contains(&narrow), "ridge.wgsl declares {narrow}");
         let source = SOURCE.replace(&narrow, &format!("const STEPS_WG: u32 = {WIDE}u;"));
         let mut pipelines =
-            gpu.try_stage_variant("ridge.wgsl (wide)", &source, layout, &["ridge_steps"])?;
+            gpu.try_stage_variant("ridge.wgsl (wide)", &source, layout, &["ridge_steps"], true)?;
         Ok(Programme {
             pipeline: pipelines.pop().expect("one entry point"),
             width: WIDE as usize,
