@@ -62,6 +62,10 @@ pub enum Algorithm {
     Local,
 }
 
+/// Most radix passes `fft_local.wgsl`'s uniform holds (its `radix`, four `vec4<u32>`):
+/// the longest local length, [`LOCAL_MAX`] = 2^13, takes 7.
+const LOCAL_PASSES: usize = 16;
+
 /// The shader `fft_local.wgsl`'s `Local` uniform, declared once here for the host.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -70,7 +74,7 @@ struct LocalParams {
     batch: u32,
     inverse: u32,
     passes: u32,
-    radix: [u32; 16],
+    radix: [u32; LOCAL_PASSES],
 }
 
 /// One compiled `fft_local.wgsl` and the longest length it takes.
@@ -464,7 +468,7 @@ impl FftStage {
         roots: &wgpu::Buffer,
     ) -> Result<Holder, GpuError> {
         let local = match self.local.iter().find(|l| n <= l.cap) {
-            Some(l) if plan.len() <= 16 => l,
+            Some(l) if plan.len() <= LOCAL_PASSES => l,
             _ => {
                 return Err(GpuError::Unsupported(format!(
                     "FFT length {n} does not fit one workgroup's memory on this adapter \
@@ -473,7 +477,7 @@ impl FftStage {
                 )))
             }
         };
-        let mut radix = [0u32; 16];
+        let mut radix = [0u32; LOCAL_PASSES];
         radix[..plan.len()].copy_from_slice(plan);
         let params = LocalParams {
             n: n as u32,
@@ -484,28 +488,20 @@ impl FftStage {
         };
         let uniform = gpu.uniform("fft local", &params);
         let elem = self.real.complex_bytes();
-        let group = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("fft local"),
-            layout: &local.layout,
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: uniform.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                        buffer: data,
-                        offset: (offset * elem) as u64,
-                        size: wgpu::BufferSize::new((n * batch * elem) as u64),
-                    }),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: roots.as_entire_binding(),
-                },
-            ],
+        let sequences = wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+            buffer: data,
+            offset: (offset * elem) as u64,
+            size: wgpu::BufferSize::new((n * batch * elem) as u64),
         });
+        let group = gpu.bind_resources(
+            "fft local",
+            &local.layout,
+            vec![
+                uniform.as_entire_binding(),
+                sequences,
+                roots.as_entire_binding(),
+            ],
+        );
         let [x, y, z] = gpu.grid(batch as u64)?;
         let mut pass = gpu.pass(
             encoder,
