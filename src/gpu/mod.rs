@@ -735,15 +735,19 @@ impl Gpu {
         bindings: &[Binding],
         entries: &[&str],
     ) -> (wgpu::BindGroupLayout, Vec<wgpu::ComputePipeline>) {
-        let module = self
-            .device
-            .create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some(label),
-                source: wgpu::ShaderSource::Wgsl(wgsl.into()),
-            });
+        let module = self.module(label, wgsl);
         let layout = self.layout(label, bindings);
         let pipelines = self.pipelines(label, &module, &layout, entries, true);
         (layout, pipelines)
+    }
+
+    /// The shader module of WGSL source `wgsl`.
+    fn module(&self, label: &str, wgsl: &str) -> wgpu::ShaderModule {
+        self.device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(label),
+                source: wgpu::ShaderSource::Wgsl(wgsl.into()),
+            })
     }
 
     /// A stage's bind layout: `bindings` in binding order (0, 1, …).
@@ -793,12 +797,7 @@ impl Gpu {
     ) -> Result<Vec<wgpu::ComputePipeline>, String> {
         let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let internal = self.device.push_error_scope(wgpu::ErrorFilter::Internal);
-        let module = self
-            .device
-            .create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some(label),
-                source: wgpu::ShaderSource::Wgsl(wgsl.into()),
-            });
+        let module = self.module(label, wgsl);
         let pipelines = self.pipelines(label, &module, layout, entries, zero_workgroup_memory);
         let refused =
             pollster::block_on(internal.pop()).or_else(|| pollster::block_on(validation.pop()));
