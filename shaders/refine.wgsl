@@ -1,11 +1,12 @@
 // The wavelet track after its ridge, for a batch of runs (host: src/gpu/refine.rs; the CPU
 // reference is WaveletPrep::estimate_grid and skeleton::estimate_point).
 //
-// `scatter`: for each item (one run × one scale × one derivative order) fills its length-M
-// buffer with the exact pass band (tolerance 1e-10) of 2·X[m]·Ψ(s·f_m)/L times
-// (j2π(f_m − f_c))^order, f_c the demodulation bin's frequency. After the inverse FFTs the
-// three sequences of a scale hold the baseband w, w′, w″ (w = W·e^{−j2πf_c t}): w′/w and
-// (ln w)″ are W′/W − j2πf_c and (ln W)″, without the cancellation that full-frequency
+// `scatter`: for each item (one run × one scale) fills its three length-M buffers with the
+// exact pass band (tolerance 1e-10) of 2·X[m]·Ψ(s·f_m)/L times (j2π(f_m − f_c))^order for
+// orders 0, 1 and 2, f_c the demodulation bin's frequency: Ψ, the item's costliest part
+// (three exponentials in `real`), is evaluated once for the three. After the inverse FFTs
+// the three sequences of a scale hold the baseband w, w′, w″ (w = W·e^{−j2πf_c t}): w′/w
+// and (ln w)″ are W′/W − j2πf_c and (ln W)″, without the cancellation that full-frequency
 // derivatives suffer in f32.
 //
 // `estimate`: per grid point, W at the ridge's scale and its neighbours by cubic Lagrange
@@ -40,8 +41,8 @@ struct Item {
     hi: u32,        // last bin of the pass band
     centre: u32,    // demodulation bin c
     m: u32,         // decimated length M
-    data: u32,      // offset of this item's M values in `data`
-    order: u32,     // 0, 1 or 2: W, W′ or W″
+    data: u32,      // offset in `data` of its w; w′ and w″ follow at +M and +2M
+    _pad: u32,
     scale_hi: f32,  // wavelet scale s (s), hi + lo
     scale_lo: f32,
     df_hi: f32,     // bin spacing of the padded spectrum (Hz), hi + lo
@@ -168,20 +169,21 @@ fn scatter_one(it: Item, q: u32) {
     let d = (q + it.m - first) % it.m;
     let bin = it.lo + d;
     var v = vec2<real>(real(0.0), real(0.0));
+    var v1 = v;
+    var v2 = v;
     if (bin <= it.hi) {
         let df = real(it.df_hi) + real(it.df_lo);
         let w = pair(vec2<f32>(it.norm_hi, it.norm_lo))
             * psi(real(it.scale_hi) + real(it.scale_lo), real(bin) * df);
         v = spectrum[it.spec + d] * w;
-        // (j·omega)^order, omega = 2π (f_m − f_c): the baseband derivative.
+        // (j·omega)^order, omega = 2π (f_m − f_c): the baseband derivatives.
         let omega = real(2.0) * PI_R * real(i32(bin) - i32(it.centre)) * df;
-        if (it.order == 1u) {
-            v = vec2<real>(-omega * v.y, omega * v.x);
-        } else if (it.order == 2u) {
-            v = v * (-omega * omega);
-        }
+        v1 = vec2<real>(-omega * v.y, omega * v.x);
+        v2 = v * (-omega * omega);
     }
     data[it.data + q] = v;
+    data[it.data + it.m + q] = v1;
+    data[it.data + 2u * it.m + q] = v2;
 }
 
 // ---------------------------------------------------------------------------- complex

@@ -31,7 +31,8 @@ struct WaveletParams {
     _pad: [u32; 3],
 }
 
-/// The shader's `Item`: one run × one scale × one derivative order.
+/// The shader's `Item`: one run × one scale, its three derivative orders (W, W′, W″) back
+/// to back from `data`.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 struct Item {
@@ -41,7 +42,7 @@ struct Item {
     centre: u32,
     m: u32,
     data: u32,
-    order: u32,
+    _pad: u32,
     scale: [f32; 2],
     df: [f32; 2],
     norm: [f32; 2],
@@ -544,7 +545,7 @@ impl RefineStage {
         }
         let mut data_len = 0usize;
         let mut groups: Vec<(usize, usize, usize)> = Vec::new(); // (length, offset, sequences)
-        let mut items = Vec::with_capacity(3 * blocks.len());
+        let mut items = Vec::with_capacity(blocks.len());
         for &(q, j) in &blocks {
             let r = part[q].run;
             let (k, plan) = &planned[r].scales[j];
@@ -565,21 +566,19 @@ impl RefineStage {
             e.centre = centre as u32;
             e.omega_c =
                 (2.0 * std::f64::consts::PI * centre as f64 * spec.sample_rate / l as f64) as f32;
-            for order in 0..3u32 {
-                items.push(Item {
-                    // Where bin `lo` lies in the piece's segment.
-                    spec: (spec_at[q] + lo - planned[r].first) as u32,
-                    lo: lo as u32,
-                    hi: hi.min(spec.bins.len() - 1) as u32,
-                    centre: centre as u32,
-                    m: m as u32,
-                    data: (data_len + order as usize * m) as u32,
-                    order,
-                    scale: split(plan.scale),
-                    df: split(spec.sample_rate / l as f64),
-                    norm: split(2.0 / l as f64),
-                });
-            }
+            items.push(Item {
+                // Where bin `lo` lies in the piece's segment.
+                spec: (spec_at[q] + lo - planned[r].first) as u32,
+                lo: lo as u32,
+                hi: hi.min(spec.bins.len() - 1) as u32,
+                centre: centre as u32,
+                m: m as u32,
+                data: data_len as u32,
+                _pad: 0,
+                scale: split(plan.scale),
+                df: split(spec.sample_rate / l as f64),
+                norm: split(2.0 / l as f64),
+            });
             data_len += 3 * m;
         }
         let mut run_params = Vec::with_capacity(part.len());
