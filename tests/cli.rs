@@ -1066,7 +1066,7 @@ fn a_record_larger_than_one_gpu_binding_is_split_across_parts() {
     };
     let prep = skelid::track::WaveletPrep::new(&x, 1000.0, &opt, None).unwrap();
     let scales: usize = prep.plans.iter().map(|p| p.len * 8).sum();
-    assert!(scales > cap && prep.steps * 256 * 4 < cap && prep.spec.bins.len() * 8 < cap);
+    assert!(scales > cap && prep.steps * 256 * 4 < cap && prep.spec.bin_count() * 8 < cap);
     let track = |backend| {
         track_csv(
             d.path(),

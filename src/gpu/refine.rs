@@ -131,7 +131,7 @@ fn plan(prep: &WaveletPrep, grid: &[GridPoint]) -> Planned {
         .filter(|(_, w)| !w.is_empty())
         .map(|(k, _)| (k, prep.exact_plan(k)))
         .collect();
-    let (first, bins) = band::covered(scales.iter().map(|(_, p)| p), prep.spec.bins.len());
+    let (first, bins) = band::covered(scales.iter().map(|(_, p)| p), prep.spec.bin_count());
     Planned {
         scales,
         first,
@@ -460,7 +460,9 @@ impl RefineStage {
             .zip(&planned)
             .with_min_len(super::PAR_MIN)
             .map(|(p, q)| {
-                let big = p.spec.bins[q.range()]
+                let big = p
+                    .spec
+                    .bins(q.range())
                     .iter()
                     .map(|c| c.re.abs().max(c.im.abs()))
                     .fold(0.0f64, f64::max);
@@ -570,7 +572,7 @@ impl RefineStage {
                 // Where bin `lo` lies in the piece's segment.
                 spec: (spec_at[q] + lo - planned[r].first) as u32,
                 lo: lo as u32,
-                hi: hi.min(spec.bins.len() - 1) as u32,
+                hi: hi.min(spec.bin_count() - 1) as u32,
                 centre: centre as u32,
                 m: m as u32,
                 data: data_len as u32,
@@ -604,7 +606,9 @@ impl RefineStage {
         let scaled = |q: usize| {
             let r = part[q].run;
             let k = ln_scale[r].exp();
-            preps[r].spec.bins[planned[r].range()]
+            preps[r]
+                .spec
+                .bins(planned[r].range())
                 .iter()
                 .map(move |c| (c.re * k, c.im * k))
         };

@@ -409,7 +409,7 @@ impl FirstPass {
         let longest = prep.plans.iter().map(|p| p.len).max().unwrap_or(0) as u64 * 8;
         for (what, need) in [
             ("one decimated scale", longest + 8 * 256),
-            ("the spectrum", prep.spec.bins.len() as u64 * 8),
+            ("the spectrum", prep.spec.bin_count() as u64 * 8),
             ("the ridge grid", (prep.steps * prep.freqs.len()) as u64 * 4),
         ] {
             if need > gpu.max_binding() {
@@ -430,7 +430,7 @@ impl FirstPass {
 pub fn batch_bytes(prep: &WaveletPrep) -> u64 {
     let scales: u64 = prep.plans.iter().map(|p| p.len as u64 * 8).sum();
     let back = (prep.steps * prep.freqs.len()) as u64 * 4;
-    let spectrum = prep.spec.bins.len() as u64 * 8;
+    let spectrum = prep.spec.bin_count() as u64 * 8;
     scales.max(back).max(spectrum)
 }
 

@@ -59,7 +59,7 @@ pub struct RunScales<'a> {
 impl RunScales<'_> {
     /// The bins of the spectrum that the scales' pass bands cover: the first, and how many.
     fn bins(&self) -> (usize, usize) {
-        band::covered(self.plans, self.spectrum.bins.len())
+        band::covered(self.plans, self.spectrum.bin_count())
     }
 }
 
@@ -277,7 +277,7 @@ impl ScaleStage {
             let (first, len) = bands[r];
             for (o, c) in out
                 .iter_mut()
-                .zip(&runs[r].spectrum.bins[first..first + len])
+                .zip(runs[r].spectrum.bins(first..first + len))
             {
                 *o = [c.re as f32, c.im as f32];
             }
@@ -360,7 +360,7 @@ impl ScaleStage {
                 // lies past the spectrum's end: then hi < lo).
                 spec: (shared.spec_offset[r] + lo - shared.bands[r].0) as u32,
                 lo: lo as u32,
-                hi: hi.min(spec.bins.len() - 1) as u32,
+                hi: hi.min(spec.bin_count() - 1) as u32,
                 centre: centre as u32,
                 m: m as u32,
                 data: data_len as u32,
@@ -466,7 +466,7 @@ mod tests {
             .collect();
         let w = Morlet::default();
         let spec = Spectrum::new(&x, fs, 800);
-        let last = spec.bins.len() - 1;
+        let last = spec.bin_count() - 1;
         // Bands inside the spectrum, and one whose top scales run past its end.
         for (fmin, fmax) in [(0.5, 15.0), (10.0, 40.0), (20.0, 99.9)] {
             let plans: Vec<ScalePlan> = log_frequencies(fmin, fmax, 48)

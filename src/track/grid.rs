@@ -9,7 +9,7 @@ use rayon::prelude::*;
 
 use crate::skeleton::{self, GridEstimate, GridPoint, ScaleValue};
 use crate::transform::band::{ScalePlan, Taps};
-use crate::transform::Spectrum;
+use crate::transform::{Morlet, Spectrum};
 
 use super::{WaveletPrep, GRID_DIVISION, PASS2_OVERSAMPLE};
 
@@ -125,12 +125,7 @@ impl WaveletPrep {
     /// The pass-2 plan of scale `k`: the exact pass band (the first pass cut it at 1e-3),
     /// for the W, W′, W″ the skeleton is estimated from.
     pub fn exact_plan(&self, k: usize) -> ScalePlan {
-        ScalePlan::new(
-            &self.spec,
-            &self.opt.wavelet,
-            self.plans[k].scale,
-            PASS2_OVERSAMPLE,
-        )
+        exact_plan(&self.spec, &self.opt.wavelet, self.plans[k].scale)
     }
 
     /// Whether the window's bias is removed ([`WaveletOptions::correct`]).
@@ -203,4 +198,10 @@ impl WaveletPrep {
             })
             .collect()
     }
+}
+
+/// The pass-2 plan of scale `s` for `spec` ([`WaveletPrep::exact_plan`]); the preparation
+/// keeps the bins of every scale's.
+pub(super) fn exact_plan(spec: &Spectrum, wavelet: &Morlet, s: f64) -> ScalePlan {
+    ScalePlan::new(spec, wavelet, s, PASS2_OVERSAMPLE)
 }

@@ -307,7 +307,7 @@ pub(crate) fn band_with_mean(
     wavelet: &Morlet,
 ) -> Result<(f64, f64), TrackError> {
     let spec = Spectrum::with_mean(x, mean, fs, 0);
-    let p: Vec<f64> = spec.bins.iter().map(|c| c.norm_sqr()).collect();
+    let p: Vec<f64> = spec.all_bins().iter().map(|c| c.norm_sqr()).collect();
     let w = (p.len() / 1024).max(1);
     let mut smooth = vec![0.0; p.len()];
     let mut acc = 0.0;

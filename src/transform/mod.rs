@@ -170,8 +170,11 @@ pub fn log_frequencies(fmin: f64, fmax: f64, count: usize) -> Vec<f64> {
 /// at one end of the record never sees the other end (no circular wrap-around).
 #[derive(Debug, Clone)]
 pub struct Spectrum {
-    /// Bins 0..=L/2 of the real FFT of the padded signal (bin 0, the mean, is zeroed).
-    pub bins: Vec<Complex64>,
+    /// The bins kept of 0..=L/2 of the real FFT of the padded signal (bin 0, the mean, is
+    /// zeroed): all of them, or after [`keep`](Self::keep) those from `first` on.
+    bins: Vec<Complex64>,
+    /// The bin that `bins[0]` holds.
+    first: usize,
     /// Padded length L (even).
     pub padded_len: usize,
     /// Number of real samples N (the record occupies padded indices 0..N).
@@ -208,11 +211,50 @@ impl Spectrum {
         bins[0] = Complex64::new(0.0, 0.0);
         Spectrum {
             bins,
+            first: 0,
             padded_len,
             samples: n,
             sample_rate,
             mean,
         }
+    }
+
+    /// Number of bins of the one-sided spectrum, L/2 + 1, whichever of them are kept.
+    pub fn bin_count(&self) -> usize {
+        self.padded_len / 2 + 1
+    }
+
+    /// Bins `range` (absolute bin numbers), which must have been kept.
+    #[inline]
+    pub fn bins(&self, range: std::ops::Range<usize>) -> &[Complex64] {
+        if range.is_empty() {
+            return &[];
+        }
+        let kept = self.kept();
+        assert!(
+            range.start >= kept.start && range.end <= kept.end,
+            "bins {range:?} asked of a spectrum that kept {kept:?}"
+        );
+        &self.bins[range.start - self.first..range.end - self.first]
+    }
+
+    /// Every bin, 0..=L/2, of a spectrum that has kept them all.
+    pub fn all_bins(&self) -> &[Complex64] {
+        self.bins(0..self.bin_count())
+    }
+
+    /// The bins kept (absolute bin numbers).
+    pub fn kept(&self) -> std::ops::Range<usize> {
+        self.first..self.first + self.bins.len()
+    }
+
+    /// Keeps only bins `range` (within those kept), in memory of their own size: a prepared
+    /// signal waits for its transforms (on a GPU, for its whole batch) holding only the bins
+    /// its pass bands read, a tenth of the spectrum or less, instead of all of it.
+    pub fn keep(&mut self, range: std::ops::Range<usize>) {
+        let range = range.start..range.end.max(range.start);
+        self.bins = self.bins(range.clone()).to_vec();
+        self.first = range.start;
     }
 
     /// Frequency (Hz) of bin `m`.
@@ -226,11 +268,11 @@ impl Spectrum {
     pub fn white_noise_variance(&self, f_lo: f64, f_hi: f64) -> Option<f64> {
         let df = self.sample_rate / self.padded_len as f64;
         let lo = ((f_lo / df).ceil() as usize).max(1);
-        let hi = ((f_hi / df).floor() as usize).min(self.bins.len() - 1);
+        let hi = ((f_hi / df).floor() as usize).min(self.bin_count() - 1);
         if hi < lo + 16 {
             return None;
         }
-        let band = &self.bins[lo..=hi];
+        let band = self.bins(lo..hi + 1);
         let med = nth_power(band, band.len() / 2);
         // |X|² of complex Gaussian noise is exponential: median = ln 2 × mean.
         Some(med / std::f64::consts::LN_2 / self.samples as f64)
@@ -557,6 +599,40 @@ mod tests {
         for n in [3, 17, 999, 108_477] {
             let m = fast_len(n);
             assert!(m >= n && m.is_multiple_of(2) && m < n + n / 4 + 4);
+        }
+    }
+
+    #[test]
+    fn a_spectrum_that_keeps_some_bins_gives_exactly_those() {
+        let x: Vec<f64> = (0..1000)
+            .map(|i| (0.37 * i as f64).sin() + 0.01 * i as f64)
+            .collect();
+        let full = Spectrum::new(&x, 100.0, 200);
+        let count = full.bin_count();
+        assert_eq!(count, full.all_bins().len());
+        let mut part = full.clone();
+        part.keep(40..90);
+        assert_eq!(part.kept(), 40..90);
+        assert_eq!(
+            part.bin_count(),
+            count,
+            "the spectrum's size is the whole one's"
+        );
+        assert_eq!(part.bins(40..90), full.bins(40..90));
+        assert_eq!(part.bins(55..56), &full.all_bins()[55..56]);
+        // An empty range reads nothing, wherever it lies.
+        assert!(part.bins(7..7).is_empty() && part.bins(500..500).is_empty());
+        // Keeping again narrows; nothing is kept of an empty range.
+        part.keep(50..60);
+        assert_eq!(part.bins(50..60), full.bins(50..60));
+        let mut none = full.clone();
+        none.keep(70..70);
+        assert!(none.kept().is_empty());
+        // Bins not kept are refused, not read from elsewhere.
+        for range in [39..41, 59..61, 0..count] {
+            let r = range.clone();
+            let asked = std::panic::catch_unwind(|| part.bins(r).len());
+            assert!(asked.is_err(), "{range:?} of a spectrum keeping 50..60");
         }
     }
 

@@ -12,7 +12,7 @@ pub fn scale(spec: &Spectrum, wavelet: &Morlet, s: f64, buf: &mut Vec<Complex64>
     buf.clear();
     buf.resize(l, Complex64::new(0.0, 0.0));
     let norm = 2.0 / l as f64;
-    for (m, b) in spec.bins.iter().enumerate().skip(1) {
+    for (m, b) in spec.all_bins().iter().enumerate().skip(1) {
         buf[m] = b * (norm * wavelet.spectrum(s, spec.bin_freq(m)));
     }
     complex_plan(l, true).process(buf);
