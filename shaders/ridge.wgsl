@@ -3,8 +3,10 @@
 //
 // `stats`: one workgroup per run × scale: the column's lowest score (given to the steps
 // outside the scale's cone of influence, as src/track.rs does) and the median power inside
-// the cone (the noise floor), by a 32-step radix selection on the bits of non-negative f32
-// values, which sort as their u32 patterns.
+// the cone (the noise floor), by a radix selection on the bits of non-negative f32 values,
+// which sort as their u32 patterns: a byte a pass, most significant first, each pass
+// counting the values that share the bytes chosen so far into 256 bins (four passes over
+// the column, where one a bit took 32).
 //
 // `ridge_steps`: one workgroup per run: the penalised dynamic programme of src/ridge.rs,
 // maximising Σ score(k_j, j) − λ Σ (k_j − k_{j−1})², the O(S²) maximum per step spread over
@@ -107,7 +109,11 @@ const REPAIR: u32 = 4u;
 const SPLIT: u32 = 8u;
 
 var<workgroup> lowest: array<f32, WG>;
-var<workgroup> below: atomic<u32>;
+// column_stats' selection: a byte's histogram, its running sums, and the byte chosen with
+// the rank left within it.
+var<workgroup> bins: array<atomic<u32>, 256>;
+var<workgroup> sums: array<u32, 256>;
+var<workgroup> chosen: vec2<u32>;
 var<workgroup> which: array<u32, WG>;
 // ridge_steps' running scores, two halves: the step's own (read, less `shift`) and the
 // next step's (written); they swap every step, so one barrier a step suffices.
@@ -154,28 +160,44 @@ fn column_stats(@builtin(workgroup_id) wid: vec3<u32>,
         workgroupBarrier();
     }
     let floor_score = log_score(lowest[0], run.unit);
-    // The largest bit pattern t with #{v < t} ≤ mid is the mid-th smallest value.
+    // The mid-th smallest bit pattern, a byte at a time: among the values whose higher
+    // bytes are those chosen (`prefix`), the byte whose running count first passes the rank
+    // left (`rank`), which then counts from that byte's first value.
     var ans = 0u;
     if (si.mid != NO_MEDIAN) {
-        for (var bit = 31i; bit >= 0i; bit = bit - 1i) {
-            let cand = ans | (1u << u32(bit));
-            if (lid == 0u) {
-                atomicStore(&below, 0u);
-            }
+        var rank = si.mid;
+        for (var shift = 24u; shift < 32u; shift = shift - 8u) {
+            // The bytes above this one (none for the first).
+            let above = select(0xffffffffu << (shift + 8u), 0u, shift == 24u);
+            atomicStore(&bins[lid], 0u);
             workgroupBarrier();
-            var c = 0u;
             for (var j = si.first + lid; j <= si.last; j += WG) {
-                if (bitcast<u32>(power[base + j]) < cand) {
-                    c += 1u;
+                let v = bitcast<u32>(power[base + j]);
+                if ((v & above) == ans) {
+                    atomicAdd(&bins[(v >> shift) & 255u], 1u);
                 }
             }
-            atomicAdd(&below, c);
-            let total = workgroupUniformLoad(&below);
-            if (total <= si.mid) {
-                ans = cand;
-            }
-            // Everyone has read the count before it is reset.
             workgroupBarrier();
+            // Running sums over the 256 bytes (WG is 256: one each), doubling the reach.
+            let own = atomicLoad(&bins[lid]);
+            sums[lid] = own;
+            workgroupBarrier();
+            for (var reach = 1u; reach < 256u; reach = reach << 1u) {
+                var add = 0u;
+                if (lid >= reach) {
+                    add = sums[lid - reach];
+                }
+                workgroupBarrier();
+                sums[lid] = sums[lid] + add;
+                workgroupBarrier();
+            }
+            let through = sums[lid];
+            if (own > 0u && through - own <= rank && rank < through) {
+                chosen = vec2<u32>(lid, rank - (through - own));
+            }
+            let pick = workgroupUniformLoad(&chosen);
+            ans = ans | (pick.x << shift);
+            rank = pick.y;
         }
     }
     if (lid == 0u) {

@@ -348,7 +348,11 @@ fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
         (RidgeSearch::Dynamic, 700),
         (RidgeSearch::Dynamic, 8),
     ] {
-        let preps = prepared(&signals, scales, search);
+        // With their |W|² grids read back, to check each noise median against a sort.
+        let mut preps = prepared(&signals, scales, search);
+        for p in &mut preps {
+            p.keep_scalogram = true;
+        }
         // Two parts in one submission.
         let refs: Vec<&WaveletPrep> = preps.iter().collect();
         let parts = vec![refs[..2].to_vec(), refs[2..].to_vec()];
@@ -368,6 +372,20 @@ fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
             assert_eq!(o.median_power, w.median_power);
         }
         for (p, o) in preps.iter().zip(&ours) {
+            // The GPU's median of each scale's inner steps is exactly the middle value of
+            // its own |W|² there, sorted.
+            let power = o.power.as_ref().expect("the grid read back");
+            let mut medians = 0;
+            for k in 0..p.freqs.len() {
+                let sorted = p.noise_steps(k).map(|(first, last)| {
+                    let mut col = power[k * p.steps + first..=k * p.steps + last].to_vec();
+                    col.sort_by_key(|v| v.to_bits());
+                    f64::from(col[col.len() / 2])
+                });
+                assert_eq!(o.median_power[k], sorted, "scale {k} of {}", p.freqs.len());
+                medians += usize::from(sorted.is_some());
+            }
+            assert!(medians > 0);
             let cpu = p.coarse_ridge();
             let differ = cpu.path.iter().zip(&o.path).filter(|(a, b)| a != b).count();
             let off = cpu
