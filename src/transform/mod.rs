@@ -252,7 +252,6 @@ impl Spectrum {
     /// signal waits for its transforms (on a GPU, for its whole batch) holding only the bins
     /// its pass bands read, a tenth of the spectrum or less, instead of all of it.
     pub fn keep(&mut self, range: std::ops::Range<usize>) {
-        let range = range.start..range.end.max(range.start);
         self.bins = self.bins(range.clone()).to_vec();
         self.first = range.start;
     }
