@@ -163,7 +163,7 @@ fn column_stats(@builtin(workgroup_id) wid: vec3<u32>,
     // The mid-th smallest bit pattern, a byte at a time: among the values whose higher
     // bytes are those chosen (`prefix`), the byte whose running count first passes the rank
     // left (`rank`), which then counts from that byte's first value.
-    var ans = 0u;
+    var prefix = 0u;
     if (si.mid != NO_MEDIAN) {
         var rank = si.mid;
         for (var shift = 24u; shift < 32u; shift = shift - 8u) {
@@ -173,7 +173,7 @@ fn column_stats(@builtin(workgroup_id) wid: vec3<u32>,
             workgroupBarrier();
             for (var j = si.first + lid; j <= si.last; j += WG) {
                 let v = bitcast<u32>(power[base + j]);
-                if ((v & above) == ans) {
+                if ((v & above) == prefix) {
                     atomicAdd(&bins[(v >> shift) & 255u], 1u);
                 }
             }
@@ -196,12 +196,12 @@ fn column_stats(@builtin(workgroup_id) wid: vec3<u32>,
                 chosen = vec2<u32>(lid, rank - (through - own));
             }
             let pick = workgroupUniformLoad(&chosen);
-            ans = ans | (pick.x << shift);
+            prefix = prefix | (pick.x << shift);
             rank = pick.y;
         }
     }
     if (lid == 0u) {
-        stats[run.info + k] = vec2<f32>(floor_score, bitcast<f32>(ans));
+        stats[run.info + k] = vec2<f32>(floor_score, bitcast<f32>(prefix));
     }
 }
 
