@@ -407,7 +407,8 @@ fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
                 .fold(0.0, f64::max);
             println!(
                 "{search:?}, {scales} scales, {} samples, {} steps: path differs at {differ} \
-                 steps (by ≤ {off} scales), medians within {worst_median:.1e}",
+                 steps (by ≤ {off} scales), medians within {worst_median:.1e} of the CPU's, \
+                 {medians} equal to a sort of the GPU's own |W|²",
                 p.len(),
                 p.steps
             );

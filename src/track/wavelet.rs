@@ -451,6 +451,11 @@ mod tests {
             }
         }
         let share = kept.len() as f64 / prep.spec.bin_count() as f64;
+        println!(
+            "kept bins {kept:?} of {}: {:.1} % of the spectrum",
+            prep.spec.bin_count(),
+            100.0 * share
+        );
         assert!(
             share < 0.25,
             "{} of {} bins kept",
