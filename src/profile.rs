@@ -78,6 +78,9 @@ static DISPATCHER_NANOS: AtomicU64 = AtomicU64::new(0);
 static DISPATCHER_WAIT_NANOS: AtomicU64 = AtomicU64::new(0);
 static HOST_PREPARE_NANOS: AtomicU64 = AtomicU64::new(0);
 static HOST_COMPLETE_NANOS: AtomicU64 = AtomicU64::new(0);
+static GRID_POINTS: AtomicU64 = AtomicU64::new(0);
+static HOST_SOLVED: AtomicU64 = AtomicU64::new(0);
+static HOST_REFINED: AtomicU64 = AtomicU64::new(0);
 
 /// Adds `d` to `stage`.
 pub fn add(stage: Stage, d: Duration) {
@@ -194,6 +197,15 @@ pub fn run_delay() -> Option<u64> {
     text.split_whitespace().nth(1)?.parse().ok()
 }
 
+/// Counts the grid points a GPU refinement decoded (`points`), those whose f32 estimate it
+/// did not trust and the host solved again in f64 from the GPU's W, W′, W″ (`solved`), and
+/// those the host refined whole on the CPU, for want of a slot (`refined`).
+pub fn refined_points(points: u64, solved: u64, refined: u64) {
+    GRID_POINTS.fetch_add(points, Ordering::Relaxed);
+    HOST_SOLVED.fetch_add(solved, Ordering::Relaxed);
+    HOST_REFINED.fetch_add(refined, Ordering::Relaxed);
+}
+
 /// Counts one GPU batch (first pass and refinement of many signals) of `n` signals.
 pub fn gpu_batch(n: usize) {
     GPU_BATCHES.fetch_add(1, Ordering::Relaxed);
@@ -241,6 +253,14 @@ pub struct Traffic {
     /// Wall seconds it spent completing the tracks on every core (noise floor, validity,
     /// smoothing, every sample from the skeleton) once the device had answered.
     pub host_complete_s: f64,
+    /// Grid points the GPU refined.
+    pub grid_points: u64,
+    /// Of those, points whose f32 bias correction or thresholds the host did not trust and
+    /// solved again in f64 from the W, W′, W″ the GPU computed.
+    pub host_solved: u64,
+    /// Of those, points that found no slot for their W, W′, W″ and that the host refined
+    /// whole on the CPU.
+    pub host_refined: u64,
 }
 
 impl Traffic {
@@ -281,6 +301,9 @@ pub fn snapshot() -> Profile {
             dispatcher_core_wait_s: DISPATCHER_WAIT_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
             host_prepare_s: HOST_PREPARE_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
             host_complete_s: HOST_COMPLETE_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
+            grid_points: GRID_POINTS.load(Ordering::Relaxed),
+            host_solved: HOST_SOLVED.load(Ordering::Relaxed),
+            host_refined: HOST_REFINED.load(Ordering::Relaxed),
         },
     }
 }
@@ -302,6 +325,9 @@ pub fn reset() {
         &DISPATCHER_WAIT_NANOS,
         &HOST_PREPARE_NANOS,
         &HOST_COMPLETE_NANOS,
+        &GRID_POINTS,
+        &HOST_SOLVED,
+        &HOST_REFINED,
     ] {
         c.store(0, Ordering::Relaxed);
     }

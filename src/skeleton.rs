@@ -287,11 +287,26 @@ pub fn estimate_point(
             value(k)
         }
     };
-    let o = match [pick(best - 1), pick(best), pick(best + 1)] {
-        [Some(a), Some(b), Some(c3)] => estimate([a, b, c3]),
-        // Without correction a point counts as corrected, as the estimate below has it.
-        _ => return GridEstimate::unobserved(scales[best], freqs[best], best, !correct_bias),
-    };
+    match [pick(best - 1), pick(best), pick(best + 1)] {
+        [Some(a), Some(b), Some(c3)] => estimate_triple(w, scales, best, [a, b, c3], correct_bias),
+        // Without correction a point counts as corrected, as `estimate_triple` has it.
+        _ => GridEstimate::unobserved(scales[best], freqs[best], best, !correct_bias),
+    }
+}
+
+/// The skeleton at a grid point from the values of the three scales around its best one
+/// (`best` − 1, `best`, `best` + 1): the three-scale estimate ([`estimate`]) and, when
+/// `correct_bias`, the bias correction ([`correct`]). The second half of
+/// [`estimate_point`]; the GPU's host side calls it for the points whose f32 solve it does
+/// not trust (`gpu::refine`).
+pub fn estimate_triple(
+    w: &Morlet,
+    scales: &[f64],
+    best: usize,
+    triple: [ScaleValue; 3],
+    correct_bias: bool,
+) -> GridEstimate {
+    let o = estimate(triple);
     let ok = o.peaked;
     let fix: Option<[f64; 5]> = if !correct_bias {
         Some([0.0; 5])

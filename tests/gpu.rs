@@ -605,12 +605,19 @@ fn gpu_refinement_matches_the_cpu_skeleton_at_every_grid_point() {
         .zip(&grids[0])
         .map(|(p, g)| p.estimate_grid(g))
         .collect();
-    let mut precisions = vec![Real::F32];
+    // Each precision with slots for every unsure point, and the best with 100 slots a
+    // sub-part: the rest refined whole on the host, from its own spectrum.
+    let mut configs = vec![(Real::F32, None)];
     if gpu.has_f64() {
-        precisions.push(Real::F64);
+        configs.push((Real::F64, None));
     }
-    for real in precisions {
-        let stage = RefineStage::with_real(&gpu, real);
+    configs.push((configs.last().unwrap().0, Some(100)));
+    for (real, limit) in configs {
+        let mut stage = RefineStage::with_real(&gpu, real);
+        if let Some(n) = limit {
+            stage = stage.with_slot_limit(n);
+        }
+        let before = skelid::profile::snapshot().gpu;
         let ours = stage
             .submit(&gpu, &parts, &grids)
             .unwrap()
@@ -657,6 +664,17 @@ fn gpu_refinement_matches_the_cpu_skeleton_at_every_grid_point() {
         }
         amps.sort_by(f64::total_cmp);
         let p99 = amps[amps.len() * 99 / 100];
+        // Other tests of this binary may add to the counters meanwhile: for the record only.
+        let after = skelid::profile::snapshot().gpu;
+        let refined = after.host_refined - before.host_refined;
+        println!(
+            "{real:?}, slots {limit:?}: the host solved {} points again in f64, {refined} of \
+             them refined whole",
+            after.host_solved - before.host_solved,
+        );
+        if limit.is_some() {
+            assert!(refined > 0, "the slots were enough: nothing refined whole");
+        }
         println!(
             "{real:?}: {points} points; observed ln A within {observed:.1e}; corrected ln A \
              within {amp:.1e} (99 % within {p99:.1e}), f within {freq:.1e} Hz; flags differ at \
@@ -668,16 +686,19 @@ fn gpu_refinement_matches_the_cpu_skeleton_at_every_grid_point() {
         assert!(observed < bound, "{observed:e}");
         // The f32 correction: 99 % of points to 1e-4. The worst are where the local model is
         // extreme and the signal faint (a decay's tail 12 nepers down, decaying at 100 1/s
-        // and sweeping 1700 Hz/s), which the SNR and cone-of-influence rules then drop; the
-        // track tests bound the agreement where samples are valid.
-        let (worst_amp, worst_f) = if real == Real::F64 {
-            (2e-3, 2e-2)
+        // and sweeping 1700 Hz/s). Where the f32 solve is not trusted (it failed or took
+        // more than three Newton steps, a threshold nearly met) the host solves the point
+        // again in f64 from the W, W′, W″ the GPU computed in `real`: with f64 there, every
+        // point to 1e-4 and 1e-3 Hz with the same flags (measured 2.5e-5 and 2.5e-4 Hz; 1.5e-3
+        // and 2.3e-2 Hz, flags differing at 2 points a 1000, before the host's solve).
+        let (worst_amp, worst_f, flags_allowed) = if real == Real::F64 {
+            (1e-4, 1e-3, 0)
         } else {
-            (1e-2, 0.1)
+            (1e-2, 0.1, points / 1000)
         };
         assert!(p99 < 1e-4 && amp < worst_amp, "{p99:e} {amp:e}");
         assert!(freq < worst_f, "{freq:e}");
-        assert!(flags * 1000 <= points, "{flags} of {points}");
+        assert!(flags <= flags_allowed, "{flags} of {points}");
     }
 }
 

@@ -123,6 +123,16 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
                 1e3 * t.traffic.dispatcher_cpu_s / t.traffic.signals.max(1) as f64,
                 1e3 * t.traffic.dispatcher_core_wait_s / t.traffic.signals.max(1) as f64
             );
+            println!(
+                "{} refinement: {} grid points, {} ({:.2} %) solved again in f64 on the host \
+                 where the f32 estimate was not trusted, {} of them refined whole on the CPU \
+                 (no slot left for their W, W′, W″)",
+                t.backend,
+                t.traffic.grid_points,
+                t.traffic.host_solved,
+                100.0 * t.traffic.host_solved as f64 / t.traffic.grid_points.max(1) as f64,
+                t.traffic.host_refined
+            );
         }
     }
     print_host_share(&result);

@@ -85,6 +85,12 @@ impl ScalePlan {
         2.0 * PI * self.centre_bin as f64 * t / spec.padded_len as f64
     }
 
+    /// The demodulation bin's angular frequency (rad/s): W′/W = w′/w + j·this for the
+    /// baseband w of a transform whose derivatives are taken at f − f_c.
+    pub fn carrier_rate(&self) -> f64 {
+        2.0 * PI * self.bin_hz * self.centre_bin as f64
+    }
+
     /// Number of bins inside the pass band.
     pub fn bins(&self) -> usize {
         if self.hi >= self.lo {
