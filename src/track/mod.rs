@@ -121,7 +121,7 @@ pub struct WaveletOptions {
     /// Remove the window's bias from decay and sweep (the local-model correction).
     pub correct: bool,
     /// Below this in-band SNR, average ln A and f over a window that grows as (SNR)⁻²
-    /// (up to ±16 σ_t); 0 turns it off.
+    /// (up to ±16 σ_t), in part from √2 times it down; 0 turns it off.
     pub smooth_snr: f64,
 }
 
