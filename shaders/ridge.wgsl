@@ -12,8 +12,8 @@
 // maximising Σ score(k_j, j) − λ Σ (k_j − k_{j−1})², the O(S²) maximum per step spread over
 // the workgroup (several invocations a scale where S is at most half the workgroup: 256
 // invocations, or 1024 in the host's wide programme), accumulated scores in
-// workgroup memory (shifted by their value at scale 0 every step, so that f32 keeps its
-// precision over thousands of steps; two halves that swap, one barrier a step),
+// workgroup memory (shifted by the step's largest every step, so that f32 keeps its
+// precision over thousands of steps, and the most where paths compete for the ridge; two halves that swap, one barrier a step),
 // back-pointers in global memory. `backtrack` then follows the back-pointers. Only the path and the
 // statistics go back to the host.
 //
@@ -313,9 +313,12 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
     if (s <= STEPS_WG / 2u) {
         t = STEPS_WG / s;
     }
-    // The step's scores are acc[src + q] − shift: the shift by the previous step's value at
-    // scale 0 keeps f32's precision over thousands of steps (the same rounding as shifting
-    // them in place).
+    // The step's scores are acc[src + q] − shift: the shift by the previous step's largest
+    // keeps f32's precision over thousands of steps (the same rounding as shifting them in
+    // place), and the scores that compete for the ridge near 0, where f32 is finest. Shifted
+    // by the value at scale 0 instead (far below the ridge, tens of units away), they were
+    // rounded to about 2e-6 a step, and two modes of the beam's hammer test whose paths
+    // differ by 9.7e-6 in a total of 3 342 took the lower path.
     var src = 0u;
     var shift = 0.0;
     var slot = 0u;
@@ -368,7 +371,7 @@ fn ridge_steps(@builtin(workgroup_id) wid: vec3<u32>,
             }
         }
         workgroupBarrier();
-        shift = acc[dst];
+        shift = from_orderable(atomicLoad(&top[next]));
         src = dst;
         slot = next;
         if (j + 1u == run.own) {
