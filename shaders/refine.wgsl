@@ -586,10 +586,10 @@ fn estimate(
     let o = estimate3(triple[0], triple[1], triple[2], data_y(triple[0], triple[1], triple[2]));
     var fix = Fix(0.0, 0.0, rates(o), true, 0u);
     // Where f32 may decide otherwise than f64 (the CPU): a vertex within 2 % of the triple's
-    // ends (the parabola's slopes are good to about 1 % in f32), a model near the steady-
-    // tone threshold, a correction that failed, took more than three Newton steps (the
-    // Jacobian is ill-conditioned: the f64 solve can fail or land elsewhere; 1 to 3 % of
-    // points on the demo and F-16 archives) or is near the ln 2 limit.
+    // ends (the parabola's slopes are good to about 1 % in f32), a correction that failed,
+    // took more than three Newton steps (the Jacobian is ill-conditioned: the f64 solve can
+    // fail or land elsewhere) or is near the ln 2 limit: 0.6 to 2.9 % of points on the
+    // demo, campaign and real archives.
     var unsure = o.edge > -0.02 && o.edge < 0.02;
     if (run.correct == 1u) {
         if (!o.peaked) {

@@ -13,8 +13,8 @@
 // the workgroup (several invocations a scale where S is at most half the workgroup: 256
 // invocations, or 1024 in the host's wide programme), accumulated scores in
 // workgroup memory (shifted by the step's largest every step, so that f32 keeps its
-// precision over thousands of steps, and the most where paths compete for the ridge; two halves that swap, one barrier a step),
-// back-pointers in global memory. `backtrack` then follows the back-pointers. Only the path and the
+// precision over thousands of steps, and the most where paths compete for the ridge; two
+// halves that swap, one barrier a step), back-pointers in global memory. `backtrack` then follows the back-pointers. Only the path and the
 // statistics go back to the host.
 //
 // Both work on one chunk of steps per dispatch (the `chunk` uniform), carrying the scores

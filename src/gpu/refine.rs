@@ -314,7 +314,7 @@ impl<'a> Unsure<'a> {
         let prep = self.prep;
         let wl = prep.wavelet();
         if self.scales.is_empty() {
-            self.scales = prep.freqs.iter().map(|&f| wl.scale_for(f)).collect();
+            self.scales = prep.scales();
             self.plans = vec![None; prep.freqs.len()];
         }
         self.solved += 1;
@@ -715,8 +715,7 @@ impl RefineStage {
             e.data = data_len as u32;
             e.m = m as u32;
             e.centre = centre as u32;
-            e.omega_c =
-                (2.0 * std::f64::consts::PI * centre as f64 * spec.sample_rate / l as f64) as f32;
+            e.omega_c = plan.carrier_rate() as f32;
             items.push(Item {
                 // Where bin `lo` lies in the piece's segment.
                 spec: (spec_at[q] + lo - planned[r].first) as u32,

@@ -84,8 +84,9 @@ impl Lanes {
     /// 128 steps: at 256 scales, lanes started 30–84 steps early on a 2^20-sample log
     /// sweep, and 51–68 on white noise, ended their warm-up on the sequential scores, bit
     /// for bit (with the scores shifted by scale 0's; shifted by each step's largest, since
-    /// 2026-11-29, a lane on a clear ridge gets there within a few steps). `SKELID_GPU_RIDGE_LANES=N` fixes the target (a value that is not a positive
-    /// number is an error).
+    /// 2026-11-29, a lane on a clear ridge gets there within a few steps).
+    /// `SKELID_GPU_RIDGE_LANES=N` fixes the target (a value that is not a positive number is
+    /// an error).
     pub fn for_gpu(gpu: &Gpu) -> Result<Lanes, GpuError> {
         let target = match std::env::var(LANES_ENV).ok() {
             Some(v) => v.parse::<usize>().ok().filter(|&n| n > 0).ok_or_else(|| {

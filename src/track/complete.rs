@@ -615,7 +615,8 @@ fn smooth_low_snr(
     let smoothed: Vec<Option<(f64, f64)>> = pts
         .par_iter()
         .enumerate()
-        .map(|(c, &g)| {
+        // Each task's window weights in one buffer, not one allocation a point.
+        .map_init(Vec::new, |wk: &mut Vec<f64>, (c, &g)| {
             if snr[g] >= target * std::f64::consts::SQRT_2 {
                 return None;
             }
@@ -626,13 +627,12 @@ fn smooth_low_snr(
             // Weights that fall to 0 at the window's ends: a point entering the window as
             // its half-width changes by a rounding enters with no weight. With equal
             // weights one such point moved the line by 1e-3 on the F-16.
-            let wk: Vec<f64> = (lo..hi)
-                .map(|i| w[i] * taper((tv[i] - t0).abs() / half))
-                .collect();
+            wk.clear();
+            wk.extend((lo..hi).map(|i| w[i] * taper((tv[i] - t0).abs() / half)));
             let n = hi - lo;
             match (
-                window_line(&tv[lo..hi], &ln_a[lo..hi], Some(&wk), 0, n, t0),
-                window_line(&tv[lo..hi], &f[lo..hi], Some(&wk), 0, n, t0),
+                window_line(&tv[lo..hi], &ln_a[lo..hi], Some(wk), 0, n, t0),
+                window_line(&tv[lo..hi], &f[lo..hi], Some(wk), 0, n, t0),
             ) {
                 (Some((a, _)), Some((b, _))) => {
                     let mix = (2.0 - (snr[g] / target).powi(2)).clamp(0.0, 1.0);

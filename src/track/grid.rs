@@ -128,6 +128,12 @@ impl WaveletPrep {
         exact_plan(&self.spec, &self.opt.wavelet, self.plans[k].scale)
     }
 
+    /// The analysis scales (s), one per frequency of [`freqs`](Self::freqs).
+    pub fn scales(&self) -> Vec<f64> {
+        let wl = self.opt.wavelet;
+        self.freqs.iter().map(|&f| wl.scale_for(f)).collect()
+    }
+
     /// Whether the window's bias is removed ([`WaveletOptions::correct`]).
     pub fn corrects(&self) -> bool {
         self.opt.correct
@@ -180,7 +186,7 @@ impl WaveletPrep {
                 }
             })
             .collect();
-        let scales: Vec<f64> = self.freqs.iter().map(|&f| wl.scale_for(f)).collect();
+        let scales = self.scales();
         grid.par_iter()
             .map(|p| {
                 skeleton::estimate_point(
