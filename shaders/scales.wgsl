@@ -7,7 +7,17 @@
 // (src/transform/band.rs explains why this is exact).
 //
 // `power`: |W|² on the coarse time grid by cubic Lagrange interpolation of the periodic
-// baseband sequence, at positions the host computed in f64 (f32 cannot hold j·h·M/L).
+// baseband sequence, at positions the host computed in f64 (f32 cannot hold j·h·M/L),
+// their fractions as f32 pairs.
+//
+// Precision: the spectrum, Ψ (morlet.wgsl), the FFTs (fft.wgsl) and the interpolation are
+// in `real`, which the host sets to f64 where the adapter has SHADER_F64; |W|² goes to the
+// ridge as f32. An f32 FFT's rounding is relative to the whole sequence: where a loud
+// stretch shares a scale with quiet ones (a hammer's ring-down, a sweep's silent lead-in),
+// the quiet steps' |W|² are wrong by up to tens of per cent, and with them the ridge there
+// and the noise floor (the median), so that the CPU and GPU backends decided differently.
+
+alias real = f32;
 
 struct Item {
     spec: u32,      // offset in `spectrum` of bin lo (only the runs' pass bands are there)
@@ -19,44 +29,21 @@ struct Item {
     power: u32,     // offset of the item's coarse power values in `power`
     positions: u32, // offset of its table in `index`/`frac`
     steps: u32,     // coarse steps
-    scale: f32,     // wavelet scale s (s)
-    df: f32,        // bin spacing of the padded spectrum (Hz)
-    norm: f32,      // 2/L
+    scale_hi: f32,  // wavelet scale s (s), hi + lo
+    scale_lo: f32,
+    df_hi: f32,     // bin spacing of the padded spectrum (Hz), hi + lo
+    df_lo: f32,
+    norm_hi: f32,   // 2/L, hi + lo
+    norm_lo: f32,
 };
 
-struct Wavelet {
-    bandwidth: f32,
-    centre: f32,
-    taper: f32,     // Ψ is brought to 0 below taper·centre/s by a C∞ step
-    _pad: u32,
-};
-
-@group(0) @binding(0) var<uniform> wavelet: Wavelet;
+// Binding 0, the `wavelet` uniform, and Ψ are in morlet.wgsl.
 @group(0) @binding(1) var<storage, read> items: array<Item>;
-@group(0) @binding(2) var<storage, read> spectrum: array<vec2<f32>>;
-@group(0) @binding(3) var<storage, read_write> data: array<vec2<f32>>;
+@group(0) @binding(2) var<storage, read> spectrum: array<vec2<real>>;
+@group(0) @binding(3) var<storage, read_write> data: array<vec2<real>>;
 @group(0) @binding(4) var<storage, read_write> power: array<f32>;
 @group(0) @binding(5) var<storage, read> index: array<u32>;
-@group(0) @binding(6) var<storage, read> frac: array<f32>;
-
-const PI: f32 = 3.14159265358979;
-
-// The Morlet spectrum of src/transform/mod.rs (Morlet::spectrum), in f32.
-fn psi(scale: f32, f: f32) -> f32 {
-    let x = scale * f;
-    if (x <= 0.0) {
-        return 0.0;
-    }
-    let d = x - wavelet.centre;
-    let g = exp(-PI * PI * wavelet.bandwidth * d * d);
-    let u = x / (wavelet.taper * wavelet.centre);
-    if (u >= 1.0) {
-        return g;
-    }
-    let a = exp(-1.0 / u);
-    let b = exp(-1.0 / (1.0 - u));
-    return g * a / (a + b);
-}
+@group(0) @binding(6) var<storage, read> frac: array<vec2<f32>>;  // hi + lo
 
 // One workgroup row per item (y, then z when the items exceed one dimension), slots along
 // x (strided when an item is longer than one dimension's workgroups).
@@ -81,9 +68,11 @@ fn scatter_one(it: Item, q: u32) {
     let first = (it.lo + it.m - it.centre % it.m) % it.m;  // slot of bin lo
     let d = (q + it.m - first) % it.m;
     let bin = it.lo + d;
-    var v = vec2<f32>(0.0, 0.0);
+    var v = vec2<real>(real(0.0), real(0.0));
     if (bin <= it.hi) {
-        let w = it.norm * psi(it.scale, f32(bin) * it.df);
+        let df = real(it.df_hi) + real(it.df_lo);
+        let w = pair(vec2<f32>(it.norm_hi, it.norm_lo))
+            * psi(real(it.scale_hi) + real(it.scale_lo), real(bin) * df);
         v = spectrum[it.spec + d] * w;
     }
     data[it.data + q] = v;
@@ -108,13 +97,15 @@ fn power_grid(
 
 fn power_one(it: Item, j: u32) {
     let i = index[it.positions + j];
-    let u = frac[it.positions + j];
-    let w0 = -u * (u - 1.0) * (u - 2.0) / 6.0;
-    let w1 = (u + 1.0) * (u - 1.0) * (u - 2.0) / 2.0;
-    let w2 = -(u + 1.0) * u * (u - 2.0) / 2.0;
-    let w3 = (u + 1.0) * u * (u - 1.0) / 6.0;
+    let u = pair(frac[it.positions + j]);
+    let one = real(1.0);
+    let two = real(2.0);
+    let w0 = -u * (u - one) * (u - two) / real(6.0);
+    let w1 = (u + one) * (u - one) * (u - two) / two;
+    let w2 = -(u + one) * u * (u - two) / two;
+    let w3 = (u + one) * u * (u - one) / real(6.0);
     let m = it.m;
     let v = data[it.data + (i + m - 1u) % m] * w0 + data[it.data + i % m] * w1
           + data[it.data + (i + 1u) % m] * w2 + data[it.data + (i + 2u) % m] * w3;
-    power[it.power + j] = dot(v, v);
+    power[it.power + j] = f32(dot(v, v));
 }

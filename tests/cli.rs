@@ -1784,7 +1784,7 @@ fn a_gpu_batch_of_256_signals_is_two_submissions_and_two_waits() {
     };
     let prep = skelid::track::WaveletPrep::new(&x, fs, &opt, None).unwrap();
     let bench = |signals_per_part: u64| {
-        let cap = skelid::gpu::ridge::batch_bytes(&prep) * 2 * signals_per_part;
+        let cap = skelid::gpu::ridge::batch_bytes(&prep, adapter_real()) * 2 * signals_per_part;
         let json = d.path().join(format!("bench-{signals_per_part}.json"));
         let o = skelid()
             .arg("bench")
@@ -1913,10 +1913,18 @@ fn gpu_batches_are_sized_from_the_adapters_memory() {
         ..Default::default()
     };
     let prep = skelid::track::WaveletPrep::new(&x, fs, &opt, None).unwrap();
-    let cap = skelid::gpu::ridge::batch_bytes(&prep) * 40;
+    let cap = skelid::gpu::ridge::batch_bytes(&prep, adapter_real()) * 40;
     let (signals, batches) = bench(Some(cap));
     assert_eq!(signals, 600);
     assert!((4..=8).contains(&batches), "{batches}");
+}
+
+/// The precision the GPU backend's first pass computes in on this machine's adapter, which
+/// sets what [`skelid::gpu::ridge::batch_bytes`] weighs a signal at.
+fn adapter_real() -> skelid::gpu::Real {
+    skelid::gpu::Gpu::new()
+        .unwrap_or_else(|e| panic!("{e}"))
+        .real()
 }
 
 #[test]

@@ -5,7 +5,7 @@
 use num_complex::{Complex32, Complex64};
 use rand::{Rng, SeedableRng};
 use skelid::gpu::fft::{Algorithm, FftStage};
-use skelid::gpu::Gpu;
+use skelid::gpu::{Gpu, Real};
 
 fn gpu() -> Gpu {
     Gpu::new().unwrap_or_else(|e| panic!("{e}"))
@@ -261,6 +261,14 @@ fn gpu_scales_match_the_cpu_first_pass_for_a_batch_of_runs() {
         })
         .collect();
     let ours = stage.coarse_power(&gpu, &w, &runs).unwrap();
+    // In f64 every |W| down to 100 dB below its scale's peak, to 1e-6 (read back in f32;
+    // 120 dB down, near the zeros between components, it drifts to 1.5e-6); an f32 FFT's
+    // rounding is relative to the whole scale, so there only |W| of at least 1 % of the
+    // peak, to 1e-4.
+    let (floor, bound) = match stage.real() {
+        Real::F64 => (1e-10, 1e-6),
+        Real::F32 => (1e-4, 1e-4),
+    };
     let mut worst: f64 = 0.0;
     for ((spec, plans, h, steps), gpu_p) in setups.iter().zip(&ours) {
         let cpu_p = cpu_power(spec, plans, &w, *h, *steps);
@@ -269,16 +277,18 @@ fn gpu_scales_match_the_cpu_first_pass_for_a_batch_of_runs() {
             let col = k * steps..(k + 1) * steps;
             let peak = cpu_p[col.clone()].iter().cloned().fold(0.0, f64::max);
             for i in col {
-                // Envelope |W| compared where it is at least 1 % of the scale's peak.
-                if cpu_p[i] >= 1e-4 * peak {
+                if cpu_p[i] >= floor * peak {
                     let e = (f64::from(gpu_p[i]).sqrt() - cpu_p[i].sqrt()).abs() / cpu_p[i].sqrt();
                     worst = worst.max(e);
                 }
             }
         }
     }
-    println!("coarse |W|, GPU against CPU: worst relative difference {worst:.2e}");
-    assert!(worst < 1e-4, "{worst:e}");
+    println!(
+        "coarse |W| in {:?}, GPU against CPU: worst relative difference {worst:.2e}",
+        stage.real()
+    );
+    assert!(worst < bound, "{worst:e}");
 }
 
 /// Paper-like test signals: a chirp through a resonance with noise (guided by its own
@@ -412,13 +422,16 @@ fn gpu_first_pass_finds_the_cpu_ridge_and_noise_floor() {
                 p.len(),
                 p.steps
             );
-            assert!(
-                differ * 100 <= cpu.path.len(),
-                "{differ} of {}",
-                cpu.path.len()
-            );
+            // f64: |W|² as the CPU's to f32's rounding, so the same path, and medians to
+            // that rounding; f32: quiet steps may tip a choice, and medians of quiet
+            // scales move (relative to the loud stretches that share their FFT).
+            let (steps_differing, median_bound) = match narrow.real() {
+                Real::F64 => (0, 3e-7),
+                Real::F32 => (cpu.path.len() / 100, 1e-3),
+            };
+            assert!(differ <= steps_differing, "{differ} of {}", cpu.path.len());
             assert!(off <= 1, "{off}");
-            assert!(worst_median < 1e-3, "{worst_median:e}");
+            assert!(worst_median < median_bound, "{worst_median:e}");
         }
     }
 }
@@ -567,12 +580,19 @@ fn gpu_and_cpu_backends_give_the_same_tracks() {
 }
 
 /// On the real records that disagreed before 2026-11-29 (where `../shared/data/real` is
-/// there): the F-16's level 1 output, where the bias correction converged on one backend
-/// only at 4 grid points (fixed by the host solving unsure points again in f64); level 4's,
-/// where one grid point entered a smoothing window on one backend only (fixed by the tapered
-/// window); the beam's first accelerometer, whose ridge went another way between two modes
-/// whose paths differ by 9.7e-6 in 3 342 (fixed by shifting the programme's scores by the
-/// step's largest). Each was off by 7.6e-2, 9.5e-4 and 2.5e-2 Hz.
+/// there), at 128 scales: the F-16's level 1 output, where the bias correction converged on
+/// one backend only at 4 grid points (fixed by the host solving unsure points again in
+/// f64); level 4's, where one grid point entered a smoothing window on one backend only
+/// (fixed by the tapered window); the beam's first accelerometer, whose ridge went another
+/// way between two modes whose paths differ by 9.7e-6 in 3 342 (fixed by shifting the
+/// programme's scores by the step's largest). Each was off by 7.6e-2, 9.5e-4 and 2.5e-2 Hz.
+/// At 64 scales (the default), on 2026-11-30: level 4's input, whose ridge went another way
+/// in a quiet stretch where f32 |W|² was off by a quarter (2 samples valid in one only);
+/// the beam's second accelerometer, whose noise floor (a median of quiet |W|²) was off by
+/// 1.1e-4 (4.6e-2 Hz; both fixed by the first pass in f64), and whose smoothing drew a line
+/// through two modes' stretches (fixed by windows that stay within a stretch); and the
+/// demo's sensor-delay output, where the grid, laid from the ridge, was one sample off
+/// (2.6e-4 in the envelope).
 #[test]
 fn gpu_and_cpu_tracks_agree_on_the_real_records_that_once_differed() {
     use skelid::backend::{Backend, BackendChoice};
@@ -587,42 +607,68 @@ fn gpu_and_cpu_tracks_agree_on_the_real_records_that_once_differed() {
         f.dataset(ds).unwrap().read_raw().unwrap()
     };
     let f16 = "f16-gvt-sine-sweep/f16_sine_sweep.h5";
-    let records = [
-        (read(f16, "/sine_sweep/level_1/output"), 400.0),
-        (read(f16, "/sine_sweep/level_4_Validation/output"), 400.0),
-        (
-            read("brake-reuss-beam/brb_hammer.h5", "/hammer/acc1/output"),
-            12800.0,
-        ),
-    ];
-    let signals: Vec<skelid::backend::Signal<'_>> = records
-        .iter()
-        .map(|(x, fs)| skelid::backend::Signal {
-            samples: x,
-            sample_rate: *fs,
-            guide: None,
-        })
-        .collect();
-    let opt = WaveletOptions {
-        scales: 128,
-        ..Default::default()
-    };
+    let beam = "brake-reuss-beam/brb_hammer.h5";
+    let delay = demo_signals()
+        .into_iter()
+        .find(|(name, _)| name.contains("sensor_delay output"))
+        .expect("the demo has a sensor-delay run")
+        .1;
     let gpu = Backend::open(BackendChoice::Gpu).unwrap_or_else(|e| panic!("{e}"));
-    let ours = gpu.track_many(&signals, &opt);
-    let reference = Backend::cpu().track_many(&signals, &opt);
-    assert!(gpu.warnings().is_empty(), "{:?}", gpu.warnings());
-    for (name, (r, o)) in ["F-16 level 1", "F-16 level 4", "beam acc1"]
-        .iter()
-        .zip(reference.iter().zip(&ours))
-    {
-        let mut a = skelid::bench::backends::Agreement::default();
-        a.add(r.as_ref().unwrap(), o.as_ref().unwrap());
-        let (env, freq, mask) = (a.envelope_rel, a.frequency_hz, a.mask_samples);
-        println!(
-            "{name}: envelope within {env:.1e}, frequency within {freq:.1e} Hz, valid mask \
-             differs at {mask} samples"
-        );
-        assert!(env <= 1e-4 && freq <= 1e-3 && mask == 0, "{name}");
+    for (scales, records) in [
+        (
+            128,
+            vec![
+                (
+                    "F-16 level 1",
+                    read(f16, "/sine_sweep/level_1/output"),
+                    400.0,
+                ),
+                (
+                    "F-16 level 4",
+                    read(f16, "/sine_sweep/level_4_Validation/output"),
+                    400.0,
+                ),
+                ("beam acc1", read(beam, "/hammer/acc1/output"), 12800.0),
+            ],
+        ),
+        (
+            64,
+            vec![
+                (
+                    "F-16 level 4 input",
+                    read(f16, "/sine_sweep/level_4_Validation/input"),
+                    400.0,
+                ),
+                ("beam acc2", read(beam, "/hammer/acc2/output"), 12800.0),
+                ("demo sensor delay", delay, 1000.0),
+            ],
+        ),
+    ] {
+        let signals: Vec<skelid::backend::Signal<'_>> = records
+            .iter()
+            .map(|(_, x, fs)| skelid::backend::Signal {
+                samples: x,
+                sample_rate: *fs,
+                guide: None,
+            })
+            .collect();
+        let opt = WaveletOptions {
+            scales,
+            ..Default::default()
+        };
+        let ours = gpu.track_many(&signals, &opt);
+        let reference = Backend::cpu().track_many(&signals, &opt);
+        assert!(gpu.warnings().is_empty(), "{:?}", gpu.warnings());
+        for ((name, _, _), (r, o)) in records.iter().zip(reference.iter().zip(&ours)) {
+            let mut a = skelid::bench::backends::Agreement::default();
+            a.add(r.as_ref().unwrap(), o.as_ref().unwrap());
+            let (env, freq, mask) = (a.envelope_rel, a.frequency_hz, a.mask_samples);
+            println!(
+                "{name}, {scales} scales: envelope within {env:.1e}, frequency within \
+                 {freq:.1e} Hz, valid mask differs at {mask} samples"
+            );
+            assert!(env <= 1e-4 && freq <= 1e-3 && mask == 0, "{name}");
+        }
     }
 }
 

@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 
 use crate::gpu::refine::{RefineFlight, RefineStage, Refined};
 use crate::gpu::ridge::{batch_bytes, FirstPass, InFlight};
-use crate::gpu::{Gpu, GpuError};
+use crate::gpu::{Gpu, GpuError, Real};
 use crate::skeleton::{GridEstimate, GridPoint};
 use crate::track::{CoarseRidge, WaveletPrep};
 
@@ -85,6 +85,8 @@ pub(super) struct GpuService {
     /// Device memory (bytes, as [`batch_bytes`] counts it) one submission may take: half the
     /// adapter's largest binding times [`SUBMISSION_PARTS`]. Batches are sized to it.
     pub(super) submission_budget: u64,
+    /// The precision of the first pass ([`FirstPass::real`]), which [`batch_bytes`] weighs.
+    pub(super) real: Real,
     /// What the user should know of how the stages were compiled (a programme refused);
     /// the backend takes them when it opens.
     pub(super) notes: Vec<String>,
@@ -136,6 +138,7 @@ impl GpuService {
                             gpu.adapter_name(),
                             gpu.is_software(),
                             budget,
+                            stages.first.real(),
                             notes,
                         )));
                         dispatch(&gpu, &stages, rx, fail_after, &counted);
@@ -153,7 +156,7 @@ impl GpuService {
             .recv()
             .map_err(|_| GpuError::Lost("the GPU thread ended while opening the device".into()))
             .and_then(|r| r);
-        let (adapter, software, submission_budget, notes) = match ready {
+        let (adapter, software, submission_budget, real, notes) = match ready {
             Ok(a) => a,
             Err(e) => {
                 let _ = thread.join();
@@ -164,6 +167,7 @@ impl GpuService {
             adapter,
             software,
             submission_budget,
+            real,
             notes,
             stats,
             queue: Mutex::new(Some(tx)),
@@ -246,6 +250,7 @@ fn dispatch(
     // holds parts up to a few bindings' worth, all in device memory at once.
     let budget = gpu.max_binding() / 2;
     let submission_budget = budget * SUBMISSION_PARTS;
+    let real = stages.first.real();
     let mut flying: std::collections::VecDeque<Unit> = std::collections::VecDeque::new();
     let mut open = true;
     while open || !flying.is_empty() {
@@ -256,8 +261,13 @@ fn dispatch(
                     u.done.load(std::sync::atomic::Ordering::Acquire)
                 })
             };
-            let (batch, still_open) =
-                gather(&rx, !flying.is_empty(), &oldest_done, submission_budget);
+            let (batch, still_open) = gather(
+                &rx,
+                !flying.is_empty(),
+                &oldest_done,
+                submission_budget,
+                real,
+            );
             open = still_open;
             batch
         } else {
@@ -280,7 +290,7 @@ fn dispatch(
                 }
             }
         }
-        for parts in split(kept, budget, submission_budget) {
+        for parts in split(kept, budget, submission_budget, real) {
             while flying.len() >= IN_FLIGHT {
                 let unit = flying.pop_front().expect("in flight");
                 step(gpu, stages, unit, &mut flying, &mut dead, stats);
@@ -514,6 +524,7 @@ fn gather(
     busy: bool,
     oldest_done: &dyn Fn() -> bool,
     budget: u64,
+    real: Real,
 ) -> (Vec<Request>, bool) {
     use std::sync::mpsc::RecvTimeoutError;
     // Waits for a request until `deadline`, in slices of READY_POLL while work is in
@@ -543,7 +554,7 @@ fn gather(
             Err(_) => return (Vec::new(), false),
         }
     };
-    let weigh = |h: &[Request]| h.iter().map(|r| batch_bytes(&r.prep)).sum::<u64>();
+    let weigh = |h: &[Request]| h.iter().map(|r| batch_bytes(&r.prep, real)).sum::<u64>();
     let mut bytes = weigh(&first);
     let mut batch = first;
     let deadline = Instant::now() + LINGER;
@@ -562,14 +573,19 @@ fn gather(
 
 /// Splits a batch into submissions of parts: each part one wavelet within `budget` bytes,
 /// each submission within `submission_budget` (a request alone always fits one).
-fn split(mut batch: Vec<Request>, budget: u64, submission_budget: u64) -> Vec<Vec<Vec<Request>>> {
+fn split(
+    mut batch: Vec<Request>,
+    budget: u64,
+    submission_budget: u64,
+    real: Real,
+) -> Vec<Vec<Vec<Request>>> {
     let mut submissions = Vec::new();
     while !batch.is_empty() {
         let mut parts: Vec<(Vec<Request>, u64)> = Vec::new();
         let mut rest = Vec::new();
         let mut total = 0u64;
         for r in batch.drain(..) {
-            let b = batch_bytes(&r.prep);
+            let b = batch_bytes(&r.prep, real);
             if total > 0 && total + b > submission_budget {
                 rest.push(r);
                 continue;
@@ -653,15 +669,15 @@ mod tests {
             polls.set(polls.get() + 1);
             polls.get() > 1
         };
-        let (batch, open) = gather(&rx, true, &done, u64::MAX);
+        let (batch, open) = gather(&rx, true, &done, u64::MAX, Real::F32);
         assert!(open);
         assert_eq!(batch.iter().map(|r| r.tag).collect::<Vec<_>>(), [0, 1, 2]);
         // The next handover is the next batch's, whole; a closed queue ends the gathering.
-        let (batch, open) = gather(&rx, false, &|| false, u64::MAX);
+        let (batch, open) = gather(&rx, false, &|| false, u64::MAX, Real::F32);
         assert_eq!(batch.iter().map(|r| r.tag).collect::<Vec<_>>(), [0, 1]);
         assert!(open);
         drop(tx);
-        let (batch, open) = gather(&rx, false, &|| false, u64::MAX);
+        let (batch, open) = gather(&rx, false, &|| false, u64::MAX, Real::F32);
         assert!(batch.is_empty() && !open);
     }
 }

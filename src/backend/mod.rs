@@ -453,7 +453,7 @@ impl Backend {
         };
         match WaveletPrep::new(s.samples, s.sample_rate, opt, s.guide) {
             Ok(p) => {
-                let fit = service.submission_budget / batch_bytes(&p).max(1);
+                let fit = service.submission_budget / batch_bytes(&p, service.real).max(1);
                 groups_of(signals.len(), usize::try_from(fit).unwrap_or(usize::MAX))
             }
             Err(_) => GROUP,

@@ -6,6 +6,7 @@
 //! next to the shader that uses them.
 
 pub mod fft;
+pub mod morlet;
 pub mod refine;
 pub mod ridge;
 pub mod scales;
@@ -583,6 +584,15 @@ impl Gpu {
     /// is not set).
     pub fn has_f64(&self) -> bool {
         self.device.features().contains(wgpu::Features::SHADER_F64)
+    }
+
+    /// The precision the stages compute in: f64 where [`has_f64`](Self::has_f64), else f32.
+    pub fn real(&self) -> Real {
+        if self.has_f64() {
+            Real::F64
+        } else {
+            Real::F32
+        }
     }
 
     /// Whether the adapter is a software one (lavapipe): its invocations run one after

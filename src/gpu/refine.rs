@@ -19,23 +19,13 @@ use crate::profile::SpanGuard;
 use rayon::prelude::*;
 
 use super::fft::{offset_alignment_of, plannable, FftStage, Holder};
+use super::morlet::{self, split, WaveletParams};
 use super::{Gpu, GpuError, Pooled, Real};
 use num_complex::Complex64;
 
 use crate::skeleton::{self, GridEstimate, GridPoint, ScaleValue};
 use crate::track::WaveletPrep;
 use crate::transform::band::{self, ScalePlan};
-use crate::transform::TAPER;
-
-/// The shader's `Wavelet` uniform: f_b and f_c as f32 pairs (hi + lo), the taper.
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct WaveletParams {
-    bandwidth: [f32; 2],
-    centre: [f32; 2],
-    taper: f32,
-    _pad: [u32; 3],
-}
 
 /// The shader's `Item`: one run × one scale, its three derivative orders (W, W′, W″) back
 /// to back from `data`.
@@ -52,12 +42,6 @@ struct Item {
     scale: [f32; 2],
     df: [f32; 2],
     norm: [f32; 2],
-}
-
-/// `x` as two f32 whose sum holds it to 48 bits (the shader's `pair`).
-fn split(x: f64) -> [f32; 2] {
-    let hi = x as f32;
-    [hi, (x - f64::from(hi)) as f32]
 }
 
 /// The shader's `Scale`: where one scale of one run sits in `data`.
@@ -405,7 +389,7 @@ impl RefineStage {
     /// and declares its bindings: wavelet (uniform), items, spectra, data, the scale table,
     /// runs, grid points and records.
     pub fn new(gpu: &Gpu) -> RefineStage {
-        Self::with_real(gpu, if gpu.has_f64() { Real::F64 } else { Real::F32 })
+        Self::with_real(gpu, gpu.real())
     }
 
     /// [`new`](Self::new) in the given precision (f64 needs [`Gpu::has_f64`]).
@@ -413,7 +397,7 @@ impl RefineStage {
         use super::Binding::{Read, Uniform, Write};
         let (layout, pipelines) = gpu.stage(
             "refine.wgsl",
-            &real.source(include_str!("../../shaders/refine.wgsl")),
+            &morlet::source(real, include_str!("../../shaders/refine.wgsl")),
             &[Uniform, Read, Read, Write, Read, Read, Read, Write, Write],
             &["scatter", "estimate"],
         );
@@ -592,13 +576,7 @@ impl RefineStage {
         }
         drop(pieces_span);
         let wl = preps.first().map(|p| p.wavelet()).unwrap_or_default();
-        let params = WaveletParams {
-            bandwidth: split(wl.bandwidth),
-            centre: split(wl.centre),
-            taper: TAPER as f32,
-            _pad: [0; 3],
-        };
-        let uniform = gpu.uniform("refine wavelet", &params);
+        let uniform = gpu.uniform("refine wavelet", &WaveletParams::new(&wl));
         // Each spectrum scaled by a power of two to a largest bin near 1.
         let scale_span = SpanGuard::new("refine.ln_scale");
         let ln_scale: Vec<f64> = preps

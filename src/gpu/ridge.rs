@@ -9,7 +9,7 @@ use rayon::prelude::*;
 
 use super::fft::plannable;
 use super::scales::{PowerGrid, RunScales, ScaleStage};
-use super::{Gpu, GpuError, Pooled, Readback};
+use super::{Gpu, GpuError, Pooled, Readback, Real};
 use crate::track::{CoarseRidge, WaveletPrep};
 
 /// Most scales the ridge programme holds in workgroup memory (the shader's `MAX_SCALES`).
@@ -299,6 +299,11 @@ impl FirstPass {
         })
     }
 
+    /// The precision of the first pass's transform ([`ScaleStage::real`]).
+    pub fn real(&self) -> Real {
+        self.scales.real()
+    }
+
     /// What a user should know of how the first pass was compiled ([`ScaleStage::notes`],
     /// [`RidgeStage::notes`]).
     pub fn notes(&self) -> Vec<String> {
@@ -409,10 +414,11 @@ impl FirstPass {
         }
         // The scales are split into parts that fit a binding, but one scale, the spectrum,
         // the power grid and the back-pointers each need one.
-        let longest = prep.plans.iter().map(|p| p.len).max().unwrap_or(0) as u64 * 8;
+        let value = self.real().complex_bytes() as u64;
+        let longest = prep.plans.iter().map(|p| p.len).max().unwrap_or(0) as u64 * value;
         for (what, need) in [
-            ("one decimated scale", longest + 8 * 256),
-            ("the spectrum", prep.spec.bin_count() as u64 * 8),
+            ("one decimated scale", longest + value * 256),
+            ("the spectrum", prep.spec.bin_count() as u64 * value),
             ("the ridge grid", (prep.steps * prep.freqs.len()) as u64 * 4),
         ] {
             if need > gpu.max_binding() {
@@ -427,13 +433,14 @@ impl FirstPass {
     }
 }
 
-/// GPU memory one run's first pass takes in the largest of its buffers — its decimated
-/// scales (8 bytes a value), its back-pointers (4 bytes per step and scale) or its spectrum
-/// — for sizing batches.
-pub fn batch_bytes(prep: &WaveletPrep) -> u64 {
-    let scales: u64 = prep.plans.iter().map(|p| p.len as u64 * 8).sum();
+/// GPU memory one run's first pass in precision `real` takes in the largest of its
+/// buffers — its decimated scales (a complex value each), its back-pointers (4 bytes per
+/// step and scale) or its spectrum — for sizing batches.
+pub fn batch_bytes(prep: &WaveletPrep, real: Real) -> u64 {
+    let value = real.complex_bytes() as u64;
+    let scales: u64 = prep.plans.iter().map(|p| p.len as u64 * value).sum();
     let back = (prep.steps * prep.freqs.len()) as u64 * 4;
-    let spectrum = prep.spec.bin_count() as u64 * 8;
+    let spectrum = prep.spec.bin_count() as u64 * value;
     scales.max(back).max(spectrum)
 }
 

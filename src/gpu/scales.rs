@@ -9,10 +9,11 @@ use std::collections::HashMap;
 
 use rayon::prelude::*;
 
-use super::fft::{offset_alignment, FftStage, Holder};
-use super::{Gpu, GpuError, Pooled};
+use super::fft::{offset_alignment_of, FftStage, Holder};
+use super::morlet::{self, split, WaveletParams};
+use super::{Gpu, GpuError, Pooled, Real};
 use crate::transform::band::{self, ScalePlan};
-use crate::transform::{Morlet, Spectrum, TAPER};
+use crate::transform::{Morlet, Spectrum};
 
 /// The shader's `Item`: one run × one scale.
 #[repr(C)]
@@ -27,20 +28,9 @@ struct Item {
     power: u32,
     positions: u32,
     steps: u32,
-    scale: f32,
-    df: f32,
-    norm: f32,
-}
-
-/// The shader's `Wavelet` uniform.
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct WaveletParams {
-    bandwidth: f32,
-    centre: f32,
-    taper: f32,
-    /// A uniform's size is a multiple of 16 bytes.
-    _pad: u32,
+    scale: [f32; 2],
+    df: [f32; 2],
+    norm: [f32; 2],
 }
 
 /// One run's share of a batch: its spectrum, the plans of its scales, and its coarse grid
@@ -66,6 +56,7 @@ impl RunScales<'_> {
 /// The compiled stage: scatter and power pipelines, their shared bind layout, and the FFT.
 pub struct ScaleStage {
     fft: FftStage,
+    real: Real,
     scatter: wgpu::ComputePipeline,
     power: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
@@ -86,7 +77,9 @@ struct PositionCache(std::sync::Mutex<(HashMap<PositionKey, Positions>, usize)>)
 /// One table of [`PositionCache`].
 struct Positions {
     index: Vec<u32>,
-    frac: Vec<f32>,
+    /// The fraction as an f32 pair (hi + lo): f32 alone moved |W| by 2e-6 in f64 where W
+    /// changes fast against its size (70 dB below a scale's peak).
+    frac: Vec<[f32; 2]>,
 }
 
 /// Entries kept at most (8 bytes each); past it the cache starts afresh.
@@ -98,7 +91,7 @@ impl Positions {
             .map(|j| {
                 let x = (j * h) as f64 * m as f64 / l as f64;
                 let i = x.floor();
-                ((i as usize % m) as u32, (x - i) as f32)
+                ((i as usize % m) as u32, split(x - i))
             })
             .unzip();
         Positions { index, frac }
@@ -109,7 +102,7 @@ impl PositionCache {
     /// The tables of `keys`, back to back (index, fraction), those not kept yet computed
     /// (each on its own core when there are many entries: a long record's, 16 384 steps at
     /// 2^20 samples for each of up to hundreds of decimated lengths).
-    fn tables(&self, keys: &[PositionKey]) -> (Vec<u32>, Vec<f32>) {
+    fn tables(&self, keys: &[PositionKey]) -> (Vec<u32>, Vec<[f32; 2]>) {
         let mut guard = self.0.lock().unwrap_or_else(|p| p.into_inner());
         let (kept, entries) = &mut *guard;
         let mut missing: Vec<PositionKey> = keys
@@ -144,20 +137,27 @@ impl PositionCache {
 }
 
 impl ScaleStage {
-    /// Compiles `scales.wgsl` and declares its bindings: wavelet (uniform), items, spectrum,
-    /// data, power, and the interpolation positions (index, fraction).
+    /// Compiles `scales.wgsl` (and the FFT) in f64 where the device allows it, else f32.
     pub fn new(gpu: &Gpu) -> ScaleStage {
+        Self::with_real(gpu, gpu.real())
+    }
+
+    /// Compiles `scales.wgsl` in `real` (f64 needs [`Gpu::has_f64`]) and declares its
+    /// bindings: wavelet (uniform), items, spectrum, data, power, and the interpolation
+    /// positions (index, fraction).
+    pub fn with_real(gpu: &Gpu, real: Real) -> ScaleStage {
         use super::Binding::{Read, Uniform, Write};
         let (layout, mut pipelines) = gpu.stage(
             "scales.wgsl",
-            include_str!("../../shaders/scales.wgsl"),
+            &morlet::source(real, include_str!("../../shaders/scales.wgsl")),
             &[Uniform, Read, Read, Write, Write, Read, Read],
             &["scatter", "power_grid"],
         );
         let power = pipelines.pop().expect("two entry points");
         let scatter = pipelines.pop().expect("two entry points");
         ScaleStage {
-            fft: FftStage::new(gpu),
+            fft: FftStage::with_real(gpu, real),
+            real,
             scatter,
             power,
             layout,
@@ -168,6 +168,11 @@ impl ScaleStage {
     /// What a user should know of how the stage was compiled ([`FftStage::notes`]).
     pub fn notes(&self) -> Vec<String> {
         self.fft.notes()
+    }
+
+    /// The precision of the spectrum, the FFTs and the interpolation.
+    pub fn real(&self) -> Real {
+        self.real
     }
 
     /// |W|² on each run's coarse grid: per run, scale-major (`[k · steps + j]`), the
@@ -206,7 +211,8 @@ impl ScaleStage {
         wavelet: &Morlet,
         runs: &[RunScales],
     ) -> Result<PowerGrid, GpuError> {
-        let align = offset_alignment(gpu);
+        let align = offset_alignment_of(gpu, self.real);
+        let value = self.real.complex_bytes() as u64;
         let limit = gpu.max_binding();
         // Of each spectrum only the bins its scales' pass bands cover, back to back: the
         // band of a record's scales is a small part of its spectrum (the throughput
@@ -226,7 +232,7 @@ impl ScaleStage {
             power_len += r.plans.len() * r.steps;
         }
         for (what, bytes) in [
-            ("the spectra", spectrum_len as u64 * 8),
+            ("the spectra", spectrum_len as u64 * value),
             ("the coarse power grid", power_len as u64 * 4),
         ] {
             if bytes > limit {
@@ -248,7 +254,7 @@ impl ScaleStage {
         let mut used = 0u64;
         for &(r, k) in &order {
             let m = runs[r].plans[k].len;
-            let bytes = (m.div_ceil(align) * align) as u64 * 8;
+            let bytes = (m.div_ceil(align) * align) as u64 * value;
             if bytes > limit {
                 return Err(GpuError::TooLarge {
                     what: format!("one scale of {m} decimated values"),
@@ -265,23 +271,24 @@ impl ScaleStage {
             }
             used += bytes;
         }
-        let params = WaveletParams {
-            bandwidth: wavelet.bandwidth as f32,
-            centre: wavelet.centre as f32,
-            taper: TAPER as f32,
-            _pad: 0,
-        };
-        let uniform = gpu.uniform("wavelet", &params);
+        let uniform = gpu.uniform("wavelet", &WaveletParams::new(wavelet));
         let lens: Vec<usize> = bands.iter().map(|b| b.1).collect();
-        let spectrum_buf = gpu.upload_segments("spectra", &lens, |r, out: &mut [[f32; 2]]| {
+        let bins = |r: usize| {
             let (first, len) = bands[r];
-            for (o, c) in out
-                .iter_mut()
-                .zip(runs[r].spectrum.bins(first..first + len))
-            {
-                *o = [c.re as f32, c.im as f32];
-            }
-        })?;
+            runs[r].spectrum.bins(first..first + len)
+        };
+        let spectrum_buf = match self.real {
+            Real::F64 => gpu.upload_segments("spectra", &lens, |r, out: &mut [[f64; 2]]| {
+                for (o, c) in out.iter_mut().zip(bins(r)) {
+                    *o = [c.re, c.im];
+                }
+            }),
+            Real::F32 => gpu.upload_segments("spectra", &lens, |r, out: &mut [[f32; 2]]| {
+                for (o, c) in out.iter_mut().zip(bins(r)) {
+                    *o = [c.re as f32, c.im as f32];
+                }
+            }),
+        }?;
         // Every run × scale item writes all its steps: a reused buffer serves.
         let power = gpu.reusable("power", (power_len * 4) as u64);
         let shared = Shared {
@@ -316,7 +323,8 @@ impl ScaleStage {
         part: &[(usize, usize)],
         shared: &Shared,
     ) -> Result<[Pooled; 3], GpuError> {
-        let align = offset_alignment(gpu);
+        let align = offset_alignment_of(gpu, self.real);
+        let value = self.real.complex_bytes();
         let mut table_len = 0usize;
         let mut keys: Vec<PositionKey> = Vec::new();
         let mut tables: HashMap<PositionKey, u32> = HashMap::new();
@@ -367,15 +375,15 @@ impl ScaleStage {
                 power: (shared.power_offset[r] + k * run.steps) as u32,
                 positions,
                 steps: run.steps as u32,
-                scale: plan.scale as f32,
-                df: (spec.sample_rate / l as f64) as f32,
-                norm: (2.0 / l as f64) as f32,
+                scale: split(plan.scale),
+                df: split(spec.sample_rate / l as f64),
+                norm: split(2.0 / l as f64),
             });
             data_len += m;
         }
         let (index, frac) = self.positions.tables(&keys);
         drop(items_span);
-        let data_bytes = (data_len * 8) as u64;
+        let data_bytes = (data_len * value) as u64;
         // Items along y (and z past one dimension's limit), slots along x.
         let [rows, layers, deeper] = gpu.grid(items.len() as u64)?;
         if deeper > 1 {
@@ -419,8 +427,14 @@ impl ScaleStage {
                     .encode(gpu, enc, m, count, true, &data, &scratch, offset)
             })?;
             if holder == Holder::Scratch {
-                let bytes = (offset * 8) as u64;
-                enc.copy_buffer_to_buffer(&scratch, bytes, &data, bytes, (m * count * 8) as u64);
+                let bytes = (offset * value) as u64;
+                enc.copy_buffer_to_buffer(
+                    &scratch,
+                    bytes,
+                    &data,
+                    bytes,
+                    (m * count * value) as u64,
+                );
             }
         }
         let steps = part.iter().map(|&(r, _)| runs[r].steps).max().unwrap_or(1);
@@ -500,7 +514,7 @@ mod tests {
                 for j in 0..steps {
                     let x = (j * h) as f64 * m as f64 / l as f64;
                     out.0.push((x.floor() as usize % m) as u32);
-                    out.1.push((x - x.floor()) as f32);
+                    out.1.push(super::split(x - x.floor()));
                 }
             }
             out

@@ -1,0 +1,42 @@
+//! Host side of `shaders/morlet.wgsl`, the Morlet spectrum Ψ in `real` that the first pass
+//! (`scales.wgsl`) and the refinement (`refine.wgsl`) weigh each bin with: the source of a
+//! stage with it appended, and its `wavelet` uniform.
+
+use super::Real;
+use crate::transform::{Morlet, TAPER};
+
+/// `shaders/morlet.wgsl`.
+const WGSL: &str = include_str!("../../shaders/morlet.wgsl");
+
+/// A stage's shader with `morlet.wgsl` appended, in precision `real` ([`Real::source`]).
+pub fn source(real: Real, stage_wgsl: &str) -> String {
+    real.source(&format!("{stage_wgsl}\n{WGSL}"))
+}
+
+/// `x` as two f32 whose sum holds it to 48 bits (the shader's `pair`).
+pub fn split(x: f64) -> [f32; 2] {
+    let hi = x as f32;
+    [hi, (x - f64::from(hi)) as f32]
+}
+
+/// The shader's `Wavelet` uniform: f_b and f_c as f32 pairs (hi + lo), the taper.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct WaveletParams {
+    bandwidth: [f32; 2],
+    centre: [f32; 2],
+    taper: f32,
+    _pad: [u32; 3],
+}
+
+impl WaveletParams {
+    /// The uniform for `wavelet`.
+    pub fn new(wavelet: &Morlet) -> WaveletParams {
+        WaveletParams {
+            bandwidth: split(wavelet.bandwidth),
+            centre: split(wavelet.centre),
+            taper: TAPER as f32,
+            _pad: [0; 3],
+        }
+    }
+}
