@@ -14,6 +14,8 @@
 #   - an experiment: the FFTs that fit one workgroup held in its memory (the default on a
 #     GPU) against the passes through global memory (SKELID_GPU_FFT_LOCAL=0), alternating,
 #     traced, on the campaign and on the 2^20-sample signal;
+#   - an experiment: the first pass in f64 (the default where the adapter has it) against
+#     f32 (SKELID_GPU_FIRST_PASS=f32), alternating, traced, on the campaign;
 #   - `bench` at 512 scales; one 2^20-sample log sweep at 256 scales (traced: where its
 #     host and device time goes);
 #   - an experiment: the ridge programme narrow (256 invocations a run) and wide (1024),
@@ -71,6 +73,16 @@ for f in 0 default 0 default; do
   fi
 done
 unset SKELID_GPU_FFT_LOCAL
+# The first pass went to f64 on 2026-11-29 for agreement with the CPU (lavapipe: within
+# bench's noise); what it costs a GPU, against the f32 first pass it replaced.
+echo "== experiment: the first pass in f64 (the default) and SKELID_GPU_FIRST_PASS=f32, traced"
+for f in f32 default f32 default; do
+  if [ "$f" = default ]; then unset SKELID_GPU_FIRST_PASS; else export SKELID_GPU_FIRST_PASS=$f; fi
+  echo "SKELID_GPU_FIRST_PASS=$f, the campaign at 128 scales"
+  SKELID_GPU_TRACE=1 timeout 40 "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 --no-end-to-end \
+    --out "$OUT/bench-128-first-$f.json" 2>&1 | grep -E "^ +gpu |^  (fft f|scales\.)|bytes up" | tail -7
+done
+unset SKELID_GPU_FIRST_PASS
 echo "== experiment: bench, 128 scales, glibc's malloc at its defaults (SKELID_MALLOC=default) and as skelid sets it"
 for m in default skelid; do
   echo "SKELID_MALLOC=$m"

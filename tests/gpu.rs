@@ -586,7 +586,7 @@ fn gpu_and_cpu_backends_give_the_same_tracks() {
 /// (fixed by the tapered window); the beam's first accelerometer, whose ridge went another
 /// way between two modes whose paths differ by 9.7e-6 in 3 342 (fixed by shifting the
 /// programme's scores by the step's largest). Each was off by 7.6e-2, 9.5e-4 and 2.5e-2 Hz.
-/// At 64 scales (the default), on 2026-11-30: level 4's input, whose ridge went another way
+/// At 64 scales (the default), on 2026-11-29: level 4's input, whose ridge went another way
 /// in a quiet stretch where f32 |W|² was off by a quarter (2 samples valid in one only);
 /// the beam's second accelerometer, whose noise floor (a median of quiet |W|²) was off by
 /// 1.1e-4 (4.6e-2 Hz; both fixed by the first pass in f64), and whose smoothing drew a line

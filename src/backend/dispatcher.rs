@@ -87,6 +87,8 @@ pub(super) struct GpuService {
     pub(super) submission_budget: u64,
     /// The precision of the first pass ([`FirstPass::real`]), which [`batch_bytes`] weighs.
     pub(super) real: Real,
+    /// The precision of the refinement ([`RefineStage::real`]).
+    pub(super) refine_real: Real,
     /// What the user should know of how the stages were compiled (a programme refused);
     /// the backend takes them when it opens.
     pub(super) notes: Vec<String>,
@@ -138,7 +140,7 @@ impl GpuService {
                             gpu.adapter_name(),
                             gpu.is_software(),
                             budget,
-                            stages.first.real(),
+                            (stages.first.real(), stages.refine.real()),
                             notes,
                         )));
                         dispatch(&gpu, &stages, rx, fail_after, &counted);
@@ -156,7 +158,7 @@ impl GpuService {
             .recv()
             .map_err(|_| GpuError::Lost("the GPU thread ended while opening the device".into()))
             .and_then(|r| r);
-        let (adapter, software, submission_budget, real, notes) = match ready {
+        let (adapter, software, submission_budget, (real, refine_real), notes) = match ready {
             Ok(a) => a,
             Err(e) => {
                 let _ = thread.join();
@@ -168,6 +170,7 @@ impl GpuService {
             software,
             submission_budget,
             real,
+            refine_real,
             notes,
             stats,
             queue: Mutex::new(Some(tx)),

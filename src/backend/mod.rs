@@ -303,6 +303,18 @@ impl Backend {
         self.gpu.as_ref().map(|g| g.adapter.as_str())
     }
 
+    /// The GPU's shader precision, e.g. `first pass f64, refinement f64` (f64 where the
+    /// adapter has SHADER_F64); none on the CPU.
+    pub fn gpu_precision(&self) -> Option<String> {
+        self.gpu.as_ref().map(|g| {
+            format!(
+                "first pass {}, refinement {}",
+                g.real.name(),
+                g.refine_real.name()
+            )
+        })
+    }
+
     /// Whether the open GPU adapter is a software one (Mesa's lavapipe), which runs its
     /// invocations on the host's own cores: it shows the GPU code correct, never fast.
     pub fn is_software_gpu(&self) -> bool {

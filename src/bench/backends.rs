@@ -17,6 +17,9 @@ pub struct BackendTiming {
     pub backend: String,
     /// GPU adapter name and kind (none for the CPU).
     pub adapter: Option<String>,
+    /// The GPU's shader precision, `first pass f64, refinement f64` where the adapter has
+    /// SHADER_F64 (none for the CPU).
+    pub precision: Option<String>,
     /// Wall time of each timed repetition (s).
     pub seconds: Vec<f64>,
     /// Their median (s).
@@ -210,6 +213,7 @@ pub fn compare(
         timings.push(BackendTiming {
             backend: name.to_string(),
             adapter: backend.adapter().map(str::to_string),
+            precision: backend.gpu_precision(),
             seconds,
             median_s: median,
             runs_per_s: runs as f64 / median,

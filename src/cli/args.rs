@@ -362,8 +362,8 @@ impl BackendArgs {
         for w in b.notes().iter().chain(&b.warnings()) {
             eprintln!("note: {w}");
         }
-        if let Some(a) = b.adapter() {
-            eprintln!("GPU backend: {a}");
+        if let (Some(a), Some(p)) = (b.adapter(), b.gpu_precision()) {
+            eprintln!("GPU backend: {a}; shaders in {p}");
         }
         Ok(b)
     }

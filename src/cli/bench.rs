@@ -84,7 +84,11 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
             t.runs_per_s,
             t.samples_scales_per_s,
             t.fallbacks,
-            t.adapter.as_deref().unwrap_or("-")
+            match (&t.adapter, &t.precision) {
+                (Some(a), Some(p)) => format!("{a}; shaders in {p}"),
+                (Some(a), None) => a.clone(),
+                _ => "-".into(),
+            }
         );
     }
     if let Some(r) = result.gpu_speedup {

@@ -95,6 +95,14 @@ pub enum Real {
 }
 
 impl Real {
+    /// `f32` or `f64`, as a user reads it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Real::F32 => "f32",
+            Real::F64 => "f64",
+        }
+    }
+
     /// Bytes of one complex value.
     pub fn complex_bytes(self) -> usize {
         match self {

@@ -15,6 +15,12 @@ use super::{Gpu, GpuError, Pooled, Real};
 use crate::transform::band::{self, ScalePlan};
 use crate::transform::{Morlet, Spectrum};
 
+/// Measurement hook: `SKELID_GPU_FIRST_PASS=f32` keeps the first pass in f32 on an adapter
+/// with f64 (the refinement stays f64), so that a GPU machine can show what the first
+/// pass's f64 costs it (`scripts/gpu-measure.sh`). Its agreement with the CPU is then the
+/// f32 first pass's (the README's *Precision*).
+pub const FIRST_PASS_ENV: &str = "SKELID_GPU_FIRST_PASS";
+
 /// The shader's `Item`: one run × one scale.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -137,9 +143,11 @@ impl PositionCache {
 }
 
 impl ScaleStage {
-    /// Compiles `scales.wgsl` (and the FFT) in f64 where the device allows it, else f32.
+    /// Compiles `scales.wgsl` (and the FFT) in f64 where the device allows it, else f32
+    /// (and in f32 with [`FIRST_PASS_ENV`]` = f32`).
     pub fn new(gpu: &Gpu) -> ScaleStage {
-        Self::with_real(gpu, gpu.real())
+        let f32_asked = std::env::var(FIRST_PASS_ENV).is_ok_and(|v| v == "f32");
+        Self::with_real(gpu, if f32_asked { Real::F32 } else { gpu.real() })
     }
 
     /// Compiles `scales.wgsl` in `real` (f64 needs [`Gpu::has_f64`]) and declares its
