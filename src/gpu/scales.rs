@@ -1,8 +1,9 @@
 //! Host side of `shaders/scales.wgsl`: the coarse |W|² grid of every scale of a batch of
 //! runs in one submission — pass band scattered from each run's spectrum, batched inverse
 //! FFTs (one group per decimated length), interpolation to the coarse time grid — read
-//! back as f32 power per scale and step. This is the first pass of the wavelet track
-//! (`track::track_wavelet`), which the CPU evaluates scale by scale.
+//! back as f32 power per scale and step, computed in f64 where the adapter has SHADER_F64.
+//! This is the first pass of the wavelet track (`track::track_wavelet`), which the CPU
+//! evaluates scale by scale.
 
 use crate::profile::SpanGuard;
 use std::collections::HashMap;
@@ -88,7 +89,7 @@ struct Positions {
     frac: Vec<[f32; 2]>,
 }
 
-/// Entries kept at most (8 bytes each); past it the cache starts afresh.
+/// Entries kept at most (12 bytes each); past it the cache starts afresh.
 const POSITION_CACHE_ENTRIES: usize = 1 << 22;
 
 impl Positions {
