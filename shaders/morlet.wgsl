@@ -5,10 +5,9 @@
 struct Wavelet {
     bandwidth: vec2<f32>, // f_b as hi + lo (the pair holds f64 to 48 bits)
     centre: vec2<f32>,    // f_c as hi + lo
-    taper: f32,           // Ψ is brought to 0 below taper·centre/s by a C∞ step
+    taper: vec2<f32>,     // Ψ is brought to 0 below taper·centre/s by a C∞ step; hi + lo
     _pad0: u32,
     _pad1: u32,
-    _pad2: u32,
 };
 
 @group(0) @binding(0) var<uniform> wavelet: Wavelet;
@@ -55,7 +54,7 @@ fn psi(scale: real, f: real) -> real {
     let centre = pair(wavelet.centre);
     let d = x - centre;
     let g = exp_real(-PI_R * PI_R * pair(wavelet.bandwidth) * d * d);
-    let u = x / (real(wavelet.taper) * centre);
+    let u = x / (pair(wavelet.taper) * centre);
     if (u >= real(1.0)) {
         return g;
     }

@@ -948,9 +948,14 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
     assert_eq!(text.contains("(a software adapter:"), software, "{text}");
     assert_eq!(b[1]["fallbacks"], 0);
     assert!(v["gpu_speedup"].as_f64().unwrap() > 0.0);
-    // The agreement: envelope ≤ 1e-4 relative, frequency ≤ 1e-3 Hz.
+    // The agreement: envelope ≤ 1e-4 relative, frequency ≤ 1e-3 Hz, where the
+    // adapter has f64; an adapter without it runs the f32 path, bounded below.
     let g = &v["agreement"];
-    assert!(g["envelope_rel"].as_f64().unwrap() <= 1e-4, "{g}");
+    let envelope = match adapter_real() {
+        skelid::gpu::Real::F64 => 1e-4,
+        skelid::gpu::Real::F32 => 1e-2,
+    };
+    assert!(g["envelope_rel"].as_f64().unwrap() <= envelope, "{g}");
     assert!(g["frequency_hz"].as_f64().unwrap() <= 1e-3, "{g}");
     assert!(g["mask_samples"].as_u64().unwrap() <= 21 * 8, "{g}");
     // Where the time goes: an end-to-end batch per backend, every stage measured, and the

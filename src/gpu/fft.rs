@@ -309,7 +309,7 @@ impl FftStage {
     }
 
     /// Records the transforms of `batch` sequences of length `n`, held back to back in
-    /// `data` from element `offset` on (a multiple of [`offset_alignment`] for the stage's
+    /// `data` from element `offset` on (a multiple of [`offset_alignment_of`] the stage's
     /// precision), by the length's [`algorithm`](Self::algorithm), using the same range of
     /// `scratch` for a ping-pong; returns which buffer holds the result.
     #[allow(clippy::too_many_arguments)]
@@ -595,11 +595,6 @@ impl FftStage {
             flat.len(),
         )
     }
-}
-
-/// Complex f32 elements that a sub-range bound for [`FftStage::encode`] must start on.
-pub fn offset_alignment(gpu: &Gpu) -> usize {
-    offset_alignment_of(gpu, Real::F32)
 }
 
 /// Complex elements of precision `real` that a bound sub-range must start on.

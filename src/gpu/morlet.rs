@@ -19,14 +19,15 @@ pub fn split(x: f64) -> [f32; 2] {
     [hi, (x - f64::from(hi)) as f32]
 }
 
-/// The shader's `Wavelet` uniform: f_b and f_c as f32 pairs (hi + lo), the taper.
+/// The shader's `Wavelet` uniform: f_b, f_c and the taper as f32 pairs (hi + lo).
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct WaveletParams {
     bandwidth: [f32; 2],
     centre: [f32; 2],
-    taper: f32,
-    _pad: [u32; 3],
+    taper: [f32; 2],
+    /// A uniform's size is a multiple of 16 bytes.
+    _pad: [u32; 2],
 }
 
 impl WaveletParams {
@@ -35,8 +36,8 @@ impl WaveletParams {
         WaveletParams {
             bandwidth: split(wavelet.bandwidth),
             centre: split(wavelet.centre),
-            taper: TAPER as f32,
-            _pad: [0; 3],
+            taper: split(TAPER),
+            _pad: [0; 2],
         }
     }
 }

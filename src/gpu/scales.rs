@@ -64,6 +64,8 @@ impl RunScales<'_> {
 pub struct ScaleStage {
     fft: FftStage,
     real: Real,
+    /// A note that [`FIRST_PASS_ENV`] held a value it does not take.
+    ignored: Option<String>,
     scatter: wgpu::ComputePipeline,
     power: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
@@ -147,8 +149,15 @@ impl ScaleStage {
     /// Compiles `scales.wgsl` (and the FFT) in f64 where the device allows it, else f32
     /// (and in f32 with [`FIRST_PASS_ENV`]` = f32`).
     pub fn new(gpu: &Gpu) -> ScaleStage {
-        let f32_asked = std::env::var(FIRST_PASS_ENV).is_ok_and(|v| v == "f32");
-        Self::with_real(gpu, if f32_asked { Real::F32 } else { gpu.real() })
+        let asked = std::env::var(FIRST_PASS_ENV).ok();
+        let f32_asked = asked.as_deref() == Some("f32");
+        let mut stage = Self::with_real(gpu, if f32_asked { Real::F32 } else { gpu.real() });
+        if let Some(v) = asked.filter(|_| !f32_asked) {
+            stage.ignored = Some(format!(
+                "{FIRST_PASS_ENV}={v:?} is not \"f32\", the one value it takes: ignored"
+            ));
+        }
+        stage
     }
 
     /// Compiles `scales.wgsl` in `real` (f64 needs [`Gpu::has_f64`]) and declares its
@@ -167,6 +176,7 @@ impl ScaleStage {
         ScaleStage {
             fft: FftStage::with_real(gpu, real),
             real,
+            ignored: None,
             scatter,
             power,
             layout,
@@ -174,9 +184,12 @@ impl ScaleStage {
         }
     }
 
-    /// What a user should know of how the stage was compiled ([`FftStage::notes`]).
+    /// What a user should know of how the stage was compiled ([`FftStage::notes`], and a
+    /// [`FIRST_PASS_ENV`] ignored).
     pub fn notes(&self) -> Vec<String> {
-        self.fft.notes()
+        let mut notes = self.fft.notes();
+        notes.extend(self.ignored.clone());
+        notes
     }
 
     /// The precision of the spectrum, the FFTs and the interpolation.
@@ -259,26 +272,43 @@ impl ScaleStage {
             .flat_map(|(r, run)| (0..run.plans.len()).map(move |k| (r, k)))
             .collect();
         order.sort_by_key(|&(r, k)| runs[r].plans[k].len);
+        // A part's interpolation positions, one table of 12 bytes a step for each of its
+        // distinct position keys (index and fraction bound apart, the fractions 8 bytes a
+        // step), must fit a binding too.
         let mut parts: Vec<Vec<(usize, usize)>> = Vec::new();
-        let mut used = 0u64;
+        let (mut used, mut table) = (0u64, 0u64);
+        let mut keys: std::collections::HashSet<PositionKey> = std::collections::HashSet::new();
         for &(r, k) in &order {
-            let m = runs[r].plans[k].len;
+            let run = &runs[r];
+            let m = run.plans[k].len;
             let bytes = (m.div_ceil(align) * align) as u64 * value;
-            if bytes > limit {
-                return Err(GpuError::TooLarge {
-                    what: format!("one scale of {m} decimated values"),
-                    need: bytes,
-                    limit,
-                });
+            let key = (m, run.spectrum.padded_len, run.h, run.steps);
+            let steps = run.steps as u64 * 8;
+            for (what, need) in [
+                (format!("one scale of {m} decimated values"), bytes),
+                (
+                    format!("the positions of {} coarse steps", run.steps),
+                    steps,
+                ),
+            ] {
+                if need > limit {
+                    return Err(GpuError::TooLarge { what, need, limit });
+                }
             }
+            let new_key = !keys.contains(&key);
+            let more = if new_key { steps } else { 0 };
             match parts.last_mut() {
-                Some(p) if used + bytes <= limit => p.push((r, k)),
+                Some(p) if used + bytes <= limit && table + more <= limit => p.push((r, k)),
                 _ => {
                     parts.push(vec![(r, k)]);
-                    used = 0;
+                    (used, table) = (0, 0);
+                    keys.clear();
                 }
             }
             used += bytes;
+            if keys.insert(key) {
+                table += steps;
+            }
         }
         let uniform = gpu.uniform("wavelet", &WaveletParams::new(wavelet));
         let lens: Vec<usize> = bands.iter().map(|b| b.1).collect();
