@@ -45,6 +45,12 @@ fn exp_real(x: real) -> real {
     return ldexp(p, i32(k));
 }
 
+// The weight norm·Ψ(s·f_m) of spectrum bin m, from the scale s (s), the bin spacing (Hz)
+// and norm (2/L) as f32 pairs (hi + lo): what both stages' scatters multiply X[m] by.
+fn bin_weight(bin: u32, scale: vec2<f32>, df: vec2<f32>, norm: vec2<f32>) -> real {
+    return pair(norm) * psi(pair(scale), real(bin) * pair(df));
+}
+
 // Ψ(s·f): the Morlet spectrum at scale s (s) and frequency f (Hz).
 fn psi(scale: real, f: real) -> real {
     let x = scale * f;

@@ -131,12 +131,12 @@ fn scatter_one(it: Item, q: u32) {
     var v1 = v;
     var v2 = v;
     if (bin <= it.hi) {
-        let df = real(it.df_hi) + real(it.df_lo);
-        let w = pair(vec2<f32>(it.norm_hi, it.norm_lo))
-            * psi(real(it.scale_hi) + real(it.scale_lo), real(bin) * df);
+        let df = vec2<f32>(it.df_hi, it.df_lo);
+        let w = bin_weight(bin, vec2<f32>(it.scale_hi, it.scale_lo), df,
+            vec2<f32>(it.norm_hi, it.norm_lo));
         v = spectrum[it.spec + d] * w;
         // (j·omega)^order, omega = 2π (f_m − f_c): the baseband derivatives.
-        let omega = real(2.0) * PI_R * real(i32(bin) - i32(it.centre)) * df;
+        let omega = real(2.0) * PI_R * real(i32(bin) - i32(it.centre)) * pair(df);
         v1 = vec2<real>(-omega * v.y, omega * v.x);
         v2 = v * (-omega * omega);
     }

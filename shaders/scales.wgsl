@@ -70,9 +70,8 @@ fn scatter_one(it: Item, q: u32) {
     let bin = it.lo + d;
     var v = vec2<real>(real(0.0), real(0.0));
     if (bin <= it.hi) {
-        let df = real(it.df_hi) + real(it.df_lo);
-        let w = pair(vec2<f32>(it.norm_hi, it.norm_lo))
-            * psi(real(it.scale_hi) + real(it.scale_lo), real(bin) * df);
+        let w = bin_weight(bin, vec2<f32>(it.scale_hi, it.scale_lo),
+            vec2<f32>(it.df_hi, it.df_lo), vec2<f32>(it.norm_hi, it.norm_lo));
         v = spectrum[it.spec + d] * w;
     }
     data[it.data + q] = v;

@@ -149,15 +149,20 @@ impl ScaleStage {
     /// Compiles `scales.wgsl` (and the FFT) in f64 where the device allows it, else f32
     /// (and in f32 with [`FIRST_PASS_ENV`]` = f32`).
     pub fn new(gpu: &Gpu) -> ScaleStage {
-        let asked = std::env::var(FIRST_PASS_ENV).ok();
-        let f32_asked = asked.as_deref() == Some("f32");
-        let mut stage = Self::with_real(gpu, if f32_asked { Real::F32 } else { gpu.real() });
-        if let Some(v) = asked.filter(|_| !f32_asked) {
-            stage.ignored = Some(format!(
-                "{FIRST_PASS_ENV}={v:?} is not \"f32\", the one value it takes: ignored"
-            ));
+        let (real, ignored) = match std::env::var(FIRST_PASS_ENV).ok().as_deref() {
+            Some("f32") => (Real::F32, None),
+            Some(v) => (
+                gpu.real(),
+                Some(format!(
+                    "{FIRST_PASS_ENV}={v:?} is not \"f32\", the one value it takes: ignored"
+                )),
+            ),
+            None => (gpu.real(), None),
+        };
+        ScaleStage {
+            ignored,
+            ..Self::with_real(gpu, real)
         }
-        stage
     }
 
     /// Compiles `scales.wgsl` in `real` (f64 needs [`Gpu::has_f64`]) and declares its

@@ -613,26 +613,17 @@ fn smooth_low_snr(
     let f: Vec<f64> = pts.iter().map(|&g| frequency[g]).collect();
     // ln Â and f̂ have variances ∝ 1/SNR²: weigh each point by SNR².
     let w: Vec<f64> = pts.iter().map(|&g| snr[g].powi(2)).collect();
-    // Each point's stretch (`pts[first[c]..end[c]]`): the valid grid points next to one
+    // Each point's stretch (`pts[stretch[c]]`): the valid grid points next to one
     // another around it. A window never reaches past an invalid point, beyond which the
     // ridge may follow another mode: on the beam's acc2 a stretch at 297 Hz ended 1.3 σ_t
     // before one at 80.6 Hz began, and the line through both put the latter's first point
     // at 96.4 Hz.
-    let mut first = vec![0; pts.len()];
-    for c in 1..pts.len() {
-        first[c] = if pts[c] == pts[c - 1] + 1 {
-            first[c - 1]
-        } else {
-            c
-        };
-    }
-    let mut end = vec![pts.len(); pts.len()];
-    for c in (0..pts.len().saturating_sub(1)).rev() {
-        end[c] = if pts[c + 1] == pts[c] + 1 {
-            end[c + 1]
-        } else {
-            c + 1
-        };
+    let mut stretch = vec![0..0; pts.len()];
+    let mut at = 0;
+    for run in pts.chunk_by(|a, b| *b == *a + 1) {
+        let range = at..at + run.len();
+        stretch[range.clone()].fill(range.clone());
+        at = range.end;
     }
     let smoothed: Vec<Option<(f64, f64)>> = pts
         .par_iter()
@@ -644,9 +635,9 @@ fn smooth_low_snr(
             }
             let half = sigma_t[g] * (WIDEN * (target / snr[g]).powi(2)).min(MAX_SMOOTH);
             let t0 = tv[c];
-            let stretch = &tv[first[c]..end[c]];
-            let lo = first[c] + stretch.partition_point(|&v| v < t0 - half);
-            let hi = first[c] + stretch.partition_point(|&v| v <= t0 + half);
+            let own = stretch[c].clone();
+            let lo = own.start + tv[own.clone()].partition_point(|&v| v < t0 - half);
+            let hi = own.start + tv[own].partition_point(|&v| v <= t0 + half);
             // Weights that fall to 0 at the window's ends: a point entering the window as
             // its half-width changes by a rounding enters with no weight. With equal
             // weights one such point moved the line by 1e-3 on the F-16.
