@@ -742,18 +742,24 @@ fn gpu_refinement_matches_the_cpu_skeleton_at_every_grid_point() {
             stage = stage.with_slot_limit(n);
         }
         let before = skelid::profile::snapshot().gpu;
-        let ours = stage
+        // Decoded as the dispatcher does, the unsure points solved as the worker does.
+        let ours: Vec<_> = stage
             .submit(&gpu, &parts, &grids)
             .unwrap()
             .finish(&gpu, &parts, &grids)
-            .unwrap();
+            .unwrap()
+            .remove(0)
+            .into_iter()
+            .zip(&preps)
+            .zip(&grids[0])
+            .map(|((decoded, prep), grid)| decoded.unwrap().solve(prep, grid))
+            .collect();
         // Over all signals: the observation (before the bias correction), the corrected
         // skeleton where both corrected, and the points whose flags differ.
         let (mut observed, mut amp, mut freq, mut points, mut flags) = (0f64, 0f64, 0f64, 0, 0);
         let mut amps: Vec<f64> = Vec::new();
         let mut worst_f = String::new();
-        for ((name, _), (cpu, ours)) in signals.iter().zip(cpu.iter().zip(&ours[0])) {
-            let ours = ours.as_ref().unwrap();
+        for ((name, _), (cpu, ours)) in signals.iter().zip(cpu.iter().zip(&ours)) {
             assert_eq!(ours.len(), cpu.len());
             let mut differ = 0;
             for (a, b) in cpu.iter().zip(ours) {

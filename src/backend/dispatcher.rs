@@ -10,10 +10,10 @@ use std::sync::mpsc::{self, Receiver, Sender};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use crate::gpu::refine::{RefineFlight, RefineStage, Refined};
+use crate::gpu::refine::{Decoded, RefineFlight, RefineStage, Refined};
 use crate::gpu::ridge::{batch_bytes, FirstPass, InFlight};
 use crate::gpu::{Gpu, GpuError, Real};
-use crate::skeleton::{GridEstimate, GridPoint};
+use crate::skeleton::GridPoint;
 use crate::track::{CoarseRidge, WaveletPrep};
 
 use super::MAX_BATCH;
@@ -43,10 +43,12 @@ struct Stats {
     signals: std::sync::atomic::AtomicUsize,
 }
 
-/// why the GPU could not refine it, for the CPU to do from the ridge).
+/// What the GPU did for one signal: its first pass, and its skeleton on the estimation grid
+/// as read back, its unsure points still to solve (or why the GPU could not refine it, for
+/// the CPU to do from the ridge).
 pub(super) struct GpuPass {
     pub(super) ridge: CoarseRidge,
-    pub(super) refined: Result<(Vec<GridPoint>, Vec<GridEstimate>), GpuError>,
+    pub(super) refined: Result<(Vec<GridPoint>, Decoded), GpuError>,
 }
 
 /// The dispatcher's answer to one request.

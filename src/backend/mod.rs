@@ -555,9 +555,10 @@ impl Backend {
         match pass {
             Some(Ok(GpuPass {
                 ridge,
-                refined: Ok((grid, estimates)),
+                refined: Ok((grid, decoded)),
             })) => {
                 return crate::profile::time(crate::profile::Stage::Refine, || {
+                    let estimates = decoded.solve(&prep, &grid);
                     prep.complete(ridge, &grid, &estimates, Device::Gpu)
                 })
             }
