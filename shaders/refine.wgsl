@@ -56,11 +56,16 @@ struct Scale {
     _pad1: u32,
 };
 
+// One run's share of the dispatch (a whole run, or one piece of a large one).
 struct Run {
     scales: u32,    // offset of its first Scale in `table`
     count: u32,     // number of scales S
     l: u32,         // padded length L
     correct: u32,   // 1: remove the window's bias
+    slot_first: u32, // its slots for unsure points: the first
+    slot_cap: u32,   // and how many
+    _pad0: u32,
+    _pad1: u32,
 };
 
 struct Point {
@@ -78,13 +83,12 @@ struct Point {
 @group(0) @binding(5) var<storage, read> runs: array<Run>;
 @group(0) @binding(6) var<storage, read> points: array<Point>;
 @group(0) @binding(7) var<storage, read_write> records: array<vec4<u32>>;
-// The slots for unsure points: how many are taken (zero before the dispatch), how many
-// there are.
-struct Slots {
-    taken: atomic<u32>,
-    capacity: u32,
-};
-@group(0) @binding(8) var<storage, read_write> slots: Slots;
+// Slots taken for unsure points, one counter a run (zero before the dispatch). Each run has
+// slots of its own, so that whether a run's unsure points all find one depends on that run
+// alone and not on the order in which the runs of a batch reach their counters: the host
+// refines every unsure point of a run that ran out on the CPU, and a run's track is the same
+// whatever batch it is in and however the device orders its work.
+@group(0) @binding(8) var<storage, read_write> taken: array<atomic<u32>>;
 
 const PI: f32 = 3.14159265358979;
 const LN_2: f32 = 0.693147180559945;
@@ -96,11 +100,11 @@ const CORRECTED: u32 = 0x20000u;
 const NO_TRIPLE: u32 = 0x40000u;
 // The f32 estimate is not trusted (below, `unsure`): the host solves the point again in f64
 // from the triple's w, w′, w″ in the slot whose index is the record's first word, or, with
-// OVERFLOW (all slots taken), from its own values.
+// OVERFLOW (all of its run's slots taken), from its own values.
 const UNSURE: u32 = 0x80000u;
 const OVERFLOW: u32 = 0x100000u;
-// Slots for unsure points follow all records (`slots.capacity` of them), each 9 words of
-// four (three scales × w, w′, w″ × re, im × hi, lo).
+// Slots for unsure points follow all records (each run's `slot_cap` of them from its
+// `slot_first`), each 9 words of four (three scales × w, w′, w″ × re, im × hi, lo).
 const SLOT_WORDS: u32 = 9u;
 
 // ---------------------------------------------------------------------------- scatter
@@ -553,8 +557,9 @@ fn estimate(
     if (unsure) {
         // The rest of the record is the host's to fill: its first word names the slot.
         let n = arrayLength(&points);
-        let slot = atomicAdd(&slots.taken, 1u);
-        if (slot < slots.capacity) {
+        let k = atomicAdd(&taken[p.run], 1u);
+        if (k < run.slot_cap) {
+            let slot = run.slot_first + k;
             let at = 2u * n + slot * SLOT_WORDS;
             for (var q = 0u; q < 3u; q++) {
                 records[at + 3u * q] = halves(triple[q].w);

@@ -693,12 +693,58 @@ fn demo_signals() -> Vec<(String, Vec<f64>)> {
         .collect()
 }
 
+/// Each named signal prepared for a 128-scale wavelet track at 1 kHz.
+fn prepared_at_128(signals: &[(String, Vec<f64>)]) -> Vec<skelid::track::WaveletPrep> {
+    let opt = skelid::track::WaveletOptions {
+        scales: 128,
+        ..Default::default()
+    };
+    signals
+        .iter()
+        .map(|(_, x)| skelid::track::WaveletPrep::new(x, 1000.0, &opt, None).unwrap())
+        .collect()
+}
+
+/// The estimation grids of one part's signals, from their ridges found on the GPU.
+fn grids_of(
+    gpu: &Gpu,
+    first: &skelid::gpu::ridge::FirstPass,
+    part: &[&skelid::track::WaveletPrep],
+) -> Vec<Vec<skelid::skeleton::GridPoint>> {
+    let ridges = first.coarse_ridges(gpu, &[part.to_vec()]).unwrap();
+    part.iter()
+        .zip(&ridges[0])
+        .map(|(p, r)| p.grid(&r.path))
+        .collect()
+}
+
+/// One part's skeletons by `stage`: decoded as the dispatcher does, the unsure points
+/// solved as the worker that completes a track does.
+fn refined(
+    gpu: &Gpu,
+    stage: &skelid::gpu::refine::RefineStage,
+    part: &[&skelid::track::WaveletPrep],
+    grids: &[Vec<skelid::skeleton::GridPoint>],
+) -> Vec<Vec<skelid::skeleton::GridEstimate>> {
+    let (parts, grids) = ([part.to_vec()], [grids.to_vec()]);
+    stage
+        .submit(gpu, &parts, &grids)
+        .unwrap()
+        .finish(gpu, &parts, &grids)
+        .unwrap()
+        .remove(0)
+        .into_iter()
+        .zip(part)
+        .zip(&grids[0])
+        .map(|((decoded, prep), grid)| decoded.unwrap().solve(prep, grid))
+        .collect()
+}
+
 #[test]
 fn gpu_refinement_matches_the_cpu_skeleton_at_every_grid_point() {
     use skelid::gpu::refine::RefineStage;
     use skelid::gpu::ridge::FirstPass;
     use skelid::gpu::Real;
-    use skelid::track::{WaveletOptions, WaveletPrep};
     let gpu = gpu();
     let first = FirstPass::new(&gpu).unwrap();
     // The three test signals and every channel of the demo campaign (loud resonances with
@@ -709,28 +755,16 @@ fn gpu_refinement_matches_the_cpu_skeleton_at_every_grid_point() {
         .map(|(k, (x, _))| (format!("test signal {k}"), x))
         .collect();
     signals.extend(demo_signals());
-    let opt = WaveletOptions {
-        scales: 128,
-        ..Default::default()
-    };
-    let preps: Vec<WaveletPrep> = signals
-        .iter()
-        .map(|(_, x)| WaveletPrep::new(x, 1000.0, &opt, None).unwrap())
-        .collect();
-    let parts = vec![preps.iter().collect::<Vec<_>>()];
-    let ridges = first.coarse_ridges(&gpu, &parts).unwrap();
-    let grids: Vec<Vec<_>> = vec![parts[0]
-        .iter()
-        .zip(&ridges[0])
-        .map(|(p, r)| p.grid(&r.path))
-        .collect()];
+    let preps = prepared_at_128(&signals);
+    let part: Vec<_> = preps.iter().collect();
+    let grids = grids_of(&gpu, &first, &part);
     let cpu: Vec<_> = preps
         .iter()
-        .zip(&grids[0])
+        .zip(&grids)
         .map(|(p, g)| p.estimate_grid(g))
         .collect();
     // Each precision with slots for every unsure point, and the best with 100 slots a
-    // sub-part: the rest refined whole on the host, from its own spectrum.
+    // run: a run with more refined whole on the host, from its own spectrum.
     let mut configs = vec![(Real::F32, None)];
     if gpu.has_f64() {
         configs.push((Real::F64, None));
@@ -742,18 +776,7 @@ fn gpu_refinement_matches_the_cpu_skeleton_at_every_grid_point() {
             stage = stage.with_slot_limit(n);
         }
         let before = skelid::profile::snapshot().gpu;
-        // Decoded as the dispatcher does, the unsure points solved as the worker does.
-        let ours: Vec<_> = stage
-            .submit(&gpu, &parts, &grids)
-            .unwrap()
-            .finish(&gpu, &parts, &grids)
-            .unwrap()
-            .remove(0)
-            .into_iter()
-            .zip(&preps)
-            .zip(&grids[0])
-            .map(|((decoded, prep), grid)| decoded.unwrap().solve(prep, grid))
-            .collect();
+        let ours = refined(&gpu, &stage, &part, &grids);
         // Over all signals: the observation (before the bias correction), the corrected
         // skeleton where both corrected, and the points whose flags differ.
         let (mut observed, mut amp, mut freq, mut points, mut flags) = (0f64, 0f64, 0f64, 0, 0);
@@ -829,6 +852,43 @@ fn gpu_refinement_matches_the_cpu_skeleton_at_every_grid_point() {
         assert!(p99 < 1e-4 && amp < worst_amp, "{p99:e} {amp:e}");
         assert!(freq < worst_f, "{freq:e}");
         assert!(flags <= flags_allowed, "{flags} of {points}");
+    }
+}
+
+#[test]
+fn a_runs_refinement_is_the_same_alone_and_in_a_batch_when_slots_run_out() {
+    use skelid::gpu::refine::RefineStage;
+    use skelid::gpu::ridge::FirstPass;
+    use skelid::track::WaveletPrep;
+    let gpu = gpu();
+    let first = FirstPass::new(&gpu).unwrap();
+    // The demo's channels: some have more unsure points than 12 slots, some fewer. The
+    // slots were once shared by a batch's runs, taken in the order the device reached
+    // them: a run's unsure points were solved from their slots or refined whole on the
+    // host by that order, and its track changed in the last bits from one invocation (or
+    // one batch) to the next (the demo's free decay, one sample's A′ in its tenth digit).
+    let signals = demo_signals();
+    let preps = prepared_at_128(&signals);
+    let stage = RefineStage::new(&gpu).with_slot_limit(12);
+    let refine =
+        |batch: &[&WaveletPrep]| refined(&gpu, &stage, batch, &grids_of(&gpu, &first, batch));
+    let all: Vec<&WaveletPrep> = preps.iter().collect();
+    let before = skelid::profile::snapshot().gpu;
+    let together = refine(&all);
+    let refined = skelid::profile::snapshot().gpu.host_refined - before.host_refined;
+    assert!(refined > 0, "no run ran out of its 12 slots");
+    for round in 0..2 {
+        for (k, prep) in preps.iter().enumerate() {
+            let alone = refine(&[prep]).remove(0);
+            assert_eq!(alone.len(), together[k].len());
+            for (g, (a, b)) in alone.iter().zip(&together[k]).enumerate() {
+                assert!(
+                    a == b,
+                    "round {round}, {}: grid point {g} alone {a:?}, in the batch {b:?}",
+                    signals[k].0
+                );
+            }
+        }
     }
 }
 

@@ -67,6 +67,9 @@ struct RunParams {
     count: u32,
     l: u32,
     correct: u32,
+    slot_first: u32,
+    slot_cap: u32,
+    _pad: [u32; 2],
 }
 
 /// The shader's `Point`.
@@ -87,12 +90,13 @@ const CORRECTED: u32 = 0x2_0000;
 const NO_TRIPLE: u32 = 0x4_0000;
 /// The point's f32 estimate is not trusted: the host solves it again in f64, from the
 /// triple's w, w′, w″ in the slot the record's first word names, or, with `OVERFLOW` (all
-/// slots taken), from its own values.
+/// its run's slots taken), from its own values.
 const UNSURE: u32 = 0x8_0000;
 const OVERFLOW: u32 = 0x10_0000;
-/// Slots for unsure points after the records: one for every `SLOT_SHARE` points and
-/// `SLOT_BASE` more, 9 bytes a point. The demo campaign's tracks have 2.9 % of their points
-/// unsure, the F-16's 0.6 %; a sub-part with more refines the rest whole on the host.
+/// Slots for unsure points after the records, each run's (or piece's) own: one for every
+/// `SLOT_SHARE` of its points and `SLOT_BASE` more, 9 bytes a point. The demo campaign's
+/// tracks have 2.9 % of their points unsure, the F-16's 0.6 %; a run with more than its
+/// slots has every unsure point refined whole on the host.
 const SLOT_SHARE: usize = 16;
 const SLOT_BASE: usize = 64;
 /// Words of one slot: three scales × w, w′, w″ × re, im × hi, lo.
@@ -117,7 +121,7 @@ pub struct RefineStage {
     estimate: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
     real: Real,
-    /// At most this many slots for unsure points a sub-part ([`RefineStage::with_slot_limit`]).
+    /// At most this many slots for unsure points a run ([`RefineStage::with_slot_limit`]).
     slot_limit: Option<usize>,
 }
 
@@ -257,6 +261,12 @@ impl Encoded {
                             out.unsure.push(Pending { g, flags, words });
                         }
                     }
+                }
+                // A run that ran out of slots has all its unsure points refined on the host,
+                // those with a slot too: which of them found one was the device's timing.
+                if !out.overflow.is_empty() {
+                    out.overflow.extend(out.unsure.drain(..).map(|p| p.g));
+                    out.overflow.sort_unstable();
                 }
                 Ok(out)
             })
@@ -445,7 +455,7 @@ impl RefineStage {
         }
     }
 
-    /// The stage with at most `n` slots a sub-part for the W, W′, W″ of points whose f32
+    /// The stage with at most `n` slots a run (or piece) for the W, W′, W″ of points whose f32
     /// estimate is not trusted, so that tests reach the host's refinement of those without
     /// one.
     pub fn with_slot_limit(mut self, n: usize) -> RefineStage {
@@ -634,7 +644,7 @@ impl RefineStage {
         let mut part_points = Vec::with_capacity(parts.len());
         let mut keep = Vec::with_capacity(6 * parts.len());
         for (q, part) in parts.iter().enumerate() {
-            let (buffer, firsts, work) = crate::profile::span("refine.encode_part", || {
+            let (buffer, bytes, firsts, work) = crate::profile::span("refine.encode_part", || {
                 self.encode_part(gpu, enc, &uniform, preps, grids, &planned, &ln_scale, part)
             })?;
             let points: usize = part.iter().map(|p| p.points.len()).sum();
@@ -643,7 +653,7 @@ impl RefineStage {
                     spans.push((q, first, piece.points.clone()));
                 }
             }
-            records.push((buffer, records_bytes(points)));
+            records.push((buffer, bytes));
             part_points.push(points);
             keep.extend(work);
         }
@@ -670,7 +680,7 @@ impl RefineStage {
         planned: &[Planned],
         ln_scale: &[f64],
         part: &[Piece],
-    ) -> Result<(Pooled, Vec<usize>, [Pooled; 6]), GpuError> {
+    ) -> Result<(Pooled, u64, Vec<usize>, [Pooled; 6]), GpuError> {
         let align = offset_alignment_of(gpu, self.real);
         let arrays_span = SpanGuard::new("refine.arrays");
         // Spectra: each piece's bins of its run's pass bands, scaled.
@@ -745,17 +755,23 @@ impl RefineStage {
         let mut firsts = Vec::with_capacity(part.len());
         let mut point_lens = Vec::with_capacity(part.len());
         let mut point_count = 0;
+        let mut slot_count_all = 0;
         for (q, piece) in part.iter().enumerate() {
             let prep = preps[piece.run];
+            let cap = slot_count(piece.points.len()).min(self.slot_limit.unwrap_or(usize::MAX));
             run_params.push(RunParams {
                 scales: table_at[q],
                 count: prep.freqs.len() as u32,
                 l: prep.spec.padded_len as u32,
                 correct: u32::from(prep.corrects()),
+                slot_first: slot_count_all as u32,
+                slot_cap: cap as u32,
+                _pad: [0; 2],
             });
             firsts.push(point_count);
             point_lens.push(piece.points.len());
             point_count += piece.points.len();
+            slot_count_all += cap;
         }
         drop(arrays_span);
         let elem = self.real.complex_bytes();
@@ -803,10 +819,11 @@ impl RefineStage {
                     };
                 }
             })?;
-        // The estimate writes every point's record.
-        let records = gpu.reusable("grid records", records_bytes(point_count));
-        let capacity = slot_count(point_count).min(self.slot_limit.unwrap_or(usize::MAX));
-        let slots_taken = gpu.upload("refine slots", &[0u32, capacity as u32]);
+        // The estimate writes every point's record; its unsure points fill their slots.
+        let records_len =
+            point_count as u64 * RECORD_BYTES + (slot_count_all * SLOT_WORDS * 4) as u64;
+        let records = gpu.reusable("grid records", records_len);
+        let slots_taken = gpu.upload("refine slots taken", &vec![0u32; part.len()]);
         // Items and points exactly: the shaders count them with `arrayLength`.
         let bind = gpu.bind_resources(
             "refine",
@@ -860,6 +877,7 @@ impl RefineStage {
         }
         Ok((
             records,
+            records_len,
             firsts,
             [data, scratch, spectra, items_buf, table_buf, points_buf],
         ))
