@@ -277,13 +277,13 @@ impl Encoded {
 /// One run's skeleton as read back, before the host's share of it: every trusted grid
 /// point decoded, the unsure ones (the shader's `UNSURE`) still to be solved in f64 by
 /// [`solve`](Self::solve). The dispatcher decodes; the worker that completes the track
-/// solves, so that the solves (about 7 µs each, 1–3 % of the points: 0.26 ms of CPU a
-/// campaign signal) run on every core instead of on the dispatcher's path between one
-/// batch and the next.
+/// solves, so that the solves (1–3 % of the points, each the CPU backend's Newton solve:
+/// 0.26 ms of CPU a campaign signal when they moved) run on every core instead of on the
+/// dispatcher's path between one batch and the next.
 pub struct Decoded {
     estimates: Vec<Option<GridEstimate>>,
     unsure: Vec<Pending>,
-    /// Unsure points that found no slot.
+    /// Unsure points to refine whole on the host: all of them where the run ran out of slots.
     overflow: Vec<usize>,
     /// The log of the factor the run's spectrum was scaled by on the device.
     ln_scale: f64,
@@ -320,7 +320,7 @@ impl Decoded {
 
 /// The host's f64 solve of one run's unsure points (the shader's `UNSURE`): the exact
 /// sequel of the CPU backend's [`skeleton::estimate_point`], from the triple's w, w′, w″ the
-/// GPU computed in `real`, or, for a point that found no slot, from the CPU's own values.
+/// GPU computed in `real`, or, for the points of a run that ran out of slots, from the CPU's own values.
 struct Unsure<'a> {
     prep: &'a WaveletPrep,
     ln_scale: f64,
@@ -374,7 +374,7 @@ impl<'a> Unsure<'a> {
         skeleton::estimate_triple(&wl, &self.scales, best, triple, prep.corrects())
     }
 
-    /// The points `overflow` (without a slot), by the CPU backend's own refinement of them.
+    /// The points `overflow` (refined whole), by the CPU backend's own refinement of them.
     fn finish(self, grid: &[GridPoint], overflow: &[usize], out: &mut [Option<GridEstimate>]) {
         crate::profile::refined_points(
             grid.len() as u64,
