@@ -320,7 +320,8 @@ impl Decoded {
 
 /// The host's f64 solve of one run's unsure points (the shader's `UNSURE`): the exact
 /// sequel of the CPU backend's [`skeleton::estimate_point`], from the triple's w, w′, w″ the
-/// GPU computed in `real`, or, for the points of a run that ran out of slots, from the CPU's own values.
+/// GPU computed in `real`, or, for the points of a run that ran out of slots, from the
+/// CPU's own values.
 struct Unsure<'a> {
     prep: &'a WaveletPrep,
     ln_scale: f64,
