@@ -31,7 +31,8 @@
 #   - `skelid run` end to end, both methods, on each backend (traced on the GPU), with
 #     its log's timeline and how busy its one writer thread was;
 #   - an experiment: `run` on the CPU backend with written data released from the page
-#     cache (the default) against SKELID_PAGECACHE=keep, alternating.
+#     cache (the default) against SKELID_PAGECACHE=keep, alternating;
+#   - determinism: the GPU track of one campaign run and of the 2^20-sample signal, twice.
 set -u
 N=${N:-1000}; OUT=${OUT:-/tmp/skelid-measure}; mkdir -p "$OUT"
 exec > >(tee "$OUT/log.txt") 2>&1
@@ -153,5 +154,18 @@ for pc in keep default keep default; do
     --out "$W/out-pc" --force --method both --backend cpu --quiet > "$OUT/run-pagecache-$pc.log" 2>&1
   echo "SKELID_PAGECACHE=$pc: rc=$? wall $(since "$s") s; $(tail -1 "$OUT/run-pagecache-$pc.log");" \
     "$(grep -o 'busy [0-9.]* s of the [0-9.]* s' "$W/out-pc/skelid.log" | tail -1)"
+done
+# A run's GPU track once depended on the order in which the device reached its points (the
+# slots for unsure points were shared by a batch's runs; lavapipe: six invocations, six
+# files). Each run has its own slots since: on a real GPU, the same file twice?
+echo "== determinism: the GPU track of one campaign run and of the 2^20-sample signal, twice each"
+for spec in "$W/campaign/run_1.h5 /runs/run_001/output" "$W/long.h5 /sig/output"; do
+  set -- $spec
+  [ -f "$1" ] || continue
+  rm -f "$OUT"/det-*.csv
+  for k in 1 2; do
+    timeout 60 "$B" track "$1" --dataset "$2" --backend gpu --out "$OUT/det-$k.csv" > /dev/null 2>&1
+  done
+  if cmp -s "$OUT/det-1.csv" "$OUT/det-2.csv"; then echo "$1 $2: the same file"; else echo "$1 $2: DIFFERENT files"; fi
 done
 echo "== total $(since "$T0") s"
