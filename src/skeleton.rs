@@ -71,12 +71,7 @@ pub struct ScaleValue {
 /// ln|W| = ln A − π² f_b f² (s − f_c/f)² — then quadratic interpolation of the rest.
 pub fn estimate(v: [ScaleValue; 3]) -> Observation {
     let x = [v[0].scale, v[1].scale, v[2].scale];
-    let y = [v[0].ln_amp, v[1].ln_amp, v[2].ln_amp];
-    let (lo, hi) = (x[0].min(x[2]), x[0].max(x[2]));
-    let (scale, ln_amp, peaked) = match parabola_peak(x, y) {
-        Some((s, a)) if s >= lo && s <= hi => (s, a, true),
-        _ => (x[1], y[1], false),
-    };
+    let (scale, ln_amp, peaked) = peak(x, [v[0].ln_amp, v[1].ln_amp, v[2].ln_amp]);
     // Phases unwrapped against the middle scale before interpolating.
     let p1 = v[1].phase;
     let unwrap = |p: f64| p1 + (p - p1 + PI).rem_euclid(2.0 * PI) - PI;
@@ -88,6 +83,18 @@ pub fn estimate(v: [ScaleValue; 3]) -> Observation {
         d2: lagrange3(x, [v[0].d2, v[1].d2, v[2].d2], scale),
         scale,
         peaked,
+    }
+}
+
+/// The refined ridge scale of a triple at scales `x` with ln|W| `y`, the peak's ln|W|, and
+/// whether it peaked: the parabola's vertex where it lies within the triple, else the
+/// middle scale.
+#[inline]
+fn peak(x: [f64; 3], y: [f64; 3]) -> (f64, f64, bool) {
+    let (lo, hi) = (x[0].min(x[2]), x[0].max(x[2]));
+    match parabola_peak(x, y) {
+        Some((s, a)) if s >= lo && s <= hi => (s, a, true),
+        _ => (x[1], y[1], false),
     }
 }
 
@@ -105,24 +112,27 @@ pub struct LocalModel {
 /// The model's W and log-derivatives at scale `s`, for unit amplitude and zero phase.
 #[inline]
 pub fn model_value(w: &Morlet, s: f64, m: &LocalModel) -> ScaleValue {
-    let (a, b) = model_ab(w, s, m);
+    let (a, b) = (model_a(w, s, m.sweep), model_b(w, s, m));
     let ln_k = Complex64::new(ln_k0(w, s), 0.0) - 0.5 * a.ln() + b * b / (4.0 * a);
     ScaleValue {
         scale: s,
         ln_amp: ln_k.re,
         phase: ln_k.im,
         d1: model_d1(m, a, b),
-        d2: model_d2(m, a),
+        d2: model_d2(m.sweep, a),
     }
 }
 
-/// The model's a and b at scale `s` (the module's formula).
+/// The model's a at scale `s` (the module's formula): its sweep's alone.
 #[inline]
-fn model_ab(w: &Morlet, s: f64, m: &LocalModel) -> (Complex64, Complex64) {
-    (
-        Complex64::new(1.0 / (w.bandwidth * s * s), -PI * m.sweep),
-        Complex64::new(m.decay, -2.0 * PI * (m.freq - w.centre / s)),
-    )
+fn model_a(w: &Morlet, s: f64, sweep: f64) -> Complex64 {
+    Complex64::new(1.0 / (w.bandwidth * s * s), -PI * sweep)
+}
+
+/// The model's b at scale `s` (the module's formula).
+#[inline]
+fn model_b(w: &Morlet, s: f64, m: &LocalModel) -> Complex64 {
+    Complex64::new(m.decay, -2.0 * PI * (m.freq - w.centre / s))
 }
 
 /// The part of ln K that no model changes: −ln s − ln f_b / 2.
@@ -139,8 +149,8 @@ fn model_d1(m: &LocalModel, a: Complex64, b: Complex64) -> Complex64 {
 
 /// (ln W)″ of the model, from its a: its sweep's alone.
 #[inline]
-fn model_d2(m: &LocalModel, a: Complex64) -> Complex64 {
-    Complex64::new(0.0, 2.0 * PI * m.sweep) - 2.0 * PI * PI * m.sweep * m.sweep / a
+fn model_d2(sweep: f64, a: Complex64) -> Complex64 {
+    Complex64::new(0.0, 2.0 * PI * sweep) - 2.0 * PI * PI * sweep * sweep / a
 }
 
 /// The estimator applied to the model at the scales `scales`.
@@ -161,16 +171,11 @@ struct SweepTerms {
 impl SweepTerms {
     /// The terms of a model of sweep rate `sweep` at `scales`, as [`model_value`] has them.
     fn new(w: &Morlet, scales: [f64; 3], sweep: f64) -> SweepTerms {
-        let m = LocalModel {
-            decay: 0.0,
-            freq: 0.0,
-            sweep,
-        };
-        let a = scales.map(|s| model_ab(w, s, &m).0);
+        let a = scales.map(|s| model_a(w, s, sweep));
         SweepTerms {
             a,
             ln_abs_a: a.map(|a| a.norm().ln()),
-            d2: a.map(|a| model_d2(&m, a)),
+            d2: a.map(|a| model_d2(sweep, a)),
         }
     }
 }
@@ -193,18 +198,13 @@ fn model_rates(
     let mut y = [0.0; 3];
     let mut d1 = [Complex64::new(0.0, 0.0); 3];
     for i in 0..3 {
-        let a = terms.a[i];
-        let b = Complex64::new(m.decay, -2.0 * PI * (m.freq - w.centre / scales[i]));
+        let (a, b) = (terms.a[i], model_b(w, scales[i], m));
         // model_value's ln_k.re, term by term in its order.
         y[i] = (ln_k0[i] - 0.5 * terms.ln_abs_a[i]) + (b * b / (4.0 * a)).re;
         d1[i] = model_d1(m, a, b);
     }
     let x = scales;
-    let (lo, hi) = (x[0].min(x[2]), x[0].max(x[2]));
-    let scale = match parabola_peak(x, y) {
-        Some((s, _)) if s >= lo && s <= hi => s,
-        _ => x[1],
-    };
+    let (scale, _, _) = peak(x, y);
     let (o1, o2) = (lagrange3(x, d1, scale), lagrange3(x, terms.d2, scale));
     [-o1.re, o1.im / (2.0 * PI), o2.im / (2.0 * PI)]
 }
