@@ -264,6 +264,7 @@ impl Encoded {
                 }
                 // A run that ran out of slots has all its unsure points refined on the host,
                 // those with a slot too: which of them found one was the device's timing.
+                // In grid order, as `estimate_grid` takes points (it joins neighbours' spans).
                 if !out.overflow.is_empty() {
                     out.overflow.extend(out.unsure.drain(..).map(|p| p.g));
                     out.overflow.sort_unstable();
