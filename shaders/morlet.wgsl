@@ -1,6 +1,7 @@
 // The complex Morlet wavelet's spectrum in `real` (src/transform/mod.rs, Morlet::spectrum),
 // shared by scales.wgsl and refine.wgsl: the host (src/gpu/morlet.rs) appends this file to
-// each before it sets `real`, and fills the `wavelet` uniform at binding 0.
+// each before it sets `real`, and fills the `wavelet` uniform at binding 0. With it, what
+// else both stages share: the bin weights an item holds, and the cubic interpolation weights.
 
 struct Wavelet {
     bandwidth: vec2<f32>, // f_b as hi + lo (the pair holds f64 to 48 bits)
@@ -45,10 +46,40 @@ fn exp_real(x: real) -> real {
     return ldexp(p, i32(k));
 }
 
-// The weight norm·Ψ(s·f_m) of spectrum bin m, from the scale s (s), the bin spacing (Hz)
-// and norm (2/L) as f32 pairs (hi + lo): what both stages' scatters multiply X[m] by.
-fn bin_weight(bin: u32, scale: vec2<f32>, df: vec2<f32>, norm: vec2<f32>) -> real {
-    return pair(norm) * psi(pair(scale), real(bin) * pair(df));
+// What weighs one scale's spectrum bins, as f32 pairs (hi + lo; scalars, so that the
+// struct keeps both stages' items at 4-byte alignment): the scale s (s), the bin spacing
+// of the padded spectrum (Hz) and norm = 2/L. Each stage's `Item` holds one.
+struct BinWeights {
+    scale_hi: f32,
+    scale_lo: f32,
+    df_hi: f32,
+    df_lo: f32,
+    norm_hi: f32,
+    norm_lo: f32,
+};
+
+// The bin spacing (Hz) of `b`, in `real`.
+fn bin_df(b: BinWeights) -> real {
+    return pair(vec2<f32>(b.df_hi, b.df_lo));
+}
+
+// The weight norm·Ψ(s·f_m) of spectrum bin m: what both stages' scatters multiply X[m] by.
+fn bin_weight(bin: u32, b: BinWeights) -> real {
+    let scale = pair(vec2<f32>(b.scale_hi, b.scale_lo));
+    return pair(vec2<f32>(b.norm_hi, b.norm_lo)) * psi(scale, real(bin) * bin_df(b));
+}
+
+// The cubic Lagrange weights of the four samples at −1, 0, 1, 2 for a value at u ∈ [0, 1):
+// how both stages read their decimated sequences between samples.
+fn cubic_weights(u: real) -> vec4<real> {
+    let one = real(1.0);
+    let two = real(2.0);
+    return vec4<real>(
+        -u * (u - one) * (u - two) / real(6.0),
+        (u + one) * (u - one) * (u - two) / two,
+        -(u + one) * u * (u - two) / two,
+        (u + one) * u * (u - one) / real(6.0),
+    );
 }
 
 // Ψ(s·f): the Morlet spectrum at scale s (s) and frequency f (Hz).

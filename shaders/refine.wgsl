@@ -36,12 +36,7 @@ struct Item {
     m: u32,         // decimated length M
     data: u32,      // offset in `data` of its w; w′ and w″ follow at +M and +2M
     _pad: u32,
-    scale_hi: f32,  // wavelet scale s (s), hi + lo
-    scale_lo: f32,
-    df_hi: f32,     // bin spacing of the padded spectrum (Hz), hi + lo
-    df_lo: f32,
-    norm_hi: f32,   // 2/L, hi + lo
-    norm_lo: f32,
+    weights: BinWeights, // s, the bin spacing and 2/L (morlet.wgsl)
 };
 
 // One scale of one run, as the estimate reads it.
@@ -135,12 +130,9 @@ fn scatter_one(it: Item, q: u32) {
     var v1 = v;
     var v2 = v;
     if (bin <= it.hi) {
-        let df = vec2<f32>(it.df_hi, it.df_lo);
-        let w = bin_weight(bin, vec2<f32>(it.scale_hi, it.scale_lo), df,
-            vec2<f32>(it.norm_hi, it.norm_lo));
-        v = spectrum[it.spec + d] * w;
+        v = spectrum[it.spec + d] * bin_weight(bin, it.weights);
         // (j·omega)^order, omega = 2π (f_m − f_c): the baseband derivatives.
-        let omega = real(2.0) * PI_R * real(i32(bin) - i32(it.centre)) * pair(df);
+        let omega = real(2.0) * PI_R * real(i32(bin) - i32(it.centre)) * bin_df(it.weights);
         v1 = vec2<real>(-omega * v.y, omega * v.x);
         v2 = v * (-omega * omega);
     }
@@ -224,14 +216,9 @@ struct Value {
 
 // Cubic Lagrange interpolation of the periodic sequence at `base` (length m) at idx + u.
 fn interp(base: u32, m: u32, idx: u32, u: real) -> vec2<real> {
-    let one = real(1.0);
-    let two = real(2.0);
-    let w0 = -u * (u - one) * (u - two) / real(6.0);
-    let w1 = (u + one) * (u - one) * (u - two) / two;
-    let w2 = -(u + one) * u * (u - two) / two;
-    let w3 = (u + one) * u * (u - one) / real(6.0);
-    return data[base + (idx + m - 1u) % m] * w0 + data[base + idx % m] * w1
-         + data[base + (idx + 1u) % m] * w2 + data[base + (idx + 2u) % m] * w3;
+    let w = cubic_weights(u);
+    return data[base + (idx + m - 1u) % m] * w.x + data[base + idx % m] * w.y
+         + data[base + (idx + 1u) % m] * w.z + data[base + (idx + 2u) % m] * w.w;
 }
 
 // W at scale k at sample i: its log-magnitude and phase, and the ratios W′/W and

@@ -29,12 +29,7 @@ struct Item {
     power: u32,     // offset of the item's coarse power values in `power`
     positions: u32, // offset of its table in `index`/`frac`
     steps: u32,     // coarse steps
-    scale_hi: f32,  // wavelet scale s (s), hi + lo
-    scale_lo: f32,
-    df_hi: f32,     // bin spacing of the padded spectrum (Hz), hi + lo
-    df_lo: f32,
-    norm_hi: f32,   // 2/L, hi + lo
-    norm_lo: f32,
+    weights: BinWeights, // s, the bin spacing and 2/L (morlet.wgsl)
 };
 
 // Binding 0, the `wavelet` uniform, and Ψ are in morlet.wgsl.
@@ -70,9 +65,7 @@ fn scatter_one(it: Item, q: u32) {
     let bin = it.lo + d;
     var v = vec2<real>(real(0.0), real(0.0));
     if (bin <= it.hi) {
-        let w = bin_weight(bin, vec2<f32>(it.scale_hi, it.scale_lo),
-            vec2<f32>(it.df_hi, it.df_lo), vec2<f32>(it.norm_hi, it.norm_lo));
-        v = spectrum[it.spec + d] * w;
+        v = spectrum[it.spec + d] * bin_weight(bin, it.weights);
     }
     data[it.data + q] = v;
 }
@@ -96,15 +89,9 @@ fn power_grid(
 
 fn power_one(it: Item, j: u32) {
     let i = index[it.positions + j];
-    let u = pair(frac[it.positions + j]);
-    let one = real(1.0);
-    let two = real(2.0);
-    let w0 = -u * (u - one) * (u - two) / real(6.0);
-    let w1 = (u + one) * (u - one) * (u - two) / two;
-    let w2 = -(u + one) * u * (u - two) / two;
-    let w3 = (u + one) * u * (u - one) / real(6.0);
+    let w = cubic_weights(pair(frac[it.positions + j]));
     let m = it.m;
-    let v = data[it.data + (i + m - 1u) % m] * w0 + data[it.data + i % m] * w1
-          + data[it.data + (i + 1u) % m] * w2 + data[it.data + (i + 2u) % m] * w3;
+    let v = data[it.data + (i + m - 1u) % m] * w.x + data[it.data + i % m] * w.y
+          + data[it.data + (i + 1u) % m] * w.z + data[it.data + (i + 2u) % m] * w.w;
     power[it.power + j] = f32(dot(v, v));
 }

@@ -19,6 +19,27 @@ pub fn split(x: f64) -> [f32; 2] {
     [hi, (x - f64::from(hi)) as f32]
 }
 
+/// The shader's `BinWeights`: what weighs one scale's spectrum bins, as f32 pairs. Each
+/// stage's item holds one.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct BinWeights {
+    scale: [f32; 2],
+    df: [f32; 2],
+    norm: [f32; 2],
+}
+
+impl BinWeights {
+    /// Scale `scale` (s) of a spectrum of `sample_rate` (Hz) padded to `padded_len` samples.
+    pub fn new(scale: f64, sample_rate: f64, padded_len: usize) -> BinWeights {
+        BinWeights {
+            scale: split(scale),
+            df: split(sample_rate / padded_len as f64),
+            norm: split(2.0 / padded_len as f64),
+        }
+    }
+}
+
 /// The shader's `Wavelet` uniform: f_b, f_c and the taper as f32 pairs (hi + lo).
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]

@@ -20,7 +20,7 @@ use crate::profile::SpanGuard;
 use rayon::prelude::*;
 
 use super::fft::{offset_alignment_of, plannable, FftStage, Holder};
-use super::morlet::{self, split, WaveletParams};
+use super::morlet::{self, BinWeights, WaveletParams};
 use super::{Gpu, GpuError, Pooled, Real};
 use num_complex::Complex64;
 
@@ -40,9 +40,7 @@ struct Item {
     m: u32,
     data: u32,
     _pad: u32,
-    scale: [f32; 2],
-    df: [f32; 2],
-    norm: [f32; 2],
+    weights: BinWeights,
 }
 
 /// The shader's `Scale`: where one scale of one run sits in `data`.
@@ -747,9 +745,7 @@ impl RefineStage {
                 m: m as u32,
                 data: data_len as u32,
                 _pad: 0,
-                scale: split(plan.scale),
-                df: split(spec.sample_rate / l as f64),
-                norm: split(2.0 / l as f64),
+                weights: BinWeights::new(plan.scale, spec.sample_rate, l),
             });
             data_len += 3 * m;
         }

@@ -11,7 +11,7 @@ use std::collections::HashMap;
 use rayon::prelude::*;
 
 use super::fft::{offset_alignment_of, FftStage, Holder};
-use super::morlet::{self, split, WaveletParams};
+use super::morlet::{self, split, BinWeights, WaveletParams};
 use super::{Gpu, GpuError, Pooled, Real};
 use crate::transform::band::{self, ScalePlan};
 use crate::transform::{Morlet, Spectrum};
@@ -35,9 +35,7 @@ struct Item {
     power: u32,
     positions: u32,
     steps: u32,
-    scale: [f32; 2],
-    df: [f32; 2],
-    norm: [f32; 2],
+    weights: BinWeights,
 }
 
 /// One run's share of a batch: its spectrum, the plans of its scales, and its coarse grid
@@ -419,9 +417,7 @@ impl ScaleStage {
                 power: (shared.power_offset[r] + k * run.steps) as u32,
                 positions,
                 steps: run.steps as u32,
-                scale: split(plan.scale),
-                df: split(spec.sample_rate / l as f64),
-                norm: split(2.0 / l as f64),
+                weights: BinWeights::new(plan.scale, spec.sample_rate, l),
             });
             data_len += m;
         }
