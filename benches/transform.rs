@@ -67,5 +67,31 @@ fn host_share(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, transform, host_share);
+/// A long record's spectrum, realfft's serial plan against the four-step on every core
+/// (`transform::parallel`), at the two lengths a 2^20-sample record's preparation takes:
+/// its band's (2^20) and its padded spectrum's (1.6 M points for the log sweep below).
+fn long_spectrum(c: &mut Criterion) {
+    skelid::backend::keep_freed_memory();
+    let mut group = c.benchmark_group("long_spectrum");
+    group.sample_size(20);
+    let x = bench_signal(1 << 20);
+    for len in [1usize << 20, 1_600_000] {
+        group.bench_with_input(BenchmarkId::new("realfft", len), &len, |b, &len| {
+            let plan = skelid::transform::real_plan(len);
+            b.iter(|| {
+                let mut buf = x.clone();
+                buf.resize(len, 0.0);
+                let mut out = plan.make_output_vec();
+                plan.process(&mut buf, &mut out).unwrap();
+                out
+            })
+        });
+        group.bench_with_input(BenchmarkId::new("four_step", len), &len, |b, &len| {
+            b.iter(|| skelid::transform::parallel::real_spectrum(&x, 0.0, len))
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, transform, host_share, long_spectrum);
 criterion_main!(benches);

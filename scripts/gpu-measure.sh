@@ -22,6 +22,8 @@
 #     on the 2^20-sample signal and on the campaign (SKELID_GPU_RIDGE);
 #   - an experiment: the 2^20-sample signal's ridge programme and backtrack in lanes side by
 #     side (the default) against one workgroup through every step (SKELID_GPU_RIDGE_LANES=1);
+#   - an experiment: the long record's two spectra on every core (the four-step, the
+#     default) against realfft's serial plan (SKELID_SPECTRUM_FFT=realfft), both backends;
 #   - an experiment: the GPU backend's host share (preparing, completing) on 2 to 16
 #     threads, to see whether the completion stops scaling;
 #   - an experiment: the GPU `bench` with glibc's malloc keeping freed memory (no trims, no
@@ -117,6 +119,17 @@ if [ -f "$W/long.h5" ]; then
       --no-end-to-end --out "$OUT/bench-long-lanes-$l.json" 2>&1 | grep -E "^ +(cpu|gpu) |ridge\.(steps|repair|backtrack)" | tail -7
   done
   unset SKELID_GPU_RIDGE_LANES
+  # The long record's two spectra (2^20 and 1.6 M points) on every core by the four-step
+  # (the default from 2^18 points) against realfft's serial plan
+  # (SKELID_SPECTRUM_FFT=realfft), alternating: both backends wait for them.
+  echo "== experiment: the long record's spectra, SKELID_SPECTRUM_FFT=realfft and the default"
+  for f in realfft default realfft default; do
+    echo "SKELID_SPECTRUM_FFT=$f, the 2^20-sample signal"
+    if [ "$f" = default ]; then unset SKELID_SPECTRUM_FFT; else export SKELID_SPECTRUM_FFT=$f; fi
+    timeout 40 "$B" bench "$W/long.h5" --backend cpu,gpu --repeat 5 --scales 256 \
+      --no-end-to-end --out "$OUT/bench-long-spectrum-$f.json" 2>&1 | grep -E "^ +(cpu|gpu) |preparing" | tail -4
+  done
+  unset SKELID_SPECTRUM_FFT
   for w in narrow wide; do
     echo "SKELID_GPU_RIDGE=$w, the campaign at 128 scales"
     SKELID_GPU_RIDGE=$w SKELID_GPU_TRACE=1 timeout 40 "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 \

@@ -307,28 +307,41 @@ pub(crate) fn band_with_mean(
     wavelet: &Morlet,
 ) -> Result<(f64, f64), TrackError> {
     let spec = Spectrum::with_mean(x, mean, fs, 0);
-    let p: Vec<f64> = spec.all_bins().iter().map(|c| c.norm_sqr()).collect();
-    let w = (p.len() / 1024).max(1);
-    let mut smooth = vec![0.0; p.len()];
-    let mut acc = 0.0;
-    for i in 0..p.len() {
-        acc += p[i];
-        if i >= w {
-            acc -= p[i - w];
-        }
-        smooth[i] = acc / w.min(i + 1) as f64;
-    }
+    // The smoothing's running sum is serial; the noise floor's median beside it, so that a
+    // long record's (262 000 bins at 2^20 samples) does not wait for it.
+    let (smooth, floor) = rayon::join(
+        || {
+            use rayon::prelude::*;
+            let p: Vec<f64> = spec.all_bins().par_iter().map(|c| c.norm_sqr()).collect();
+            let w = (p.len() / 1024).max(1);
+            let mut smooth = vec![0.0; p.len()];
+            let mut acc = 0.0;
+            for i in 0..p.len() {
+                acc += p[i];
+                if i >= w {
+                    acc -= p[i - w];
+                }
+                smooth[i] = acc / w.min(i + 1) as f64;
+            }
+            smooth
+        },
+        || {
+            spec.white_noise_variance(fs / 4.0, fs / 2.0)
+                .map(|v| v * x.len() as f64)
+                .unwrap_or(0.0)
+        },
+    );
+    let w = (smooth.len() / 1024).max(1);
     let peak = smooth.iter().cloned().fold(0.0, f64::max);
     if peak <= 0.0 {
         return Err(TrackError::NoSignal("the record is constant".into()));
     }
-    let floor = spec
-        .white_noise_variance(fs / 4.0, fs / 2.0)
-        .map(|v| v * x.len() as f64)
-        .unwrap_or(0.0);
     let thr = (peak * 1e-4).max(10.0 * floor);
-    let above: Vec<usize> = (1..smooth.len()).filter(|&m| smooth[m] > thr).collect();
-    let (Some(&lo), Some(&hi)) = (above.first(), above.last()) else {
+    let above = |m: &usize| smooth[*m] > thr;
+    let (Some(lo), Some(hi)) = (
+        (1..smooth.len()).find(above),
+        (1..smooth.len()).rfind(above),
+    ) else {
         return Err(TrackError::NoSignal(
             "no part of the spectrum stands above the noise".into(),
         ));

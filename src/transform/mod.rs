@@ -10,6 +10,7 @@
 pub mod band;
 pub mod hilbert;
 pub mod naive;
+pub mod parallel;
 
 use std::collections::HashMap;
 use std::f64::consts::PI;
@@ -191,7 +192,8 @@ pub fn mean_of(x: &[f64]) -> f64 {
 }
 
 impl Spectrum {
-    /// FFT of `x` zero-padded by at least `pad` samples after its mean is removed.
+    /// FFT of `x` zero-padded by at least `pad` samples after its mean is removed: realfft's,
+    /// or from [`parallel::PARALLEL_MIN`] points on, [`parallel::real_spectrum`] on every core.
     pub fn new(x: &[f64], sample_rate: f64, pad: usize) -> Spectrum {
         Self::with_mean(x, mean_of(x), sample_rate, pad)
     }
@@ -201,13 +203,18 @@ impl Spectrum {
     pub fn with_mean(x: &[f64], mean: f64, sample_rate: f64, pad: usize) -> Spectrum {
         let n = x.len();
         let padded_len = fast_len((n + pad).max(2));
-        let mut buf: Vec<f64> = Vec::with_capacity(padded_len);
-        buf.extend(x.iter().map(|v| v - mean));
-        buf.resize(padded_len, 0.0);
-        let fft = real_plan(padded_len);
-        let mut bins = fft.make_output_vec();
-        fft.process(&mut buf, &mut bins)
-            .expect("buffer sizes come from the plan");
+        let mut bins = if parallel::takes(padded_len) {
+            parallel::real_spectrum(x, mean, padded_len)
+        } else {
+            let mut buf: Vec<f64> = Vec::with_capacity(padded_len);
+            buf.extend(x.iter().map(|v| v - mean));
+            buf.resize(padded_len, 0.0);
+            let fft = real_plan(padded_len);
+            let mut bins = fft.make_output_vec();
+            fft.process(&mut buf, &mut bins)
+                .expect("buffer sizes come from the plan");
+            bins
+        };
         bins[0] = Complex64::new(0.0, 0.0);
         Spectrum {
             bins,
