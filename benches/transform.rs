@@ -77,14 +77,7 @@ fn long_spectrum(c: &mut Criterion) {
     let x = bench_signal(1 << 20);
     for len in [1usize << 20, 1_600_000] {
         group.bench_with_input(BenchmarkId::new("realfft", len), &len, |b, &len| {
-            let plan = skelid::transform::real_plan(len);
-            b.iter(|| {
-                let mut buf = x.clone();
-                buf.resize(len, 0.0);
-                let mut out = plan.make_output_vec();
-                plan.process(&mut buf, &mut out).unwrap();
-                out
-            })
+            b.iter(|| skelid::transform::serial_spectrum(&x, 0.0, len))
         });
         group.bench_with_input(BenchmarkId::new("four_step", len), &len, |b, &len| {
             b.iter(|| skelid::transform::parallel::real_spectrum(&x, 0.0, len))

@@ -309,11 +309,11 @@ pub(crate) fn band_with_mean(
     let spec = Spectrum::with_mean(x, mean, fs, 0);
     // The smoothing's running sum is serial; the noise floor's median beside it, so that a
     // long record's (262 000 bins at 2^20 samples) does not wait for it.
+    let w = (spec.bin_count() / 1024).max(1);
     let (smooth, floor) = rayon::join(
         || {
             use rayon::prelude::*;
             let p: Vec<f64> = spec.all_bins().par_iter().map(|c| c.norm_sqr()).collect();
-            let w = (p.len() / 1024).max(1);
             let mut smooth = vec![0.0; p.len()];
             let mut acc = 0.0;
             for i in 0..p.len() {
@@ -331,7 +331,6 @@ pub(crate) fn band_with_mean(
                 .unwrap_or(0.0)
         },
     );
-    let w = (smooth.len() / 1024).max(1);
     let peak = smooth.iter().cloned().fold(0.0, f64::max);
     if peak <= 0.0 {
         return Err(TrackError::NoSignal("the record is constant".into()));

@@ -186,6 +186,20 @@ pub struct Spectrum {
     pub mean: f64,
 }
 
+/// The one-sided spectrum, bins 0..=len/2, of `x` with `mean` taken off every sample and
+/// zero-padded to `len` samples (even, at least `x.len()`), by realfft's serial plan: what
+/// [`parallel::real_spectrum`] computes on every core.
+pub fn serial_spectrum(x: &[f64], mean: f64, len: usize) -> Vec<Complex64> {
+    let mut buf: Vec<f64> = Vec::with_capacity(len);
+    buf.extend(x.iter().map(|v| v - mean));
+    buf.resize(len, 0.0);
+    let fft = real_plan(len);
+    let mut bins = fft.make_output_vec();
+    fft.process(&mut buf, &mut bins)
+        .expect("buffer sizes come from the plan");
+    bins
+}
+
 /// The mean a [`Spectrum`] removes: the samples summed in order over their count.
 pub fn mean_of(x: &[f64]) -> f64 {
     x.iter().sum::<f64>() / x.len().max(1) as f64
@@ -206,14 +220,7 @@ impl Spectrum {
         let mut bins = if parallel::takes(padded_len) {
             parallel::real_spectrum(x, mean, padded_len)
         } else {
-            let mut buf: Vec<f64> = Vec::with_capacity(padded_len);
-            buf.extend(x.iter().map(|v| v - mean));
-            buf.resize(padded_len, 0.0);
-            let fft = real_plan(padded_len);
-            let mut bins = fft.make_output_vec();
-            fft.process(&mut buf, &mut bins)
-                .expect("buffer sizes come from the plan");
-            bins
+            serial_spectrum(x, mean, padded_len)
         };
         bins[0] = Complex64::new(0.0, 0.0);
         Spectrum {
