@@ -16,6 +16,9 @@ fn main() -> ExitCode {
     if let Some(note) = skelid::backend::keep_freed_memory() {
         eprintln!("note: {note}");
     }
+    if let Some(note) = skelid::transform::parallel::hook_note() {
+        eprintln!("note: {note}");
+    }
     // The global pool (the parallel parts of every stage) below the process's priority:
     // see `lower_compute_priority`. Fails only if a pool was built already: then as it is.
     let _ = rayon::ThreadPoolBuilder::new()

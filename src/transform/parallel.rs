@@ -30,7 +30,30 @@ pub const SERIAL_ENV: &str = "SKELID_SPECTRUM_FFT";
 pub fn takes(len: usize) -> bool {
     static SERIAL: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     len >= PARALLEL_MIN
-        && !*SERIAL.get_or_init(|| std::env::var(SERIAL_ENV).is_ok_and(|v| v == "realfft"))
+        && !*SERIAL.get_or_init(|| serial_asked(std::env::var(SERIAL_ENV).ok().as_deref()).0)
+}
+
+/// What the user should know of [`SERIAL_ENV`] as set (a value it does not understand,
+/// which leaves the default), for the command line to print at start-up.
+pub fn hook_note() -> Option<String> {
+    serial_asked(std::env::var(SERIAL_ENV).ok().as_deref()).1
+}
+
+/// Whether [`SERIAL_ENV`]'s `value` asks for realfft's serial plan, and the note a value it
+/// does not understand is answered with.
+fn serial_asked(value: Option<&str>) -> (bool, Option<String>) {
+    match value {
+        None => (false, None),
+        Some("realfft") => (true, None),
+        Some(v) => (
+            false,
+            Some(format!(
+                "{SERIAL_ENV}={v:?} is not understood: `realfft` takes every spectrum by \
+                 realfft's serial plan; unset, spectra of {PARALLEL_MIN} points or more are \
+                 taken on every core, as now"
+            )),
+        ),
+    }
 }
 
 /// Columns of the matrix that one task of the first and last passes takes.
@@ -260,6 +283,7 @@ impl Walk<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::transform::serial_spectrum as realfft_spectrum;
 
     /// A record with a tone, a ramp and a deterministic wiggle, so no bin is special.
     fn record(n: usize) -> Vec<f64> {
@@ -272,15 +296,6 @@ mod tests {
                     + 2.5
             })
             .collect()
-    }
-
-    fn realfft_spectrum(x: &[f64], mean: f64, len: usize) -> Vec<Complex64> {
-        let mut buf: Vec<f64> = x.iter().map(|v| v - mean).collect();
-        buf.resize(len, 0.0);
-        let plan = realfft::RealFftPlanner::<f64>::new().plan_fft_forward(len);
-        let mut out = plan.make_output_vec();
-        plan.process(&mut buf, &mut out).unwrap();
-        out
     }
 
     /// The DFT summed term by term, each angle reduced exactly (n k mod L) before its
@@ -364,6 +379,16 @@ mod tests {
             println!("length {len}: within {e:.1e} of realfft");
             assert!(e < 2e-15, "length {len}: {e:e}");
         }
+    }
+
+    #[test]
+    fn the_measurement_hook_takes_realfft_and_names_a_value_it_does_not_understand() {
+        assert_eq!(serial_asked(None), (false, None));
+        assert_eq!(serial_asked(Some("realfft")), (true, None));
+        let (serial, note) = serial_asked(Some("serial"));
+        assert!(!serial);
+        let note = note.expect("a note for a value not understood");
+        assert!(note.contains("SKELID_SPECTRUM_FFT=\"serial\"") && note.contains("`realfft`"));
     }
 
     #[test]
