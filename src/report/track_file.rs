@@ -63,23 +63,59 @@ pub(super) fn columns(track: &Track) -> Vec<(&'static str, Cow<'_, [f64]>)> {
 
 pub(super) fn write_csv(path: &Path, track: &Track) -> std::io::Result<()> {
     let mut w = std::io::BufWriter::new(std::fs::File::create(path)?);
+    write_csv_to(&mut w, track, CSV_BLOCK)?;
+    w.flush()
+}
+
+/// [`write_csv`]'s text into `w`, its rows formatted in tasks of `block` rows.
+fn write_csv_to(w: &mut impl Write, track: &Track, block: usize) -> std::io::Result<()> {
+    use rayon::prelude::*;
     let cols = columns(track);
     let names: Vec<&str> = cols.iter().map(|c| c.0).collect();
     writeln!(w, "{}", names.join(","))?;
-    for i in 0..track.len() {
-        let row: Vec<String> = cols
-            .iter()
-            .map(|(name, v)| {
-                if *name == "valid" {
-                    format!("{}", v[i] as u8)
-                } else {
-                    format!("{:.10e}", v[i])
-                }
-            })
+    // Rows are formatted in blocks on every core and written in order: the same bytes as
+    // one row after another (a 2^20-sample track is 147 MB of text; formatted on one
+    // thread, a String a cell, it took 2.7 s against the track's 0.8 s on 2 cores). A
+    // round of blocks at a time bounds the text held to a few blocks a thread.
+    let n = track.len();
+    let block = block.max(1);
+    let round = block * 4 * rayon::current_num_threads();
+    for start in (0..n).step_by(round) {
+        let end = (start + round).min(n);
+        let blocks: Vec<Vec<u8>> = (start..end)
+            .step_by(block)
+            .collect::<Vec<_>>()
+            .into_par_iter()
+            .map(|b| csv_rows(&cols, b..(b + block).min(end)))
             .collect();
-        writeln!(w, "{}", row.join(","))?;
+        for b in blocks {
+            w.write_all(&b)?;
+        }
     }
-    w.flush()
+    Ok(())
+}
+
+/// Rows formatted by one task of [`write_csv`].
+const CSV_BLOCK: usize = 8192;
+
+/// The CSV text of rows `rows`: each value of a column `{:.10e}`, `valid` 0 or 1.
+fn csv_rows(cols: &[(&str, Cow<'_, [f64]>)], rows: std::ops::Range<usize>) -> Vec<u8> {
+    // About 17 bytes a value; writing into a Vec cannot fail.
+    let mut out = Vec::with_capacity(rows.len() * cols.len() * 18);
+    for i in rows {
+        for (c, (name, v)) in cols.iter().enumerate() {
+            if c > 0 {
+                out.push(b',');
+            }
+            if *name == "valid" {
+                out.push(if v[i] as u8 == 0 { b'0' } else { b'1' });
+            } else {
+                let _ = write!(out, "{:.10e}", v[i]);
+            }
+        }
+        out.push(b'\n');
+    }
+    out
 }
 
 pub(super) fn write_hdf5(path: &Path, track: &Track, source: &str) -> hdf5::Result<()> {
@@ -109,4 +145,107 @@ pub(super) fn write_hdf5(path: &Path, track: &Track, source: &str) -> hdf5::Resu
         write_signal(&file, "scalogram_time", &sc.time, false)?;
     }
     file.flush()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::track::{Device, Method};
+
+    /// The CSV as it was written before its rows were formatted in parallel: a row at a
+    /// time, a String a cell.
+    fn row_by_row(track: &Track) -> Vec<u8> {
+        let mut w = Vec::new();
+        let cols = columns(track);
+        let names: Vec<&str> = cols.iter().map(|c| c.0).collect();
+        writeln!(w, "{}", names.join(",")).unwrap();
+        for i in 0..track.len() {
+            let row: Vec<String> = cols
+                .iter()
+                .map(|(name, v)| {
+                    if *name == "valid" {
+                        format!("{}", v[i] as u8)
+                    } else {
+                        format!("{:.10e}", v[i])
+                    }
+                })
+                .collect();
+            writeln!(w, "{}", row.join(",")).unwrap();
+        }
+        w
+    }
+
+    fn track(n: usize) -> Track {
+        // Values of every kind a track may hold or that formatting treats apart: zero of
+        // both signs, subnormals, the extremes, infinities, NaN, and ordinary values.
+        let special = [
+            0.0,
+            -0.0,
+            f64::MIN_POSITIVE / 3.0,
+            f64::MAX,
+            -f64::MIN_POSITIVE,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+            1.0,
+            9.99999999995e-7,
+        ];
+        let series = |k: usize| -> Vec<f64> {
+            (0..n)
+                .map(|i| {
+                    if (i + k) % 97 < special.len() {
+                        special[(i + k) % 97]
+                    } else {
+                        ((i * (k + 3)) as f64 * 0.618_033_988_75).sin()
+                            * 10f64.powi((i % 41) as i32 - 20)
+                    }
+                })
+                .collect()
+        };
+        Track {
+            method: Method::Wavelet,
+            sample_rate: 1000.0,
+            amplitude: series(0),
+            frequency: series(1),
+            phase: series(2),
+            d_amplitude: series(3),
+            d2_amplitude: series(4),
+            d_frequency: series(5),
+            valid: (0..n).map(|i| i % 3 != 0).collect(),
+            offset: 0.0,
+            noise: 0.0,
+            band: (1.0, 2.0),
+            backend: Device::Cpu,
+            scalogram: None,
+        }
+    }
+
+    #[test]
+    fn csv_in_parallel_blocks_is_the_row_by_row_text() {
+        // Lengths around the block and the round (block × 4 × threads), on 1 to 3 threads.
+        for threads in [1, 2, 3] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            for (n, block) in [
+                (0, 7),
+                (1, 7),
+                (6, 7),
+                (7, 7),
+                (8, 7),
+                (300, 7),
+                (301, 13),
+                (2000, 8192),
+            ] {
+                let t = track(n);
+                let mut got = Vec::new();
+                pool.install(|| write_csv_to(&mut got, &t, block)).unwrap();
+                assert!(
+                    got == row_by_row(&t),
+                    "{n} rows in blocks of {block} on {threads} threads differ"
+                );
+            }
+        }
+    }
 }
