@@ -34,6 +34,8 @@
 #     its log's timeline and how busy its one writer thread was;
 #   - an experiment: `run` on the CPU backend with written data released from the page
 #     cache (the default) against SKELID_PAGECACHE=keep, alternating;
+#   - `skelid track` of the 2^20-sample signal end to end on each backend, as issue 18's 5×
+#     target names it (start-up, read and write included), HDF5 and CSV out;
 #   - determinism: the GPU track of one campaign run and of the 2^20-sample signal, twice.
 set -u
 N=${N:-1000}; OUT=${OUT:-/tmp/skelid-measure}; mkdir -p "$OUT"
@@ -168,6 +170,28 @@ for pc in keep default keep default; do
   echo "SKELID_PAGECACHE=$pc: rc=$? wall $(since "$s") s; $(tail -1 "$OUT/run-pagecache-$pc.log");" \
     "$(grep -o 'busy [0-9.]* s of the [0-9.]* s' "$W/out-pc/skelid.log" | tail -1)"
 done
+# Issue 18's 5× target names `skelid track` itself, as a user runs it: the device opened
+# and its pipelines made, the record read, the track written (60 MB of HDF5 at 2^20
+# samples), none of which `bench` times. Both backends alternating, each a fresh process,
+# to a fresh file name; the CSV (147 MB of text, its rows formatted on every core) once each.
+if [ -f "$W/long.h5" ]; then
+  echo "== skelid track, the 2^20-sample signal at 256 scales, end to end (fresh process, HDF5 out)"
+  for k in 1 2 3; do
+    for b in cpu gpu; do
+      rm -f "$W/track-$b-$k.h5"; s=$(now)
+      timeout 60 "$B" track "$W/long.h5" --dataset /sig/output --scales 256 --backend $b \
+        --out "$W/track-$b-$k.h5" > /dev/null 2>&1
+      echo "track --backend $b ($k): rc=$? wall $(since "$s") s"
+    done
+  done
+  for b in cpu gpu; do
+    rm -f "$W/track-$b.csv"; s=$(now)
+    timeout 60 "$B" track "$W/long.h5" --dataset /sig/output --scales 256 --backend $b \
+      --out "$W/track-$b.csv" > /dev/null 2>&1
+    echo "track --backend $b, CSV out: rc=$? wall $(since "$s") s"
+  done
+  rm -f "$W"/track-*
+fi
 # A run's GPU track once depended on the order in which the device reached its points (the
 # slots for unsure points were shared by a batch's runs; lavapipe: six invocations, six
 # files). Each run has its own slots since: on a real GPU, the same file twice?
