@@ -173,23 +173,18 @@ done
 # Issue 18's 5× target names `skelid track` itself, as a user runs it: the device opened
 # and its pipelines made, the record read, the track written (60 MB of HDF5 at 2^20
 # samples), none of which `bench` times. Both backends alternating, each a fresh process,
-# to a fresh file name; the CSV (147 MB of text, its rows formatted on every core) once each.
+# to a fresh file name; the CSV (117 MB of text, its rows formatted on every core) once each.
+track_once() {  # backend, output file, label
+  rm -f "$2"; local s; s=$(now)
+  timeout 60 "$B" track "$W/long.h5" --dataset /sig/output --scales 256 --backend "$1" --out "$2" > /dev/null 2>&1
+  echo "track --backend $1 ($3): rc=$? wall $(since "$s") s"
+}
 if [ -f "$W/long.h5" ]; then
   echo "== skelid track, the 2^20-sample signal at 256 scales, end to end (fresh process, HDF5 out)"
   for k in 1 2 3; do
-    for b in cpu gpu; do
-      rm -f "$W/track-$b-$k.h5"; s=$(now)
-      timeout 60 "$B" track "$W/long.h5" --dataset /sig/output --scales 256 --backend $b \
-        --out "$W/track-$b-$k.h5" > /dev/null 2>&1
-      echo "track --backend $b ($k): rc=$? wall $(since "$s") s"
-    done
+    for b in cpu gpu; do track_once $b "$W/track-$b-$k.h5" "$k"; done
   done
-  for b in cpu gpu; do
-    rm -f "$W/track-$b.csv"; s=$(now)
-    timeout 60 "$B" track "$W/long.h5" --dataset /sig/output --scales 256 --backend $b \
-      --out "$W/track-$b.csv" > /dev/null 2>&1
-    echo "track --backend $b, CSV out: rc=$? wall $(since "$s") s"
-  done
+  for b in cpu gpu; do track_once $b "$W/track-$b.csv" "CSV out"; done
   rm -f "$W"/track-*
 fi
 # A run's GPU track once depended on the order in which the device reached its points (the

@@ -74,7 +74,7 @@ fn write_csv_to(w: &mut impl Write, track: &Track, block: usize) -> std::io::Res
     let names: Vec<&str> = cols.iter().map(|c| c.0).collect();
     writeln!(w, "{}", names.join(","))?;
     // Rows are formatted in blocks on every core and written in order: the same bytes as
-    // one row after another (a 2^20-sample track is 147 MB of text; formatted on one
+    // one row after another (a 2^20-sample track is 117 MB of text; formatted on one
     // thread, a String a cell, it took 2.7 s against the track's 0.8 s on 2 cores). A
     // round of blocks at a time bounds the text held to a few blocks a thread.
     let n = track.len();
