@@ -174,10 +174,11 @@ done
 # and its pipelines made, the record read, the track written (60 MB of HDF5 at 2^20
 # samples), none of which `bench` times. Both backends alternating, each a fresh process,
 # to a fresh file name; the CSV (117 MB of text, its rows formatted on every core) once each.
-track_once() {  # backend, output file, label
-  rm -f "$2"; local s; s=$(now)
-  timeout 60 "$B" track "$W/long.h5" --dataset /sig/output --scales 256 --backend "$1" --out "$2" > /dev/null 2>&1
-  echo "track --backend $1 ($3): rc=$? wall $(since "$s") s"
+track_once() {  # backend, output file, label[, "traced": with the GPU's opening spans]
+  rm -f "$2"; local s t=0; [ -n "${4:-}" ] && t=1; s=$(now)
+  SKELID_GPU_TRACE=$t timeout 60 "$B" track "$W/long.h5" --dataset /sig/output --scales 256 \
+    --backend "$1" --out "$2" > "$OUT/track.log" 2>&1
+  echo "track --backend $1 ($3): rc=$? wall $(since "$s") s"; grep -E "^  open\." "$OUT/track.log"
 }
 if [ -f "$W/long.h5" ]; then
   echo "== skelid track, the 2^20-sample signal at 256 scales, end to end (fresh process, HDF5 out)"
@@ -185,6 +186,7 @@ if [ -f "$W/long.h5" ]; then
     for b in cpu gpu; do track_once $b "$W/track-$b-$k.h5" "$k"; done
   done
   for b in cpu gpu; do track_once $b "$W/track-$b.csv" "CSV out"; done
+  track_once gpu "$W/track-traced.h5" "traced: what opening the device costs" traced
   rm -f "$W"/track-*
 fi
 # A run's GPU track once depended on the order in which the device reached its points (the

@@ -126,10 +126,14 @@ impl GpuService {
         let thread = std::thread::Builder::new()
             .name("skelid-gpu".into())
             .spawn(move || {
-                let opened = Gpu::new().and_then(|gpu| {
+                // Spans, so that a traced one-shot command (`track`) shows what opening
+                // costs: on lavapipe the refinement's pipelines took 330–440 ms, the first
+                // pass's 45–56 ms and the device 80–170 ms, all before any work.
+                use crate::profile::span;
+                let opened = span("open.device", Gpu::new).and_then(|gpu| {
                     let stages = Stages {
-                        first: FirstPass::new(&gpu)?,
-                        refine: RefineStage::new(&gpu),
+                        first: span("open.first_pass", || FirstPass::new(&gpu))?,
+                        refine: span("open.refine", || RefineStage::new(&gpu)),
                     };
                     Ok((gpu, stages))
                 });
