@@ -856,6 +856,33 @@ fn gpu_refinement_matches_the_cpu_skeleton_at_every_grid_point() {
 }
 
 #[test]
+fn a_refinement_whose_pipelines_were_made_on_their_own_thread_is_the_same() {
+    use skelid::gpu::refine::RefineStage;
+    use skelid::gpu::ridge::FirstPass;
+    use skelid::track::WaveletPrep;
+    // The dispatcher makes refine.wgsl's pipelines on a thread of their own while the first
+    // pass runs (`beside`), and waits for them at the first refinement: the same
+    // pipelines, so the same records to the bit as those made at once (`new`).
+    let gpu = gpu();
+    let beside = RefineStage::beside(&gpu);
+    let first = FirstPass::new(&gpu).unwrap();
+    let signals = demo_signals();
+    let preps = prepared_at_128(&signals);
+    let all: Vec<&WaveletPrep> = preps.iter().collect();
+    let grids = grids_of(&gpu, &first, &all);
+    let later = refined(&gpu, &beside, &all, &grids);
+    let at_once = refined(&gpu, &RefineStage::new(&gpu), &all, &grids);
+    assert_eq!(later.len(), signals.len());
+    assert!(
+        later.iter().all(|run| !run.is_empty()),
+        "a run without grid points"
+    );
+    assert!(later == at_once, "the records differ");
+    // Once made, the stage serves again.
+    assert!(refined(&gpu, &beside, &all, &grids) == at_once);
+}
+
+#[test]
 fn a_runs_refinement_is_the_same_alone_and_in_a_batch_when_slots_run_out() {
     use skelid::gpu::refine::RefineStage;
     use skelid::gpu::ridge::FirstPass;

@@ -127,13 +127,15 @@ impl GpuService {
             .name("skelid-gpu".into())
             .spawn(move || {
                 // Spans, so that a traced one-shot command (`track`) shows what opening
-                // costs: on lavapipe the refinement's pipelines took 330–440 ms, the first
-                // pass's 45–56 ms and the device 80–170 ms, all before any work.
+                // costs: on lavapipe the refinement's pipelines took 330–450 ms, the first
+                // pass's 40–56 ms and the device 80–225 ms, all before any work. The
+                // refinement's are made beside the first pass (`open.refine_pipelines`,
+                // and `refine.pipelines_wait` for what of it the first batch waited).
                 use crate::profile::span;
                 let opened = span("open.device", Gpu::new).and_then(|gpu| {
                     let stages = Stages {
                         first: span("open.first_pass", || FirstPass::new(&gpu))?,
-                        refine: span("open.refine", || RefineStage::new(&gpu)),
+                        refine: span("open.refine", || RefineStage::beside(&gpu)),
                     };
                     Ok((gpu, stages))
                 });

@@ -753,48 +753,28 @@ impl Gpu {
         bindings: &[Binding],
         entries: &[&str],
     ) -> (wgpu::BindGroupLayout, Vec<wgpu::ComputePipeline>) {
-        let module = self.module(label, wgsl);
-        let layout = self.layout(label, bindings);
-        let pipelines = self.pipelines(label, &module, &layout, entries, true);
-        (layout, pipelines)
+        Self::stage_on(&self.device, label, wgsl, bindings, entries)
     }
 
-    /// The shader module of WGSL source `wgsl`.
-    fn module(&self, label: &str, wgsl: &str) -> wgpu::ShaderModule {
-        self.device
-            .create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some(label),
-                source: wgpu::ShaderSource::Wgsl(wgsl.into()),
-            })
+    /// [`stage`](Self::stage) on a device handle alone (a clone of [`Gpu::device`]), so that
+    /// a stage can be made on a thread of its own while the device works
+    /// ([`refine::RefineStage::beside`]).
+    pub fn stage_on(
+        device: &wgpu::Device,
+        label: &str,
+        wgsl: &str,
+        bindings: &[Binding],
+        entries: &[&str],
+    ) -> (wgpu::BindGroupLayout, Vec<wgpu::ComputePipeline>) {
+        let module = module_on(device, label, wgsl);
+        let layout = layout_on(device, label, bindings);
+        let pipelines = pipelines_on(device, label, &module, &layout, entries, true);
+        (layout, pipelines)
     }
 
     /// A stage's bind layout: `bindings` in binding order (0, 1, …).
     pub fn layout(&self, label: &str, bindings: &[Binding]) -> wgpu::BindGroupLayout {
-        let layout_entries: Vec<wgpu::BindGroupLayoutEntry> = bindings
-            .iter()
-            .enumerate()
-            .map(|(i, b)| wgpu::BindGroupLayoutEntry {
-                binding: i as u32,
-                visibility: wgpu::ShaderStages::COMPUTE,
-                ty: wgpu::BindingType::Buffer {
-                    ty: match b {
-                        Binding::Uniform | Binding::UniformDynamic => {
-                            wgpu::BufferBindingType::Uniform
-                        }
-                        Binding::Read => wgpu::BufferBindingType::Storage { read_only: true },
-                        Binding::Write => wgpu::BufferBindingType::Storage { read_only: false },
-                    },
-                    has_dynamic_offset: matches!(b, Binding::UniformDynamic),
-                    min_binding_size: None,
-                },
-                count: None,
-            })
-            .collect();
-        self.device
-            .create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-                label: Some(label),
-                entries: &layout_entries,
-            })
+        layout_on(&self.device, label, bindings)
     }
 
     /// More pipelines for a stage's bind `layout`, from another version of its shader (the
@@ -815,8 +795,15 @@ impl Gpu {
     ) -> Result<Vec<wgpu::ComputePipeline>, String> {
         let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let internal = self.device.push_error_scope(wgpu::ErrorFilter::Internal);
-        let module = self.module(label, wgsl);
-        let pipelines = self.pipelines(label, &module, layout, entries, zero_workgroup_memory);
+        let module = module_on(&self.device, label, wgsl);
+        let pipelines = pipelines_on(
+            &self.device,
+            label,
+            &module,
+            layout,
+            entries,
+            zero_workgroup_memory,
+        );
         let refused =
             pollster::block_on(internal.pop()).or_else(|| pollster::block_on(validation.pop()));
         match refused {
@@ -828,38 +815,6 @@ impl Gpu {
                 .collect::<Vec<_>>()
                 .join(" ")),
         }
-    }
-
-    fn pipelines(
-        &self,
-        label: &str,
-        module: &wgpu::ShaderModule,
-        layout: &wgpu::BindGroupLayout,
-        entries: &[&str],
-        zero_workgroup_memory: bool,
-    ) -> Vec<wgpu::ComputePipeline> {
-        let device = &self.device;
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some(label),
-            bind_group_layouts: &[Some(layout)],
-            immediate_size: 0,
-        });
-        entries
-            .iter()
-            .map(|entry| {
-                device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some(entry),
-                    layout: Some(&pipeline_layout),
-                    module,
-                    entry_point: Some(entry),
-                    compilation_options: wgpu::PipelineCompilationOptions {
-                        zero_initialize_workgroup_memory: zero_workgroup_memory,
-                        ..Default::default()
-                    },
-                    cache: None,
-                })
-            })
-            .collect()
     }
 
     /// A bind group of `layout` with whole `buffers` at bindings 0, 1, … in order.
@@ -1228,6 +1183,72 @@ pub fn grid(groups: u64, max: u32) -> Result<[u32; 3], GpuError> {
         });
     }
     Ok([x as u32, y as u32, z as u32])
+}
+
+/// The shader module of WGSL source `wgsl`.
+fn module_on(device: &wgpu::Device, label: &str, wgsl: &str) -> wgpu::ShaderModule {
+    device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(label),
+        source: wgpu::ShaderSource::Wgsl(wgsl.into()),
+    })
+}
+
+/// [`Gpu::layout`] on a device handle.
+fn layout_on(device: &wgpu::Device, label: &str, bindings: &[Binding]) -> wgpu::BindGroupLayout {
+    let layout_entries: Vec<wgpu::BindGroupLayoutEntry> = bindings
+        .iter()
+        .enumerate()
+        .map(|(i, b)| wgpu::BindGroupLayoutEntry {
+            binding: i as u32,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer {
+                ty: match b {
+                    Binding::Uniform | Binding::UniformDynamic => wgpu::BufferBindingType::Uniform,
+                    Binding::Read => wgpu::BufferBindingType::Storage { read_only: true },
+                    Binding::Write => wgpu::BufferBindingType::Storage { read_only: false },
+                },
+                has_dynamic_offset: matches!(b, Binding::UniformDynamic),
+                min_binding_size: None,
+            },
+            count: None,
+        })
+        .collect();
+    device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some(label),
+        entries: &layout_entries,
+    })
+}
+
+/// Compute pipelines of `module`, one per entry point of `entries`, on `layout`.
+fn pipelines_on(
+    device: &wgpu::Device,
+    label: &str,
+    module: &wgpu::ShaderModule,
+    layout: &wgpu::BindGroupLayout,
+    entries: &[&str],
+    zero_workgroup_memory: bool,
+) -> Vec<wgpu::ComputePipeline> {
+    let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some(label),
+        bind_group_layouts: &[Some(layout)],
+        immediate_size: 0,
+    });
+    entries
+        .iter()
+        .map(|entry| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: Some(&pipeline_layout),
+                module,
+                entry_point: Some(entry),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    zero_initialize_workgroup_memory: zero_workgroup_memory,
+                    ..Default::default()
+                },
+                cache: None,
+            })
+        })
+        .collect()
 }
 
 #[cfg(test)]

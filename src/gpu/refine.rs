@@ -115,12 +115,78 @@ pub fn records_bytes(points: usize) -> u64 {
 /// The compiled stage.
 pub struct RefineStage {
     fft: FftStage,
-    scatter: wgpu::ComputePipeline,
-    estimate: wgpu::ComputePipeline,
-    layout: wgpu::BindGroupLayout,
+    /// `refine.wgsl`'s pipelines, made at once or on a thread of their own
+    /// ([`beside`](Self::beside)).
+    made: Made,
     real: Real,
     /// At most this many slots for unsure points a run ([`RefineStage::with_slot_limit`]).
     slot_limit: Option<usize>,
+}
+
+/// `refine.wgsl`'s bind layout and its two pipelines.
+struct Pipelines {
+    scatter: wgpu::ComputePipeline,
+    estimate: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+}
+
+impl Pipelines {
+    fn new(device: &wgpu::Device, real: Real) -> Pipelines {
+        use super::Binding::{Read, Uniform, Write};
+        let (layout, pipelines) = Gpu::stage_on(
+            device,
+            "refine.wgsl",
+            &morlet::source(real, include_str!("../../shaders/refine.wgsl")),
+            &[Uniform, Read, Read, Write, Read, Read, Read, Write, Write],
+            &["scatter", "estimate"],
+        );
+        let [scatter, estimate]: [wgpu::ComputePipeline; 2] =
+            pipelines.try_into().expect("two entry points");
+        Pipelines {
+            scatter,
+            estimate,
+            layout,
+        }
+    }
+}
+
+/// [`Pipelines`] made, or being made on another thread.
+struct Made {
+    ready: std::sync::OnceLock<Pipelines>,
+    making: std::sync::Mutex<Option<std::thread::JoinHandle<Pipelines>>>,
+}
+
+impl Made {
+    fn now(p: Pipelines) -> Made {
+        Made {
+            ready: std::sync::OnceLock::from(p),
+            making: std::sync::Mutex::new(None),
+        }
+    }
+
+    fn later(handle: std::thread::JoinHandle<Pipelines>) -> Made {
+        Made {
+            ready: std::sync::OnceLock::new(),
+            making: std::sync::Mutex::new(Some(handle)),
+        }
+    }
+
+    /// The pipelines, once made. A panic of the thread that made them is raised here, in
+    /// the refinement's recording, which the dispatcher catches like any other: the
+    /// batch is then refined on the CPU.
+    fn get(&self) -> &Pipelines {
+        self.ready.get_or_init(|| {
+            let handle = self.making.lock().unwrap_or_else(|p| p.into_inner()).take();
+            match handle.map(|h| crate::profile::span("refine.pipelines_wait", || h.join())) {
+                Some(Ok(p)) => p,
+                Some(Err(why)) => panic!(
+                    "the refinement's pipelines could not be made: {}",
+                    crate::backend::panic_message(why.as_ref())
+                ),
+                None => panic!("the refinement's pipelines could not be made (see above)"),
+            }
+        })
+    }
 }
 
 /// One run's pass-2 plan: the scales it needs, with their exact plans.
@@ -436,20 +502,35 @@ impl RefineStage {
 
     /// [`new`](Self::new) in the given precision (f64 needs [`Gpu::has_f64`]).
     pub fn with_real(gpu: &Gpu, real: Real) -> RefineStage {
-        use super::Binding::{Read, Uniform, Write};
-        let (layout, pipelines) = gpu.stage(
-            "refine.wgsl",
-            &morlet::source(real, include_str!("../../shaders/refine.wgsl")),
-            &[Uniform, Read, Read, Write, Read, Read, Read, Write, Write],
-            &["scatter", "estimate"],
-        );
-        let [scatter, estimate]: [wgpu::ComputePipeline; 2] =
-            pipelines.try_into().expect("two entry points");
         RefineStage {
             fft: FftStage::with_real(gpu, real),
-            scatter,
-            estimate,
-            layout,
+            made: Made::now(Pipelines::new(&gpu.device, real)),
+            real,
+            slot_limit: None,
+        }
+    }
+
+    /// [`new`](Self::new), its `refine.wgsl` pipelines made on a thread of their own and
+    /// waited for when the first refinement is recorded, so that a command's first pass
+    /// (its preparation, upload and device work) runs meanwhile. They are most of what
+    /// opening the GPU backend costs: on lavapipe 330–450 ms of a one-shot `track`, before
+    /// any work (its two f64 entry points); the FFT stage, whose notes are reported when
+    /// the backend opens, is still made at once.
+    pub fn beside(gpu: &Gpu) -> RefineStage {
+        let (device, real) = (gpu.device.clone(), gpu.real());
+        let making = std::thread::Builder::new()
+            .name("skelid-gpu-pipelines".into())
+            .spawn(move || {
+                crate::profile::span("open.refine_pipelines", || Pipelines::new(&device, real))
+            });
+        let made = match making {
+            Ok(handle) => Made::later(handle),
+            // No thread to be had: made here, as `new` makes them.
+            Err(_) => Made::now(Pipelines::new(&gpu.device, real)),
+        };
+        RefineStage {
+            fft: FftStage::with_real(gpu, real),
+            made,
             real,
             slot_limit: None,
         }
@@ -823,9 +904,11 @@ impl RefineStage {
         let records = gpu.reusable("grid records", records_len);
         let slots_taken = gpu.upload("refine slots taken", &vec![0u32; part.len()]);
         // Items and points exactly: the shaders count them with `arrayLength`.
+        // Waited for here, as late as can be (made on their own thread by `beside`).
+        let made = self.made.get();
         let bind = gpu.bind_resources(
             "refine",
-            &self.layout,
+            &made.layout,
             vec![
                 uniform.as_entire_binding(),
                 items_buf.exact(),
@@ -852,7 +935,7 @@ impl RefineStage {
         let _passes = SpanGuard::new("refine.passes");
         if !items.is_empty() {
             let mut pass = gpu.pass(enc, "refine.scatter");
-            pass.set_pipeline(&self.scatter);
+            pass.set_pipeline(&made.scatter);
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(longest.div_ceil(64).min(max_x) as u32, rows, layers);
         }
@@ -869,7 +952,7 @@ impl RefineStage {
         if point_count > 0 {
             let [x, y, z] = gpu.grid(point_count.div_ceil(64) as u64)?;
             let mut pass = gpu.pass(enc, "refine.estimate");
-            pass.set_pipeline(&self.estimate);
+            pass.set_pipeline(&made.estimate);
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(x, y, z);
         }
