@@ -189,6 +189,22 @@ impl Made {
     }
 }
 
+impl Drop for Made {
+    /// Waits for pipelines still being made (a command that ends before its first
+    /// refinement): the device is released only after, never while its driver compiles
+    /// on another thread (see [`crate::backend`]'s dispatcher, which joins likewise).
+    fn drop(&mut self) {
+        let handle = self
+            .making
+            .get_mut()
+            .unwrap_or_else(|p| p.into_inner())
+            .take();
+        if let Some(h) = handle {
+            let _ = h.join();
+        }
+    }
+}
+
 /// One run's pass-2 plan: the scales it needs, with their exact plans.
 struct Planned {
     /// (scale index, plan) of every wanted scale, in scale order.
