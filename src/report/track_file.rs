@@ -39,25 +39,25 @@ pub fn write_track(path: &Path, track: &Track, source: &str) -> Result<(), Repor
     std::fs::rename(&tmp, path).map_err(|e| err(e.to_string()))
 }
 
-pub(super) fn columns(track: &Track) -> Vec<(&'static str, Cow<'_, [f64]>)> {
+/// One column of a track file: reals, or the 0/1 `valid` flags.
+enum Column<'a> {
+    Real(Cow<'a, [f64]>),
+    Flag(&'a [bool]),
+}
+
+fn columns(track: &Track) -> Vec<(&'static str, Column<'_>)> {
+    fn real(v: &[f64]) -> Column<'_> {
+        Column::Real(Cow::Borrowed(v))
+    }
     vec![
-        ("time", Cow::Owned(track.time())),
-        ("amplitude", Cow::Borrowed(&track.amplitude)),
-        ("frequency", Cow::Borrowed(&track.frequency)),
-        (
-            "valid",
-            Cow::Owned(
-                track
-                    .valid
-                    .iter()
-                    .map(|&v| f64::from(u8::from(v)))
-                    .collect(),
-            ),
-        ),
-        ("phase", Cow::Borrowed(&track.phase)),
-        ("d_amplitude", Cow::Borrowed(&track.d_amplitude)),
-        ("d2_amplitude", Cow::Borrowed(&track.d2_amplitude)),
-        ("d_frequency", Cow::Borrowed(&track.d_frequency)),
+        ("time", Column::Real(Cow::Owned(track.time()))),
+        ("amplitude", real(&track.amplitude)),
+        ("frequency", real(&track.frequency)),
+        ("valid", Column::Flag(&track.valid)),
+        ("phase", real(&track.phase)),
+        ("d_amplitude", real(&track.d_amplitude)),
+        ("d2_amplitude", real(&track.d2_amplitude)),
+        ("d_frequency", real(&track.d_frequency)),
     ]
 }
 
@@ -98,19 +98,20 @@ fn write_csv_to(w: &mut impl Write, track: &Track, block: usize) -> std::io::Res
 /// Rows formatted by one task of [`write_csv`].
 const CSV_BLOCK: usize = 8192;
 
-/// The CSV text of rows `rows`: each value of a column `{:.10e}`, `valid` 0 or 1.
-fn csv_rows(cols: &[(&str, Cow<'_, [f64]>)], rows: std::ops::Range<usize>) -> Vec<u8> {
+/// The CSV text of rows `rows`: each real `{:.10e}`, each flag 0 or 1.
+fn csv_rows(cols: &[(&str, Column<'_>)], rows: std::ops::Range<usize>) -> Vec<u8> {
     // About 17 bytes a value; writing into a Vec cannot fail.
     let mut out = Vec::with_capacity(rows.len() * cols.len() * 18);
     for i in rows {
-        for (c, (name, v)) in cols.iter().enumerate() {
+        for (c, (_, col)) in cols.iter().enumerate() {
             if c > 0 {
                 out.push(b',');
             }
-            if *name == "valid" {
-                out.push(if v[i] as u8 == 0 { b'0' } else { b'1' });
-            } else {
-                let _ = write!(out, "{:.10e}", v[i]);
+            match col {
+                Column::Real(v) => {
+                    let _ = write!(out, "{:.10e}", v[i]);
+                }
+                Column::Flag(v) => out.push(if v[i] { b'1' } else { b'0' }),
             }
         }
         out.push(b'\n');
@@ -128,12 +129,13 @@ pub(super) fn write_hdf5(path: &Path, track: &Track, source: &str) -> hdf5::Resu
     write_f64_attr(&file, "noise", track.noise)?;
     write_f64_attr(&file, "fmin", track.band.0)?;
     write_f64_attr(&file, "fmax", track.band.1)?;
-    for (name, v) in columns(track) {
-        if name == "valid" {
-            let bytes: Vec<u8> = track.valid.iter().map(|&b| u8::from(b)).collect();
-            file.new_dataset_builder().with_data(&bytes).create(name)?;
-        } else {
-            write_signal(&file, name, &v, false)?;
+    for (name, col) in columns(track) {
+        match col {
+            Column::Real(v) => write_signal(&file, name, &v, false)?,
+            Column::Flag(v) => {
+                let bytes: Vec<u8> = v.iter().map(|&b| u8::from(b)).collect();
+                file.new_dataset_builder().with_data(&bytes).create(name)?;
+            }
         }
     }
     if let Some(sc) = &track.scalogram {
@@ -153,20 +155,34 @@ mod tests {
     use crate::track::{Device, Method};
 
     /// The CSV as it was written before its rows were formatted in parallel: a row at a
-    /// time, a String a cell.
-    fn row_by_row(track: &Track) -> Vec<u8> {
+    /// time, a String a cell, the columns taken from the track's fields.
+    fn row_by_row(t: &Track) -> Vec<u8> {
         let mut w = Vec::new();
-        let cols = columns(track);
-        let names: Vec<&str> = cols.iter().map(|c| c.0).collect();
-        writeln!(w, "{}", names.join(",")).unwrap();
-        for i in 0..track.len() {
-            let row: Vec<String> = cols
+        writeln!(
+            w,
+            "time,amplitude,frequency,valid,phase,d_amplitude,d2_amplitude,d_frequency"
+        )
+        .unwrap();
+        let time = t.time();
+        for i in 0..t.len() {
+            let reals = [
+                time[i],
+                t.amplitude[i],
+                t.frequency[i],
+                f64::from(u8::from(t.valid[i])),
+                t.phase[i],
+                t.d_amplitude[i],
+                t.d2_amplitude[i],
+                t.d_frequency[i],
+            ];
+            let row: Vec<String> = reals
                 .iter()
-                .map(|(name, v)| {
-                    if *name == "valid" {
-                        format!("{}", v[i] as u8)
+                .enumerate()
+                .map(|(c, v)| {
+                    if c == 3 {
+                        format!("{}", *v as u8)
                     } else {
-                        format!("{:.10e}", v[i])
+                        format!("{v:.10e}")
                     }
                 })
                 .collect();
