@@ -164,9 +164,9 @@ mod tests {
         )
         .unwrap();
         let time = t.time();
-        for i in 0..t.len() {
+        for (i, &time) in time.iter().enumerate() {
             let reals = [
-                time[i],
+                time,
                 t.amplitude[i],
                 t.frequency[i],
                 f64::from(u8::from(t.valid[i])),
