@@ -127,10 +127,10 @@ impl GpuService {
             .name("skelid-gpu".into())
             .spawn(move || {
                 // Spans, so that a traced one-shot command (`track`) shows what opening
-                // costs: on lavapipe the refinement's pipelines took 330–450 ms, the first
-                // pass's 40–56 ms and the device 80–225 ms, all before any work. The
-                // refinement's are made beside the first pass (`open.refine_pipelines`,
-                // and `refine.pipelines_wait` for what of it the first batch waited).
+                // costs before any work, which `bench`'s warm-up hides. The refinement's
+                // pipelines, the largest part on lavapipe, are made beside the first pass
+                // (`open.refine_pipelines`; `refine.pipelines_wait`, what the first batch
+                // waited of it).
                 use crate::profile::span;
                 let opened = span("open.device", Gpu::new).and_then(|gpu| {
                     let stages = Stages {

@@ -83,9 +83,8 @@ fn write_csv_to(w: &mut impl Write, track: &Track, block: usize) -> std::io::Res
     for start in (0..n).step_by(round) {
         let end = (start + round).min(n);
         let blocks: Vec<Vec<u8>> = (start..end)
-            .step_by(block)
-            .collect::<Vec<_>>()
             .into_par_iter()
+            .step_by(block)
             .map(|b| csv_rows(&cols, b..(b + block).min(end)))
             .collect();
         for b in blocks {
