@@ -390,6 +390,9 @@ struct Fix {
     model: vec3<f32>,
     ok: bool,
     iterations: u32,
+    // The solved model's own observation: how far its vertex lies from the triple's nearer
+    // end, as `Obs::edge`, and −1 where that observation is not peaked.
+    edge: f32,
 };
 
 // skeleton::correct in f32: Newton's method from the observation itself, with a forward-
@@ -452,6 +455,7 @@ fn correct(sc: vec3<f32>, o: Obs) -> Fix {
     f.ln_amp = -om.ln_amp;
     f.phase = -om.phase;
     f.model = m;
+    f.edge = select(-1.0, om.edge, om.peaked);
     return f;
 }
 
@@ -517,12 +521,15 @@ fn estimate(
         return;
     }
     let o = estimate3(triple[0], triple[1], triple[2], data_y(triple[0], triple[1], triple[2]));
-    var fix = Fix(0.0, 0.0, rates(o), true, 0u);
+    var fix = Fix(0.0, 0.0, rates(o), true, 0u, 1.0);
     // Where f32 may decide otherwise than f64 (the CPU): a vertex within 2 % of the triple's
     // ends (the parabola's slopes are good to about 1 % in f32), a correction that failed,
     // took more than three Newton steps (the Jacobian is ill-conditioned: the f64 solve can
-    // fail or land elsewhere) or is near the ln 2 limit: 0.6 to 2.9 % of points on the
-    // demo, campaign and real archives.
+    // fail or land elsewhere), is near the ln 2 limit, or whose model's own vertex lies
+    // within 2 % of the triple's ends or outside it (the model's observation jumps there,
+    // from the vertex to the middle scale: f64's full Newton steps can cycle across the
+    // jump where f32's land beyond it, as on a guided demo track): 0.6 to 2.9 % of points
+    // on the demo, campaign and real archives.
     var unsure = o.edge > -0.02 && o.edge < 0.02;
     if (run.correct == 1u) {
         if (!o.peaked) {
@@ -535,7 +542,8 @@ fn estimate(
             if (!(abs(r.x * st) < 1e-4 && abs(r.z * st * st) < 1e-4)) {
                 let sc = vec3<f32>(triple[0].scale, triple[1].scale, triple[2].scale);
                 fix = correct(sc, o);
-                unsure = unsure || !fix.ok || fix.iterations > 3u || abs(fix.ln_amp) > LN_2 - 0.01;
+                unsure = unsure || !fix.ok || fix.iterations > 3u || abs(fix.ln_amp) > LN_2 - 0.01
+                    || fix.edge < 0.02;
                 fix.ok = fix.ok && abs(fix.ln_amp) < LN_2;
             }
         }

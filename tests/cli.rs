@@ -2401,3 +2401,97 @@ fn gap_over_several_runs_gives_the_same_report_in_archive_order_whatever_the_job
     assert_eq!(report("2"), one);
     assert_eq!(report("4"), one);
 }
+
+/// `track --reference`: the record's ridge guided by the reference's. The reference is read
+/// while the backend opens and tracked once it has; the CSV must be the library's guided
+/// track of the same two datasets, and the GPU backend's must agree with it.
+#[test]
+fn track_with_a_reference_is_the_librarys_guided_track_on_both_backends() {
+    use skelid::track::{track_wavelet, WaveletOptions};
+    let d = tmpdir();
+    let archive = demo_archive();
+    let csv = |backend: &str| {
+        let track = |out: &str| {
+            let o = skelid()
+                .arg("track")
+                .arg(archive)
+                .args(["--dataset", "/demo/force_oscillator/output"])
+                .args(["--reference", "/demo/force_oscillator/input"])
+                .args(["--backend", backend, "--out"])
+                .arg(d.path().join(out))
+                .output()
+                .unwrap();
+            let err = String::from_utf8_lossy(&o.stderr);
+            assert!(o.status.success(), "{err}");
+            assert!(!err.contains("warning"), "{err}");
+        };
+        if backend == "cpu" {
+            track("guided-cpu.h5");
+        }
+        track(&format!("guided-{backend}.csv"));
+        std::fs::read_to_string(d.path().join(format!("guided-{backend}.csv"))).unwrap()
+    };
+    let cpu = csv("cpu");
+    let opened =
+        skelid::ingest::Archive::open(archive, &skelid::ingest::IngestOptions::default()).unwrap();
+    let entry = opened
+        .runs
+        .iter()
+        .find(|r| r.path == "/demo/force_oscillator")
+        .unwrap();
+    let meta = entry.meta.clone().unwrap();
+    let run = opened.load(&meta).unwrap();
+    let opt = WaveletOptions::default();
+    let guide = track_wavelet(run.input.as_ref().unwrap(), meta.sample_rate, &opt, None).unwrap();
+    let want = track_wavelet(&run.output, meta.sample_rate, &opt, Some(&guide.frequency)).unwrap();
+    let unguided = track_wavelet(&run.output, meta.sample_rate, &opt, None).unwrap();
+    // The HDF5 output holds the f64 values themselves (the CSV rounds to 11 digits).
+    let f = hdf5::File::open(d.path().join("guided-cpu.h5")).unwrap();
+    let column = |name: &str| f.dataset(name).unwrap().read_raw::<f64>().unwrap();
+    assert_eq!(column("amplitude"), want.amplitude);
+    assert_eq!(column("frequency"), want.frequency);
+    let valid = f.dataset("valid").unwrap().read_raw::<u8>().unwrap();
+    assert!(valid.iter().map(|&v| v == 1).eq(want.valid.iter().copied()));
+    // The guide was used: its ridge is not the free search's everywhere.
+    assert!(
+        (0..want.len()).any(|i| want.frequency[i] != unguided.frequency[i]),
+        "the guided track equals the unguided one: the reference was ignored"
+    );
+    let worst = track_difference(&cpu, &csv("gpu"));
+    println!(
+        "guided track, GPU against CPU: envelope within {:.1e}, frequency within {:.1e} Hz, {} samples valid in one only",
+        worst.0, worst.1, worst.2
+    );
+    assert!(
+        worst.0 <= 1e-4 && worst.1 <= 1e-3 && worst.2 == 0,
+        "{worst:?}"
+    );
+}
+
+/// The backend opens while the record is read: when both fail, the backend's error is
+/// still the one reported, as when it opened first.
+#[test]
+fn track_reports_the_backends_error_before_the_archives() {
+    let d = tmpdir();
+    let mut c = skelid();
+    c.arg("track")
+        .arg(d.path().join("no-such-archive.h5"))
+        .args(["--dataset", "/runs/run_001", "--backend", "gpu", "--out"])
+        .arg(d.path().join("t.csv"));
+    let o = without_gpu(&mut c).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(err.contains("no GPU adapter found"), "{err}");
+    assert!(!err.contains("no-such-archive"), "{err}");
+    // With a backend that opens, the archive's error is the one reported.
+    let o = skelid()
+        .arg("track")
+        .arg(d.path().join("no-such-archive.h5"))
+        .args(["--dataset", "/runs/run_001", "--backend", "cpu", "--out"])
+        .arg(d.path().join("t.csv"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(err.contains("no-such-archive"), "{err}");
+}

@@ -390,9 +390,15 @@ impl Backend {
     ) -> Result<Track, TrackError> {
         let mut prep = WaveletPrep::new(x, fs, opt, guide)?;
         prep.keep_scalogram = keep_scalogram;
+        Ok(self.track_prepared(prep))
+    }
+
+    /// The wavelet track of a signal already prepared ([`WaveletPrep::new`], which needs
+    /// no backend): lets a command prepare its signal while the backend opens.
+    pub fn track_prepared(&self, prep: WaveletPrep) -> Track {
         let mut answers = self.first_passes(vec![prep]);
         let passed = answers.pop().expect("one answer per signal");
-        Ok(self.finish(passed.prep, passed.pass))
+        self.finish(passed.prep, passed.pass)
     }
 
     /// The wavelet tracks of many signals, all with the same options, in order: prepared

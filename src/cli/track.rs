@@ -3,6 +3,7 @@
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use skelid::ingest::{Archive, IngestOptions};
+use skelid::track::WaveletPrep;
 use std::path::PathBuf;
 
 use super::args::{report_fallbacks, BackendArgs, IngestArgs, MethodArg, WaveletArgs};
@@ -93,6 +94,48 @@ pub(crate) fn read_dataset(
     Ok((x, meta.sample_rate))
 }
 
+/// What `track` has read (and, where it can, prepared) before the backend is needed.
+enum Input {
+    /// The record, for the Hilbert method.
+    Hilbert(Vec<f64>),
+    /// The record prepared for the wavelet method (its spectrum and band).
+    Prepared(Box<WaveletPrep>),
+    /// The record and the reference whose wavelet ridge guides it: the guide's track, and
+    /// so the record's preparation, needs the backend.
+    Guided { x: Vec<f64>, reference: Vec<f64> },
+}
+
+/// Reads the dataset (and the reference) and prepares a wavelet track that has no guide;
+/// with the sample rate (Hz).
+fn read_input(
+    a: &TrackArgs,
+    options: &IngestOptions,
+    opt: &skelid::track::WaveletOptions,
+) -> Result<(Input, f64)> {
+    use skelid::profile::span;
+    let (x, fs, reference) = span("host.read", || -> Result<_> {
+        let archive = Archive::open(&a.archive, options)?;
+        let (x, fs) = read_dataset(&archive, &a.dataset, options)?;
+        let reference = match &a.reference {
+            Some(r) if matches!(a.method, MethodArg::Wavelet) => {
+                Some(read_dataset(&archive, r, options)?.0)
+            }
+            _ => None,
+        };
+        Ok((x, fs, reference))
+    })?;
+    let input = match (a.method, reference) {
+        (MethodArg::Hilbert, _) => Input::Hilbert(x),
+        (MethodArg::Wavelet, Some(reference)) => Input::Guided { x, reference },
+        (MethodArg::Wavelet, None) => {
+            let mut prep = span("host.prepare", || WaveletPrep::new(&x, fs, opt, None))?;
+            prep.keep_scalogram = a.keep_scalogram;
+            Input::Prepared(Box::new(prep))
+        }
+    };
+    Ok((input, fs))
+}
+
 pub(crate) fn cmd_track(a: TrackArgs) -> Result<()> {
     use skelid::track::{track_hilbert, HilbertOptions, RidgeSearch, WaveletOptions};
     match a.method {
@@ -117,33 +160,39 @@ pub(crate) fn cmd_track(a: TrackArgs) -> Result<()> {
         _ => {}
     }
     let options = a.ingest.options()?;
-    let backend = a.backend.open()?;
-    let archive = Archive::open(&a.archive, &options)?;
-    let (x, fs) = read_dataset(&archive, &a.dataset, &options)?;
-    let track = match a.method {
-        MethodArg::Hilbert => track_hilbert(&x, fs, &HilbertOptions { cutoff: a.cutoff })?,
-        MethodArg::Wavelet => {
-            let opt = a.wavelet.apply(WaveletOptions {
-                ridge: if a.argmax {
-                    RidgeSearch::Argmax
-                } else {
-                    RidgeSearch::Dynamic
-                },
-                min_snr: a.min_snr,
-                correct: !a.no_correction,
-                ..WaveletOptions::default()
-            });
-            let guide = match &a.reference {
-                Some(r) => {
-                    let (g, _) = read_dataset(&archive, r, &options)?;
-                    let gt = backend
-                        .track_wavelet(&g, fs, &opt, None)
-                        .with_context(|| format!("tracking the reference {r}"))?;
-                    Some(gt.frequency)
-                }
-                None => None,
-            };
-            backend.track_wavelet_keeping(&x, fs, &opt, guide.as_deref(), a.keep_scalogram)?
+    let opt = a.wavelet.apply(WaveletOptions {
+        ridge: if a.argmax {
+            RidgeSearch::Argmax
+        } else {
+            RidgeSearch::Dynamic
+        },
+        min_snr: a.min_snr,
+        correct: !a.no_correction,
+        ..WaveletOptions::default()
+    });
+    // The backend opens (on a GPU: the device and its pipelines, tenths of a second) on a
+    // thread of its own while the record is read and prepared, which need no backend; its
+    // error, if any, is still the one reported first, as when it opened before the read.
+    let backend_args = a.backend;
+    let (opened, input) = std::thread::scope(|s| {
+        let opening = s.spawn(move || backend_args.open());
+        let input = read_input(&a, &options, &opt);
+        let opened = opening
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        (opened, input)
+    });
+    let backend = opened?;
+    let (input, fs) = input?;
+    let track = match input {
+        Input::Hilbert(x) => track_hilbert(&x, fs, &HilbertOptions { cutoff: a.cutoff })?,
+        Input::Prepared(prep) => backend.track_prepared(*prep),
+        Input::Guided { x, reference } => {
+            let r = a.reference.as_deref().unwrap_or_default();
+            let gt = backend
+                .track_wavelet(&reference, fs, &opt, None)
+                .with_context(|| format!("tracking the reference {r}"))?;
+            backend.track_wavelet_keeping(&x, fs, &opt, Some(&gt.frequency), a.keep_scalogram)?
         }
     };
     report_fallbacks(&backend);
