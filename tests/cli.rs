@@ -2495,3 +2495,27 @@ fn track_reports_the_backends_error_before_the_archives() {
     assert!(!o.status.success());
     assert!(err.contains("no-such-archive"), "{err}");
 }
+
+/// The Hilbert track is the CPU's on every backend: `--backend gpu` opens no device for it
+/// (so none is needed), says so, and gives the CPU backend's file.
+#[test]
+fn a_hilbert_track_opens_no_device() {
+    let d = tmpdir();
+    let track = |backend: &str| {
+        let out = d.path().join(format!("hilbert-{backend}.csv"));
+        let mut c = skelid();
+        c.arg("track")
+            .arg(demo_archive())
+            .args(["--dataset", "/demo/linear", "--method", "hilbert"])
+            .args(["--backend", backend, "--out"])
+            .arg(&out);
+        let o = without_gpu(&mut c).output().unwrap();
+        let err = String::from_utf8_lossy(&o.stderr).into_owned();
+        assert!(o.status.success(), "{err}");
+        (std::fs::read(out).unwrap(), err)
+    };
+    let (gpu, err) = track("gpu");
+    assert!(err.contains("the Hilbert method runs on the CPU"), "{err}");
+    let (cpu, _) = track("cpu");
+    assert_eq!(gpu, cpu);
+}

@@ -6,7 +6,7 @@ use skelid::ingest::{Archive, IngestOptions};
 use skelid::track::WaveletPrep;
 use std::path::PathBuf;
 
-use super::args::{report_fallbacks, BackendArgs, IngestArgs, MethodArg, WaveletArgs};
+use super::args::{report_fallbacks, BackendArg, BackendArgs, IngestArgs, MethodArg, WaveletArgs};
 
 #[derive(Args)]
 pub(crate) struct TrackArgs {
@@ -173,7 +173,21 @@ pub(crate) fn cmd_track(a: TrackArgs) -> Result<()> {
     // The backend opens (on a GPU: the device and its pipelines, tenths of a second) on a
     // thread of its own while the record is read and prepared, which need no backend; its
     // error, if any, is still the one reported first, as when it opened before the read.
-    let backend_args = a.backend;
+    // The Hilbert track is the CPU's on every backend: no device is opened for it.
+    let backend_args = match a.method {
+        MethodArg::Hilbert => {
+            if a.backend.backend == BackendArg::Gpu {
+                eprintln!(
+                    "note: the Hilbert method runs on the CPU; --backend gpu applies to the \
+                     wavelet transform (--method wavelet)"
+                );
+            }
+            BackendArgs {
+                backend: BackendArg::Cpu,
+            }
+        }
+        MethodArg::Wavelet => a.backend,
+    };
     let (opened, input) = std::thread::scope(|s| {
         let opening = s.spawn(move || backend_args.open());
         let input = read_input(&a, &options, &opt);
