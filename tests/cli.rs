@@ -958,6 +958,19 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
     assert!(g["envelope_rel"].as_f64().unwrap() <= envelope, "{g}");
     assert!(g["frequency_hz"].as_f64().unwrap() <= 1e-3, "{g}");
     assert!(g["mask_samples"].as_u64().unwrap() <= 21 * 8, "{g}");
+    // And on the tracks as `run` makes them (a forced response guided by its input), read
+    // back from each backend's results.h5: every run compared, values that differ (the GPU
+    // reads its records back in f32), within the same bounds, the same masks with f64.
+    let g = &v["end_to_end_agreement"];
+    assert_eq!(g["tracks"], 11, "{g}");
+    assert!(g["valid_samples"].as_u64().unwrap() > 100_000, "{g}");
+    let e = g["envelope_rel"].as_f64().unwrap();
+    assert!(e > 0.0 && e <= envelope, "{g}");
+    assert!(g["frequency_hz"].as_f64().unwrap() <= 1e-3, "{g}");
+    if adapter_real() == skelid::gpu::Real::F64 {
+        assert_eq!(g["mask_samples"], 0, "{g}");
+    }
+    assert!(text.contains("end-to-end agreement"), "{text}");
     // Where the time goes: an end-to-end batch per backend, every stage measured, and the
     // GPU batch's structure (the targets: every waiting signal in one batch, at most
     // 2 blocking syncs per batch, at most 16 bytes read back per sample).

@@ -109,22 +109,72 @@ pub struct Agreement {
 impl Agreement {
     /// Adds one pair of tracks of the same signal.
     pub fn add(&mut self, a: &Track, b: &Track) {
+        self.add_series(
+            (&a.amplitude, &a.frequency, &a.valid),
+            (&b.amplitude, &b.frequency, &b.valid),
+        );
+    }
+
+    /// Adds one pair of tracks given as (envelope, frequency in Hz, valid) series.
+    fn add_series(&mut self, a: (&[f64], &[f64], &[bool]), b: (&[f64], &[f64], &[bool])) {
         self.tracks += 1;
-        for i in 0..a.len().min(b.len()) {
-            match (a.valid[i], b.valid[i]) {
+        for i in 0..a.2.len().min(b.2.len()) {
+            match (a.2[i], b.2[i]) {
                 (true, true) => {
                     self.valid_samples += 1;
-                    let e = (a.amplitude[i] - b.amplitude[i]).abs() / a.amplitude[i];
+                    let e = (a.0[i] - b.0[i]).abs() / a.0[i];
                     self.envelope_rel = self.envelope_rel.max(e);
-                    self.frequency_hz = self
-                        .frequency_hz
-                        .max((a.frequency[i] - b.frequency[i]).abs());
+                    self.frequency_hz = self.frequency_hz.max((a.1[i] - b.1[i]).abs());
                 }
                 (false, false) => {}
                 _ => self.mask_samples += 1,
             }
         }
     }
+}
+
+/// How far two `run`s' wavelet results differ (results.h5 of the same archives, one per
+/// backend): every run's `wavelet/response_amplitude`, `response_frequency` and `valid`,
+/// matched by the run's path. These are the tracks as `run` makes them, a forced
+/// response's ridge guided by its input's, which [`compare`]'s unguided tracks are not.
+pub fn results_agreement(
+    a: &std::path::Path,
+    b: &std::path::Path,
+) -> Result<Agreement, hdf5::Error> {
+    fn wavelet_groups(g: &hdf5::Group, path: &str, out: &mut Vec<String>) -> hdf5::Result<()> {
+        for name in g.member_names()? {
+            let Ok(child) = g.group(&name) else { continue };
+            let here = format!("{path}/{name}");
+            if name == "wavelet" && child.link_exists("valid") {
+                out.push(path.to_string());
+            } else {
+                wavelet_groups(&child, &here, out)?;
+            }
+        }
+        Ok(())
+    }
+    let (fa, fb) = (hdf5::File::open(a)?, hdf5::File::open(b)?);
+    let mut runs = Vec::new();
+    wavelet_groups(&fa, "", &mut runs)?;
+    let mut agreement = Agreement::default();
+    for run in runs {
+        let Ok(gb) = fb.group(&format!("{run}/wavelet")) else {
+            continue;
+        };
+        let ga = fa.group(&format!("{run}/wavelet"))?;
+        type Series = (Vec<f64>, Vec<f64>, Vec<bool>);
+        let read = |g: &hdf5::Group| -> hdf5::Result<Series> {
+            let valid = g.dataset("valid")?.read_raw::<u8>()?;
+            Ok((
+                g.dataset("response_amplitude")?.read_raw::<f64>()?,
+                g.dataset("response_frequency")?.read_raw::<f64>()?,
+                valid.into_iter().map(|v| v != 0).collect(),
+            ))
+        };
+        let (x, y) = (read(&ga)?, read(&gb)?);
+        agreement.add_series((&x.0, &x.1, &x.2), (&y.0, &y.1, &y.2));
+    }
+    Ok(agreement)
 }
 
 /// The whole comparison, as printed and written to JSON (`skelid-bench/1`).
@@ -153,6 +203,9 @@ pub struct BackendBench {
     /// Per backend, the whole batch end to end with its stages (empty with
     /// `--no-end-to-end`).
     pub end_to_end: Vec<EndToEnd>,
+    /// CPU against GPU results of the end-to-end runs ([`results_agreement`]: the tracks
+    /// as `run` guides them), when both ran end to end.
+    pub end_to_end_agreement: Option<Agreement>,
 }
 
 /// Times `backends` (name, backend) on `signals` (samples, sample rate), `runs` runs' worth.
@@ -256,17 +309,19 @@ pub fn compare(
         gpu_speedup,
         agreement,
         end_to_end: Vec::new(),
+        end_to_end_agreement: None,
     }
 }
 
 /// Runs `run` over `files` (both methods) on `backend` into `dir` and measures it: wall
-/// time, stages and traffic.
+/// time, stages and traffic. Its results.h5 is moved to `keep_results` when given.
 pub fn end_to_end(
     name: &str,
     files: &[std::path::PathBuf],
     ingest: &crate::ingest::IngestOptions,
     batch: &crate::batch::BatchOptions<'_>,
     dir: &std::path::Path,
+    keep_results: Option<&std::path::Path>,
 ) -> Result<EndToEnd, crate::batch::BatchError> {
     let _ = std::fs::remove_dir_all(dir);
     profile::reset();
@@ -274,6 +329,11 @@ pub fn end_to_end(
     let summary = crate::batch::run_campaigns(files, ingest, batch, dir, &|_| {})?;
     let seconds = t0.elapsed().as_secs_f64();
     let prof = profile::snapshot();
+    if let Some(to) = keep_results {
+        // Moved out before the folder goes, so that the next backend's run does not write
+        // beside this one's files, only beside its results.
+        let _ = std::fs::rename(dir.join("results.h5"), to);
+    }
     let _ = std::fs::remove_dir_all(dir);
     Ok(EndToEnd {
         backend: name.to_string(),

@@ -181,11 +181,27 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
                 &ingest,
                 &batch,
                 &scratch.join(format!("run-{name}")),
+                Some(&scratch.join(format!("results-{name}.h5"))),
             )?;
             result.end_to_end.push(e);
         }
+        let kept = |n: &str| scratch.join(format!("results-{n}.h5"));
+        if opened.len() == 2 {
+            let g = skelid::bench::backends::results_agreement(&kept("cpu"), &kept("gpu"))
+                .context("comparing the two backends' end-to-end results.h5")?;
+            result.end_to_end_agreement = Some(g);
+        }
         let _ = std::fs::remove_dir_all(&scratch);
         print_stages(&result.end_to_end);
+        if let Some(g) = &result.end_to_end_agreement {
+            println!(
+                "end-to-end agreement (`run`'s wavelet results, a forced response guided by its \
+                 input as `run` tracks it) over {} run(s), {} samples valid in both: envelope \
+                 within {:.1e} (relative), frequency within {:.1e} Hz, {} sample(s) valid in one \
+                 backend only",
+                g.tracks, g.valid_samples, g.envelope_rel, g.frequency_hz, g.mask_samples
+            );
+        }
     }
     std::fs::write(&a.out, serde_json::to_string_pretty(&result)? + "\n")
         .with_context(|| format!("cannot write {}", a.out.display()))?;
