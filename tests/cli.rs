@@ -1171,15 +1171,7 @@ fn the_workgroup_memory_fft_gives_the_cpu_backends_track() {
             (skelid::gpu::fft::LOCAL_ENV, 1),
         )
     };
-    let worst = track_difference(&track("cpu"), &track("gpu"));
-    println!(
-        "workgroup-memory FFT: envelope within {:.1e}, frequency within {:.1e} Hz, {} samples valid in one only",
-        worst.0, worst.1, worst.2
-    );
-    assert!(
-        worst.0 <= 1e-4 && worst.1 <= 1e-3 && worst.2 == 0,
-        "{worst:?}"
-    );
+    assert_issue_agreement("workgroup-memory FFT", &track("cpu"), &track("gpu"));
     // And it was that transform: the trace names its passes.
     let o = skelid()
         .arg("track")
@@ -1253,6 +1245,20 @@ fn track_difference(a: &str, b: &str) -> (f64, f64, usize) {
         worst.2 += usize::from(a[3] != b[3]);
     }
     worst
+}
+
+/// Prints how far two track CSVs differ ([`track_difference`]) and asserts issue 18's
+/// agreement: envelope within 1e-4 relative, frequency within 1e-3 Hz, the same mask.
+fn assert_issue_agreement(what: &str, a: &str, b: &str) {
+    let worst = track_difference(a, b);
+    println!(
+        "{what}: envelope within {:.1e}, frequency within {:.1e} Hz, {} samples valid in one only",
+        worst.0, worst.1, worst.2
+    );
+    assert!(
+        worst.0 <= 1e-4 && worst.1 <= 1e-3 && worst.2 == 0,
+        "{what}: {worst:?}"
+    );
 }
 
 #[test]
@@ -2470,15 +2476,7 @@ fn track_with_a_reference_is_the_librarys_guided_track_on_both_backends() {
         (0..want.len()).any(|i| want.frequency[i] != unguided.frequency[i]),
         "the guided track equals the unguided one: the reference was ignored"
     );
-    let worst = track_difference(&cpu, &csv("gpu"));
-    println!(
-        "guided track, GPU against CPU: envelope within {:.1e}, frequency within {:.1e} Hz, {} samples valid in one only",
-        worst.0, worst.1, worst.2
-    );
-    assert!(
-        worst.0 <= 1e-4 && worst.1 <= 1e-3 && worst.2 == 0,
-        "{worst:?}"
-    );
+    assert_issue_agreement("guided track, GPU against CPU", &cpu, &csv("gpu"));
 }
 
 /// The backend opens while the record is read: when both fail, the backend's error is
