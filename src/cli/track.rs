@@ -100,9 +100,12 @@ enum Input {
     Hilbert(Vec<f64>),
     /// The record prepared for the wavelet method (its spectrum and band).
     Prepared(Box<WaveletPrep>),
-    /// The record and the reference whose wavelet ridge guides it: the guide's track, and
-    /// so the record's preparation, needs the backend.
-    Guided { x: Vec<f64>, reference: Vec<f64> },
+    /// The record and the reference (its dataset's path and samples) whose wavelet ridge
+    /// guides it: the guide's track, and so the record's preparation, needs the backend.
+    Guided {
+        x: Vec<f64>,
+        reference: (String, Vec<f64>),
+    },
 }
 
 /// Reads the dataset (and the reference) and prepares a wavelet track that has no guide;
@@ -118,7 +121,7 @@ fn read_input(
         let (x, fs) = read_dataset(&archive, &a.dataset, options)?;
         let reference = match &a.reference {
             Some(r) if matches!(a.method, MethodArg::Wavelet) => {
-                Some(read_dataset(&archive, r, options)?.0)
+                Some((r.clone(), read_dataset(&archive, r, options)?.0))
             }
             _ => None,
         };
@@ -201,8 +204,10 @@ pub(crate) fn cmd_track(a: TrackArgs) -> Result<()> {
     let track = match input {
         Input::Hilbert(x) => track_hilbert(&x, fs, &HilbertOptions { cutoff: a.cutoff })?,
         Input::Prepared(prep) => backend.track_prepared(*prep),
-        Input::Guided { x, reference } => {
-            let r = a.reference.as_deref().unwrap_or_default();
+        Input::Guided {
+            x,
+            reference: (r, reference),
+        } => {
             let gt = backend
                 .track_wavelet(&reference, fs, &opt, None)
                 .with_context(|| format!("tracking the reference {r}"))?;
