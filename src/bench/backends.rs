@@ -109,26 +109,43 @@ pub struct Agreement {
 impl Agreement {
     /// Adds one pair of tracks of the same signal.
     pub fn add(&mut self, a: &Track, b: &Track) {
-        self.add_series(
-            (&a.amplitude, &a.frequency, &a.valid),
-            (&b.amplitude, &b.frequency, &b.valid),
-        );
+        self.add_series(Series::of(a), Series::of(b));
     }
 
-    /// Adds one pair of tracks given as (envelope, frequency in Hz, valid) series.
-    fn add_series(&mut self, a: (&[f64], &[f64], &[bool]), b: (&[f64], &[f64], &[bool])) {
+    /// Adds one pair of tracks of the same signal, as their series.
+    fn add_series(&mut self, a: Series, b: Series) {
         self.tracks += 1;
-        for i in 0..a.2.len().min(b.2.len()) {
-            match (a.2[i], b.2[i]) {
+        for i in 0..a.valid.len().min(b.valid.len()) {
+            match (a.valid[i], b.valid[i]) {
                 (true, true) => {
                     self.valid_samples += 1;
-                    let e = (a.0[i] - b.0[i]).abs() / a.0[i];
+                    let e = (a.amplitude[i] - b.amplitude[i]).abs() / a.amplitude[i];
                     self.envelope_rel = self.envelope_rel.max(e);
-                    self.frequency_hz = self.frequency_hz.max((a.1[i] - b.1[i]).abs());
+                    self.frequency_hz = self
+                        .frequency_hz
+                        .max((a.frequency[i] - b.frequency[i]).abs());
                 }
                 (false, false) => {}
                 _ => self.mask_samples += 1,
             }
+        }
+    }
+}
+
+/// What [`Agreement`] compares of a track: its envelope, frequency (Hz) and validity.
+#[derive(Clone, Copy)]
+struct Series<'a> {
+    amplitude: &'a [f64],
+    frequency: &'a [f64],
+    valid: &'a [bool],
+}
+
+impl<'a> Series<'a> {
+    fn of(t: &'a Track) -> Series<'a> {
+        Series {
+            amplitude: &t.amplitude,
+            frequency: &t.frequency,
+            valid: &t.valid,
         }
     }
 }
@@ -153,26 +170,35 @@ pub fn results_agreement(
         }
         Ok(())
     }
+    // A run's wavelet group as owned series: envelope, frequency (Hz), validity.
+    let read = |g: &hdf5::Group| -> hdf5::Result<(Vec<f64>, Vec<f64>, Vec<bool>)> {
+        let valid = g.dataset("valid")?.read_raw::<u8>()?;
+        Ok((
+            g.dataset("response_amplitude")?.read_raw::<f64>()?,
+            g.dataset("response_frequency")?.read_raw::<f64>()?,
+            valid.into_iter().map(|v| v != 0).collect(),
+        ))
+    };
+    fn series(t: &(Vec<f64>, Vec<f64>, Vec<bool>)) -> Series<'_> {
+        Series {
+            amplitude: &t.0,
+            frequency: &t.1,
+            valid: &t.2,
+        }
+    }
     let (fa, fb) = (hdf5::File::open(a)?, hdf5::File::open(b)?);
     let mut runs = Vec::new();
     wavelet_groups(&fa, "", &mut runs)?;
     let mut agreement = Agreement::default();
+    // A run that one backend has no wavelet result for is not compared: `tracks` says how
+    // many were.
     for run in runs {
         let Ok(gb) = fb.group(&format!("{run}/wavelet")) else {
             continue;
         };
         let ga = fa.group(&format!("{run}/wavelet"))?;
-        type Series = (Vec<f64>, Vec<f64>, Vec<bool>);
-        let read = |g: &hdf5::Group| -> hdf5::Result<Series> {
-            let valid = g.dataset("valid")?.read_raw::<u8>()?;
-            Ok((
-                g.dataset("response_amplitude")?.read_raw::<f64>()?,
-                g.dataset("response_frequency")?.read_raw::<f64>()?,
-                valid.into_iter().map(|v| v != 0).collect(),
-            ))
-        };
         let (x, y) = (read(&ga)?, read(&gb)?);
-        agreement.add_series((&x.0, &x.1, &x.2), (&y.0, &y.1, &y.2));
+        agreement.add_series(series(&x), series(&y));
     }
     Ok(agreement)
 }

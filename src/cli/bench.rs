@@ -153,6 +153,8 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
     if !a.no_end_to_end {
         let reader = super::internal::reader_command(&ingest, None)?;
         let scratch = tempfile_dir()?;
+        // Each backend's results.h5, kept for the agreement of the two.
+        let kept = |n: &str| scratch.join(format!("results-{n}.h5"));
         for (name, backend) in &opened {
             eprintln!("  {name}: end to end (skelid run, both methods)");
             let batch = skelid::batch::BatchOptions {
@@ -181,15 +183,20 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
                 &ingest,
                 &batch,
                 &scratch.join(format!("run-{name}")),
-                Some(&scratch.join(format!("results-{name}.h5"))),
+                Some(&kept(name)),
             )?;
             result.end_to_end.push(e);
         }
-        let kept = |n: &str| scratch.join(format!("results-{n}.h5"));
+        // `opened` holds each backend once: two are the CPU and the GPU.
         if opened.len() == 2 {
-            let g = skelid::bench::backends::results_agreement(&kept("cpu"), &kept("gpu"))
-                .context("comparing the two backends' end-to-end results.h5")?;
-            result.end_to_end_agreement = Some(g);
+            // A comparison that fails loses none of the timings: the JSON is written without it.
+            match skelid::bench::backends::results_agreement(&kept("cpu"), &kept("gpu")) {
+                Ok(g) => result.end_to_end_agreement = Some(g),
+                Err(e) => eprintln!(
+                    "warning: the two backends' end-to-end results.h5 could not be compared \
+                     ({e}); skelid-bench.json has no end_to_end_agreement"
+                ),
+            }
         }
         let _ = std::fs::remove_dir_all(&scratch);
         print_stages(&result.end_to_end);
