@@ -951,7 +951,9 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
     // The agreement: envelope ≤ 1e-4 relative, frequency ≤ 1e-3 Hz, where the
     // adapter has f64; an adapter without it runs the f32 path, bounded below.
     let g = &v["agreement"];
-    let envelope = match adapter_real() {
+    // The adapter's precision, read once: each read opens a device.
+    let real = adapter_real();
+    let envelope = match real {
         skelid::gpu::Real::F64 => 1e-4,
         skelid::gpu::Real::F32 => 1e-2,
     };
@@ -967,7 +969,7 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
     let e = g["envelope_rel"].as_f64().unwrap();
     assert!(e > 0.0 && e <= envelope, "{g}");
     assert!(g["frequency_hz"].as_f64().unwrap() <= 1e-3, "{g}");
-    if adapter_real() == skelid::gpu::Real::F64 {
+    if real == skelid::gpu::Real::F64 {
         assert_eq!(g["mask_samples"], 0, "{g}");
     }
     assert!(text.contains("end-to-end agreement"), "{text}");
