@@ -343,9 +343,15 @@ impl GridEstimate {
     }
 }
 
+/// How many scales either side of the ridge's the estimate of a grid point may read
+/// ([`estimate_point`]): the best of the ridge's scale and its two neighbours, and that
+/// one's neighbour. The CPU's pass 2 and the GPU's pieces hold W, W′, W″ this far out.
+pub const REACH: usize = 2;
+
 /// The skeleton at one grid point whose ridge sits at scale index `centre`: of the ridge's
 /// scale and its two neighbours the one with the largest |W|, the three-scale estimate
 /// around it ([`estimate`]), and, when `correct`, the bias correction ([`correct`]).
+/// Every scale read lies within [`REACH`] of `centre`.
 /// `value(k)` gives scale k's values at the point (`None` where it has none); `scales` and
 /// `freqs` are the analysis scales (s) and their frequencies (Hz).
 pub fn estimate_point(
@@ -538,5 +544,51 @@ mod tests {
         assert!((c.model.freq - 3.0).abs() < 1e-9);
         assert!((c.model.sweep - 1.0).abs() < 1e-8);
         assert!((obs.ln_amp + c.ln_amp_shift).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_peak_a_scale_from_the_ridge_is_found_and_no_scale_beyond_reach_is_read() {
+        let w = Morlet::default();
+        let freqs: Vec<f64> = (0..14).map(|k| 10.0 * 0.97f64.powi(k)).collect();
+        let scales: Vec<f64> = freqs.iter().map(|&f| w.scale_for(f)).collect();
+        // A steady tone between scales 7 and 8, nearer 7: |W| peaks there.
+        let truth = LocalModel {
+            decay: 0.0,
+            freq: 0.7 * freqs[7] + 0.3 * freqs[8],
+            sweep: 0.0,
+        };
+        let estimate_at = |centre: usize| {
+            let read = std::cell::Cell::new(0usize);
+            let e = estimate_point(&w, &scales, &freqs, centre, true, |k| {
+                read.set(read.get().max(k.abs_diff(centre)));
+                Some(model_value(&w, scales[k], &truth))
+            });
+            assert!(
+                read.get() <= REACH,
+                "centre {centre}: read {} away",
+                read.get()
+            );
+            e
+        };
+        // Ridges whose best scale's triple holds the tone's vertex (at 7.3: triples 6..=8
+        // and 7..=9) find the tone exactly.
+        for centre in 6..=9 {
+            let e = estimate_at(centre);
+            assert_eq!(e.best, if centre == 9 { 8 } else { 7 }, "centre {centre}");
+            assert!(e.peaked && e.corrected, "centre {centre}");
+            assert!(
+                (e.frequency - truth.freq).abs() < 1e-9,
+                "centre {centre}: {}",
+                e.frequency
+            );
+            assert!(e.ln_amp.abs() < 1e-9, "centre {centre}: {}", e.ln_amp);
+        }
+        // Further off, the triple around the window's end misses the vertex (5..=7 and
+        // 8..=10): not peaked, so not valid.
+        for (centre, best) in [(5, 6), (10, 9)] {
+            let e = estimate_at(centre);
+            assert_eq!(e.best, best, "centre {centre}");
+            assert!(!e.peaked, "centre {centre}");
+        }
     }
 }

@@ -13,8 +13,8 @@
 //! run's spectrum goes up once more, only the bins its pass bands use, in f64 where the
 //! adapter has SHADER_F64 (else f32; the shader explains why f64), scaled by a power of
 //! two. A run whose W, W′, W″ exceed one storage binding is split into pieces over
-//! overlapping ranges of scales, each serving the grid points whose five scales (ridge ± 2)
-//! it holds.
+//! overlapping ranges of scales, each serving the grid points whose scales within
+//! [`skeleton::REACH`] of the ridge's it holds.
 
 use crate::profile::SpanGuard;
 use rayon::prelude::*;
@@ -571,8 +571,8 @@ impl RefineStage {
     }
 
     /// A run's pieces within `limit` bytes each: one for the whole run when its W, W′, W″
-    /// fit, else consecutive ranges of its scales overlapping by four, each serving the
-    /// points whose scales ridge ± 2 it holds.
+    /// fit, else consecutive ranges of its scales overlapping by 2·[`skeleton::REACH`],
+    /// each serving the points whose scales ridge ± `REACH` it holds.
     fn pieces(
         &self,
         run: usize,
@@ -598,9 +598,11 @@ impl RefineStage {
                 points: Points::All(grid.len()),
             }]);
         }
+        let reach = skeleton::REACH;
+        let width = 2 * reach + 1;
         let too_large = |need: u64| GpuError::TooLarge {
             what: format!(
-                "W, W′, W″ of five scales of a record of {} samples",
+                "W, W′, W″ of {width} scales of a record of {} samples with its spectrum",
                 prep.len()
             ),
             need,
@@ -608,7 +610,7 @@ impl RefineStage {
         };
         let s_count = prep.freqs.len();
         let k_of = |i: usize| planned.scales[i].0;
-        // Scale ranges: as many scales as fit, the next starting four scales back.
+        // Scale ranges: as many scales as fit, the next starting 2·REACH scales back.
         let mut ranges: Vec<std::ops::Range<usize>> = Vec::new();
         let mut start = 0;
         loop {
@@ -616,22 +618,26 @@ impl RefineStage {
             while end < planned.scales.len() && bytes(start..end + 1) + spectrum <= limit {
                 end += 1;
             }
-            if end < planned.scales.len().min(start + 5) {
-                return Err(too_large(bytes(
-                    start..(start + 5).min(planned.scales.len()),
-                )));
+            if end < planned.scales.len().min(start + width) {
+                // The piece's binding holds the run's uploaded spectrum too.
+                return Err(too_large(
+                    bytes(start..(start + width).min(planned.scales.len())) + spectrum,
+                ));
             }
             ranges.push(start..end);
             if end == planned.scales.len() {
                 break;
             }
-            let back = k_of(end - 1).saturating_sub(3);
+            let back = k_of(end - 1).saturating_sub(width - 2);
             let next = (start + 1..end).find(|&i| k_of(i) >= back).unwrap_or(end);
             start = next;
         }
         let mut lists: Vec<Vec<usize>> = vec![Vec::new(); ranges.len()];
         for (g, p) in grid.iter().enumerate() {
-            let (lo, hi) = (p.centre.saturating_sub(2), (p.centre + 2).min(s_count - 1));
+            let (lo, hi) = (
+                p.centre.saturating_sub(reach),
+                (p.centre + reach).min(s_count - 1),
+            );
             let q = ranges
                 .iter()
                 .position(|q| k_of(q.start) <= lo && k_of(q.end - 1) >= hi)
@@ -657,8 +663,8 @@ impl RefineStage {
 
     /// Records the refinement of the runs `preps` (one wavelet), with their estimation
     /// `grids`, into `enc`. Pieces of runs are grouped into sub-parts whose buffers each fit
-    /// one storage binding; a run the GPU cannot serve (an FFT length it cannot plan, five
-    /// scales beyond a binding) gets its reason instead of a place.
+    /// one storage binding; a run the GPU cannot serve (an FFT length it cannot plan, one
+    /// grid point's scales beyond a binding) gets its reason instead of a place.
     pub fn encode(
         &self,
         gpu: &Gpu,

@@ -66,10 +66,11 @@ impl WaveletPrep {
         (a + u * (b - a)).round() as usize
     }
 
-    /// The estimation grid: σ_t/`GRID_DIVISION` apart at the ridge's scale, from the first
-    /// sample to the last. Everything after it is computed on this grid; the per-sample track
-    /// is interpolated at the end. Each point carries the ridge's scale there, kept one scale
-    /// inside the range so that it has a neighbour on each side.
+    /// The estimation grid: σ_t/`GRID_DIVISION` apart at the ridge's scale (each point the
+    /// next multiple of that spacing), from the first sample to the last. Everything after
+    /// it is computed on this grid; the per-sample track is interpolated at the end. Each
+    /// point carries the ridge's scale there, kept one scale inside the range so that it
+    /// has a neighbour on each side.
     pub fn grid(&self, path: &[usize]) -> Vec<GridPoint> {
         let wl = self.opt.wavelet;
         let (n, fs, s_count) = (self.n, self.fs, self.freqs.len());
@@ -90,7 +91,12 @@ impl WaveletPrep {
                 sample: i,
                 centre: k.clamp(1, s_count - 2),
             });
-            i += spacing[k];
+            // The next multiple of the spacing, not i + spacing: two ridges that part for a
+            // while (a near-tie of two paths, which the GPU's f32 programme and the CPU's f64
+            // one can settle differently) then give the same grid again as soon as they
+            // meet, instead of grids offset by a sample or two for the rest of the record,
+            // whose validity would then switch a few samples apart.
+            i = (i / spacing[k] + 1) * spacing[k];
         }
         if grid.last().expect("n ≥ 1").sample != n - 1 {
             let k = self.ridge_at(path, n - 1);
@@ -103,14 +109,15 @@ impl WaveletPrep {
     }
 
     /// Per scale, the stretches of samples (inclusive) where `grid` needs its W, W′, W″:
-    /// within ±2 of the ridge (the best of its three neighbours, and that one's neighbours
-    /// for the parabola). Empty for a scale the ridge never comes near.
+    /// within [`skeleton::REACH`] of the ridge (the scales [`skeleton::estimate_point`] may
+    /// read). Empty for a scale the ridge never comes near.
     pub fn wanted(&self, grid: &[GridPoint]) -> Vec<Vec<(usize, usize)>> {
         let s_count = self.freqs.len();
         let mut wanted: Vec<Vec<(usize, usize)>> = vec![Vec::new(); s_count];
         for (g, p) in grid.iter().enumerate() {
             let c = p.centre;
-            let (lo, hi) = (c.saturating_sub(2), (c + 2).min(s_count - 1));
+            let reach = skeleton::REACH;
+            let (lo, hi) = (c.saturating_sub(reach), (c + reach).min(s_count - 1));
             let prev = g.checked_sub(1).map(|q| grid[q].sample);
             for runs in &mut wanted[lo..=hi] {
                 match runs.last_mut() {
@@ -210,4 +217,54 @@ impl WaveletPrep {
 /// keeps the bins of every scale's.
 pub(super) fn exact_plan(spec: &Spectrum, wavelet: &Morlet, s: f64) -> ScalePlan {
     ScalePlan::new(spec, wavelet, s, PASS2_OVERSAMPLE)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::{WaveletOptions, WaveletPrep};
+
+    /// Two ridges that part for a stretch (as the GPU's f32 programme and the CPU's f64 one
+    /// can at a near-tie) lay the same grid again from the first point after they meet, and
+    /// every grid point is a multiple of the spacing at its ridge's scale.
+    #[test]
+    fn grids_of_two_ridges_meet_again_where_the_ridges_do() {
+        let fs = 1000.0;
+        let x: Vec<f64> = (0..30_000)
+            .map(|i| {
+                let t = i as f64 / fs;
+                (2.0 * std::f64::consts::PI * (t + 11.0 / 60.0 * t * t)).sin()
+            })
+            .collect();
+        let prep = WaveletPrep::new(&x, fs, &WaveletOptions::default(), None).unwrap();
+        let path = prep.coarse_ridge().path;
+        // One scale lower over a fifth of the record, in its middle.
+        let (a, b) = (2 * prep.steps / 5, 3 * prep.steps / 5);
+        let mut other = path.clone();
+        for k in &mut other[a..b] {
+            *k = k.saturating_sub(1).max(1);
+        }
+        let (one, two) = (prep.grid(&path), prep.grid(&other));
+        assert_ne!(one, two, "the stretch must change the grid");
+        // Past the stretch (its last coarse step and one more, where the ridge is
+        // interpolated between the two) and one spacing, the grids are the same points.
+        let met = (b + 1) * prep.h;
+        let after = |g: &[super::GridPoint]| -> Vec<usize> {
+            g.iter()
+                .map(|p| p.sample)
+                .filter(|&s| s > met + 200)
+                .collect()
+        };
+        assert!(after(&one).len() > 1000);
+        assert_eq!(after(&one), after(&two));
+        // Each point is the next multiple of the spacing at the ridge's scale of the point
+        // before it (the last point is the last sample).
+        let wl = prep.opt.wavelet;
+        for w in one[..one.len() - 1].windows(2) {
+            let f = prep.freqs[prep.ridge_at(&path, w[0].sample)];
+            let st = wl.time_sigma(wl.scale_for(f)) * fs;
+            let spacing = ((st / super::GRID_DIVISION).floor() as usize).max(1);
+            assert_eq!(w[1].sample % spacing, 0, "grid point at {}", w[1].sample);
+            assert!(w[1].sample - w[0].sample <= spacing);
+        }
+    }
 }
