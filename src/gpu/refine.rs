@@ -610,7 +610,8 @@ impl RefineStage {
         };
         let s_count = prep.freqs.len();
         let k_of = |i: usize| planned.scales[i].0;
-        // Scale ranges: as many scales as fit, the next starting 2·REACH scales back.
+        // Scale ranges: as many scales as fit, the next overlapping the last by 2·REACH
+        // scales, so that any point's 2·REACH + 1 scales lie within one range.
         let mut ranges: Vec<std::ops::Range<usize>> = Vec::new();
         let mut start = 0;
         loop {
@@ -628,7 +629,7 @@ impl RefineStage {
             if end == planned.scales.len() {
                 break;
             }
-            let back = k_of(end - 1).saturating_sub(width - 2);
+            let back = k_of(end - 1).saturating_sub(2 * reach - 1);
             let next = (start + 1..end).find(|&i| k_of(i) >= back).unwrap_or(end);
             start = next;
         }

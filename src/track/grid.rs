@@ -72,17 +72,9 @@ impl WaveletPrep {
     /// point carries the ridge's scale there, kept one scale inside the range so that it
     /// has a neighbour on each side.
     pub fn grid(&self, path: &[usize]) -> Vec<GridPoint> {
-        let wl = self.opt.wavelet;
-        let (n, fs, s_count) = (self.n, self.fs, self.freqs.len());
+        let (n, s_count) = (self.n, self.freqs.len());
         // Each scale's spacing once: per point it had been most of a long record's grid.
-        let spacing: Vec<usize> = self
-            .freqs
-            .iter()
-            .map(|&f| {
-                let st = wl.time_sigma(wl.scale_for(f)) * fs;
-                ((st / GRID_DIVISION).floor() as usize).max(1)
-            })
-            .collect();
+        let spacing = self.grid_spacings();
         let mut grid = Vec::with_capacity(n / spacing[s_count - 1] + 2);
         let mut i = 0usize;
         while i < n {
@@ -108,15 +100,28 @@ impl WaveletPrep {
         grid
     }
 
+    /// Per scale, the grid's spacing (samples) where the ridge is at that scale:
+    /// σ_t/`GRID_DIVISION`, at least one sample.
+    fn grid_spacings(&self) -> Vec<usize> {
+        let wl = self.opt.wavelet;
+        self.freqs
+            .iter()
+            .map(|&f| {
+                let st = wl.time_sigma(wl.scale_for(f)) * self.fs;
+                ((st / GRID_DIVISION).floor() as usize).max(1)
+            })
+            .collect()
+    }
+
     /// Per scale, the stretches of samples (inclusive) where `grid` needs its W, W′, W″:
     /// within [`skeleton::REACH`] of the ridge (the scales [`skeleton::estimate_point`] may
     /// read). Empty for a scale the ridge never comes near.
     pub fn wanted(&self, grid: &[GridPoint]) -> Vec<Vec<(usize, usize)>> {
         let s_count = self.freqs.len();
         let mut wanted: Vec<Vec<(usize, usize)>> = vec![Vec::new(); s_count];
+        let reach = skeleton::REACH;
         for (g, p) in grid.iter().enumerate() {
             let c = p.centre;
-            let reach = skeleton::REACH;
             let (lo, hi) = (c.saturating_sub(reach), (c + reach).min(s_count - 1));
             let prev = g.checked_sub(1).map(|q| grid[q].sample);
             for runs in &mut wanted[lo..=hi] {
@@ -258,11 +263,9 @@ mod tests {
         assert_eq!(after(&one), after(&two));
         // Each point is the next multiple of the spacing at the ridge's scale of the point
         // before it (the last point is the last sample).
-        let wl = prep.opt.wavelet;
+        let spacings = prep.grid_spacings();
         for w in one[..one.len() - 1].windows(2) {
-            let f = prep.freqs[prep.ridge_at(&path, w[0].sample)];
-            let st = wl.time_sigma(wl.scale_for(f)) * fs;
-            let spacing = ((st / super::GRID_DIVISION).floor() as usize).max(1);
+            let spacing = spacings[prep.ridge_at(&path, w[0].sample)];
             assert_eq!(w[1].sample % spacing, 0, "grid point at {}", w[1].sample);
             assert!(w[1].sample - w[0].sample <= spacing);
         }
