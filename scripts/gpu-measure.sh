@@ -29,7 +29,8 @@
 #   - an experiment: the GPU `bench` with glibc's malloc keeping freed memory (no trims, no
 #     unmaps: do they cost a 16-core machine its shared address space's locks and TLB
 #     flushes?) against the default, back to back, with each backend's page faults and
-#     system time a repetition (the kernel share);
+#     system time a repetition (the kernel share), and with MALLOC_ARENA_MAX=1 (one arena:
+#     no faults, one lock);
 #   - `skelid run` end to end, both methods, on each backend (traced on the GPU), with
 #     its log's timeline and how busy its one writer thread was;
 #   - an experiment: `run` on the CPU backend with written data released from the page
@@ -94,6 +95,12 @@ for m in default skelid; do
   SKELID_MALLOC=$m timeout 80 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --no-end-to-end \
     --out "$OUT/bench-128-malloc-$m.json" 2>&1 | grep -E "^ +(cpu|gpu) |CPU share|kernel share|floor"
 done
+# Every thread in glibc's main arena, which keeps what is freed: the completion's page
+# faults (the threads' arenas growing and unmapped) gone, against one lock for every
+# allocation of 16 threads (2 cores, 2026-12-03: 16 rayon threads 3.68 s against 2.64 s).
+echo "MALLOC_ARENA_MAX=1"
+MALLOC_ARENA_MAX=1 timeout 80 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --no-end-to-end \
+  --out "$OUT/bench-128-malloc-arena1.json" 2>&1 | grep -E "^ +(cpu|gpu) |CPU share|kernel share|floor"
 echo "== bench, 512 scales"
 timeout 100 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 512 --no-end-to-end --out "$OUT/bench-512.json" 2>&1 | quiet
 if [ -f "$W/long.h5" ]; then
