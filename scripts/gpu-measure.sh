@@ -89,18 +89,20 @@ for f in f32 default f32 default; do
     --out "$OUT/bench-128-first-$f.json" 2>&1 | grep -E "^ +gpu |^  (fft f|scales\.)|bytes up" | tail -7
 done
 unset SKELID_GPU_FIRST_PASS
-echo "== experiment: bench, 128 scales, glibc's malloc at its defaults (SKELID_MALLOC=default) and as skelid sets it"
-for m in default skelid; do
-  echo "SKELID_MALLOC=$m"
-  SKELID_MALLOC=$m timeout 80 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --no-end-to-end \
+echo "== experiment: bench, 128 scales, glibc's malloc at its defaults (SKELID_MALLOC=default), as skelid sets it, and so with one arena (MALLOC_ARENA_MAX=1)"
+# Last, skelid's setting with every thread in glibc's main arena (MALLOC_ARENA_MAX=1), which
+# keeps what is freed: the completion's page faults (the threads' arenas growing and
+# unmapped) gone, against one lock for every allocation of 16 threads (2 cores,
+# 2026-12-03: 16 rayon threads 3.68 s against 2.64 s).
+for m in default skelid arena1; do
+  case $m in
+    arena1) setting=(MALLOC_ARENA_MAX=1) ;;
+    *) setting=("SKELID_MALLOC=$m") ;;
+  esac
+  echo "${setting[*]}"
+  env "${setting[@]}" timeout 80 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --no-end-to-end \
     --out "$OUT/bench-128-malloc-$m.json" 2>&1 | grep -E "^ +(cpu|gpu) |CPU share|kernel share|floor"
 done
-# Every thread in glibc's main arena, which keeps what is freed: the completion's page
-# faults (the threads' arenas growing and unmapped) gone, against one lock for every
-# allocation of 16 threads (2 cores, 2026-12-03: 16 rayon threads 3.68 s against 2.64 s).
-echo "MALLOC_ARENA_MAX=1"
-MALLOC_ARENA_MAX=1 timeout 80 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --no-end-to-end \
-  --out "$OUT/bench-128-malloc-arena1.json" 2>&1 | grep -E "^ +(cpu|gpu) |CPU share|kernel share|floor"
 echo "== bench, 512 scales"
 timeout 100 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 512 --no-end-to-end --out "$OUT/bench-512.json" 2>&1 | quiet
 if [ -f "$W/long.h5" ]; then
