@@ -2,6 +2,7 @@
 //! channel of every run, timed on each backend in one process (a warm-up, then the median
 //! of N repetitions), with the agreement of their results.
 
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use serde::Serialize;
@@ -38,8 +39,9 @@ pub struct BackendTiming {
     pub traffic: Traffic,
     /// Per signal on the GPU: signals per batch, blocking syncs, bytes up, bytes down.
     pub per_signal: Option<PerSignal>,
-    /// Minor page faults of the whole process a timed repetition, letting the previous
-    /// repetition's tracks go included: fresh memory the kernel mapped and zeroed.
+    /// Minor page faults of the whole process a timed repetition (with `--hold-tracks`,
+    /// letting the previous repetition's tracks go included): fresh memory the kernel
+    /// mapped and zeroed.
     pub page_faults_per_repetition: f64,
     /// System CPU seconds of the whole process a timed repetition (as the faults), every
     /// thread.
@@ -220,6 +222,9 @@ pub struct BackendBench {
     pub scales: usize,
     /// Timed repetitions per backend.
     pub repeat: usize,
+    /// Whether every track of a repetition was held until it ended (`--hold-tracks`), rather
+    /// than let go as it was complete.
+    pub held_tracks: bool,
     /// Per backend, in the order asked.
     pub backends: Vec<BackendTiming>,
     /// Median CPU time over median GPU time, when both ran.
@@ -234,13 +239,22 @@ pub struct BackendBench {
     pub end_to_end_agreement: Option<Agreement>,
 }
 
+/// Signals tracked at a time by both backends for [`compare`]'s agreement: 128 tracks of
+/// 30 000 samples are about 220 MB a backend.
+const AGREEMENT_GROUP: usize = 128;
+
 /// Times `backends` (name, backend) on `signals` (samples, sample rate), `runs` runs' worth.
+/// Each track is let go the moment it is complete, as a batch lets each go once it is used,
+/// unless `hold` (every track of a repetition held until it ends, as `bench` did before
+/// 2026-12-03). The agreement is measured after the timings, on both backends again, a
+/// few signals at a time, so that memory stays bounded.
 pub fn compare(
     signals: &[(Vec<f64>, f64)],
     runs: usize,
     opt: &WaveletOptions,
     backends: &[(&str, &Backend)],
     repeat: usize,
+    hold: bool,
     mut progress: impl FnMut(&str),
 ) -> BackendBench {
     let repeat = repeat.max(1);
@@ -254,37 +268,55 @@ pub fn compare(
         .collect();
     let samples: usize = signals.iter().map(|s| s.0.len()).sum();
     let mut timings = Vec::new();
-    let mut last: Vec<Vec<Option<Track>>> = Vec::new();
     for &(name, backend) in backends {
+        // Tracks of a GPU backend whose first pass was done on the CPU, counted in the
+        // repetition `count_in`.
+        let fallen = AtomicUsize::new(0);
+        let count_in = AtomicUsize::new(usize::MAX);
+        let repetition = |r: usize| {
+            let t0 = Instant::now();
+            if hold {
+                let out = backend.track_many(&refs, opt);
+                let s = t0.elapsed().as_secs_f64();
+                if count_in.load(Ordering::Relaxed) == r {
+                    for t in out.iter().flatten() {
+                        fell_back(backend, t, &fallen);
+                    }
+                }
+                (s, out)
+            } else {
+                backend.track_each(&refs, opt, |_, t| {
+                    if let (true, Ok(t)) = (count_in.load(Ordering::Relaxed) == r, &t) {
+                        fell_back(backend, t, &fallen);
+                    }
+                });
+                (t0.elapsed().as_secs_f64(), Vec::new())
+            }
+        };
         progress(&format!("{name}: warm-up"));
         // Warm-up: one whole repetition, untimed. It plans the FFTs, compiles the pipelines
         // and fills the GPU's buffer pool at the batch sizes the timed repetitions use: a
         // warm-up of 8 signals left the first timed repetition allocating hundreds of MB
         // (1.11 s against 0.57 s for the third on an H100). A campaign pays that once.
-        let _ = backend.track_many(&refs, opt);
+        drop(repetition(usize::MAX));
         profile::print_spans(&format!("{name}, warm-up"));
         let mut seconds = Vec::new();
-        let mut tracks = Vec::new();
         profile::reset();
         let kernel0 = profile::kernel_share();
+        count_in.store(repeat - 1, Ordering::Relaxed);
+        let mut held = Vec::new();
         for r in 0..repeat {
             progress(&format!("{name}: repetition {}/{repeat}", r + 1));
-            // The last repetition's tracks are kept for the agreement; those of the one
-            // before are let go first, as a batch lets each track go once it is used: held
-            // during the next repetition, their gigabytes made it take fresh memory.
-            drop(std::mem::take(&mut tracks));
-            let t0 = Instant::now();
-            let out = backend.track_many(&refs, opt);
-            seconds.push(t0.elapsed().as_secs_f64());
-            tracks = out.into_iter().map(Result::ok).collect();
+            // Held tracks of the repetition before are let go first: held during the next
+            // repetition, their gigabytes made it take fresh memory.
+            drop(std::mem::take(&mut held));
+            let (s, out) = repetition(r);
+            seconds.push(s);
+            held = out;
         }
         let kernel1 = profile::kernel_share();
+        drop(held);
         profile::print_spans(&format!("{name}, {repeat} repetition(s)"));
-        let fallbacks = tracks
-            .iter()
-            .flatten()
-            .filter(|t| backend.is_gpu() && t.backend != crate::track::Device::Gpu)
-            .count();
         let mut sorted = seconds.clone();
         sorted.sort_by(f64::total_cmp);
         let median = sorted[sorted.len() / 2];
@@ -297,7 +329,7 @@ pub fn compare(
             median_s: median,
             runs_per_s: runs as f64 / median,
             samples_scales_per_s: (samples * opt.scales) as f64 / median,
-            fallbacks,
+            fallbacks: fallen.into_inner(),
             stages: prof
                 .stages
                 .into_iter()
@@ -308,15 +340,21 @@ pub fn compare(
             page_faults_per_repetition: kernel1.0.saturating_sub(kernel0.0) as f64 / repeat as f64,
             system_s_per_repetition: (kernel1.1 - kernel0.1) / repeat as f64,
         });
-        last.push(tracks);
     }
     let find = |n: &str| timings.iter().position(|t| t.backend == n);
     let (gpu_speedup, agreement) = match (find("cpu"), find("gpu")) {
         (Some(c), Some(g)) => {
+            progress(&format!(
+                "agreement: both backends again, {AGREEMENT_GROUP} signals at a time (untimed)"
+            ));
             let mut a = Agreement::default();
-            for (x, y) in last[c].iter().zip(&last[g]) {
-                if let (Some(x), Some(y)) = (x, y) {
-                    a.add(x, y);
+            for group in refs.chunks(AGREEMENT_GROUP) {
+                let x = backends[c].1.track_many(group, opt);
+                let y = backends[g].1.track_many(group, opt);
+                for (x, y) in x.iter().zip(&y) {
+                    if let (Ok(x), Ok(y)) = (x, y) {
+                        a.add(x, y);
+                    }
                 }
             }
             (Some(timings[c].median_s / timings[g].median_s), Some(a))
@@ -331,11 +369,19 @@ pub fn compare(
         samples,
         scales: opt.scales,
         repeat,
+        held_tracks: hold,
         backends: timings,
         gpu_speedup,
         agreement,
         end_to_end: Vec::new(),
         end_to_end_agreement: None,
+    }
+}
+
+/// Counts `t` in `fallen` when `backend` is a GPU and the track's first pass was not.
+fn fell_back(backend: &Backend, t: &Track, fallen: &AtomicUsize) {
+    if backend.is_gpu() && t.backend != crate::track::Device::Gpu {
+        fallen.fetch_add(1, Ordering::Relaxed);
     }
 }
 
@@ -369,4 +415,56 @@ pub fn end_to_end(
         per_signal: PerSignal::of(&prof.gpu),
         traffic: prof.gpu,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_agreement_covers_every_signal_in_groups_whether_tracks_are_held_or_not() {
+        // Two CPU backends under the two names: their tracks are the same, so the agreement
+        // is exact, and it must count every signal, across more than one AGREEMENT_GROUP.
+        let signals: Vec<(Vec<f64>, f64)> = (0..AGREEMENT_GROUP + 5)
+            .map(|k| {
+                let f = 6.0 + (k % 7) as f64;
+                let x = (0..1200)
+                    .map(|i| {
+                        let t = i as f64 / 400.0;
+                        (-0.2 * t).exp() * (2.0 * std::f64::consts::PI * f * t).sin()
+                    })
+                    .collect();
+                (x, 400.0)
+            })
+            .collect();
+        let opt = WaveletOptions {
+            scales: 24,
+            ..Default::default()
+        };
+        let (a, b) = (Backend::cpu(), Backend::cpu());
+        for hold in [false, true] {
+            let r = compare(
+                &signals,
+                7,
+                &opt,
+                &[("cpu", &a), ("gpu", &b)],
+                1,
+                hold,
+                |_| {},
+            );
+            assert_eq!(r.held_tracks, hold);
+            let g = r.agreement.expect("both names ran");
+            assert_eq!(g.tracks, signals.len(), "held: {hold}");
+            assert!(g.valid_samples > signals.len() * 600, "{g:?}");
+            assert_eq!(
+                (g.envelope_rel, g.frequency_hz, g.mask_samples),
+                (0.0, 0.0, 0)
+            );
+            assert_eq!(r.backends.len(), 2);
+            assert!(r
+                .backends
+                .iter()
+                .all(|t| t.fallbacks == 0 && t.median_s > 0.0));
+        }
+    }
 }

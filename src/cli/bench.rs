@@ -61,16 +61,26 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
     println!(
         "backend benchmark: {runs} run(s), {} signal(s), {samples} samples, {scales} scales, \
          wavelet track (first pass and refinement on the backend, the track's completion on {} CPU \
-         threads), median of {}",
+         threads), median of {}; {}",
         signals.len(),
         rayon::current_num_threads(),
-        a.repeat.max(1)
+        a.repeat.max(1),
+        if a.hold_tracks {
+            "every track of a repetition held until it ends (--hold-tracks)"
+        } else {
+            "each track let go as it is complete, as `skelid run` does"
+        }
     );
     let backends: Vec<(&str, &Backend)> = opened.iter().map(|(n, b)| (*n, b)).collect();
-    let mut result =
-        skelid::bench::backends::compare(&signals, runs, &opt, &backends, a.repeat, |stage| {
-            eprintln!("  {stage}")
-        });
+    let mut result = skelid::bench::backends::compare(
+        &signals,
+        runs,
+        &opt,
+        &backends,
+        a.repeat,
+        a.hold_tracks,
+        |stage| eprintln!("  {stage}"),
+    );
     result.archives = files.iter().map(|f| f.display().to_string()).collect();
     println!(
         "\n{:>7} {:>10} {:>10} {:>16} {:>9}  adapter",
@@ -329,6 +339,13 @@ pub(crate) struct BenchArgs {
     /// and write included) that shows where the time goes, stage by stage.
     #[arg(long)]
     pub(crate) no_end_to_end: bool,
+    /// Archives: hold every track of a repetition until the repetition ends, as `bench` did
+    /// before 2026-12-03, instead of letting each go the moment it is complete (as `skelid
+    /// run` does). Memory then grows with the campaign (about 1.7 MB a signal of 30 000
+    /// samples, a backend) and each repetition maps fresh pages: for comparing with
+    /// figures measured before.
+    #[arg(long)]
+    pub(crate) hold_tracks: bool,
     #[command(flatten)]
     pub(crate) ingest: IngestArgs,
 }
