@@ -31,6 +31,8 @@
 #     flushes?) against the default, back to back, with each backend's page faults and
 #     system time a repetition (the kernel share), and with MALLOC_ARENA_MAX=1 (one arena:
 #     no faults, one lock);
+#   - an experiment: `bench` with every track of a repetition held (--hold-tracks, as before
+#     2026-12-03) against each let go as it is complete (the default), both backends;
 #   - `skelid run` end to end, both methods, on each backend (traced on the GPU), with
 #     its log's timeline and how busy its one writer thread was;
 #   - an experiment: `run` on the CPU backend with written data released from the page
@@ -102,6 +104,17 @@ for m in default skelid arena1; do
   echo "${setting[*]}"
   env "${setting[@]}" timeout 80 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --no-end-to-end \
     --out "$OUT/bench-128-malloc-$m.json" 2>&1 | grep -E "^ +(cpu|gpu) |CPU share|kernel share|floor"
+done
+echo "== experiment: bench, 128 scales, every track of a repetition held (--hold-tracks, as before 2026-12-03) and let go as it is complete (the default)"
+# Held, 2000 tracks are 3.4 GB a repetition of fresh memory for the kernel to map and zero
+# (120 000-165 000 page faults a repetition on the H200, 2026-11-27); let go, the next
+# track reuses the same thread's arrays (2 cores, 2026-12-03: 26 000-48 000 faults a
+# repetition down to 56-76, the CPU backend's bench 5 % faster).
+for h in hold default; do
+  flag=(); [ "$h" = hold ] && flag=(--hold-tracks)
+  echo "tracks: $h"
+  timeout 80 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --no-end-to-end "${flag[@]}" \
+    --out "$OUT/bench-128-tracks-$h.json" 2>&1 | grep -E "^ +(cpu|gpu) |speed-up|CPU share|kernel share"
 done
 echo "== bench, 512 scales"
 timeout 100 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 512 --no-end-to-end --out "$OUT/bench-512.json" 2>&1 | quiet
