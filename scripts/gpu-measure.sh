@@ -108,12 +108,13 @@ done
 echo "== experiment: bench, 128 scales, every track of a repetition held (--hold-tracks, as before 2026-12-03) and let go as it is complete (the default)"
 # Held, 2000 tracks are 3.4 GB a repetition of fresh memory for the kernel to map and zero
 # (120 000-165 000 page faults a repetition on the H200, 2026-11-27); let go, the next
-# track reuses the same thread's arrays (2 cores, 2026-12-03: 26 000-48 000 faults a
-# repetition down to 56-76, the CPU backend's bench 5 % faster).
+# track reuses the same thread's arrays (2 cores, 2026-12-03: 26 000-81 000 faults a
+# repetition down to 56-166; the times within this machine's noise).
 for h in hold default; do
   flag=(); [ "$h" = hold ] && flag=(--hold-tracks)
+  # ${flag[@]+...}: an empty array under `set -u` is an error before bash 4.4.
   echo "tracks: $h"
-  timeout 80 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --no-end-to-end "${flag[@]}" \
+  timeout 80 "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --no-end-to-end ${flag[@]+"${flag[@]}"} \
     --out "$OUT/bench-128-tracks-$h.json" 2>&1 | grep -E "^ +(cpu|gpu) |speed-up|CPU share|kernel share"
 done
 echo "== bench, 512 scales"

@@ -939,7 +939,10 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
     assert_eq!(v["runs"], 11);
     // Each track let go as it is complete, as `run` does, unless --hold-tracks.
     assert_eq!(v["held_tracks"], false);
-    assert!(text.contains("each track let go as it is complete"), "{text}");
+    assert!(
+        text.contains("each track let go as it is complete"),
+        "{text}"
+    );
     let b = v["backends"].as_array().unwrap();
     assert_eq!(
         (b[0]["backend"].as_str(), b[1]["backend"].as_str()),

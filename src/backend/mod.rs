@@ -511,6 +511,12 @@ impl Backend {
     {
         use rayon::prelude::*;
         let passed = crate::profile::span("host.receive", || self.receive(group.sent));
+        // `zip` would stop at the shorter side and lose tracks without a word.
+        assert_eq!(
+            passed.len(),
+            group.indices.len(),
+            "one answer per prepared signal"
+        );
         let t0 = std::time::Instant::now();
         crate::profile::span("host.complete", || {
             passed
@@ -733,7 +739,8 @@ mod tests {
 
     #[test]
     fn track_each_hands_over_every_signals_track_once_and_as_track_many_makes_it() {
-        // More than one CPU group (GROUP = 256), with a signal too short to track and a
+        // More than AHEAD + 1 CPU groups (GROUP = 256), so that groups are finished while
+        // others are pending as well as at the end, with a signal too short to track and a
         // constant one among them: each error reaches the consumer at its own index.
         let signal = |k: usize| -> Vec<f64> {
             let f = 8.0 + (k % 13) as f64;
@@ -744,9 +751,10 @@ mod tests {
                 })
                 .collect()
         };
-        let mut data: Vec<Vec<f64>> = (0..GROUP + 20).map(signal).collect();
-        data[7] = vec![1.0; 10];
-        data[GROUP + 3] = vec![0.5; 1500];
+        let mut data: Vec<Vec<f64>> = (0..(AHEAD + 1) * GROUP + 20).map(signal).collect();
+        let failing = [7, 2 * GROUP + 3];
+        data[failing[0]] = vec![1.0; 10];
+        data[failing[1]] = vec![0.5; 1500];
         let signals: Vec<Signal> = data
             .iter()
             .map(|x| Signal {
@@ -778,7 +786,7 @@ mod tests {
                     assert!(a.valid.iter().any(|&v| v), "signal {i} tracked nowhere");
                 }
                 (Err(a), Err(b), Err(c)) => {
-                    assert!(i == 7 || i == GROUP + 3, "signal {i} failed: {a}");
+                    assert!(failing.contains(&i), "signal {i} failed: {a}");
                     assert_eq!(
                         (a.to_string(), b.to_string()),
                         (c.to_string(), c.to_string())
@@ -786,6 +794,7 @@ mod tests {
                 }
                 _ => panic!("signal {i}: track_each, track_many and alone disagree on failing"),
             }
+            assert_eq!(got[0].is_err(), failing.contains(&i), "signal {i}");
         }
     }
 }

@@ -269,16 +269,16 @@ pub fn compare(
     let samples: usize = signals.iter().map(|s| s.0.len()).sum();
     let mut timings = Vec::new();
     for &(name, backend) in backends {
-        // Tracks of a GPU backend whose first pass was done on the CPU, counted in the
-        // repetition `count_in`.
+        // Tracks of a GPU backend whose first pass was done on the CPU, counted in the last
+        // timed repetition only (the warm-up is `usize::MAX`).
         let fallen = AtomicUsize::new(0);
-        let count_in = AtomicUsize::new(usize::MAX);
+        let count_in = repeat - 1;
         let repetition = |r: usize| {
             let t0 = Instant::now();
             if hold {
                 let out = backend.track_many(&refs, opt);
                 let s = t0.elapsed().as_secs_f64();
-                if count_in.load(Ordering::Relaxed) == r {
+                if count_in == r {
                     for t in out.iter().flatten() {
                         fell_back(backend, t, &fallen);
                     }
@@ -286,7 +286,7 @@ pub fn compare(
                 (s, out)
             } else {
                 backend.track_each(&refs, opt, |_, t| {
-                    if let (true, Ok(t)) = (count_in.load(Ordering::Relaxed) == r, &t) {
+                    if let (true, Ok(t)) = (count_in == r, &t) {
                         fell_back(backend, t, &fallen);
                     }
                 });
@@ -303,7 +303,6 @@ pub fn compare(
         let mut seconds = Vec::new();
         profile::reset();
         let kernel0 = profile::kernel_share();
-        count_in.store(repeat - 1, Ordering::Relaxed);
         let mut held = Vec::new();
         for r in 0..repeat {
             progress(&format!("{name}: repetition {}/{repeat}", r + 1));
