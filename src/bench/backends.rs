@@ -3,6 +3,7 @@
 //! of N repetitions), with the agreement of their results.
 
 use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Mutex;
 use std::time::Instant;
 
 use serde::Serialize;
@@ -273,46 +274,37 @@ pub fn compare(
         // timed repetition only (the warm-up is `usize::MAX`).
         let fallen = AtomicUsize::new(0);
         let count_in = repeat - 1;
+        // With `hold`, the tracks of the repetition under way; let go before the next starts.
+        let held = Mutex::new(Vec::new());
         let repetition = |r: usize| {
+            held.lock().expect("never poisoned").clear();
             let t0 = Instant::now();
-            if hold {
-                let out = backend.track_many(&refs, opt);
-                let s = t0.elapsed().as_secs_f64();
-                if count_in == r {
-                    for t in out.iter().flatten() {
-                        fell_back(backend, t, &fallen);
-                    }
+            backend.track_each(&refs, opt, |_, t| {
+                let Ok(t) = t else { return };
+                if r == count_in && backend.is_gpu() && t.backend != crate::track::Device::Gpu {
+                    fallen.fetch_add(1, Ordering::Relaxed);
                 }
-                (s, out)
-            } else {
-                backend.track_each(&refs, opt, |_, t| {
-                    if let (true, Ok(t)) = (count_in == r, &t) {
-                        fell_back(backend, t, &fallen);
-                    }
-                });
-                (t0.elapsed().as_secs_f64(), Vec::new())
-            }
+                if hold {
+                    held.lock().expect("never poisoned").push(t);
+                }
+            });
+            t0.elapsed().as_secs_f64()
         };
         progress(&format!("{name}: warm-up"));
         // Warm-up: one whole repetition, untimed. It plans the FFTs, compiles the pipelines
         // and fills the GPU's buffer pool at the batch sizes the timed repetitions use: a
         // warm-up of 8 signals left the first timed repetition allocating hundreds of MB
         // (1.11 s against 0.57 s for the third on an H100). A campaign pays that once.
-        drop(repetition(usize::MAX));
+        repetition(usize::MAX);
         profile::print_spans(&format!("{name}, warm-up"));
-        let mut seconds = Vec::new();
         profile::reset();
         let kernel0 = profile::kernel_share();
-        let mut held = Vec::new();
-        for r in 0..repeat {
-            progress(&format!("{name}: repetition {}/{repeat}", r + 1));
-            // Held tracks of the repetition before are let go first: held during the next
-            // repetition, their gigabytes made it take fresh memory.
-            drop(std::mem::take(&mut held));
-            let (s, out) = repetition(r);
-            seconds.push(s);
-            held = out;
-        }
+        let seconds: Vec<f64> = (0..repeat)
+            .map(|r| {
+                progress(&format!("{name}: repetition {}/{repeat}", r + 1));
+                repetition(r)
+            })
+            .collect();
         let kernel1 = profile::kernel_share();
         drop(held);
         profile::print_spans(&format!("{name}, {repeat} repetition(s)"));
@@ -374,13 +366,6 @@ pub fn compare(
         agreement,
         end_to_end: Vec::new(),
         end_to_end_agreement: None,
-    }
-}
-
-/// Counts `t` in `fallen` when `backend` is a GPU and the track's first pass was not.
-fn fell_back(backend: &Backend, t: &Track, fallen: &AtomicUsize) {
-    if backend.is_gpu() && t.backend != crate::track::Device::Gpu {
-        fallen.fetch_add(1, Ordering::Relaxed);
     }
 }
 
