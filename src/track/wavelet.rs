@@ -10,8 +10,8 @@ use crate::transform::band::{self, interpolate, ScalePlan};
 use crate::transform::{log_frequencies, Morlet, Spectrum};
 
 use super::{
-    band_with_mean, check_signal, Device, RidgeSearch, Track, TrackError, WaveletOptions,
-    MIN_NOISE_STEPS, PASS1_OVERSAMPLE, PASS1_TOLERANCE,
+    band_with_mean, check_finite, check_shape, Device, RidgeSearch, Track, TrackError,
+    WaveletOptions, MIN_NOISE_STEPS, PASS1_OVERSAMPLE, PASS1_TOLERANCE,
 };
 
 /// One scale's first pass on the CPU: its ridge scores, noise median, kept |W|² (when a
@@ -143,7 +143,13 @@ impl WaveletPrep {
         opt: &WaveletOptions,
         guide: Option<&[f64]>,
     ) -> Result<WaveletPrep, TrackError> {
-        check_signal(x, fs)?;
+        check_shape(x, fs)?;
+        // Any NaN or infinity makes the sum so: the samples are searched for the first one
+        // only then, instead of in a second pass over every record.
+        let mean = crate::transform::mean_of(x);
+        if !mean.is_finite() {
+            check_finite(x)?;
+        }
         let wl = opt.wavelet;
         wl.validate().map_err(TrackError::BadOption)?;
         if opt.scales < 3 || opt.scales > 4096 {
@@ -162,7 +168,6 @@ impl WaveletPrep {
             }
         }
         let n = x.len();
-        let mean = crate::transform::mean_of(x);
         let (fmin, fmax) = match (opt.fmin, opt.fmax) {
             (Some(a), Some(b)) => (a, b),
             (a, b) => {
@@ -201,7 +206,7 @@ impl WaveletPrep {
             .max(s_count.div_ceil(4))
             .max(1);
         let steps = (n - 1) / h + 1;
-        let variance = spec.all_bins().iter().map(|b| b.norm_sqr()).sum::<f64>() * 2.0
+        let variance = crate::transform::lane_sum_by(spec.all_bins(), |b| b.norm_sqr()) * 2.0
             / (n as f64 * spec.padded_len as f64);
         // From here on only the pass bands are read, the first pass's and the refinement's
         // (exact, wider: `exact_plan`); the signal waits for its transforms, on a GPU for
@@ -423,6 +428,49 @@ impl WaveletPrep {
 #[cfg(test)]
 mod tests {
     use super::inner_range;
+
+    /// A NaN or an infinity anywhere in a record (in the lanes of the mean's sum or in its
+    /// tail) is refused, and the first one named, as before the finite check was folded
+    /// into the mean: at its sample index, with its value, before any option is looked at.
+    #[test]
+    fn a_non_finite_sample_is_refused_and_the_first_one_named_wherever_it_falls() {
+        use super::super::{TrackError, WaveletOptions, WaveletPrep};
+        let n = 1003;
+        let clean: Vec<f64> = (0..n).map(|i| (i as f64 * 0.3).sin()).collect();
+        let bad_option = WaveletOptions {
+            scales: 2,
+            ..WaveletOptions::default()
+        };
+        for (first, value) in [
+            (0, f64::NAN),
+            (7, f64::INFINITY),
+            (500, f64::NEG_INFINITY),
+            (1001, f64::NAN),
+            (1002, f64::INFINITY),
+        ] {
+            let mut x = clean.clone();
+            x[first] = value;
+            // A later one of the other sign, so that two infinities could cancel to NaN.
+            if first + 1 < n {
+                x[n - 1] = -value;
+            }
+            for opt in [WaveletOptions::default(), bad_option.clone()] {
+                match WaveletPrep::new(&x, 1000.0, &opt, None) {
+                    Err(TrackError::NoSignal(m)) => {
+                        assert!(m.starts_with(&format!("sample {first} is {value};")), "{m}")
+                    }
+                    Err(e) => panic!("sample {first} = {value}: {e}"),
+                    Ok(_) => panic!("sample {first} = {value} was accepted"),
+                }
+            }
+        }
+        // The finite record is accepted, and the bad option still refused on it.
+        assert!(WaveletPrep::new(&clean, 1000.0, &WaveletOptions::default(), None).is_ok());
+        assert!(matches!(
+            WaveletPrep::new(&clean, 1000.0, &bad_option, None),
+            Err(TrackError::BadOption(_))
+        ));
+    }
 
     /// A campaign-like run (a 1–12 Hz chirp at 1 kHz, 30 s) waits for its transforms with
     /// the bins every pass band reads, the first pass's and the refinement's, and few more.

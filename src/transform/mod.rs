@@ -200,9 +200,35 @@ pub fn serial_spectrum(x: &[f64], mean: f64, len: usize) -> Vec<Complex64> {
     bins
 }
 
-/// The mean a [`Spectrum`] removes: the samples summed in order over their count.
+/// The mean a [`Spectrum`] removes: the samples summed by [`lane_sum_by`] over their
+/// count. Not finite when any sample is not (a NaN or an infinity reaches the sum).
 pub fn mean_of(x: &[f64]) -> f64 {
-    x.iter().sum::<f64>() / x.len().max(1) as f64
+    lane_sum_by(x, |v| *v) / x.len().max(1) as f64
+}
+
+/// Partial sums [`lane_sum_by`] keeps side by side.
+const LANES: usize = 8;
+
+/// The sum of `f` over `x`, in [`LANES`] interleaved partial sums added pairwise at the
+/// end. A single running sum is a chain of additions that each wait for the one before
+/// (four cycles apiece): over a campaign run's 30 000 samples and its spectrum's bins,
+/// the mean and the variance were about 60 µs of the preparation's 500. Eight chains
+/// keep the adder busy, and round no worse (pairwise at the top, eight times shorter
+/// chains below).
+pub fn lane_sum_by<T>(x: &[T], f: impl Fn(&T) -> f64) -> f64 {
+    let mut acc = [0.0f64; LANES];
+    let chunks = x.chunks_exact(LANES);
+    let tail = chunks.remainder();
+    for c in chunks {
+        for (a, v) in acc.iter_mut().zip(c) {
+            *a += f(v);
+        }
+    }
+    let mut s = ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7]));
+    for v in tail {
+        s += f(v);
+    }
+    s
 }
 
 impl Spectrum {
@@ -420,6 +446,52 @@ fn cached<T: ?Sized>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `lane_sum_by` at every length from 0 to 40 (every tail after the lanes): exact where
+    /// every partial sum is (integers), within a few ulps of an exactly rounded sum of
+    /// random values over six decades, and not finite whenever one term is not.
+    #[test]
+    fn lane_sums_are_the_sum_at_every_length_and_carry_any_nan_or_infinity() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        for len in 0..=40usize {
+            let ints: Vec<f64> = (0..len)
+                .map(|_| rng.random_range(-1000..1000) as f64)
+                .collect();
+            let exact: f64 = ints.iter().map(|&v| v as i64).sum::<i64>() as f64;
+            assert_eq!(lane_sum_by(&ints, |v| *v), exact, "{len} integers");
+            let x: Vec<f64> = (0..len)
+                .map(|_| rng.random_range(-1.0..1.0) * 10f64.powf(rng.random_range(-3.0..3.0)))
+                .collect();
+            // The reference: every term split into i128 multiples of 2^-80 (exact for these
+            // magnitudes to far below an ulp of the total), summed exactly.
+            let scale = 2f64.powi(80);
+            let fixed: i128 = x.iter().map(|&v| (v * scale).round() as i128).sum();
+            let reference = fixed as f64 / scale;
+            let bound = 1e-14 * x.iter().map(|v| v.abs()).sum::<f64>() + 1e-20;
+            let got = lane_sum_by(&x, |v| *v);
+            assert!(
+                (got - reference).abs() <= bound,
+                "{len}: {got} against {reference}"
+            );
+            for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+                for at in 0..len {
+                    let mut y = x.clone();
+                    y[at] = bad;
+                    assert!(
+                        !lane_sum_by(&y, |v| *v).is_finite(),
+                        "{bad} at {at} of {len}"
+                    );
+                    assert!(!mean_of(&y).is_finite());
+                }
+            }
+        }
+        // Opposite infinities in different lanes meet only in the final additions.
+        let mut y = vec![1.0; 19];
+        y[1] = f64::INFINITY;
+        y[6] = f64::NEG_INFINITY;
+        assert!(lane_sum_by(&y, |v| *v).is_nan());
+    }
 
     /// `exact_floor` against `f64::floor`, bit for bit, over values built to be hard:
     /// signed zeros, the integers and their neighbours a few ulps away, the 2^52 boundary,
