@@ -270,6 +270,19 @@ fn check_signal(x: &[f64], fs: f64) -> Result<(), TrackError> {
     check_finite(x)
 }
 
+/// [`check_signal`]'s checks and the record's mean ([`mean_of`](crate::transform::mean_of))
+/// in one pass over the samples: a NaN or an infinity makes the mean so, and only then are
+/// the samples searched for the first one (a second pass over every record, 19 µs of a
+/// campaign run's 500 µs preparation, measured alone).
+fn checked_mean(x: &[f64], fs: f64) -> Result<f64, TrackError> {
+    check_shape(x, fs)?;
+    let mean = crate::transform::mean_of(x);
+    if !mean.is_finite() {
+        check_finite(x)?;
+    }
+    Ok(mean)
+}
+
 /// [`check_signal`]'s checks of the length and the sample rate alone.
 fn check_shape(x: &[f64], fs: f64) -> Result<(), TrackError> {
     if x.len() < MIN_SAMPLES {

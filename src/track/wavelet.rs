@@ -10,8 +10,8 @@ use crate::transform::band::{self, interpolate, ScalePlan};
 use crate::transform::{log_frequencies, Morlet, Spectrum};
 
 use super::{
-    band_with_mean, check_finite, check_shape, Device, RidgeSearch, Track, TrackError,
-    WaveletOptions, MIN_NOISE_STEPS, PASS1_OVERSAMPLE, PASS1_TOLERANCE,
+    band_with_mean, checked_mean, Device, RidgeSearch, Track, TrackError, WaveletOptions,
+    MIN_NOISE_STEPS, PASS1_OVERSAMPLE, PASS1_TOLERANCE,
 };
 
 /// One scale's first pass on the CPU: its ridge scores, noise median, kept |W|² (when a
@@ -143,13 +143,7 @@ impl WaveletPrep {
         opt: &WaveletOptions,
         guide: Option<&[f64]>,
     ) -> Result<WaveletPrep, TrackError> {
-        check_shape(x, fs)?;
-        // Any NaN or infinity makes the sum so: the samples are searched for the first one
-        // only then, instead of in a second pass over every record.
-        let mean = crate::transform::mean_of(x);
-        if !mean.is_finite() {
-            check_finite(x)?;
-        }
+        let mean = checked_mean(x, fs)?;
         let wl = opt.wavelet;
         wl.validate().map_err(TrackError::BadOption)?;
         if opt.scales < 3 || opt.scales > 4096 {
@@ -431,7 +425,8 @@ mod tests {
 
     /// A NaN or an infinity anywhere in a record (in the lanes of the mean's sum or in its
     /// tail) is refused, and the first one named, as before the finite check was folded
-    /// into the mean: at its sample index, with its value, before any option is looked at.
+    /// into the mean (`checked_mean`): at its sample index, with its value, before any
+    /// option is looked at.
     #[test]
     fn a_non_finite_sample_is_refused_and_the_first_one_named_wherever_it_falls() {
         use super::super::{TrackError, WaveletOptions, WaveletPrep};

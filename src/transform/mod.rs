@@ -211,10 +211,9 @@ const LANES: usize = 8;
 
 /// The sum of `f` over `x`, in [`LANES`] interleaved partial sums added pairwise at the
 /// end. A single running sum is a chain of additions that each wait for the one before
-/// (four cycles apiece): over a campaign run's 30 000 samples and its spectrum's bins,
-/// the mean and the variance were about 60 µs of the preparation's 500. Eight chains
-/// keep the adder busy, and round no worse (pairwise at the top, eight times shorter
-/// chains below).
+/// (four cycles apiece): a campaign run's 30 000 samples took 25 µs so, 4 µs in eight
+/// chains (measured alone; the preparation is 500 µs). Eight chains keep the adder busy,
+/// and round no worse (pairwise at the top, chains eight times shorter below).
 pub fn lane_sum_by<T>(x: &[T], f: impl Fn(&T) -> f64) -> f64 {
     let mut acc = [0.0f64; LANES];
     let chunks = x.chunks_exact(LANES);
@@ -454,6 +453,7 @@ mod tests {
     fn lane_sums_are_the_sum_at_every_length_and_carry_any_nan_or_infinity() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        let mut worst = 0.0f64;
         for len in 0..=40usize {
             let ints: Vec<f64> = (0..len)
                 .map(|_| rng.random_range(-1000..1000) as f64)
@@ -468,8 +468,12 @@ mod tests {
             let scale = 2f64.powi(80);
             let fixed: i128 = x.iter().map(|&v| (v * scale).round() as i128).sum();
             let reference = fixed as f64 / scale;
-            let bound = 1e-14 * x.iter().map(|v| v.abs()).sum::<f64>() + 1e-20;
+            let magnitude = x.iter().map(|v| v.abs()).sum::<f64>();
+            let bound = 1e-14 * magnitude + 1e-20;
             let got = lane_sum_by(&x, |v| *v);
+            if magnitude > 0.0 {
+                worst = worst.max((got - reference).abs() / magnitude);
+            }
             assert!(
                 (got - reference).abs() <= bound,
                 "{len}: {got} against {reference}"
@@ -486,6 +490,7 @@ mod tests {
                 }
             }
         }
+        println!("worst error of the lane sums: {worst:.2e} of the terms' absolute sum");
         // Opposite infinities in different lanes meet only in the final additions.
         let mut y = vec![1.0; 19];
         y[1] = f64::INFINITY;
