@@ -580,13 +580,6 @@ impl Backend {
     /// The rest of a track after the GPU: its completion from the GPU's skeleton, or on the
     /// CPU whatever the GPU did not do (the refinement, or everything).
     fn finish(&self, prep: WaveletPrep, pass: Option<Result<GpuPass, GpuError>>) -> Track {
-        // The dispatcher leaves the noise gains to the receiver (see `InFlight::finish`).
-        let pass = pass.map(|p| {
-            p.map(|mut p| {
-                p.ridge.gains = prep.noise_gains();
-                p
-            })
-        });
         match pass {
             Some(Ok(GpuPass {
                 ridge,

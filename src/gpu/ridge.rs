@@ -314,19 +314,13 @@ impl FirstPass {
 
     /// The coarse ridges, noise medians and noise gains of every run of every part, in one
     /// submission and one read-back (one blocking wait): [`submit`](Self::submit), then
-    /// [`InFlight::finish`], then the gains.
+    /// [`InFlight::finish`].
     pub fn coarse_ridges(
         &self,
         gpu: &Gpu,
         parts: &[Vec<&WaveletPrep>],
     ) -> Result<Vec<Vec<CoarseRidge>>, GpuError> {
-        let mut ridges = self.submit(gpu, parts)?.finish(gpu, parts)?;
-        for (preps, ridges) in parts.iter().zip(&mut ridges) {
-            for (p, r) in preps.iter().zip(ridges) {
-                r.gains = p.noise_gains();
-            }
-        }
-        Ok(ridges)
+        self.submit(gpu, parts)?.finish(gpu, parts)
     }
 
     /// Records and submits the first pass of every run of every part, with the copies of
@@ -375,12 +369,14 @@ impl FirstPass {
             })?;
             encoded.push(Some((grid, out)));
         }
-        // Paths, statistics and (when a signal asks for it) the scalogram of every part.
+        // Paths, statistics, noise gains and (when a signal asks for it) the scalogram of
+        // every part.
         let mut wanted: Vec<(&wgpu::Buffer, u64)> = Vec::new();
         for (preps, e) in parts.iter().zip(&encoded) {
             let Some((grid, out)) = e else { continue };
             wanted.push((&out.path, out.path_len as u64 * 4));
             wanted.push((&out.stats, out.stats_len as u64 * 8));
+            wanted.push((&grid.gains, grid.gains_len as u64 * 8));
             let power = preps.iter().any(|p| p.keep_scalogram);
             wanted.push((&grid.power, if power { grid.len as u64 * 4 } else { 0 }));
         }
@@ -451,11 +447,8 @@ pub struct InFlight {
 }
 
 impl InFlight {
-    /// Waits for the submission (one blocking wait) and reads back every run's ridge and
-    /// noise medians. `parts` are the ones given to [`FirstPass::submit`]. The noise gains
-    /// are left empty, for whoever completes the track to fill with
-    /// [`WaveletPrep::noise_gains`]: they need no GPU result, and on the dispatcher, the
-    /// one thread every batch goes through, they cost `skelid run` 0.8 ms a batch.
+    /// Waits for the submission (one blocking wait) and reads back every run's ridge,
+    /// noise medians and noise gains. `parts` are the ones given to [`FirstPass::submit`].
     pub fn finish(
         self,
         gpu: &Gpu,
@@ -469,10 +462,11 @@ impl InFlight {
                 answers.push(Vec::new());
                 continue;
             };
-            let mut next = || bytes.next().expect("three read-backs per part");
-            let (paths, stats, power) = (next(), next(), next());
+            let mut next = || bytes.next().expect("four read-backs per part");
+            let (paths, stats, gains, power) = (next(), next(), next(), next());
             // Byte vectors carry no alignment: copy into typed ones.
             let stats: &[[f32; 2]] = bytemuck::cast_slice(&stats);
+            let gains: &[[f32; 2]] = bytemuck::cast_slice(&gains);
             let power: &[f32] = bytemuck::cast_slice(&power);
             answers.push(
                 preps
@@ -489,7 +483,13 @@ impl InFlight {
                             median_power: (0..p.freqs.len())
                                 .map(|k| p.noise_steps(k).map(|_| f64::from(stats[so + k][1])))
                                 .collect(),
-                            gains: Vec::new(),
+                            gains: {
+                                let at = grid.gain_offsets[r];
+                                gains[at..at + p.freqs.len()]
+                                    .iter()
+                                    .map(|&[hi, lo]| f64::from(hi) + f64::from(lo))
+                                    .collect()
+                            },
                             power: p.keep_scalogram.then(|| {
                                 let at = grid.offsets[r];
                                 power[at..at + p.freqs.len() * p.steps].to_vec()

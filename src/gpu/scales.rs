@@ -1,7 +1,8 @@
 //! Host side of `shaders/scales.wgsl`: the coarse |W|² grid of every scale of a batch of
 //! runs in one submission — pass band scattered from each run's spectrum, batched inverse
 //! FFTs (one group per decimated length), interpolation to the coarse time grid — read
-//! back as f32 power per scale and step, computed in f64 where the adapter has SHADER_F64.
+//! back as f32 power per scale and step, computed in f64 where the adapter has SHADER_F64,
+//! and each scale's noise gain (what turns its noise median into the white-noise floor).
 //! This is the first pass of the wavelet track (`track::track_wavelet`), which the CPU
 //! evaluates scale by scale.
 
@@ -35,6 +36,7 @@ struct Item {
     power: u32,
     positions: u32,
     steps: u32,
+    gain: u32,
     weights: BinWeights,
 }
 
@@ -58,7 +60,8 @@ impl RunScales<'_> {
     }
 }
 
-/// The compiled stage: scatter and power pipelines, their shared bind layout, and the FFT.
+/// The compiled stage: scatter, power and noise-gain pipelines, their shared bind layout,
+/// and the FFT.
 pub struct ScaleStage {
     fft: FftStage,
     real: Real,
@@ -66,6 +69,7 @@ pub struct ScaleStage {
     ignored: Option<String>,
     scatter: wgpu::ComputePipeline,
     power: wgpu::ComputePipeline,
+    gain: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
     positions: PositionCache,
 }
@@ -164,24 +168,25 @@ impl ScaleStage {
     }
 
     /// Compiles `scales.wgsl` in `real` (f64 needs [`Gpu::has_f64`]) and declares its
-    /// bindings: wavelet (uniform), items, spectrum, data, power, and the interpolation
-    /// positions (index, fraction).
+    /// bindings: wavelet (uniform), items, spectrum, data, power, the interpolation
+    /// positions (index, fraction), and the noise gains.
     pub fn with_real(gpu: &Gpu, real: Real) -> ScaleStage {
         use super::Binding::{Read, Uniform, Write};
-        let (layout, mut pipelines) = gpu.stage(
+        let (layout, pipelines) = gpu.stage(
             "scales.wgsl",
             &morlet::source(real, include_str!("../../shaders/scales.wgsl")),
-            &[Uniform, Read, Read, Write, Write, Read, Read],
-            &["scatter", "power_grid"],
+            &[Uniform, Read, Read, Write, Write, Read, Read, Write],
+            &["scatter", "power_grid", "noise_gain"],
         );
-        let power = pipelines.pop().expect("two entry points");
-        let scatter = pipelines.pop().expect("two entry points");
+        let [scatter, power, gain]: [wgpu::ComputePipeline; 3] =
+            pipelines.try_into().expect("three entry points");
         ScaleStage {
             fft: FftStage::with_real(gpu, real),
             real,
             ignored: None,
             scatter,
             power,
+            gain,
             layout,
             positions: PositionCache::default(),
         }
@@ -252,13 +257,18 @@ impl ScaleStage {
         }
         let mut power_offset = Vec::with_capacity(runs.len());
         let mut power_len = 0usize;
+        let mut gain_offset = Vec::with_capacity(runs.len());
+        let mut gains_len = 0usize;
         for r in runs {
             power_offset.push(power_len);
             power_len += r.plans.len() * r.steps;
+            gain_offset.push(gains_len);
+            gains_len += r.plans.len();
         }
         for (what, bytes) in [
             ("the spectra", spectrum_len as u64 * value),
             ("the coarse power grid", power_len as u64 * 4),
+            ("the noise gains", gains_len as u64 * 8),
         ] {
             if bytes > limit {
                 return Err(GpuError::TooLarge {
@@ -331,15 +341,18 @@ impl ScaleStage {
                 }
             }),
         }?;
-        // Every run × scale item writes all its steps: a reused buffer serves.
+        // Every run × scale item writes all its steps, and its gain: reused buffers serve.
         let power = gpu.reusable("power", (power_len * 4) as u64);
+        let gains = gpu.reusable("noise gains", (gains_len * 8) as u64);
         let shared = Shared {
             uniform: &uniform,
             spectrum: &spectrum_buf,
             power: &power,
+            gains: &gains,
             spec_offset: &spec_offset,
             bands: &bands,
             power_offset: &power_offset,
+            gain_offset: &gain_offset,
         };
         let mut keep = Vec::with_capacity(3 * parts.len() + 1);
         for part in &parts {
@@ -352,6 +365,9 @@ impl ScaleStage {
             power,
             offsets: power_offset,
             len: power_len,
+            gains,
+            gain_offsets: gain_offset,
+            gains_len,
             keep,
         })
     }
@@ -417,6 +433,7 @@ impl ScaleStage {
                 power: (shared.power_offset[r] + k * run.steps) as u32,
                 positions,
                 steps: run.steps as u32,
+                gain: (shared.gain_offset[r] + k) as u32,
                 weights: BinWeights::new(plan.scale, spec.sample_rate, l),
             });
             data_len += m;
@@ -451,6 +468,7 @@ impl ScaleStage {
                 shared.power.as_entire_binding(),
                 index_buf.as_entire_binding(),
                 frac_buf.as_entire_binding(),
+                shared.gains.as_entire_binding(),
             ],
         );
         let longest = groups.iter().map(|g| g.0).max().unwrap_or(1);
@@ -479,6 +497,8 @@ impl ScaleStage {
         }
         let steps = part.iter().map(|&(r, _)| runs[r].steps).max().unwrap_or(1);
         dispatch(enc, "scales.power", &self.power, steps);
+        // One workgroup an item: `width` 1 gives one along x.
+        dispatch(enc, "scales.noise_gain", &self.gain, 1);
         Ok([data, scratch, items_buf])
     }
 }
@@ -488,11 +508,14 @@ struct Shared<'a> {
     uniform: &'a wgpu::Buffer,
     spectrum: &'a wgpu::Buffer,
     power: &'a wgpu::Buffer,
+    gains: &'a wgpu::Buffer,
     /// Where each run's segment starts in `spectrum`.
     spec_offset: &'a [usize],
     /// Each run's first bin uploaded and how many ([`RunScales::bins`]).
     bands: &'a [(usize, usize)],
     power_offset: &'a [usize],
+    /// Where each run's noise gains (one a scale) start in `gains`.
+    gain_offset: &'a [usize],
 }
 
 /// A batch's coarse |W|² on the GPU: runs back to back, each scale-major.
@@ -503,6 +526,13 @@ pub struct PowerGrid {
     pub offsets: Vec<usize>,
     /// Values in all.
     pub len: usize,
+    /// Each scale's noise gain ([`ScalePlan::noise_gain`]), runs back to back, as f32
+    /// pairs (hi + lo).
+    pub gains: Pooled,
+    /// Where each run's gains start.
+    pub gain_offsets: Vec<usize>,
+    /// Gains in all.
+    pub gains_len: usize,
     /// The work buffers of its submission, held until it has finished.
     pub keep: Vec<Pooled>,
 }

@@ -294,8 +294,9 @@ impl WaveletPrep {
 
     /// Noise gain per scale ([`ScalePlan::noise_gain`]), as [`CoarseRidge::gains`] holds
     /// them; over the scales on every core (a long record's, 2^20 samples at 256 scales,
-    /// took 19 ms on one). Called by the worker that completes the track, a pool thread, so
-    /// a short record's few jobs queue behind nothing.
+    /// took 19 ms on one). The CPU's first pass has them from its own weights and the GPU's
+    /// sums them on the device (`scales.wgsl`'s `noise_gain`); this is the reference
+    /// those are checked against.
     pub fn noise_gains(&self) -> Vec<f64> {
         let wavelet = self.wavelet();
         self.plans
