@@ -16,6 +16,9 @@
 #     traced, on the campaign and on the 2^20-sample signal;
 #   - an experiment: the first pass in f64 (the default where the adapter has it) against
 #     f32 (SKELID_GPU_FIRST_PASS=f32), alternating, traced, on the campaign;
+#   - an experiment: the padded spectra computed on the device from the samples (the
+#     default where the first pass is f64) against on the host (SKELID_GPU_SPECTRA=host),
+#     alternating, with the host share and the bytes uploaded;
 #   - `bench` at 512 scales; one 2^20-sample log sweep at 256 scales (traced: where its
 #     host and device time goes);
 #   - an experiment: the ridge programme narrow (256 invocations a run) and wide (1024),
@@ -91,6 +94,18 @@ for f in f32 default f32 default; do
     --out "$OUT/bench-128-first-$f.json" 2>&1 | grep -E "^ +gpu |^  (fft f|scales\.)|bytes up" | tail -7
 done
 unset SKELID_GPU_FIRST_PASS
+# Since 2026-12-05 the workers no longer take each signal's padded spectrum (its FFT, the
+# white-noise median above the band, the variance): the device does, from the samples
+# uploaded once for both passes (2 cores: the GPU backend's preparation 0.015 -> 0.010 s
+# a repetition of 80 signals). What the host share and the upload are on a GPU.
+echo "== experiment: the padded spectra on the device (the default) and SKELID_GPU_SPECTRA=host, traced"
+for f in host default host default; do
+  if [ "$f" = default ]; then unset SKELID_GPU_SPECTRA; else export SKELID_GPU_SPECTRA=$f; fi
+  echo "SKELID_GPU_SPECTRA=$f, the campaign at 128 scales"
+  SKELID_GPU_TRACE=1 timeout 40 "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 --no-end-to-end \
+    --out "$OUT/bench-128-spectra-$f.json" 2>&1 | grep -E "^ +gpu |^  (fft f|spectrum\.|scales\.scatter)|bytes up|CPU share" | tail -9
+done
+unset SKELID_GPU_SPECTRA
 echo "== experiment: bench, 128 scales, glibc's malloc at its defaults (SKELID_MALLOC=default), as skelid sets it, and so with one arena (MALLOC_ARENA_MAX=1)"
 # Last, skelid's setting with every thread in glibc's main arena (MALLOC_ARENA_MAX=1), which
 # keeps what is freed: the completion's page faults (the threads' arenas growing and

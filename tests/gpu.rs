@@ -257,6 +257,7 @@ fn gpu_scales_match_the_cpu_first_pass_for_a_batch_of_runs() {
             plans,
             h: *h,
             steps: *steps,
+            resident: None,
         })
         .collect();
     // The adapter's precision, and f32 (the path of adapters without f64) where that is f64.
@@ -749,7 +750,7 @@ fn refined(
 ) -> Vec<Vec<skelid::skeleton::GridEstimate>> {
     let (parts, grids) = ([part.to_vec()], [grids.to_vec()]);
     stage
-        .submit(gpu, &parts, &grids)
+        .submit(gpu, &parts, &grids, &[])
         .unwrap()
         .finish(gpu, &parts, &grids)
         .unwrap()
@@ -1132,4 +1133,120 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     // And the device still computes: an FFT against rustfft, as the test above.
     let stage = FftStage::new(&g);
     assert!(fft_error(&g, &stage, Algorithm::Passes, 64, 2, false, 1) < 1e-5);
+}
+
+/// The padded spectra the device computes from the samples (`gpu::spectrum`) are the CPU's
+/// kept bins to f64 rounding, and the white-noise median above the band is the CPU's: for
+/// records of three padded lengths in one part, with the band found and given, two of
+/// them prepared on the CPU among them (their bins uploaded as they are); and the same
+/// again with bindings so small that every record is transformed in a chunk of its own.
+#[test]
+fn gpu_spectra_are_the_cpus_kept_bins_and_noise_floor() {
+    use skelid::gpu::spectrum::{decode_medians, SpectrumStage};
+    use skelid::track::{WaveletOptions, WaveletPrep};
+    let mut gpu = gpu();
+    if gpu.real() != Real::F64 {
+        println!("no SHADER_F64 on this adapter: the spectra stay on the host, nothing to test");
+        return;
+    }
+    let mut rng = rand::rngs::StdRng::seed_from_u64(29);
+    let mut records = Vec::new();
+    for (n, fs) in [
+        (3001usize, 200.0),
+        (30_000, 1000.0),
+        (12_345, 500.0),
+        (30_000, 1000.0),
+    ] {
+        let x: Vec<f64> = (0..n)
+            .map(|i| {
+                let t = i as f64 / fs;
+                1.5 + (2.0 * std::f64::consts::PI * (1.0 + 0.3 * t) * t).sin()
+                    + 0.02 * rng.random_range(-1.0..1.0)
+            })
+            .collect();
+        let given = WaveletOptions {
+            fmin: Some(0.8),
+            fmax: Some(15.0),
+            scales: 50,
+            ..WaveletOptions::default()
+        };
+        records.push((x.clone(), fs, WaveletOptions::default()));
+        records.push((x, fs, given));
+    }
+    let cpu: Vec<WaveletPrep> = records
+        .iter()
+        .map(|(x, fs, o)| WaveletPrep::new(x, *fs, o, None).unwrap())
+        .collect();
+    // Every third prepared on the CPU, the others deferred.
+    let mixed: Vec<WaveletPrep> = records
+        .iter()
+        .enumerate()
+        .map(|(i, (x, fs, o))| {
+            if i % 3 == 1 {
+                WaveletPrep::new(x, *fs, o, None).unwrap()
+            } else {
+                WaveletPrep::new_deferred(x, *fs, o, None).unwrap()
+            }
+        })
+        .collect();
+    let lengths: std::collections::BTreeSet<usize> =
+        mixed.iter().map(|p| p.spec.padded_len).collect();
+    assert!(lengths.len() >= 3, "{lengths:?}");
+    let part: Vec<&WaveletPrep> = mixed.iter().collect();
+    let largest = lengths.iter().max().unwrap() * 16;
+    for cap in [None, Some(largest as u64)] {
+        if let Some(c) = cap {
+            gpu.cap_bindings(c);
+        }
+        let stage = SpectrumStage::new(&gpu);
+        let fft = FftStage::with_real(&gpu, Real::F64);
+        let mut enc = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+        let spectra = stage.encode(&gpu, &mut enc, &fft, &part).unwrap();
+        gpu.submit(enc);
+        let total = mixed.iter().map(|p| p.spec.kept().len()).sum();
+        let bins: Vec<[f64; 2]> = gpu.download(&spectra.resident, total).unwrap();
+        let (medians, bytes) = spectra.medians();
+        let words: Vec<u32> = gpu.download(medians, bytes as usize / 4).unwrap();
+        let medians = decode_medians(&words);
+        let (mut worst_bin, mut worst_median) = (0.0f64, 0.0f64);
+        for (r, (p, c)) in mixed.iter().zip(&cpu).enumerate() {
+            let (at, first) = spectra.at[r];
+            let kept = c.spec.kept();
+            assert_eq!(first, kept.start);
+            let ours = &bins[at..at + kept.len()];
+            let theirs = c.spec.bins(kept.clone());
+            let big = theirs.iter().map(|b| b.norm()).fold(0.0, f64::max);
+            for (o, t) in ours.iter().zip(theirs) {
+                let d = ((o[0] - t.re).powi(2) + (o[1] - t.im).powi(2)).sqrt() / big;
+                if p.is_deferred() {
+                    worst_bin = worst_bin.max(d);
+                } else {
+                    assert_eq!(d, 0.0, "uploaded bins as they are");
+                }
+            }
+            if !p.is_deferred() {
+                continue;
+            }
+            let n = p.len() as f64;
+            let ours = medians[r].map(|m| m / std::f64::consts::LN_2 / n);
+            match (ours, c.noise_floor_above_band()) {
+                (Some(a), Some(b)) => worst_median = worst_median.max((a - b).abs() / b),
+                (a, b) => assert_eq!(a, b, "record {r}: a floor on one side only"),
+            }
+        }
+        println!(
+            "binding cap {cap:?}: {} chunk(s), kept bins within {worst_bin:.1e} of the largest, \
+             white-noise floors within {worst_median:.1e}",
+            spectra.chunks()
+        );
+        let deferred = mixed.iter().filter(|p| p.is_deferred()).count();
+        match cap {
+            None => assert_eq!(spectra.chunks(), 1),
+            Some(_) => assert!(spectra.chunks() >= deferred / 2, "{}", spectra.chunks()),
+        }
+        assert!(worst_bin < 1e-13, "{worst_bin:e}");
+        assert!(worst_median < 1e-9, "{worst_median:e}");
+    }
 }

@@ -11,7 +11,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use crate::gpu::refine::{Decoded, RefineFlight, RefineStage, Refined};
-use crate::gpu::ridge::{batch_bytes, FirstPass, InFlight};
+use crate::gpu::ridge::{batch_bytes, FirstPass, FirstPassOut, InFlight};
+use crate::gpu::spectrum::Spectra;
 use crate::gpu::{Gpu, GpuError, Real};
 use crate::skeleton::GridPoint;
 use crate::track::{CoarseRidge, WaveletPrep};
@@ -91,6 +92,9 @@ pub(super) struct GpuService {
     pub(super) real: Real,
     /// The precision of the refinement ([`RefineStage::real`]).
     pub(super) refine_real: Real,
+    /// Whether the padded spectra are computed on the device ([`FirstPass::spectra_on_device`]):
+    /// signals are then prepared without them.
+    pub(super) spectra_on_device: bool,
     /// What the user should know of how the stages were compiled (a programme refused);
     /// the backend takes them when it opens.
     pub(super) notes: Vec<String>,
@@ -149,6 +153,7 @@ impl GpuService {
                             gpu.is_software(),
                             budget,
                             (stages.first.real(), stages.refine.real()),
+                            stages.first.spectra_on_device(),
                             notes,
                         )));
                         dispatch(&gpu, &stages, rx, fail_after, &counted);
@@ -166,19 +171,21 @@ impl GpuService {
             .recv()
             .map_err(|_| GpuError::Lost("the GPU thread ended while opening the device".into()))
             .and_then(|r| r);
-        let (adapter, software, submission_budget, (real, refine_real), notes) = match ready {
-            Ok(a) => a,
-            Err(e) => {
-                let _ = thread.join();
-                return Err(e);
-            }
-        };
+        let (adapter, software, submission_budget, (real, refine_real), spectra_on_device, notes) =
+            match ready {
+                Ok(a) => a,
+                Err(e) => {
+                    let _ = thread.join();
+                    return Err(e);
+                }
+            };
         Ok(GpuService {
             adapter,
             software,
             submission_budget,
             real,
             refine_real,
+            spectra_on_device,
             notes,
             stats,
             queue: Mutex::new(Some(tx)),
@@ -293,7 +300,11 @@ fn dispatch(
         }
         // A signal beyond the adapter's limits goes back alone, not with its batch.
         let mut kept = Vec::with_capacity(batch.len());
-        for r in batch {
+        for mut r in batch {
+            // A spectrum this device cannot take whole is the CPU's, its bins uploaded.
+            if r.prep.is_deferred() && !stages.first.transforms(gpu, &r.prep) {
+                r.prep.materialize();
+            }
             match stages.first.check(gpu, &r.prep) {
                 Ok(()) => kept.push(r),
                 Err(e) => {
@@ -378,6 +389,8 @@ enum Flight {
         ridges: Vec<Vec<CoarseRidge>>,
         grids: Vec<Vec<Vec<GridPoint>>>,
         flight: Result<RefineFlight, GpuError>,
+        /// The spectra the refinement reads on the device, held until it has finished.
+        _spectra: Vec<Option<Spectra>>,
     },
 }
 
@@ -397,25 +410,40 @@ fn advance(
     dead: &mut Option<String>,
     stats: &Stats,
 ) -> Option<Unit> {
-    let Unit { parts, flight, .. } = unit;
-    let preps = part_preps(&parts);
+    let Unit {
+        mut parts, flight, ..
+    } = unit;
     match flight {
         Flight::First(flight) => {
+            let preps = part_preps(&parts);
             let done = flight.and_then(|f| {
                 unpanicked(|| {
                     crate::profile::time_wall(crate::profile::Stage::FirstPass, || {
-                        crate::profile::span("first.finish", || f.finish(gpu, &preps))
+                        crate::profile::span("first.finish", || f.finish_all(gpu, &preps))
                     })
                 })
             });
-            let ridges = match done {
+            drop(preps);
+            let FirstPassOut {
+                ridges,
+                spectra,
+                noise_medians,
+            } = match done {
                 Ok(d) => d,
                 Err(e) => {
-                    drop(preps);
                     fail(parts, e, dead);
                     return None;
                 }
             };
+            // The white-noise floor above the band, where the device took the spectrum.
+            for (part, medians) in parts.iter_mut().zip(&noise_medians) {
+                for (r, m) in part.iter_mut().zip(medians) {
+                    if r.prep.is_deferred() {
+                        r.prep.set_noise_median(*m);
+                    }
+                }
+            }
+            let preps = part_preps(&parts);
             // In parallel (the global rayon pool idles while the workers wait on the GPU).
             let grids: Vec<Vec<Vec<GridPoint>>> = crate::profile::span("grids", || {
                 preps
@@ -436,7 +464,7 @@ fn advance(
                 None => unpanicked(|| {
                     crate::profile::time_wall(crate::profile::Stage::Refine, || {
                         crate::profile::span("refine.submit", || {
-                            stages.refine.submit(gpu, &preps, &grids)
+                            stages.refine.submit(gpu, &preps, &grids, &spectra)
                         })
                     })
                 }),
@@ -448,6 +476,7 @@ fn advance(
                     ridges,
                     grids,
                     flight,
+                    _spectra: spectra,
                 },
                 done: gpu.work_done_flag(),
             })
@@ -456,7 +485,9 @@ fn advance(
             ridges,
             grids,
             flight,
+            ..
         } => {
+            let preps = part_preps(&parts);
             let refined = flight.and_then(|f| {
                 unpanicked(|| {
                     crate::profile::time_wall(crate::profile::Stage::Refine, || {

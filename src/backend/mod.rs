@@ -73,6 +73,17 @@ const GPU_NODES: [&str; 7] = [
     "dri/", "nvidia*", "dxg", "kgsl*", "mali*", "galcore", "pvr*",
 ];
 
+/// Whether `choice` may open a GPU that computes the spectra itself: `gpu`, or `auto` where
+/// a GPU device node exists. A command that prepares its signal before the backend is open
+/// prepares it for that GPU ([`WaveletPrep::new_deferred`]) only then.
+pub fn may_compute_spectra(choice: BackendChoice) -> bool {
+    match choice {
+        BackendChoice::Cpu => false,
+        BackendChoice::Gpu => true,
+        BackendChoice::Auto => no_gpu_device().is_none(),
+    }
+}
+
 /// Whether `name`, an entry of `/dev`, is one of [`GPU_NODES`].
 fn is_gpu_node(name: &str) -> bool {
     GPU_NODES.iter().any(|pattern| {
@@ -388,14 +399,54 @@ impl Backend {
         guide: Option<&[f64]>,
         keep_scalogram: bool,
     ) -> Result<Track, TrackError> {
-        let mut prep = WaveletPrep::new(x, fs, opt, guide)?;
+        let mut prep = self.prepare(x, fs, opt, guide)?;
         prep.keep_scalogram = keep_scalogram;
         Ok(self.track_prepared(prep))
     }
 
+    /// A signal prepared for this backend: its padded spectrum left to the GPU where the
+    /// GPU computes it ([`WaveletPrep::new_deferred`]; the device's stages in f64), else
+    /// taken here ([`WaveletPrep::new`]).
+    fn prepare(
+        &self,
+        x: &[f64],
+        fs: f64,
+        opt: &WaveletOptions,
+        guide: Option<&[f64]>,
+    ) -> Result<WaveletPrep, TrackError> {
+        if self.spectra_on_device() {
+            WaveletPrep::new_deferred(x, fs, opt, guide)
+        } else {
+            WaveletPrep::new(x, fs, opt, guide)
+        }
+    }
+
+    /// Where this backend's GPU computes the padded spectra: `device` or `host` (none on
+    /// the CPU backend).
+    pub fn spectra_where(&self) -> Option<&'static str> {
+        self.gpu.as_ref().map(|g| {
+            if g.spectra_on_device {
+                "device"
+            } else {
+                "host"
+            }
+        })
+    }
+
+    /// Whether this backend's GPU computes the padded spectra itself, so that signals for
+    /// it are best prepared by [`WaveletPrep::new_deferred`].
+    pub fn spectra_on_device(&self) -> bool {
+        self.gpu.as_ref().is_some_and(|g| g.spectra_on_device)
+    }
+
     /// The wavelet track of a signal already prepared ([`WaveletPrep::new`], which needs
-    /// no backend): lets a command prepare its signal while the backend opens.
-    pub fn track_prepared(&self, prep: WaveletPrep) -> Track {
+    /// no backend, or [`WaveletPrep::new_deferred`], whose spectrum the CPU computes here
+    /// if this backend does not): lets a command prepare its signal while the backend
+    /// opens.
+    pub fn track_prepared(&self, mut prep: WaveletPrep) -> Track {
+        if !self.spectra_on_device() {
+            prep.materialize();
+        }
         let mut answers = self.first_passes(vec![prep]);
         let passed = answers.pop().expect("one answer per signal");
         self.finish(passed.prep, passed.pass)
@@ -456,7 +507,7 @@ impl Backend {
                 crate::profile::span("host.prepare", || {
                     group
                         .par_iter()
-                        .map(|s| WaveletPrep::new(s.samples, s.sample_rate, opt, s.guide))
+                        .map(|s| self.prepare(s.samples, s.sample_rate, opt, s.guide))
                         .collect()
                 });
             if self.gpu.is_some() {
@@ -494,7 +545,7 @@ impl Backend {
         let (Some(service), Some(s)) = (&self.gpu, signals.first()) else {
             return GROUP;
         };
-        match WaveletPrep::new(s.samples, s.sample_rate, opt, s.guide) {
+        match self.prepare(s.samples, s.sample_rate, opt, s.guide) {
             Ok(p) => {
                 let fit = service.submission_budget / batch_bytes(&p, service.real).max(1);
                 groups_of(signals.len(), usize::try_from(fit).unwrap_or(usize::MAX))
@@ -579,7 +630,19 @@ impl Backend {
 
     /// The rest of a track after the GPU: its completion from the GPU's skeleton, or on the
     /// CPU whatever the GPU did not do (the refinement, or everything).
-    fn finish(&self, prep: WaveletPrep, pass: Option<Result<GpuPass, GpuError>>) -> Track {
+    fn finish(&self, mut prep: WaveletPrep, pass: Option<Result<GpuPass, GpuError>>) -> Track {
+        // Whatever the CPU does from here on, other than the completion and the unsure
+        // points' solves, reads the spectrum: it computes it where the GPU was to.
+        let host_work = !matches!(
+            &pass,
+            Some(Ok(GpuPass {
+                refined: Ok((_, decoded)),
+                ..
+            })) if !decoded.refines_on_host()
+        );
+        if host_work {
+            prep.materialize();
+        }
         match pass {
             Some(Ok(GpuPass {
                 ridge,

@@ -22,6 +22,9 @@ pub struct BackendTiming {
     /// The GPU's shader precision, `first pass f64, refinement f64` where the adapter has
     /// SHADER_F64 (none for the CPU).
     pub precision: Option<String>,
+    /// Where the GPU backend computes each signal's padded spectrum: `device` (from the
+    /// samples, where its first pass is f64) or `host` (none for the CPU).
+    pub spectra: Option<String>,
     /// Wall time of each timed repetition (s).
     pub seconds: Vec<f64>,
     /// Their median (s).
@@ -316,6 +319,7 @@ pub fn compare(
             backend: name.to_string(),
             adapter: backend.adapter().map(str::to_string),
             precision: backend.gpu_precision(),
+            spectra: backend.spectra_where().map(str::to_string),
             seconds,
             median_s: median,
             runs_per_s: runs as f64 / median,

@@ -362,8 +362,8 @@ impl BackendArgs {
         for w in b.notes().iter().chain(&b.warnings()) {
             eprintln!("note: {w}");
         }
-        if let (Some(a), Some(p)) = (b.adapter(), b.gpu_precision()) {
-            eprintln!("GPU backend: {a}; shaders in {p}");
+        if let (Some(a), Some(p), Some(w)) = (b.adapter(), b.gpu_precision(), b.spectra_where()) {
+            eprintln!("GPU backend: {a}; shaders in {p}; padded spectra on the {w}");
         }
         Ok(b)
     }

@@ -94,9 +94,12 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
             t.runs_per_s,
             t.samples_scales_per_s,
             t.fallbacks,
-            match (&t.adapter, &t.precision) {
-                (Some(a), Some(p)) => format!("{a}; shaders in {p}"),
-                (Some(a), None) => a.clone(),
+            match (&t.adapter, &t.precision, &t.spectra) {
+                (Some(a), Some(p), Some(w)) => {
+                    format!("{a}; shaders in {p}; padded spectra on the {w}")
+                }
+                (Some(a), Some(p), None) => format!("{a}; shaders in {p}"),
+                (Some(a), None, _) => a.clone(),
                 _ => "-".into(),
             }
         );

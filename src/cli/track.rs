@@ -131,7 +131,14 @@ fn read_input(
         (MethodArg::Hilbert, _) => Input::Hilbert(x),
         (MethodArg::Wavelet, Some(reference)) => Input::Guided { x, reference },
         (MethodArg::Wavelet, None) => {
-            let mut prep = span("host.prepare", || WaveletPrep::new(&x, fs, opt, None))?;
+            // Without its padded spectrum where a GPU may compute it (the backend is not
+            // open yet): the CPU computes it later if the backend turns out not to.
+            let prepare = if skelid::backend::may_compute_spectra(a.backend.backend.into()) {
+                WaveletPrep::new_deferred
+            } else {
+                WaveletPrep::new
+            };
+            let mut prep = span("host.prepare", || prepare(&x, fs, opt, None))?;
             prep.keep_scalogram = a.keep_scalogram;
             Input::Prepared(Box::new(prep))
         }

@@ -10,6 +10,7 @@ pub mod morlet;
 pub mod refine;
 pub mod ridge;
 pub mod scales;
+pub mod spectrum;
 
 use std::sync::{Arc, Mutex};
 
@@ -635,6 +636,12 @@ impl Gpu {
             .max_storage_buffer_binding_size
             .min(self.limits.max_buffer_size)
             .min(self.binding_cap.unwrap_or(u64::MAX))
+    }
+
+    /// Pretends the adapter binds at most `bytes` in one storage binding, as
+    /// `SKELID_GPU_MAX_BINDING` does for a whole process: for tests that split work by it.
+    pub fn cap_bindings(&mut self, bytes: u64) {
+        self.binding_cap = Some(bytes);
     }
 
     /// `Err` when the device was lost or a submission failed since it was opened.

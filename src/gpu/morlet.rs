@@ -32,10 +32,16 @@ pub struct BinWeights {
 impl BinWeights {
     /// Scale `scale` (s) of a spectrum of `sample_rate` (Hz) padded to `padded_len` samples.
     pub fn new(scale: f64, sample_rate: f64, padded_len: usize) -> BinWeights {
+        Self::scaled(scale, sample_rate, padded_len, 1.0)
+    }
+
+    /// [`new`](Self::new) with every weight times `factor` (a power of two, so that the
+    /// pair holds it exactly): what scaling the spectrum by it would give.
+    pub fn scaled(scale: f64, sample_rate: f64, padded_len: usize, factor: f64) -> BinWeights {
         BinWeights {
             scale: split(scale),
             df: split(sample_rate / padded_len as f64),
-            norm: split(2.0 / padded_len as f64),
+            norm: split(2.0 / padded_len as f64 * factor),
         }
     }
 }

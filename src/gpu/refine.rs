@@ -21,6 +21,7 @@ use rayon::prelude::*;
 
 use super::fft::{offset_alignment_of, plannable, FftStage, Holder};
 use super::morlet::{self, BinWeights, WaveletParams};
+use super::spectrum::Spectra;
 use super::{Gpu, GpuError, Pooled, Real};
 use num_complex::Complex64;
 
@@ -378,6 +379,12 @@ struct Pending {
 }
 
 impl Decoded {
+    /// Whether some points are refined whole on the host (their run ran out of slots),
+    /// which reads the spectrum there.
+    pub fn refines_on_host(&self) -> bool {
+        !self.overflow.is_empty()
+    }
+
     /// Every grid point's estimate: the unsure ones solved in f64 exactly as the CPU
     /// backend solves them. `prep` and `grid` are the run's, as given to the refinement.
     pub fn solve(self, prep: &WaveletPrep, grid: &[GridPoint]) -> Vec<GridEstimate> {
@@ -672,7 +679,13 @@ impl RefineStage {
         enc: &mut wgpu::CommandEncoder,
         preps: &[&WaveletPrep],
         grids: &[Vec<GridPoint>],
+        resident: Option<&Spectra>,
     ) -> Result<Encoded, GpuError> {
+        if resident.is_some() && self.real != Real::F64 {
+            return Err(GpuError::Unsupported(
+                "spectra on the device are f64; this refinement is f32".into(),
+            ));
+        }
         let limit = gpu.max_binding();
         let elem = self.real.complex_bytes() as u64;
         // Per-run host work in parallel: the dispatcher is one thread for every worker.
@@ -723,13 +736,17 @@ impl RefineStage {
         drop(pieces_span);
         let wl = preps.first().map(|p| p.wavelet()).unwrap_or_default();
         let uniform = gpu.uniform("refine wavelet", &WaveletParams::new(&wl));
-        // Each spectrum scaled by a power of two to a largest bin near 1.
+        // Each spectrum scaled by a power of two to a largest bin near 1: found from its bins
+        // here, or from its samples' bound when the device computed it.
         let scale_span = SpanGuard::new("refine.ln_scale");
         let ln_scale: Vec<f64> = preps
             .par_iter()
             .zip(&planned)
             .with_min_len(super::PAR_MIN)
             .map(|(p, q)| {
+                if let Some(d) = &p.deferred {
+                    return d.ln_scale;
+                }
                 let big = p
                     .spec
                     .bins(q.range())
@@ -749,7 +766,9 @@ impl RefineStage {
         let mut keep = Vec::with_capacity(6 * parts.len());
         for (q, part) in parts.iter().enumerate() {
             let (buffer, bytes, firsts, work) = crate::profile::span("refine.encode_part", || {
-                self.encode_part(gpu, enc, &uniform, preps, grids, &planned, &ln_scale, part)
+                self.encode_part(
+                    gpu, enc, &uniform, preps, grids, &planned, &ln_scale, part, resident,
+                )
             })?;
             let points: usize = part.iter().map(|p| p.points.len()).sum();
             for (piece, first) in part.iter().zip(firsts) {
@@ -784,7 +803,8 @@ impl RefineStage {
         planned: &[Planned],
         ln_scale: &[f64],
         part: &[Piece],
-    ) -> Result<(Pooled, u64, Vec<usize>, [Pooled; 6]), GpuError> {
+        resident: Option<&Spectra>,
+    ) -> Result<(Pooled, u64, Vec<usize>, Vec<Pooled>), GpuError> {
         let align = offset_alignment_of(gpu, self.real);
         let arrays_span = SpanGuard::new("refine.arrays");
         // Spectra: each piece's bins of its run's pass bands, scaled.
@@ -840,16 +860,31 @@ impl RefineStage {
             e.m = m as u32;
             e.centre = centre as u32;
             e.omega_c = plan.carrier_rate() as f32;
+            // Where bin `lo` lies: in the piece's uploaded segment, or in the spectra on
+            // the device, whose scaling the weights then carry (a power of two: exact).
+            let (at, weights) = match resident {
+                Some(s) => {
+                    let (offset, first) = s.at[r];
+                    let c = (-ln_scale[r] / std::f64::consts::LN_2).round() as i32;
+                    (
+                        offset + lo - first,
+                        BinWeights::scaled(plan.scale, spec.sample_rate, l, 2f64.powi(-c)),
+                    )
+                }
+                None => (
+                    spec_at[q] + lo - planned[r].first,
+                    BinWeights::new(plan.scale, spec.sample_rate, l),
+                ),
+            };
             items.push(Item {
-                // Where bin `lo` lies in the piece's segment.
-                spec: (spec_at[q] + lo - planned[r].first) as u32,
+                spec: at as u32,
                 lo: lo as u32,
                 hi: hi.min(spec.bin_count() - 1) as u32,
                 centre: centre as u32,
                 m: m as u32,
                 data: data_len as u32,
                 _pad: 0,
-                weights: BinWeights::new(plan.scale, spec.sample_rate, l),
+                weights,
             });
             data_len += 3 * m;
         }
@@ -877,7 +912,8 @@ impl RefineStage {
         }
         drop(arrays_span);
         let elem = self.real.complex_bytes();
-        // Written by every core straight into the upload's memory.
+        // Written by every core straight into the upload's memory (none where the spectra
+        // are on the device already).
         let lens: Vec<usize> = part.iter().map(|q| planned[q.run].bins).collect();
         let scaled = |q: usize| {
             let r = part[q].run;
@@ -888,18 +924,32 @@ impl RefineStage {
                 .iter()
                 .map(move |c| (c.re * k, c.im * k))
         };
-        let spectra = match self.real {
-            Real::F64 => gpu.upload_segments("refine spectra", &lens, |q, out: &mut [[f64; 2]]| {
-                for (o, (a, b)) in out.iter_mut().zip(scaled(q)) {
-                    *o = [a, b];
-                }
-            }),
-            Real::F32 => gpu.upload_segments("refine spectra", &lens, |q, out: &mut [[f32; 2]]| {
-                for (o, (a, b)) in out.iter_mut().zip(scaled(q)) {
-                    *o = [a as f32, b as f32];
-                }
-            }),
-        }?;
+        let uploaded = match (resident, self.real) {
+            (Some(_), _) => None,
+            (None, Real::F64) => {
+                Some(
+                    gpu.upload_segments("refine spectra", &lens, |q, out: &mut [[f64; 2]]| {
+                        for (o, (a, b)) in out.iter_mut().zip(scaled(q)) {
+                            *o = [a, b];
+                        }
+                    })?,
+                )
+            }
+            (None, Real::F32) => {
+                Some(
+                    gpu.upload_segments("refine spectra", &lens, |q, out: &mut [[f32; 2]]| {
+                        for (o, (a, b)) in out.iter_mut().zip(scaled(q)) {
+                            *o = [a as f32, b as f32];
+                        }
+                    })?,
+                )
+            }
+        };
+        let spectra: &wgpu::Buffer = match (&uploaded, resident) {
+            (Some(u), _) => u,
+            (None, Some(s)) => &s.resident,
+            (None, None) => unreachable!("a spectrum uploaded or on the device"),
+        };
         let data_bytes = (data_len.max(1) * elem) as u64;
         let items_buf = gpu.upload_pooled("refine items", &items)?;
         let data = gpu.reusable("refine scales", data_bytes);
@@ -979,12 +1029,9 @@ impl RefineStage {
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(x, y, z);
         }
-        Ok((
-            records,
-            records_len,
-            firsts,
-            [data, scratch, spectra, items_buf, table_buf, points_buf],
-        ))
+        let mut work = vec![data, scratch, items_buf, table_buf, points_buf];
+        work.extend(uploaded);
+        Ok((records, records_len, firsts, work))
     }
 }
 
@@ -1006,6 +1053,7 @@ impl RefineStage {
         gpu: &Gpu,
         parts: &[Vec<&WaveletPrep>],
         grids: &[Vec<Vec<GridPoint>>],
+        spectra: &[Option<Spectra>],
     ) -> Result<RefineFlight, GpuError> {
         let mut enc = gpu
             .device
@@ -1013,11 +1061,12 @@ impl RefineStage {
                 label: Some("refinement"),
             });
         let mut encoded = Vec::with_capacity(parts.len());
-        for (preps, grids) in parts.iter().zip(grids) {
+        for (q, (preps, grids)) in parts.iter().zip(grids).enumerate() {
+            let resident = spectra.get(q).and_then(Option::as_ref);
             encoded.push(if preps.is_empty() {
                 None
             } else {
-                Some(self.encode(gpu, &mut enc, preps, grids)?)
+                Some(self.encode(gpu, &mut enc, preps, grids, resident)?)
             });
         }
         let _span = SpanGuard::new("refine.readback");

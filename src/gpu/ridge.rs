@@ -9,6 +9,7 @@ use rayon::prelude::*;
 
 use super::fft::plannable;
 use super::scales::{PowerGrid, RunScales, ScaleStage};
+use super::spectrum::{Spectra, SpectrumStage};
 use super::{Gpu, GpuError, Pooled, Readback, Real};
 use crate::track::{CoarseRidge, WaveletPrep};
 
@@ -265,6 +266,23 @@ pub struct RidgeStage {
 pub struct FirstPass {
     scales: ScaleStage,
     ridge: RidgeStage,
+    /// The padded spectra on the device, where the first pass is f64 (and
+    /// [`SPECTRA_ENV`](super::spectrum::SPECTRA_ENV) does not keep them on the host).
+    spectrum: Option<SpectrumStage>,
+    /// A note that the spectra's setting held a value it does not take.
+    spectra_note: Option<String>,
+}
+
+/// What a first pass found: per part, every run's ridge and noise statistics, the spectra
+/// it left on the device for the refinement, and each run's white-noise median above its
+/// band where the device took it (deferred runs).
+pub struct FirstPassOut {
+    /// Per part, per run.
+    pub ridges: Vec<Vec<CoarseRidge>>,
+    /// Per part, where the device computed the spectra.
+    pub spectra: Vec<Option<Spectra>>,
+    /// Per part, per run: the median |X|² above the band (deferred runs with one).
+    pub noise_medians: Vec<Vec<Option<f64>>>,
 }
 
 impl FirstPass {
@@ -293,10 +311,29 @@ impl FirstPass {
                 crate::hint::Hint::CpuBackend
             )));
         }
+        let scales = ScaleStage::new(gpu);
+        let (on_device, spectra_note) = super::spectrum::on_device_from_env();
+        let spectrum = (on_device && scales.real() == Real::F64).then(|| SpectrumStage::new(gpu));
         Ok(FirstPass {
-            scales: ScaleStage::new(gpu),
+            scales,
             ridge: RidgeStage::new(gpu, width, lanes),
+            spectrum,
+            spectra_note,
         })
+    }
+
+    /// Whether the padded spectra are computed on the device: signals for it are then
+    /// prepared without them ([`WaveletPrep::new_deferred`]).
+    pub fn spectra_on_device(&self) -> bool {
+        self.spectrum.is_some()
+    }
+
+    /// Whether this device computes `prep`'s padded spectrum: its length is one the FFT
+    /// plans and its values fit one binding. A deferred signal it does not is materialized
+    /// on the CPU first, and its bins uploaded.
+    pub fn transforms(&self, gpu: &Gpu, prep: &WaveletPrep) -> bool {
+        let l = prep.spec.padded_len;
+        self.spectrum.is_some() && plannable(l) && l as u64 * 16 <= gpu.max_binding()
     }
 
     /// The precision of the first pass's transform ([`ScaleStage::real`]).
@@ -309,6 +346,7 @@ impl FirstPass {
     pub fn notes(&self) -> Vec<String> {
         let mut notes = self.scales.notes();
         notes.extend(self.ridge.notes());
+        notes.extend(self.spectra_note.clone());
         notes
     }
 
@@ -351,32 +389,49 @@ impl FirstPass {
             for p in preps {
                 self.check(gpu, p)?;
             }
+            // A part with a deferred signal has every spectrum put on the device (the
+            // others' uploaded), for both passes; else the passes upload their bins.
+            let spectra = match &self.spectrum {
+                Some(stage) if preps.iter().any(|p| p.is_deferred()) => {
+                    Some(crate::profile::span("spectrum.encode", || {
+                        stage.encode(gpu, &mut enc, self.scales.fft(), preps)
+                    })?)
+                }
+                _ => None,
+            };
             let runs: Vec<RunScales> = preps
                 .iter()
-                .map(|p| RunScales {
+                .enumerate()
+                .map(|(i, p)| RunScales {
                     spectrum: &p.spec,
                     plans: &p.plans,
                     h: p.h,
                     steps: p.steps,
+                    resident: spectra.as_ref().map(|s| s.at[i]),
                 })
                 .collect();
             let grid = crate::profile::span("scales.encode", || {
-                self.scales.encode(gpu, &mut enc, &wavelet, &runs)
+                let resident = spectra.as_ref().map(|s| &*s.resident);
+                self.scales.encode(gpu, &mut enc, &wavelet, &runs, resident)
             })?;
             let out = crate::profile::span("ridge.encode", || {
                 self.ridge
                     .encode(gpu, &mut enc, &grid.power, &grid.offsets, preps)
             })?;
-            encoded.push(Some((grid, out)));
+            encoded.push(Some((grid, out, spectra)));
         }
-        // Paths, statistics, noise gains and (when a signal asks for it) the scalogram of
-        // every part.
+        // Paths, statistics, noise gains, the white-noise medians (where the device took
+        // the spectra) and (when a signal asks for it) the scalogram of every part.
         let mut wanted: Vec<(&wgpu::Buffer, u64)> = Vec::new();
         for (preps, e) in parts.iter().zip(&encoded) {
-            let Some((grid, out)) = e else { continue };
+            let Some((grid, out, spectra)) = e else {
+                continue;
+            };
             wanted.push((&out.path, out.path_len as u64 * 4));
             wanted.push((&out.stats, out.stats_len as u64 * 8));
             wanted.push((&grid.gains, grid.gains_len as u64 * 8));
+            let medians = spectra.as_ref().map(Spectra::medians);
+            wanted.push(medians.unwrap_or((&grid.gains, 0)));
             let power = preps.iter().any(|p| p.keep_scalogram);
             wanted.push((&grid.power, if power { grid.len as u64 * 4 } else { 0 }));
         }
@@ -406,6 +461,14 @@ impl FirstPass {
             return Err(GpuError::Unsupported(format!(
                 "FFT length {} has a prime factor above 5",
                 p.len
+            )));
+        }
+        if prep.is_deferred() && !self.transforms(gpu, prep) {
+            return Err(GpuError::Unsupported(format!(
+                "the padded spectrum of a record of {} samples ({} points) is not one this \
+                 device computes: prepare it on the CPU (WaveletPrep::materialize)",
+                prep.len(),
+                prep.spec.padded_len
             )));
         }
         // The scales are split into parts that fit a binding, but one scale, the spectrum,
@@ -442,7 +505,7 @@ pub fn batch_bytes(prep: &WaveletPrep, real: Real) -> u64 {
 
 /// A submitted first pass: its outputs on the GPU and their read-back, not yet waited for.
 pub struct InFlight {
-    encoded: Vec<Option<(PowerGrid, RidgeOut)>>,
+    encoded: Vec<Option<(PowerGrid, RidgeOut, Option<Spectra>)>>,
     readback: Readback,
 }
 
@@ -454,16 +517,38 @@ impl InFlight {
         gpu: &Gpu,
         parts: &[Vec<&WaveletPrep>],
     ) -> Result<Vec<Vec<CoarseRidge>>, GpuError> {
+        self.finish_all(gpu, parts).map(|o| o.ridges)
+    }
+
+    /// [`finish`](Self::finish), with the spectra the device keeps for the refinement
+    /// (their work buffers let go) and the deferred runs' white-noise medians.
+    pub fn finish_all(
+        self,
+        gpu: &Gpu,
+        parts: &[Vec<&WaveletPrep>],
+    ) -> Result<FirstPassOut, GpuError> {
         let InFlight { encoded, readback } = self;
         let mut bytes = gpu.finish_readback(readback)?.into_iter();
         let mut answers = Vec::with_capacity(parts.len());
-        for (preps, e) in parts.iter().zip(&encoded) {
-            let Some((grid, out)) = e else {
+        let mut kept_spectra = Vec::with_capacity(parts.len());
+        let mut noise_medians = Vec::with_capacity(parts.len());
+        for (preps, e) in parts.iter().zip(encoded) {
+            let Some((grid, out, spectra)) = e else {
                 answers.push(Vec::new());
+                kept_spectra.push(None);
+                noise_medians.push(Vec::new());
                 continue;
             };
-            let mut next = || bytes.next().expect("four read-backs per part");
-            let (paths, stats, gains, power) = (next(), next(), next(), next());
+            let mut next = || bytes.next().expect("five read-backs per part");
+            let (paths, stats, gains, medians, power) = (next(), next(), next(), next(), next());
+            noise_medians.push(match &spectra {
+                Some(_) => super::spectrum::decode_medians(&medians),
+                None => vec![None; preps.len()],
+            });
+            kept_spectra.push(spectra.map(|mut s| {
+                s.release_work();
+                s
+            }));
             // Byte vectors carry no alignment: copy into typed ones.
             let stats: &[[f32; 2]] = bytemuck::cast_slice(&stats);
             let gains: &[[f32; 2]] = bytemuck::cast_slice(&gains);
@@ -499,7 +584,11 @@ impl InFlight {
                     .collect(),
             );
         }
-        Ok(answers)
+        Ok(FirstPassOut {
+            ridges: answers,
+            spectra: kept_spectra,
+            noise_medians,
+        })
     }
 }
 

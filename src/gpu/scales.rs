@@ -51,6 +51,9 @@ pub struct RunScales<'a> {
     pub h: usize,
     /// Coarse steps.
     pub steps: usize,
+    /// Where its bins are in the spectra already on the device ([`super::spectrum::Spectra`]),
+    /// and the bin the first of them is; `None` to upload them from `spectrum`.
+    pub resident: Option<(usize, usize)>,
 }
 
 impl RunScales<'_> {
@@ -205,6 +208,11 @@ impl ScaleStage {
         self.real
     }
 
+    /// The stage's FFT (in [`real`](Self::real)), which the spectra on the device share.
+    pub fn fft(&self) -> &FftStage {
+        &self.fft
+    }
+
     /// |W|² on each run's coarse grid: per run, scale-major (`[k · steps + j]`), the
     /// values `track`'s first pass interpolates from the band-limited baseband. All runs
     /// go in one submission; split a campaign into batches that fit the adapter first.
@@ -219,7 +227,7 @@ impl ScaleStage {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("scales"),
             });
-        let grid = self.encode(gpu, &mut enc, wavelet, runs)?;
+        let grid = self.encode(gpu, &mut enc, wavelet, runs, None)?;
         gpu.submit(enc);
         let all: Vec<f32> = gpu.download(&grid.power, grid.len)?;
         Ok(runs
@@ -233,13 +241,16 @@ impl ScaleStage {
     /// power grid on the GPU for the next stage (the ridge). The run × scale items are
     /// split into parts whose decimated scales fit one storage binding, so a batch — or a
     /// single record — larger than the adapter's binding limit still runs; only one scale
-    /// alone must fit.
+    /// alone must fit. With `resident` (the part's [`super::spectrum::Spectra`], f64, whose
+    /// place each run names in [`RunScales::resident`]) nothing is uploaded: the spectra
+    /// are read where they are.
     pub fn encode(
         &self,
         gpu: &Gpu,
         enc: &mut wgpu::CommandEncoder,
         wavelet: &Morlet,
         runs: &[RunScales],
+        resident: Option<&wgpu::Buffer>,
     ) -> Result<PowerGrid, GpuError> {
         let align = offset_alignment_of(gpu, self.real);
         let value = self.real.complex_bytes() as u64;
@@ -248,12 +259,23 @@ impl ScaleStage {
         // band of a record's scales is a small part of its spectrum (the throughput
         // campaign's chirp to 12 Hz at 1 kHz: about 1 700 of 23 000 bins), and the upload
         // of the whole was the largest host cost of the dispatcher's first pass.
-        let bands: Vec<(usize, usize)> = runs.iter().map(RunScales::bins).collect();
+        let bands: Vec<(usize, usize)> = match resident {
+            Some(_) => runs
+                .iter()
+                .map(|r| (r.resident.expect("a resident run's place").1, 0))
+                .collect(),
+            None => runs.iter().map(RunScales::bins).collect(),
+        };
         let mut spec_offset = Vec::with_capacity(runs.len());
         let mut spectrum_len = 0usize;
-        for &(_, len) in &bands {
-            spec_offset.push(spectrum_len);
-            spectrum_len += len;
+        for (r, &(_, len)) in runs.iter().zip(&bands) {
+            match (resident, r.resident) {
+                (Some(_), Some((at, _))) => spec_offset.push(at),
+                _ => {
+                    spec_offset.push(spectrum_len);
+                    spectrum_len += len;
+                }
+            }
         }
         let mut power_offset = Vec::with_capacity(runs.len());
         let mut power_len = 0usize;
@@ -329,24 +351,43 @@ impl ScaleStage {
             let (first, len) = bands[r];
             runs[r].spectrum.bins(first..first + len)
         };
-        let spectrum_buf = match self.real {
-            Real::F64 => gpu.upload_segments("spectra", &lens, |r, out: &mut [[f64; 2]]| {
-                for (o, c) in out.iter_mut().zip(bins(r)) {
-                    *o = [c.re, c.im];
-                }
-            }),
-            Real::F32 => gpu.upload_segments("spectra", &lens, |r, out: &mut [[f32; 2]]| {
-                for (o, c) in out.iter_mut().zip(bins(r)) {
-                    *o = [c.re as f32, c.im as f32];
-                }
-            }),
-        }?;
+        let uploaded = match (resident, self.real) {
+            (Some(_), _) => None,
+            (None, Real::F64) => {
+                Some(
+                    gpu.upload_segments("spectra", &lens, |r, out: &mut [[f64; 2]]| {
+                        for (o, c) in out.iter_mut().zip(bins(r)) {
+                            *o = [c.re, c.im];
+                        }
+                    })?,
+                )
+            }
+            (None, Real::F32) => {
+                Some(
+                    gpu.upload_segments("spectra", &lens, |r, out: &mut [[f32; 2]]| {
+                        for (o, c) in out.iter_mut().zip(bins(r)) {
+                            *o = [c.re as f32, c.im as f32];
+                        }
+                    })?,
+                )
+            }
+        };
+        if resident.is_some() && self.real != Real::F64 {
+            return Err(GpuError::Unsupported(
+                "spectra on the device are f64; this first pass is f32".into(),
+            ));
+        }
+        let spectrum_buf: &wgpu::Buffer = match (&uploaded, resident) {
+            (Some(u), _) => u,
+            (None, Some(r)) => r,
+            (None, None) => unreachable!("a spectrum uploaded or on the device"),
+        };
         // Every run × scale item writes all its steps, and its gain: reused buffers serve.
         let power = gpu.reusable("power", (power_len * 4) as u64);
         let gains = gpu.reusable("noise gains", (gains_len * 8) as u64);
         let shared = Shared {
             uniform: &uniform,
-            spectrum: &spectrum_buf,
+            spectrum: spectrum_buf,
             power: &power,
             gains: &gains,
             spec_offset: &spec_offset,
@@ -360,7 +401,7 @@ impl ScaleStage {
                 self.encode_part(gpu, enc, runs, part, &shared)
             })?);
         }
-        keep.push(spectrum_buf);
+        keep.extend(uploaded);
         Ok(PowerGrid {
             power,
             offsets: power_offset,
@@ -562,6 +603,7 @@ mod tests {
                 plans: &plans,
                 h: 1,
                 steps: 1,
+                resident: None,
             };
             let (first, len) = run.bins();
             let lo = plans.iter().map(|p| p.band().0).min().unwrap();

@@ -68,6 +68,26 @@ pub struct WaveletPrep {
     /// White-noise variance per sample from the spectrum above the band (from 1.5 fmax to
     /// fs/2; `None` where too few bins lie there), for the completion's noise floor.
     pub(super) noise_above_band: Option<f64>,
+    /// Where the padded spectrum is computed by a GPU ([`new_deferred`](Self::new_deferred)):
+    /// what it needs and what the CPU needs to compute it instead.
+    pub(crate) deferred: Option<Box<Deferred>>,
+}
+
+/// A prepared signal's share that a GPU computes: its padded spectrum (the kept bins of
+/// [`WaveletPrep::spec`], which is [`Spectrum::pending`]), the white-noise median above
+/// the band, and from them what the first pass and refinement read. The CPU computes the
+/// same itself ([`WaveletPrep::materialize`]) where the GPU does not serve the signal.
+#[derive(Clone)]
+pub(crate) struct Deferred {
+    /// The record's samples.
+    pub(crate) samples: Vec<f64>,
+    /// The bins (inclusive) whose median |X|² is the white-noise floor above the band
+    /// ([`Spectrum::noise_bins`] from 1.5 fmax to fs/2), if enough lie there.
+    pub(crate) noise_bins: Option<(usize, usize)>,
+    /// ln of the power of two the refinement scales the spectrum by: Σ|x − mean| bounds
+    /// every |X_k|, so its bins are at most 1 (the refinement's f32 estimate needs them
+    /// near 1, not exactly at it).
+    pub(crate) ln_scale: f64,
 }
 
 /// What the first pass finds: the ridge on the coarse grid and the noise level per scale.
@@ -83,6 +103,38 @@ pub struct CoarseRidge {
     /// Noise gain per scale ([`ScalePlan::noise_gain`]): W's variance per unit of white
     /// noise variance and sample.
     pub gains: Vec<f64>,
+}
+
+/// The record's variance as the ridge scores' unit reads it: the padded spectrum's power
+/// over bins 1..=L/2, twice, over N L (bin 0, the mean, is zeroed).
+fn spectral_variance(spec: &Spectrum, n: usize) -> f64 {
+    crate::transform::lane_sum_by(spec.all_bins(), |b| b.norm_sqr()) * 2.0
+        / (n as f64 * spec.padded_len as f64)
+}
+
+/// [`spectral_variance`] from the samples by Parseval's theorem, for a spectrum not held
+/// here, and Σ|x − mean|, which bounds every bin. For y = x − mean zero-padded to L (even),
+/// Σ_{k=0}^{L−1} |Y_k|² = L Σ y², and the bins k and L − k are conjugate, so twice bins
+/// 1..=L/2 is L Σ y² − Y_0² + Y_{L/2}², with Y_0 = Σ y and Y_{L/2} = Σ (−1)^j y_j.
+fn parseval_variance(x: &[f64], mean: f64, padded_len: usize) -> (f64, f64) {
+    let (mut sq, mut sum, mut alt, mut abs) = (0.0, 0.0, 0.0, 0.0);
+    for pair in x.chunks(2) {
+        let a = pair[0] - mean;
+        sq += a * a;
+        sum += a;
+        alt += a;
+        abs += a.abs();
+        if let Some(b) = pair.get(1) {
+            let b = b - mean;
+            sq += b * b;
+            sum += b;
+            alt -= b;
+            abs += b.abs();
+        }
+    }
+    let l = padded_len as f64;
+    let variance = (l * sq - sum * sum + alt * alt) / (x.len() as f64 * l);
+    (variance, abs)
 }
 
 /// The first and last of `steps` coarse steps `h` samples apart whose sample lies at least
@@ -133,8 +185,59 @@ impl WaveletPrep {
         guide: Option<&[f64]>,
     ) -> Result<WaveletPrep, TrackError> {
         crate::profile::time(crate::profile::Stage::FirstPass, || {
-            Self::prepare(x, fs, opt, guide)
+            Self::prepare(x, fs, opt, guide, false)
         })
+    }
+
+    /// [`new`](Self::new) without the padded spectrum, which a GPU computes from the
+    /// samples this keeps (`gpu::spectrum`): the band (its own, shorter FFT), the scales and
+    /// their plans are the CPU's to the bit, and so is everything once the CPU has the
+    /// spectrum ([`materialize`](Self::materialize)). The ridge scores' unit is the same
+    /// sum by Parseval's theorem from the samples (within rounding of the spectrum's).
+    pub fn new_deferred(
+        x: &[f64],
+        fs: f64,
+        opt: &WaveletOptions,
+        guide: Option<&[f64]>,
+    ) -> Result<WaveletPrep, TrackError> {
+        crate::profile::time(crate::profile::Stage::FirstPass, || {
+            Self::prepare(x, fs, opt, guide, true)
+        })
+    }
+
+    /// The white-noise variance per sample above the band (from 1.5 fmax to fs/2) that the
+    /// completion's noise floor takes, if known yet (a deferred signal's comes from the GPU).
+    pub fn noise_floor_above_band(&self) -> Option<f64> {
+        self.noise_above_band
+    }
+
+    /// Whether the padded spectrum is left to a GPU ([`new_deferred`](Self::new_deferred)).
+    pub fn is_deferred(&self) -> bool {
+        self.deferred.is_some()
+    }
+
+    /// Computes on the CPU what [`new_deferred`](Self::new_deferred) left to a GPU, for a
+    /// signal the GPU did not serve: afterwards the prepared signal is [`new`](Self::new)'s
+    /// to the bit (unit and white-noise floor from the spectrum too). Nothing to do for one
+    /// prepared by `new`.
+    pub fn materialize(&mut self) {
+        let Some(d) = self.deferred.take() else {
+            return;
+        };
+        let kept = self.spec.kept();
+        let pad = self.spec.padded_len - self.n;
+        let spec = Spectrum::with_mean(&d.samples, self.spec.mean, self.fs, pad);
+        debug_assert_eq!(spec.padded_len, self.spec.padded_len);
+        self.noise_above_band = spec.white_noise_variance(1.5 * self.fmax, self.fs / 2.0);
+        self.unit = 1.0 / spectral_variance(&spec, self.n).max(f64::MIN_POSITIVE);
+        self.spec = spec;
+        self.spec.keep(kept);
+    }
+
+    /// Sets the white-noise variance above the band that a GPU found for a deferred signal
+    /// (from its median |X|² over [`Deferred::noise_bins`]).
+    pub(crate) fn set_noise_median(&mut self, median_power: Option<f64>) {
+        self.noise_above_band = median_power.map(|m| self.spec.noise_variance_of(m));
     }
 
     fn prepare(
@@ -142,6 +245,7 @@ impl WaveletPrep {
         fs: f64,
         opt: &WaveletOptions,
         guide: Option<&[f64]>,
+        defer: bool,
     ) -> Result<WaveletPrep, TrackError> {
         let mean = checked_mean(x, fs)?;
         let wl = opt.wavelet;
@@ -178,13 +282,21 @@ impl WaveletPrep {
         let freqs = log_frequencies(fmin, fmax, opt.scales);
         let s_count = freqs.len();
         let pad = (wl.support(wl.scale_for(fmin), 1e-8) * fs).ceil() as usize;
-        let mut spec = Spectrum::with_mean(x, mean, fs, pad.min(4 * n));
+        let mut spec = if defer {
+            Spectrum::pending(n, mean, fs, pad.min(4 * n))
+        } else {
+            Spectrum::with_mean(x, mean, fs, pad.min(4 * n))
+        };
         // The median above the band is taken here, while the FFT has just left the spectrum
         // in the cache: the completion, which needs it, comes after the transforms (and on
         // a GPU, after the batch), used to read the bins back from memory. Beside the plans, so
         // that a long record's (700 000 bins at 2^20 samples) is not serial.
         let (noise_above_band, plans) = rayon::join(
-            || spec.white_noise_variance(1.5 * fmax, fs / 2.0),
+            || {
+                (!defer)
+                    .then(|| spec.white_noise_variance(1.5 * fmax, fs / 2.0))
+                    .flatten()
+            },
             || -> Vec<ScalePlan> {
                 freqs
                     .iter()
@@ -200,8 +312,22 @@ impl WaveletPrep {
             .max(s_count.div_ceil(4))
             .max(1);
         let steps = (n - 1) / h + 1;
-        let variance = crate::transform::lane_sum_by(spec.all_bins(), |b| b.norm_sqr()) * 2.0
-            / (n as f64 * spec.padded_len as f64);
+        let (variance, deferred) = if defer {
+            let (variance, abs_sum) = parseval_variance(x, mean, spec.padded_len);
+            let ln_scale = if abs_sum > 0.0 && abs_sum.is_finite() {
+                -(abs_sum.log2().ceil()) * std::f64::consts::LN_2
+            } else {
+                0.0
+            };
+            let deferred = Deferred {
+                samples: x.to_vec(),
+                noise_bins: spec.noise_bins(1.5 * fmax, fs / 2.0),
+                ln_scale,
+            };
+            (variance, Some(Box::new(deferred)))
+        } else {
+            (spectral_variance(&spec, n), None)
+        };
         // From here on only the pass bands are read, the first pass's and the refinement's
         // (exact, wider: `exact_plan`); the signal waits for its transforms, on a GPU for
         // its whole batch, with those bins alone: an eighth to a thirteenth of a campaign
@@ -240,6 +366,7 @@ impl WaveletPrep {
             unit: 1.0 / variance.max(f64::MIN_POSITIVE),
             keep_scalogram: false,
             noise_above_band,
+            deferred,
         })
     }
 
@@ -423,6 +550,94 @@ impl WaveletPrep {
 #[cfg(test)]
 mod tests {
     use super::inner_range;
+
+    /// Records of odd and even lengths, with an offset, a chirp, a tone near Nyquist (whose
+    /// bin L/2 the Parseval sum must count) and noise, by automatic and given bands.
+    fn deferral_records() -> Vec<(Vec<f64>, f64, super::super::WaveletOptions)> {
+        use super::super::WaveletOptions;
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(23);
+        let mut out = Vec::new();
+        for (n, fs) in [(3001usize, 200.0), (30_000, 1000.0), (12_345, 500.0)] {
+            let x: Vec<f64> = (0..n)
+                .map(|i| {
+                    let t = i as f64 / fs;
+                    3.0 + (2.0 * std::f64::consts::PI * (2.0 + 0.5 * t) * t).sin()
+                        + 0.05 * (0.98 * std::f64::consts::PI * fs * t).cos()
+                        + 0.01 * rng.random_range(-1.0..1.0)
+                })
+                .collect();
+            out.push((x.clone(), fs, WaveletOptions::default()));
+            out.push((
+                x,
+                fs,
+                WaveletOptions {
+                    fmin: Some(1.0),
+                    fmax: Some(20.0),
+                    scales: 40,
+                    ..WaveletOptions::default()
+                },
+            ));
+        }
+        out
+    }
+
+    /// A deferred preparation is the CPU's in everything the GPU does not compute (band,
+    /// scales, plans, kept bins, grid), its unit within rounding of the spectrum's (Parseval),
+    /// its scaling a power of two that bounds every bin; and once materialized it is the
+    /// CPU's to the bit.
+    #[test]
+    fn a_deferred_preparation_is_the_cpus_and_materializes_to_it() {
+        use super::super::WaveletPrep;
+        for (x, fs, opt) in deferral_records() {
+            let cpu = WaveletPrep::new(&x, fs, &opt, None).unwrap();
+            let mut gpu = WaveletPrep::new_deferred(&x, fs, &opt, None).unwrap();
+            assert!(gpu.is_deferred() && !cpu.is_deferred());
+            assert!(gpu.spec.is_pending());
+            assert_eq!(
+                (gpu.fmin, gpu.fmax, gpu.h, gpu.steps),
+                (cpu.fmin, cpu.fmax, cpu.h, cpu.steps)
+            );
+            assert_eq!(gpu.freqs, cpu.freqs);
+            assert_eq!(gpu.spec.padded_len, cpu.spec.padded_len);
+            assert_eq!(gpu.spec.kept(), cpu.spec.kept());
+            assert_eq!(gpu.spec.mean.to_bits(), cpu.spec.mean.to_bits());
+            assert_eq!(gpu.noise_above_band, None);
+            let unit = (gpu.unit - cpu.unit).abs() / cpu.unit;
+            assert!(unit < 1e-12, "unit {unit:e}");
+            let d = gpu.deferred.as_ref().unwrap();
+            let big = cpu
+                .spec
+                .bins(cpu.spec.kept())
+                .iter()
+                .map(|c| c.norm())
+                .fold(0.0, f64::max);
+            let scaled = big * d.ln_scale.exp();
+            assert!(
+                scaled <= 1.0 && scaled > 1e-4,
+                "largest kept bin scaled to {scaled}"
+            );
+            assert_eq!(
+                d.noise_bins.is_some(),
+                cpu.noise_above_band.is_some(),
+                "noise bins where the CPU has a floor"
+            );
+            // The grid reads only the ridge and the plans: the same.
+            let ridge = cpu.coarse_ridge();
+            assert_eq!(gpu.grid(&ridge.path), cpu.grid(&ridge.path));
+            gpu.materialize();
+            assert!(!gpu.is_deferred() && !gpu.spec.is_pending());
+            assert_eq!(gpu.unit.to_bits(), cpu.unit.to_bits());
+            assert_eq!(gpu.noise_above_band, cpu.noise_above_band);
+            assert_eq!(gpu.spec.kept(), cpu.spec.kept());
+            assert_eq!(
+                gpu.spec.bins(gpu.spec.kept()),
+                cpu.spec.bins(cpu.spec.kept())
+            );
+            let (a, b) = (gpu.coarse_ridge(), cpu.coarse_ridge());
+            assert_eq!(a, b);
+        }
+    }
 
     /// A NaN or an infinity anywhere in a record (in the lanes of the mean's sum or in its
     /// tail) is refused, and the first one named, as before the finite check was folded

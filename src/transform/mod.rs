@@ -172,10 +172,15 @@ pub fn log_frequencies(fmin: f64, fmax: f64, count: usize) -> Vec<f64> {
 #[derive(Debug, Clone)]
 pub struct Spectrum {
     /// The bins kept of 0..=L/2 of the real FFT of the padded signal (bin 0, the mean, is
-    /// zeroed): all of them, or after [`keep`](Self::keep) those from `first` on.
+    /// zeroed): all of them, or after [`keep`](Self::keep) those from `first` on. Empty in
+    /// a [`pending`](Self::pending) spectrum, whose bins a GPU computes.
     bins: Vec<Complex64>,
     /// The bin that `bins[0]` holds.
     first: usize,
+    /// Bins kept: `bins.len()`, or in a pending spectrum how many it will hold.
+    count: usize,
+    /// Whether the bins are computed elsewhere (a GPU) and not held here.
+    pending: bool,
     /// Padded length L (even).
     pub padded_len: usize,
     /// Number of real samples N (the record occupies padded indices 0..N).
@@ -249,13 +254,37 @@ impl Spectrum {
         };
         bins[0] = Complex64::new(0.0, 0.0);
         Spectrum {
+            count: bins.len(),
             bins,
             first: 0,
+            pending: false,
             padded_len,
             samples: n,
             sample_rate,
             mean,
         }
+    }
+
+    /// The spectrum [`with_mean`](Self::with_mean) would make of `samples` samples, without
+    /// its bins: its length, rate and mean, for a GPU to transform the samples itself (the
+    /// same padded length, so the same plans). [`bins`](Self::bins) panics on it.
+    pub fn pending(samples: usize, mean: f64, sample_rate: f64, pad: usize) -> Spectrum {
+        let padded_len = fast_len((samples + pad).max(2));
+        Spectrum {
+            bins: Vec::new(),
+            first: 0,
+            count: padded_len / 2 + 1,
+            pending: true,
+            padded_len,
+            samples,
+            sample_rate,
+            mean,
+        }
+    }
+
+    /// Whether the bins are not held here ([`pending`](Self::pending)).
+    pub fn is_pending(&self) -> bool {
+        self.pending
     }
 
     /// Number of bins of the one-sided spectrum, L/2 + 1, whichever of them are kept.
@@ -269,6 +298,10 @@ impl Spectrum {
         if range.is_empty() {
             return &[];
         }
+        assert!(
+            !self.pending,
+            "bins {range:?} asked of a spectrum computed on the GPU, not held here"
+        );
         let kept = self.kept();
         assert!(
             range.start >= kept.start && range.end <= kept.end,
@@ -284,15 +317,35 @@ impl Spectrum {
 
     /// The bins kept (absolute bin numbers).
     pub fn kept(&self) -> std::ops::Range<usize> {
-        self.first..self.first + self.bins.len()
+        self.first..self.first + self.count
     }
 
     /// Keeps only bins `range` (within those kept), in memory of their own size: a prepared
     /// signal waits for its transforms (on a GPU, for its whole batch) holding only the bins
     /// its pass bands read, a tenth of the spectrum or less, instead of all of it.
     pub fn keep(&mut self, range: std::ops::Range<usize>) {
-        self.bins = self.bins(range.clone()).to_vec();
+        if self.pending {
+            let kept = self.kept();
+            assert!(
+                range.is_empty() || (range.start >= kept.start && range.end <= kept.end),
+                "bins {range:?} kept of a spectrum that holds {kept:?}"
+            );
+        } else {
+            self.bins = self.bins(range.clone()).to_vec();
+        }
         self.first = range.start;
+        self.count = range.len();
+    }
+
+    /// The bins from `f_lo` to `f_hi` (Hz) over which [`white_noise_variance`] takes its
+    /// median (inclusive), `None` where fewer than 17 lie there.
+    ///
+    /// [`white_noise_variance`]: Self::white_noise_variance
+    pub fn noise_bins(&self, f_lo: f64, f_hi: f64) -> Option<(usize, usize)> {
+        let df = self.sample_rate / self.padded_len as f64;
+        let lo = ((f_lo / df).ceil() as usize).max(1);
+        let hi = ((f_hi / df).floor() as usize).min(self.bin_count() - 1);
+        (hi >= lo + 16).then_some((lo, hi))
     }
 
     /// Frequency (Hz) of bin `m`.
@@ -304,16 +357,16 @@ impl Spectrum {
     /// Power-spectrum estimate of a white noise floor: variance per sample σ_n² for which
     /// E|X[m]|² = N σ_n², from the median over bins between `f_lo` and `f_hi`.
     pub fn white_noise_variance(&self, f_lo: f64, f_hi: f64) -> Option<f64> {
-        let df = self.sample_rate / self.padded_len as f64;
-        let lo = ((f_lo / df).ceil() as usize).max(1);
-        let hi = ((f_hi / df).floor() as usize).min(self.bin_count() - 1);
-        if hi < lo + 16 {
-            return None;
-        }
+        let (lo, hi) = self.noise_bins(f_lo, f_hi)?;
         let band = self.bins(lo..hi + 1);
-        let med = nth_power(band, band.len() / 2);
+        Some(self.noise_variance_of(nth_power(band, band.len() / 2)))
+    }
+
+    /// [`white_noise_variance`](Self::white_noise_variance) from the median |X|² of its
+    /// bins (found here, or by a GPU).
+    pub fn noise_variance_of(&self, median_power: f64) -> f64 {
         // |X|² of complex Gaussian noise is exponential: median = ln 2 × mean.
-        Some(med / std::f64::consts::LN_2 / self.samples as f64)
+        median_power / std::f64::consts::LN_2 / self.samples as f64
     }
 }
 
