@@ -941,17 +941,34 @@ impl Gpu {
                     starts.push(at);
                     at += len * elem;
                 }
+                // Each segment filled where it lies when the mapping holds a T there (wgpu
+                // maps at 8-byte alignment, every T here needs at most 8), else through a
+                // vector of its own: a deferred signal's 240 kB of samples allocated,
+                // zeroed and copied again per batch was most of the dispatcher's upload.
+                let in_place = (base.at(0) as usize).is_multiple_of(std::mem::align_of::<T>());
                 starts
                     .into_par_iter()
                     .enumerate()
                     .with_min_len(PAR_MIN)
                     .for_each(|(i, start)| {
+                        if in_place {
+                            // SAFETY: [start, start + len·elem) lies inside the staging
+                            // memory's `size` bytes (the starts are the running sums of the
+                            // lengths), aligned for T (the base is, and every start is a
+                            // multiple of T's size), and no other thread touches it; T is
+                            // Pod, so any bytes there are a valid T, and they are zeroed
+                            // before `fill` sees them, as a fresh vector would be.
+                            let values = unsafe {
+                                std::slice::from_raw_parts_mut(base.at(start).cast::<T>(), lens[i])
+                            };
+                            values.fill(T::zeroed());
+                            fill(i, values);
+                            return;
+                        }
                         let mut values = vec![T::zeroed(); lens[i]];
                         fill(i, &mut values);
                         let src: &[u8] = bytemuck::cast_slice(&values);
-                        // SAFETY: [start, start + len·elem) lies inside the staging memory's
-                        // `size` bytes (the starts are the running sums of the lengths) and
-                        // no other thread writes it.
+                        // SAFETY: as above, without the alignment, which bytes do not need.
                         unsafe {
                             std::ptr::copy_nonoverlapping(src.as_ptr(), base.at(start), src.len());
                         }

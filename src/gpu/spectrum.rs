@@ -6,7 +6,8 @@
 //! first pass and the refinement read), and each deferred run's white-noise median above
 //! its band, read back with the first pass.
 //!
-//! The samples go up in f64, less their mean (taken on the host as the CPU takes it); the
+//! The samples go up in f64, less their mean (taken on the host as the CPU takes it, when
+//! the signal is prepared); the
 //! transform is the stage's FFT (`fft.wgsl`, f64), of the complex sequence with no
 //! imaginary part, zero-padded to the padded length the CPU would use. Only with f64: an
 //! f32 transform of the whole record would lose the quiet stretches' digits that the f64
@@ -197,10 +198,7 @@ impl SpectrumStage {
             .collect();
         let samples = gpu.upload_segments("samples", &sample_lens, |r, out: &mut [f64]| {
             if let Some(d) = preps.get(r).and_then(|p| p.deferred.as_ref()) {
-                let mean = preps[r].spec.mean;
-                for (o, x) in out.iter_mut().zip(&d.samples) {
-                    *o = x - mean;
-                }
+                out.copy_from_slice(&d.centred);
             }
         })?;
         let host_lens: Vec<usize> = preps
