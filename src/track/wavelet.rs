@@ -175,20 +175,26 @@ fn spectral_variance(spec: &Spectrum, n: usize) -> f64 {
 /// (even), Σ_{k=0}^{L−1} |Y_k|² = L Σ y², and the bins k and L − k are conjugate, so twice
 /// bins 1..=L/2 is L Σ y² − Y_0² + Y_{L/2}², with Y_0 = Σ y and Y_{L/2} = Σ (−1)^j y_j.
 fn parseval_variance(y: &[f64], padded_len: usize) -> (f64, f64) {
-    let (mut sq, mut sum, mut alt, mut abs) = (0.0, 0.0, 0.0, 0.0);
-    for pair in y.chunks(2) {
-        let a = pair[0];
-        sq += a * a;
-        sum += a;
-        alt += a;
-        abs += a.abs();
-        if let Some(&b) = pair.get(1) {
-            sq += b * b;
-            sum += b;
-            alt -= b;
-            abs += b.abs();
+    // Eight lanes of each sum side by side (one chain of additions was a tenth of a
+    // deferred preparation); lane k holds the samples j ≡ k (mod 8), whose sign in the
+    // alternating sum is (−1)^k.
+    let (mut sum, mut sq, mut abs) = ([0.0f64; 8], [0.0f64; 8], [0.0f64; 8]);
+    let mut chunks = y.chunks_exact(8);
+    for c in &mut chunks {
+        for k in 0..8 {
+            sum[k] += c[k];
+            sq[k] += c[k] * c[k];
+            abs[k] += c[k].abs();
         }
     }
+    for (k, &v) in chunks.remainder().iter().enumerate() {
+        sum[k] += v;
+        sq[k] += v * v;
+        abs[k] += v.abs();
+    }
+    let total = |a: [f64; 8]| ((a[0] + a[4]) + (a[1] + a[5])) + ((a[2] + a[6]) + (a[3] + a[7]));
+    let alt = ((sum[0] - sum[1]) + (sum[2] - sum[3])) + ((sum[4] - sum[5]) + (sum[6] - sum[7]));
+    let (sum, sq, abs) = (total(sum), total(sq), total(abs));
     let l = padded_len as f64;
     let variance = (l * sq - sum * sum + alt * alt) / (y.len() as f64 * l);
     (variance, abs)
