@@ -16,7 +16,7 @@
 // f64 values to 48 bits. Values are scaled by powers of two first (exactly) so that the
 // largest of the band is near 1 and f32 holds them.
 //
-// `real` is f64 where the adapter has SHADER_F64 (the host only defers the spectrum then).
+// `real` is f64: the host compiles this stage only where the adapter has SHADER_F64.
 
 alias real = f32;
 
@@ -161,7 +161,8 @@ fn noise_median(
     var shift = run.scale;
     var m = largest[0];
     if (m > real(0.0)) {
-        for (var i = 0u; i < 40u && m < real(2.3283064365386963e-10); i = i + 1u) {
+        // (At most to 2^1000: ldexp beyond f64's exponents is undefined.)
+        for (var i = 0u; i < 40u && m < real(2.3283064365386963e-10) && shift < 968; i = i + 1u) {
             m = m * real(4294967296.0);
             shift = shift + 32;
         }

@@ -1137,9 +1137,9 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
 
 /// The padded spectra the device computes from the samples (`gpu::spectrum`) are the CPU's
 /// kept bins to f64 rounding, and the white-noise median above the band is the CPU's: for
-/// records of three padded lengths in one part, with the band found and given, two of
-/// them prepared on the CPU among them (their bins uploaded as they are); and the same
-/// again with bindings so small that every record is transformed in a chunk of its own.
+/// records of three padded lengths in one part, with the band found and given, three of
+/// the eight prepared on the CPU among them (their bins uploaded as they are); and the
+/// same again with bindings so small that the records are transformed in several chunks.
 #[test]
 fn gpu_spectra_are_the_cpus_kept_bins_and_noise_floor() {
     use skelid::gpu::spectrum::{decode_medians, SpectrumStage};

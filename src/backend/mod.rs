@@ -642,6 +642,10 @@ impl Backend {
         );
         if host_work {
             prep.materialize();
+        } else {
+            // Nothing from here reads the samples (the completion and the unsure points'
+            // solves read the grid's records): their buffer back for the next signal.
+            prep.deferred = None;
         }
         match pass {
             Some(Ok(GpuPass {

@@ -329,11 +329,16 @@ impl FirstPass {
     }
 
     /// Whether this device computes `prep`'s padded spectrum: its length is one the FFT
-    /// plans and its values fit one binding. A deferred signal it does not is materialized
-    /// on the CPU first, and its bins uploaded.
+    /// plans, its values fit one binding, and its scaling (a power of two that brings its
+    /// bins near 1, [`SCALE_EXPONENT_MAX`]) is one the refinement's f32 weights and the
+    /// shader's `ldexp` hold. A deferred signal it does not is materialized on the CPU
+    /// first, and its bins uploaded.
     pub fn transforms(&self, gpu: &Gpu, prep: &WaveletPrep) -> bool {
         let l = prep.spec.padded_len;
-        self.spectrum.is_some() && plannable(l) && l as u64 * 16 <= gpu.max_binding()
+        let scaled = prep.deferred.as_ref().is_none_or(|d| {
+            (d.ln_scale / std::f64::consts::LN_2).abs() <= f64::from(SCALE_EXPONENT_MAX)
+        });
+        self.spectrum.is_some() && plannable(l) && l as u64 * 16 <= gpu.max_binding() && scaled
     }
 
     /// The precision of the first pass's transform ([`ScaleStage::real`]).
@@ -500,8 +505,21 @@ pub fn batch_bytes(prep: &WaveletPrep, real: Real) -> u64 {
     let scales: u64 = prep.plans.iter().map(|p| p.len as u64 * value).sum();
     let back = (prep.steps * prep.freqs.len()) as u64 * 4;
     let spectrum = prep.spec.bin_count() as u64 * value;
-    scales.max(back).max(spectrum)
+    // A spectrum computed on the device takes L complex f64 values twice (the FFT's work
+    // and scratch) while the first pass runs.
+    let transform = if prep.is_deferred() {
+        prep.spec.padded_len as u64 * 16
+    } else {
+        0
+    };
+    scales.max(back).max(spectrum).max(transform)
 }
+
+/// The largest power of two (either way) a spectrum on the device is scaled by: 2/L
+/// times it must stay an f32 pair (the refinement's weights, about 2^±100 at most) and the
+/// white-noise median's `ldexp` within f64's exponents. Records whose Σ|x − mean| lies
+/// beyond 2^±80 are transformed on the CPU instead.
+pub const SCALE_EXPONENT_MAX: i32 = 80;
 
 /// A submitted first pass: its outputs on the GPU and their read-back, not yet waited for.
 pub struct InFlight {
@@ -512,6 +530,8 @@ pub struct InFlight {
 impl InFlight {
     /// Waits for the submission (one blocking wait) and reads back every run's ridge,
     /// noise medians and noise gains. `parts` are the ones given to [`FirstPass::submit`].
+    /// A deferred signal's white-noise floor above its band is left out: take it from
+    /// [`finish_all`](Self::finish_all), as the dispatcher does.
     pub fn finish(
         self,
         gpu: &Gpu,

@@ -552,7 +552,8 @@ struct Shared<'a> {
     gains: &'a wgpu::Buffer,
     /// Where each run's segment starts in `spectrum`.
     spec_offset: &'a [usize],
-    /// Each run's first bin uploaded and how many ([`RunScales::bins`]).
+    /// Each run's first bin uploaded and how many ([`RunScales::bins`]); for spectra
+    /// already on the device, the first bin its segment holds, and 0 (nothing uploaded).
     bands: &'a [(usize, usize)],
     power_offset: &'a [usize],
     /// Where each run's noise gains (one a scale) start in `gains`.

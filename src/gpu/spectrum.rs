@@ -7,8 +7,7 @@
 //! its band, read back with the first pass.
 //!
 //! The samples go up in f64, less their mean (taken on the host as the CPU takes it, when
-//! the signal is prepared); the
-//! transform is the stage's FFT (`fft.wgsl`, f64), of the complex sequence with no
+//! the signal is prepared); the transform is the stage's FFT (`fft.wgsl`, f64), of the complex sequence with no
 //! imaginary part, zero-padded to the padded length the CPU would use. Only with f64: an
 //! f32 transform of the whole record would lose the quiet stretches' digits that the f64
 //! first pass and refinement exist to keep.
@@ -188,19 +187,9 @@ impl SpectrumStage {
                 });
             }
         }
-        // Samples less their mean (deferred runs), and the host's kept bins (the others).
-        // Each with one value more, never read, so that a buffer none of whose runs has a
-        // share still holds a whole value (a binding must).
-        let sample_lens: Vec<usize> = preps
-            .iter()
-            .map(|p| if deferred(p) { p.len() } else { 0 })
-            .chain([1])
-            .collect();
-        let samples = gpu.upload_segments("samples", &sample_lens, |r, out: &mut [f64]| {
-            if let Some(d) = preps.get(r).and_then(|p| p.deferred.as_ref()) {
-                out.copy_from_slice(&d.centred);
-            }
-        })?;
+        // The host's kept bins (runs it prepared whole), with one value more, never read, so
+        // that a buffer none of whose runs has a share still holds a whole value (a binding
+        // must). The deferred runs' samples go up chunk by chunk, below.
         let host_lens: Vec<usize> = preps
             .iter()
             .zip(&kept)
@@ -208,13 +197,10 @@ impl SpectrumStage {
             .chain([1])
             .collect();
         let mut host_at = Vec::with_capacity(preps.len());
-        let mut sample_at = Vec::with_capacity(preps.len());
-        let (mut h, mut s) = (0usize, 0usize);
-        for (hl, sl) in host_lens.iter().zip(&sample_lens) {
+        let mut h = 0usize;
+        for hl in &host_lens {
             host_at.push(h);
-            sample_at.push(s);
             h += hl;
-            s += sl;
         }
         let host = gpu.upload_segments("host spectra", &host_lens, |r, out: &mut [[f64; 2]]| {
             let Some(p) = preps.get(r).filter(|p| p.deferred.is_none()) else {
@@ -226,7 +212,7 @@ impl SpectrumStage {
         })?;
         let resident = gpu.reusable("kept spectra", bytes.max(VALUE as u64));
         let medians = gpu.reusable("noise medians", (preps.len() * 16).max(16) as u64);
-        let entry = |r: usize, work: usize| -> RunEntry {
+        let entry = |r: usize, work: usize, sample: usize| -> RunEntry {
             let p = preps[r];
             let (noise_lo, noise_hi, scale) = match &p.deferred {
                 Some(d) => {
@@ -239,7 +225,7 @@ impl SpectrumStage {
             };
             RunEntry {
                 flags: if deferred(p) { 0 } else { HOST },
-                samples: sample_at[r] as u32,
+                samples: sample as u32,
                 n: p.len() as u32,
                 l: p.spec.padded_len as u32,
                 work: work as u32,
@@ -286,7 +272,7 @@ impl SpectrumStage {
         let work_bytes = (work_len * VALUE) as u64;
         let work = gpu.reusable("spectrum work", work_bytes);
         let scratch = gpu.reusable("spectrum scratch", work_bytes);
-        let mut keep = vec![samples, host, work, scratch];
+        let mut keep = vec![host, work, scratch];
         let host_runs: Vec<(usize, usize)> = (0..preps.len())
             .filter(|&r| !deferred(preps[r]))
             .map(|r| (r, 0))
@@ -296,7 +282,34 @@ impl SpectrumStage {
             if chunk.is_empty() {
                 continue;
             }
-            let table: Vec<RunEntry> = chunk.iter().map(|&(r, w)| entry(r, w)).collect();
+            // The chunk's samples less their mean, back to back (within a binding: each
+            // run's n values of 8 bytes take half its L of 16), and one more never read.
+            let sample_lens: Vec<usize> = chunk
+                .iter()
+                .map(|&(r, _)| {
+                    if deferred(preps[r]) {
+                        preps[r].len()
+                    } else {
+                        0
+                    }
+                })
+                .chain([1])
+                .collect();
+            let samples = gpu.upload_segments("samples", &sample_lens, |i, out: &mut [f64]| {
+                if let Some(d) = chunk.get(i).and_then(|&(r, _)| preps[r].deferred.as_ref()) {
+                    out.copy_from_slice(&d.centred);
+                }
+            })?;
+            let mut sample = 0usize;
+            let table: Vec<RunEntry> = chunk
+                .iter()
+                .zip(&sample_lens)
+                .map(|(&(r, w), &n)| {
+                    let e = entry(r, w, sample);
+                    sample += n;
+                    e
+                })
+                .collect();
             let runs = gpu.upload_pooled("spectrum runs", &table)?;
             let [rows, layers, deeper] = gpu.grid(table.len() as u64)?;
             if deeper > 1 {
@@ -311,10 +324,10 @@ impl SpectrumStage {
                 &self.layout,
                 vec![
                     runs.exact(),
-                    keep[0].as_entire_binding(),
-                    keep[2].as_entire_binding(),
-                    resident.as_entire_binding(),
+                    samples.as_entire_binding(),
                     keep[1].as_entire_binding(),
+                    resident.as_entire_binding(),
+                    keep[0].as_entire_binding(),
                     medians.as_entire_binding(),
                 ],
             );
@@ -340,14 +353,14 @@ impl SpectrumStage {
                     }
                     let count = j - i;
                     let holder = crate::profile::span("fft.encode", || {
-                        fft.encode(gpu, enc, l, count, false, &keep[2], &keep[3], offset)
+                        fft.encode(gpu, enc, l, count, false, &keep[1], &keep[2], offset)
                     })?;
                     if holder == Holder::Scratch {
                         let bytes = (offset * VALUE) as u64;
                         enc.copy_buffer_to_buffer(
-                            &keep[3],
-                            bytes,
                             &keep[2],
+                            bytes,
+                            &keep[1],
                             bytes,
                             (l * count * VALUE) as u64,
                         );
@@ -361,6 +374,7 @@ impl SpectrumStage {
                 dispatch(enc, "spectrum.noise_median", &self.median, 1);
             }
             keep.push(runs);
+            keep.push(samples);
         }
         // The medians of runs the host transformed are never written: read only those of
         // deferred runs ([`decode_medians`] after the read-back).

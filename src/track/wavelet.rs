@@ -86,8 +86,9 @@ pub(crate) struct Deferred {
     /// ([`Spectrum::noise_bins`] from 1.5 fmax to fs/2), if enough lie there.
     pub(crate) noise_bins: Option<(usize, usize)>,
     /// ln of the power of two the refinement scales the spectrum by: Σ|x − mean| bounds
-    /// every |X_k|, so its bins are at most 1 (the refinement's f32 estimate needs them
-    /// near 1, not exactly at it).
+    /// every |X_k|, so its bins are at most about 1 (the refinement's f32 estimate needs
+    /// them near 1, not exactly at it; a record whose energy lies mostly outside its band
+    /// has its band's bins further below).
     pub(crate) ln_scale: f64,
 }
 
@@ -118,9 +119,14 @@ impl SampleBuffers {
         let reused = {
             let mut kept = SAMPLE_BUFFERS.lock().unwrap_or_else(|p| p.into_inner());
             let (buffers, bytes) = &mut *kept;
+            // The smallest that holds it, and none more than twice its size: a long
+            // record's buffer is not spent on a short one's.
             buffers
                 .iter()
-                .position(|b| b.capacity() >= x.len())
+                .enumerate()
+                .filter(|(_, b)| b.capacity() >= x.len() && b.capacity() <= 2 * x.len().max(1))
+                .min_by_key(|(_, b)| b.capacity())
+                .map(|(i, _)| i)
                 .map(|i| {
                     let b = buffers.swap_remove(i);
                     *bytes -= b.capacity() * 8;
