@@ -109,11 +109,7 @@ const REPAIR: u32 = 4u;
 const SPLIT: u32 = 8u;
 
 var<workgroup> lowest: array<f32, WG>;
-// column_stats' selection: a byte's histogram, its running sums, and the byte chosen with
-// the rank left within it.
-var<workgroup> bins: array<atomic<u32>, 256>;
-var<workgroup> sums: array<u32, 256>;
-var<workgroup> chosen: vec2<u32>;
+// column_stats' selection (its histogram, running sums and chosen byte) is select.wgsl's.
 var<workgroup> which: array<u32, WG>;
 // ridge_steps' running scores, two halves: the step's own (read, less `shift`) and the
 // next step's (written); they swap every step, so one barrier a step suffices.
@@ -169,33 +165,14 @@ fn column_stats(@builtin(workgroup_id) wid: vec3<u32>,
         for (var shift = 24u; shift < 32u; shift = shift - 8u) {
             // The bytes above this one (none for the first).
             let above = select(0xffffffffu << (shift + 8u), 0u, shift == 24u);
-            atomicStore(&bins[lid], 0u);
-            workgroupBarrier();
+            select_clear(lid);
             for (var j = si.first + lid; j <= si.last; j += WG) {
                 let v = bitcast<u32>(power[base + j]);
                 if ((v & above) == prefix) {
-                    atomicAdd(&bins[(v >> shift) & 255u], 1u);
+                    select_count(v >> shift);
                 }
             }
-            workgroupBarrier();
-            // Running sums over the 256 bytes (WG is 256: one each), doubling the reach.
-            let own = atomicLoad(&bins[lid]);
-            sums[lid] = own;
-            workgroupBarrier();
-            for (var reach = 1u; reach < 256u; reach = reach << 1u) {
-                var add = 0u;
-                if (lid >= reach) {
-                    add = sums[lid - reach];
-                }
-                workgroupBarrier();
-                sums[lid] = sums[lid] + add;
-                workgroupBarrier();
-            }
-            let through = sums[lid];
-            if (own > 0u && through - own <= rank && rank < through) {
-                chosen = vec2<u32>(lid, rank - (through - own));
-            }
-            let pick = workgroupUniformLoad(&chosen);
+            let pick = select_byte(lid, rank);
             prefix = prefix | (pick.x << shift);
             rank = pick.y;
         }

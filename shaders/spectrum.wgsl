@@ -100,11 +100,7 @@ fn compact(
 
 const WG: u32 = 256u;
 var<workgroup> largest: array<real, WG>;
-// The selection: a byte's histogram, its running sums, and the byte chosen with the rank
-// left within it.
-var<workgroup> bins: array<atomic<u32>, 256>;
-var<workgroup> sums: array<u32, 256>;
-var<workgroup> chosen: vec2<u32>;
+// The selection's histogram, running sums and chosen byte are select.wgsl's.
 
 // |X|² of bin b of a run, scaled by 2^shift (exact: a power of two).
 fn power_at(run: Run, b: u32, shift: i32) -> real {
@@ -178,8 +174,7 @@ fn noise_median(
         let shift_bits = 24u - 8u * (pass_ % 4u);
         // The bits of this word above the byte (none for its first byte).
         let above = select(0xffffffffu << (shift_bits + 8u), 0u, shift_bits == 24u);
-        atomicStore(&bins[lid], 0u);
-        workgroupBarrier();
+        select_clear(lid);
         for (var b = run.noise_lo + lid; b <= run.noise_hi; b += WG) {
             let k = key_of(power_at(run, b, shift));
             var same = (k.x & select(above, 0xffffffffu, word == 1u)) == prefix.x;
@@ -188,27 +183,10 @@ fn noise_median(
             }
             if (same) {
                 let v = select(k.x, k.y, word == 1u);
-                atomicAdd(&bins[(v >> shift_bits) & 255u], 1u);
+                select_count(v >> shift_bits);
             }
         }
-        workgroupBarrier();
-        let own = atomicLoad(&bins[lid]);
-        sums[lid] = own;
-        workgroupBarrier();
-        for (var reach = 1u; reach < 256u; reach = reach << 1u) {
-            var add = 0u;
-            if (lid >= reach) {
-                add = sums[lid - reach];
-            }
-            workgroupBarrier();
-            sums[lid] = sums[lid] + add;
-            workgroupBarrier();
-        }
-        let through = sums[lid];
-        if (own > 0u && through - own <= rank && rank < through) {
-            chosen = vec2<u32>(lid, rank - (through - own));
-        }
-        let pick = workgroupUniformLoad(&chosen);
+        let pick = select_byte(lid, rank);
         if (word == 0u) {
             prefix.x = prefix.x | (pick.x << shift_bits);
         } else {

@@ -12,6 +12,10 @@ pub mod ridge;
 pub mod scales;
 pub mod spectrum;
 
+/// `shaders/select.wgsl`: a byte of a workgroup's radix selection, appended to the stages
+/// that take medians (`ridge.wgsl`, `spectrum.wgsl`).
+const SELECT_WGSL: &str = include_str!("../../shaders/select.wgsl");
+
 use std::sync::{Arc, Mutex};
 
 /// Why the GPU could not do (or finish) a piece of work. Every variant is a cue for the CPU
@@ -994,6 +998,33 @@ impl Gpu {
                 });
             Ok(buffer)
         })
+    }
+
+    /// Segments of complex values (`values(i)` fills segment `i` of `lens[i]`) uploaded
+    /// through [`upload_segments`](Self::upload_segments) as pairs in `real` (f64 as they
+    /// are, f32 rounded): how the passes' spectra go up.
+    pub fn upload_complex<I>(
+        &self,
+        label: &str,
+        real: Real,
+        lens: &[usize],
+        values: impl Fn(usize) -> I + Sync,
+    ) -> Result<Pooled, GpuError>
+    where
+        I: Iterator<Item = num_complex::Complex64>,
+    {
+        match real {
+            Real::F64 => self.upload_segments(label, lens, |i, out: &mut [[f64; 2]]| {
+                for (o, c) in out.iter_mut().zip(values(i)) {
+                    *o = [c.re, c.im];
+                }
+            }),
+            Real::F32 => self.upload_segments(label, lens, |i, out: &mut [[f32; 2]]| {
+                for (o, c) in out.iter_mut().zip(values(i)) {
+                    *o = [c.re as f32, c.im as f32];
+                }
+            }),
+        }
     }
 
     /// [`upload`](Self::upload) into a reused buffer, through reused staging memory, as

@@ -739,26 +739,24 @@ impl RefineStage {
         // Each spectrum scaled by a power of two to a largest bin near 1: found from its bins
         // here, or from its samples' bound when the device computed it.
         let scale_span = SpanGuard::new("refine.ln_scale");
-        let ln_scale: Vec<f64> = preps
+        let exponents: Vec<i32> = preps
             .par_iter()
             .zip(&planned)
             .with_min_len(super::PAR_MIN)
-            .map(|(p, q)| {
-                if let Some(d) = &p.deferred {
-                    return d.ln_scale;
-                }
-                let big = p
-                    .spec
-                    .bins(q.range())
-                    .iter()
-                    .map(|c| c.re.abs().max(c.im.abs()))
-                    .fold(0.0f64, f64::max);
-                if big > 0.0 && big.is_finite() {
-                    -(big.log2().ceil()) * std::f64::consts::LN_2
-                } else {
-                    0.0
-                }
+            .map(|(p, q)| match &p.deferred {
+                Some(d) => d.scale_exponent,
+                None => crate::transform::bounding_exponent(
+                    p.spec
+                        .bins(q.range())
+                        .iter()
+                        .map(|c| c.re.abs().max(c.im.abs()))
+                        .fold(0.0f64, f64::max),
+                ),
             })
+            .collect();
+        let ln_scale: Vec<f64> = exponents
+            .iter()
+            .map(|&c| -f64::from(c) * std::f64::consts::LN_2)
             .collect();
         drop(scale_span);
         let mut records = Vec::with_capacity(parts.len());
@@ -767,7 +765,8 @@ impl RefineStage {
         for (q, part) in parts.iter().enumerate() {
             let (buffer, bytes, firsts, work) = crate::profile::span("refine.encode_part", || {
                 self.encode_part(
-                    gpu, enc, &uniform, preps, grids, &planned, &ln_scale, part, resident,
+                    gpu, enc, &uniform, preps, grids, &planned, &ln_scale, &exponents, part,
+                    resident,
                 )
             })?;
             let points: usize = part.iter().map(|p| p.points.len()).sum();
@@ -802,6 +801,7 @@ impl RefineStage {
         grids: &[Vec<GridPoint>],
         planned: &[Planned],
         ln_scale: &[f64],
+        exponents: &[i32],
         part: &[Piece],
         resident: Option<&Spectra>,
     ) -> Result<(Pooled, u64, Vec<usize>, Vec<Pooled>), GpuError> {
@@ -865,10 +865,10 @@ impl RefineStage {
             let (at, weights) = match resident {
                 Some(s) => {
                     let (offset, first) = s.at[r];
-                    let c = (-ln_scale[r] / std::f64::consts::LN_2).round() as i32;
+                    let factor = 2f64.powi(-exponents[r]);
                     (
                         offset + lo - first,
-                        BinWeights::scaled(plan.scale, spec.sample_rate, l, 2f64.powi(-c)),
+                        BinWeights::scaled(plan.scale, spec.sample_rate, l, factor),
                     )
                 }
                 None => (
@@ -922,34 +922,16 @@ impl RefineStage {
                 .spec
                 .bins(planned[r].range())
                 .iter()
-                .map(move |c| (c.re * k, c.im * k))
+                .map(move |c| c * k)
         };
-        let uploaded = match (resident, self.real) {
-            (Some(_), _) => None,
-            (None, Real::F64) => {
-                Some(
-                    gpu.upload_segments("refine spectra", &lens, |q, out: &mut [[f64; 2]]| {
-                        for (o, (a, b)) in out.iter_mut().zip(scaled(q)) {
-                            *o = [a, b];
-                        }
-                    })?,
-                )
-            }
-            (None, Real::F32) => {
-                Some(
-                    gpu.upload_segments("refine spectra", &lens, |q, out: &mut [[f32; 2]]| {
-                        for (o, (a, b)) in out.iter_mut().zip(scaled(q)) {
-                            *o = [a as f32, b as f32];
-                        }
-                    })?,
-                )
-            }
+        let uploaded = match resident {
+            Some(_) => None,
+            None => Some(gpu.upload_complex("refine spectra", self.real, &lens, scaled)?),
         };
-        let spectra: &wgpu::Buffer = match (&uploaded, resident) {
-            (Some(u), _) => u,
-            (None, Some(s)) => &s.resident,
-            (None, None) => unreachable!("a spectrum uploaded or on the device"),
-        };
+        let spectra: &wgpu::Buffer = uploaded
+            .as_deref()
+            .or(resident.map(|s| &*s.resident))
+            .expect("one of them");
         let data_bytes = (data_len.max(1) * elem) as u64;
         let items_buf = gpu.upload_pooled("refine items", &items)?;
         let data = gpu.reusable("refine scales", data_bytes);

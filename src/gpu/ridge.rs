@@ -244,8 +244,15 @@ struct Programme {
     label: &'static str,
 }
 
-/// `ridge.wgsl`, compiled as written and, for the wide programme, with `STEPS_WG` changed.
-const SOURCE: &str = include_str!("../../shaders/ridge.wgsl");
+/// `ridge.wgsl` with `select.wgsl` (its medians' radix selection) appended, compiled as
+/// written and, for the wide programme, with `STEPS_WG` changed.
+fn source() -> String {
+    format!(
+        "{}\n{}",
+        include_str!("../../shaders/ridge.wgsl"),
+        super::SELECT_WGSL
+    )
+}
 
 /// The compiled ridge stage.
 pub struct RidgeStage {
@@ -335,9 +342,10 @@ impl FirstPass {
     /// first, and its bins uploaded.
     pub fn transforms(&self, gpu: &Gpu, prep: &WaveletPrep) -> bool {
         let l = prep.spec.padded_len;
-        let scaled = prep.deferred.as_ref().is_none_or(|d| {
-            (d.ln_scale / std::f64::consts::LN_2).abs() <= f64::from(SCALE_EXPONENT_MAX)
-        });
+        let scaled = prep
+            .deferred
+            .as_ref()
+            .is_none_or(|d| d.scale_exponent.abs() <= SCALE_EXPONENT_MAX);
         self.spectrum.is_some() && plannable(l) && l as u64 * 16 <= gpu.max_binding() && scaled
     }
 
@@ -631,7 +639,7 @@ impl RidgeStage {
         use super::Binding::{Read, Uniform, Write};
         let (layout, pipelines) = gpu.stage(
             "ridge.wgsl",
-            SOURCE,
+            &source(),
             &[Read, Read, Read, Read, Write, Write, Write, Uniform, Write],
             &[
                 "column_stats",
@@ -679,8 +687,9 @@ impl RidgeStage {
     /// narrow programme then serves).
     fn compile_wide(gpu: &Gpu, layout: &wgpu::BindGroupLayout) -> Result<Programme, String> {
         let narrow = format!("const STEPS_WG: u32 = {NARROW}u;");
-        assert!(SOURCE.contains(&narrow), "ridge.wgsl declares {narrow}");
-        let source = SOURCE.replace(&narrow, &format!("const STEPS_WG: u32 = {WIDE}u;"));
+        let source = source();
+        assert!(source.contains(&narrow), "ridge.wgsl declares {narrow}");
+        let source = source.replace(&narrow, &format!("const STEPS_WG: u32 = {WIDE}u;"));
         let mut pipelines =
             gpu.try_stage_variant("ridge.wgsl (wide)", &source, layout, &["ridge_steps"], true)?;
         Ok(Programme {

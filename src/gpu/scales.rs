@@ -252,6 +252,11 @@ impl ScaleStage {
         runs: &[RunScales],
         resident: Option<&wgpu::Buffer>,
     ) -> Result<PowerGrid, GpuError> {
+        if resident.is_some() && self.real != Real::F64 {
+            return Err(GpuError::Unsupported(
+                "spectra on the device are f64; this first pass is f32".into(),
+            ));
+        }
         let align = offset_alignment_of(gpu, self.real);
         let value = self.real.complex_bytes() as u64;
         let limit = gpu.max_binding();
@@ -351,37 +356,13 @@ impl ScaleStage {
             let (first, len) = bands[r];
             runs[r].spectrum.bins(first..first + len)
         };
-        let uploaded = match (resident, self.real) {
-            (Some(_), _) => None,
-            (None, Real::F64) => {
-                Some(
-                    gpu.upload_segments("spectra", &lens, |r, out: &mut [[f64; 2]]| {
-                        for (o, c) in out.iter_mut().zip(bins(r)) {
-                            *o = [c.re, c.im];
-                        }
-                    })?,
-                )
-            }
-            (None, Real::F32) => {
-                Some(
-                    gpu.upload_segments("spectra", &lens, |r, out: &mut [[f32; 2]]| {
-                        for (o, c) in out.iter_mut().zip(bins(r)) {
-                            *o = [c.re as f32, c.im as f32];
-                        }
-                    })?,
-                )
+        let uploaded = match resident {
+            Some(_) => None,
+            None => {
+                Some(gpu.upload_complex("spectra", self.real, &lens, |r| bins(r).iter().copied())?)
             }
         };
-        if resident.is_some() && self.real != Real::F64 {
-            return Err(GpuError::Unsupported(
-                "spectra on the device are f64; this first pass is f32".into(),
-            ));
-        }
-        let spectrum_buf: &wgpu::Buffer = match (&uploaded, resident) {
-            (Some(u), _) => u,
-            (None, Some(r)) => r,
-            (None, None) => unreachable!("a spectrum uploaded or on the device"),
-        };
+        let spectrum_buf: &wgpu::Buffer = uploaded.as_deref().or(resident).expect("one of them");
         // Every run × scale item writes all its steps, and its gain: reused buffers serve.
         let power = gpu.reusable("power", (power_len * 4) as u64);
         let gains = gpu.reusable("noise gains", (gains_len * 8) as u64);

@@ -135,7 +135,11 @@ impl SpectrumStage {
         use super::Binding::{Read, Write};
         let (layout, pipelines) = gpu.stage(
             "spectrum.wgsl",
-            &Real::F64.source(include_str!("../../shaders/spectrum.wgsl")),
+            &Real::F64.source(&format!(
+                "{}\n{}",
+                include_str!("../../shaders/spectrum.wgsl"),
+                super::SELECT_WGSL
+            )),
             &[Read, Read, Write, Write, Read, Write],
             &["pack", "compact", "noise_median"],
         );
@@ -202,13 +206,12 @@ impl SpectrumStage {
             host_at.push(h);
             h += hl;
         }
-        let host = gpu.upload_segments("host spectra", &host_lens, |r, out: &mut [[f64; 2]]| {
-            let Some(p) = preps.get(r).filter(|p| p.deferred.is_none()) else {
-                return;
+        let host = gpu.upload_complex("host spectra", Real::F64, &host_lens, |r| {
+            let bins = match preps.get(r) {
+                Some(p) if p.deferred.is_none() => p.spec.bins(p.spec.kept()),
+                _ => &[],
             };
-            for (o, c) in out.iter_mut().zip(p.spec.bins(p.spec.kept())) {
-                *o = [c.re, c.im];
-            }
+            bins.iter().copied()
         })?;
         let resident = gpu.reusable("kept spectra", bytes.max(VALUE as u64));
         let medians = gpu.reusable("noise medians", (preps.len() * 16).max(16) as u64);
@@ -217,9 +220,8 @@ impl SpectrumStage {
             let (noise_lo, noise_hi, scale) = match &p.deferred {
                 Some(d) => {
                     let (lo, hi) = d.noise_bins.unwrap_or((1, 0));
-                    // ln_scale is −c ln 2 for the power of two 2^−c that bounds every bin.
-                    let c = (-d.ln_scale / std::f64::consts::LN_2).round() as i32;
-                    (lo as u32, hi as u32, -2 * c)
+                    // |X|² times 2^−2c, c the exponent that brings every bin to at most 1.
+                    (lo as u32, hi as u32, -2 * d.scale_exponent)
                 }
                 None => (1, 0, 0),
             };

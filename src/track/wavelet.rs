@@ -85,11 +85,12 @@ pub(crate) struct Deferred {
     /// The bins (inclusive) whose median |X|² is the white-noise floor above the band
     /// ([`Spectrum::noise_bins`] from 1.5 fmax to fs/2), if enough lie there.
     pub(crate) noise_bins: Option<(usize, usize)>,
-    /// ln of the power of two the refinement scales the spectrum by: Σ|x − mean| bounds
-    /// every |X_k|, so its bins are at most about 1 (the refinement's f32 estimate needs
-    /// them near 1, not exactly at it; a record whose energy lies mostly outside its band
-    /// has its band's bins further below).
-    pub(crate) ln_scale: f64,
+    /// The exponent `c` of the power of two 2^−c the spectrum is scaled by on the device
+    /// ([`bounding_exponent`](crate::transform::bounding_exponent) of Σ|x − mean|, which
+    /// bounds every |X_k|): its bins are then at most about 1, as the refinement's f32
+    /// estimate needs them (near 1, not exactly at it; a record whose energy lies mostly
+    /// outside its band has its band's bins further below).
+    pub(crate) scale_exponent: i32,
 }
 
 impl Drop for Deferred {
@@ -386,15 +387,10 @@ impl WaveletPrep {
         let (variance, deferred) = if defer {
             let centred = SampleBuffers::centred(x, mean);
             let (variance, abs_sum) = parseval_variance(&centred, spec.padded_len);
-            let ln_scale = if abs_sum > 0.0 && abs_sum.is_finite() {
-                -(abs_sum.log2().ceil()) * std::f64::consts::LN_2
-            } else {
-                0.0
-            };
             let deferred = Deferred {
                 centred,
                 noise_bins: spec.noise_bins(1.5 * fmax, fs / 2.0),
-                ln_scale,
+                scale_exponent: crate::transform::bounding_exponent(abs_sum),
             };
             (variance, Some(Box::new(deferred)))
         } else {
@@ -676,6 +672,11 @@ mod tests {
             assert_eq!(gpu.spec.mean.to_bits(), cpu.spec.mean.to_bits());
             assert_eq!(gpu.noise_above_band, None);
             let unit = (gpu.unit - cpu.unit).abs() / cpu.unit;
+            println!(
+                "{} samples at {fs} Hz, band {:?}: unit by Parseval within {unit:.1e}",
+                x.len(),
+                (opt.fmin, opt.fmax)
+            );
             assert!(unit < 1e-12, "unit {unit:e}");
             let d = gpu.deferred.as_ref().unwrap();
             let big = cpu
@@ -684,7 +685,7 @@ mod tests {
                 .iter()
                 .map(|c| c.norm())
                 .fold(0.0, f64::max);
-            let scaled = big * d.ln_scale.exp();
+            let scaled = big * 2f64.powi(-d.scale_exponent);
             assert!(
                 scaled <= 1.0 && scaled > 1e-4,
                 "largest kept bin scaled to {scaled}"

@@ -205,6 +205,17 @@ pub fn serial_spectrum(x: &[f64], mean: f64, len: usize) -> Vec<Complex64> {
     bins
 }
 
+/// The exponent `c` of the power of two that brings `bound` to at most 1 and above ½
+/// (`2^−c · bound ∈ (½, 1]`); 0 for a bound that is not a positive finite number. What a
+/// spectrum on a GPU is scaled by, so that its values suit the refinement's f32 estimate.
+pub fn bounding_exponent(bound: f64) -> i32 {
+    if bound > 0.0 && bound.is_finite() {
+        bound.log2().ceil() as i32
+    } else {
+        0
+    }
+}
+
 /// The mean a [`Spectrum`] removes: the samples summed by [`lane_sum_by`] over their
 /// count. Not finite when any sample is not (a NaN or an infinity reaches the sum).
 pub fn mean_of(x: &[f64]) -> f64 {
