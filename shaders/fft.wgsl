@@ -77,3 +77,23 @@ fn stockham_pass(
         dst[out + q * ns] = acc;
     }
 }
+
+// A long root table from two short ones, so that the host computes and uploads about
+// 2·√n roots instead of n (a long record's tables were 87 MB): `src` holds e^{-j2πr/n}
+// for r < B (B = pass_.ns, a power of two), then e^{-j2πqB/n} for q < ⌈n/B⌉, and
+// e^{-j2πm/n} = e^{-j2π(m mod B)/n}·e^{-j2π⌊m/B⌋B/n}. Where either factor is 1 (m < B, or
+// m a multiple of B) the product is the host's root exactly; elsewhere within about an
+// ulp of it.
+@compute @workgroup_size(64)
+fn expand_roots(
+    @builtin(workgroup_id) wg: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) local: u32,
+) {
+    let m = ((wg.z * groups.y + wg.y) * groups.x + wg.x) * 64u + local;
+    if (m >= pass_.n) {
+        return;
+    }
+    let b = pass_.ns;
+    dst[m] = cmul(src[b + m / b], src[m % b]);
+}

@@ -5,9 +5,6 @@
 //! memory in one dispatch ([`Algorithm::Local`]), longer ones one dispatch per radix pass
 //! through global memory, ping-ponging between two buffers ([`Algorithm::Passes`]).
 
-use std::collections::HashMap;
-use std::sync::Mutex;
-
 use num_complex::Complex;
 
 use super::{Gpu, GpuError, Real};
@@ -33,6 +30,15 @@ const LOCAL_WORKGROUP: usize = 256;
 /// The longest transform [`Algorithm::Local`] takes, whatever the adapter's workgroup
 /// memory: it bounds the values an invocation holds in registers in a pass.
 const LOCAL_MAX: usize = 8192;
+
+/// Roots a task of [`FftStage::roots`] computes: about 100 µs of cosines and sines, so
+/// that a table of 64 k roots is 8 tasks and one of a few thousand stays one.
+const ROOTS_PIECE: usize = 8192;
+
+/// The longest root table the host computes whole; longer ones are expanded on the
+/// device ([`FftStage::roots`]). Every length of a campaign of 30 000-sample runs (46 080
+/// at most) stays on the host, its tables as they were to the bit.
+pub const ROOTS_ON_HOST_MAX: usize = 1 << 16;
 
 /// Test and measurement hook: `1` sends every length that fits a workgroup to
 /// [`Algorithm::Local`] whatever the adapter, `0` sends every length to
@@ -186,7 +192,8 @@ pub struct FftStage {
     prefer_local: bool,
     /// Why the driver refused the local transform, if it did.
     refused: Option<String>,
-    roots: Mutex<HashMap<usize, wgpu::Buffer>>,
+    /// `expand_roots`: a long root table from two short ones.
+    expand: wgpu::ComputePipeline,
     real: Real,
 }
 
@@ -218,7 +225,7 @@ impl FftStage {
             "fft.wgsl",
             &real.source(include_str!("../../shaders/fft.wgsl")),
             &[UniformDynamic, Read, Write, Read],
-            &["stockham_pass"],
+            &["stockham_pass", "expand_roots"],
         );
         // A software adapter (lavapipe) runs a workgroup's invocations one after another
         // on a CPU core and pays for every barrier and register-held value: there the
@@ -239,13 +246,14 @@ impl FftStage {
             Ok(local) => (local, None),
             Err(why) => (Vec::new(), Some(why)),
         };
+        let expand = pipelines.pop().expect("two entry points");
         FftStage {
-            pipeline: pipelines.pop().expect("one entry point"),
+            pipeline: pipelines.pop().expect("two entry points"),
+            expand,
             layout,
             local,
             prefer_local,
             refused,
-            roots: Mutex::new(HashMap::new()),
             real,
         }
     }
@@ -287,25 +295,125 @@ impl FftStage {
     }
 
     /// e^{-j2πm/n}, m < n, computed in f64 and stored in the stage's precision, one table
-    /// per length.
-    fn roots(&self, gpu: &Gpu, n: usize) -> wgpu::Buffer {
-        let mut cache = self.roots.lock().unwrap_or_else(|p| p.into_inner());
-        cache
-            .entry(n)
-            .or_insert_with(|| {
-                let table = (0..n).map(|m| {
-                    let a = -2.0 * std::f64::consts::PI * m as f64 / n as f64;
-                    [a.cos(), a.sin()]
-                });
-                match self.real {
-                    Real::F32 => gpu.upload(
-                        "fft roots",
-                        &table.map(|[c, s]| [c as f32, s as f32]).collect::<Vec<_>>(),
-                    ),
-                    Real::F64 => gpu.upload("fft roots", &table.collect::<Vec<_>>()),
+    /// per length and precision, kept on the device ([`Gpu::root_tables`]). Up to
+    /// [`ROOTS_ON_HOST_MAX`] roots the host computes every one; a longer table is expanded
+    /// on the device from about 2·√n of them (`expand_roots`), which a one-shot `skelid
+    /// track` of a long record needs: its tables (its padded spectrum's 1.6 M points, its
+    /// scales', the refinement's) were 5.4 M roots, 87 MB computed, staged and uploaded on
+    /// the dispatcher's one thread, 113 ms here before the device could start.
+    fn roots(&self, gpu: &Gpu, n: usize) -> Result<wgpu::Buffer, GpuError> {
+        let mut cache = gpu.root_tables().lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(b) = cache.get(&(n, self.real)) {
+            return Ok(b.clone());
+        }
+        // The expansion's fine roots (r < fine) then its coarse ones (q·fine, q < n/fine),
+        // or the whole table; each computed as the whole table's entry of that index.
+        let fine = if n > ROOTS_ON_HOST_MAX {
+            n.isqrt().next_power_of_two()
+        } else {
+            n
+        };
+        let index = |i: usize| if i < fine { i } else { (i - fine) * fine };
+        let count = fine + n.div_ceil(fine) * usize::from(fine < n);
+        let lens: Vec<usize> = (0..count)
+            .step_by(ROOTS_PIECE)
+            .map(|at| ROOTS_PIECE.min(count - at))
+            .collect();
+        let root = |i: usize| {
+            let a = -2.0 * std::f64::consts::PI * index(i) as f64 / n as f64;
+            (a.cos(), a.sin())
+        };
+        let label = "fft roots";
+        let staged = match self.real {
+            Real::F32 => gpu.upload_kept(label, &lens, |p, out: &mut [[f32; 2]]| {
+                for (k, o) in out.iter_mut().enumerate() {
+                    let (c, s) = root(p * ROOTS_PIECE + k);
+                    *o = [c as f32, s as f32];
                 }
-            })
-            .clone()
+            }),
+            Real::F64 => gpu.upload_kept(label, &lens, |p, out: &mut [[f64; 2]]| {
+                for (k, o) in out.iter_mut().enumerate() {
+                    let (c, s) = root(p * ROOTS_PIECE + k);
+                    *o = [c, s];
+                }
+            }),
+        }?;
+        let table = if fine < n {
+            let table = gpu.storage(label, (n * self.real.complex_bytes()) as u64);
+            self.expand_on_device(gpu, n, fine, &staged, &table)?;
+            table
+        } else {
+            staged
+        };
+        cache.insert((n, self.real), table.clone());
+        Ok(table)
+    }
+
+    /// Records `expand_roots` (`parts`: the fine roots, then the coarse, into `table`) as
+    /// a prelude of the next submission, so that whichever recording uses the table first,
+    /// the table is there.
+    fn expand_on_device(
+        &self,
+        gpu: &Gpu,
+        n: usize,
+        fine: usize,
+        parts: &wgpu::Buffer,
+        table: &wgpu::Buffer,
+    ) -> Result<(), GpuError> {
+        let params = PassParams {
+            n: n as u32,
+            radix: 0,
+            ns: fine as u32,
+            batch: 1,
+            inverse: 0,
+            _pad: [0; 3],
+        };
+        let uniform = gpu.upload_uniform("fft roots", bytemuck::bytes_of(&params));
+        let bind = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("fft roots"),
+            layout: &self.layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: &uniform,
+                        offset: 0,
+                        size: wgpu::BufferSize::new(std::mem::size_of::<PassParams>() as u64),
+                    }),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: parts.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: table.as_entire_binding(),
+                },
+                // Unread by `expand_roots`; any buffer the pass does not write.
+                wgpu::BindGroupEntry {
+                    binding: 3,
+                    resource: parts.as_entire_binding(),
+                },
+            ],
+        });
+        let [x, y, z] = gpu.grid((n as u64).div_ceil(u64::from(WORKGROUP)))?;
+        let mut enc = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("fft roots"),
+            });
+        {
+            // Untimed: the timer's queries are resolved in the recording it serves.
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("fft.expand_roots"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.expand);
+            pass.set_bind_group(0, &bind, &[0]);
+            pass.dispatch_workgroups(x, y, z);
+        }
+        gpu.prelude(enc.finish());
+        Ok(())
     }
 
     /// Records the transforms of `batch` sequences of length `n`, held back to back in
@@ -359,7 +467,7 @@ impl FftStage {
                 limit: gpu.max_binding(),
             });
         }
-        let roots = self.roots(gpu, n);
+        let roots = self.roots(gpu, n)?;
         if algorithm == Algorithm::Local {
             return self.encode_local(gpu, encoder, n, &plan, batch, inverse, data, offset, &roots);
         }

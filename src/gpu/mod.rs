@@ -91,7 +91,7 @@ fn describe(info: &wgpu::AdapterInfo) -> String {
 
 /// The floating-point type a stage computes in. Shaders are written over
 /// `alias real = f32;`; the f64 copy swaps that one line.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Real {
     /// 32-bit.
     F32,
@@ -173,6 +173,10 @@ pub struct Gpu {
     /// Device time of each compute pass, where `SKELID_GPU_TRACE` asks for it and the
     /// adapter has timestamp queries.
     timer: Option<Timer>,
+    /// The FFT's root tables by length and precision, kept for the device's lifetime and
+    /// shared by every [`fft::FftStage`] of that precision (the first pass's and the
+    /// refinement's share most of a long record's lengths).
+    roots: Mutex<std::collections::HashMap<(usize, Real), wgpu::Buffer>>,
 }
 
 /// Upload staging buffers (`MAP_WRITE | COPY_SRC`) reused from batch to batch.
@@ -188,6 +192,9 @@ struct Uploads {
     free: Pool,
     /// Written and unmapped: copied into their targets at the start of the next submission.
     copies: Mutex<Vec<StagedCopy>>,
+    /// Work that must run before anything submitted after it was recorded (the FFT's long
+    /// root tables expanded on the device), submitted right after the copies.
+    preludes: Mutex<Vec<wgpu::CommandBuffer>>,
     /// Copied (or on their way to be): a map for writing asked for, which completes once
     /// that submission has finished; 0 while pending, 1 mapped, 2 failed.
     returning: Mutex<Vec<(wgpu::Buffer, u64, Arc<std::sync::atomic::AtomicU8>)>>,
@@ -262,12 +269,21 @@ impl Uploads {
         queue: &wgpu::Queue,
         buffer: wgpu::CommandBuffer,
     ) -> wgpu::SubmissionIndex {
+        // Copies before preludes, always in this order: a prelude reads what a copy
+        // before it uploaded.
         let mut pending = self.copies.lock().unwrap_or_else(|p| p.into_inner());
+        let mut preludes = self.preludes.lock().unwrap_or_else(|p| p.into_inner());
         let copies = std::mem::take(&mut *pending);
         let recorded = Self::record(device, &copies);
         let index = crate::profile::span("queue.submit", || {
-            queue.submit(recorded.into_iter().chain([buffer]))
+            queue.submit(
+                recorded
+                    .into_iter()
+                    .chain(preludes.drain(..))
+                    .chain([buffer]),
+            )
         });
+        drop(preludes);
         drop(pending);
         self.give_back(copies);
         index
@@ -425,6 +441,14 @@ fn size_class(bytes: u64) -> u64 {
 /// at most `cap`, never less than `bytes`.
 fn pooled_size(bytes: u64, cap: u64) -> u64 {
     size_class(bytes).min(cap).max(bytes)
+}
+
+/// The bytes an upload of segments of `lens` values of `T` takes on the device: a
+/// multiple of [`wgpu::COPY_BUFFER_ALIGNMENT`], never 0.
+fn upload_size<T>(lens: &[usize]) -> u64 {
+    ((lens.iter().sum::<usize>() * std::mem::size_of::<T>()) as u64)
+        .next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT)
+        .max(wgpu::COPY_BUFFER_ALIGNMENT)
 }
 
 /// Free work buffers by size class.
@@ -589,6 +613,7 @@ impl Gpu {
             staging_pool: Arc::new(Mutex::new(std::collections::HashMap::new())),
             staging_made: std::sync::atomic::AtomicUsize::new(0),
             uploads: Uploads::default(),
+            roots: Mutex::new(std::collections::HashMap::new()),
             timer,
         })
     }
@@ -909,15 +934,65 @@ impl Gpu {
         lens: &[usize],
         fill: impl Fn(usize, &mut [T]) + Sync,
     ) -> Result<Pooled, GpuError> {
+        let size = upload_size::<T>(lens);
+        let buffer = self.reusable(label, size);
+        self.stage_segments(label, &buffer, lens, PAR_MIN, fill)?;
+        Ok(buffer)
+    }
+
+    /// Has `commands` run at the start of the next submission, after the uploads staged
+    /// before it and before that submission's own work: for work a later recording relies
+    /// on whichever submission goes first.
+    pub(crate) fn prelude(&self, commands: wgpu::CommandBuffer) {
+        self.uploads
+            .preludes
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .push(commands);
+    }
+
+    /// The FFT's root tables kept on this device, by length and precision
+    /// ([`fft::FftStage`]).
+    pub(crate) fn root_tables(
+        &self,
+    ) -> &Mutex<std::collections::HashMap<(usize, Real), wgpu::Buffer>> {
+        &self.roots
+    }
+
+    /// A storage buffer of its own (exactly the values' size, never given back to a pool)
+    /// filled as [`upload_segments`](Self::upload_segments) fills one, every segment a task
+    /// of its own: for tables kept for the device's lifetime, such as the FFT's roots. A
+    /// long record's were 87 MB of cosines and sines computed on the dispatcher's one
+    /// thread (`create_buffer_init`), 113 ms of a one-shot `skelid track` here.
+    pub fn upload_kept<T: bytemuck::Pod + Send>(
+        &self,
+        label: &str,
+        lens: &[usize],
+        fill: impl Fn(usize, &mut [T]) + Sync,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let buffer = self.storage(label, upload_size::<T>(lens));
+        self.stage_segments(label, &buffer, lens, 1, fill)?;
+        Ok(buffer)
+    }
+
+    /// Fills reused staging memory with the segments (`fill(i, values)` for segment `i` of
+    /// `lens[i]` values, on every core, at least `min_len` segments a task) and records its
+    /// copy into `buffer` for the start of the next submission
+    /// ([`submit_after`](Self::submit_after)).
+    fn stage_segments<T: bytemuck::Pod + Send>(
+        &self,
+        label: &str,
+        buffer: &wgpu::Buffer,
+        lens: &[usize],
+        min_len: usize,
+        fill: impl Fn(usize, &mut [T]) + Sync,
+    ) -> Result<(), GpuError> {
         use rayon::prelude::*;
         let elem = std::mem::size_of::<T>();
         let bytes = lens.iter().sum::<usize>() * elem;
         crate::profile::uploaded(bytes as u64);
         crate::profile::span("upload", || {
-            let size = (bytes as u64)
-                .next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT)
-                .max(wgpu::COPY_BUFFER_ALIGNMENT);
-            let buffer = self.reusable(label, size);
+            let size = upload_size::<T>(lens);
             let (staging, class) =
                 self.uploads
                     .take(&self.device, size, self.limits.max_buffer_size);
@@ -953,7 +1028,7 @@ impl Gpu {
                 starts
                     .into_par_iter()
                     .enumerate()
-                    .with_min_len(PAR_MIN)
+                    .with_min_len(min_len)
                     .for_each(|(i, start)| {
                         if in_place {
                             // SAFETY: [start, start + len·elem) lies inside the staging
@@ -993,10 +1068,10 @@ impl Gpu {
                 .push(StagedCopy {
                     staging,
                     class,
-                    target: (*buffer).clone(),
+                    target: buffer.clone(),
                     bytes: size,
                 });
-            Ok(buffer)
+            Ok(())
         })
     }
 
