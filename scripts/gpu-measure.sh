@@ -216,7 +216,10 @@ track_once() {  # backend, output file, label[, "traced": with the GPU's opening
   rm -f "$2"; local s t=0; [ -n "${4:-}" ] && t=1; s=$(now)
   SKELID_GPU_TRACE=$t timeout 60 "$B" track "$W/long.h5" --dataset /sig/output --scales 256 \
     --backend "$1" --out "$2" > "$OUT/track.log" 2>&1
-  echo "track --backend $1 ($3): rc=$? wall $(since "$s") s"; grep -E "^  open\." "$OUT/track.log"
+  echo "track --backend $1 ($3): rc=$? wall $(since "$s") s"
+  # Opening the device, and the dispatcher's recording before the device can start (the
+  # root tables expanded on the device since 2026-12-05: fft.encode was 109-120 ms here).
+  grep -E "^  (open\.|first\.submit|fft\.encode|refine\.submit|refine\.pipelines_wait|staging) " "$OUT/track.log"
 }
 if [ -f "$W/long.h5" ]; then
   echo "== skelid track, the 2^20-sample signal at 256 scales, end to end (fresh process, HDF5 out)"
