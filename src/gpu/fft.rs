@@ -36,7 +36,7 @@ const LOCAL_MAX: usize = 8192;
 const ROOTS_PIECE: usize = 8192;
 
 /// The longest root table the host computes whole; longer ones are expanded on the
-/// device ([`FftStage::roots`]). Every length of a campaign of 30 000-sample runs (46 080
+/// device (`FftStage::roots`). Every length of a campaign of 30 000-sample runs (46 080
 /// at most) stays on the host, its tables as they were to the bit.
 pub const ROOTS_ON_HOST_MAX: usize = 1 << 16;
 
@@ -182,7 +182,8 @@ pub enum Holder {
 }
 
 /// The compiled FFT passes, the workgroup-memory transform where the adapter has room for
-/// it, and the root tables of the lengths used so far.
+/// it, and the expansion of long root tables (the tables themselves are the device's,
+/// `Gpu::root_tables`, shared by every stage of a precision).
 pub struct FftStage {
     pipeline: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
