@@ -8,7 +8,8 @@
 // transforms on graphics processors" (SC 2008), with the radix per pass.
 //
 // Every root of unity comes from one table of e^{-j2πm/n}, m < n, computed on the host in
-// double precision: f32 sin/cos of large angles on a GPU would cost accuracy.
+// double precision (f32 sin/cos of large angles on a GPU would cost accuracy); a table past
+// 65 536 roots is expanded on the device from about 2·√n of them (`expand_roots`, below).
 // The inverse is unnormalised, as rustfft's.
 //
 // `real` is f32; the host compiles a second copy with `alias real = f64;` (wgpu's
@@ -82,8 +83,8 @@ fn stockham_pass(
 // 2·√n roots instead of n (a long record's tables were 87 MB): `src` holds e^{-j2πr/n}
 // for r < B (B = pass_.ns, a power of two), then e^{-j2πqB/n} for q < ⌈n/B⌉, and
 // e^{-j2πm/n} = e^{-j2π(m mod B)/n}·e^{-j2π⌊m/B⌋B/n}. Where either factor is 1 (m < B, or
-// m a multiple of B) the product is the host's root exactly; elsewhere within about an
-// ulp of it.
+// m a multiple of B) the product is the host's root exactly; elsewhere within a couple of
+// ulps of it (two rounded factors, one rounded product).
 @compute @workgroup_size(64)
 fn expand_roots(
     @builtin(workgroup_id) wg: vec3<u32>,

@@ -258,7 +258,8 @@ impl Uploads {
         (buffer, class)
     }
 
-    /// Submits `buffer` after the copies written since the last submission, in one
+    /// Submits `buffer` after the copies written since the last submission and then the
+    /// preludes ([`Gpu::prelude`]), in one
     /// submission, then asks for their staging buffers back. The list stays locked until
     /// the submission is made: another thread's submission could otherwise take these
     /// copies and go in after this one, whose work would then read its uploads before they
@@ -694,7 +695,8 @@ impl Gpu {
             .as_ref()
             .and_then(|t| t.resolve(&self.device, &mut enc));
         let buffer = crate::profile::span("encoder.finish", || enc.finish());
-        // The uploads made since the last submission are copied first, in the same
+        // The uploads made since the last submission are copied first, then the preludes
+        // run, in the same
         // submission, as wgpu does with its own queue writes.
         let index = self.uploads.submit_after(&self.device, &self.queue, buffer);
         if let (Some(t), Some((staging, labels))) = (&self.timer, timed) {
@@ -978,7 +980,7 @@ impl Gpu {
     /// Fills reused staging memory with the segments (`fill(i, values)` for segment `i` of
     /// `lens[i]` values, on every core, at least `min_len` segments a task) and records its
     /// copy into `buffer` for the start of the next submission
-    /// ([`submit_after`](Self::submit_after)).
+    /// ([`submit`](Self::submit)).
     fn stage_segments<T: bytemuck::Pod + Send>(
         &self,
         label: &str,
