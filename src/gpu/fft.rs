@@ -297,11 +297,12 @@ impl FftStage {
 
     /// e^{-j2πm/n}, m < n, computed in f64 (or expanded from such roots) and stored in the
     /// stage's precision, one table per length and precision, kept on the device
-    /// ([`Gpu::root_tables`]). Up to [`ROOTS_ON_HOST_MAX`] roots the host computes every one; a longer table is expanded
-    /// on the device from about 2·√n of them (`expand_roots`), which a one-shot `skelid
-    /// track` of a long record needs: its tables (its padded spectrum's 1.6 M points, its
-    /// scales', the refinement's) were 5.4 M roots, 87 MB computed, staged and uploaded on
-    /// the dispatcher's one thread, 113 ms here before the device could start.
+    /// ([`Gpu::root_tables`]). Up to [`ROOTS_ON_HOST_MAX`] roots the host computes every
+    /// one; a longer table is expanded on the device from about 2·√n of them
+    /// (`expand_roots`), which a one-shot `skelid track` of a long record needs: its tables
+    /// (its padded spectrum's 1.6 M points, its scales', the refinement's) were 5.4 M
+    /// roots, 87 MB computed, staged and uploaded on the dispatcher's one thread, 113 ms
+    /// here before the device could start.
     fn roots(&self, gpu: &Gpu, n: usize) -> Result<wgpu::Buffer, GpuError> {
         let mut cache = gpu.root_tables().lock().unwrap_or_else(|p| p.into_inner());
         if let Some(b) = cache.get(&(n, self.real)) {
