@@ -371,33 +371,22 @@ impl FftStage {
             _pad: [0; 3],
         };
         let uniform = gpu.upload_uniform("fft roots", bytemuck::bytes_of(&params));
-        let bind = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("fft roots"),
-            layout: &self.layout,
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                        buffer: &uniform,
-                        offset: 0,
-                        size: wgpu::BufferSize::new(std::mem::size_of::<PassParams>() as u64),
-                    }),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: parts.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: table.as_entire_binding(),
-                },
-                // Unread by `expand_roots`; any buffer the pass does not write.
-                wgpu::BindGroupEntry {
-                    binding: 3,
-                    resource: parts.as_entire_binding(),
-                },
-            ],
+        let record = wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+            buffer: &uniform,
+            offset: 0,
+            size: wgpu::BufferSize::new(std::mem::size_of::<PassParams>() as u64),
         });
+        // Binding 3 is unread by `expand_roots`: any buffer the pass does not write.
+        let bind = gpu.bind_resources(
+            "fft roots",
+            &self.layout,
+            vec![
+                record,
+                parts.as_entire_binding(),
+                table.as_entire_binding(),
+                parts.as_entire_binding(),
+            ],
+        );
         let [x, y, z] = gpu.grid((n as u64).div_ceil(u64::from(WORKGROUP)))?;
         let mut enc = gpu
             .device
@@ -503,32 +492,16 @@ impl FftStage {
             })
         };
         let bind = |from, to| {
-            gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("fft pass"),
-                layout: &self.layout,
-                entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                            buffer: &uniform,
-                            offset: 0,
-                            size: wgpu::BufferSize::new(size as u64),
-                        }),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 1,
-                        resource: range(from),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 2,
-                        resource: range(to),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 3,
-                        resource: roots.as_entire_binding(),
-                    },
-                ],
-            })
+            let record = wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                buffer: &uniform,
+                offset: 0,
+                size: wgpu::BufferSize::new(size as u64),
+            });
+            gpu.bind_resources(
+                "fft pass",
+                &self.layout,
+                vec![record, range(from), range(to), roots.as_entire_binding()],
+            )
         };
         let forth = bind(data, scratch);
         let back = (plan.len() > 1).then(|| bind(scratch, data));
