@@ -784,9 +784,20 @@ fn gpu_refinement_matches_the_cpu_skeleton_at_every_grid_point() {
         .map(|(k, (x, _))| (format!("test signal {k}"), x))
         .collect();
     signals.extend(demo_signals());
+    // A sweep whose grid (a point a sample or two at 60–120 Hz) has more points than one
+    // task of the read-back's decoding takes (16 384): its records are decoded in tasks.
+    let sweep: Vec<f64> = (0..24_000)
+        .map(|i| {
+            let t = i as f64 / 1000.0;
+            (2.0 * std::f64::consts::PI * (60.0 * t + 1.25 * t * t)).sin()
+        })
+        .collect();
+    signals.push(("a sweep from 60 to 120 Hz".into(), sweep));
     let preps = prepared_at_128(&signals);
     let part: Vec<_> = preps.iter().collect();
     let grids = grids_of(&gpu, &first, &part);
+    let most = grids.iter().map(Vec::len).max().unwrap();
+    assert!(most > 16_384, "the longest grid has {most} points");
     let cpu: Vec<_> = preps
         .iter()
         .zip(&grids)
