@@ -389,9 +389,10 @@ impl Encoded {
     }
 }
 
-/// Records one task of a run's decoding takes at least: a campaign run's few thousand
-/// are one, a 2^20-sample record's 156 000 (9 ms on the dispatcher's one thread, between
-/// its read-back and its completion, on 2 cores) are spread over the cores.
+/// Records in one task of a long run's decoding (the last task fewer): a campaign run's
+/// few thousand stay one task, a 2^20-sample record's 156 000 (9 ms on the dispatcher's
+/// one thread, between its read-back and its completion, on 2 cores) are spread over the
+/// cores.
 const DECODE_TASK: usize = 16_384;
 
 /// What reading one record back needs besides the record: its run's preparation and grid,

@@ -229,8 +229,9 @@ impl Columns {
     ) -> Columns {
         assert_eq!(est.len(), grid.len(), "one estimate a grid point");
         let count = est.len();
-        // Written once each, not zeroed first: zeroed (calloc) blocks took a long
-        // record's completion through 4 000 more page faults a track on the GPU backend.
+        // Written once each, not zeroed first: a zeroing pass is saved, and on the GPU
+        // backend's completion of the long record, zeroed (calloc) blocks were measured
+        // with 4 000 more page faults a repetition.
         let mut reals: [Vec<f64>; 9] = std::array::from_fn(|_| Vec::with_capacity(count));
         let mut peaked: Vec<bool> = Vec::with_capacity(count);
         let mut corrected: Vec<bool> = Vec::with_capacity(count);
@@ -253,6 +254,8 @@ impl Columns {
             tasks
                 .into_par_iter()
                 .for_each(|(est, grid, peaked, corrected, columns)| {
+                    debug_assert!(columns.iter().all(|c| c.len() == est.len()));
+                    debug_assert!(peaked.len() == est.len() && corrected.len() == est.len());
                     let [t, half, ln_amp, phase, decay, frequency, sweep, observed, noise] =
                         columns;
                     for (i, (e, p)) in est.iter().zip(grid).enumerate() {
