@@ -367,6 +367,43 @@ pub(crate) fn min_len_for(entries: usize, per_piece: usize) -> usize {
     }
 }
 
+/// Bytes of an upload from which its tasks are cut by size ([`upload_tasks`]): a long
+/// record's 8 MB of samples, one segment or a few, had been one task on the dispatcher's
+/// thread, while a `run` batch of fewer than [`PAR_MIN`] campaign signals (7 MB) stays one.
+const UPLOAD_SPLIT_BYTES: usize = 8 << 20;
+
+/// Bytes a task of a large upload holds at least ([`UPLOAD_SPLIT_BYTES`]).
+const UPLOAD_TASK_BYTES: usize = 1 << 20;
+
+/// Whether [`Gpu::stage_segments`] zeroes a segment before its `fill` writes it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Fill {
+    /// `fill` sees zeros, as in a fresh vector.
+    Zeroed,
+    /// `fill` writes every value.
+    Whole,
+}
+
+/// The segments of an upload of segments of `lens` values of `elem` bytes, grouped into
+/// consecutive tasks: a task ends at `min_len` segments or, in an upload of
+/// [`UPLOAD_SPLIT_BYTES`] or more, once it holds [`UPLOAD_TASK_BYTES`].
+fn upload_tasks(lens: &[usize], elem: usize, min_len: usize) -> Vec<std::ops::Range<usize>> {
+    let by_size = lens.iter().sum::<usize>() * elem >= UPLOAD_SPLIT_BYTES;
+    let mut tasks = Vec::new();
+    let (mut first, mut bytes) = (0, 0);
+    for (i, &len) in lens.iter().enumerate() {
+        bytes += len * elem;
+        if i + 1 - first >= min_len || (by_size && bytes >= UPLOAD_TASK_BYTES) {
+            tasks.push(first..i + 1);
+            (first, bytes) = (i + 1, 0);
+        }
+    }
+    if first < lens.len() {
+        tasks.push(first..lens.len());
+    }
+    tasks
+}
+
 impl Timer {
     /// Records the resolve of this submission's timestamps into `enc` and a copy to a
     /// mappable buffer; `None` when no pass was timed.
@@ -938,7 +975,23 @@ impl Gpu {
     ) -> Result<Pooled, GpuError> {
         let size = upload_size::<T>(lens);
         let buffer = self.reusable(label, size);
-        self.stage_segments(label, &buffer, lens, PAR_MIN, fill)?;
+        self.stage_segments(label, &buffer, lens, PAR_MIN, Fill::Zeroed, fill)?;
+        Ok(buffer)
+    }
+
+    /// [`upload_segments`](Self::upload_segments) for a `fill` that writes every value of
+    /// its segment (a copy): the staging memory is not zeroed first, so values it leaves
+    /// unwritten hold whatever an earlier upload put there. A long record's samples and
+    /// position tables (21 MB) were written twice.
+    pub fn upload_whole_segments<T: bytemuck::Pod + Send>(
+        &self,
+        label: &str,
+        lens: &[usize],
+        fill: impl Fn(usize, &mut [T]) + Sync,
+    ) -> Result<Pooled, GpuError> {
+        let size = upload_size::<T>(lens);
+        let buffer = self.reusable(label, size);
+        self.stage_segments(label, &buffer, lens, PAR_MIN, Fill::Whole, fill)?;
         Ok(buffer)
     }
 
@@ -973,13 +1026,14 @@ impl Gpu {
         fill: impl Fn(usize, &mut [T]) + Sync,
     ) -> Result<wgpu::Buffer, GpuError> {
         let buffer = self.storage(label, upload_size::<T>(lens));
-        self.stage_segments(label, &buffer, lens, 1, fill)?;
+        self.stage_segments(label, &buffer, lens, 1, Fill::Zeroed, fill)?;
         Ok(buffer)
     }
 
     /// Fills reused staging memory with the segments (`fill(i, values)` for segment `i` of
-    /// `lens[i]` values, on every core, at least `min_len` segments a task) and records its
-    /// copy into `buffer` for the start of the next submission
+    /// `lens[i]` values, on every core: a task holds `min_len` segments, or, in an upload of
+    /// [`UPLOAD_SPLIT_BYTES`] or more, fewer that hold [`UPLOAD_TASK_BYTES`]) and records
+    /// its copy into `buffer` for the start of the next submission
     /// ([`submit`](Self::submit)).
     fn stage_segments<T: bytemuck::Pod + Send>(
         &self,
@@ -987,6 +1041,7 @@ impl Gpu {
         buffer: &wgpu::Buffer,
         lens: &[usize],
         min_len: usize,
+        zeroing: Fill,
         fill: impl Fn(usize, &mut [T]) + Sync,
     ) -> Result<(), GpuError> {
         use rayon::prelude::*;
@@ -1027,22 +1082,27 @@ impl Gpu {
                 // vector of its own: a deferred signal's 240 kB of samples allocated,
                 // zeroed and copied again per batch was most of the dispatcher's upload.
                 let in_place = (base.at(0) as usize).is_multiple_of(std::mem::align_of::<T>());
-                starts
+                let tasks = upload_tasks(lens, elem, min_len);
+                let task_count = tasks.len();
+                tasks
                     .into_par_iter()
-                    .enumerate()
-                    .with_min_len(min_len)
+                    .with_min_len(if task_count > 1 { 1 } else { usize::MAX })
+                    .flat_map_iter(|task| task.map(|i| (i, starts[i])))
                     .for_each(|(i, start)| {
                         if in_place {
                             // SAFETY: [start, start + len·elem) lies inside the staging
                             // memory's `size` bytes (the starts are the running sums of the
                             // lengths), aligned for T (the base is, and every start is a
                             // multiple of T's size), and no other thread touches it; T is
-                            // Pod, so any bytes there are a valid T, and they are zeroed
-                            // before `fill` sees them, as a fresh vector would be.
+                            // Pod, so any bytes there are a valid T; they are zeroed
+                            // before `fill` sees them, as a fresh vector would be, unless
+                            // `fill` writes them all.
                             let values = unsafe {
                                 std::slice::from_raw_parts_mut(base.at(start).cast::<T>(), lens[i])
                             };
-                            values.fill(T::zeroed());
+                            if zeroing == Fill::Zeroed {
+                                values.fill(T::zeroed());
+                            }
                             fill(i, values);
                             return;
                         }
@@ -1114,7 +1174,7 @@ impl Gpu {
     ) -> Result<Pooled, GpuError> {
         const PIECE: usize = 1 << 16;
         let lens: Vec<usize> = data.chunks(PIECE).map(<[T]>::len).collect();
-        self.upload_segments(label, &lens, |i, out: &mut [T]| {
+        self.upload_whole_segments(label, &lens, |i, out: &mut [T]| {
             out.copy_from_slice(&data[i * PIECE..i * PIECE + out.len()]);
         })
     }
@@ -1385,7 +1445,39 @@ fn pipelines_on(
 
 #[cfg(test)]
 mod tests {
-    use super::{grid, headless};
+    use super::{grid, headless, upload_tasks, UPLOAD_SPLIT_BYTES, UPLOAD_TASK_BYTES};
+
+    /// An upload's tasks cover its segments once, in order; a small upload is cut by count
+    /// alone, a large one also by size, so that one long record's samples in pieces are
+    /// several tasks and a few campaign signals stay one.
+    #[test]
+    fn an_upload_is_cut_into_tasks_by_count_and_by_size() {
+        let covers = |tasks: &[std::ops::Range<usize>], n: usize| {
+            tasks.first().is_none_or(|t| t.start == 0)
+                && tasks
+                    .windows(2)
+                    .all(|w| w[0].end == w[1].start && w[0].start < w[0].end)
+                && tasks.last().map_or(0, |t| t.end) == n
+        };
+        // 31 campaign signals of 30 000 f64 (7.1 MB): one task, as before.
+        let few = upload_tasks(&[30_000; 31], 8, 32);
+        assert_eq!(few, vec![0..31]);
+        // 400 of them: tasks of at least a MB each, and at most 32 signals.
+        let many = upload_tasks(&[30_000; 400], 8, 32);
+        assert!(covers(&many, 400) && many.len() > 50);
+        assert!(many[..many.len() - 1]
+            .iter()
+            .all(|t| t.len() * 240_000 >= UPLOAD_TASK_BYTES));
+        // A 2^20-sample record in pieces of 2^16 values, and the one value after it.
+        let mut lens = vec![1 << 16; 16];
+        lens.push(1);
+        let long = upload_tasks(&lens, 8, 32);
+        assert!(long.len() >= 8 && covers(&long, 17), "{long:?}");
+        assert!(lens.iter().sum::<usize>() * 8 >= UPLOAD_SPLIT_BYTES);
+        // Each segment its own task where asked; none where there is none.
+        assert_eq!(upload_tasks(&[5, 6, 7], 4, 1), vec![0..1, 1..2, 2..3]);
+        assert!(upload_tasks(&[], 8, 32).is_empty());
+    }
 
     #[test]
     fn the_selection_layer_is_turned_off_only_without_a_session_and_unsteered() {

@@ -315,7 +315,7 @@ impl Encoded {
             .with_min_len(super::PAR_MIN)
             .map(|((spans, (prep, grid)), &ln_scale)| {
                 let mut out = Decoded {
-                    estimates: vec![None; grid.len()],
+                    estimates: nones(grid.len()),
                     unsure: Vec::new(),
                     overflow: Vec::new(),
                     ln_scale,
@@ -330,49 +330,25 @@ impl Encoded {
                         ln_scale,
                         slots: &all[part_points[part] * 8..],
                     };
-                    match points {
-                        // A whole long run (point k is record k) in tasks on every core.
-                        Points::All(count) if count > DECODE_TASK => {
-                            let pieces: Vec<(Vec<Pending>, Vec<usize>)> = out.estimates[..count]
-                                .par_chunks_mut(DECODE_TASK)
-                                .zip(w.par_chunks(8 * DECODE_TASK))
-                                .enumerate()
-                                .map(|(c, (estimates, w))| {
-                                    let mut centres = vec![None; prep.freqs.len()];
-                                    let (mut unsure, mut overflow) = (Vec::new(), Vec::new());
-                                    for (k, (rec, e)) in
-                                        w.chunks_exact(8).zip(estimates).enumerate()
-                                    {
-                                        let g = c * DECODE_TASK + k;
-                                        reader.read(
-                                            rec,
-                                            g,
-                                            e,
-                                            &mut centres,
-                                            &mut unsure,
-                                            &mut overflow,
-                                        );
-                                    }
-                                    (unsure, overflow)
-                                })
-                                .collect();
-                            for (unsure, overflow) in pieces {
-                                out.unsure.extend(unsure);
-                                out.overflow.extend(overflow);
-                            }
+                    if points.len() > DECODE_TASK {
+                        // A long run's records in tasks on every core: each task's points
+                        // ascend, so they lie in a stretch of the estimates of their own.
+                        let pieces = reader.read_in_tasks(w, &points, &mut out.estimates);
+                        for (unsure, overflow) in pieces {
+                            out.unsure.extend(unsure);
+                            out.overflow.extend(overflow);
                         }
-                        points => {
-                            for (k, rec) in w.chunks_exact(8).enumerate() {
-                                let g = points.at(k);
-                                reader.read(
-                                    rec,
-                                    g,
-                                    &mut out.estimates[g],
-                                    &mut centres,
-                                    &mut out.unsure,
-                                    &mut out.overflow,
-                                );
-                            }
+                    } else {
+                        for (k, rec) in w.chunks_exact(8).enumerate() {
+                            let g = points.at(k);
+                            reader.read(
+                                rec,
+                                g,
+                                &mut out.estimates[g],
+                                &mut centres,
+                                &mut out.unsure,
+                                &mut out.overflow,
+                            );
                         }
                     }
                 }
@@ -389,11 +365,23 @@ impl Encoded {
     }
 }
 
-/// Records in one task of a long run's decoding (the last task fewer): a campaign run's
-/// few thousand stay one task, a 2^20-sample record's 156 000 (9 ms on the dispatcher's
-/// one thread, between its read-back and its completion, on 2 cores) are spread over the
-/// cores.
+/// Records in one task of the decoding of a long run, or of a piece of one (the last task
+/// fewer): a campaign run's few thousand stay one task, a 2^20-sample record's 156 000 (9
+/// ms on the dispatcher's one thread, between its read-back and its completion, on 2 cores)
+/// are spread over the cores.
 const DECODE_TASK: usize = 16_384;
+
+/// `n` estimates not yet decoded. A long run's 156 000 (17 MB, each page faulted in as it
+/// is first written) are written in tasks on every core, not on the dispatcher's one thread,
+/// where they were most of its decoding.
+fn nones(n: usize) -> Vec<Option<GridEstimate>> {
+    if n <= DECODE_TASK {
+        return vec![None; n];
+    }
+    let mut v = Vec::with_capacity(n);
+    v.par_extend(rayon::iter::repeat_n(None, n).with_min_len(DECODE_TASK));
+    v
+}
 
 /// What reading one record back needs besides the record: its run's preparation and grid,
 /// the log of the factor its spectrum was scaled by, and its sub-part's slots.
@@ -405,6 +393,55 @@ struct Reader<'a> {
 }
 
 impl Reader<'_> {
+    /// [`read`](Self::read) of every record of `w` (point `points.at(k)` for record k), in
+    /// tasks of [`DECODE_TASK`] records on every core; each task's unsure and overflowing
+    /// points, in order. The points must ascend (each task then writes a stretch of
+    /// `estimates` that no other task touches).
+    fn read_in_tasks(
+        &self,
+        w: &[u32],
+        points: &Points,
+        estimates: &mut [Option<GridEstimate>],
+    ) -> Vec<(Vec<Pending>, Vec<usize>)> {
+        let count = points.len();
+        debug_assert!((1..count).all(|k| points.at(k - 1) < points.at(k)));
+        // Each task's stretch runs from its first point to the next task's first point.
+        let mut stretches = Vec::with_capacity(count.div_ceil(DECODE_TASK));
+        let mut rest = estimates;
+        let mut base = 0;
+        for first in (0..count).step_by(DECODE_TASK) {
+            let end = if first + DECODE_TASK < count {
+                points.at(first + DECODE_TASK)
+            } else {
+                points.at(count - 1) + 1
+            };
+            let (mine, tail) = std::mem::take(&mut rest).split_at_mut(end - base);
+            stretches.push((first, base, mine));
+            rest = tail;
+            base = end;
+        }
+        stretches
+            .into_par_iter()
+            .map(|(first, base, stretch)| {
+                let mut centres = vec![None; self.prep.freqs.len()];
+                let (mut unsure, mut overflow) = (Vec::new(), Vec::new());
+                let records = &w[first * 8..(first + DECODE_TASK).min(count) * 8];
+                for (k, rec) in records.chunks_exact(8).enumerate() {
+                    let g = points.at(first + k);
+                    self.read(
+                        rec,
+                        g,
+                        &mut stretch[g - base],
+                        &mut centres,
+                        &mut unsure,
+                        &mut overflow,
+                    );
+                }
+                (unsure, overflow)
+            })
+            .collect()
+    }
+
     /// Grid point `g`'s record `rec`: its estimate into `estimate` where the device trusted
     /// it, else the point into `unsure` (with its slot) or `overflow` (no slot left).
     /// `centres` caches each scale's centre bin.
@@ -1015,7 +1052,7 @@ impl RefineStage {
         let runs_buf = gpu.upload("refine runs", &run_params);
         // Each piece's points written by every core straight into the upload's memory.
         let points_buf =
-            gpu.upload_segments("grid points", &point_lens, |q, out: &mut [PointParams]| {
+            gpu.upload_whole_segments("grid points", &point_lens, |q, out: &mut [PointParams]| {
                 let piece = &part[q];
                 let grid = &grids[piece.run];
                 for (k, o) in out.iter_mut().enumerate() {
@@ -1161,5 +1198,86 @@ impl RefineFlight {
                 crate::profile::span("refine.decode", || e.decode(&part_words, preps, grids))
             })
             .collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Everything [`Reader::read`] leaves for one run: its estimates, its unsure points
+    /// (point, flags, slot words) and its overflowing points, in order.
+    type Read = (
+        Vec<Option<GridEstimate>>,
+        Vec<(usize, u32, Vec<u32>)>,
+        Vec<usize>,
+    );
+
+    /// Records decoded in tasks on every core are those decoded one after the other: every
+    /// point's estimate in its place, the unsure and overflowing ones in order, for a whole
+    /// run and for a piece's ascending list of points.
+    #[test]
+    fn records_read_in_tasks_equal_records_read_in_order() {
+        let fs = 1000.0;
+        let x: Vec<f64> = (0..20_000)
+            .map(|i| (2.0 * std::f64::consts::PI * 80.0 * i as f64 / fs).sin())
+            .collect();
+        let prep = WaveletPrep::new(&x, fs, &Default::default(), None).unwrap();
+        let s_count = prep.freqs.len();
+        let n = 3 * DECODE_TASK + 777;
+        let grid: Vec<GridPoint> = (0..n)
+            .map(|g| GridPoint {
+                sample: g % 20_000,
+                centre: 1 + g % (s_count - 2),
+            })
+            .collect();
+        let slots: Vec<u32> = (0..50 * SLOT_WORDS as u32).collect();
+        let record = |k: usize| -> [u32; 8] {
+            let v = |i: usize| (0.25 + (k * 8 + i) as f32 * 1e-4).to_bits();
+            let mut flags = (k % s_count) as u32 | PEAKED | CORRECTED;
+            if k.is_multiple_of(97) {
+                flags |= UNSURE;
+            }
+            if k.is_multiple_of(1013) {
+                flags |= UNSURE | OVERFLOW;
+            }
+            let slot = if flags & UNSURE != 0 {
+                (k % 50) as u32
+            } else {
+                v(0)
+            };
+            [slot, v(1), v(2), v(3), v(4), v(5), v(6), flags]
+        };
+        let reader = Reader {
+            prep: &prep,
+            grid: &grid,
+            ln_scale: 0.5,
+            slots: &slots,
+        };
+        let listed: Vec<usize> = (0..n).filter(|g| g % 3 != 1).collect();
+        for points in [Points::All(n), Points::Listed(listed)] {
+            let w: Vec<u32> = (0..points.len()).flat_map(record).collect();
+            let mut serial: Read = (vec![None; n], Vec::new(), Vec::new());
+            let (mut unsure, mut centres) = (Vec::new(), vec![None; s_count]);
+            for (k, rec) in w.chunks_exact(8).enumerate() {
+                let g = points.at(k);
+                let e = &mut serial.0[g];
+                reader.read(rec, g, e, &mut centres, &mut unsure, &mut serial.2);
+            }
+            serial.1 = unsure
+                .iter()
+                .map(|p: &Pending| (p.g, p.flags, p.words.to_vec()))
+                .collect();
+            let mut tasks: Read = (nones(n), Vec::new(), Vec::new());
+            for (unsure, overflow) in reader.read_in_tasks(&w, &points, &mut tasks.0) {
+                tasks
+                    .1
+                    .extend(unsure.iter().map(|p| (p.g, p.flags, p.words.to_vec())));
+                tasks.2.extend(overflow);
+            }
+            assert!(serial.0.iter().filter(|e| e.is_some()).count() > 2 * DECODE_TASK);
+            assert!(serial.1.len() > 100 && !serial.2.is_empty());
+            assert_eq!(tasks, serial);
+        }
     }
 }

@@ -153,10 +153,10 @@ impl PositionCache {
         let guard = self.holding(keys);
         let tables: Vec<&Positions> = keys.iter().map(|k| &guard.0[k]).collect();
         let lens: Vec<usize> = keys.iter().map(|k| k.3).collect();
-        let index = gpu.upload_segments("positions", &lens, |i, out: &mut [u32]| {
+        let index = gpu.upload_whole_segments("positions", &lens, |i, out: &mut [u32]| {
             out.copy_from_slice(&tables[i].index)
         })?;
-        let frac = gpu.upload_segments("fractions", &lens, |i, out: &mut [[f32; 2]]| {
+        let frac = gpu.upload_whole_segments("fractions", &lens, |i, out: &mut [[f32; 2]]| {
             out.copy_from_slice(&tables[i].frac)
         })?;
         Ok([index, frac])

@@ -60,6 +60,9 @@ struct RunEntry {
 /// The shader's `HOST`: a run whose bins the host computed and uploaded.
 const HOST: u32 = 1;
 
+/// Samples in one segment of a chunk's upload ([`Gpu::upload_whole_segments`]): 512 kB.
+const SAMPLE_PIECE: usize = 1 << 16;
+
 /// The compiled stage: its three pipelines and their bind layout.
 pub struct SpectrumStage {
     pack: wgpu::ComputePipeline,
@@ -297,9 +300,17 @@ impl SpectrumStage {
                 })
                 .chain([1])
                 .collect();
-            let samples = gpu.upload_segments("samples", &sample_lens, |i, out: &mut [f64]| {
-                if let Some(d) = chunk.get(i).and_then(|&(r, _)| preps[r].deferred.as_ref()) {
-                    out.copy_from_slice(&d.centred);
+            // In pieces, so that a long record's 8 MB are copied by every core.
+            let pieces: Vec<(&[f64], usize)> = chunk
+                .iter()
+                .filter_map(|&(r, _)| preps[r].deferred.as_ref())
+                .flat_map(|d| d.centred.chunks(SAMPLE_PIECE).map(|c| (c, c.len())))
+                .collect();
+            let lens: Vec<usize> = pieces.iter().map(|p| p.1).chain([1]).collect();
+            let samples = gpu.upload_whole_segments("samples", &lens, |i, out: &mut [f64]| {
+                match pieces.get(i) {
+                    Some((values, _)) => out.copy_from_slice(values),
+                    None => out.fill(0.0),
                 }
             })?;
             let mut sample = 0usize;
