@@ -1082,11 +1082,8 @@ impl Gpu {
                 // vector of its own: a deferred signal's 240 kB of samples allocated,
                 // zeroed and copied again per batch was most of the dispatcher's upload.
                 let in_place = (base.at(0) as usize).is_multiple_of(std::mem::align_of::<T>());
-                let tasks = upload_tasks(lens, elem, min_len);
-                let task_count = tasks.len();
-                tasks
+                upload_tasks(lens, elem, min_len)
                     .into_par_iter()
-                    .with_min_len(if task_count > 1 { 1 } else { usize::MAX })
                     .flat_map_iter(|task| task.map(|i| (i, starts[i])))
                     .for_each(|(i, start)| {
                         if in_place {

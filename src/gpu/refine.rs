@@ -254,7 +254,7 @@ struct Piece {
 enum Points {
     /// Points 0..n.
     All(usize),
-    /// These points.
+    /// These points, ascending (decoding in tasks relies on it).
     Listed(Vec<usize>),
 }
 

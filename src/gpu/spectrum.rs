@@ -307,6 +307,11 @@ impl SpectrumStage {
                 .flat_map(|d| d.centred.chunks(SAMPLE_PIECE).map(|c| (c, c.len())))
                 .collect();
             let lens: Vec<usize> = pieces.iter().map(|p| p.1).chain([1]).collect();
+            // The run table's offsets below count by `sample_lens`.
+            debug_assert_eq!(
+                lens.iter().sum::<usize>(),
+                sample_lens.iter().sum::<usize>()
+            );
             let samples = gpu.upload_whole_segments("samples", &lens, |i, out: &mut [f64]| {
                 match pieces.get(i) {
                     Some((values, _)) => out.copy_from_slice(values),

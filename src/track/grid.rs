@@ -87,8 +87,9 @@ impl WaveletPrep {
             // meet, instead of grids offset by a sample or two for the rest of the record,
             // whose validity would then switch a few samples apart.
             i = (i / spacing[k] + 1) * spacing[k];
-            // Where the ridge holds scale k over the coarse step of the next point, as it
-            // does over most steps, ridge_at is k up to the step's end, and the next point a
+            // Where the ridge holds scale k over the coarse step of the sample before the
+            // next point (the next point's own step, unless it opens a step), as it does
+            // over most steps, ridge_at is k up to the step's end, and the next point a
             // multiple of k's spacing: the step's points are one spacing apart. The same
             // points without the chain of divisions that was 5 ms of a 2^20-sample record's
             // grid, on the GPU dispatcher's serial path.
