@@ -973,10 +973,7 @@ impl Gpu {
         lens: &[usize],
         fill: impl Fn(usize, &mut [T]) + Sync,
     ) -> Result<Pooled, GpuError> {
-        let size = upload_size::<T>(lens);
-        let buffer = self.reusable(label, size);
-        self.stage_segments(label, &buffer, lens, PAR_MIN, Fill::Zeroed, fill)?;
-        Ok(buffer)
+        self.upload_pooled_segments(label, lens, Fill::Zeroed, fill)
     }
 
     /// [`upload_segments`](Self::upload_segments) for a `fill` that writes every value of
@@ -989,9 +986,21 @@ impl Gpu {
         lens: &[usize],
         fill: impl Fn(usize, &mut [T]) + Sync,
     ) -> Result<Pooled, GpuError> {
-        let size = upload_size::<T>(lens);
-        let buffer = self.reusable(label, size);
-        self.stage_segments(label, &buffer, lens, PAR_MIN, Fill::Whole, fill)?;
+        self.upload_pooled_segments(label, lens, Fill::Whole, fill)
+    }
+
+    /// A reused buffer of the segments, staged as `zeroing` says ([`stage_segments`]).
+    ///
+    /// [`stage_segments`]: Self::stage_segments
+    fn upload_pooled_segments<T: bytemuck::Pod + Send>(
+        &self,
+        label: &str,
+        lens: &[usize],
+        zeroing: Fill,
+        fill: impl Fn(usize, &mut [T]) + Sync,
+    ) -> Result<Pooled, GpuError> {
+        let buffer = self.reusable(label, upload_size::<T>(lens));
+        self.stage_segments(label, &buffer, lens, PAR_MIN, zeroing, fill)?;
         Ok(buffer)
     }
 
