@@ -13,7 +13,8 @@ use crate::filter::{window_line, window_lines};
 use crate::skeleton::{GridEstimate, GridPoint};
 use crate::transform::Morlet;
 
-use super::{unwrap_phase, CoarseRidge, Device, Method, Scalogram, Track, WaveletPrep};
+use super::unwrap::unwrap_phase;
+use super::{CoarseRidge, Device, Method, Scalogram, Track, WaveletPrep};
 
 impl WaveletPrep {
     /// The track from the skeleton on the grid, on the CPU whichever backend estimated it:

@@ -7,7 +7,8 @@ use std::f64::consts::PI;
 use crate::filter::lowpass_zero_phase_all;
 use crate::transform::{hilbert, Spectrum};
 
-use super::{check_signal, unwrap_phase, Device, HilbertOptions, Method, Track, TrackError};
+use super::unwrap::unwrap_phase;
+use super::{check_signal, Device, HilbertOptions, Method, Track, TrackError};
 
 /// Envelope, frequency and derivatives by the Hilbert transform.
 ///

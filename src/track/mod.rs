@@ -19,17 +19,17 @@
 //!
 //! Files: `hilbert` (the analytic-signal track), `wavelet` (a signal prepared up to its
 //! first pass, and the CPU's first pass), `grid` (the estimation grid and the CPU's
-//! refinement), `complete` (the track from the skeleton on the grid, on either backend).
+//! refinement), `complete` (the track from the skeleton on the grid, on either backend),
+//! `unwrap` (the phase made continuous).
 
 mod complete;
 mod grid;
 mod hilbert;
+mod unwrap;
 mod wavelet;
 
 pub use hilbert::track_hilbert;
 pub use wavelet::{track_wavelet, CoarseRidge, WaveletPrep};
-
-use std::f64::consts::PI;
 
 use thiserror::Error;
 
@@ -305,17 +305,6 @@ fn check_finite(x: &[f64]) -> Result<(), TrackError> {
         )));
     }
     Ok(())
-}
-
-/// Makes a wrapped phase continuous, choosing at each step the branch closest to the
-/// advance predicted by the frequency; `time(i)` is point i's time (s).
-fn unwrap_phase(phase: &mut [f64], freq: &[f64], time: impl Fn(usize) -> f64) {
-    for i in 1..phase.len() {
-        let dt = time(i) - time(i - 1);
-        let predicted = phase[i - 1] + PI * (freq[i - 1] + freq[i]) * dt;
-        let d = phase[i] - predicted;
-        phase[i] -= 2.0 * PI * crate::transform::exact_floor((d + PI) / (2.0 * PI));
-    }
 }
 
 /// The mean of each bin's power and the `w − 1` before it (of all before it in the first

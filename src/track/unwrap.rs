@@ -1,0 +1,222 @@
+//! The phase made continuous: at each point the branch closest to the advance the frequency
+//! predicts. The rule is a chain (each point's branch depends on the one before), which on
+//! a 2^20-sample record's 156 000 grid points was 2 ms that no other core shared; long
+//! phases are unwrapped in blocks on every core, checked against the chain's own rule, and
+//! come out the same to the last bit.
+
+use std::f64::consts::PI;
+
+use rayon::prelude::*;
+
+use crate::transform::exact_floor;
+
+/// Points one task of a long phase's unwrapping takes; a phase shorter than two blocks (a
+/// campaign record's few thousand grid points) is unwrapped as one chain.
+const BLOCK: usize = 16_384;
+
+/// Makes a wrapped phase continuous, choosing at each step the branch closest to the
+/// advance predicted by the frequency; `time(i)` is point i's time (s).
+pub(super) fn unwrap_phase(phase: &mut [f64], freq: &[f64], time: impl Fn(usize) -> f64 + Sync) {
+    unwrap_in_blocks(phase, freq, &time, BLOCK);
+}
+
+/// The number of 2π turns that the chain's rule takes off point `i`'s wrapped phase `raw`,
+/// given point `i − 1`'s unwrapped phase `prev`: the one expression both the chain and the
+/// blocks' check evaluate.
+#[inline]
+fn turns(raw: f64, prev: f64, freq: &[f64], time: &impl Fn(usize) -> f64, i: usize) -> f64 {
+    let dt = time(i) - time(i - 1);
+    let predicted = prev + PI * (freq[i - 1] + freq[i]) * dt;
+    let d = raw - predicted;
+    exact_floor((d + PI) / (2.0 * PI))
+}
+
+/// The chain itself, from point `from` (whose predecessor is already unwrapped) to the end.
+fn unwrap_chain(phase: &mut [f64], freq: &[f64], time: &impl Fn(usize) -> f64, from: usize) {
+    for i in from.max(1)..phase.len() {
+        phase[i] -= 2.0 * PI * turns(phase[i], phase[i - 1], freq, time, i);
+    }
+}
+
+/// [`unwrap_phase`] in blocks of `block` points. Each block first unwraps its own points as
+/// if the point before it needed no turn; the blocks' counts, added up in order, give every
+/// point's turns. Taking a multiple of 2π off the predecessor can round the chain's
+/// comparison differently, so every point is then checked against the chain's rule with
+/// its predecessor as unwrapped; from the first point that fails (none, in practice) the
+/// chain itself takes over. Every point before it satisfied the rule, so the result is the
+/// chain's, bit for bit. Returns that first point (`phase.len()` if none, or if the
+/// phase was unwrapped as one chain).
+fn unwrap_in_blocks(
+    phase: &mut [f64],
+    freq: &[f64],
+    time: &(impl Fn(usize) -> f64 + Sync),
+    block: usize,
+) -> usize {
+    let n = phase.len();
+    if n < 2 * block {
+        unwrap_chain(phase, freq, time, 1);
+        return n;
+    }
+    // Each block's turns, counted from its own start.
+    let mut own = vec![0.0; n];
+    own.par_chunks_mut(block)
+        .enumerate()
+        .for_each(|(j, counts)| {
+            let first = j * block;
+            let mut prev = if first == 0 {
+                phase[0]
+            } else {
+                phase[first - 1]
+            };
+            for (c, i) in counts.iter_mut().zip(first..) {
+                if i == 0 {
+                    continue;
+                }
+                *c = turns(phase[i], prev, freq, time, i);
+                prev = phase[i] - 2.0 * PI * *c;
+            }
+        });
+    // Each block's offset: the turns of the point before its start.
+    let offsets: Vec<f64> = std::iter::once(0.0)
+        .chain(own.chunks(block).scan(0.0, |k, counts| {
+            *k += counts[counts.len() - 1];
+            Some(*k)
+        }))
+        .take(n.div_ceil(block))
+        .collect();
+    // Each block checked against the chain's rule, its points' unwrapped values written
+    // over its counts as it goes (the wrapped phase stays whole for the chain below); the
+    // point before a block has the turns of the block before's offset.
+    let raw: &[f64] = phase;
+    let first_failure = own
+        .par_chunks_mut(block)
+        .enumerate()
+        .filter_map(|(j, out)| {
+            let first = j * block;
+            let mut prev = if first == 0 {
+                raw[0]
+            } else {
+                raw[first - 1] - 2.0 * PI * offsets[j]
+            };
+            for (o, i) in out.iter_mut().zip(first..) {
+                let k = offsets[j] + *o;
+                // `!=` also fails a NaN, whose chain the chain itself then carries on.
+                if i > 0 && turns(raw[i], prev, freq, time, i) != k {
+                    return Some(i);
+                }
+                prev = raw[i] - 2.0 * PI * k;
+                *o = prev;
+            }
+            None
+        })
+        .min()
+        .unwrap_or(n);
+    phase[..first_failure].copy_from_slice(&own[..first_failure]);
+    unwrap_chain(phase, freq, time, first_failure);
+    first_failure
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn bits(v: &[f64]) -> Vec<u64> {
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    /// A swept tone's wrapped phase on an uneven grid, with phase noise of `jitter` rad.
+    fn wrapped(n: usize, jitter: f64, seed: u64) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        let t: Vec<f64> = (0..n)
+            .map(|i| 1e-3 * i as f64 + 2e-4 * (i % 3) as f64)
+            .collect();
+        let f: Vec<f64> = t.iter().map(|&t| 40.0 + 30.0 * t).collect();
+        let phase = t
+            .iter()
+            .map(|&t| {
+                let p = 2.0 * PI * (40.0 * t + 15.0 * t * t) + rng.random_range(-jitter..=jitter);
+                p - 2.0 * PI * (p / (2.0 * PI)).round()
+            })
+            .collect();
+        (t, f, phase)
+    }
+
+    #[test]
+    fn blocks_unwrap_to_the_chain_to_the_last_bit() {
+        // Lengths around the blocks' edges; phase noise up to nearly ±π, where the branch
+        // is a close call and a rounding could pick the other.
+        for (n, jitter) in [
+            (0, 0.1),
+            (1, 0.1),
+            (99, 0.1),
+            (100, 3.0),
+            (1000, 1.0),
+            (1037, 3.1),
+        ] {
+            for block in [1, 7, 50, 64] {
+                let (t, f, mut by_blocks) = wrapped(n, jitter, n as u64);
+                let mut chain = by_blocks.clone();
+                unwrap_chain(&mut chain, &f, &|i| t[i], 1);
+                unwrap_in_blocks(&mut by_blocks, &f, &|i| t[i], block);
+                assert_eq!(
+                    bits(&by_blocks),
+                    bits(&chain),
+                    "{n} points, blocks of {block}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn blocks_that_round_otherwise_than_the_chain_are_redone_by_it() {
+        // A block's first point whose advance lands on the branch's edge, nudged 1e-15 rad
+        // at a time: counted from its block's start (its predecessor within ±π) and after
+        // the earlier blocks' 90 turns (its predecessor near 565 rad, rounded 256 times
+        // more coarsely) the comparison rounds one way for some nudges and the other way
+        // for others, and the chain must take over there.
+        let (n, block, edge) = (400, 100, 300);
+        let time = |i: usize| 1e-3 * i as f64;
+        let freq = vec![300.0; n];
+        let (_, _, mut raw) = wrapped(n, 0.0, 5);
+        for i in 1..n {
+            let p = raw[i - 1] + 2.0 * PI * 300.0 * 1e-3 + 0.01 * (i % 7) as f64;
+            raw[i] = p - 2.0 * PI * (p / (2.0 * PI)).round();
+        }
+        let mut unwrapped = raw.clone();
+        unwrap_chain(&mut unwrapped, &freq, &time, 1);
+        let prev = unwrapped[edge - 1];
+        let at_edge =
+            prev + PI * (freq[edge - 1] + freq[edge]) * (time(edge) - time(edge - 1)) - PI;
+        let wrapped_edge = at_edge - 2.0 * PI * (at_edge / (2.0 * PI)).round();
+        let mut redone = 0;
+        for nudge in -300i64..=300 {
+            let mut by_blocks = raw.clone();
+            by_blocks[edge] = wrapped_edge + 1e-15 * nudge as f64;
+            let mut chain = by_blocks.clone();
+            unwrap_chain(&mut chain, &freq, &time, 1);
+            let failed = unwrap_in_blocks(&mut by_blocks, &freq, &time, block);
+            assert_eq!(bits(&by_blocks), bits(&chain), "nudge {nudge}");
+            assert!(
+                failed == n || failed == edge,
+                "nudge {nudge}: failed at {failed}"
+            );
+            redone += usize::from(failed == edge);
+        }
+        assert!(
+            redone > 0,
+            "no nudge made the blocks round otherwise than the chain"
+        );
+    }
+
+    #[test]
+    fn a_nan_spoils_the_rest_of_the_phase_as_in_the_chain() {
+        let (t, f, mut by_blocks) = wrapped(500, 0.5, 3);
+        by_blocks[230] = f64::NAN;
+        let mut chain = by_blocks.clone();
+        unwrap_chain(&mut chain, &f, &|i| t[i], 1);
+        unwrap_in_blocks(&mut by_blocks, &f, &|i| t[i], 64);
+        assert_eq!(bits(&by_blocks), bits(&chain));
+        assert!(by_blocks[229].is_finite() && by_blocks[499].is_nan());
+    }
+}
