@@ -1110,19 +1110,31 @@ mod tests {
         use rand::{Rng, SeedableRng};
         let mut rng = rand::rngs::StdRng::seed_from_u64(23);
         // Several tasks' worth of points, stretches from one point to hundreds, SNRs from
-        // far below the target to far above, and windows reaching past the record's ends.
-        for (n, invalid) in [
-            (0usize, 0.0),
-            (2, 0.0),
-            (5, 0.5),
-            (3000, 0.002),
-            (9000, 0.05),
+        // far below the target to far above, and windows reaching past the record's ends;
+        // the last grid with times repeated in pairs, and NaN and zero SNRs and σ_t.
+        for (n, invalid, odd) in [
+            (0usize, 0.0, false),
+            (2, 0.0, false),
+            (5, 0.5, false),
+            (3000, 0.002, false),
+            (9000, 0.05, false),
+            (4000, 0.01, true),
         ] {
-            let t: Vec<f64> = (0..n).map(|g| 0.01 * g as f64 + 3.0).collect();
-            let sigma_t: Vec<f64> = (0..n).map(|g| 0.02 + 1e-5 * g as f64).collect();
-            let snr: Vec<f64> = (0..n)
+            let t: Vec<f64> = (0..n)
+                .map(|g| 0.01 * (if odd { g / 2 } else { g }) as f64 + 3.0)
+                .collect();
+            let mut sigma_t: Vec<f64> = (0..n).map(|g| 0.02 + 1e-5 * g as f64).collect();
+            let mut snr: Vec<f64> = (0..n)
                 .map(|_| 10f64.powf(rng.random_range(-0.5..2.5)))
                 .collect();
+            if odd {
+                for g in (0..n - 400).step_by(397) {
+                    snr[g] = f64::NAN;
+                    snr[g + 101] = 0.0;
+                    sigma_t[g + 203] = f64::NAN;
+                    sigma_t[g + 307] = 0.0;
+                }
+            }
             let valid: Vec<bool> = (0..n).map(|_| !rng.random_bool(invalid)).collect();
             let ln_amp: Vec<f64> = (0..n)
                 .map(|g| -0.3 * t[g] + rng.random_range(-0.1..0.1))

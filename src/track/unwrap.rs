@@ -52,6 +52,7 @@ fn unwrap_in_blocks(
     time: &(impl Fn(usize) -> f64 + Sync),
     block: usize,
 ) -> usize {
+    debug_assert!(block > 0, "blocks of no points");
     let n = phase.len();
     if n < 2 * block {
         unwrap_chain(phase, freq, time, 1);
@@ -86,7 +87,7 @@ fn unwrap_in_blocks(
         .collect();
     // Each block checked against the chain's rule, its points' unwrapped values written
     // over its counts as it goes (the wrapped phase stays whole for the chain below); the
-    // point before a block has the turns of the block before's offset.
+    // point before block j has `offsets[j]` turns.
     let raw: &[f64] = phase;
     let first_failure = own
         .par_chunks_mut(block)
@@ -99,9 +100,14 @@ fn unwrap_in_blocks(
                 raw[first - 1] - 2.0 * PI * offsets[j]
             };
             for (o, i) in out.iter_mut().zip(first..) {
+                if i == 0 {
+                    // The chain leaves the first point as it is.
+                    *o = raw[0];
+                    continue;
+                }
                 let k = offsets[j] + *o;
                 // `!=` also fails a NaN, whose chain the chain itself then carries on.
-                if i > 0 && turns(raw[i], prev, freq, time, i) != k {
+                if turns(raw[i], prev, freq, time, i) != k {
                     return Some(i);
                 }
                 prev = raw[i] - 2.0 * PI * k;
@@ -158,12 +164,14 @@ mod tests {
                 let (t, f, mut by_blocks) = wrapped(n, jitter, n as u64);
                 let mut chain = by_blocks.clone();
                 unwrap_chain(&mut chain, &f, &|i| t[i], 1);
-                unwrap_in_blocks(&mut by_blocks, &f, &|i| t[i], block);
+                let failed = unwrap_in_blocks(&mut by_blocks, &f, &|i| t[i], block);
                 assert_eq!(
                     bits(&by_blocks),
                     bits(&chain),
                     "{n} points, blocks of {block}"
                 );
+                // No close call in these phases: the blocks did the work, not the chain.
+                assert_eq!(failed, n, "{n} points, blocks of {block}");
             }
         }
     }
@@ -215,7 +223,8 @@ mod tests {
         by_blocks[230] = f64::NAN;
         let mut chain = by_blocks.clone();
         unwrap_chain(&mut chain, &f, &|i| t[i], 1);
-        unwrap_in_blocks(&mut by_blocks, &f, &|i| t[i], 64);
+        let failed = unwrap_in_blocks(&mut by_blocks, &f, &|i| t[i], 64);
+        assert_eq!(failed, 230, "the chain takes over at the NaN");
         assert_eq!(bits(&by_blocks), bits(&chain));
         assert!(by_blocks[229].is_finite() && by_blocks[499].is_nan());
     }
