@@ -63,12 +63,9 @@ fn unwrap_in_blocks(
     own.par_chunks_mut(block)
         .enumerate()
         .for_each(|(j, counts)| {
+            // The first block's own first point stands for its predecessor (it is skipped).
             let first = j * block;
-            let mut prev = if first == 0 {
-                phase[0]
-            } else {
-                phase[first - 1]
-            };
+            let mut prev = phase[first.saturating_sub(1)];
             for (c, i) in counts.iter_mut().zip(first..) {
                 if i == 0 {
                     continue;
@@ -93,12 +90,9 @@ fn unwrap_in_blocks(
         .par_chunks_mut(block)
         .enumerate()
         .filter_map(|(j, out)| {
+            // offsets[0] is 0, and x − 0 is x to the bit (−0 and NaN included).
             let first = j * block;
-            let mut prev = if first == 0 {
-                raw[0]
-            } else {
-                raw[first - 1] - 2.0 * PI * offsets[j]
-            };
+            let mut prev = raw[first.saturating_sub(1)] - 2.0 * PI * offsets[j];
             for (o, i) in out.iter_mut().zip(first..) {
                 if i == 0 {
                     // The chain leaves the first point as it is.
