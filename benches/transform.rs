@@ -53,6 +53,10 @@ fn host_share(c: &mut Criterion) {
     group.bench_function("prepare", |b| {
         b.iter(|| WaveletPrep::new(&x, BENCH_FS, &opt, None).unwrap())
     });
+    // What the GPU backend's workers do before the device takes a signal.
+    group.bench_function("prepare_deferred", |b| {
+        b.iter(|| WaveletPrep::new_deferred(&x, BENCH_FS, &opt, None).unwrap())
+    });
     let prep = WaveletPrep::new(&x, BENCH_FS, &opt, None).unwrap();
     let ridge = prep.coarse_ridge();
     let grid = prep.grid(&ridge.path);
