@@ -48,8 +48,8 @@
 # The headline figures (bench at 128 and 512 scales, the long record, run, track end to
 # end, determinism) come first, then the experiments, most decisive first. A lent machine
 # gives a session 15 minutes in all, its start included, and one call 10: the script keeps
-# to BUDGET seconds (default 520) by skipping any step whose usual time on an H200 is more
-# than what is left, and says which it skipped. Every section prints when it began, so
+# to BUDGET seconds (default 520) by skipping any step whose guessed time on an H200 is
+# more than what is left, and says which it skipped. Every section prints when it began, so
 # that the next call's estimates can be set from this one's. BUDGET=3600 runs everything.
 set -u
 N=${N:-1000}; OUT=${OUT:-/tmp/skelid-measure}; BUDGET=${BUDGET:-520}; mkdir -p "$OUT"
@@ -70,10 +70,13 @@ left() { awk "BEGIN{l = $BUDGET - ($(now) - $T0); printf \"%d\", (l > 0 ? l : 0)
 # A command's own limit, cut to what is left of the budget (at least 1 s).
 tmo() { local l; l=$(left); [ "$l" -lt 1 ] && l=1; [ "$1" -lt "$l" ] && echo "$1" || echo "$l"; }
 SKIPPED=""
-# step COST FUNCTION: runs FUNCTION when at least COST seconds (its usual time on an H200
-# with N=1000, with some to spare) are left of the budget; otherwise says it skipped it.
+# step COST FUNCTION: runs FUNCTION when at least COST seconds (a guess at its time on an
+# H200 with N=1000, scaled to N from 200 runs up) are left of the budget; otherwise says it
+# skipped it.
 step() {
-  local cost=$1 l; shift; l=$(left)
+  local cost=$1 l n=$N; shift; l=$(left)
+  [ "$n" -lt 200 ] && n=200
+  cost=$(( cost * n / 1000 ))
   if [ "$l" -ge "$cost" ]; then
     echo "-- $1 at $(since "$T0") s"; "$@"
   else
@@ -321,8 +324,10 @@ exp_pagecache() {
   done
 }
 
-# Usual times on an H200 with N=1000 (estimated from its calls of 2026-11-26/27), with some
-# to spare; for N=200 they are about a fifth. A step that starts is not skipped halfway:
+# Guesses at each step's time on an H200 with N=1000, with some to spare: the benches and
+# `run` from its calls of 2026-11-26/27, the steps added since (most of them) never run on
+# a GPU yet; reset them from the start times this call prints. A step that starts is not
+# skipped halfway:
 # only its commands that would run past the budget's end are cut there (each `timeout` is
 # at most what is left), so that the call ends inside the device's limit with its log.
 step 45 bench_128
