@@ -326,10 +326,10 @@ impl ScaleStage {
         let mut parts: Vec<Vec<(usize, usize)>> = Vec::new();
         let (mut used, mut table) = (0u64, 0u64);
         let mut keys: std::collections::HashSet<PositionKey> = std::collections::HashSet::new();
-        // The key of the item before, always in `keys`: items come sorted by length and a
-        // batch's runs mostly share the rest, so most items need no hashing. This loop runs
-        // once per run × scale on the dispatcher's one thread (512 000 items a batch of 1000
-        // runs at 512 scales): it formats no message and hashes nothing it need not.
+        // This loop runs once per run × scale on the dispatcher's one thread (512 000 items
+        // a batch of 1000 runs at 512 scales): it formats no message unless it fails, and
+        // hashes no key that the item before had (items come sorted by length, and a
+        // batch's runs mostly share the rest of the key).
         let mut last: Option<PositionKey> = None;
         for &(r, k) in &order {
             let run = &runs[r];
@@ -351,8 +351,9 @@ impl ScaleStage {
                     limit,
                 });
             }
-            let new_key = last != Some(key) && !keys.contains(&key);
-            let more = if new_key { steps } else { 0 };
+            // Whether the part lists the key already: the item before's it always does.
+            let listed = last == Some(key) || keys.contains(&key);
+            let more = if listed { 0 } else { steps };
             match parts.last_mut() {
                 Some(p) if used + bytes <= limit && table + more <= limit => p.push((r, k)),
                 _ => {
@@ -362,7 +363,9 @@ impl ScaleStage {
                 }
             }
             used += bytes;
-            if (last != Some(key) || keys.is_empty()) && keys.insert(key) {
+            // A part just opened lists nothing yet.
+            if !listed || keys.is_empty() {
+                keys.insert(key);
                 table += steps;
             }
             last = Some(key);
@@ -541,7 +544,7 @@ impl ScaleStage {
 }
 
 /// Every run × scale item of a batch as (run, scale), by FFT length, and within a length in
-/// (run, scale) order: the order a stable sort by length gives, found by counting. A batch
+/// (run, scale) order: the order a stable sort by length gives, found by bucketing. A batch
 /// has runs × scales items (512 000 for 1000 runs at 512 scales) but a few dozen lengths,
 /// and the sort, its key looked up through each item's run, was the largest serial step of
 /// the dispatcher's first pass after the part-forming loop.
@@ -549,49 +552,30 @@ fn by_length(runs: &[RunScales]) -> Vec<(usize, usize)> {
     // The distinct lengths, ascending.
     let mut lengths: Vec<usize> = Vec::new();
     let mut last = None;
-    for run in runs {
-        for p in run.plans {
-            if last != Some(p.len) {
-                if let Err(at) = lengths.binary_search(&p.len) {
-                    lengths.insert(at, p.len);
-                }
-                last = Some(p.len);
+    for p in runs.iter().flat_map(|run| run.plans) {
+        if last != Some(p.len) {
+            if let Err(at) = lengths.binary_search(&p.len) {
+                lengths.insert(at, p.len);
             }
+            last = Some(p.len);
         }
     }
-    let slot_of = |len: usize| {
-        lengths
-            .binary_search(&len)
-            .expect("every length was listed")
-    };
-    // Each item's length slot, and where each slot's items start.
-    let mut slots: Vec<u32> = Vec::with_capacity(runs.iter().map(|r| r.plans.len()).sum());
-    let mut start = vec![0usize; lengths.len() + 1];
+    // Each length's items, in (run, scale) order.
+    let mut buckets: Vec<Vec<(usize, usize)>> = vec![Vec::new(); lengths.len()];
     let mut last: Option<(usize, usize)> = None;
-    for run in runs {
-        for p in run.plans {
+    for (r, run) in runs.iter().enumerate() {
+        for (k, p) in run.plans.iter().enumerate() {
             let slot = match last {
                 Some((len, slot)) if len == p.len => slot,
-                _ => slot_of(p.len),
+                _ => lengths
+                    .binary_search(&p.len)
+                    .expect("every length was listed"),
             };
             last = Some((p.len, slot));
-            slots.push(slot as u32);
-            start[slot + 1] += 1;
+            buckets[slot].push((r, k));
         }
     }
-    for i in 1..start.len() {
-        start[i] += start[i - 1];
-    }
-    let mut order = vec![(0, 0); slots.len()];
-    let mut slots = slots.into_iter();
-    for (r, run) in runs.iter().enumerate() {
-        for k in 0..run.plans.len() {
-            let slot = slots.next().expect("a slot an item") as usize;
-            order[start[slot]] = (r, k);
-            start[slot] += 1;
-        }
-    }
-    order
+    buckets.concat()
 }
 
 /// Buffers every part of a batch shares.
