@@ -84,6 +84,9 @@ step() {
   fi
 }
 quiet() { grep -vE "^  (cpu|gpu): (repetition|warm-up|end)"; }
+# with VAR VALUE COMMAND...: COMMAND with VAR=VALUE, or with VAR unset for "default" (the
+# experiments' pairs: a switch set one way, then left to skelid's own choice).
+with() { local var=$1 val=$2; shift 2; if [ "$val" = default ]; then env -u "$var" "$@"; else env "$var=$val" "$@"; fi; }
 
 echo "== $(nproc) cores; $(nvidia-smi -L 2>/dev/null | head -1); budget $BUDGET s"
 bash "$(dirname "$0")/campaign.sh" "$N" "$W" "$B"
@@ -173,11 +176,9 @@ exp_lanes() {
   local l
   for l in 1 default 1 default; do
     echo "SKELID_GPU_RIDGE_LANES=$l, the 2^20-sample signal"
-    if [ "$l" = default ]; then unset SKELID_GPU_RIDGE_LANES; else export SKELID_GPU_RIDGE_LANES=$l; fi
-    SKELID_GPU_TRACE=1 timeout "$(tmo 40)" "$B" bench "$W/long.h5" --backend cpu,gpu --repeat 5 --scales 256 \
+    SKELID_GPU_TRACE=1 with SKELID_GPU_RIDGE_LANES "$l" timeout "$(tmo 40)" "$B" bench "$W/long.h5" --backend cpu,gpu --repeat 5 --scales 256 \
       --no-end-to-end --out "$OUT/bench-long-lanes-$l.json" 2>&1 | grep -E "^ +(cpu|gpu) |ridge\.(steps|repair|backtrack)" | tail -7
   done
-  unset SKELID_GPU_RIDGE_LANES
 }
 # 512 scales is the target furthest off (3.3× on the H200), and its dispatcher took 0.2 ms
 # a signal there, 0.4 s of a 0.82 s repetition: which of its spans.
@@ -192,17 +193,15 @@ exp_fft_local() {
   echo "== experiment: the FFTs in workgroup memory (the default) and SKELID_GPU_FFT_LOCAL=0 (the passes), traced"
   local f
   for f in 0 default 0 default; do
-    if [ "$f" = default ]; then unset SKELID_GPU_FFT_LOCAL; else export SKELID_GPU_FFT_LOCAL=$f; fi
     echo "SKELID_GPU_FFT_LOCAL=$f, the campaign at 128 scales"
-    SKELID_GPU_TRACE=1 timeout "$(tmo 40)" "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 --no-end-to-end \
+    SKELID_GPU_TRACE=1 with SKELID_GPU_FFT_LOCAL "$f" timeout "$(tmo 40)" "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 --no-end-to-end \
       --out "$OUT/bench-128-fft-$f.json" 2>&1 | grep -E "^ +gpu |^  fft f" | tail -5
     if [ "$LONG" = 1 ]; then
       echo "SKELID_GPU_FFT_LOCAL=$f, the 2^20-sample signal at 256 scales"
-      SKELID_GPU_TRACE=1 timeout "$(tmo 40)" "$B" bench "$W/long.h5" --backend gpu --repeat 5 --scales 256 --no-end-to-end \
+      SKELID_GPU_TRACE=1 with SKELID_GPU_FFT_LOCAL "$f" timeout "$(tmo 40)" "$B" bench "$W/long.h5" --backend gpu --repeat 5 --scales 256 --no-end-to-end \
         --out "$OUT/bench-long-fft-$f.json" 2>&1 | grep -E "^ +gpu |^  fft f" | tail -5
     fi
   done
-  unset SKELID_GPU_FFT_LOCAL
 }
 # Since 2026-12-05 the workers no longer take each signal's padded spectrum (its FFT, the
 # white-noise median above the band, the variance): the device does, from the samples
@@ -212,12 +211,10 @@ exp_spectra() {
   echo "== experiment: the padded spectra on the device (the default) and SKELID_GPU_SPECTRA=host, traced"
   local f
   for f in host default host default; do
-    if [ "$f" = default ]; then unset SKELID_GPU_SPECTRA; else export SKELID_GPU_SPECTRA=$f; fi
     echo "SKELID_GPU_SPECTRA=$f, the campaign at 128 scales"
-    SKELID_GPU_TRACE=1 timeout "$(tmo 40)" "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 --no-end-to-end \
+    SKELID_GPU_TRACE=1 with SKELID_GPU_SPECTRA "$f" timeout "$(tmo 40)" "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 --no-end-to-end \
       --out "$OUT/bench-128-spectra-$f.json" 2>&1 | grep -E "^ +gpu |^  (fft f|spectrum\.|scales\.scatter)|bytes up|CPU share" | tail -9
   done
-  unset SKELID_GPU_SPECTRA
 }
 # A batch of few runs leaves most of a GPU idle, one workgroup a run, and each step of the
 # ridge programme lasts as long as its longest scan: the wide programme (1024 invocations,
@@ -242,12 +239,10 @@ exp_first_pass() {
   echo "== experiment: the first pass in f64 (the default) and SKELID_GPU_FIRST_PASS=f32, traced"
   local f
   for f in f32 default f32 default; do
-    if [ "$f" = default ]; then unset SKELID_GPU_FIRST_PASS; else export SKELID_GPU_FIRST_PASS=$f; fi
     echo "SKELID_GPU_FIRST_PASS=$f, the campaign at 128 scales"
-    SKELID_GPU_TRACE=1 timeout "$(tmo 40)" "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 --no-end-to-end \
+    SKELID_GPU_TRACE=1 with SKELID_GPU_FIRST_PASS "$f" timeout "$(tmo 40)" "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 --no-end-to-end \
       --out "$OUT/bench-128-first-$f.json" 2>&1 | grep -E "^ +gpu |^  (fft f|scales\.)|bytes up" | tail -7
   done
-  unset SKELID_GPU_FIRST_PASS
 }
 # The completion took 0.18–0.22 s for 2000 tracks on the H200's 16 cores, about three
 # times a track's one-thread cost on a slower 2-core machine: does it stop scaling (memory
@@ -301,11 +296,9 @@ exp_long_spectra() {
   local f
   for f in realfft default realfft default; do
     echo "SKELID_SPECTRUM_FFT=$f, the 2^20-sample signal"
-    if [ "$f" = default ]; then unset SKELID_SPECTRUM_FFT; else export SKELID_SPECTRUM_FFT=$f; fi
-    timeout "$(tmo 40)" "$B" bench "$W/long.h5" --backend cpu,gpu --repeat 5 --scales 256 \
+    with SKELID_SPECTRUM_FFT "$f" timeout "$(tmo 40)" "$B" bench "$W/long.h5" --backend cpu,gpu --repeat 5 --scales 256 \
       --no-end-to-end --out "$OUT/bench-long-spectrum-$f.json" 2>&1 | grep -E "^ +(cpu|gpu) |preparing" | tail -4
   done
-  unset SKELID_SPECTRUM_FFT
 }
 # The writer bounds `run` on 16 cores, and a fresh machine's untouched memory made its copies
 # into the page cache cost a host fault a page (2-core machine: 1.05 s of system time for
