@@ -445,19 +445,17 @@ fn advance(
             }
             let preps = part_preps(&parts);
             // In parallel (the global rayon pool idles while the workers wait on the GPU).
+            let signals = preps.iter().map(Vec::len).sum();
             let grids: Vec<Vec<Vec<GridPoint>>> = crate::profile::span("grids", || {
-                preps
-                    .iter()
-                    .zip(&ridges)
-                    .map(|(p, r)| {
-                        use rayon::prelude::*;
-                        p.par_iter()
-                            .zip(r)
-                            .with_min_len(crate::gpu::PAR_MIN)
-                            .map(|(p, r)| p.grid(&r.path))
-                            .collect()
-                    })
-                    .collect()
+                let pairs: Vec<_> = preps.iter().zip(&ridges).collect();
+                crate::gpu::map_parts(pairs, signals, |(p, r)| {
+                    use rayon::prelude::*;
+                    p.par_iter()
+                        .zip(r)
+                        .with_min_len(crate::gpu::PAR_MIN)
+                        .map(|(p, r)| p.grid(&r.path))
+                        .collect()
+                })
             });
             let flight = match gpu_dead(dead) {
                 Some(e) => Err(e),

@@ -350,6 +350,26 @@ type TimedSubmission = (
 /// the dispatcher itself.
 pub(crate) const PAR_MIN: usize = 32;
 
+/// `f` of each part of a batch (`parts`, holding `signals` signals in all), in order: the
+/// parts side by side on every core once the batch, not one part, is as large as one part's
+/// own loop over [`PAR_MIN`]-signal pieces splits at (2 × `PAR_MIN`); else one after another
+/// on the calling thread. `f` keeps its own loop over a part's signals, so that a batch of
+/// one large part still splits. A small storage binding makes many small parts (lavapipe's
+/// 128 MiB: 20 campaign signals a part at 512 scales), whose loops, each below the
+/// threshold, had all stayed on the dispatcher's one thread.
+pub(crate) fn map_parts<T: Send, R: Send>(
+    parts: Vec<T>,
+    signals: usize,
+    f: impl Fn(T) -> R + Sync + Send,
+) -> Vec<R> {
+    use rayon::prelude::*;
+    if parts.len() > 1 && signals >= 2 * PAR_MIN {
+        parts.into_par_iter().with_max_len(1).map(f).collect()
+    } else {
+        parts.into_iter().map(f).collect()
+    }
+}
+
 /// Fewest entries of one batch's work over steps (the positions tables) that the
 /// dispatcher hands to rayon. Below it the loop stays on the dispatcher: on an H100,
 /// `run`'s 273 batches of a few short records waited 3.4 s for the busy pool in loops
@@ -1451,7 +1471,9 @@ fn pipelines_on(
 
 #[cfg(test)]
 mod tests {
-    use super::{grid, headless, upload_tasks, UPLOAD_SPLIT_BYTES, UPLOAD_TASK_BYTES};
+    use super::{
+        grid, headless, map_parts, upload_tasks, PAR_MIN, UPLOAD_SPLIT_BYTES, UPLOAD_TASK_BYTES,
+    };
 
     /// An upload's tasks cover its segments once, in order; a small upload is cut by count
     /// alone, a large one also by size, so that one long record's samples in pieces are
@@ -1483,6 +1505,34 @@ mod tests {
         // Each segment its own task where asked; none where there is none.
         assert_eq!(upload_tasks(&[5, 6, 7], 4, 1), vec![0..1, 1..2, 2..3]);
         assert!(upload_tasks(&[], 8, 32).is_empty());
+    }
+
+    #[test]
+    fn a_batchs_parts_go_on_the_pool_only_when_the_batch_would_split() {
+        let me = std::thread::current().id();
+        // Each part's own index and the thread that ran it, in part order.
+        let run = |parts: usize, signals: usize| {
+            map_parts((0..parts).collect(), signals, |q| {
+                (q, std::thread::current().id())
+            })
+        };
+        // Four parts of 20 signals (lavapipe's at 512 scales): 80 signals, side by side.
+        let small_parts = run(4, 80);
+        assert_eq!(
+            small_parts.iter().map(|r| r.0).collect::<Vec<_>>(),
+            [0, 1, 2, 3]
+        );
+        assert!(small_parts.iter().all(|r| r.1 != me), "{small_parts:?}");
+        // Fewer signals than one part's loop splits at, or one part (its loop splits
+        // itself): on the calling thread.
+        for (parts, signals) in [(4, 2 * PAR_MIN - 1), (1, 1000)] {
+            let serial = run(parts, signals);
+            assert_eq!(serial.len(), parts);
+            assert!(
+                serial.iter().all(|r| r.1 == me),
+                "{parts} parts: {serial:?}"
+            );
+        }
     }
 
     #[test]

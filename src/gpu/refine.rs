@@ -223,6 +223,17 @@ impl Planned {
     }
 }
 
+/// [`plan`] of each run of a part, in parallel from [`PAR_MIN`](super::PAR_MIN) runs.
+fn plan_part(preps: &[&WaveletPrep], grids: &[Vec<GridPoint>]) -> Vec<Planned> {
+    preps
+        .par_iter()
+        .zip(grids)
+        .with_min_len(super::PAR_MIN)
+        .map(|(p, g)| plan(p, g))
+        .collect()
+}
+
+/// One run's plan: the scales its grid points read and the spectrum bins those cover.
 fn plan(prep: &WaveletPrep, grid: &[GridPoint]) -> Planned {
     let scales: Vec<(usize, ScalePlan)> = prep
         .wanted(grid)
@@ -296,6 +307,15 @@ impl Encoded {
     /// The record buffers and their lengths (bytes), for the batch's read-back.
     pub fn buffers(&self) -> impl Iterator<Item = (&wgpu::Buffer, u64)> {
         self.records.iter().map(|(b, n)| (&**b, *n))
+    }
+
+    /// The device's buffers, taken out once their read-back is in, so that decoding (on
+    /// any core) does not hand them back to the pool.
+    fn release_buffers(&mut self) -> (Vec<(Pooled, u64)>, Vec<Pooled>) {
+        (
+            std::mem::take(&mut self.records),
+            std::mem::take(&mut self._keep),
+        )
     }
 
     /// Each run's grid estimates from the read-back bytes of [`buffers`](Self::buffers), in
@@ -782,15 +802,17 @@ impl RefineStage {
     }
 
     /// Records the refinement of the runs `preps` (one wavelet), with their estimation
-    /// `grids`, into `enc`. Pieces of runs are grouped into sub-parts whose buffers each fit
-    /// one storage binding; a run the GPU cannot serve (an FFT length it cannot plan, one
-    /// grid point's scales beyond a binding) gets its reason instead of a place.
-    pub fn encode(
+    /// `grids` and their plans ([`plan_part`]), into `enc`. Pieces of runs are grouped into
+    /// sub-parts whose buffers each fit one storage binding; a run the GPU cannot serve (an
+    /// FFT length it cannot plan, one grid point's scales beyond a binding) gets its reason
+    /// instead of a place.
+    fn encode(
         &self,
         gpu: &Gpu,
         enc: &mut wgpu::CommandEncoder,
         preps: &[&WaveletPrep],
         grids: &[Vec<GridPoint>],
+        planned: &[Planned],
         resident: Option<&Spectra>,
     ) -> Result<Encoded, GpuError> {
         if resident.is_some() && self.real != Real::F64 {
@@ -800,15 +822,6 @@ impl RefineStage {
         }
         let limit = gpu.max_binding();
         let elem = self.real.complex_bytes() as u64;
-        // Per-run host work in parallel: the dispatcher is one thread for every worker.
-        let planned: Vec<Planned> = crate::profile::span("refine.plan", || {
-            preps
-                .par_iter()
-                .zip(grids)
-                .with_min_len(super::PAR_MIN)
-                .map(|(p, g)| plan(p, g))
-                .collect()
-        });
         let pieces_span = SpanGuard::new("refine.pieces");
         let mut at: Vec<Result<Spans, GpuError>> = Vec::with_capacity(preps.len());
         let mut parts: Vec<Vec<Piece>> = Vec::new();
@@ -853,7 +866,7 @@ impl RefineStage {
         let scale_span = SpanGuard::new("refine.ln_scale");
         let exponents: Vec<i32> = preps
             .par_iter()
-            .zip(&planned)
+            .zip(planned)
             .with_min_len(super::PAR_MIN)
             .map(|(p, q)| match &p.deferred {
                 Some(d) => d.scale_exponent,
@@ -877,7 +890,7 @@ impl RefineStage {
         for (q, part) in parts.iter().enumerate() {
             let (buffer, bytes, firsts, work) = crate::profile::span("refine.encode_part", || {
                 self.encode_part(
-                    gpu, enc, &uniform, preps, grids, &planned, &ln_scale, &exponents, part,
+                    gpu, enc, &uniform, preps, grids, planned, &ln_scale, &exponents, part,
                     resident,
                 )
             })?;
@@ -1155,12 +1168,20 @@ impl RefineStage {
                 label: Some("refinement"),
             });
         let mut encoded = Vec::with_capacity(parts.len());
-        for (q, (preps, grids)) in parts.iter().zip(grids).enumerate() {
+        // Per-run host work in parallel (the dispatcher is one thread for every worker), for
+        // every part at once, so that many small parts (a small binding's) still go on every
+        // core.
+        let signals = parts.iter().map(Vec::len).sum();
+        let planned = crate::profile::span("refine.plan", || {
+            let pairs: Vec<_> = parts.iter().zip(grids).collect();
+            super::map_parts(pairs, signals, |(preps, grids)| plan_part(preps, grids))
+        });
+        for (q, ((preps, grids), planned)) in parts.iter().zip(grids).zip(&planned).enumerate() {
             let resident = spectra.get(q).and_then(Option::as_ref);
             encoded.push(if preps.is_empty() {
                 None
             } else {
-                Some(self.encode(gpu, &mut enc, preps, grids, resident)?)
+                Some(self.encode(gpu, &mut enc, preps, grids, planned, resident)?)
             });
         }
         let _span = SpanGuard::new("refine.readback");
@@ -1184,20 +1205,29 @@ impl RefineFlight {
     ) -> Result<Vec<Vec<Refined>>, GpuError> {
         let RefineFlight { encoded, readback } = self;
         let mut bytes = gpu.finish_readback(readback)?.into_iter();
-        Ok(parts
-            .iter()
-            .zip(grids)
-            .zip(encoded)
-            .map(|((preps, grids), e)| {
-                let Some(e) = e else {
-                    return Vec::new();
-                };
-                let part_words: Vec<Vec<u32>> = (0..e.records.len())
+        let mut read = Vec::with_capacity(parts.len());
+        let mut held = Vec::with_capacity(parts.len());
+        for e in encoded {
+            read.push(e.map(|mut e| {
+                let words: Vec<Vec<u32>> = (0..e.records.len())
                     .map(|_| bytes.next().expect("one read-back per records buffer"))
                     .collect();
-                crate::profile::span("refine.decode", || e.decode(&part_words, preps, grids))
+                held.push(e.release_buffers());
+                (e, words)
+            }));
+        }
+        // Each part's runs; the parts side by side where they are many and small.
+        let signals = parts.iter().map(Vec::len).sum();
+        let work: Vec<_> = parts.iter().zip(grids).zip(read).collect();
+        let decoded = crate::profile::span("refine.decode", || {
+            super::map_parts(work, signals, |((preps, grids), read)| match read {
+                Some((e, words)) => e.decode(&words, preps, grids),
+                None => Vec::new(),
             })
-            .collect())
+        });
+        // The device's buffers go back to the pool on this thread, after the decoding.
+        drop(held);
+        Ok(decoded)
     }
 }
 

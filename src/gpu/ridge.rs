@@ -386,7 +386,13 @@ impl FirstPass {
                 label: Some("first pass"),
             });
         let mut encoded = Vec::with_capacity(parts.len());
-        for preps in parts {
+        // The ridge programme's per-run tables of every part at once, so that many small
+        // parts (a small binding's) still go on every core.
+        let signals = parts.iter().map(Vec::len).sum();
+        let infos = crate::profile::span("ridge.info", || {
+            super::map_parts(parts.iter().collect(), signals, |p| ridge_info(p))
+        });
+        for (preps, info) in parts.iter().zip(infos) {
             let Some(first) = preps.first() else {
                 encoded.push(None);
                 continue;
@@ -429,7 +435,7 @@ impl FirstPass {
             })?;
             let out = crate::profile::span("ridge.encode", || {
                 self.ridge
-                    .encode(gpu, &mut enc, &grid.power, &grid.offsets, preps)
+                    .encode(gpu, &mut enc, &grid.power, &grid.offsets, preps, info)
             })?;
             encoded.push(Some((grid, out, spectra)));
         }
@@ -557,12 +563,12 @@ impl InFlight {
     ) -> Result<FirstPassOut, GpuError> {
         let InFlight { encoded, readback } = self;
         let mut bytes = gpu.finish_readback(readback)?.into_iter();
-        let mut answers = Vec::with_capacity(parts.len());
+        let mut read = Vec::with_capacity(parts.len());
         let mut kept_spectra = Vec::with_capacity(parts.len());
         let mut noise_medians = Vec::with_capacity(parts.len());
         for (preps, e) in parts.iter().zip(encoded) {
             let Some((grid, out, spectra)) = e else {
-                answers.push(Vec::new());
+                read.push(None);
                 kept_spectra.push(None);
                 noise_medians.push(Vec::new());
                 continue;
@@ -577,47 +583,92 @@ impl InFlight {
                 s.release_work();
                 s
             }));
-            // Byte vectors carry no alignment: copy into typed ones.
-            let stats: &[[f32; 2]] = bytemuck::cast_slice(&stats);
-            let gains: &[[f32; 2]] = bytemuck::cast_slice(&gains);
-            let power: &[f32] = bytemuck::cast_slice(&power);
-            answers.push(
-                preps
-                    .par_iter()
-                    .enumerate()
-                    .with_min_len(super::PAR_MIN)
-                    .map(|(r, p)| {
-                        let (po, so) = (out.path_at[r], out.info_at[r]);
-                        CoarseRidge {
-                            path: paths[po..po + p.steps]
-                                .iter()
-                                .map(|&k| k as usize)
-                                .collect(),
-                            median_power: (0..p.freqs.len())
-                                .map(|k| p.noise_steps(k).map(|_| f64::from(stats[so + k][1])))
-                                .collect(),
-                            gains: {
-                                let at = grid.gain_offsets[r];
-                                gains[at..at + p.freqs.len()]
-                                    .iter()
-                                    .map(|&[hi, lo]| f64::from(hi) + f64::from(lo))
-                                    .collect()
-                            },
-                            power: p.keep_scalogram.then(|| {
-                                let at = grid.offsets[r];
-                                power[at..at + p.freqs.len() * p.steps].to_vec()
-                            }),
-                        }
-                    })
-                    .collect(),
-            );
+            read.push(Some((grid, out, [paths, stats, gains, power])));
         }
+        // Each part's ridges; the parts side by side where they are many and small.
+        let signals = parts.iter().map(Vec::len).sum();
+        // The device's buffers (`grid`, `out`) go back to the pool here, not on a core.
+        let pairs: Vec<_> = parts.iter().zip(&read).collect();
+        let answers = super::map_parts(pairs, signals, |(preps, read)| {
+            let Some((grid, out, [paths, stats, gains, power])) = read else {
+                return Vec::new();
+            };
+            let stats: &[[f32; 2]] = bytemuck::cast_slice(stats);
+            let gains: &[[f32; 2]] = bytemuck::cast_slice(gains);
+            let power: &[f32] = bytemuck::cast_slice(power);
+            preps
+                .par_iter()
+                .enumerate()
+                .with_min_len(super::PAR_MIN)
+                .map(|(r, p)| {
+                    let (po, so) = (out.path_at[r], out.info_at[r]);
+                    CoarseRidge {
+                        path: paths[po..po + p.steps]
+                            .iter()
+                            .map(|&k| k as usize)
+                            .collect(),
+                        median_power: (0..p.freqs.len())
+                            .map(|k| p.noise_steps(k).map(|_| f64::from(stats[so + k][1])))
+                            .collect(),
+                        gains: {
+                            let at = grid.gain_offsets[r];
+                            gains[at..at + p.freqs.len()]
+                                .iter()
+                                .map(|&[hi, lo]| f64::from(hi) + f64::from(lo))
+                                .collect()
+                        },
+                        power: p.keep_scalogram.then(|| {
+                            let at = grid.offsets[r];
+                            power[at..at + p.freqs.len() * p.steps].to_vec()
+                        }),
+                    }
+                })
+                .collect()
+        });
         Ok(FirstPassOut {
             ridges: answers,
             spectra: kept_spectra,
             noise_medians,
         })
     }
+}
+
+/// A run's guide for the ridge programme: each step's guiding log-frequency and weight,
+/// where a guide is given.
+type Guide = Option<Vec<[f32; 2]>>;
+
+/// Each run's scale table and guide for [`RidgeStage::encode`], in parallel (the dispatcher
+/// is one thread for every worker); [`FirstPass::submit`] makes them for every part at once.
+fn ridge_info(preps: &[&WaveletPrep]) -> Vec<(Vec<ScaleInfo>, Guide)> {
+    preps
+        .par_iter()
+        .with_min_len(super::PAR_MIN)
+        .map(|p| {
+            let scales = (0..p.freqs.len())
+                .map(|k| {
+                    let (first, last) = p.inner_steps(k);
+                    ScaleInfo {
+                        first: first as u32,
+                        last: last as u32,
+                        mid: p
+                            .noise_steps(k)
+                            .map_or(NO_MEDIAN, |(a, b)| ((b + 1 - a) / 2) as u32),
+                        ln_f: p.freqs[k].ln() as f32,
+                    }
+                })
+                .collect();
+            let guided = (0..p.steps).any(|j| p.guide_at(j).is_some());
+            let guide = guided.then(|| {
+                (0..p.steps)
+                    .map(|j| match p.guide_at(j) {
+                        Some(lg) => [lg as f32, 1.0],
+                        None => [0.0, 0.0],
+                    })
+                    .collect()
+            });
+            (scales, guide)
+        })
+        .collect()
 }
 
 /// The ridge stage's outputs, on the GPU.
@@ -728,45 +779,14 @@ impl RidgeStage {
         power: &wgpu::Buffer,
         power_at: &[usize],
         preps: &[&WaveletPrep],
+        per_run: Vec<(Vec<ScaleInfo>, Guide)>,
     ) -> Result<RidgeOut, GpuError> {
         let mut params: Vec<RunParams> = Vec::with_capacity(preps.len());
         let mut info = Vec::new();
         let mut guide: Vec<[f32; 2]> = Vec::new();
         let (mut back_len, mut path_len) = (0usize, 0usize);
         let (mut path_at, mut info_at) = (Vec::new(), Vec::new());
-        let info_span = SpanGuard::new("ridge.info");
-        // Each run's scale table and guide in parallel (the dispatcher is one thread for
-        // every worker), then laid end to end.
-        type Guide = Option<Vec<[f32; 2]>>;
-        let per_run: Vec<(Vec<ScaleInfo>, Guide)> = preps
-            .par_iter()
-            .with_min_len(super::PAR_MIN)
-            .map(|p| {
-                let scales = (0..p.freqs.len())
-                    .map(|k| {
-                        let (first, last) = p.inner_steps(k);
-                        ScaleInfo {
-                            first: first as u32,
-                            last: last as u32,
-                            mid: p
-                                .noise_steps(k)
-                                .map_or(NO_MEDIAN, |(a, b)| ((b + 1 - a) / 2) as u32),
-                            ln_f: p.freqs[k].ln() as f32,
-                        }
-                    })
-                    .collect();
-                let guided = (0..p.steps).any(|j| p.guide_at(j).is_some());
-                let guide = guided.then(|| {
-                    (0..p.steps)
-                        .map(|j| match p.guide_at(j) {
-                            Some(lg) => [lg as f32, 1.0],
-                            None => [0.0, 0.0],
-                        })
-                        .collect()
-                });
-                (scales, guide)
-            })
-            .collect();
+        let layout_span = SpanGuard::new("ridge.layout");
         // Each run's lanes (one, unless it is long and the dispatch has few runs), each with
         // a slot of 2 S carried scores; the run's own entry (statistics, backtrack) carries
         // its last lane's slot.
@@ -862,7 +882,7 @@ impl RidgeStage {
                 ..lanes[l]
             })
             .collect();
-        drop(info_span);
+        drop(layout_span);
         let back_bytes = back_len as u64 * 4;
         if back_bytes > gpu.max_binding() {
             return Err(GpuError::TooLarge {
