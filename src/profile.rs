@@ -76,6 +76,7 @@ static GPU_BATCHES: AtomicU64 = AtomicU64::new(0);
 static OVERLAPPED: AtomicU64 = AtomicU64::new(0);
 static DISPATCHER_NANOS: AtomicU64 = AtomicU64::new(0);
 static DISPATCHER_WAIT_NANOS: AtomicU64 = AtomicU64::new(0);
+static DISPATCHER_DEVICE_WAIT_CPU_NANOS: AtomicU64 = AtomicU64::new(0);
 static HOST_PREPARE_NANOS: AtomicU64 = AtomicU64::new(0);
 static HOST_COMPLETE_NANOS: AtomicU64 = AtomicU64::new(0);
 static GRID_POINTS: AtomicU64 = AtomicU64::new(0);
@@ -178,15 +179,40 @@ pub fn overlapped() {
 /// Also adds the time the thread was ready to run but waited for a core (the kernel's
 /// run delay), where the kernel reports it.
 pub fn dispatcher<T>(f: impl FnOnce() -> T) -> T {
-    let (t0, w0) = (thread_cpu(), run_delay());
-    let out = f();
-    DISPATCHER_NANOS.fetch_add(
-        thread_cpu().saturating_sub(t0).as_nanos() as u64,
-        Ordering::Relaxed,
-    );
+    let w0 = run_delay();
+    let (out, cpu, waited) = cpu_and_waits(f);
+    DISPATCHER_NANOS.fetch_add(cpu, Ordering::Relaxed);
+    DISPATCHER_DEVICE_WAIT_CPU_NANOS.fetch_add(waited, Ordering::Relaxed);
     if let (Some(w0), Some(w1)) = (w0, run_delay()) {
         DISPATCHER_WAIT_NANOS.fetch_add(w1.saturating_sub(w0), Ordering::Relaxed);
     }
+    out
+}
+
+/// Runs `f`: its result, the CPU nanoseconds the calling thread spent in it, and of those
+/// the nanoseconds inside [`device_wait`]s.
+fn cpu_and_waits<T>(f: impl FnOnce() -> T) -> (T, u64, u64) {
+    let t0 = thread_cpu();
+    let waited0 = DEVICE_WAIT_CPU.with(std::cell::Cell::get);
+    let out = f();
+    let cpu = thread_cpu().saturating_sub(t0).as_nanos() as u64;
+    let waited = DEVICE_WAIT_CPU.with(std::cell::Cell::get) - waited0;
+    (out, cpu, waited)
+}
+
+thread_local! {
+    /// CPU nanoseconds this thread has spent inside the driver's waits for the device.
+    static DEVICE_WAIT_CPU: std::cell::Cell<u64> = const { std::cell::Cell::new(0) };
+}
+
+/// Runs `f`, a blocking wait for the device, counting the CPU time the calling thread spent
+/// in it: a driver that polls while it waits (lavapipe does work there; some drivers spin)
+/// shows up in the dispatcher's CPU time, and this tells how much of it was that.
+pub fn device_wait<T>(f: impl FnOnce() -> T) -> T {
+    let t0 = thread_cpu();
+    let out = f();
+    let spent = thread_cpu().saturating_sub(t0).as_nanos() as u64;
+    DEVICE_WAIT_CPU.with(|c| c.set(c.get() + spent));
     out
 }
 
@@ -242,8 +268,13 @@ pub struct Traffic {
     /// of one batch overlapping the other's compute and read-back).
     pub overlapped: u64,
     /// CPU seconds of the dispatcher thread itself (encoding, uploads, laying out grids,
-    /// reading back; not its waits): the serial host work every GPU batch goes through.
+    /// reading back): the serial host work every GPU batch goes through. Its waits for the
+    /// device count only for the CPU the driver spends in them (`dispatcher_wait_cpu_s`).
     pub dispatcher_cpu_s: f64,
+    /// Of `dispatcher_cpu_s`, CPU seconds spent inside the driver's blocking waits for the
+    /// device: zero for a driver that sleeps while the device works, the device's time for
+    /// one that spins (added 2026-12-05).
+    pub dispatcher_wait_cpu_s: f64,
     /// Seconds the dispatcher thread was ready to run but waited for a core (the CPU
     /// stages of other signals had every core), during its serial host work.
     pub dispatcher_core_wait_s: f64,
@@ -299,6 +330,8 @@ pub fn snapshot() -> Profile {
             overlapped: OVERLAPPED.load(Ordering::Relaxed),
             dispatcher_cpu_s: DISPATCHER_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
             dispatcher_core_wait_s: DISPATCHER_WAIT_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
+            dispatcher_wait_cpu_s: DISPATCHER_DEVICE_WAIT_CPU_NANOS.load(Ordering::Relaxed) as f64
+                * 1e-9,
             host_prepare_s: HOST_PREPARE_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
             host_complete_s: HOST_COMPLETE_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
             grid_points: GRID_POINTS.load(Ordering::Relaxed),
@@ -323,6 +356,7 @@ pub fn reset() {
         &OVERLAPPED,
         &DISPATCHER_NANOS,
         &DISPATCHER_WAIT_NANOS,
+        &DISPATCHER_DEVICE_WAIT_CPU_NANOS,
         &HOST_PREPARE_NANOS,
         &HOST_COMPLETE_NANOS,
         &GRID_POINTS,
@@ -499,6 +533,25 @@ mod tests {
         std::thread::yield_now();
         let second = run_delay().expect("still reported");
         assert!(second >= first, "{second} < {first}");
+    }
+
+    #[test]
+    fn the_cpu_of_a_device_wait_is_counted_as_part_of_the_work_around_it() {
+        // Thread-local and returned, not read from the counters that other tests reset.
+        let spin = |ms| {
+            let t0 = thread_cpu();
+            while thread_cpu() - t0 < Duration::from_millis(ms) {}
+        };
+        let ((), cpu, waited) = cpu_and_waits(|| {
+            spin(5);
+            device_wait(|| spin(10));
+        });
+        assert!((10_000_000..15_000_000).contains(&waited), "{waited}");
+        assert!(cpu >= waited + 5_000_000, "{cpu} {waited}");
+        // Work without a wait for the device has none.
+        let ((), cpu, waited) = cpu_and_waits(|| spin(5));
+        assert_eq!(waited, 0);
+        assert!(cpu >= 5_000_000);
     }
 
     #[test]

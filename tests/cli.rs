@@ -1017,6 +1017,12 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
     let samples = v["samples"].as_f64().unwrap();
     assert!(t["bytes_down"].as_f64().unwrap() <= 16.0 * samples, "{t}");
     assert!(t["dispatcher_core_wait_s"].as_f64().unwrap() >= 0.0, "{t}");
+    // The CPU the driver spent in the dispatcher's waits is part of the dispatcher's.
+    let waits = t["dispatcher_wait_cpu_s"].as_f64().unwrap();
+    assert!(
+        waits >= 0.0 && waits <= t["dispatcher_cpu_s"].as_f64().unwrap(),
+        "{t}"
+    );
     // The CPU's share of the GPU's tracks: measured, and part of its repetition (the calling
     // thread prepares, then completes, one after the other); none counted on the CPU backend.
     let (prepare, complete) = (

@@ -127,8 +127,9 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
                 "{} traffic per signal: {:.0} signals per batch, {:.3} blocking syncs, \
                  {:.0} bytes up, {:.0} bytes down ({:.2} bytes down per sample); \
                  {} of {} submissions made while another was on the device; the \
-                 dispatcher's own CPU time {:.3} ms per signal (serial), and {:.3} ms \
-                 per signal waiting for a core",
+                 dispatcher's own CPU time {:.3} ms per signal (serial; {:.3} of it \
+                 inside the driver's waits for the device), and {:.3} ms per signal \
+                 waiting for a core",
                 t.backend,
                 p.signals_per_batch,
                 p.syncs,
@@ -138,6 +139,7 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
                 t.traffic.overlapped,
                 t.traffic.submissions,
                 1e3 * t.traffic.dispatcher_cpu_s / t.traffic.signals.max(1) as f64,
+                1e3 * t.traffic.dispatcher_wait_cpu_s / t.traffic.signals.max(1) as f64,
                 1e3 * t.traffic.dispatcher_core_wait_s / t.traffic.signals.max(1) as f64
             );
             println!(

@@ -827,9 +827,11 @@ impl Gpu {
     fn wait_for(&self, submission: Option<wgpu::SubmissionIndex>) -> Result<(), GpuError> {
         crate::profile::synced();
         crate::profile::span("wait", || {
-            self.device.poll(wgpu::PollType::Wait {
-                submission_index: submission,
-                timeout: None,
+            crate::profile::device_wait(|| {
+                self.device.poll(wgpu::PollType::Wait {
+                    submission_index: submission,
+                    timeout: None,
+                })
             })
         })
         .map_err(|e| GpuError::Lost(e.to_string()))?;
