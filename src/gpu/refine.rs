@@ -319,8 +319,8 @@ impl Encoded {
     }
 
     /// Each run's grid estimates from the read-back bytes of [`buffers`](Self::buffers), in
-    /// order, its unsure points left for [`Decoded::solve`]; `preps` and `grids` are the
-    /// ones given to [`RefineStage::encode`].
+    /// order, its unsure points left for [`Decoded::solve`]; `preps` and `grids` are its
+    /// part's, as given to [`RefineStage::submit`].
     pub fn decode(
         self,
         words: &[Vec<u32>],

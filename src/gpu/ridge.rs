@@ -772,6 +772,8 @@ impl RidgeStage {
         }
     }
 
+    /// Records the ridge programme of the runs `preps` over their coarse power (at
+    /// `power_at` in `power`), with their scale tables and guides from [`ridge_info`].
     fn encode(
         &self,
         gpu: &Gpu,
