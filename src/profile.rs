@@ -174,8 +174,9 @@ pub fn overlapped() {
     OVERLAPPED.fetch_add(1, Ordering::Relaxed);
 }
 
-/// Runs `f` on the GPU dispatcher's thread, adding the CPU time it spent there (not its waits
-/// for the device, nor work it hands to rayon) to the dispatcher's serial host time.
+/// Runs `f` on the GPU dispatcher's thread, adding the CPU time it spent there (not work it
+/// hands to rayon) to the dispatcher's serial host time. Its waits for the device count only
+/// for the CPU the driver spends in them, which is also added up apart ([`device_wait`]).
 /// Also adds the time the thread was ready to run but waited for a core (the kernel's
 /// run delay), where the kernel reports it.
 pub fn dispatcher<T>(f: impl FnOnce() -> T) -> T {

@@ -1020,7 +1020,7 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
     // The CPU the driver spent in the dispatcher's waits is part of the dispatcher's.
     let waits = t["dispatcher_wait_cpu_s"].as_f64().unwrap();
     assert!(
-        waits >= 0.0 && waits <= t["dispatcher_cpu_s"].as_f64().unwrap(),
+        (0.0..=t["dispatcher_cpu_s"].as_f64().unwrap()).contains(&waits),
         "{t}"
     );
     // The CPU's share of the GPU's tracks: measured, and part of its repetition (the calling

@@ -625,6 +625,7 @@ impl InFlight {
                 })
                 .collect()
         });
+        drop(read);
         Ok(FirstPassOut {
             ridges: answers,
             spectra: kept_spectra,
