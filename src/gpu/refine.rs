@@ -939,13 +939,14 @@ impl RefineStage {
             spec_at.push(bins);
             bins += planned[piece.run].bins;
         }
-        // Blocks (piece, scale) by FFT length; each block is w, w′, w″ back to back.
-        let mut blocks: Vec<(usize, usize)> = part
-            .iter()
-            .enumerate()
-            .flat_map(|(q, piece)| piece.scales.clone().map(move |j| (q, j)))
-            .collect();
-        blocks.sort_by_key(|&(q, j)| planned[part[q].run].scales[j].1.len);
+        // Blocks (piece, scale) by FFT length, in (piece, scale) order within a length (a
+        // stable sort's order, by buckets: a piece has a block for each scale its ridge
+        // crosses, hundreds at 512 scales); each block is w, w′, w″ back to back.
+        let blocks: Vec<(usize, usize)> =
+            super::stable_by_length(part.iter().enumerate().flat_map(|(q, piece)| {
+                let scales = &planned[piece.run].scales;
+                piece.scales.clone().map(move |j| (scales[j].1.len, (q, j)))
+            }));
         let mut table_at: Vec<u32> = Vec::with_capacity(part.len());
         let mut table: Vec<ScaleEntry> = Vec::new();
         for piece in part {

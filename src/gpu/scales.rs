@@ -549,33 +549,12 @@ impl ScaleStage {
 /// and the sort, its key looked up through each item's run, was the largest serial step of
 /// the dispatcher's first pass after the part-forming loop.
 fn by_length(runs: &[RunScales]) -> Vec<(usize, usize)> {
-    // The distinct lengths, ascending.
-    let mut lengths: Vec<usize> = Vec::new();
-    let mut last = None;
-    for p in runs.iter().flat_map(|run| run.plans) {
-        if last != Some(p.len) {
-            if let Err(at) = lengths.binary_search(&p.len) {
-                lengths.insert(at, p.len);
-            }
-            last = Some(p.len);
-        }
-    }
-    // Each length's items, in (run, scale) order.
-    let mut buckets: Vec<Vec<(usize, usize)>> = vec![Vec::new(); lengths.len()];
-    let mut last: Option<(usize, usize)> = None;
-    for (r, run) in runs.iter().enumerate() {
-        for (k, p) in run.plans.iter().enumerate() {
-            let slot = match last {
-                Some((len, slot)) if len == p.len => slot,
-                _ => lengths
-                    .binary_search(&p.len)
-                    .expect("every length was listed"),
-            };
-            last = Some((p.len, slot));
-            buckets[slot].push((r, k));
-        }
-    }
-    buckets.concat()
+    super::stable_by_length(runs.iter().enumerate().flat_map(|(r, run)| {
+        run.plans
+            .iter()
+            .enumerate()
+            .map(move |(k, p)| (p.len, (r, k)))
+    }))
 }
 
 /// Buffers every part of a batch shares.
