@@ -87,6 +87,17 @@ quiet() { grep -vE "^  (cpu|gpu): (repetition|warm-up|end)"; }
 # with VAR VALUE COMMAND...: COMMAND with VAR=VALUE, or with VAR unset for "default" (the
 # experiments' pairs: a switch set one way, then left to skelid's own choice).
 with() { local var=$1 val=$2; shift 2; if [ "$val" = default ]; then env -u "$var" "$@"; else env "$var=$val" "$@"; fi; }
+# campaign_pair VAR VALUE TAG PATTERN LINES: a traced GPU bench of the campaign at 128
+# scales with VAR=VALUE, then with skelid's own choice, twice over; of each, the last LINES
+# lines matching PATTERN. Its JSON goes to $OUT/bench-128-TAG-VALUE.json (…-default.json).
+campaign_pair() {
+  local var=$1 val=$2 tag=$3 pattern=$4 lines=$5 f
+  for f in "$val" default "$val" default; do
+    echo "$var=$f, the campaign at 128 scales"
+    SKELID_GPU_TRACE=1 with "$var" "$f" timeout "$(tmo 40)" "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 --no-end-to-end \
+      --out "$OUT/bench-128-$tag-$f.json" 2>&1 | grep -E "$pattern" | tail -"$lines"
+  done
+}
 
 echo "== $(nproc) cores; $(nvidia-smi -L 2>/dev/null | head -1); budget $BUDGET s"
 bash "$(dirname "$0")/campaign.sh" "$N" "$W" "$B"
@@ -192,15 +203,12 @@ exp_trace_512() {
 exp_fft_local() {
   echo "== experiment: the FFTs in workgroup memory (the default) and SKELID_GPU_FFT_LOCAL=0 (the passes), traced"
   local f
+  campaign_pair SKELID_GPU_FFT_LOCAL 0 fft "^ +gpu |^  fft f" 5
+  [ "$LONG" = 1 ] || return 0
   for f in 0 default 0 default; do
-    echo "SKELID_GPU_FFT_LOCAL=$f, the campaign at 128 scales"
-    SKELID_GPU_TRACE=1 with SKELID_GPU_FFT_LOCAL "$f" timeout "$(tmo 40)" "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 --no-end-to-end \
-      --out "$OUT/bench-128-fft-$f.json" 2>&1 | grep -E "^ +gpu |^  fft f" | tail -5
-    if [ "$LONG" = 1 ]; then
-      echo "SKELID_GPU_FFT_LOCAL=$f, the 2^20-sample signal at 256 scales"
-      SKELID_GPU_TRACE=1 with SKELID_GPU_FFT_LOCAL "$f" timeout "$(tmo 40)" "$B" bench "$W/long.h5" --backend gpu --repeat 5 --scales 256 --no-end-to-end \
-        --out "$OUT/bench-long-fft-$f.json" 2>&1 | grep -E "^ +gpu |^  fft f" | tail -5
-    fi
+    echo "SKELID_GPU_FFT_LOCAL=$f, the 2^20-sample signal at 256 scales"
+    SKELID_GPU_TRACE=1 with SKELID_GPU_FFT_LOCAL "$f" timeout "$(tmo 40)" "$B" bench "$W/long.h5" --backend gpu --repeat 5 --scales 256 --no-end-to-end \
+      --out "$OUT/bench-long-fft-$f.json" 2>&1 | grep -E "^ +gpu |^  fft f" | tail -5
   done
 }
 # Since 2026-12-05 the workers no longer take each signal's padded spectrum (its FFT, the
@@ -209,12 +217,7 @@ exp_fft_local() {
 # a repetition of 80 signals). What the host share and the upload are on a GPU.
 exp_spectra() {
   echo "== experiment: the padded spectra on the device (the default) and SKELID_GPU_SPECTRA=host, traced"
-  local f
-  for f in host default host default; do
-    echo "SKELID_GPU_SPECTRA=$f, the campaign at 128 scales"
-    SKELID_GPU_TRACE=1 with SKELID_GPU_SPECTRA "$f" timeout "$(tmo 40)" "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 --no-end-to-end \
-      --out "$OUT/bench-128-spectra-$f.json" 2>&1 | grep -E "^ +gpu |^  (fft f|spectrum\.|scales\.scatter)|bytes up|CPU share" | tail -9
-  done
+  campaign_pair SKELID_GPU_SPECTRA host spectra "^ +gpu |^  (fft f|spectrum\.|scales\.scatter)|bytes up|CPU share" 9
 }
 # A batch of few runs leaves most of a GPU idle, one workgroup a run, and each step of the
 # ridge programme lasts as long as its longest scan: the wide programme (1024 invocations,
@@ -237,12 +240,7 @@ exp_ridge_width() {
 # bench's noise); what it costs a GPU, against the f32 first pass it replaced.
 exp_first_pass() {
   echo "== experiment: the first pass in f64 (the default) and SKELID_GPU_FIRST_PASS=f32, traced"
-  local f
-  for f in f32 default f32 default; do
-    echo "SKELID_GPU_FIRST_PASS=$f, the campaign at 128 scales"
-    SKELID_GPU_TRACE=1 with SKELID_GPU_FIRST_PASS "$f" timeout "$(tmo 40)" "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 --no-end-to-end \
-      --out "$OUT/bench-128-first-$f.json" 2>&1 | grep -E "^ +gpu |^  (fft f|scales\.)|bytes up" | tail -7
-  done
+  campaign_pair SKELID_GPU_FIRST_PASS f32 first "^ +gpu |^  (fft f|scales\.)|bytes up" 7
 }
 # The completion took 0.18–0.22 s for 2000 tracks on the H200's 16 cores, about three
 # times a track's one-thread cost on a slower 2-core machine: does it stop scaling (memory
