@@ -350,13 +350,14 @@ type TimedSubmission = (
 /// the dispatcher itself.
 pub(crate) const PAR_MIN: usize = 32;
 
-/// `f` of each part of a batch (`parts`, holding `signals` signals in all), in order: the
-/// parts side by side on every core once the batch has more than one part and, not one
-/// part, is as large as one part's own loop over [`PAR_MIN`]-signal pieces splits at (2 ×
-/// `PAR_MIN`); else one after another on the calling thread. `f` keeps its own loop over a part's signals, so that a batch of
-/// one large part still splits. A small storage binding makes many small parts (lavapipe's
-/// 128 MiB: 20 campaign signals a part at 512 scales), whose loops, each below the
-/// threshold, had all stayed on the dispatcher's one thread.
+/// `f` of each part of a batch (`parts`, holding `signals` signals in all), in order. The
+/// parts run side by side on every core when there is more than one and the batch (not
+/// one part) is as large as one part's own loop over [`PAR_MIN`]-signal pieces splits at
+/// (2 × `PAR_MIN`); else one after another on the calling thread. `f` keeps its own loop
+/// over a part's signals, so that a batch of one large part still splits. A small storage
+/// binding makes many small parts (lavapipe's 128 MiB: 20 campaign signals a part at 512
+/// scales), whose loops, each below the threshold, had all stayed on the dispatcher's one
+/// thread.
 pub(crate) fn map_parts<T: Send, R: Send>(
     parts: Vec<T>,
     signals: usize,

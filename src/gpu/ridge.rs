@@ -587,7 +587,6 @@ impl InFlight {
         }
         // Each part's ridges; the parts side by side where they are many and small.
         let signals = parts.iter().map(Vec::len).sum();
-        // The device's buffers (`grid`, `out`) go back to the pool here, not on a core.
         let pairs: Vec<_> = parts.iter().zip(&read).collect();
         let answers = super::map_parts(pairs, signals, |(preps, read)| {
             let Some((grid, out, [paths, stats, gains, power])) = read else {
@@ -625,6 +624,8 @@ impl InFlight {
                 })
                 .collect()
         });
+        // The device's buffers (`grid`, `out`) go back to the pool on this thread, after
+        // the decoding, not on a core.
         drop(read);
         Ok(FirstPassOut {
             ridges: answers,
