@@ -1,6 +1,9 @@
 //! Band-limited transform + DP ridge + skeleton against the plain full-length CWT + argmax
 //! ridge, on the same log sweep (`skelid bench --transform` runs the large sizes, HDF5 in).
 
+use std::hint::black_box;
+use std::time::{Duration, Instant};
+
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use skelid::bench::{bench_signal, BENCH_BAND, BENCH_FS};
 use skelid::track::{track_wavelet, WaveletOptions};
@@ -37,12 +40,24 @@ fn transform(c: &mut Criterion) {
 
 /// The CPU's own share of a GPU track, which no device hides: preparing a signal (band,
 /// spectrum, plans) and completing its track from the skeleton (noise floor, validity,
-/// smoothing, every sample), for one 30 000-sample record of the throughput campaign's size.
+/// smoothing, every sample), for one 30 000-sample record of the throughput campaign's size,
+/// on one core of a pool, as skelid runs it.
 fn host_share(c: &mut Criterion) {
     use skelid::track::{Device, WaveletPrep};
     // As skelid runs: malloc keeps freed blocks, so a track's arrays are reused memory,
     // not pages the kernel must fault in and zero.
     skelid::backend::keep_freed_memory();
+    // Timed inside a pool of one thread, as a worker tracks a campaign signal: its loops
+    // over the signal's points stay one task. Called from outside a pool, each loop handed
+    // its task to a pool thread and slept until it was done, and a quarter of the time
+    // measured was the kernel's wake-ups.
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .expect("a pool of one thread");
+    let on_one_core = |iters: u64, f: &(dyn Fn() -> Duration + Sync)| {
+        pool.install(|| (0..iters).map(|_| f()).sum::<Duration>())
+    };
     let mut group = c.benchmark_group("host_share");
     group.sample_size(20);
     let x = bench_signal(30_000);
@@ -50,23 +65,49 @@ fn host_share(c: &mut Criterion) {
         scales: 128,
         ..WaveletOptions::default()
     };
+    let timed = |f: &dyn Fn()| {
+        let start = Instant::now();
+        f();
+        start.elapsed()
+    };
     group.bench_function("prepare", |b| {
-        b.iter(|| WaveletPrep::new(&x, BENCH_FS, &opt, None).unwrap())
+        b.iter_custom(|iters| {
+            on_one_core(iters, &|| {
+                timed(&|| {
+                    drop(black_box(
+                        WaveletPrep::new(&x, BENCH_FS, &opt, None).unwrap(),
+                    ))
+                })
+            })
+        })
     });
     // What the GPU backend's workers do before the device takes a signal.
     group.bench_function("prepare_deferred", |b| {
-        b.iter(|| WaveletPrep::new_deferred(&x, BENCH_FS, &opt, None).unwrap())
+        b.iter_custom(|iters| {
+            on_one_core(iters, &|| {
+                timed(&|| {
+                    drop(black_box(
+                        WaveletPrep::new_deferred(&x, BENCH_FS, &opt, None).unwrap(),
+                    ))
+                })
+            })
+        })
     });
     let prep = WaveletPrep::new(&x, BENCH_FS, &opt, None).unwrap();
     let ridge = prep.coarse_ridge();
     let grid = prep.grid(&ridge.path);
     let est = prep.estimate_grid(&grid);
     group.bench_function("complete", |b| {
-        b.iter_batched(
-            || (prep.clone(), ridge.clone()),
-            |(p, r)| p.complete(r, &grid, &est, Device::Gpu),
-            criterion::BatchSize::LargeInput,
-        )
+        b.iter_custom(|iters| {
+            on_one_core(iters, &|| {
+                let (p, r) = (prep.clone(), ridge.clone());
+                let start = Instant::now();
+                let track = black_box(p.complete(r, &grid, &est, Device::Gpu));
+                let took = start.elapsed();
+                drop(track);
+                took
+            })
+        })
     });
     group.finish();
 }

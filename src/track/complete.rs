@@ -490,11 +490,15 @@ impl GridSeries<'_> {
         } = *self;
         let g_count = grid.len();
         let base = grid[range.start].sample;
+        // The grid's spacing changes slowly along a record, so consecutive segments mostly
+        // share their length, and with it the position and Hermite weights of every sample.
+        let mut basis = Basis::default();
         for g in range {
             let a = grid[g].sample;
             let b = grid.get(g + 1).map_or(a, |p| p.sample);
             let gb = (g + 1).min(g_count - 1);
             let span = (b - a).max(1) as f64;
+            let weights = basis.of((b - a).max(1));
             let dt = span / fs;
             let last = if g + 1 == g_count { a } else { b - 1 };
             // Each series' value at g and its rise to gb, for v[g] + u (v[gb] − v[g]).
@@ -521,10 +525,10 @@ impl GridSeries<'_> {
                 .zip(&mut rows.d_amplitude[r.clone()])
                 .zip(&mut rows.d2_amplitude[r.clone()])
                 .zip(&mut rows.d_frequency[r.clone()])
-                .zip(&mut rows.valid[r]);
-            for (k, ((((((o_amp, o_f), o_ph), o_da), o_d2a), o_df), o_valid)) in samples.enumerate()
-            {
-                let u = k as f64 / span;
+                .zip(&mut rows.valid[r])
+                .zip(weights);
+            for (((((((o_amp, o_f), o_ph), o_da), o_d2a), o_df), o_valid), w) in samples {
+                let u = w.u;
                 let amp = if geometric {
                     let amp = next_amp;
                     next_amp *= ratio;
@@ -535,21 +539,63 @@ impl GridSeries<'_> {
                     amp_at[gb]
                 };
                 let sig = sig0 + u * sig_d;
-                let (u2, u3) = (u * u, u * u * u);
+                let [h00, h10, h01, h11] = w.hermite;
                 o_amp.write(amp);
                 o_f.write(f0 + u * f_d);
-                o_ph.write(
-                    (2.0 * u3 - 3.0 * u2 + 1.0) * p0
-                        + (u3 - 2.0 * u2 + u) * w0
-                        + (3.0 * u2 - 2.0 * u3) * p1
-                        + (u3 - u2) * w1,
-                );
+                o_ph.write(h00 * p0 + h10 * w0 + h01 * p1 + h11 * w1);
                 o_da.write(-sig * amp);
                 o_d2a.write(amp * (sig * sig - (ds0 + u * ds_d)));
                 o_df.write(b0 + u * b_d);
                 o_valid.write(both);
             }
         }
+    }
+}
+
+/// Where a sample lies in its segment, u = k / span, and the cubic Hermite weights of the
+/// phase's two ends and two slopes there.
+#[derive(Clone, Copy)]
+struct SampleWeights {
+    u: f64,
+    hermite: [f64; 4],
+}
+
+impl SampleWeights {
+    /// The weights of sample `k` of a segment of `span` samples.
+    fn at(k: usize, span: usize) -> SampleWeights {
+        let u = k as f64 / span as f64;
+        let (u2, u3) = (u * u, u * u * u);
+        SampleWeights {
+            u,
+            hermite: [
+                2.0 * u3 - 3.0 * u2 + 1.0,
+                u3 - 2.0 * u2 + u,
+                3.0 * u2 - 2.0 * u3,
+                u3 - u2,
+            ],
+        }
+    }
+}
+
+/// Every sample's [`SampleWeights`] for the last segment length asked: a sample's division
+/// and cubic were a third of the per-sample fill, and a record's segments mostly share their
+/// length (the same values, so the same bits).
+#[derive(Default)]
+struct Basis {
+    span: usize,
+    weights: Vec<SampleWeights>,
+}
+
+impl Basis {
+    /// The weights of the samples 0..`span` of a segment `span` samples long.
+    fn of(&mut self, span: usize) -> &[SampleWeights] {
+        if span != self.span || self.weights.len() != span {
+            self.span = span;
+            self.weights.clear();
+            self.weights
+                .extend((0..span).map(|k| SampleWeights::at(k, span)));
+        }
+        &self.weights
     }
 }
 
@@ -900,6 +946,93 @@ mod tests {
             };
             assert_eq!(filled(&s, n, 100), zeros);
         }
+    }
+
+    /// Every output of sample `i` in segment `g` of `s`, evaluated on its own from the
+    /// fill's formulas as they read before the weights were shared between segments: the
+    /// naive reference of [`GridSeries::fill`].
+    fn one_sample(s: &GridSeries<'_>, g: usize, i: usize) -> [u64; 7] {
+        let (grid, n) = (s.grid, s.grid.len());
+        let a = grid[g].sample;
+        let b = grid.get(g + 1).map_or(a, |p| p.sample);
+        let gb = (g + 1).min(n - 1);
+        let span = (b - a).max(1) as f64;
+        let dt = span / s.fs;
+        let u = (i - a) as f64 / span;
+        let geometric = s.ln_amp[g].is_finite() && s.ln_amp[gb].is_finite();
+        let ratio = ((s.ln_amp[gb] - s.ln_amp[g]) / span).exp();
+        let amp = if geometric {
+            (0..i - a).fold(s.amp[g], |x, _| x * ratio)
+        } else if u < 0.5 {
+            s.amp[g]
+        } else {
+            s.amp[gb]
+        };
+        let lerp = |v: &[f64]| v[g] + u * (v[gb] - v[g]);
+        let sig = lerp(s.decay);
+        let (u2, u3) = (u * u, u * u * u);
+        let w0 = 2.0 * PI * s.frequency[g] * dt;
+        let w1 = 2.0 * PI * s.frequency[gb] * dt;
+        let phase = (2.0 * u3 - 3.0 * u2 + 1.0) * s.phase[g]
+            + (u3 - 2.0 * u2 + u) * w0
+            + (3.0 * u2 - 2.0 * u3) * s.phase[gb]
+            + (u3 - u2) * w1;
+        [
+            amp.to_bits(),
+            lerp(s.frequency).to_bits(),
+            phase.to_bits(),
+            (-sig * amp).to_bits(),
+            (amp * (sig * sig - lerp(s.dsigma))).to_bits(),
+            lerp(s.sweep).to_bits(),
+            u64::from(s.valid[g] && s.valid[gb]),
+        ]
+    }
+
+    #[test]
+    fn samples_filled_are_each_samples_own_formulas_to_the_last_bit() {
+        // Stretches of equal spacing (whose samples share their weights), changes of
+        // spacing back and forth, segments of one sample, and a point without amplitude.
+        let spacings = [6, 6, 6, 7, 7, 6, 1, 1, 13, 13, 13, 2, 6, 6, 29, 1, 6];
+        let mut grid = vec![GridPoint {
+            sample: 2,
+            centre: 0,
+        }];
+        for (j, d) in spacings.iter().cycle().take(120).enumerate() {
+            let sample = grid[j].sample + d;
+            grid.push(GridPoint { sample, centre: 0 });
+        }
+        let n = grid[grid.len() - 1].sample + 5;
+        let g = grid.len();
+        let series = |k: f64| -> Vec<f64> { (0..g).map(|j| (k * j as f64).sin() + 2.0).collect() };
+        let mut ln_amp = series(0.3);
+        ln_amp[40] = f64::NEG_INFINITY;
+        let amp: Vec<f64> = ln_amp.iter().map(|v| v.exp()).collect();
+        let valid: Vec<bool> = (0..g).map(|j| j % 5 != 2).collect();
+        let (phase, decay, frequency) = (series(0.11), series(0.7), series(0.05));
+        let (dsigma, sweep) = (series(1.3), series(0.9));
+        let s = GridSeries {
+            grid: &grid,
+            fs: 250.0,
+            ln_amp: &ln_amp,
+            amp: &amp,
+            phase: &phase,
+            decay: &decay,
+            frequency: &frequency,
+            dsigma: &dsigma,
+            sweep: &sweep,
+            valid: &valid,
+        };
+        let out = filled(&s, n, usize::MAX);
+        let mut checked = 0;
+        for j in 0..g {
+            let end = grid.get(j + 1).map_or(grid[j].sample + 1, |p| p.sample);
+            for i in grid[j].sample..end {
+                let got: Vec<u64> = out.iter().map(|series| series[i]).collect();
+                assert_eq!(got, one_sample(&s, j, i), "sample {i} of segment {j}");
+                checked += 1;
+            }
+        }
+        assert_eq!(checked, grid[g - 1].sample + 1 - grid[0].sample);
     }
 
     #[test]
