@@ -604,6 +604,10 @@ impl Basis {
 /// slope (4e-11 in the test), with each window's sums slid from the previous point's.
 fn coarse_slopes(t: &[f64], ys: [&[f64]; 2], half: &[f64]) -> [Vec<f64>; 2] {
     let mut pairs = vec![(0.0, 0.0); t.len()];
+    // Whether every value is finite, asked once: each chunk asked it of its windows' whole
+    // reach, which for wide windows (a low frequency's σ_t spans thousands of points) is
+    // most of the record, a tenth of the completion of the bench's log sweep.
+    let all_finite = [t, ys[0], ys[1]].iter().all(|v| none_infinite(v));
     // Chunks in parallel; within one, each window's bounds are walked from the previous
     // point's (windows move little between neighbours) and its sums slid with them: a
     // window of some twenty points summed afresh at every point was a fifth of the
@@ -611,7 +615,7 @@ fn coarse_slopes(t: &[f64], ys: [&[f64]; 2], half: &[f64]) -> [Vec<f64>; 2] {
     pairs
         .par_chunks_mut(SLOPE_CHUNK)
         .enumerate()
-        .for_each(|(chunk, out)| slide_chunk(t, ys, half, chunk * SLOPE_CHUNK, out));
+        .for_each(|(chunk, out)| slide_chunk(t, ys, half, chunk * SLOPE_CHUNK, all_finite, out));
     [
         pairs.iter().map(|p| p.0).collect(),
         pairs.iter().map(|p| p.1).collect(),
@@ -621,8 +625,22 @@ fn coarse_slopes(t: &[f64], ys: [&[f64]; 2], half: &[f64]) -> [Vec<f64>; 2] {
 /// Grid points whose slopes one task of [`coarse_slopes`] finds.
 const SLOPE_CHUNK: usize = 512;
 
-/// [`coarse_slopes`] at the points `first..first + out.len()`.
-fn slide_chunk(t: &[f64], ys: [&[f64]; 2], half: &[f64], first: usize, out: &mut [(f64, f64)]) {
+/// Whether no value of `v` is infinite or NaN, without stopping at the first that is (so
+/// that the loop is vectorised).
+fn none_infinite(v: &[f64]) -> bool {
+    v.iter().fold(true, |ok, x| ok & x.is_finite())
+}
+
+/// [`coarse_slopes`] at the points `first..first + out.len()`; `all_finite` says that every
+/// value of `t` and `ys` is finite (else the chunk looks at its windows' reach).
+fn slide_chunk(
+    t: &[f64],
+    ys: [&[f64]; 2],
+    half: &[f64],
+    first: usize,
+    all_finite: bool,
+    out: &mut [(f64, f64)],
+) {
     // The windows' bounds, walked (t is sorted): the same partition points as two binary
     // searches would give.
     let mut bounds = Vec::with_capacity(out.len());
@@ -649,10 +667,13 @@ fn slide_chunk(t: &[f64], ys: [&[f64]; 2], half: &[f64], first: usize, out: &mut
         }
         bounds.push((lo, hi));
     }
-    let reach_lo = bounds.iter().map(|b| b.0).min().unwrap_or(0);
-    let reach_hi = bounds.iter().map(|b| b.1.max(b.0)).max().unwrap_or(0);
-    let finite = |v: &[f64]| v[reach_lo..reach_hi].iter().all(|x| x.is_finite());
-    if !(finite(t) && finite(ys[0]) && finite(ys[1])) {
+    let finite = || {
+        let reach_lo = bounds.iter().map(|b| b.0).min().unwrap_or(0);
+        let reach_hi = bounds.iter().map(|b| b.1.max(b.0)).max().unwrap_or(0);
+        let reach = |v: &[f64]| none_infinite(&v[reach_lo..reach_hi]);
+        reach(t) && reach(ys[0]) && reach(ys[1])
+    };
+    if !(all_finite || finite()) {
         // A value that is not finite would spoil every sum slid past it: each window alone.
         for ((lo, hi), (o, c)) in bounds.into_iter().zip(out.iter_mut().zip(first..)) {
             let [a, b] = window_lines(t, ys, lo, hi, t[c]).map(|l| l.map_or(0.0, |l| l.1));
