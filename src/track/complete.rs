@@ -607,7 +607,7 @@ fn coarse_slopes(t: &[f64], ys: [&[f64]; 2], half: &[f64]) -> [Vec<f64>; 2] {
     // Whether every value is finite, asked once: each chunk asked it of its windows' whole
     // reach, which for wide windows (a low frequency's σ_t spans thousands of points) is
     // most of the record, a tenth of the completion of the bench's log sweep.
-    let all_finite = [t, ys[0], ys[1]].iter().all(|v| none_infinite(v));
+    let all_finite = [t, ys[0], ys[1]].iter().all(|v| every_finite(v));
     // Chunks in parallel; within one, each window's bounds are walked from the previous
     // point's (windows move little between neighbours) and its sums slid with them: a
     // window of some twenty points summed afresh at every point was a fifth of the
@@ -625,9 +625,9 @@ fn coarse_slopes(t: &[f64], ys: [&[f64]; 2], half: &[f64]) -> [Vec<f64>; 2] {
 /// Grid points whose slopes one task of [`coarse_slopes`] finds.
 const SLOPE_CHUNK: usize = 512;
 
-/// Whether no value of `v` is infinite or NaN, without stopping at the first that is (so
-/// that the loop is vectorised).
-fn none_infinite(v: &[f64]) -> bool {
+/// Whether every value of `v` is finite (neither infinite nor NaN), without stopping at the
+/// first that is not (so that the loop is vectorised).
+fn every_finite(v: &[f64]) -> bool {
     v.iter().fold(true, |ok, x| ok & x.is_finite())
 }
 
@@ -670,7 +670,7 @@ fn slide_chunk(
     let finite = || {
         let reach_lo = bounds.iter().map(|b| b.0).min().unwrap_or(0);
         let reach_hi = bounds.iter().map(|b| b.1.max(b.0)).max().unwrap_or(0);
-        let reach = |v: &[f64]| none_infinite(&v[reach_lo..reach_hi]);
+        let reach = |v: &[f64]| every_finite(&v[reach_lo..reach_hi]);
         reach(t) && reach(ys[0]) && reach(ys[1])
     };
     if !(all_finite || finite()) {

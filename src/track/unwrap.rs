@@ -2,7 +2,7 @@
 //! predicts. The rule is a chain (each point's branch depends on the one before, through a
 //! division), which on a 2^20-sample record's 156 000 grid points was 2 ms that no other
 //! core shared, and on a campaign record an eighth of its track's completion. Each point's
-//! turns are now counted against its wrapped predecessor, which no point waits for, long
+//! turns are counted against its wrapped predecessor instead, which no point waits for, long
 //! phases in blocks on every core; the result is checked against the chain's own rule and
 //! comes out the same to the last bit.
 
