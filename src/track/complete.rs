@@ -589,7 +589,7 @@ struct Basis {
 impl Basis {
     /// The weights of the samples 0..`span` of a segment `span` samples long.
     fn of(&mut self, span: usize) -> &[SampleWeights] {
-        if span != self.span || self.weights.len() != span {
+        if span != self.span {
             self.span = span;
             self.weights.clear();
             self.weights

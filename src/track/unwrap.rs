@@ -98,7 +98,9 @@ fn unwrap_in_blocks(
                     continue;
                 }
                 let k = offsets[j] + *o;
-                // `!=` also fails a NaN, whose chain the chain itself then carries on.
+                // `!=` also fails a NaN, whose chain the chain itself then carries on. Equal
+                // values are equal bits here: neither a count of turns nor `k` (sums from
+                // +0) is ever −0.
                 if turns(raw[i], prev, freq, time, i) != k {
                     return Some(i);
                 }
