@@ -497,8 +497,9 @@ impl GridSeries<'_> {
             let a = grid[g].sample;
             let b = grid.get(g + 1).map_or(a, |p| p.sample);
             let gb = (g + 1).min(g_count - 1);
-            let span = (b - a).max(1) as f64;
-            let weights = basis.of((b - a).max(1));
+            let len = (b - a).max(1);
+            let span = len as f64;
+            let weights = basis.of(len);
             let dt = span / fs;
             let last = if g + 1 == g_count { a } else { b - 1 };
             // Each series' value at g and its rise to gb, for v[g] + u (v[gb] − v[g]).
@@ -901,6 +902,55 @@ mod tests {
         out
     }
 
+    /// Made-up skeleton series over a grid's points, each a sine about 2: ln A not finite
+    /// at one point, and the points `invalid` picks not valid.
+    struct MadeSeries {
+        ln_amp: Vec<f64>,
+        amp: Vec<f64>,
+        phase: Vec<f64>,
+        decay: Vec<f64>,
+        frequency: Vec<f64>,
+        dsigma: Vec<f64>,
+        sweep: Vec<f64>,
+        valid: Vec<bool>,
+    }
+
+    impl MadeSeries {
+        /// The series of `g` points, ln A −∞ at point `no_amp`.
+        fn new(g: usize, no_amp: usize, invalid: impl Fn(usize) -> bool) -> MadeSeries {
+            let series =
+                |k: f64| -> Vec<f64> { (0..g).map(|j| (k * j as f64).sin() + 2.0).collect() };
+            let mut ln_amp = series(0.3);
+            ln_amp[no_amp] = f64::NEG_INFINITY;
+            MadeSeries {
+                amp: ln_amp.iter().map(|v| v.exp()).collect(),
+                ln_amp,
+                phase: series(0.11),
+                decay: series(0.7),
+                frequency: series(0.05),
+                dsigma: series(1.3),
+                sweep: series(0.9),
+                valid: (0..g).map(|j| !invalid(j)).collect(),
+            }
+        }
+
+        /// The series on `grid`, sampled at `fs`.
+        fn on<'a>(&'a self, grid: &'a [GridPoint], fs: f64) -> GridSeries<'a> {
+            GridSeries {
+                grid,
+                fs,
+                ln_amp: &self.ln_amp,
+                amp: &self.amp,
+                phase: &self.phase,
+                decay: &self.decay,
+                frequency: &self.frequency,
+                dsigma: &self.dsigma,
+                sweep: &self.sweep,
+                valid: &self.valid,
+            }
+        }
+    }
+
     #[test]
     fn samples_filled_in_parallel_tasks_equal_one_task_to_the_last_bit() {
         // An uneven grid starting past sample 0, some points invalid or without amplitude.
@@ -915,25 +965,9 @@ mod tests {
             i += 1 + (i * 13 % 29);
         }
         let g = grid.len();
-        let series = |k: f64| -> Vec<f64> { (0..g).map(|j| (k * j as f64).sin() + 2.0).collect() };
-        let mut ln_amp = series(0.3);
-        ln_amp[5] = f64::NEG_INFINITY;
-        let valid: Vec<bool> = (0..g).map(|j| j % 7 != 3).collect();
-        let (phase, decay, frequency) = (series(0.11), series(0.7), series(0.05));
-        let (dsigma, sweep) = (series(1.3), series(0.9));
-        let amp: Vec<f64> = ln_amp.iter().map(|v| v.exp()).collect();
-        let grid_series = GridSeries {
-            grid: &grid,
-            fs: 100.0,
-            ln_amp: &ln_amp,
-            amp: &amp,
-            phase: &phase,
-            decay: &decay,
-            frequency: &frequency,
-            dsigma: &dsigma,
-            sweep: &sweep,
-            valid: &valid,
-        };
+        let made = MadeSeries::new(g, 5, |j| j % 7 == 3);
+        let (phase, frequency) = (&made.phase, &made.frequency);
+        let grid_series = made.on(&grid, 100.0);
         let whole = filled(&grid_series, n, usize::MAX);
         // Samples before the grid and after its last point are zero and not valid, in every
         // series; the last point fills its own sample.
@@ -1024,25 +1058,8 @@ mod tests {
         }
         let n = grid[grid.len() - 1].sample + 5;
         let g = grid.len();
-        let series = |k: f64| -> Vec<f64> { (0..g).map(|j| (k * j as f64).sin() + 2.0).collect() };
-        let mut ln_amp = series(0.3);
-        ln_amp[40] = f64::NEG_INFINITY;
-        let amp: Vec<f64> = ln_amp.iter().map(|v| v.exp()).collect();
-        let valid: Vec<bool> = (0..g).map(|j| j % 5 != 2).collect();
-        let (phase, decay, frequency) = (series(0.11), series(0.7), series(0.05));
-        let (dsigma, sweep) = (series(1.3), series(0.9));
-        let s = GridSeries {
-            grid: &grid,
-            fs: 250.0,
-            ln_amp: &ln_amp,
-            amp: &amp,
-            phase: &phase,
-            decay: &decay,
-            frequency: &frequency,
-            dsigma: &dsigma,
-            sweep: &sweep,
-            valid: &valid,
-        };
+        let made = MadeSeries::new(g, 40, |j| j % 5 == 2);
+        let s = made.on(&grid, 250.0);
         let out = filled(&s, n, usize::MAX);
         let mut checked = 0;
         for j in 0..g {
