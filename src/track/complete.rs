@@ -1071,6 +1071,7 @@ mod tests {
             }
         }
         assert_eq!(checked, grid[g - 1].sample + 1 - grid[0].sample);
+        println!("{checked} samples of {g} segments: every output the formulas' own, bit for bit");
     }
 
     #[test]

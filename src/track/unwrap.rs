@@ -205,6 +205,9 @@ mod tests {
                 assert!(failed == n || failed == edge, "{case}: failed at {failed}");
                 redone += usize::from(failed < n);
             }
+            println!(
+                "blocks of {block}, edge at {edge}: {redone} of 601 nudges redone by the chain"
+            );
             assert!(
                 redone > 0,
                 "blocks of {block}, edge at {edge}: no nudge made the counts round otherwise \
