@@ -1058,6 +1058,63 @@ fn read_backs_reuse_their_staging_buffers_and_return_each_ones_own_values() {
     assert_eq!(g.staging_buffers_made(), made + 2);
 }
 
+/// A read-back of several parts read in place: each part its own words (parts of odd
+/// lengths, so that most start at offsets that are not multiples of 8 bytes, and an empty
+/// one), `read`'s answer returned, and the staging buffer back in the pool afterwards: the
+/// next read-back of that size makes none.
+#[test]
+fn read_backs_read_in_place_give_each_part_its_own_words() {
+    let g = gpu();
+    let lens = [3usize, 0, 10_001, 5, 40_000];
+    let read_all = |k: u32| -> (Vec<Vec<u32>>, Vec<Vec<u32>>) {
+        let want: Vec<Vec<u32>> = lens
+            .iter()
+            .enumerate()
+            .map(|(p, &n)| {
+                (0..n as u32)
+                    .map(|i| i * 13 + k * 1000 + p as u32)
+                    .collect()
+            })
+            .collect();
+        // An empty part is read back as no bytes from a buffer of one word.
+        let buffers: Vec<wgpu::Buffer> = want
+            .iter()
+            .map(|v| g.upload("test", if v.is_empty() { &[0u32][..] } else { v }))
+            .collect();
+        let parts: Vec<(&wgpu::Buffer, u64)> = buffers
+            .iter()
+            .zip(&want)
+            .map(|(b, v)| (b, 4 * v.len() as u64))
+            .collect();
+        let mut enc = g
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+        let rb = g.encode_readback(&mut enc, &parts);
+        let rb = g.submit_reading(enc, rb);
+        let got = g
+            .read_in_place(rb, |words| words.iter().map(|w| w.to_vec()).collect())
+            .unwrap();
+        (want, got)
+    };
+    let (want, got) = read_all(1);
+    assert_eq!(got, want);
+    let made = g.staging_buffers_made();
+    for k in 2..4 {
+        let (want, got) = read_all(k);
+        assert_eq!(got, want, "read-back {k}");
+    }
+    assert_eq!(
+        g.staging_buffers_made(),
+        made,
+        "the staging buffer was given back"
+    );
+    println!(
+        "{} parts of {:?} words read in place, twice more on the same staging buffer",
+        lens.len(),
+        lens
+    );
+}
+
 #[test]
 fn uploads_reuse_their_staging_memory_once_its_copy_has_run() {
     let g = gpu();

@@ -323,7 +323,7 @@ impl Encoded {
     /// part's, as given to [`RefineStage::submit`].
     pub fn decode(
         self,
-        words: &[Vec<u32>],
+        words: &[&[u32]],
         preps: &[&WaveletPrep],
         grids: &[Vec<GridPoint>],
     ) -> Vec<Refined> {
@@ -342,7 +342,7 @@ impl Encoded {
                 };
                 let mut centres: Vec<Option<u64>> = vec![None; prep.freqs.len()];
                 for (part, first, points) in spans? {
-                    let all = &words[part];
+                    let all = words[part];
                     let w = &all[first * 8..(first + points.len()) * 8];
                     let reader = Reader {
                         prep,
@@ -1205,30 +1205,33 @@ impl RefineFlight {
         grids: &[Vec<Vec<GridPoint>>],
     ) -> Result<Vec<Vec<Refined>>, GpuError> {
         let RefineFlight { encoded, readback } = self;
-        let mut bytes = gpu.finish_readback(readback)?.into_iter();
-        let mut read = Vec::with_capacity(parts.len());
-        let mut held = Vec::with_capacity(parts.len());
-        for e in encoded {
-            read.push(e.map(|mut e| {
-                let words: Vec<Vec<u32>> = (0..e.records.len())
-                    .map(|_| bytes.next().expect("one read-back per records buffer"))
-                    .collect();
-                held.push(e.release_buffers());
-                (e, words)
-            }));
-        }
-        // Each part's runs; the parts side by side where they are many and small.
-        let signals = parts.iter().map(Vec::len).sum();
-        let work: Vec<_> = parts.iter().zip(grids).zip(read).collect();
-        let decoded = crate::profile::span("refine.decode", || {
-            super::map_parts(work, signals, |((preps, grids), read)| match read {
-                Some((e, words)) => e.decode(&words, preps, grids),
-                None => Vec::new(),
-            })
-        });
-        // The device's buffers go back to the pool on this thread, after the decoding.
-        drop(held);
-        Ok(decoded)
+        // Decoded where the driver mapped the words, before the staging buffer goes back.
+        gpu.read_in_place(readback, |words| {
+            let mut bytes = words.iter().copied();
+            let mut read = Vec::with_capacity(parts.len());
+            let mut held = Vec::with_capacity(parts.len());
+            for e in encoded {
+                read.push(e.map(|mut e| {
+                    let words: Vec<&[u32]> = (0..e.records.len())
+                        .map(|_| bytes.next().expect("one read-back per records buffer"))
+                        .collect();
+                    held.push(e.release_buffers());
+                    (e, words)
+                }));
+            }
+            // Each part's runs; the parts side by side where they are many and small.
+            let signals = parts.iter().map(Vec::len).sum();
+            let work: Vec<_> = parts.iter().zip(grids).zip(read).collect();
+            let decoded = crate::profile::span("refine.decode", || {
+                super::map_parts(work, signals, |((preps, grids), read)| match read {
+                    Some((e, words)) => e.decode(&words, preps, grids),
+                    None => Vec::new(),
+                })
+            });
+            // The device's buffers go back to the pool on this thread, after the decoding.
+            drop(held);
+            decoded
+        })
     }
 }
 
