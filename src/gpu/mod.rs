@@ -823,8 +823,8 @@ impl Gpu {
         })
     }
 
-    /// Submits `enc`, which holds the copies of `rb`, so that [`finish_readback`]
-    /// (Self::finish_readback) waits for this submission alone.
+    /// Submits `enc`, which holds the copies of `rb`, so that [`read_in_place`]
+    /// (Self::read_in_place) waits for this submission alone.
     pub fn submit_reading(&self, enc: wgpu::CommandEncoder, rb: Readback) -> Readback {
         Readback {
             submission: Some(self.submit(enc)),
@@ -1304,7 +1304,7 @@ impl Gpu {
 
     /// Records copies of `parts` (each a buffer and the bytes wanted from its start, a
     /// multiple of 4) into one staging buffer, so that a batch's results come back with one
-    /// map and one wait ([`finish_readback`](Self::finish_readback)) after the submission
+    /// map and one wait ([`read_in_place`](Self::read_in_place)) after the submission
     /// that holds both its work and these copies.
     pub fn encode_readback(
         &self,
@@ -1328,31 +1328,6 @@ impl Gpu {
             ranges,
             submission: None,
         }
-    }
-
-    /// Maps a read-back recorded by [`encode_readback`](Self::encode_readback) once its
-    /// submission is made: one blocking wait, then each part's contents in order, as
-    /// 4-byte words (every part is a multiple of 4 bytes; words keep the alignment that
-    /// the records' u32 and f32 fields need, so decoding reads them in place), copied out.
-    /// The stages' own read-backs use [`read_in_place`](Self::read_in_place) instead.
-    pub fn finish_readback(&self, rb: Readback) -> Result<Vec<Vec<u32>>, GpuError> {
-        self.read_in_place(rb, |parts| {
-            crate::profile::span("readback.copy", || {
-                parts
-                    .iter()
-                    .map(|src| {
-                        use rayon::prelude::*;
-                        // Mapped memory can be slow to read (uncached on some drivers):
-                        // every core copies a share.
-                        let mut dst = vec![0u32; src.len()];
-                        dst.par_chunks_mut(1 << 18)
-                            .zip(src.par_chunks(1 << 18))
-                            .for_each(|(d, s)| d.copy_from_slice(s));
-                        dst
-                    })
-                    .collect()
-            })
-        })
     }
 
     /// Maps a read-back recorded by [`encode_readback`](Self::encode_readback) once its
@@ -1403,7 +1378,6 @@ impl Gpu {
             .map(|&(at, bytes)| &words[(at / 4) as usize..((at + bytes) / 4) as usize])
             .collect();
         let out = read(&parts);
-        drop(parts);
         drop(view);
         staging.unmap_to_give_back();
         Ok(out)
@@ -1436,12 +1410,20 @@ impl Gpu {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
         let readback = self.encode_readback(&mut enc, &[(buffer, bytes)]);
         let readback = self.submit_reading(enc, readback);
-        let part = self
-            .finish_readback(readback)?
-            .pop()
-            .expect("one part read back");
-        // Words are aligned to 4 bytes only: copy into a typed vector.
-        Ok(bytemuck::pod_collect_to_vec(&part))
+        self.read_in_place(readback, |parts| {
+            crate::profile::span("readback.copy", || {
+                use rayon::prelude::*;
+                // Words are aligned to 4 bytes only: copied into a typed vector, every core
+                // a share (mapped memory can be slow to read, uncached on some drivers).
+                let src: &[u8] = bytemuck::cast_slice(parts[0]);
+                let mut out = vec![T::zeroed(); count];
+                bytemuck::cast_slice_mut::<T, u8>(&mut out)
+                    .par_chunks_mut(1 << 20)
+                    .zip(src.par_chunks(1 << 20))
+                    .for_each(|(d, s)| d.copy_from_slice(s));
+                out
+            })
+        })
     }
 }
 

@@ -1207,32 +1207,44 @@ impl RefineFlight {
         let RefineFlight { encoded, readback } = self;
         // Decoded where the driver mapped the words, before the staging buffer goes back.
         gpu.read_in_place(readback, |words| {
-            let mut bytes = words.iter().copied();
-            let mut read = Vec::with_capacity(parts.len());
-            let mut held = Vec::with_capacity(parts.len());
-            for e in encoded {
-                read.push(e.map(|mut e| {
-                    let words: Vec<&[u32]> = (0..e.records.len())
-                        .map(|_| bytes.next().expect("one read-back per records buffer"))
-                        .collect();
-                    held.push(e.release_buffers());
-                    (e, words)
-                }));
-            }
-            // Each part's runs; the parts side by side where they are many and small.
-            let signals = parts.iter().map(Vec::len).sum();
-            let work: Vec<_> = parts.iter().zip(grids).zip(read).collect();
-            let decoded = crate::profile::span("refine.decode", || {
-                super::map_parts(work, signals, |((preps, grids), read)| match read {
-                    Some((e, words)) => e.decode(&words, preps, grids),
-                    None => Vec::new(),
-                })
-            });
-            // The device's buffers go back to the pool on this thread, after the decoding.
-            drop(held);
-            decoded
+            decode_refinement(parts, grids, encoded, words)
         })
     }
+}
+
+/// Every part's runs' grid estimates from the read-back `words` of its [`RefineFlight`]
+/// (one a records buffer of each part that the device served, in order), or per run why
+/// the GPU could not serve it.
+fn decode_refinement(
+    parts: &[Vec<&WaveletPrep>],
+    grids: &[Vec<Vec<GridPoint>>],
+    encoded: Vec<Option<Encoded>>,
+    words: &[&[u32]],
+) -> Vec<Vec<Refined>> {
+    let mut bytes = words.iter().copied();
+    let mut read = Vec::with_capacity(parts.len());
+    let mut held = Vec::with_capacity(parts.len());
+    for e in encoded {
+        read.push(e.map(|mut e| {
+            let words: Vec<&[u32]> = (0..e.records.len())
+                .map(|_| bytes.next().expect("one read-back per records buffer"))
+                .collect();
+            held.push(e.release_buffers());
+            (e, words)
+        }));
+    }
+    // Each part's runs; the parts side by side where they are many and small.
+    let signals = parts.iter().map(Vec::len).sum();
+    let work: Vec<_> = parts.iter().zip(grids).zip(read).collect();
+    let decoded = crate::profile::span("refine.decode", || {
+        super::map_parts(work, signals, |((preps, grids), read)| match read {
+            Some((e, words)) => e.decode(&words, preps, grids),
+            None => Vec::new(),
+        })
+    });
+    // The device's buffers go back to the pool on this thread, after the decoding.
+    drop(held);
+    decoded
 }
 
 #[cfg(test)]

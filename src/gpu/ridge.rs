@@ -563,80 +563,87 @@ impl InFlight {
     ) -> Result<FirstPassOut, GpuError> {
         let InFlight { encoded, readback } = self;
         // Decoded where the driver mapped the words, before the staging buffer goes back.
-        let (answers, kept_spectra, noise_medians) = gpu.read_in_place(readback, |words| {
-            let mut bytes = words.iter().copied();
-            let mut read = Vec::with_capacity(parts.len());
-            let mut kept_spectra = Vec::with_capacity(parts.len());
-            let mut noise_medians = Vec::with_capacity(parts.len());
-            for (preps, e) in parts.iter().zip(encoded) {
-                let Some((grid, out, spectra)) = e else {
-                    read.push(None);
-                    kept_spectra.push(None);
-                    noise_medians.push(Vec::new());
-                    continue;
-                };
-                let mut next = || bytes.next().expect("five read-backs per part");
-                let (paths, stats, gains, medians, power) =
-                    (next(), next(), next(), next(), next());
-                noise_medians.push(match &spectra {
-                    Some(_) => super::spectrum::decode_medians(medians),
-                    None => vec![None; preps.len()],
-                });
-                kept_spectra.push(spectra.map(|mut s| {
-                    s.release_work();
-                    s
-                }));
-                read.push(Some((grid, out, [paths, stats, gains, power])));
-            }
-            // Each part's ridges; the parts side by side where they are many and small.
-            let signals = parts.iter().map(Vec::len).sum();
-            let pairs: Vec<_> = parts.iter().zip(&read).collect();
-            let answers = super::map_parts(pairs, signals, |(preps, read)| {
-                let Some((grid, out, [paths, stats, gains, power])) = read else {
-                    return Vec::new();
-                };
-                let stats: &[[f32; 2]] = bytemuck::cast_slice(stats);
-                let gains: &[[f32; 2]] = bytemuck::cast_slice(gains);
-                let power: &[f32] = bytemuck::cast_slice(power);
-                preps
-                    .par_iter()
-                    .enumerate()
-                    .with_min_len(super::PAR_MIN)
-                    .map(|(r, p)| {
-                        let (po, so) = (out.path_at[r], out.info_at[r]);
-                        CoarseRidge {
-                            path: paths[po..po + p.steps]
-                                .iter()
-                                .map(|&k| k as usize)
-                                .collect(),
-                            median_power: (0..p.freqs.len())
-                                .map(|k| p.noise_steps(k).map(|_| f64::from(stats[so + k][1])))
-                                .collect(),
-                            gains: {
-                                let at = grid.gain_offsets[r];
-                                gains[at..at + p.freqs.len()]
-                                    .iter()
-                                    .map(|&[hi, lo]| f64::from(hi) + f64::from(lo))
-                                    .collect()
-                            },
-                            power: p.keep_scalogram.then(|| {
-                                let at = grid.offsets[r];
-                                power[at..at + p.freqs.len() * p.steps].to_vec()
-                            }),
-                        }
-                    })
-                    .collect()
-            });
-            // The device's buffers (`grid`, `out`) go back to the pool on this thread, after
-            // the decoding, not on a core.
-            drop(read);
-            (answers, kept_spectra, noise_medians)
-        })?;
-        Ok(FirstPassOut {
-            ridges: answers,
-            spectra: kept_spectra,
-            noise_medians,
-        })
+        gpu.read_in_place(readback, |words| decode_first_pass(parts, encoded, words))
+    }
+}
+
+/// Every part's ridges, noise medians and gains from the read-back `words` of its
+/// [`InFlight`] (five a part that the device served, in order), and the spectra the device
+/// keeps for the refinement, their work buffers let go.
+fn decode_first_pass(
+    parts: &[Vec<&WaveletPrep>],
+    encoded: Vec<Option<(PowerGrid, RidgeOut, Option<Spectra>)>>,
+    words: &[&[u32]],
+) -> FirstPassOut {
+    let mut bytes = words.iter().copied();
+    let mut read = Vec::with_capacity(parts.len());
+    let mut kept_spectra = Vec::with_capacity(parts.len());
+    let mut noise_medians = Vec::with_capacity(parts.len());
+    for (preps, e) in parts.iter().zip(encoded) {
+        let Some((grid, out, spectra)) = e else {
+            read.push(None);
+            kept_spectra.push(None);
+            noise_medians.push(Vec::new());
+            continue;
+        };
+        let mut next = || bytes.next().expect("five read-backs per part");
+        let (paths, stats, gains, medians, power) = (next(), next(), next(), next(), next());
+        noise_medians.push(match &spectra {
+            Some(_) => super::spectrum::decode_medians(medians),
+            None => vec![None; preps.len()],
+        });
+        kept_spectra.push(spectra.map(|mut s| {
+            s.release_work();
+            s
+        }));
+        read.push(Some((grid, out, [paths, stats, gains, power])));
+    }
+    // Each part's ridges; the parts side by side where they are many and small.
+    let signals = parts.iter().map(Vec::len).sum();
+    let pairs: Vec<_> = parts.iter().zip(&read).collect();
+    let answers = super::map_parts(pairs, signals, |(preps, read)| {
+        let Some((grid, out, [paths, stats, gains, power])) = read else {
+            return Vec::new();
+        };
+        let stats: &[[f32; 2]] = bytemuck::cast_slice(stats);
+        let gains: &[[f32; 2]] = bytemuck::cast_slice(gains);
+        let power: &[f32] = bytemuck::cast_slice(power);
+        preps
+            .par_iter()
+            .enumerate()
+            .with_min_len(super::PAR_MIN)
+            .map(|(r, p)| {
+                let (po, so) = (out.path_at[r], out.info_at[r]);
+                CoarseRidge {
+                    path: paths[po..po + p.steps]
+                        .iter()
+                        .map(|&k| k as usize)
+                        .collect(),
+                    median_power: (0..p.freqs.len())
+                        .map(|k| p.noise_steps(k).map(|_| f64::from(stats[so + k][1])))
+                        .collect(),
+                    gains: {
+                        let at = grid.gain_offsets[r];
+                        gains[at..at + p.freqs.len()]
+                            .iter()
+                            .map(|&[hi, lo]| f64::from(hi) + f64::from(lo))
+                            .collect()
+                    },
+                    power: p.keep_scalogram.then(|| {
+                        let at = grid.offsets[r];
+                        power[at..at + p.freqs.len() * p.steps].to_vec()
+                    }),
+                }
+            })
+            .collect()
+    });
+    // The device's buffers (`grid`, `out`) go back to the pool on this thread, after
+    // the decoding, not on a core.
+    drop(read);
+    FirstPassOut {
+        ridges: answers,
+        spectra: kept_spectra,
+        noise_medians,
     }
 }
 
