@@ -97,9 +97,9 @@ fn host_share(c: &mut Criterion) {
             })
         });
     }
-    // The log sweep's grid is dense (4 911 points, segments of about 6 samples); a
-    // throughput campaign signal's is not (a chirp to 12 Hz: about 1 100 points, segments
-    // of about 27 samples), so the per-sample work weighs more there: both are timed.
+    // The log sweep's grid is dense (about 5 000 points, segments of about 6 samples); a
+    // throughput campaign signal's is sparser (the chirp to 12 Hz: about 2 300 points,
+    // segments of about 13 samples), so the per-sample work weighs more there: both timed.
     for (name, x) in [("complete", &x), ("complete_chirp", &chirp)] {
         let prep = WaveletPrep::new(x, BENCH_FS, &opt, None).unwrap();
         let ridge = prep.coarse_ridge();
