@@ -1221,13 +1221,13 @@ fn decode_refinement(
     encoded: Vec<Option<Encoded>>,
     words: &[&[u32]],
 ) -> Vec<Vec<Refined>> {
-    let mut bytes = words.iter().copied();
+    let mut by_part = words.iter().copied();
     let mut read = Vec::with_capacity(parts.len());
     let mut held = Vec::with_capacity(parts.len());
     for e in encoded {
         read.push(e.map(|mut e| {
             let words: Vec<&[u32]> = (0..e.records.len())
-                .map(|_| bytes.next().expect("one read-back per records buffer"))
+                .map(|_| by_part.next().expect("one read-back per records buffer"))
                 .collect();
             held.push(e.release_buffers());
             (e, words)

@@ -575,7 +575,7 @@ fn decode_first_pass(
     encoded: Vec<Option<(PowerGrid, RidgeOut, Option<Spectra>)>>,
     words: &[&[u32]],
 ) -> FirstPassOut {
-    let mut bytes = words.iter().copied();
+    let mut by_part = words.iter().copied();
     let mut read = Vec::with_capacity(parts.len());
     let mut kept_spectra = Vec::with_capacity(parts.len());
     let mut noise_medians = Vec::with_capacity(parts.len());
@@ -586,7 +586,7 @@ fn decode_first_pass(
             noise_medians.push(Vec::new());
             continue;
         };
-        let mut next = || bytes.next().expect("five read-backs per part");
+        let mut next = || by_part.next().expect("five read-backs per part");
         let (paths, stats, gains, medians, power) = (next(), next(), next(), next(), next());
         noise_medians.push(match &spectra {
             Some(_) => super::spectrum::decode_medians(medians),
