@@ -515,7 +515,7 @@ impl GridSeries<'_> {
             // ln A is linear over the segment, so A is geometric: one exp per segment, not
             // per sample (the product drifts by ~1e-14 over a segment).
             let geometric = ln_amp[g].is_finite() && ln_amp[gb].is_finite();
-            let ratio = ((ln_amp[gb] - ln_amp[g]) / span).exp();
+            let ratio = segment_ratio((ln_amp[gb] - ln_amp[g]) / span);
             let mut next_amp = amp_at[g];
             // The segment's samples as slices: no bounds check per sample.
             let r = a - base..last + 1 - base;
@@ -552,6 +552,34 @@ impl GridSeries<'_> {
         }
     }
 }
+
+/// e^x, the amplitude's ratio from one sample to the next over a segment where ln A rises
+/// by x a sample: by its Taylor series where |x| ≤ [`SMALL_STEP`] (a sample's step in ln A
+/// is a few thousandths on a campaign's records), `exp` elsewhere. The call was half the
+/// per-sample fill's time on a campaign record (one a segment, 2 300 segments); the
+/// series is within an ulp or two of `exp` (the terms left out are under 1e-19 of the
+/// value).
+#[inline]
+fn segment_ratio(x: f64) -> f64 {
+    if x.abs() <= SMALL_STEP {
+        const C: [f64; 7] = [
+            1.0,
+            1.0,
+            1.0 / 2.0,
+            1.0 / 6.0,
+            1.0 / 24.0,
+            1.0 / 120.0,
+            1.0 / 720.0,
+        ];
+        let tail = C[3] + x * (C[4] + x * (C[5] + x * C[6]));
+        C[0] + x * (C[1] + x * (C[2] + x * tail))
+    } else {
+        x.exp()
+    }
+}
+
+/// Largest |x| for which [`segment_ratio`] sums its series: x^7/7! is then below 4e-19.
+const SMALL_STEP: f64 = 1.0 / 128.0;
 
 /// Where a sample lies in its segment, u = k / span, and the cubic Hermite weights of the
 /// phase's two ends and two slopes there.
@@ -1003,6 +1031,42 @@ mod tests {
         }
     }
 
+    /// The amplitude's ratio a sample against `exp`, within two ulps where it sums its
+    /// series (at the bound, inside it and at the smallest steps) and the same bits where
+    /// it calls `exp` (beyond the bound, infinities, NaN).
+    #[test]
+    fn a_segments_ratio_is_exp_of_its_step() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        let mut steps = vec![0.0, -0.0, 1e-300, -1e-300, 1e-17, 1e-9, -1e-9];
+        for b in [SMALL_STEP, -SMALL_STEP] {
+            steps.extend([b, b * (1.0 - f64::EPSILON), b * (1.0 + f64::EPSILON)]);
+        }
+        steps.extend((0..20_000).map(|_| rng.random_range(-SMALL_STEP..=SMALL_STEP)));
+        steps.extend((0..2_000).map(|_| 10f64.powf(rng.random_range(-12.0..-2.1))));
+        let ulps = |a: f64, b: f64| (a.to_bits() as i64 - b.to_bits() as i64).abs();
+        let mut worst = 0;
+        for x in steps {
+            let (got, want) = (segment_ratio(x), x.exp());
+            worst = worst.max(ulps(got, want));
+            assert!(ulps(got, want) <= 2, "step {x:e}: {got:e} against {want:e}");
+        }
+        eprintln!("the series is at most {worst} ulp(s) from exp");
+        for x in [
+            0.0079,
+            -0.0079,
+            0.5,
+            -3.0,
+            700.0,
+            -745.0,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        ] {
+            assert_eq!(segment_ratio(x).to_bits(), x.exp().to_bits(), "{x}");
+        }
+        assert!(segment_ratio(f64::NAN).is_nan());
+    }
+
     /// Every output of sample `i` in segment `g` of `s`, evaluated on its own from the
     /// fill's formulas as they read before the weights were shared between segments: the
     /// naive reference of [`GridSeries::fill`].
@@ -1015,7 +1079,7 @@ mod tests {
         let dt = span / s.fs;
         let u = (i - a) as f64 / span;
         let geometric = s.ln_amp[g].is_finite() && s.ln_amp[gb].is_finite();
-        let ratio = ((s.ln_amp[gb] - s.ln_amp[g]) / span).exp();
+        let ratio = segment_ratio((s.ln_amp[gb] - s.ln_amp[g]) / span);
         let amp = if geometric {
             (0..i - a).fold(s.amp[g], |x, _| x * ratio)
         } else if u < 0.5 {
