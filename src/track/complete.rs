@@ -555,10 +555,9 @@ impl GridSeries<'_> {
 
 /// e^x, the amplitude's ratio from one sample to the next over a segment where ln A rises
 /// by x a sample: by its Taylor series where |x| ≤ [`SMALL_STEP`] (a sample's step in ln A
-/// is a few thousandths on a campaign's records), `exp` elsewhere. The call was half the
-/// per-sample fill's time on a campaign record (one a segment, 2 300 segments); the
-/// series is within an ulp or two of `exp` (the terms left out are under 1e-19 of the
-/// value).
+/// is a few thousandths on a campaign's records: 94 % of its segments), `exp` elsewhere.
+/// The call, one a segment, cost 5–10 µs of a campaign record's 240 µs completion; the
+/// series is within an ulp of `exp` (the terms left out are under 4e-19 of the value).
 #[inline]
 fn segment_ratio(x: f64) -> f64 {
     if x.abs() <= SMALL_STEP {
