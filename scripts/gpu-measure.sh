@@ -217,7 +217,7 @@ exp_fft_local() {
 # a repetition of 80 signals). What the host share and the upload are on a GPU.
 exp_spectra() {
   echo "== experiment: the padded spectra on the device (the default) and SKELID_GPU_SPECTRA=host, traced"
-  campaign_pair SKELID_GPU_SPECTRA host spectra "^ +gpu |^  (fft f|spectrum\.|scales\.scatter)|bytes up|CPU share" 9
+  campaign_pair SKELID_GPU_SPECTRA host spectra "^ +gpu |^  (fft f|spectrum\.|scales\.scatter)|bytes up|CPU share|wait for the device" 10
 }
 # A batch of few runs leaves most of a GPU idle, one workgroup a run, and each step of the
 # ridge programme lasts as long as its longest scan: the wide programme (1024 invocations,
@@ -251,7 +251,7 @@ exp_threads() {
   for t in 2 4 8 16; do
     echo -n "RAYON_NUM_THREADS=$t: "
     RAYON_NUM_THREADS=$t timeout "$(tmo 40)" "$B" bench "$W/campaign" --backend gpu --repeat 2 --scales 128 --no-end-to-end \
-      --out "$OUT/bench-128-threads-$t.json" 2>&1 | grep -E "CPU share" | tail -1
+      --out "$OUT/bench-128-threads-$t.json" 2>&1 | grep -E "CPU share|wait for the device" | tail -2
   done
 }
 exp_malloc() {
@@ -268,7 +268,7 @@ exp_malloc() {
     esac
     echo "${setting[*]}"
     env "${setting[@]}" timeout "$(tmo 80)" "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --no-end-to-end \
-      --out "$OUT/bench-128-malloc-$m.json" 2>&1 | grep -E "^ +(cpu|gpu) |CPU share|kernel share|floor"
+      --out "$OUT/bench-128-malloc-$m.json" 2>&1 | grep -E "^ +(cpu|gpu) |CPU share|wait for the device|kernel share|floor"
   done
 }
 # Held, 2000 tracks are 3.4 GB a repetition of fresh memory for the kernel to map and zero
@@ -283,7 +283,7 @@ exp_hold() {
     # ${flag[@]+...}: an empty array under `set -u` is an error before bash 4.4.
     echo "tracks: $h"
     timeout "$(tmo 80)" "$B" bench "$W/campaign" --backend cpu,gpu --repeat 3 --scales 128 --no-end-to-end ${flag[@]+"${flag[@]}"} \
-      --out "$OUT/bench-128-tracks-$h.json" 2>&1 | grep -E "^ +(cpu|gpu) |speed-up|CPU share|kernel share"
+      --out "$OUT/bench-128-tracks-$h.json" 2>&1 | grep -E "^ +(cpu|gpu) |speed-up|CPU share|wait for the device|kernel share"
   done
 }
 # The long record's two spectra (2^20 and 1.6 M points) on every core by the four-step

@@ -79,6 +79,7 @@ static DISPATCHER_WAIT_NANOS: AtomicU64 = AtomicU64::new(0);
 static DISPATCHER_DEVICE_WAIT_CPU_NANOS: AtomicU64 = AtomicU64::new(0);
 static HOST_PREPARE_NANOS: AtomicU64 = AtomicU64::new(0);
 static HOST_COMPLETE_NANOS: AtomicU64 = AtomicU64::new(0);
+static HOST_WAIT_NANOS: AtomicU64 = AtomicU64::new(0);
 static GRID_POINTS: AtomicU64 = AtomicU64::new(0);
 static HOST_SOLVED: AtomicU64 = AtomicU64::new(0);
 static HOST_REFINED: AtomicU64 = AtomicU64::new(0);
@@ -147,6 +148,13 @@ pub fn host_share(complete: bool, d: Duration) {
         &HOST_PREPARE_NANOS
     };
     counter.fetch_add(d.as_nanos() as u64, Ordering::Relaxed);
+}
+
+/// The caller of a GPU batch of tracks waited `d` (wall time) for the device's answers to
+/// a group it had handed over: the part of that group's path through the dispatcher and the
+/// device that its own preparing and completing of other groups did not cover.
+pub fn host_waited(d: Duration) {
+    HOST_WAIT_NANOS.fetch_add(d.as_nanos() as u64, Ordering::Relaxed);
 }
 
 /// Counts one queue submission to the GPU.
@@ -285,6 +293,9 @@ pub struct Traffic {
     /// Wall seconds it spent completing the tracks on every core (noise floor, validity,
     /// smoothing, every sample from the skeleton) once the device had answered.
     pub host_complete_s: f64,
+    /// Wall seconds it waited for the device's answers between the two (the dispatcher's
+    /// and the device's path that its own host work did not cover; added 2026-12-06).
+    pub host_wait_s: f64,
     /// Grid points the GPU refined.
     pub grid_points: u64,
     /// Of those, points whose f32 bias correction or thresholds the host did not trust and
@@ -335,6 +346,7 @@ pub fn snapshot() -> Profile {
                 * 1e-9,
             host_prepare_s: HOST_PREPARE_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
             host_complete_s: HOST_COMPLETE_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
+            host_wait_s: HOST_WAIT_NANOS.load(Ordering::Relaxed) as f64 * 1e-9,
             grid_points: GRID_POINTS.load(Ordering::Relaxed),
             host_solved: HOST_SOLVED.load(Ordering::Relaxed),
             host_refined: HOST_REFINED.load(Ordering::Relaxed),
@@ -360,6 +372,7 @@ pub fn reset() {
         &DISPATCHER_DEVICE_WAIT_CPU_NANOS,
         &HOST_PREPARE_NANOS,
         &HOST_COMPLETE_NANOS,
+        &HOST_WAIT_NANOS,
         &GRID_POINTS,
         &HOST_SOLVED,
         &HOST_REFINED,

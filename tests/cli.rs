@@ -1035,9 +1035,15 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
         .iter()
         .map(|s| s.as_f64().unwrap())
         .sum();
-    assert!(prepare > 0.0 && complete > 0.0, "{t}");
-    assert!(prepare + complete <= gpu_seconds, "{t} {gpu_seconds}");
+    // The wait for the device between them is part of the same repetitions.
+    let wait = t["host_wait_s"].as_f64().unwrap();
+    assert!(prepare > 0.0 && complete > 0.0 && wait >= 0.0, "{t}");
+    assert!(
+        prepare + complete + wait <= gpu_seconds,
+        "{t} {gpu_seconds}"
+    );
     assert_eq!(b[0]["traffic"]["host_prepare_s"], 0.0);
+    assert_eq!(b[0]["traffic"]["host_wait_s"], 0.0);
     // What the kernel did a repetition, for each backend (fresh memory, system time).
     for t in b {
         let faults = t["page_faults_per_repetition"].as_f64().unwrap();
@@ -1057,7 +1063,8 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
     );
     assert!(
         text.contains("gpu backend's CPU share a repetition")
-            && text.contains("cannot beat the CPU backend by more than"),
+            && text.contains("cannot beat the CPU backend by more than")
+            && text.contains("gpu backend's wait for the device a repetition"),
         "{text}"
     );
     // The same agreement from the f32 path, used where an adapter has no SHADER_F64; a

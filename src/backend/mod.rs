@@ -561,7 +561,11 @@ impl Backend {
         F: Fn(usize, Result<Track, TrackError>) + Sync,
     {
         use rayon::prelude::*;
+        let waited = std::time::Instant::now();
         let passed = crate::profile::span("host.receive", || self.receive(group.sent));
+        if self.gpu.is_some() {
+            crate::profile::host_waited(waited.elapsed());
+        }
         // `zip` would stop at the shorter side and lose tracks without a word.
         assert_eq!(
             passed.len(),

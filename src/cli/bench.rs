@@ -239,9 +239,10 @@ fn print_host_share(result: &skelid::bench::backends::BackendBench) {
     let cpu = result.backends.iter().find(|t| t.backend == "cpu");
     for t in result.backends.iter().filter(|t| t.traffic.signals > 0) {
         let reps = result.repeat.max(1) as f64;
-        let (prepare, complete) = (
+        let (prepare, complete, wait) = (
             t.traffic.host_prepare_s / reps,
             t.traffic.host_complete_s / reps,
+            t.traffic.host_wait_s / reps,
         );
         let floor = prepare + complete;
         let ceiling = cpu
@@ -254,13 +255,23 @@ fn print_host_share(result: &skelid::bench::backends::BackendBench) {
                 )
             })
             .unwrap_or_default();
+        let median = t.median_s.max(1e-12);
         println!(
             "{} backend's CPU share a repetition (wall time, every core): preparing the \
              signals {:.3} s, completing the tracks {:.3} s ({:.0} % of its median){ceiling}",
             t.backend,
             prepare,
             complete,
-            100.0 * floor / t.median_s.max(1e-12)
+            100.0 * floor / median
+        );
+        // The rest of a repetition, nearly: its first group's path through the dispatcher
+        // and the device, less what preparing the next group covered.
+        println!(
+            "{} backend's wait for the device a repetition (wall time, between preparing and \
+             completing): {:.3} s ({:.0} % of its median)",
+            t.backend,
+            wait,
+            100.0 * wait / median
         );
     }
 }
