@@ -1035,9 +1035,10 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
         .iter()
         .map(|s| s.as_f64().unwrap())
         .sum();
-    // The wait for the device between them is part of the same repetitions.
+    // The wait for the device between them is measured (the main thread always waits
+    // for the dispatcher's answers, if only a moment) and part of the same repetitions.
     let wait = t["host_wait_s"].as_f64().unwrap();
-    assert!(prepare > 0.0 && complete > 0.0 && wait >= 0.0, "{t}");
+    assert!(prepare > 0.0 && complete > 0.0 && wait > 0.0, "{t}");
     assert!(
         prepare + complete + wait <= gpu_seconds,
         "{t} {gpu_seconds}"
