@@ -231,10 +231,10 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
     Ok(())
 }
 
-/// The end-to-end table: wall time, then each stage's CPU seconds and share per backend.
 /// The GPU backend's floor: what its tracks cost the CPU a repetition, which the device
 /// and the dispatcher cannot hide (the calling thread prepares, then completes, on every
-/// core), and the most the GPU backend can then gain over the CPU backend.
+/// core), and the most the GPU backend can then gain over the CPU backend; then the
+/// calling thread's wait for the device between the two, the rest of a repetition.
 fn print_host_share(result: &skelid::bench::backends::BackendBench) {
     let cpu = result.backends.iter().find(|t| t.backend == "cpu");
     for t in result.backends.iter().filter(|t| t.traffic.signals > 0) {
@@ -276,6 +276,7 @@ fn print_host_share(result: &skelid::bench::backends::BackendBench) {
     }
 }
 
+/// The end-to-end table: wall time, then each stage's CPU seconds and share per backend.
 pub(crate) fn print_stages(runs: &[skelid::bench::backends::EndToEnd]) {
     let Some(first) = runs.first() else { return };
     println!("\nend to end (skelid run, both methods, read and write included):");
