@@ -464,6 +464,8 @@ mod tests {
                 .install(|| running_mean(p, w))
         };
         let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        // The largest difference from a window summed afresh, relative to the mean.
+        let mut worst = 0.0f64;
         for len in [0usize, 1, 2, 5, 7, 64, 1000, 70_001, 140_003] {
             // Powers within one decade, so that a window one bin off (a bin's power over
             // `w`) stands far above the sums' rounding.
@@ -490,6 +492,7 @@ mod tests {
                         assert_eq!(g.to_bits(), (chain / count).to_bits(), "head bin {i}");
                     }
                     let fresh = p[from..=i].iter().sum::<f64>() / count;
+                    worst = worst.max((g - fresh).abs() / fresh);
                     // Each slide rounds twice; a lane slides at most a stretch.
                     let tol = 4.0 * f64::EPSILON * (i.min(1 << 16) + w) as f64 * 10.0;
                     assert!(
@@ -501,6 +504,7 @@ mod tests {
                 assert_eq!(peak.to_bits(), largest.to_bits(), "{len} bins, window {w}");
             }
         }
+        eprintln!("running means within {worst:.1e} (relative) of each window summed afresh");
         // Powers over 30 decades: the first w bins still the chain's bits, the peak still
         // the largest mean.
         let p: Vec<f64> = (0..5000)
