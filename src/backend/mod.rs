@@ -149,8 +149,8 @@ const HEAP_BLOCK_MAX: libc::c_int = 32 << 20;
 /// completed on the calling thread, since rayon runs a parallel iterator of one item in
 /// place, so on the main thread its arrays come from the main heap: at 64 MiB the 70 MB a
 /// 2^20-sample track frees there were given back after each repetition and faulted in
-/// again (about 17 700 page faults a repetition of `bench`, its completion 34–39 ms
-/// instead of 22–28 on 2 cores). The threads' own heaps are at most 64 MiB, so any value
+/// again (about 17 700 page faults a repetition of `bench`, its completion 34–55 ms
+/// instead of 22–41 on 2 cores). The threads' own heaps are at most 64 MiB, so any value
 /// from there on changes the main heap alone; the peak is unchanged, only kept.
 const KEEP_FREED: libc::c_int = 256 << 20;
 
