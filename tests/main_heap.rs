@@ -12,14 +12,9 @@ fn main() {
 
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 mod linux {
-    /// Minor page faults of the calling thread: fresh pages mapped and zeroed by the kernel.
-    fn faults() -> i64 {
-        // SAFETY: getrusage fills the struct it is given.
-        unsafe {
-            let mut u: libc::rusage = std::mem::zeroed();
-            libc::getrusage(libc::RUSAGE_THREAD, &mut u);
-            u.ru_minflt
-        }
+    /// Page faults of the calling thread so far: fresh pages mapped and zeroed by the kernel.
+    fn faults() -> u64 {
+        skelid::profile::Events::now().faults
     }
 
     /// Samples of the long record (2^20) and the per-sample arrays its track holds at once:
@@ -34,7 +29,7 @@ mod linux {
     }
 
     /// Page faults of the best of three rounds after a first one.
-    fn faults_again() -> i64 {
+    fn faults_again() -> u64 {
         track();
         (0..3)
             .map(|_| {
@@ -59,7 +54,7 @@ mod linux {
         // SAFETY: mallopt only sets the allocator's parameters.
         unsafe { libc::mallopt(libc::M_TRIM_THRESHOLD, 64 << 20) };
         let trimmed = faults_again();
-        let pages = (ARRAYS * SAMPLES * 8 / 4096) as i64;
+        let pages = (ARRAYS * SAMPLES * 8 / 4096) as u64;
         println!(
             "a 2^20-sample track's {ARRAYS} arrays ({pages} pages) freed and made again on the \
              main thread: {kept} page faults with skelid's setting, {trimmed} with a 64 MiB \
