@@ -115,8 +115,20 @@ static SAMPLE_BUFFERS: std::sync::Mutex<(Vec<Vec<f64>>, usize)> =
 const SAMPLE_BUFFER_BYTES: usize = 512 << 20;
 
 impl SampleBuffers {
-    /// `x − mean` in a kept buffer that holds it, or a new one.
-    fn centred(x: &[f64], mean: f64) -> Vec<f64> {
+    /// `x − mean` in a kept buffer that holds it, or a new one, with the record's variance
+    /// by Parseval's theorem and Σ|x − mean| ([`ParsevalSums`]) summed as each value is
+    /// written. Centring and summing apart read the samples twice: in a group of signals,
+    /// whose buffers are cold, the two took 39 µs a 30 000-sample signal on one core here,
+    /// the one pass 33 µs (80 campaign signals' deferred preparations 19.7–20.1 → 19.0–19.2
+    /// ms on one core; a 2^20-sample record's 9.1–9.7 → 8.3–8.9 ms on two).
+    fn centred_with_variance(x: &[f64], mean: f64, padded_len: usize) -> (Vec<f64>, f64, f64) {
+        let mut out = Self::take(x.len());
+        let (variance, abs) = centre_into(&mut out, x, mean, padded_len);
+        (out, variance, abs)
+    }
+
+    /// A kept buffer that holds `len` values (its contents left as they were), or a new one.
+    fn take(len: usize) -> Vec<f64> {
         let reused = {
             let mut kept = SAMPLE_BUFFERS.lock().unwrap_or_else(|p| p.into_inner());
             let (buffers, bytes) = &mut *kept;
@@ -125,7 +137,7 @@ impl SampleBuffers {
             buffers
                 .iter()
                 .enumerate()
-                .filter(|(_, b)| b.capacity() >= x.len() && b.capacity() <= 2 * x.len().max(1))
+                .filter(|(_, b)| b.capacity() >= len && b.capacity() <= 2 * len.max(1))
                 .min_by_key(|(_, b)| b.capacity())
                 .map(|(i, _)| i)
                 .map(|i| {
@@ -134,10 +146,7 @@ impl SampleBuffers {
                     b
                 })
         };
-        let mut out = reused.unwrap_or_else(|| Vec::with_capacity(x.len()));
-        out.clear();
-        out.extend(x.iter().map(|v| v - mean));
-        out
+        reused.unwrap_or_else(|| Vec::with_capacity(len))
     }
 
     /// Keeps `buffer` for a later signal, unless the kept ones are at their limit.
@@ -177,34 +186,92 @@ fn spectral_variance(spec: &Spectrum, n: usize) -> f64 {
         / (n as f64 * spec.padded_len as f64)
 }
 
+/// `out` = `x − mean` (whatever it held before, written once, never zeroed first: a long
+/// record's buffer is 8 MB), and [`ParsevalSums::variance`] of those values, summed as they
+/// are written: the bits of the same sums taken over `out` in a pass of their own (the
+/// tests' `parseval_variance`).
+fn centre_into(out: &mut Vec<f64>, x: &[f64], mean: f64, padded_len: usize) -> (f64, f64) {
+    let n = x.len();
+    out.clear();
+    out.reserve(n);
+    let mut sums = ParsevalSums::default();
+    {
+        let spare = &mut out.spare_capacity_mut()[..n];
+        let mut from = x.chunks_exact(8);
+        let mut to = spare.chunks_exact_mut(8);
+        for (c, o) in (&mut from).zip(&mut to) {
+            let y: [f64; 8] = std::array::from_fn(|k| c[k] - mean);
+            for (o, &v) in o.iter_mut().zip(&y) {
+                o.write(v);
+            }
+            sums.add_eight(&y);
+        }
+        for (k, (&v, o)) in from.remainder().iter().zip(to.into_remainder()).enumerate() {
+            sums.add(k, *o.write(v - mean));
+        }
+    }
+    // SAFETY: the loops above wrote each of the first n values: the chunks of eight and
+    // their remainder cover `x`, and `spare` is as long.
+    unsafe { out.set_len(n) };
+    sums.variance(n, padded_len)
+}
+
+/// The sums of [`ParsevalSums`] over `y` in a pass of their own: what [`centre_into`] must
+/// find as it writes.
+#[cfg(test)]
+fn parseval_variance(y: &[f64], padded_len: usize) -> (f64, f64) {
+    let mut sums = ParsevalSums::default();
+    let mut chunks = y.chunks_exact(8);
+    for c in &mut chunks {
+        sums.add_eight(c.try_into().expect("eight values"));
+    }
+    for (k, &v) in chunks.remainder().iter().enumerate() {
+        sums.add(k, v);
+    }
+    sums.variance(y.len(), padded_len)
+}
+
 /// [`spectral_variance`] from the samples less their mean, `y`, by Parseval's theorem,
 /// for a spectrum not held here, and Σ|y|, which bounds every bin. For y zero-padded to L
 /// (even), Σ_{k=0}^{L−1} |Y_k|² = L Σ y², and the bins k and L − k are conjugate, so twice
 /// bins 1..=L/2 is L Σ y² − Y_0² + Y_{L/2}², with Y_0 = Σ y and Y_{L/2} = Σ (−1)^j y_j.
-fn parseval_variance(y: &[f64], padded_len: usize) -> (f64, f64) {
-    // Eight lanes of each sum side by side (one chain of additions was a tenth of a
-    // deferred preparation); lane k holds the samples j ≡ k (mod 8), whose sign in the
-    // alternating sum is (−1)^k.
-    let (mut sum, mut sq, mut abs) = ([0.0f64; 8], [0.0f64; 8], [0.0f64; 8]);
-    let mut chunks = y.chunks_exact(8);
-    for c in &mut chunks {
-        for k in 0..8 {
-            sum[k] += c[k];
-            sq[k] += c[k] * c[k];
-            abs[k] += c[k].abs();
+/// Σ y, Σ y² and Σ |y| go in eight lanes side by side (one chain of additions was a tenth
+/// of a deferred preparation); lane k holds the samples j ≡ k (mod 8), whose sign in the
+/// alternating sum is (−1)^k.
+#[derive(Default)]
+struct ParsevalSums {
+    sum: [f64; 8],
+    sq: [f64; 8],
+    abs: [f64; 8],
+}
+
+impl ParsevalSums {
+    /// Eight consecutive samples, the first in lane 0.
+    #[inline(always)]
+    fn add_eight(&mut self, y: &[f64; 8]) {
+        for (k, &v) in y.iter().enumerate() {
+            self.add(k, v);
         }
     }
-    for (k, &v) in chunks.remainder().iter().enumerate() {
-        sum[k] += v;
-        sq[k] += v * v;
-        abs[k] += v.abs();
+
+    /// One sample, in lane `k`.
+    #[inline(always)]
+    fn add(&mut self, k: usize, v: f64) {
+        self.sum[k] += v;
+        self.sq[k] += v * v;
+        self.abs[k] += v.abs();
     }
-    let total = |a: [f64; 8]| ((a[0] + a[4]) + (a[1] + a[5])) + ((a[2] + a[6]) + (a[3] + a[7]));
-    let alt = ((sum[0] - sum[1]) + (sum[2] - sum[3])) + ((sum[4] - sum[5]) + (sum[6] - sum[7]));
-    let (sum, sq, abs) = (total(sum), total(sq), total(abs));
-    let l = padded_len as f64;
-    let variance = (l * sq - sum * sum + alt * alt) / (y.len() as f64 * l);
-    (variance, abs)
+
+    /// The variance of `n` samples zero-padded to `padded_len`, and Σ |y|.
+    fn variance(&self, n: usize, padded_len: usize) -> (f64, f64) {
+        let total = |a: [f64; 8]| ((a[0] + a[4]) + (a[1] + a[5])) + ((a[2] + a[6]) + (a[3] + a[7]));
+        let s = self.sum;
+        let alt = ((s[0] - s[1]) + (s[2] - s[3])) + ((s[4] - s[5]) + (s[6] - s[7]));
+        let (sum, sq, abs) = (total(self.sum), total(self.sq), total(self.abs));
+        let l = padded_len as f64;
+        let variance = (l * sq - sum * sum + alt * alt) / (n as f64 * l);
+        (variance, abs)
+    }
 }
 
 /// The first and last of `steps` coarse steps `h` samples apart whose sample lies at least
@@ -385,8 +452,8 @@ impl WaveletPrep {
             .max(1);
         let steps = (n - 1) / h + 1;
         let (variance, deferred) = if defer {
-            let centred = SampleBuffers::centred(x, mean);
-            let (variance, abs_sum) = parseval_variance(&centred, spec.padded_len);
+            let (centred, variance, abs_sum) =
+                SampleBuffers::centred_with_variance(x, mean, spec.padded_len);
             let deferred = Deferred {
                 centred,
                 noise_bins: spec.noise_bins(1.5 * fmax, fs / 2.0),
@@ -804,6 +871,40 @@ mod tests {
         let first = (0..steps).find(|&j| inside(j)).unwrap_or(steps);
         let last = (0..steps).rev().find(|&j| inside(j)).unwrap_or(0);
         (first, last)
+    }
+
+    /// The one pass that centres and sums writes exactly the centred samples and finds the
+    /// bits of the sums taken apart over them: every remainder of eight, into a new buffer,
+    /// one of the same length, a longer one and a shorter one, each holding other values.
+    #[test]
+    fn centring_and_summing_in_one_pass_is_the_two_passes_to_the_bit() {
+        use super::{centre_into, parseval_variance};
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+        for n in (1..=41).chain([30_001]) {
+            let x: Vec<f64> = (0..n).map(|_| 2.5 + rng.random_range(-1.0..1.0)).collect();
+            let mean = x.iter().sum::<f64>() / n as f64;
+            let centred: Vec<f64> = x.iter().map(|v| v - mean).collect();
+            let l = 2 * n + 6;
+            let (variance, abs) = parseval_variance(&centred, l);
+            for held in [0, n, n + 9, n / 2] {
+                let mut out: Vec<f64> = vec![f64::NAN; held];
+                out.reserve(3);
+                let (v, a) = centre_into(&mut out, &x, mean, l);
+                assert_eq!(out.len(), n, "{n} samples into a buffer of {held}");
+                assert!(
+                    out.iter()
+                        .zip(&centred)
+                        .all(|(p, q)| p.to_bits() == q.to_bits()),
+                    "{n} samples into a buffer of {held}: the centred values differ"
+                );
+                assert_eq!(
+                    (v.to_bits(), a.to_bits()),
+                    (variance.to_bits(), abs.to_bits()),
+                    "{n} samples into a buffer of {held}"
+                );
+            }
+        }
     }
 
     #[test]
