@@ -28,6 +28,9 @@
 #     side (the default) against one workgroup through every step (SKELID_GPU_RIDGE_LANES=1);
 #   - an experiment: the long record's two spectra on every core (the four-step, the
 #     default) against realfft's serial plan (SKELID_SPECTRUM_FFT=realfft), both backends;
+#   - an experiment: a smaller first group (SKELID_GPU_FIRST_GROUP 250 and 500) against
+#     equal groups at 128 scales: whether the pipeline's start (the CPU's wait for the
+#     first group's two passes) shrinks by more than one batch more costs;
 #   - an experiment: the GPU backend's host share (preparing, completing) on 2 to 16
 #     threads, to see whether the completion stops scaling;
 #   - an experiment: the GPU `bench` with glibc's malloc keeping freed memory (no trims, no
@@ -245,6 +248,21 @@ exp_first_pass() {
 # The completion took 0.18–0.22 s for 2000 tracks on the H200's 16 cores, about three
 # times a track's one-thread cost on a slower 2-core machine: does it stop scaling (memory
 # traffic, 1.5 MB of series written a track)? The GPU backend's host share by thread count.
+# The pipeline's start: with equal groups the CPU prepares the second group and then waits
+# for the first one's two passes (the "wait for the device" line), about a quarter of the
+# H200's repetition at 128 scales (2026-11-27). A smaller first group (SKELID_GPU_FIRST_GROUP)
+# starts the device sooner and comes back sooner, for one batch more.
+exp_first_group() {
+  echo "== experiment: bench, 128 scales, GPU, a first group of 250 and of 500 signals against equal groups (SKELID_GPU_FIRST_GROUP)"
+  local f
+  for f in 250 default 500 250 default 500; do
+    echo -n "SKELID_GPU_FIRST_GROUP=$f: "
+    with SKELID_GPU_FIRST_GROUP "$f" timeout "$(tmo 40)" "$B" bench "$W/campaign" --backend gpu --repeat 3 --scales 128 --no-end-to-end \
+      --out "$OUT/bench-128-first-$f.json" 2>&1 | grep -E "^ +gpu |CPU share|wait for the device|in [0-9]+ batch" | tail -4 \
+      | sed -E 's/^ +gpu +([0-9.]+) .*/median \1 s;/; s/.*every core\): /CPU share: /; s/.*between preparing and completing\): /wait: /; s/^GPU backend: //' | tr '\n' ' '
+    echo
+  done
+}
 exp_threads() {
   echo "== experiment: the GPU backend's host share (preparing, completing) by RAYON_NUM_THREADS"
   local t
@@ -327,6 +345,7 @@ step 30 bench_512
 step 30 run_both
 [ "$LONG" = 1 ] && step 30 track_end_to_end
 step 10 determinism
+step 25 exp_first_group
 [ "$LONG" = 1 ] && step 30 exp_lanes
 step 15 exp_trace_512
 step 45 exp_fft_local

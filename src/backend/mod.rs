@@ -200,6 +200,41 @@ fn fixed_group() -> Option<usize> {
         .filter(|&n| n > 0)
 }
 
+/// The environment variable that sets the size of [`Backend::track_many`]'s first group
+/// on a GPU, the others sized as without it.
+const FIRST_GROUP_ENV: &str = "SKELID_GPU_FIRST_GROUP";
+
+/// The first group's size on a GPU (`SKELID_GPU_FIRST_GROUP`, signals), for measuring the
+/// pipeline's start. The device starts on nothing until the first group is prepared, and
+/// the CPU completes nothing until that group has been through both passes; in between it
+/// prepares the second group and then waits. With equal groups that wait was about a
+/// quarter of an H200's `bench` repetition at 128 scales (2026-11-27): a smaller first
+/// group starts the device sooner and comes back sooner, at the cost of one more batch.
+fn first_group() -> Option<usize> {
+    std::env::var(FIRST_GROUP_ENV)
+        .ok()
+        .and_then(|v| v.parse::<usize>().ok())
+        .filter(|&n| n > 0)
+}
+
+/// The lengths of the groups of `count` signals: `first` (when given and fewer than
+/// `count`) and then groups of `size`, the last one what is left.
+fn group_lengths(count: usize, first: Option<usize>, size: usize) -> Vec<usize> {
+    let size = size.max(1);
+    let mut lengths = Vec::new();
+    let mut left = count;
+    if let Some(n) = first.filter(|&n| n > 0 && n < count) {
+        lengths.push(n);
+        left -= n;
+    }
+    while left > 0 {
+        let n = size.min(left);
+        lengths.push(n);
+        left -= n;
+    }
+    lengths
+}
+
 /// Signals in each of [`Backend::track_many`]'s groups on the CPU, and the fewest in a
 /// group on a GPU (unless there are fewer signals).
 const GROUP: usize = 256;
@@ -306,6 +341,12 @@ impl Backend {
             b.note(format!(
                 "{GROUP_ENV}={v:?} is not a positive whole number of signals: ignored, groups \
                  are sized to the adapter"
+            ));
+        }
+        if let (Ok(v), None) = (std::env::var(FIRST_GROUP_ENV), first_group()) {
+            b.note(format!(
+                "{FIRST_GROUP_ENV}={v:?} is not a positive whole number of signals: ignored, \
+                 the first group is sized as the others"
             ));
         }
         Ok(b)
@@ -503,12 +544,15 @@ impl Backend {
         // CPU, the next ones are on the device, so that it never waits for a preparation
         // queued behind a completion. At most AHEAD + 1 groups of prepared spectra at once.
         let mut pending: std::collections::VecDeque<Group> = std::collections::VecDeque::new();
-        let size = fixed_group().unwrap_or_else(|| self.group_size(signals, opt));
+        // A first group of its own size leaves the others sized for the signals after it.
+        let first_len = first_group().filter(|&n| self.gpu.is_some() && n < signals.len());
+        let rest = &signals[first_len.unwrap_or(0)..];
+        let size = fixed_group().unwrap_or_else(|| self.group_size(rest, opt));
         let mut at = 0;
-        while at < signals.len() {
+        for len in group_lengths(signals.len(), first_len, size) {
             let first = at;
-            let group = &signals[at..(at + size).min(signals.len())];
-            at += group.len();
+            let group = &signals[at..at + len];
+            at += len;
             let t0 = std::time::Instant::now();
             let preps: Vec<Result<WaveletPrep, TrackError>> =
                 crate::profile::span("host.prepare", || {
@@ -819,6 +863,48 @@ mod tests {
                 assert_eq!(groups_of(count, fit), count, "{count} signals, {fit} fit");
             }
         }
+    }
+
+    /// The groups cover the signals in order, each once: a first group as asked when it is
+    /// fewer than all, then groups of the size, the last what is left.
+    #[test]
+    fn a_first_group_of_its_own_size_then_groups_of_the_size_cover_every_signal_once() {
+        for count in 0..=40 {
+            for size in [1, 2, 3, 7, 40, 100] {
+                for first in [
+                    None,
+                    Some(0),
+                    Some(1),
+                    Some(5),
+                    Some(count),
+                    Some(count + 3),
+                ] {
+                    let lengths = group_lengths(count, first, size);
+                    assert_eq!(
+                        lengths.iter().sum::<usize>(),
+                        count,
+                        "{count} {first:?} {size}"
+                    );
+                    assert!(lengths.iter().all(|&n| n > 0), "{count} {first:?} {size}");
+                    let own = first.filter(|&n| n > 0 && n < count);
+                    let rest = match own {
+                        Some(n) => {
+                            assert_eq!(lengths[0], n, "{count} {first:?} {size}");
+                            &lengths[1..]
+                        }
+                        None => &lengths[..],
+                    };
+                    let (last, full) = rest.split_last().unwrap_or((&0, &[]));
+                    assert!(full.iter().all(|&n| n == size), "{count} {first:?} {size}");
+                    assert!(*last <= size, "{count} {first:?} {size}");
+                }
+            }
+        }
+        // 2000 signals, a first group of 250: the other 1750 in two groups of 875.
+        assert_eq!(
+            group_lengths(2000, Some(250), groups_of(1750, 4096)),
+            [250, 875, 875]
+        );
     }
 
     #[test]
