@@ -101,7 +101,7 @@ pub(super) struct GpuService {
     /// Submissions made and signals they carried (successful ones).
     stats: Arc<Stats>,
     /// Each message is one handover (a `send`'s signals), taken into a batch whole.
-    queue: Mutex<Option<Sender<Vec<Request>>>>,
+    queue: Mutex<Option<Sender<Handover>>>,
     thread: Option<std::thread::JoinHandle<()>>,
 }
 
@@ -122,7 +122,7 @@ impl GpuService {
         let fail_after = std::env::var(FAIL_AFTER_ENV)
             .ok()
             .and_then(|v| v.parse::<usize>().ok());
-        let (tx, rx) = mpsc::channel::<Vec<Request>>();
+        let (tx, rx) = mpsc::channel::<Handover>();
         let (ready_tx, ready_rx) = mpsc::channel();
         let stats = Arc::new(Stats::default());
         let counted = stats.clone();
@@ -204,10 +204,14 @@ impl GpuService {
 
     /// Hands `preps` to the dispatcher without waiting: their answers arrive on the
     /// receiver, tagged with their place in `preps`; those it could not take (the thread
-    /// has ended) come back at once with the reason.
+    /// has ended) come back at once with the reason. With `linger`, a batch that starts
+    /// with them waits [`LINGER`] for other senders' signals (`run`'s workers hand over one
+    /// signal each); without, it takes only what is already queued: a whole group, or the
+    /// one record of `skelid track`, has nothing to wait for.
     pub(super) fn send(
         &self,
         preps: Vec<WaveletPrep>,
+        linger: bool,
     ) -> (Vec<(usize, WaveletPrep, GpuError)>, Receiver<Answer>) {
         let (reply, answers) = mpsc::channel();
         let mut unsent = Vec::new();
@@ -227,18 +231,26 @@ impl GpuService {
         // has finished the one before), never takes part of a group and leaves the rest
         // for a batch of its own.
         let queue = self.queue.lock().unwrap_or_else(|p| p.into_inner());
+        let handover = Handover { requests, linger };
         let sent = match queue.as_ref() {
-            Some(q) => q.send(requests),
-            None => Err(mpsc::SendError(requests)),
+            Some(q) => q.send(handover),
+            None => Err(mpsc::SendError(handover)),
         };
-        if let Err(mpsc::SendError(rs)) = sent {
-            for r in rs {
+        if let Err(mpsc::SendError(h)) = sent {
+            for r in h.requests {
                 let gone = GpuError::Lost("the GPU thread has ended".into());
                 unsent.push((r.tag, r.prep, gone));
             }
         }
         (unsent, answers)
     }
+}
+
+/// One `send`'s signals, taken into a batch whole.
+struct Handover {
+    requests: Vec<Request>,
+    /// Whether a batch that starts with these waits [`LINGER`] for more.
+    linger: bool,
 }
 
 /// The compiled GPU stages the dispatcher runs.
@@ -256,7 +268,7 @@ struct Stages {
 fn dispatch(
     gpu: &Gpu,
     stages: &Stages,
-    rx: Receiver<Vec<Request>>,
+    rx: Receiver<Handover>,
     fail_after: Option<usize>,
     stats: &Stats,
 ) {
@@ -557,10 +569,13 @@ fn fail(parts: Vec<Vec<Request>>, e: GpuError, dead: &mut Option<String>) {
 /// `oldest_done` says whether the oldest submission in flight has finished (false when
 /// there is none). Blocks for the first request only when nothing is in flight; else
 /// waits at most `LINGER` for it, and stops gathering, with what it has, as soon as
-/// `oldest_done` (looked at every [`READY_POLL`]). Also says whether the queue is still
-/// open.
+/// `oldest_done` (looked at every [`READY_POLL`]). A first handover sent without
+/// `linger` takes only the handovers already queued: with nothing on the device the
+/// gathering waited out the whole `LINGER` after a group or a lone record that nothing
+/// would join, 4 ms at the head of every `bench` repetition and of `skelid track`. Also
+/// says whether the queue is still open.
 fn gather(
-    rx: &Receiver<Vec<Request>>,
+    rx: &Receiver<Handover>,
     busy: bool,
     oldest_done: &dyn Fn() -> bool,
     budget: u64,
@@ -569,7 +584,7 @@ fn gather(
     use std::sync::mpsc::RecvTimeoutError;
     // Waits for a request until `deadline`, in slices of READY_POLL while work is in
     // flight: None when the time is up or the oldest submission has finished.
-    let next = |deadline: Instant| -> Result<Option<Vec<Request>>, ()> {
+    let next = |deadline: Instant| -> Result<Option<Handover>, ()> {
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
             if left.is_zero() || oldest_done() {
@@ -595,14 +610,24 @@ fn gather(
         }
     };
     let weigh = |h: &[Request]| h.iter().map(|r| batch_bytes(&r.prep, real)).sum::<u64>();
-    let mut bytes = weigh(&first);
-    let mut batch = first;
+    let mut bytes = weigh(&first.requests);
+    let linger = first.linger;
+    let mut batch = first.requests;
     let deadline = Instant::now() + LINGER;
     while batch.len() < MAX_BATCH && bytes < budget {
-        match next(deadline) {
+        let more = if linger {
+            next(deadline)
+        } else {
+            match rx.try_recv() {
+                Ok(h) => Ok(Some(h)),
+                Err(mpsc::TryRecvError::Empty) => Ok(None),
+                Err(mpsc::TryRecvError::Disconnected) => Err(()),
+            }
+        };
+        match more {
             Ok(Some(h)) => {
-                bytes += weigh(&h);
-                batch.extend(h)
+                bytes += weigh(&h.requests);
+                batch.extend(h.requests)
             }
             Ok(None) => break,
             Err(()) => return (batch, false),
@@ -680,8 +705,16 @@ mod tests {
     use super::*;
     use crate::track::WaveletOptions;
 
-    /// `n` requests of one handover, answered on `reply`.
-    fn handover(n: usize, reply: &Sender<Answer>) -> Vec<Request> {
+    /// `n` requests of one handover that lingers, answered on `reply`.
+    fn handover(n: usize, reply: &Sender<Answer>) -> Handover {
+        Handover {
+            requests: requests(n, reply),
+            linger: true,
+        }
+    }
+
+    /// `n` requests, answered on `reply`.
+    fn requests(n: usize, reply: &Sender<Answer>) -> Vec<Request> {
         let x: Vec<f64> = (0..2000).map(|i| (0.3 * i as f64).sin()).collect();
         let opt = WaveletOptions {
             scales: 8,
@@ -719,5 +752,48 @@ mod tests {
         drop(tx);
         let (batch, open) = gather(&rx, false, &|| false, u64::MAX, Real::F32);
         assert!(batch.is_empty() && !open);
+    }
+
+    /// A handover sent without lingering takes what is already queued and waits for
+    /// nothing more: the gathering never polls for the device or the queue after it. One
+    /// that lingers does, with nothing in flight, until `LINGER` is out.
+    #[test]
+    fn a_handover_that_does_not_linger_takes_the_queue_as_it_is() {
+        let (tx, rx) = mpsc::channel();
+        let (reply, _answers) = mpsc::channel();
+        let alone = |n| Handover {
+            requests: requests(n, &reply),
+            linger: false,
+        };
+        tx.send(alone(3)).unwrap();
+        tx.send(handover(2, &reply)).unwrap();
+        let polls = std::cell::Cell::new(0);
+        let counted = || {
+            polls.set(polls.get() + 1);
+            false
+        };
+        // Nothing in flight: the first handover and the one queued behind it, no polls.
+        let (batch, open) = gather(&rx, false, &counted, u64::MAX, Real::F32);
+        assert!(open);
+        assert_eq!(
+            batch.iter().map(|r| r.tag).collect::<Vec<_>>(),
+            [0, 1, 2, 0, 1]
+        );
+        assert_eq!(polls.get(), 0, "it waited for more");
+        // Work in flight: waiting for a first handover polls, taking it does not.
+        tx.send(alone(1)).unwrap();
+        let (batch, _) = gather(&rx, true, &counted, u64::MAX, Real::F32);
+        assert_eq!(batch.len(), 1);
+        assert_eq!(
+            polls.get(),
+            1,
+            "it polled once, before the handover was taken"
+        );
+        // A lingering handover alone polls until LINGER is out.
+        polls.set(0);
+        tx.send(handover(1, &reply)).unwrap();
+        let (batch, _) = gather(&rx, false, &counted, u64::MAX, Real::F32);
+        assert_eq!(batch.len(), 1);
+        assert!(polls.get() > 1, "a lingering handover waited for more");
     }
 }

@@ -491,11 +491,24 @@ impl Backend {
     /// no backend, or [`WaveletPrep::new_deferred`], whose spectrum the CPU computes here
     /// if this backend does not): lets a command prepare its signal while the backend
     /// opens.
-    pub fn track_prepared(&self, mut prep: WaveletPrep) -> Track {
+    pub fn track_prepared(&self, prep: WaveletPrep) -> Track {
+        self.track_prepared_as(prep, true)
+    }
+
+    /// [`track_prepared`](Self::track_prepared) for a signal that no other is tracked
+    /// beside (`skelid track`'s one record): the GPU's dispatcher starts on it at once
+    /// instead of waiting a few milliseconds for other threads' signals to batch with.
+    pub fn track_prepared_alone(&self, prep: WaveletPrep) -> Track {
+        self.track_prepared_as(prep, false)
+    }
+
+    /// [`track_prepared`](Self::track_prepared), its handover lingering for other signals
+    /// or not ([`GpuService::send`]).
+    fn track_prepared_as(&self, mut prep: WaveletPrep, linger: bool) -> Track {
         if !self.spectra_on_device() {
             prep.materialize();
         }
-        let mut answers = self.first_passes(vec![prep]);
+        let mut answers = self.receive(self.send(vec![prep], linger));
         let passed = answers.pop().expect("one answer per signal");
         self.finish(passed.prep, passed.pass)
     }
@@ -575,9 +588,10 @@ impl Backend {
                     Err(e) => consume(first + i, Err(e)),
                 }
             }
+            // A group is whole: nothing else comes to share its batch.
             pending.push_back(Group {
                 indices,
-                sent: self.send(ok),
+                sent: self.send(ok, false),
             });
             if pending.len() > AHEAD {
                 let oldest = pending.pop_front().expect("a pending group");
@@ -642,14 +656,9 @@ impl Backend {
         }
     }
 
-    /// The first passes of `preps`, in order: on the GPU when one is open (a signal it
-    /// cannot serve comes back with the reason), else `None` for the CPU to do.
-    fn first_passes(&self, preps: Vec<WaveletPrep>) -> Vec<Passed> {
-        self.receive(self.send(preps))
-    }
-
-    /// Hands `preps` to the GPU's dispatcher without waiting (see [`receive`](Self::receive)).
-    fn send(&self, preps: Vec<WaveletPrep>) -> Sent {
+    /// Hands `preps` to the GPU's dispatcher without waiting (see [`receive`](Self::receive)),
+    /// their batch lingering for other senders' signals or not ([`GpuService::send`]).
+    fn send(&self, preps: Vec<WaveletPrep>, linger: bool) -> Sent {
         let count = preps.len();
         let mut out: Vec<Option<Passed>> = (0..count).map(|_| None).collect();
         let Some(service) = &self.gpu else {
@@ -661,7 +670,7 @@ impl Backend {
             }
             return Sent { out, answers: None };
         };
-        let (unsent, answers) = service.send(preps);
+        let (unsent, answers) = service.send(preps, linger);
         for (tag, prep, gone) in unsent {
             out[tag] = Some(Passed {
                 prep,

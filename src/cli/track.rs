@@ -210,7 +210,7 @@ pub(crate) fn cmd_track(a: TrackArgs) -> Result<()> {
     let (input, fs) = input?;
     let track = match input {
         Input::Hilbert(x) => track_hilbert(&x, fs, &HilbertOptions { cutoff: a.cutoff })?,
-        Input::Prepared(prep) => backend.track_prepared(*prep),
+        Input::Prepared(prep) => backend.track_prepared_alone(*prep),
         Input::Guided {
             x,
             reference: (r, reference),
