@@ -194,7 +194,12 @@ const GROUP_ENV: &str = "SKELID_GPU_GROUP";
 /// A fixed group size for [`Backend::track_many`] (`SKELID_GPU_GROUP`, signals), for tuning
 /// the pipelining of benchmarks on a new machine.
 fn fixed_group() -> Option<usize> {
-    std::env::var(GROUP_ENV)
+    signals_from_env(GROUP_ENV)
+}
+
+/// A positive whole number of signals from the environment variable `name`, if it holds one.
+fn signals_from_env(name: &str) -> Option<usize> {
+    std::env::var(name)
         .ok()
         .and_then(|v| v.parse::<usize>().ok())
         .filter(|&n| n > 0)
@@ -211,10 +216,7 @@ const FIRST_GROUP_ENV: &str = "SKELID_GPU_FIRST_GROUP";
 /// quarter of an H200's `bench` repetition at 128 scales (2026-11-27): a smaller first
 /// group starts the device sooner and comes back sooner, at the cost of one more batch.
 fn first_group() -> Option<usize> {
-    std::env::var(FIRST_GROUP_ENV)
-        .ok()
-        .and_then(|v| v.parse::<usize>().ok())
-        .filter(|&n| n > 0)
+    signals_from_env(FIRST_GROUP_ENV)
 }
 
 /// The lengths of the groups of `count` signals: `first` (when given and fewer than
@@ -337,17 +339,15 @@ impl Backend {
         for n in notes {
             b.note(n);
         }
-        if let (Ok(v), None) = (std::env::var(GROUP_ENV), fixed_group()) {
-            b.note(format!(
-                "{GROUP_ENV}={v:?} is not a positive whole number of signals: ignored, groups \
-                 are sized to the adapter"
-            ));
-        }
-        if let (Ok(v), None) = (std::env::var(FIRST_GROUP_ENV), first_group()) {
-            b.note(format!(
-                "{FIRST_GROUP_ENV}={v:?} is not a positive whole number of signals: ignored, \
-                 the first group is sized as the others"
-            ));
+        for (name, instead) in [
+            (GROUP_ENV, "groups are sized to the adapter"),
+            (FIRST_GROUP_ENV, "the first group is sized as the others"),
+        ] {
+            if let (Ok(v), None) = (std::env::var(name), signals_from_env(name)) {
+                b.note(format!(
+                    "{name}={v:?} is not a positive whole number of signals: ignored, {instead}"
+                ));
+            }
         }
         Ok(b)
     }
