@@ -206,7 +206,8 @@ fn signals_from_env(name: &str) -> Option<usize> {
 }
 
 /// The environment variable that sets the size of [`Backend::track_many`]'s first group
-/// on a GPU, the others sized as without it.
+/// on a GPU, the others sized for the signals after it as they would be for a campaign of
+/// that many.
 const FIRST_GROUP_ENV: &str = "SKELID_GPU_FIRST_GROUP";
 
 /// The first group's size on a GPU (`SKELID_GPU_FIRST_GROUP`, signals), for measuring the
@@ -452,6 +453,22 @@ impl Backend {
         Ok(self.track_prepared(prep))
     }
 
+    /// [`track_wavelet_keeping`](Self::track_wavelet_keeping) for a signal that no other is
+    /// tracked beside ([`track_prepared_alone`](Self::track_prepared_alone)): `skelid track
+    /// --reference`'s reference and then its guided record, one after the other.
+    pub fn track_wavelet_alone(
+        &self,
+        x: &[f64],
+        fs: f64,
+        opt: &WaveletOptions,
+        guide: Option<&[f64]>,
+        keep_scalogram: bool,
+    ) -> Result<Track, TrackError> {
+        let mut prep = self.prepare(x, fs, opt, guide)?;
+        prep.keep_scalogram = keep_scalogram;
+        Ok(self.track_prepared_alone(prep))
+    }
+
     /// A signal prepared for this backend: its padded spectrum left to the GPU where the
     /// GPU computes it ([`WaveletPrep::new_deferred`]; the device's stages in f64), else
     /// taken here ([`WaveletPrep::new`]).
@@ -496,7 +513,7 @@ impl Backend {
     }
 
     /// [`track_prepared`](Self::track_prepared) for a signal that no other is tracked
-    /// beside (`skelid track`'s one record): the GPU's dispatcher starts on it at once
+    /// beside (`skelid track`'s records): the GPU's dispatcher starts on it at once
     /// instead of waiting a few milliseconds for other threads' signals to batch with.
     pub fn track_prepared_alone(&self, prep: WaveletPrep) -> Track {
         self.track_prepared_as(prep, false)
@@ -519,7 +536,8 @@ impl Backend {
     /// to the GPU before the previous one is collected, so that the CPU's preparation and
     /// finishing overlap the device's work. Groups hold [`GROUP`] signals on the CPU; on a
     /// GPU they are equal, at most what fills one submission's device memory (up to
-    /// [`MAX_BATCH`]: thousands on a large GPU), at least two ([`groups_of`]). For
+    /// [`MAX_BATCH`]: thousands on a large GPU), at least two ([`groups_of`]), unless
+    /// `SKELID_GPU_FIRST_GROUP` gives the first group a size of its own. For
     /// commands that need every track at once; [`track_each`](Self::track_each) lets each
     /// go as it is made.
     pub fn track_many(

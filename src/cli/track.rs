@@ -215,10 +215,12 @@ pub(crate) fn cmd_track(a: TrackArgs) -> Result<()> {
             x,
             reference: (r, reference),
         } => {
+            // One track after the other, each alone on the device: neither waits for the
+            // other to share its batch.
             let gt = backend
-                .track_wavelet(&reference, fs, &opt, None)
+                .track_wavelet_alone(&reference, fs, &opt, None, false)
                 .with_context(|| format!("tracking the reference {r}"))?;
-            backend.track_wavelet_keeping(&x, fs, &opt, Some(&gt.frequency), a.keep_scalogram)?
+            backend.track_wavelet_alone(&x, fs, &opt, Some(&gt.frequency), a.keep_scalogram)?
         }
     };
     report_fallbacks(&backend);

@@ -179,6 +179,17 @@ impl SampleBuffers {
     }
 }
 
+/// A buffer from [`SampleBuffers`] that goes back to them if dropped before its samples
+/// are moved on (a preparation refused after its record was copied: a bad option, a
+/// record with no band).
+struct HeldSamples(Vec<f64>);
+
+impl Drop for HeldSamples {
+    fn drop(&mut self) {
+        SampleBuffers::give_back(std::mem::take(&mut self.0));
+    }
+}
+
 /// What the first pass finds: the ridge on the coarse grid and the noise level per scale.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CoarseRidge {
@@ -434,7 +445,7 @@ impl WaveletPrep {
         let (mean, mut warm) = if defer && x.len() <= WARM_SAMPLES {
             let (mut copy, mean) = SampleBuffers::copied_with_mean(x, fs)?;
             let sums = centre_in_place(&mut copy, mean);
-            (mean, Some((copy, sums)))
+            (mean, Some((HeldSamples(copy), sums)))
         } else {
             (checked_mean(x, fs)?, None)
         };
@@ -461,7 +472,7 @@ impl WaveletPrep {
             (a, b) => {
                 // x − mean − 0 is x − mean, bit for bit: the same band either way.
                 let (da, db) = match &warm {
-                    Some((centred, _)) => band_with_mean(centred, 0.0, fs, &wl)?,
+                    Some((centred, _)) => band_with_mean(&centred.0, 0.0, fs, &wl)?,
                     None => band_with_mean(x, mean, fs, &wl)?,
                 };
                 (a.unwrap_or(da), b.unwrap_or(db))
@@ -507,9 +518,10 @@ impl WaveletPrep {
             .max(1);
         let steps = (n - 1) / h + 1;
         let (variance, deferred) = if defer {
-            let (centred, sums) = warm
-                .take()
-                .unwrap_or_else(|| SampleBuffers::centred(x, mean));
+            let (centred, sums) = match warm.take() {
+                Some((mut held, sums)) => (std::mem::take(&mut held.0), sums),
+                None => SampleBuffers::centred(x, mean),
+            };
             let (variance, abs_sum) = sums.variance(n, spec.padded_len);
             let deferred = Deferred {
                 centred,
@@ -870,22 +882,28 @@ mod tests {
             if first + 1 < n {
                 x[n - 1] = -value;
             }
-            for opt in [WaveletOptions::default(), bad_option.clone()] {
-                match WaveletPrep::new(&x, 1000.0, &opt, None) {
-                    Err(TrackError::NoSignal(m)) => {
-                        assert!(m.starts_with(&format!("sample {first} is {value};")), "{m}")
+            // The CPU's preparation, and the GPU's (deferred: a record this short is copied
+            // and its mean summed over the copy).
+            for prepare in [WaveletPrep::new, WaveletPrep::new_deferred] {
+                for opt in [WaveletOptions::default(), bad_option.clone()] {
+                    match prepare(&x, 1000.0, &opt, None) {
+                        Err(TrackError::NoSignal(m)) => {
+                            assert!(m.starts_with(&format!("sample {first} is {value};")), "{m}")
+                        }
+                        Err(e) => panic!("sample {first} = {value}: {e}"),
+                        Ok(_) => panic!("sample {first} = {value} was accepted"),
                     }
-                    Err(e) => panic!("sample {first} = {value}: {e}"),
-                    Ok(_) => panic!("sample {first} = {value} was accepted"),
                 }
             }
         }
         // The finite record is accepted, and the bad option still refused on it.
-        assert!(WaveletPrep::new(&clean, 1000.0, &WaveletOptions::default(), None).is_ok());
-        assert!(matches!(
-            WaveletPrep::new(&clean, 1000.0, &bad_option, None),
-            Err(TrackError::BadOption(_))
-        ));
+        for prepare in [WaveletPrep::new, WaveletPrep::new_deferred] {
+            assert!(prepare(&clean, 1000.0, &WaveletOptions::default(), None).is_ok());
+            assert!(matches!(
+                prepare(&clean, 1000.0, &bad_option, None),
+                Err(TrackError::BadOption(_))
+            ));
+        }
     }
 
     /// A campaign-like run (a 1–12 Hz chirp at 1 kHz, 30 s) waits for its transforms with
