@@ -97,6 +97,28 @@ fn host_share(c: &mut Criterion) {
             })
         });
     }
+    // As `bench` and `run` prepare them: many records, each once, so that their samples come
+    // from memory rather than the cache (400 chirps, 96 MB; a 2000-signal `bench`
+    // repetition's are 480 MB). One record prepared over and over, as above, hides what
+    // reading cold samples costs: a third of a group's deferred preparations by `perf`
+    // before the fortieth session read short records once (README, *Since … fortieth
+    // session*). Each iteration is the 400 preparations.
+    let many: Vec<Vec<f64>> = (0..400)
+        .map(|seed| chirp_signal_seeded(30_000, seed))
+        .collect();
+    group.bench_function("prepare_deferred_400_chirps", |b| {
+        b.iter_custom(|iters| {
+            on_one_core(iters, &|| {
+                timed(&|| {
+                    for x in &many {
+                        drop(black_box(
+                            WaveletPrep::new_deferred(x, BENCH_FS, &opt, None).unwrap(),
+                        ))
+                    }
+                })
+            })
+        })
+    });
     // The log sweep's grid is dense (about 5 000 points, segments of about 6 samples); a
     // throughput campaign signal's is sparser (the chirp to 12 Hz: about 2 300 points,
     // segments of about 13 samples), so the per-sample work weighs more there: both timed.
@@ -126,8 +148,13 @@ fn host_share(c: &mut Criterion) {
 /// low-SNR smoothing, which the campaign's records barely need: under 0.3 % of its CPU time
 /// by `perf`).
 fn chirp_signal(n: usize) -> Vec<f64> {
+    chirp_signal_seeded(n, 7)
+}
+
+/// [`chirp_signal`] with the noise of `seed`.
+fn chirp_signal_seeded(n: usize, seed: u64) -> Vec<f64> {
     use rand::{Rng, SeedableRng};
-    let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
     let t_end = n as f64 / BENCH_FS;
     let (f0, f1) = (0.2, 12.0);
     (0..n)
