@@ -206,8 +206,8 @@ impl GpuService {
     /// receiver, tagged with their place in `preps`; those it could not take (the thread
     /// has ended) come back at once with the reason. With `linger`, a batch that starts
     /// with them waits [`LINGER`] for other senders' signals (`run`'s workers hand over one
-    /// signal each); without, it takes only what is already queued: a whole group, or the
-    /// one record of `skelid track`, has nothing to wait for.
+    /// signal each); without, it takes only what is already queued: a whole group, or
+    /// `skelid track`'s records, have nothing to wait for.
     pub(super) fn send(
         &self,
         preps: Vec<WaveletPrep>,

@@ -448,9 +448,7 @@ impl Backend {
         guide: Option<&[f64]>,
         keep_scalogram: bool,
     ) -> Result<Track, TrackError> {
-        let mut prep = self.prepare(x, fs, opt, guide)?;
-        prep.keep_scalogram = keep_scalogram;
-        Ok(self.track_prepared(prep))
+        self.track_wavelet_as(x, fs, opt, guide, keep_scalogram, true)
     }
 
     /// [`track_wavelet_keeping`](Self::track_wavelet_keeping) for a signal that no other is
@@ -464,9 +462,23 @@ impl Backend {
         guide: Option<&[f64]>,
         keep_scalogram: bool,
     ) -> Result<Track, TrackError> {
+        self.track_wavelet_as(x, fs, opt, guide, keep_scalogram, false)
+    }
+
+    /// A signal prepared here and tracked, its handover lingering for other signals or not
+    /// ([`track_prepared_as`](Self::track_prepared_as)).
+    fn track_wavelet_as(
+        &self,
+        x: &[f64],
+        fs: f64,
+        opt: &WaveletOptions,
+        guide: Option<&[f64]>,
+        keep_scalogram: bool,
+        linger: bool,
+    ) -> Result<Track, TrackError> {
         let mut prep = self.prepare(x, fs, opt, guide)?;
         prep.keep_scalogram = keep_scalogram;
-        Ok(self.track_prepared_alone(prep))
+        Ok(self.track_prepared_as(prep, linger))
     }
 
     /// A signal prepared for this backend: its padded spectrum left to the GPU where the

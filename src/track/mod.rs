@@ -283,18 +283,13 @@ fn checked_mean(x: &[f64], fs: f64) -> Result<f64, TrackError> {
     Ok(mean)
 }
 
-/// [`checked_mean`] of `x` with the samples copied into `out` (what it held before
-/// dropped) and their mean summed there, where the copy has just left them in the cache:
-/// the same checks and the same bits, and `x` read from memory once, not once for each.
+/// [`checked_mean`] of `x` taken over its copy in `out` (what it held before dropped),
+/// where the copy has just left the samples in the cache: the same checks, messages and
+/// bits, and `x` read from memory once, not once for each.
 fn checked_mean_copied(x: &[f64], fs: f64, out: &mut Vec<f64>) -> Result<f64, TrackError> {
-    check_shape(x, fs)?;
     out.clear();
     out.extend_from_slice(x);
-    let mean = crate::transform::mean_of(out);
-    if !mean.is_finite() {
-        check_finite(x)?;
-    }
-    Ok(mean)
+    checked_mean(out, fs)
 }
 
 /// [`check_signal`]'s checks of the length and the sample rate alone.

@@ -131,15 +131,11 @@ impl SampleBuffers {
     /// The samples copied into a kept buffer that holds them, or a new one, and their mean
     /// with [`checked_mean`]'s checks and bits ([`checked_mean_copied`]), for a record short
     /// enough ([`WARM_SAMPLES`]) that the copy stays in the core's cache to be centred there.
-    fn copied_with_mean(x: &[f64], fs: f64) -> Result<(Vec<f64>, f64), TrackError> {
-        let mut out = Self::take(x.len());
-        match checked_mean_copied(x, fs, &mut out) {
-            Ok(mean) => Ok((out, mean)),
-            Err(e) => {
-                Self::give_back(out);
-                Err(e)
-            }
-        }
+    /// The buffer goes back if the record is refused, here or later ([`HeldSamples`]).
+    fn copied_with_mean(x: &[f64], fs: f64) -> Result<(HeldSamples, f64), TrackError> {
+        let mut held = HeldSamples(Self::take(x.len()));
+        let mean = checked_mean_copied(x, fs, &mut held.0)?;
+        Ok((held, mean))
     }
 
     /// A kept buffer that holds `len` values (its contents left as they were), or a new one.
@@ -444,8 +440,8 @@ impl WaveletPrep {
         // and the centred samples need is taken from its copy, centred in place.
         let (mean, mut warm) = if defer && x.len() <= WARM_SAMPLES {
             let (mut copy, mean) = SampleBuffers::copied_with_mean(x, fs)?;
-            let sums = centre_in_place(&mut copy, mean);
-            (mean, Some((HeldSamples(copy), sums)))
+            let sums = centre_in_place(&mut copy.0, mean);
+            (mean, Some((copy, sums)))
         } else {
             (checked_mean(x, fs)?, None)
         };
