@@ -13,7 +13,13 @@
 //!
 //! Protocol, child to parent, one frame after another: a little-endian `u32` length, a JSON
 //! [`Frame`], then for a [`Frame::Run`] that was read the samples as little-endian `f64`
-//! (input first when there is one, then output).
+//! (input first when there is one, then output). A run whose channels lie in the archive as
+//! plain float64 bytes ([`Archive::placed`]) is sent without its samples, only where they
+//! lie: the parent reads them from the file itself with one plain read each (no libhdf5 in
+//! the parent), and checks them as the child would have. The pipe carried every sample
+//! twice through the kernel and woke the other side every 64 kB: on this project's 2-core
+//! machine that cost the child and the parent more CPU than libhdf5's reading, time that
+//! `--jobs 1` hides on the second core and `--jobs 2` cannot.
 
 use std::io::{BufRead, Read, Write};
 use std::path::{Path, PathBuf};
@@ -26,7 +32,7 @@ use serde::{Deserialize, Serialize};
 
 use super::Shard;
 use crate::child::ChildCommand;
-use crate::ingest::{Archive, IngestOptions, Run, RunMeta};
+use crate::ingest::{Archive, IngestOptions, PlacedRun, Run, RunMeta};
 use crate::inspect::{crash_detail, hang_detail};
 use crate::profile::Stage;
 
@@ -54,6 +60,10 @@ pub enum Frame {
         meta: Result<RunMeta, String>,
         /// Whether input samples precede the output's.
         has_input: bool,
+        /// Where the samples lie in the archive, when they are not sent: the parent reads
+        /// them there.
+        #[serde(default)]
+        placed: Option<PlacedRun>,
     },
     /// A run of another shard (counted, not read).
     Skip {
@@ -132,7 +142,7 @@ pub fn read_all(
     if let Some((command, timeout)) = isolate {
         let mut next = 0;
         while next < files.len() {
-            match read_in_child(command, &files[next..], timeout, counts, deliver)? {
+            match read_in_child(command, &files[next..], options, timeout, counts, deliver)? {
                 ChildEnd::Finished => break,
                 // The child could not be started: read in-process rather than not at all.
                 ChildEnd::NotStarted => {
@@ -166,8 +176,8 @@ fn read_in_process(
     deliver: &mut dyn FnMut(Delivery) -> Result<(), Stopped>,
 ) -> Result<(), Stopped> {
     let mut stopped = false;
-    let mut assemble = Assembler::new(files, counts);
-    serve(files, options, shard, &mut |frame, samples| {
+    let mut assemble = Assembler::new(files, counts, options);
+    serve(files, options, shard, false, &mut |frame, samples| {
         if stopped {
             return false;
         }
@@ -189,14 +199,20 @@ struct Assembler<'a> {
     counts: &'a Counts,
     /// Archives of this list finished.
     done: usize,
+    /// The dataset names, for a placed run's errors.
+    options: &'a IngestOptions,
+    /// The archive whose placed runs are being read, kept open between its runs.
+    open: Option<(usize, std::fs::File)>,
 }
 
 impl<'a> Assembler<'a> {
-    fn new(files: &'a [PathBuf], counts: &'a Counts) -> Self {
+    fn new(files: &'a [PathBuf], counts: &'a Counts, options: &'a IngestOptions) -> Self {
         Assembler {
             files,
             counts,
             done: 0,
+            options,
+            open: None,
         }
     }
 
@@ -219,17 +235,23 @@ impl<'a> Assembler<'a> {
                 archive,
                 path,
                 meta,
+                placed,
                 ..
             } => {
                 c.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
                 c.delivered.fetch_add(1, Ordering::Relaxed);
-                let run = meta.map(|meta| {
-                    let (input, output) = samples.unwrap_or_default();
-                    Run {
+                let run = meta.and_then(|meta| {
+                    let (input, output) = match placed {
+                        Some(p) => crate::profile::time(Stage::Read, || {
+                            self.read_placed(archive, &meta, p)
+                        })?,
+                        None => samples.unwrap_or_default(),
+                    };
+                    Ok(Run {
                         meta,
                         input,
                         output,
-                    }
+                    })
                 });
                 Some(Delivery::Run {
                     source: self.files[archive].display().to_string(),
@@ -239,6 +261,7 @@ impl<'a> Assembler<'a> {
             }
             Frame::Close { archive, error } => {
                 self.done = archive + 1;
+                self.open = None;
                 match error {
                     Some(error) => Some(unreadable(c, &self.files[archive], error)),
                     None => {
@@ -248,6 +271,39 @@ impl<'a> Assembler<'a> {
                 }
             }
         }
+    }
+
+    /// A placed run's samples, read from its archive (opened once for all its runs), or
+    /// why they cannot be, in the words [`Archive::load`] would have used.
+    fn read_placed(
+        &mut self,
+        archive: usize,
+        meta: &RunMeta,
+        (input, output): PlacedRun,
+    ) -> Result<Samples, String> {
+        let path = &self.files[archive];
+        let name = path.display().to_string();
+        if self.open.as_ref().is_none_or(|(a, _)| *a != archive) {
+            let file = std::fs::File::open(path).map_err(|e| {
+                crate::ingest::IngestError::Corrupt {
+                    file: name.clone(),
+                    run: Some(meta.path.clone()),
+                    detail: e.to_string(),
+                }
+                .to_string()
+            })?;
+            self.open = Some((archive, file));
+        }
+        let (_, file) = self.open.as_ref().expect("opened above");
+        let channel = |dataset: &str, p| {
+            crate::ingest::read_placed(file, &name, meta, dataset, p).map_err(|e| e.to_string())
+        };
+        // Output first, as `load` checks it first: the same error wins when both are bad.
+        let output = channel(&self.options.output_name, output)?;
+        let input = input
+            .map(|p| channel(&self.options.input_name, p))
+            .transpose()?;
+        Ok((input, output))
     }
 }
 
@@ -265,10 +321,13 @@ fn unreadable(counts: &Counts, file: &Path, error: String) -> Delivery {
 
 /// Reads `files` in this process and hands every frame (with the run's samples) to `emit`,
 /// which returns false to stop. The child's side of the protocol, and the in-process reader.
+/// With `place` (the child), a run whose channels lie as plain float64 bytes goes without
+/// its samples, only where they lie ([`Archive::placed`]), for the parent to read.
 pub fn serve(
     files: &[PathBuf],
     options: &IngestOptions,
     shard: Option<Shard>,
+    place: bool,
     emit: &mut dyn FnMut(Frame, Option<Samples>) -> bool,
 ) {
     for (i, f) in files.iter().enumerate() {
@@ -299,32 +358,50 @@ pub fn serve(
                 }
                 continue;
             }
-            let run = entry
-                .meta
-                .as_ref()
-                .map_err(|e| e.to_string())
-                .and_then(|m| {
-                    crate::profile::time(Stage::Read, || archive.load(m)).map_err(|e| e.to_string())
-                });
-            let (frame, samples) = match run {
-                Ok(run) => (
-                    Frame::Run {
-                        archive: i,
-                        path: entry.path.clone(),
-                        has_input: run.input.is_some(),
-                        meta: Ok(run.meta),
-                    },
-                    Some((run.input, run.output)),
-                ),
-                Err(e) => (
-                    Frame::Run {
-                        archive: i,
-                        path: entry.path.clone(),
-                        meta: Err(e),
-                        has_input: false,
-                    },
-                    None,
-                ),
+            let placed = match &entry.meta {
+                Ok(m) if place => archive.placed(m).map(|p| (m, p)),
+                _ => None,
+            };
+            let (frame, samples) = if let Some((meta, placed)) = placed {
+                let frame = Frame::Run {
+                    archive: i,
+                    path: entry.path.clone(),
+                    has_input: placed.0.is_some(),
+                    meta: Ok(meta.clone()),
+                    placed: Some(placed),
+                };
+                (frame, None)
+            } else {
+                let run = entry
+                    .meta
+                    .as_ref()
+                    .map_err(|e| e.to_string())
+                    .and_then(|m| {
+                        crate::profile::time(Stage::Read, || archive.load(m))
+                            .map_err(|e| e.to_string())
+                    });
+                match run {
+                    Ok(run) => (
+                        Frame::Run {
+                            archive: i,
+                            path: entry.path.clone(),
+                            has_input: run.input.is_some(),
+                            meta: Ok(run.meta),
+                            placed: None,
+                        },
+                        Some((run.input, run.output)),
+                    ),
+                    Err(e) => (
+                        Frame::Run {
+                            archive: i,
+                            path: entry.path.clone(),
+                            meta: Err(e),
+                            has_input: false,
+                            placed: None,
+                        },
+                        None,
+                    ),
+                }
             };
             if !emit(frame, samples) {
                 return;
@@ -360,7 +437,7 @@ pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Re
         .collect();
     let mut out = std::io::BufWriter::with_capacity(FRAME_BUFFER, std::io::stdout().lock());
     let mut failure = None;
-    serve(&files, options, shard, &mut |frame, samples| {
+    serve(&files, options, shard, true, &mut |frame, samples| {
         match write_frame(&mut out, &frame, samples.as_ref()) {
             Ok(()) => true,
             Err(e) => {
@@ -417,6 +494,7 @@ fn read_frame(inp: &mut impl Read) -> std::io::Result<Option<(Frame, Option<Samp
         Frame::Run {
             meta: Ok(_),
             has_input,
+            placed: None,
             ..
         } => {
             let input = if *has_input {
@@ -468,6 +546,7 @@ struct Clock {
 fn read_in_child(
     command: &ChildCommand,
     files: &[PathBuf],
+    options: &IngestOptions,
     timeout: Duration,
     counts: &Counts,
     deliver: &mut dyn FnMut(Delivery) -> Result<(), Stopped>,
@@ -521,7 +600,7 @@ fn read_in_child(
         })
     };
     let set = |f: &dyn Fn(&mut Clock)| f(&mut clock.lock().unwrap_or_else(|p| p.into_inner()));
-    let mut assemble = Assembler::new(files, counts);
+    let mut assemble = Assembler::new(files, counts, options);
     let mut result = Ok(());
     let mut broken = false;
     loop {
@@ -534,15 +613,17 @@ fn read_in_child(
                         c.since = Some(Instant::now());
                     });
                 }
+                // What follows is the parent's own work (a placed run's samples read from
+                // the archive, the hand-over to the workers): the child's clock stands still.
+                set(&|c| {
+                    c.spent += c.since.take().map_or(Duration::ZERO, |s| s.elapsed());
+                });
                 if let Some(d) = assemble.frame(frame, samples) {
-                    set(&|c| {
-                        c.spent += c.since.take().map_or(Duration::ZERO, |s| s.elapsed());
-                    });
                     result = deliver(d);
-                    set(&|c| c.since = Some(Instant::now()));
-                    if result.is_err() {
-                        break;
-                    }
+                }
+                set(&|c| c.since = Some(Instant::now()));
+                if result.is_err() {
+                    break;
                 }
             }
             Ok(None) => break,
