@@ -6,20 +6,17 @@
 mod common;
 use common::*;
 
-use skelid::ingest::{Archive, IngestOptions};
+use std::path::{Path, PathBuf};
 
-/// `skelid run`'s reading child sends a run whose channels lie in the archive as plain
-/// float64 bytes without its samples, and the parent reads them from the file itself
-/// (`Archive::placed`, `read_placed`). Whatever the layout, what the batch is handed must be
-/// what an in-process read hands it: the same runs, the samples to the bit, and the same
-/// words for a bad run.
-#[test]
-fn the_reading_child_delivers_what_an_in_process_read_does() {
-    use skelid::batch::reader::{read_all, Counts, Delivery};
-    let d = tmpdir();
-    // Placed: contiguous float64, good or not finite, with an input or a free decay, and
-    // behind a user block (offsets count from the file's start).
-    let plain = file_in(d.path(), "plain.h5");
+use skelid::batch::reader::{read_all, serve, Counts, Delivery, Frame};
+use skelid::ingest::{read_placed, IngestOptions, Placed};
+
+/// Three archives: `plain.h5`, whose runs are all placed (good, not finite in one channel
+/// or both, a free decay, a `time` dataset); `user_block.h5`, a placed run behind a
+/// 512-byte user block and one whose output was never written; `packed.h5`, none placed
+/// (chunked and deflated, float32, one channel chunked, an N × 1 matrix).
+fn archives(dir: &Path) -> [PathBuf; 3] {
+    let plain = file_in(dir, "plain.h5");
     {
         let f = hdf5::File::create(&plain).unwrap();
         set_f64(&group(&f, "/runs"), "sample_rate", 1000.0);
@@ -31,21 +28,22 @@ fn the_reading_child_delivers_what_an_in_process_read_does() {
         put(&g, "input", &sine(1000, 3.0, 1000.0));
         put(&g, "output", &bad);
         let g = group(&f, "/runs/bad_both");
-        put(
-            &g,
-            "input",
-            &bad[10..]
-                .iter()
-                .chain(&bad[..10])
-                .copied()
-                .collect::<Vec<_>>(),
-        );
+        let shifted: Vec<f64> = bad[10..].iter().chain(&bad[..10]).copied().collect();
+        put(&g, "input", &shifted);
         put(&g, "output", &bad);
         let g = group(&f, "/runs/free");
         set_str(&g, "kind", "free");
         put(&g, "output", &sine(1000, 4.0, 1000.0));
+        let g = group(&f, "/timed/run");
+        put(
+            &g,
+            "time",
+            &(0..1000).map(|i| i as f64 / 500.0).collect::<Vec<_>>(),
+        );
+        put(&g, "input", &sine(1000, 6.0, 500.0));
+        put(&g, "output", &sine(1000, 9.0, 500.0));
     }
-    let user_block = file_in(d.path(), "user_block.h5");
+    let user_block = file_in(dir, "user_block.h5");
     {
         let f = hdf5::File::with_options()
             .with_fcpl(|p| p.userblock(512))
@@ -55,9 +53,12 @@ fn the_reading_child_delivers_what_an_in_process_read_does() {
         let g = group(&f, "/runs/good");
         put(&g, "input", &sine(1000, 2.0, 1000.0));
         put(&g, "output", &sine(1000, 7.0, 1000.0));
+        // Never written: no block in the file, its reads the fill value.
+        let g = group(&f, "/runs/unwritten");
+        put(&g, "input", &sine(1000, 2.0, 1000.0));
+        g.new_dataset::<f64>().shape(1000).create("output").unwrap();
     }
-    // Not placed: chunked and deflated, float32, one placed channel beside a chunked one.
-    let packed = file_in(d.path(), "packed.h5");
+    let packed = file_in(dir, "packed.h5");
     {
         let f = hdf5::File::create(&packed).unwrap();
         set_f64(&group(&f, "/runs"), "sample_rate", 1000.0);
@@ -86,36 +87,68 @@ fn the_reading_child_delivers_what_an_in_process_read_does() {
             .chunk(100)
             .create("output")
             .unwrap();
+        let g = group(&f, "/runs/column");
+        let column = ndarray::Array2::from_shape_vec((1000, 1), x.clone()).unwrap();
+        for name in ["input", "output"] {
+            g.new_dataset_builder()
+                .with_data(&column)
+                .create(name)
+                .unwrap();
+        }
     }
-    let files = [plain.clone(), user_block.clone(), packed.clone()];
+    let files = [plain, user_block, packed];
     for f in &files {
         release_locks(f);
     }
+    files
+}
+
+/// A delivery, comparable: source, run path, and the run's metadata and samples as bits,
+/// or its error.
+type Compared = (
+    String,
+    String,
+    Result<(String, Option<Vec<u64>>, Vec<u64>), String>,
+);
+
+fn deliveries(
+    files: &[PathBuf],
+    isolate: Option<(&skelid::child::ChildCommand, std::time::Duration)>,
+) -> Vec<Compared> {
+    let mut got = Vec::new();
     let o = IngestOptions::default();
-    let deliveries = |isolate: Option<(&skelid::child::ChildCommand, std::time::Duration)>| {
-        let mut got = Vec::new();
-        read_all(&files, &o, None, isolate, &Counts::default(), &mut |d| {
-            got.push(match d {
-                Delivery::Run { source, path, run } => {
-                    let run = run.map(|r| {
-                        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-                        (
-                            serde_json::to_string(&r.meta).unwrap(),
-                            r.input.as_deref().map(bits),
-                            bits(&r.output),
-                        )
-                    });
-                    (source, path, run)
-                }
-                Delivery::Unreadable { file, error } => {
-                    (file.display().to_string(), String::new(), Err(error))
-                }
-            });
-            Ok(())
-        })
-        .unwrap();
-        got
-    };
+    read_all(files, &o, None, isolate, &Counts::default(), &mut |d| {
+        got.push(match d {
+            Delivery::Run { source, path, run } => {
+                let run = run.map(|r| {
+                    let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                    (
+                        serde_json::to_string(&r.meta).unwrap(),
+                        r.input.as_deref().map(bits),
+                        bits(&r.output),
+                    )
+                });
+                (source, path, run)
+            }
+            Delivery::Unreadable { file, error } => {
+                (file.display().to_string(), String::new(), Err(error))
+            }
+        });
+        Ok(())
+    })
+    .unwrap();
+    got
+}
+
+/// The child sends a run whose channels lie in the archive as plain float64 bytes without
+/// its samples, and the parent reads them from the file itself (`Archive::placed`,
+/// `read_placed`). Whatever the layout, what the batch is handed must be what an
+/// in-process read hands it: the same runs, the samples to the bit, and the same words for
+/// a bad run.
+#[test]
+fn the_reading_child_delivers_what_an_in_process_read_does() {
+    let d = tmpdir();
+    let files = archives(d.path());
     // The child first: this process opens the files with libhdf5 only after it has gone.
     let child = skelid::child::ChildCommand {
         exe: env!("CARGO_BIN_EXE_skelid").into(),
@@ -129,10 +162,10 @@ fn the_reading_child_delivers_what_an_in_process_read_does() {
         .map(Into::into)
         .to_vec(),
     };
-    let from_child = deliveries(Some((&child, std::time::Duration::from_secs(60))));
-    let in_process = deliveries(None);
+    let from_child = deliveries(&files, Some((&child, std::time::Duration::from_secs(60))));
+    let in_process = deliveries(&files, None);
     let paths: Vec<&str> = from_child.iter().map(|d| d.1.as_str()).collect();
-    assert_eq!(paths.len(), 8, "{paths:?}");
+    assert_eq!(paths.len(), 11, "{paths:?}");
     assert!(from_child == in_process, "the two reads differ: {paths:?}");
     let error = |path: &str| {
         from_child
@@ -148,22 +181,86 @@ fn the_reading_child_delivers_what_an_in_process_read_does() {
         error("/runs/bad_both"),
         bad.replace("bad_output", "bad_both")
     );
-    // And the child did take the plain way where it could (the same test it makes).
-    let placed = |file: &std::path::Path| {
-        let a = Archive::open(file, &o).unwrap();
-        a.runs
-            .iter()
-            .map(|r| (r.path.clone(), a.placed(r.meta.as_ref().unwrap())))
-            .collect::<Vec<_>>()
+
+    // Which runs the child sends as placed: its side of the protocol, run here.
+    let mut placed = Vec::new();
+    serve(
+        &files,
+        &IngestOptions::default(),
+        None,
+        true,
+        &mut |frame, samples| {
+            if let Frame::Run {
+                archive,
+                path,
+                placed: Some(p),
+                ..
+            } = frame
+            {
+                assert!(samples.is_none(), "{path}: placed and sent");
+                placed.push((archive, path, p));
+            }
+            true
+        },
+    );
+    let names: Vec<(usize, &str)> = placed.iter().map(|p| (p.0, p.1.as_str())).collect();
+    assert_eq!(
+        names,
+        [
+            (0, "/runs/bad_both"),
+            (0, "/runs/bad_output"),
+            (0, "/runs/free"),
+            (0, "/runs/good"),
+            (0, "/timed/run"),
+            (1, "/runs/good"),
+        ]
+    );
+    for (_, path, p) in &placed {
+        assert_eq!(p.input.is_none(), path == "/runs/free", "{path}");
+        assert_eq!(p.output.samples, 1000);
+    }
+    let behind = placed[5].2;
+    assert!(behind.input.unwrap().offset >= 512 && behind.output.offset >= 512);
+}
+
+/// A place past the file's end is refused before anything is allocated for it (a corrupt
+/// dataset's shape could ask for any length); the place itself reads the samples.
+#[test]
+fn a_place_past_the_end_of_the_file_is_refused() {
+    let d = tmpdir();
+    let files = archives(d.path());
+    let plain = &files[0];
+    let mut frames = Vec::new();
+    serve(
+        std::slice::from_ref(plain),
+        &IngestOptions::default(),
+        None,
+        true,
+        &mut |frame, _| {
+            frames.push(frame);
+            true
+        },
+    );
+    let (meta, placed) = frames
+        .iter()
+        .find_map(|f| match f {
+            Frame::Run {
+                path,
+                meta: Ok(m),
+                placed: Some(p),
+                ..
+            } if path == "/runs/good" => Some((m.clone(), *p)),
+            _ => None,
+        })
+        .unwrap();
+    let file = std::fs::File::open(plain).unwrap();
+    let name = plain.display().to_string();
+    let past = Placed {
+        offset: placed.output.offset,
+        samples: usize::MAX / 4,
     };
-    for (path, p) in placed(&plain) {
-        let (input, output) = p.unwrap_or_else(|| panic!("{path} is placed"));
-        assert_eq!(input.is_none(), path == "/runs/free", "{path}");
-        assert_eq!(output.samples, 1000);
-    }
-    let (input, output) = placed(&user_block)[0].1.unwrap();
-    assert!(input.unwrap().offset >= 512 && output.offset >= 512);
-    for (path, p) in placed(&packed) {
-        assert!(p.is_none(), "{path} is not plain float64 in one block");
-    }
+    let e = read_placed(&file, &name, &meta, "output", past).unwrap_err();
+    assert!(e.to_string().contains("past the file's end"), "{e}");
+    let good = read_placed(&file, &name, &meta, "output", placed.output).unwrap();
+    assert_eq!(good, sine(1000, 5.0, 1000.0));
 }

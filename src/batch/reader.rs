@@ -15,11 +15,14 @@
 //! [`Frame`], then for a [`Frame::Run`] that was read the samples as little-endian `f64`
 //! (input first when there is one, then output). A run whose channels lie in the archive as
 //! plain float64 bytes ([`Archive::placed`]) is sent without its samples, only where they
-//! lie: the parent reads them from the file itself with one plain read each (no libhdf5 in
-//! the parent), and checks them as the child would have. The pipe carried every sample
-//! twice through the kernel and woke the other side every 64 kB: on this project's 2-core
-//! machine that cost the child and the parent more CPU than libhdf5's reading, time that
-//! `--jobs 1` hides on the second core and `--jobs 2` cannot.
+//! lie and what the file was: the parent reads them from the file itself with one plain
+//! read each (no libhdf5 in the parent), after checking that it opened the same file, and
+//! checks them as the child would have. The pipe carried every sample twice through the
+//! kernel and woke the other side every 64 kB: on this project's 2-core machine that cost
+//! the child and the parent more CPU than libhdf5's reading, time that `--jobs 1` hides on
+//! the second core and `--jobs 2` cannot. The price: those plain reads are the parent's,
+//! outside the watchdog, so a file system that hangs exactly between the child's reading
+//! of an archive's structure and the parent's reading of its samples hangs the batch.
 
 use std::io::{BufRead, Read, Write};
 use std::path::{Path, PathBuf};
@@ -32,7 +35,7 @@ use serde::{Deserialize, Serialize};
 
 use super::Shard;
 use crate::child::ChildCommand;
-use crate::ingest::{Archive, IngestOptions, PlacedRun, Run, RunMeta};
+use crate::ingest::{Archive, FileStamp, IngestOptions, PlacedRun, Run, RunMeta};
 use crate::inspect::{crash_detail, hang_detail};
 use crate::profile::Stage;
 
@@ -50,7 +53,7 @@ pub enum Frame {
         #[serde(default)]
         not_runs: Vec<crate::ingest::NotARun>,
     },
-    /// One run of this shard; samples follow when `meta` is `Ok`.
+    /// One run of this shard; samples follow when `meta` is `Ok` and it is not `placed`.
     Run {
         /// Archive index.
         archive: usize,
@@ -58,11 +61,10 @@ pub enum Frame {
         path: String,
         /// The run's metadata, or why it cannot be read.
         meta: Result<RunMeta, String>,
-        /// Whether input samples precede the output's.
+        /// Whether the run has input samples (sent before the output's, or placed).
         has_input: bool,
         /// Where the samples lie in the archive, when they are not sent: the parent reads
         /// them there.
-        #[serde(default)]
         placed: Option<PlacedRun>,
     },
     /// A run of another shard (counted, not read).
@@ -129,7 +131,8 @@ pub struct Stopped;
 
 /// Reads `files` in order and calls `deliver` for each run and each unreadable archive;
 /// stops early when `deliver` says so. `isolate`: the executable to run the reading child
-/// of and the time an archive may take (not counting the time `deliver` blocks).
+/// of and the time an archive may take (not counting the parent's own handling of what it
+/// sent: a placed run's read, and the time `deliver` blocks).
 pub fn read_all(
     files: &[PathBuf],
     options: &IngestOptions,
@@ -243,7 +246,7 @@ impl<'a> Assembler<'a> {
                 let run = meta.and_then(|meta| {
                     let (input, output) = match placed {
                         Some(p) => crate::profile::time(Stage::Read, || {
-                            self.read_placed(archive, &meta, p)
+                            self.read_placed_run(archive, &meta, p)
                         })?,
                         None => samples.unwrap_or_default(),
                     };
@@ -274,33 +277,43 @@ impl<'a> Assembler<'a> {
     }
 
     /// A placed run's samples, read from its archive (opened once for all its runs), or
-    /// why they cannot be, in the words [`Archive::load`] would have used.
-    fn read_placed(
+    /// why they cannot be: the words [`Archive::load`] would use for samples that are not
+    /// finite, and a file that is no longer the one the child read is refused.
+    fn read_placed_run(
         &mut self,
         archive: usize,
         meta: &RunMeta,
-        (input, output): PlacedRun,
+        placed: PlacedRun,
     ) -> Result<Samples, String> {
         let path = &self.files[archive];
         let name = path.display().to_string();
+        let unreadable = |detail: String| {
+            crate::ingest::IngestError::Unreadable {
+                file: name.clone(),
+                detail,
+            }
+            .to_string()
+        };
         if self.open.as_ref().is_none_or(|(a, _)| *a != archive) {
-            let file = std::fs::File::open(path).map_err(|e| {
-                crate::ingest::IngestError::Corrupt {
-                    file: name.clone(),
-                    run: Some(meta.path.clone()),
-                    detail: e.to_string(),
-                }
-                .to_string()
-            })?;
+            let file = std::fs::File::open(path).map_err(|e| unreadable(e.to_string()))?;
             self.open = Some((archive, file));
         }
         let (_, file) = self.open.as_ref().expect("opened above");
+        let now = file.metadata().map_err(|e| unreadable(e.to_string()))?;
+        if FileStamp::of(&now) != placed.file {
+            return Err(unreadable(format!(
+                "it changed while run {} was being read (replaced or rewritten); run the \
+                 batch again once it is complete",
+                meta.path
+            )));
+        }
         let channel = |dataset: &str, p| {
             crate::ingest::read_placed(file, &name, meta, dataset, p).map_err(|e| e.to_string())
         };
         // Output first, as `load` checks it first: the same error wins when both are bad.
-        let output = channel(&self.options.output_name, output)?;
-        let input = input
+        let output = channel(&self.options.output_name, placed.output)?;
+        let input = placed
+            .input
             .map(|p| channel(&self.options.input_name, p))
             .transpose()?;
         Ok((input, output))
@@ -366,7 +379,7 @@ pub fn serve(
                 let frame = Frame::Run {
                     archive: i,
                     path: entry.path.clone(),
-                    has_input: placed.0.is_some(),
+                    has_input: placed.input.is_some(),
                     meta: Ok(meta.clone()),
                     placed: Some(placed),
                 };
@@ -534,8 +547,9 @@ enum ChildEnd {
     Died { done: usize, detail: String },
 }
 
-/// Time the current archive has taken, not counting the time the parent spent handing runs
-/// on (the child then waits on a full pipe, through no fault of its own).
+/// Time the current archive has taken, not counting the time the parent spent on what the
+/// child sent (reading a placed run's samples, handing runs on): the child then waits on a
+/// full pipe through no fault of its own, or is ahead, which costs it nothing either.
 struct Clock {
     since: Option<Instant>,
     spent: Duration,
@@ -662,4 +676,57 @@ fn read_in_child(
         }
     };
     Ok(ChildEnd::Died { done, detail })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A placed run whose archive was replaced after the child read it (an export that
+    /// writes a new file and renames it over the old one) is refused with the reason,
+    /// and the same frame over the unchanged file reads the run.
+    #[test]
+    fn a_placed_run_of_a_replaced_archive_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.h5");
+        {
+            let f = hdf5::File::create(&path).unwrap();
+            let g = f.create_group("run").unwrap();
+            g.new_attr::<f64>()
+                .create("sample_rate")
+                .unwrap()
+                .write_scalar(&1000.0)
+                .unwrap();
+            let x: Vec<f64> = (0..1000).map(|i| (i as f64 * 0.03).sin()).collect();
+            for name in ["input", "output"] {
+                g.new_dataset_builder().with_data(&x).create(name).unwrap();
+            }
+        }
+        let files = [path.clone()];
+        let options = IngestOptions::default();
+        let mut sent = Vec::new();
+        serve(&files, &options, None, true, &mut |frame, samples| {
+            if let Frame::Run { .. } = frame {
+                assert!(samples.is_none(), "placed, not sent");
+                sent.push(frame);
+            }
+            true
+        });
+        let frame = sent.pop().expect("one run");
+        let counts = Counts::default();
+        let deliver = |frame| match Assembler::new(&files, &counts, &options).frame(frame, None) {
+            Some(Delivery::Run { run, .. }) => run.map(|r| r.output.len()),
+            _ => panic!("a run"),
+        };
+        let resent = |f: &Frame| serde_json::from_slice(&serde_json::to_vec(f).unwrap()).unwrap();
+        assert_eq!(deliver(resent(&frame)), Ok(1000));
+        let copy = dir.path().join("b.h5");
+        std::fs::copy(&path, &copy).unwrap();
+        std::fs::rename(&copy, &path).unwrap();
+        let refused = deliver(frame).unwrap_err();
+        assert!(
+            refused.contains("changed while run /run was being read"),
+            "{refused}"
+        );
+    }
 }

@@ -16,6 +16,9 @@ use super::*;
 /// An open campaign archive and the runs found in it.
 pub struct Archive {
     pub(super) file_name: String,
+    /// The path it was opened from, and what the file was then: for [`Archive::placed`].
+    pub(super) path: std::path::PathBuf,
+    pub(super) stamp: super::FileStamp,
     pub(super) file: File,
     pub(super) options: IngestOptions,
     /// Runs in path order.
@@ -90,6 +93,8 @@ impl Archive {
         })?;
         let mut archive = Archive {
             file_name,
+            path: path.to_path_buf(),
+            stamp: super::FileStamp::of(&md),
             file,
             options: options.clone(),
             runs: Vec::new(),

@@ -22,11 +22,48 @@ pub struct Placed {
     pub samples: usize,
 }
 
-/// A run's channels as placed: the input's (when the run has one), the output's.
-pub type PlacedRun = (Option<Placed>, Placed);
+/// What tells one file from another at the same path (device, inode, length, last
+/// change), taken when an archive is opened: a reader of its placed samples checks that the
+/// file it opened is still that one (an export that writes a new file and renames it over
+/// the old one changes the inode; one that rewrites it in place, the length or the time).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FileStamp {
+    dev: u64,
+    ino: u64,
+    len: u64,
+    modified_s: i64,
+    modified_ns: i64,
+}
+
+impl FileStamp {
+    /// The stamp of a file's metadata.
+    pub fn of(md: &std::fs::Metadata) -> FileStamp {
+        use std::os::unix::fs::MetadataExt;
+        FileStamp {
+            dev: md.dev(),
+            ino: md.ino(),
+            len: md.len(),
+            modified_s: md.mtime(),
+            modified_ns: md.mtime_nsec(),
+        }
+    }
+}
+
+/// A run's channels as placed ([`Archive::placed`]), and the file they lie in.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PlacedRun {
+    /// The input's samples (none for a free decay).
+    pub input: Option<Placed>,
+    /// The output's samples.
+    pub output: Placed,
+    /// The archive's file as it was opened.
+    pub file: FileStamp,
+}
 
 /// Reads `placed`'s samples from `file` (the archive named `file_name`) and checks them as
-/// [`Archive::load`] does, with the same errors: the other half of [`Archive::placed`].
+/// [`Archive::load`] does, with the same words for samples that are not finite: the other
+/// half of [`Archive::placed`]. A range that ends past the file is refused before anything
+/// is allocated for it. Little-endian machines only, as `placed` is.
 pub fn read_placed(
     file: &std::fs::File,
     file_name: &str,
@@ -34,13 +71,24 @@ pub fn read_placed(
     dataset: &str,
     placed: Placed,
 ) -> Result<Vec<f64>, IngestError> {
+    let corrupt = |detail: String| IngestError::Corrupt {
+        file: file_name.to_string(),
+        run: Some(meta.path.clone()),
+        detail: format!("dataset `{dataset}`: {detail}"),
+    };
+    let len = file.metadata().map_err(|e| corrupt(e.to_string()))?.len();
+    let end = (placed.samples as u64)
+        .checked_mul(8)
+        .and_then(|b| b.checked_add(placed.offset));
+    if end.is_none_or(|end| end > len) {
+        return Err(corrupt(format!(
+            "{} samples at byte {} run past the file's end ({len} bytes)",
+            placed.samples, placed.offset
+        )));
+    }
     let mut v = vec![0f64; placed.samples];
     file.read_exact_at(bytemuck::cast_slice_mut(&mut v), placed.offset)
-        .map_err(|e| IngestError::Corrupt {
-            file: file_name.to_string(),
-            run: Some(meta.path.clone()),
-            detail: format!("dataset `{dataset}`: {e}"),
-        })?;
+        .map_err(|e| corrupt(e.to_string()))?;
     check_finite(file_name, meta, dataset, &v)?;
     Ok(v)
 }
@@ -179,15 +227,19 @@ impl Archive {
     }
 
     /// Where the run's channels lie as plain float64 bytes in the file, when every one of
-    /// them does: a whole dataset (not a `NAME[k]` channel) of native float64, as long as
-    /// the run, stored in one contiguous block (not chunked, filtered, compact or in an
-    /// external file) on a little-endian machine. `None` otherwise or on any error; then
-    /// [`load`](Self::load) reads the run, and says what is wrong.
+    /// them does: a whole one-dimensional dataset (not a `NAME[k]` channel) of native
+    /// float64, as long as the run, stored in one contiguous block (not chunked, filtered,
+    /// compact or in an external file) inside the file, on a little-endian machine; and its
+    /// last sample, read through libhdf5, is the last 8 bytes of that block. `None`
+    /// otherwise or on any error; then [`load`](Self::load) reads the run, and says what
+    /// is wrong.
     pub fn placed(&self, meta: &RunMeta) -> Option<PlacedRun> {
-        if cfg!(target_endian = "big") {
+        if cfg!(target_endian = "big") || meta.samples == 0 {
             return None;
         }
+        let stamp = self.stamp;
         let group = self.file.group(&meta.path).ok()?;
+        let raw = std::fs::File::open(&self.path).ok()?;
         let place = |name: &str| -> Option<Placed> {
             let (base, channel) = channel_name(name);
             if channel.is_some() {
@@ -195,15 +247,36 @@ impl Archive {
             }
             let ds = group.dataset(base).ok()?;
             let plist = ds.dcpl().ok()?;
-            let plain = plist.layout() == Layout::Contiguous
+            // The storage's size is what keeps out a dataset never written: libhdf5 gives
+            // it no block (its reads return the fill value), yet behind a user block its
+            // offset is not "undefined" but the undefined address plus the block's size.
+            let plain = ds.ndim() == 1
+                && plist.layout() == Layout::Contiguous
                 && plist.filters().is_empty()
                 && plist.external().is_empty()
                 && ds.dtype().ok()?.is::<f64>()
                 && ds.size() == meta.samples
                 && ds.storage_size() == 8 * meta.samples as u64;
-            plain.then_some(())?;
-            Some(Placed {
-                offset: ds.offset()?,
+            if !plain {
+                return None;
+            }
+            let offset = ds.offset()?;
+            let last = offset.checked_add(8 * (meta.samples as u64 - 1))?;
+            if last + 8 > stamp.len {
+                return None;
+            }
+            // libhdf5 reads the last sample where the block ends, or refuses a block past
+            // the end of what the file allocates; either way the plain read must agree.
+            let through_hdf5 = ds.read_slice_1d::<f64, _>(meta.samples - 1..).ok()?;
+            let mut bytes = [0u8; 8];
+            raw.read_exact_at(&mut bytes, last).ok()?;
+            let same = through_hdf5
+                .as_slice()?
+                .iter()
+                .map(|x| x.to_bits())
+                .eq([u64::from_le_bytes(bytes)]);
+            same.then_some(Placed {
+                offset,
                 samples: meta.samples,
             })
         };
@@ -212,6 +285,10 @@ impl Archive {
             RunKind::Free => None,
             _ => Some(place(&self.options.input_name)?),
         };
-        Some((input, output))
+        Some(PlacedRun {
+            input,
+            output,
+            file: stamp,
+        })
     }
 }

@@ -15,7 +15,7 @@ pub use crate::run::{Quantity, Run, RunKind, RunMeta};
 mod archive;
 mod files;
 mod load;
-pub use load::{read_placed, Placed, PlacedRun};
+pub use load::{read_placed, FileStamp, Placed, PlacedRun};
 mod meta;
 
 pub use archive::Archive;
