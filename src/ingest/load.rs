@@ -262,7 +262,7 @@ impl Archive {
             }
             let offset = ds.offset()?;
             let last = offset.checked_add(8 * (meta.samples as u64 - 1))?;
-            if last + 8 > stamp.len {
+            if last.checked_add(8)? > stamp.len {
                 return None;
             }
             // libhdf5 reads the last sample where the block ends, or refuses a block past
