@@ -9,7 +9,7 @@ use common::*;
 use std::path::{Path, PathBuf};
 
 use skelid::batch::reader::{read_all, serve, Counts, Delivery, Frame};
-use skelid::ingest::{read_placed, IngestOptions, Placed};
+use skelid::ingest::{read_placed, IngestOptions, Placed, PlacedRun};
 
 /// Three archives: `plain.h5`, whose runs are all placed (good, not finite in one channel
 /// or both, a free decay, a `time` dataset); `user_block.h5`, a placed run behind a
@@ -255,12 +255,18 @@ fn a_place_past_the_end_of_the_file_is_refused() {
         .unwrap();
     let file = std::fs::File::open(plain).unwrap();
     let name = plain.display().to_string();
-    let past = Placed {
-        offset: placed.output.offset,
-        samples: usize::MAX / 4,
+    let o = IngestOptions::default();
+    let past = PlacedRun {
+        output: Placed {
+            offset: placed.output.offset,
+            samples: usize::MAX / 4,
+        },
+        ..placed
     };
-    let e = read_placed(&file, &name, &meta, "output", past).unwrap_err();
+    let e = read_placed(&file, &name, &meta, &o, past).unwrap_err();
+    println!("{e}");
     assert!(e.to_string().contains("past the file's end"), "{e}");
-    let good = read_placed(&file, &name, &meta, "output", placed.output).unwrap();
-    assert_eq!(good, sine(1000, 5.0, 1000.0));
+    let (input, output) = read_placed(&file, &name, &meta, &o, placed).unwrap();
+    assert_eq!(input.unwrap(), sine(1000, 5.0, 1000.0));
+    assert_eq!(output, sine(1000, 5.0, 1000.0));
 }

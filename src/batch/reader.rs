@@ -35,7 +35,7 @@ use serde::{Deserialize, Serialize};
 
 use super::Shard;
 use crate::child::ChildCommand;
-use crate::ingest::{Archive, FileStamp, IngestOptions, PlacedRun, Run, RunMeta};
+use crate::ingest::{Archive, IngestOptions, PlacedRun, Run, RunMeta};
 use crate::inspect::{crash_detail, hang_detail};
 use crate::profile::Stage;
 
@@ -277,8 +277,7 @@ impl<'a> Assembler<'a> {
     }
 
     /// A placed run's samples, read from its archive (opened once for all its runs), or
-    /// why they cannot be: the words [`Archive::load`] would use for samples that are not
-    /// finite, and a file that is no longer the one the child read is refused.
+    /// why they cannot be ([`crate::ingest::read_placed`]).
     fn read_placed_run(
         &mut self,
         archive: usize,
@@ -287,36 +286,19 @@ impl<'a> Assembler<'a> {
     ) -> Result<Samples, String> {
         let path = &self.files[archive];
         let name = path.display().to_string();
-        let unreadable = |detail: String| {
-            crate::ingest::IngestError::Unreadable {
-                file: name.clone(),
-                detail,
-            }
-            .to_string()
-        };
         if self.open.as_ref().is_none_or(|(a, _)| *a != archive) {
-            let file = std::fs::File::open(path).map_err(|e| unreadable(e.to_string()))?;
+            let file = std::fs::File::open(path).map_err(|e| {
+                crate::ingest::IngestError::Unreadable {
+                    file: name.clone(),
+                    detail: e.to_string(),
+                }
+                .to_string()
+            })?;
             self.open = Some((archive, file));
         }
         let (_, file) = self.open.as_ref().expect("opened above");
-        let now = file.metadata().map_err(|e| unreadable(e.to_string()))?;
-        if FileStamp::of(&now) != placed.file {
-            return Err(unreadable(format!(
-                "it changed while run {} was being read (replaced or rewritten); run the \
-                 batch again once it is complete",
-                meta.path
-            )));
-        }
-        let channel = |dataset: &str, p| {
-            crate::ingest::read_placed(file, &name, meta, dataset, p).map_err(|e| e.to_string())
-        };
-        // Output first, as `load` checks it first: the same error wins when both are bad.
-        let output = channel(&self.options.output_name, placed.output)?;
-        let input = placed
-            .input
-            .map(|p| channel(&self.options.input_name, p))
-            .transpose()?;
-        Ok((input, output))
+        crate::ingest::read_placed(file, &name, meta, self.options, placed)
+            .map_err(|e| e.to_string())
     }
 }
 
@@ -372,49 +354,32 @@ pub fn serve(
                 continue;
             }
             let placed = match &entry.meta {
-                Ok(m) if place => archive.placed(m).map(|p| (m, p)),
+                Ok(m) if place => archive.placed(m),
                 _ => None,
             };
-            let (frame, samples) = if let Some((meta, placed)) = placed {
-                let frame = Frame::Run {
-                    archive: i,
-                    path: entry.path.clone(),
-                    has_input: placed.input.is_some(),
-                    meta: Ok(meta.clone()),
-                    placed: Some(placed),
-                };
-                (frame, None)
-            } else {
-                let run = entry
-                    .meta
-                    .as_ref()
-                    .map_err(|e| e.to_string())
-                    .and_then(|m| {
+            let (meta, samples) = match (&entry.meta, placed) {
+                (Ok(m), Some(_)) => (Ok(m.clone()), None),
+                (meta, _) => {
+                    let run = meta.as_ref().map_err(|e| e.to_string()).and_then(|m| {
                         crate::profile::time(Stage::Read, || archive.load(m))
                             .map_err(|e| e.to_string())
                     });
-                match run {
-                    Ok(run) => (
-                        Frame::Run {
-                            archive: i,
-                            path: entry.path.clone(),
-                            has_input: run.input.is_some(),
-                            meta: Ok(run.meta),
-                            placed: None,
-                        },
-                        Some((run.input, run.output)),
-                    ),
-                    Err(e) => (
-                        Frame::Run {
-                            archive: i,
-                            path: entry.path.clone(),
-                            meta: Err(e),
-                            has_input: false,
-                            placed: None,
-                        },
-                        None,
-                    ),
+                    match run {
+                        Ok(run) => (Ok(run.meta), Some((run.input, run.output))),
+                        Err(e) => (Err(e), None),
+                    }
                 }
+            };
+            let has_input = match placed {
+                Some(p) => p.input.is_some(),
+                None => samples.as_ref().is_some_and(|s| s.0.is_some()),
+            };
+            let frame = Frame::Run {
+                archive: i,
+                path: entry.path.clone(),
+                meta,
+                has_input,
+                placed,
             };
             if !emit(frame, samples) {
                 return;

@@ -16,8 +16,9 @@ use super::*;
 /// An open campaign archive and the runs found in it.
 pub struct Archive {
     pub(super) file_name: String,
-    /// The path it was opened from, and what the file was then: for [`Archive::placed`].
-    pub(super) path: std::path::PathBuf,
+    /// The file as plain bytes (`None` where it cannot be opened so), and what it was when
+    /// opened: for [`Archive::placed`].
+    pub(super) raw: Option<std::fs::File>,
     pub(super) stamp: super::FileStamp,
     pub(super) file: File,
     pub(super) options: IngestOptions,
@@ -93,7 +94,7 @@ impl Archive {
         })?;
         let mut archive = Archive {
             file_name,
-            path: path.to_path_buf(),
+            raw: std::fs::File::open(path).ok(),
             stamp: super::FileStamp::of(&md),
             file,
             options: options.clone(),

@@ -60,37 +60,62 @@ pub struct PlacedRun {
     pub file: FileStamp,
 }
 
-/// Reads `placed`'s samples from `file` (the archive named `file_name`) and checks them as
-/// [`Archive::load`] does, with the same words for samples that are not finite: the other
-/// half of [`Archive::placed`]. A range that ends past the file is refused before anything
-/// is allocated for it. Little-endian machines only, as `placed` is.
+/// Reads a placed run's samples from `file` (the archive named `file_name`, opened by
+/// the reader) and checks them as [`Archive::load`] does, output first, with the same
+/// words for samples that are not finite: the other half of [`Archive::placed`]. Refused
+/// with the reason: a file that is no longer the one the child opened (replaced or
+/// rewritten), and a place that runs past the file's end, before anything is allocated
+/// for it. `options` names the datasets, as for `load`. Little-endian machines only, as
+/// `placed` is.
 pub fn read_placed(
     file: &std::fs::File,
     file_name: &str,
     meta: &RunMeta,
-    dataset: &str,
-    placed: Placed,
-) -> Result<Vec<f64>, IngestError> {
-    let corrupt = |detail: String| IngestError::Corrupt {
+    options: &IngestOptions,
+    placed: PlacedRun,
+) -> Result<(Option<Vec<f64>>, Vec<f64>), IngestError> {
+    let unreadable = |detail: String| IngestError::Unreadable {
         file: file_name.to_string(),
-        run: Some(meta.path.clone()),
-        detail: format!("dataset `{dataset}`: {detail}"),
+        detail,
     };
-    let len = file.metadata().map_err(|e| corrupt(e.to_string()))?.len();
-    let end = (placed.samples as u64)
-        .checked_mul(8)
-        .and_then(|b| b.checked_add(placed.offset));
-    if end.is_none_or(|end| end > len) {
-        return Err(corrupt(format!(
-            "{} samples at byte {} run past the file's end ({len} bytes)",
-            placed.samples, placed.offset
+    let now = file.metadata().map_err(|e| unreadable(e.to_string()))?;
+    if FileStamp::of(&now) != placed.file {
+        return Err(unreadable(format!(
+            "it changed while run {} was being read (replaced or rewritten); run the batch \
+             again once it is complete",
+            meta.path
         )));
     }
-    let mut v = vec![0f64; placed.samples];
-    file.read_exact_at(bytemuck::cast_slice_mut(&mut v), placed.offset)
-        .map_err(|e| corrupt(e.to_string()))?;
-    check_finite(file_name, meta, dataset, &v)?;
-    Ok(v)
+    let channel = |dataset: &str, p: Placed| {
+        let corrupt = |detail: String| IngestError::Corrupt {
+            file: file_name.to_string(),
+            run: Some(meta.path.clone()),
+            detail: format!("dataset `{dataset}`: {detail}"),
+        };
+        let end = (p.samples as u64)
+            .checked_mul(8)
+            .and_then(|b| b.checked_add(p.offset));
+        if end.is_none_or(|end| end > now.len()) {
+            return Err(corrupt(format!(
+                "{} samples at byte {} run past the file's end ({} bytes)",
+                p.samples,
+                p.offset,
+                now.len()
+            )));
+        }
+        let mut v = vec![0f64; p.samples];
+        file.read_exact_at(bytemuck::cast_slice_mut(&mut v), p.offset)
+            .map_err(|e| corrupt(e.to_string()))?;
+        check_finite(file_name, meta, dataset, &v)?;
+        Ok(v)
+    };
+    // Output first, as `load` checks it first: the same error wins when both are bad.
+    let output = channel(&options.output_name, placed.output)?;
+    let input = placed
+        .input
+        .map(|p| channel(&options.input_name, p))
+        .transpose()?;
+    Ok((input, output))
 }
 
 /// Refuses samples that are not all finite, naming how many and the first.
@@ -239,7 +264,7 @@ impl Archive {
         }
         let stamp = self.stamp;
         let group = self.file.group(&meta.path).ok()?;
-        let raw = std::fs::File::open(&self.path).ok()?;
+        let raw = self.raw.as_ref()?;
         let place = |name: &str| -> Option<Placed> {
             let (base, channel) = channel_name(name);
             if channel.is_some() {
