@@ -412,16 +412,23 @@ fn zlib_header(level: u8) -> [u8; 2] {
     (head + 31 - head % 31).to_be_bytes()
 }
 
-/// Whether deflating `piece` would gain next to nothing: three slices of it (its start,
-/// middle and end), each a 24th of it, deflated alone come to at least [`STORE_ABOVE`] of
-/// their length. An eighth of a deflate's work, which a plane of noise repays eightfold.
+/// Whether deflating `piece` would gain next to nothing: three slices of it (at a sixth, a
+/// half and five sixths of the way), each a 24th of it, deflated alone come to at least
+/// [`STORE_ABOVE`] of their length. An eighth of a deflate's work, which a plane of noise
+/// repays eightfold.
+///
+/// Not its very start and end: a track's edges, where it is not valid, and a last chunk's
+/// zero padding are constant and would pass for compressible, so that a plane of noise was
+/// deflated whole for the few per cent its edges gain. Sliced inside, 200 runs of the
+/// throughput campaign store 47 % more planes and deflate 12 % faster, for chunks 0.5 %
+/// larger (README, *Since … forty-second session*).
 fn incompressible(z: &mut flate2::Compress, piece: &[u8], scratch: &mut Vec<u8>) -> bool {
     let w = piece.len() / 24;
     if w < 64 {
         return false;
     }
-    (0..3).all(|k| {
-        let at = k * (piece.len() - w) / 2;
+    [1, 3, 5].into_iter().all(|sixths| {
+        let at = sixths * (piece.len() - w) / 6;
         z.reset();
         scratch.clear();
         deflate_into(
@@ -738,6 +745,43 @@ mod tests {
             plain.len()
         );
         assert!(counted < 8 * n / 20, "{counted} bytes");
+    }
+
+    #[test]
+    fn a_plane_of_noise_with_constant_edges_is_stored() {
+        // A track of noise that is not valid in its first and last tenth (stored as NaN
+        // there): its five low planes are noise between two constant runs. Deflated, they
+        // would gain their edges' few per cent at the whole plane's cost; they are stored.
+        let n = 30_000;
+        let bits = noise(8 * n);
+        let data: Vec<f64> = (0..n)
+            .map(|i| {
+                if i < n / 10 || i >= n - n / 10 {
+                    return f64::NAN;
+                }
+                let low = u64::from_le_bytes(bits[8 * i..8 * i + 8].try_into().unwrap());
+                f64::from_bits(1.0f64.to_bits() | (low & 0xFF_FFFF_FFFF))
+            })
+            .collect();
+        let bytes: &[u8] = bytemuck::cast_slice(&data);
+        let chunk = &compress_chunks(bytes, Elem::F64, 1)[0];
+        // Five planes stored whole (each a stored block of its 30 000 bytes, the header's
+        // length field n), three deflated to little.
+        let stored_headers = chunk
+            .windows(5)
+            .filter(|h| {
+                h[1..3] == (n as u16).to_le_bytes() && h[3..5] == (!(n as u16)).to_le_bytes()
+            })
+            .count();
+        assert_eq!(stored_headers, 5, "{} bytes", chunk.len());
+        assert!(chunk.len() < 5 * n + n / 10, "{} bytes", chunk.len());
+        let mut raw = Vec::new();
+        flate2::read::ZlibDecoder::new(&chunk[..])
+            .read_to_end(&mut raw)
+            .unwrap();
+        let mut shuffled = vec![0u8; bytes.len()];
+        shuffle(bytes, 8, &mut shuffled);
+        assert_eq!(raw, shuffled);
     }
 
     #[test]
