@@ -186,6 +186,19 @@ pub fn release_file(file: File, size: u64) {
     });
 }
 
+/// Hands over `len` bytes at `offset` of `file`, written and final (a run's data that a
+/// batch's worker put into results.h5 itself), for release as [`Extents`] hands its own.
+pub fn release_extent(file: &Arc<File>, offset: u64, len: u64) {
+    if releasing() && len > 0 {
+        hand_over(Part {
+            file: file.clone(),
+            offset,
+            len,
+            size: len,
+        });
+    }
+}
+
 /// Writes `bytes` as the whole of a new file at `path` and hands it over for release.
 pub fn write_new_file(path: &std::path::Path, bytes: &[u8]) -> std::io::Result<()> {
     let mut f = File::create(path)?;

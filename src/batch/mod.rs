@@ -219,10 +219,22 @@ pub struct BatchSummary {
 /// What the workers hand the writer.
 pub(super) enum Finished {
     /// A run found committed by an earlier invocation, with its stored results (and its
-    /// report figures, drawn by the worker, when it may be shown).
-    Skipped(Entry, Stored, Option<DrawnRun>),
-    /// A run identified and committed to the journal now, with its report figures.
-    Committed(Entry, Prepared, Option<DrawnRun>),
+    /// report figures, drawn by the worker, when it may be shown), and where the worker
+    /// put its data in results.h5.
+    Skipped(
+        Entry,
+        Stored,
+        Option<DrawnRun>,
+        Option<crate::report::PlacedData>,
+    ),
+    /// A run identified and committed to the journal now, with its report figures and
+    /// where the worker put its data in results.h5.
+    Committed(
+        Entry,
+        Prepared,
+        Option<DrawnRun>,
+        Option<crate::report::PlacedData>,
+    ),
     /// A run identified now whose journal file could not be written.
     Failed(ReportError),
 }
@@ -281,6 +293,7 @@ pub fn run_campaigns(
     let record = settings_record(&opt.methods, &opt.identify, ingest);
     let results = ResultsFile::create(out, journal.has_legacy_files())?;
     results.write_settings(&record)?;
+    let placer = results.placer();
     let drawn = Drawn::new(opt.report_runs);
     let written = std::thread::scope(|scope| {
         let counts = &counts;
@@ -297,7 +310,7 @@ pub fn run_campaigns(
         // workers then stop, and the reader with them.
         let _ = pool.install(|| {
             work_rx.into_iter().par_bridge().try_for_each(|d| {
-                let finished = prepare(d, &journal, &settings, opt, drawn);
+                let finished = prepare(d, &journal, &settings, opt, drawn, placer.as_ref());
                 done_tx.send(finished).map_err(|_| ())
             })
         });

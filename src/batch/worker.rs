@@ -10,18 +10,20 @@ use crate::identify::{identify, IdentifyOptions};
 use crate::journal::{failed_key, run_key, Journal, Prepared, Stored};
 use crate::profile::{self, Stage};
 use crate::report::html::{self, DrawnRun, RunPlots};
-use crate::report::RunOutcome;
+use crate::report::{PlacedData, Placer, RunOutcome};
 use crate::track::Method;
 
 use super::*;
 
-/// A worker's part: the key, the skip test, the identification and the encoding.
+/// A worker's part: the key, the skip test, the identification and the encoding, and the
+/// run's data put into results.h5 (through `placer`, where the file's writer has one).
 pub(super) fn prepare(
     d: reader::Delivery,
     journal: &Journal,
     settings: &str,
     opt: &BatchOptions<'_>,
     drawn: &Drawn,
+    placer: Option<&Placer>,
 ) -> Finished {
     let (key, outcome) = match d {
         reader::Delivery::Unreadable { file, error } => {
@@ -44,17 +46,17 @@ pub(super) fn prepare(
     };
     if !opt.force {
         if let Some((e, stored)) = journal.load(&key) {
-            let plots = match &stored {
+            let (plots, placed) = match &stored {
                 Stored::Encoded(run) => {
                     let plots = drawn.wants(&e).then(|| run_plots(run));
                     if let Err(err) = figures(run, &e.source, plots.as_ref(), opt) {
                         return Finished::Failed(err);
                     }
-                    plots.map(draw)
+                    (plots.map(draw), place(placer, run))
                 }
-                Stored::Legacy(_) => None,
+                Stored::Legacy(_) => (None, None),
             };
-            return Finished::Skipped(e, stored, plots);
+            return Finished::Skipped(e, stored, plots, placed);
         }
     }
     let outcome = match outcome {
@@ -67,15 +69,24 @@ pub(super) fn prepare(
             let plots = drawn.wants(&entry).then(|| run_plots(prepared.encoded()));
             match figures(prepared.encoded(), &entry.source, plots.as_ref(), opt) {
                 Ok(()) => {
-                    // On to the writer's queue: the chunks alone from here.
+                    // On to the writer's queue: the chunks alone from here, already in
+                    // results.h5 where the writer has a placer.
                     prepared.forget_kept();
-                    Finished::Committed(entry, prepared, plots.map(draw))
+                    let placed = place(placer, prepared.encoded());
+                    Finished::Committed(entry, prepared, plots.map(draw), placed)
                 }
                 Err(e) => Finished::Failed(e),
             }
         }
         Err(e) => Finished::Failed(e),
     }
+}
+
+/// Puts `run`'s data into results.h5 through `placer`, timed as writing (`None`: the writer
+/// will write them itself).
+fn place(placer: Option<&Placer>, run: &crate::report::encoded::EncodedRun) -> Option<PlacedData> {
+    let placer = placer?;
+    profile::time(Stage::Write, || placer.place(run))
 }
 
 /// The report's plots of an encoded run (its group in results.h5 is set when drawn).

@@ -42,16 +42,16 @@ pub(super) fn write_finished(
         };
         let t0 = profile::thread_cpu();
         let (e, was_skipped, plots) = match f {
-            Finished::Skipped(e, Stored::Encoded(run), plots) => {
-                results.write_encoded_as(&run, &dst)?;
+            Finished::Skipped(e, Stored::Encoded(run), plots, placed) => {
+                results.write_placed_as(&run, placed.as_ref(), &dst)?;
                 (e, true, plots)
             }
-            Finished::Skipped(e, Stored::Legacy(file), plots) => {
+            Finished::Skipped(e, Stored::Legacy(file), plots, _) => {
                 results.copy_run_from(&file, &e.path, &dst)?;
                 (e, true, plots)
             }
-            Finished::Committed(e, p, plots) => {
-                results.write_encoded_as(p.encoded(), &dst)?;
+            Finished::Committed(e, p, plots, placed) => {
+                results.write_placed_as(p.encoded(), placed.as_ref(), &dst)?;
                 (e, false, plots)
             }
             Finished::Failed(_) => unreachable!("returned above"),

@@ -1,7 +1,10 @@
 //! `results.h5` laid out byte by byte, without libhdf5: the batch's one writer puts each
-//! encoded run's chunks, dataset headers and strings into the file as it arrives, and
-//! the groups above the runs when the batch ends. In: encoded runs; out: the file, which
-//! any HDF5 reader (libhdf5 1.8 and later) reads as it reads [`super::ResultsWriter`]'s.
+//! encoded run's dataset headers and strings into the file as it arrives, and the groups
+//! above the runs when the batch ends; the run's data (its chunks) the worker that encoded
+//! it has put there already, at a place reserved for it at the file's end ([`Placer`]), or
+//! else the writer writes them too (a run from an earlier batch's journal, `skelid merge`).
+//! In: encoded runs; out: the file, which any HDF5 reader (libhdf5 1.8 and later) reads as
+//! it reads [`super::ResultsWriter`]'s.
 //!
 //! Why: libhdf5 makes the 6 groups, 51 datasets and 172 attributes of a run one call at a
 //! time under its one lock, 2.2–2.9 ms a run, and that serial writer was most of what kept
@@ -19,9 +22,10 @@
 
 use std::collections::BTreeMap;
 use std::fs::File;
-use std::io::Write;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 
 use super::encoded::{self, EncodedRun, Item, Scalar};
 use super::hdf5_format::{self as h5, AttrValue, HeapId, Message};
@@ -55,14 +59,129 @@ struct Inner {
     failed: Option<String>,
 }
 
-/// The file being written: everything is appended at `pos`, metadata through a buffer.
+/// The file being written: everything is put at its end, reserved from [`Space`] (which
+/// the batch's workers reserve from too, see [`Placer`]), metadata through a buffer.
 struct Io {
-    file: File,
-    /// Bytes that belong just before `pos`, not yet written.
+    file: Arc<File>,
+    /// Metadata not yet written, which belongs at `meta_at`.
     meta: Vec<u8>,
-    pos: u64,
+    meta_at: u64,
+    space: Arc<Space>,
     /// The chunks written so far, released from the page cache in rounds.
     extents: Option<crate::pagecache::Extents>,
+}
+
+/// The file's end: every byte below it is reserved, by the writer or by a [`Placer`].
+struct Space {
+    end: AtomicU64,
+}
+
+impl Space {
+    /// Reserves `len` bytes at the end; their address.
+    fn reserve(&self, len: u64) -> u64 {
+        self.end.fetch_add(len, Ordering::Relaxed)
+    }
+}
+
+/// What a batch's workers use to put a run's data (its chunks and contiguous datasets)
+/// into the file themselves, in parallel, each at a place reserved for it, so that the one
+/// writer thread lays out only the run's headers ([`DirectWriter::write_placed_as`]). The
+/// data were most of that thread's time: the kernel's copy into the page cache and ext4's
+/// reservations, 62 % of the writer's CPU by `perf` on 200 runs (README, *Throughput*).
+#[derive(Clone)]
+pub struct Placer {
+    file: Arc<File>,
+    space: Arc<Space>,
+    /// The file opened again for the page-cache releaser, when it releases.
+    release: Option<Arc<File>>,
+}
+
+/// A run's data as a [`Placer`] put it in the file: each dataset's chunk addresses, in the
+/// run's order (a contiguous dataset: one address; an empty one: none).
+pub struct PlacedData {
+    space: Arc<Space>,
+    addrs: Vec<Vec<u64>>,
+}
+
+impl Placer {
+    /// Writes `run`'s data at a place reserved for it in one system call (or a few); `None`
+    /// when there is nothing to place or the write failed (then the writer writes the data
+    /// itself, as for a run from the journal, and reports what fails).
+    pub fn place(&self, run: &EncodedRun) -> Option<PlacedData> {
+        let mut parts: Vec<&[u8]> = Vec::new();
+        let mut addrs = Vec::new();
+        let mut len = 0u64;
+        for d in run.items.iter().filter_map(|i| match i {
+            Item::Dataset(d) => Some(d),
+            _ => None,
+        }) {
+            let bytes: Vec<&[u8]> = match &d.storage {
+                encoded::Storage::Plain(v) if v.is_empty() => Vec::new(),
+                encoded::Storage::Plain(v) => vec![bytemuck::cast_slice(v)],
+                encoded::Storage::Chunked { chunks, .. } => {
+                    chunks.iter().map(|c| c.as_slice()).collect()
+                }
+            };
+            let mut at = Vec::with_capacity(bytes.len());
+            for b in bytes {
+                at.push(len);
+                len += b.len() as u64;
+                parts.push(b);
+            }
+            addrs.push(at);
+        }
+        if len == 0 {
+            return None;
+        }
+        let base = self.space.reserve(len);
+        write_parts_at(&self.file, &parts, base).ok()?;
+        if let Some(f) = &self.release {
+            crate::pagecache::release_extent(f, base, len);
+        }
+        for a in addrs.iter_mut().flatten() {
+            *a += base;
+        }
+        Some(PlacedData {
+            space: self.space.clone(),
+            addrs,
+        })
+    }
+}
+
+/// Writes `parts` one after another at `offset`: one `pwritev` for up to 1024 of them, and
+/// again for what a short write leaves.
+fn write_parts_at(file: &File, parts: &[&[u8]], offset: u64) -> std::io::Result<()> {
+    use std::io::IoSlice;
+    use std::os::fd::AsRawFd;
+    let mut slices: Vec<IoSlice<'_>> = parts
+        .iter()
+        .filter(|p| !p.is_empty())
+        .map(|p| IoSlice::new(p))
+        .collect();
+    let mut left = &mut slices[..];
+    let mut at = offset;
+    while !left.is_empty() {
+        let n = left.len().min(1024) as libc::c_int;
+        let off = libc::off_t::try_from(at)
+            .map_err(|_| std::io::Error::other(format!("offset {at} beyond the system's")))?;
+        // SAFETY: `IoSlice` is ABI-compatible with `iovec` (std guarantees it on unix), and
+        // the `n` slices it points to live until the call returns.
+        let wrote = unsafe { libc::pwritev(file.as_raw_fd(), left.as_ptr().cast(), n, off) };
+        match wrote {
+            0 => return Err(std::io::ErrorKind::WriteZero.into()),
+            n if n < 0 => {
+                let e = std::io::Error::last_os_error();
+                if e.kind() != std::io::ErrorKind::Interrupted {
+                    return Err(e);
+                }
+            }
+            n => {
+                at += n as u64;
+                IoSlice::advance_slices(&mut left, n as usize);
+            }
+        }
+    }
+    Ok(())
 }
 
 /// A group not yet written: its attribute messages and its links by name.
@@ -107,9 +226,12 @@ impl DirectWriter {
         let extents = crate::pagecache::Extents::open(&tmp);
         // The superblock is written last, when the root's address and the end are known.
         let io = Io {
-            file,
+            file: Arc::new(file),
             meta: vec![0; h5::SUPERBLOCK_LEN],
-            pos: h5::SUPERBLOCK_LEN as u64,
+            meta_at: 0,
+            space: Arc::new(Space {
+                end: AtomicU64::new(h5::SUPERBLOCK_LEN as u64),
+            }),
             extents,
         };
         let w = DirectWriter {
@@ -179,9 +301,34 @@ impl DirectWriter {
 
     /// Adds one encoded run under the group path `dst` (its own path, or another).
     pub fn write_encoded_as(&self, run: &EncodedRun, dst: &str) -> Result<(), ReportError> {
+        self.write_placed_as(run, None, dst)
+    }
+
+    /// [`write_encoded_as`](Self::write_encoded_as) for a run whose data a worker has put
+    /// in this file already ([`Placer::place`]): only its headers and strings are written.
+    /// Data placed in another file are written again here.
+    pub fn write_placed_as(
+        &self,
+        run: &EncodedRun,
+        placed: Option<&PlacedData>,
+        dst: &str,
+    ) -> Result<(), ReportError> {
         self.apply(&format!("run {}", run.path), |io, root| {
-            write_run(io, root, run, dst)
+            let placed = placed.filter(|p| Arc::ptr_eq(&p.space, &io.space));
+            write_run(io, root, run, placed, dst)
         })
+    }
+
+    /// A handle for the batch's workers to put runs' data into this file themselves.
+    pub fn placer(&self) -> Placer {
+        let inner = self.inner();
+        Placer {
+            file: inner.io.file.clone(),
+            space: inner.io.space.clone(),
+            release: crate::pagecache::releasing()
+                .then(|| File::open(&self.tmp).ok().map(Arc::new))
+                .flatten(),
+        }
     }
 
     /// Adds one encoded run under its own path.
@@ -244,7 +391,13 @@ impl DirectWriter {
             }
             let root = io.seal(root, true)?;
             io.flush()?;
-            io.file.write_all_at(&h5::superblock(root, io.pos), 0)?;
+            // Every reservation was written, but a worker's that failed: the end of
+            // the file is where the last one ends.
+            let end = io.space.end.load(Ordering::Acquire);
+            if io.file.metadata()?.len() < end {
+                io.file.set_len(end)?;
+            }
+            io.file.write_all_at(&h5::superblock(root, end), 0)?;
             Ok(())
         })();
         let Io { file, extents, .. } = io;
@@ -328,7 +481,22 @@ fn open<'g>(
 }
 
 /// Writes one encoded run into `root`'s tree at `dst` (see [`DirectWriter::write_encoded_as`]).
-fn write_run(io: &mut Io, root: &mut Group, run: &EncodedRun, dst: &str) -> Result<(), String> {
+fn write_run(
+    io: &mut Io,
+    root: &mut Group,
+    run: &EncodedRun,
+    placed: Option<&PlacedData>,
+    dst: &str,
+) -> Result<(), String> {
+    // The placed addresses of each dataset in turn; trusted only for a run of this many.
+    let datasets = run
+        .items
+        .iter()
+        .filter(|i| matches!(i, Item::Dataset(_)))
+        .count();
+    let mut placed = placed
+        .filter(|p| p.addrs.len() == datasets)
+        .map(|p| p.addrs.iter());
     // Every string of the run in one heap collection (or a few), written first: the
     // attributes name their strings by address.
     let texts: Vec<&str> = run
@@ -375,7 +543,8 @@ fn write_run(io: &mut Io, root: &mut Group, run: &EncodedRun, dst: &str) -> Resu
             }
             Item::Dataset(d) => {
                 check_name(&d.name)?;
-                let messages = io.dataset(d).map_err(|e| e.to_string())?;
+                let at = placed.as_mut().and_then(|p| p.next()).map(Vec::as_slice);
+                let messages = io.dataset(d, at).map_err(|e| e.to_string())?;
                 datasets.push((d.group.clone(), d.name.clone(), messages));
             }
             Item::DatasetAttr {
@@ -430,39 +599,68 @@ fn rel_parts(rel: &str) -> Vec<&str> {
 }
 
 impl Io {
-    /// Appends metadata; its address.
+    /// Where the buffered metadata ends.
+    fn meta_end(&self) -> u64 {
+        self.meta_at + self.meta.len() as u64
+    }
+
+    /// Appends metadata at the file's end; its address.
     fn put_meta(&mut self, bytes: &[u8]) -> std::io::Result<u64> {
-        let at = self.pos;
-        self.meta.extend_from_slice(bytes);
-        self.pos += bytes.len() as u64;
-        if self.meta.len() >= META_FLUSH {
-            self.flush()?;
-        }
+        let at = self.space.reserve(bytes.len() as u64);
+        self.put_meta_at(at, bytes)?;
         Ok(at)
     }
 
-    /// Appends raw data (a chunk, a contiguous dataset): written at once with the
-    /// buffered metadata before it, in one call and without copying it; its address.
-    fn put_data(&mut self, bytes: &[u8]) -> std::io::Result<u64> {
-        let at = self.pos;
-        let mut parts = [
-            std::io::IoSlice::new(&self.meta),
-            std::io::IoSlice::new(bytes),
-        ];
-        let mut left = &mut parts[..];
-        std::io::IoSlice::advance_slices(&mut left, 0);
-        while !left.is_empty() {
-            match self.file.write_vectored(left) {
-                Ok(0) => return Err(std::io::ErrorKind::WriteZero.into()),
-                Ok(n) => std::io::IoSlice::advance_slices(&mut left, n),
-                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-                Err(e) => return Err(e),
+    /// Buffers metadata reserved at `at`: after what is buffered when a worker reserved
+    /// nothing in between, else in a buffer of its own (the old one written first).
+    fn put_meta_at(&mut self, at: u64, bytes: &[u8]) -> std::io::Result<()> {
+        if at != self.meta_end() {
+            self.flush()?;
+            self.meta_at = at;
+        }
+        self.meta.extend_from_slice(bytes);
+        if self.meta.len() >= META_FLUSH {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    /// Appends metadata whose bytes depend on their own address (a chunk index's nodes, a
+    /// symbol table), made by `build` for the file's end as it stands, and made again
+    /// should a worker reserve space meanwhile; what `build` returns beside the bytes.
+    fn put_meta_built<T>(&mut self, build: impl Fn(u64) -> (Vec<u8>, T)) -> std::io::Result<T> {
+        loop {
+            let at = self.space.end.load(Ordering::Acquire);
+            let (bytes, made) = build(at);
+            let end = at + bytes.len() as u64;
+            if self
+                .space
+                .end
+                .compare_exchange(at, end, Ordering::AcqRel, Ordering::Acquire)
+                .is_ok()
+            {
+                self.put_meta_at(at, &bytes)?;
+                return Ok(made);
             }
         }
+    }
+
+    /// Appends raw data (a chunk, a contiguous dataset) at the file's end: written at once,
+    /// with the buffered metadata before it when they adjoin, in one call and without
+    /// copying it; its address.
+    fn put_data(&mut self, bytes: &[u8]) -> std::io::Result<u64> {
+        let len = bytes.len() as u64;
+        let at = self.space.reserve(len);
+        if at == self.meta_end() {
+            write_parts_at(&self.file, &[&self.meta, bytes], self.meta_at)?;
+        } else {
+            self.flush()?;
+            self.file.write_all_at(bytes, at)?;
+        }
         self.meta.clear();
-        self.pos += bytes.len() as u64;
+        self.meta_at = at + len;
         if let Some(e) = self.extents.as_mut() {
-            e.wrote(at, bytes.len() as u64);
+            e.wrote(at, len);
         }
         Ok(at)
     }
@@ -470,7 +668,8 @@ impl Io {
     /// Writes the buffered metadata.
     fn flush(&mut self) -> std::io::Result<()> {
         if !self.meta.is_empty() {
-            self.file.write_all(&self.meta)?;
+            self.file.write_all_at(&self.meta, self.meta_at)?;
+            self.meta_at = self.meta_end();
             self.meta.clear();
         }
         Ok(())
@@ -496,8 +695,14 @@ impl Io {
         Ok(ids)
     }
 
-    /// Writes a dataset's data (and chunk index); the messages of its header.
-    fn dataset(&mut self, d: &encoded::Dataset) -> std::io::Result<Vec<Message>> {
+    /// Writes a dataset's data (unless `placed` gives where a worker put it: one address
+    /// a chunk, or one for contiguous bytes) and its chunk index; the messages of its
+    /// header.
+    fn dataset(
+        &mut self,
+        d: &encoded::Dataset,
+        placed: Option<&[u64]>,
+    ) -> std::io::Result<Vec<Message>> {
         let elem = d.elem;
         let storage = match &d.storage {
             // An empty dataset is made chunked by the hdf5 crate (libhdf5 has no
@@ -512,20 +717,29 @@ impl Io {
             // `encoded` compresses them).
             encoded::Storage::Plain(v) => {
                 let bytes: &[u8] = bytemuck::cast_slice(v);
+                let addr = match placed {
+                    Some(&[at]) => at,
+                    _ => self.put_data(bytes)?,
+                };
                 h5::Storage::Contiguous {
-                    addr: self.put_data(bytes)?,
+                    addr,
                     len: bytes.len() as u64,
                 }
             }
             encoded::Storage::Chunked { level, chunks } => {
                 let step = encoded::chunk_len(d.len) as u64;
+                let placed = placed.filter(|p| p.len() == chunks.len());
                 let mut index = Vec::with_capacity(chunks.len());
                 for (i, c) in chunks.iter().enumerate() {
                     let len = u32::try_from(c.len()).map_err(|_| {
                         std::io::Error::other(format!("chunk {i} of {} over 4 GB", d.name))
                     })?;
+                    let addr = match placed {
+                        Some(p) => p[i],
+                        None => self.put_data(c)?,
+                    };
                     index.push(h5::Chunk {
-                        addr: self.put_data(c)?,
+                        addr,
                         len,
                         offset: i as u64 * step,
                     });
@@ -533,9 +747,7 @@ impl Io {
                 let btree = if index.is_empty() {
                     h5::UNDEF
                 } else {
-                    let (nodes, root) = h5::chunk_btree(&index, step, elem.size() as u64, self.pos);
-                    self.put_meta(&nodes)?;
-                    root
+                    self.put_meta_built(|at| h5::chunk_btree(&index, step, elem.size() as u64, at))?
                 };
                 h5::Storage::Chunked {
                     btree,
@@ -564,9 +776,7 @@ impl Io {
         }
         if at_end && links.len() > COMPACT_MAX {
             let links: Vec<(&str, u64)> = links.iter().map(|(n, a)| (n.as_str(), *a)).collect();
-            let (bytes, header) = h5::symbol_table_group(&links, &g.attrs, self.pos);
-            self.put_meta(&bytes)?;
-            return Ok(header);
+            return self.put_meta_built(|at| h5::symbol_table_group(&links, &g.attrs, at));
         }
         let mut messages = h5::group_opening();
         messages.extend(links.iter().map(|(name, addr)| h5::link(name, *addr)));
@@ -724,6 +934,79 @@ mod tests {
         assert!(seen
             .iter()
             .any(|s| s.starts_with("/runs/run_011: 4 attributes")));
+    }
+
+    /// Runs whose data workers put into the file themselves, from several threads at once
+    /// while the writer lays out other runs (as a batch does), read back as libhdf5's own
+    /// writer writes them; data placed for another file are written again by that file's
+    /// writer, and a placement that does not fit the run is not used.
+    #[test]
+    fn runs_placed_by_workers_read_back_as_libhdf5_writes_them() {
+        let dir = tempfile::tempdir().unwrap();
+        let runs: Vec<EncodedRun> = (0..24)
+            .map(|i| run(&format!("/runs/run_{i:03}"), i as f64))
+            .collect();
+        let (a, b) = (dir.path().join("direct.h5"), dir.path().join("libhdf5.h5"));
+        let direct = DirectWriter::create_at(&a).unwrap();
+        let other = DirectWriter::create_at(&dir.path().join("other.h5")).unwrap();
+        let (placer, elsewhere) = (direct.placer(), other.placer());
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::scope(|scope| {
+            for t in 0..3 {
+                let (tx, placer, runs) = (tx.clone(), placer.clone(), &runs);
+                scope.spawn(move || {
+                    for (i, r) in runs.iter().enumerate().filter(|(i, _)| i % 4 == t) {
+                        tx.send((i, placer.place(r).expect("placed"))).unwrap();
+                    }
+                });
+            }
+            drop(tx);
+            // The fourth share is written whole by the writer, between the placed ones.
+            let mut whole = runs.iter().skip(3).step_by(4);
+            for (i, placed) in rx {
+                direct
+                    .write_placed_as(&runs[i], Some(&placed), &runs[i].path)
+                    .unwrap();
+                if let Some(r) = whole.next() {
+                    direct.write_encoded_as(r, &r.path).unwrap();
+                }
+            }
+            for r in whole {
+                direct.write_encoded_as(r, &r.path).unwrap();
+            }
+        });
+        // Placed in another file: written here again. Placed for another run (fewer
+        // datasets): not used.
+        let extra = run("/more/elsewhere", 30.0);
+        let placed = elsewhere.place(&extra).unwrap();
+        direct
+            .write_placed_as(&extra, Some(&placed), &extra.path)
+            .unwrap();
+        let mut small = EncodedRun::new("/more/small");
+        small.signal("", "x", &[1.0, 2.0, 3.0], false);
+        let misfit = placer.place(&small).unwrap();
+        let last = run("/more/misfit", 40.0);
+        direct
+            .write_placed_as(&last, Some(&misfit), &last.path)
+            .unwrap();
+        direct.finish().unwrap();
+        other.abandon();
+        let library = ResultsWriter::create_at(&b).unwrap();
+        for r in runs.iter().chain([&extra, &last]) {
+            library.write_encoded_as(r, &r.path).unwrap();
+        }
+        library.finish().unwrap();
+        assert_same(&a, &b);
+        // Nothing written twice: as long as the file the writer writes whole, but for the
+        // misfit's placed 24 bytes, which no header points to.
+        let c = dir.path().join("whole.h5");
+        let whole = DirectWriter::create_at(&c).unwrap();
+        for r in runs.iter().chain([&extra, &last]) {
+            whole.write_encoded_as(r, &r.path).unwrap();
+        }
+        whole.finish().unwrap();
+        let size = |f: &Path| std::fs::metadata(f).unwrap().len();
+        assert_eq!(size(&a), size(&c) + 24);
     }
 
     /// Runs moved (into the report's order, through a staging group), and a run whose

@@ -12,7 +12,7 @@ mod sink;
 mod summary;
 mod track_file;
 
-pub use direct::DirectWriter;
+pub use direct::{DirectWriter, PlacedData, Placer};
 pub use results::ResultsWriter;
 pub use schema::{encode_run, parameters, ABSOLUTE_NAMES, MODE_NAMES, PARAMETER_NAMES};
 pub use sink::ResultsFile;

@@ -6,7 +6,7 @@
 
 use std::path::{Path, PathBuf};
 
-use super::direct::DirectWriter;
+use super::direct::{DirectWriter, PlacedData, Placer};
 use super::encoded::EncodedRun;
 use super::{ReportError, ResultsWriter};
 
@@ -47,6 +47,29 @@ impl ResultsFile {
     /// Adds one encoded run under the group path `dst`.
     pub fn write_encoded_as(&self, run: &EncodedRun, dst: &str) -> Result<(), ReportError> {
         either!(self, w => w.write_encoded_as(run, dst))
+    }
+
+    /// Adds one encoded run under `dst` whose data a worker may have put in the file
+    /// already ([`placer`](Self::placer)); libhdf5's writer writes them all itself.
+    pub fn write_placed_as(
+        &self,
+        run: &EncodedRun,
+        placed: Option<&PlacedData>,
+        dst: &str,
+    ) -> Result<(), ReportError> {
+        match self {
+            ResultsFile::Direct(w) => w.write_placed_as(run, placed, dst),
+            ResultsFile::Library(w) => w.write_encoded_as(run, dst),
+        }
+    }
+
+    /// A handle for the batch's workers to put runs' data into the file themselves: the
+    /// direct writer's only.
+    pub fn placer(&self) -> Option<Placer> {
+        match self {
+            ResultsFile::Direct(w) => Some(w.placer()),
+            ResultsFile::Library(_) => None,
+        }
     }
 
     /// Copies the run at `src_path` of an earlier version's journal file `src` to `dst`
