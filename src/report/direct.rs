@@ -2,7 +2,7 @@
 //! encoded run's dataset headers and strings into the file as it arrives, and the groups
 //! above the runs when the batch ends; the run's data (its chunks) the worker that encoded
 //! it has put there already, at a place reserved for it at the file's end ([`Placer`]), or
-//! else the writer writes them too (a run from an earlier batch's journal, `skelid merge`).
+//! else the writer writes them too (runs copied from the journal by `skelid merge`).
 //! In: encoded runs; out: the file, which any HDF5 reader (libhdf5 1.8 and later) reads as
 //! it reads [`super::ResultsWriter`]'s.
 //!
