@@ -317,6 +317,9 @@ pub fn run_campaigns(
         drop(done_tx);
         writer.join().expect("the writer does not panic")
     });
+    // The workers are done: their descriptor of results.h5.tmp closes before the file is
+    // finished and renamed (on NFS the close is what makes the data visible elsewhere).
+    drop(placer);
     let stopped = |e: BatchError| BatchError::Interrupted {
         cause: Box::new(e),
         journal: out.join(RUNS_DIR),

@@ -96,11 +96,15 @@ pub struct Placer {
     release: Option<Arc<File>>,
 }
 
-/// A run's data as a [`Placer`] put it in the file: each dataset's chunk addresses, in the
-/// run's order (a contiguous dataset: one address; an empty one: none).
+/// A run's data as a [`Placer`] put it in the file: each dataset's chunks as (address,
+/// length), in the run's order (a contiguous dataset: one; an empty one: none).
 pub struct PlacedData {
     space: Arc<Space>,
-    addrs: Vec<Vec<u64>>,
+    addrs: Vec<Vec<(u64, u64)>>,
+    /// Which run they are: its path and the address of its items (a run moved keeps it;
+    /// a run freed may hand it to the next, whose path then tells them apart), so that
+    /// data placed from one run are never taken for another's of the same shape.
+    run: (String, usize),
 }
 
 impl Placer {
@@ -124,7 +128,7 @@ impl Placer {
             };
             let mut at = Vec::with_capacity(bytes.len());
             for b in bytes {
-                at.push(len);
+                at.push((len, b.len() as u64));
                 len += b.len() as u64;
                 parts.push(b);
             }
@@ -138,12 +142,13 @@ impl Placer {
         if let Some(f) = &self.release {
             crate::pagecache::release_extent(f, base, len);
         }
-        for a in addrs.iter_mut().flatten() {
+        for (a, _) in addrs.iter_mut().flatten() {
             *a += base;
         }
         Some(PlacedData {
             space: self.space.clone(),
             addrs,
+            run: (run.path.clone(), run.items.as_ptr() as usize),
         })
     }
 }
@@ -306,7 +311,7 @@ impl DirectWriter {
 
     /// [`write_encoded_as`](Self::write_encoded_as) for a run whose data a worker has put
     /// in this file already ([`Placer::place`]): only its headers and strings are written.
-    /// Data placed in another file are written again here.
+    /// Data placed in another file, or from another run, are written again here.
     pub fn write_placed_as(
         &self,
         run: &EncodedRun,
@@ -314,7 +319,11 @@ impl DirectWriter {
         dst: &str,
     ) -> Result<(), ReportError> {
         self.apply(&format!("run {}", run.path), |io, root| {
-            let placed = placed.filter(|p| Arc::ptr_eq(&p.space, &io.space));
+            let placed = placed.filter(|p| {
+                Arc::ptr_eq(&p.space, &io.space)
+                    && p.run.0 == run.path
+                    && p.run.1 == run.items.as_ptr() as usize
+            });
             write_run(io, root, run, placed, dst)
         })
     }
@@ -695,13 +704,13 @@ impl Io {
         Ok(ids)
     }
 
-    /// Writes a dataset's data (unless `placed` gives where a worker put it: one address
-    /// a chunk, or one for contiguous bytes) and its chunk index; the messages of its
-    /// header.
+    /// Writes a dataset's data (unless `placed` gives where a worker put it: an address
+    /// and length a chunk, or one for contiguous bytes, used only where every length is
+    /// the data's) and its chunk index; the messages of its header.
     fn dataset(
         &mut self,
         d: &encoded::Dataset,
-        placed: Option<&[u64]>,
+        placed: Option<&[(u64, u64)]>,
     ) -> std::io::Result<Vec<Message>> {
         let elem = d.elem;
         let storage = match &d.storage {
@@ -718,7 +727,7 @@ impl Io {
             encoded::Storage::Plain(v) => {
                 let bytes: &[u8] = bytemuck::cast_slice(v);
                 let addr = match placed {
-                    Some(&[at]) => at,
+                    Some(&[(at, len)]) if len == bytes.len() as u64 => at,
                     _ => self.put_data(bytes)?,
                 };
                 h5::Storage::Contiguous {
@@ -728,14 +737,19 @@ impl Io {
             }
             encoded::Storage::Chunked { level, chunks } => {
                 let step = encoded::chunk_len(d.len) as u64;
-                let placed = placed.filter(|p| p.len() == chunks.len());
+                let placed = placed.filter(|p| {
+                    p.len() == chunks.len()
+                        && p.iter()
+                            .zip(chunks)
+                            .all(|(&(_, len), c)| len == c.len() as u64)
+                });
                 let mut index = Vec::with_capacity(chunks.len());
                 for (i, c) in chunks.iter().enumerate() {
                     let len = u32::try_from(c.len()).map_err(|_| {
                         std::io::Error::other(format!("chunk {i} of {} over 4 GB", d.name))
                     })?;
                     let addr = match placed {
-                        Some(p) => p[i],
+                        Some(p) => p[i].0,
                         None => self.put_data(c)?,
                     };
                     index.push(h5::Chunk {
@@ -989,24 +1003,32 @@ mod tests {
         direct
             .write_placed_as(&last, Some(&misfit), &last.path)
             .unwrap();
+        // Placed from another run of the same shape: not used.
+        let twin = placer.place(&run("/more/twin", 50.0)).unwrap();
+        let unused: u64 = twin.addrs.iter().flatten().map(|&(_, len)| len).sum();
+        let alike = run("/more/alike", 51.0);
+        direct
+            .write_placed_as(&alike, Some(&twin), &alike.path)
+            .unwrap();
         direct.finish().unwrap();
         other.abandon();
         let library = ResultsWriter::create_at(&b).unwrap();
-        for r in runs.iter().chain([&extra, &last]) {
+        for r in runs.iter().chain([&extra, &last, &alike]) {
             library.write_encoded_as(r, &r.path).unwrap();
         }
         library.finish().unwrap();
         assert_same(&a, &b);
         // Nothing written twice: as long as the file the writer writes whole, but for the
-        // misfit's placed 24 bytes, which no header points to.
+        // misfit's and the twin's placed bytes, which no header points to.
         let c = dir.path().join("whole.h5");
         let whole = DirectWriter::create_at(&c).unwrap();
-        for r in runs.iter().chain([&extra, &last]) {
+        for r in runs.iter().chain([&extra, &last, &alike]) {
             whole.write_encoded_as(r, &r.path).unwrap();
         }
         whole.finish().unwrap();
         let size = |f: &Path| std::fs::metadata(f).unwrap().len();
-        assert_eq!(size(&a), size(&c) + 24);
+        assert!(unused > 0);
+        assert_eq!(size(&a), size(&c) + 24 + unused);
     }
 
     /// Runs moved (into the report's order, through a staging group), and a run whose
