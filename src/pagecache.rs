@@ -257,12 +257,7 @@ impl Extents {
     /// Hands every extent noted so far over to the releaser.
     fn hand_over_pending(&mut self) {
         for (offset, len) in self.pending.drain(..) {
-            hand_over(Part {
-                file: self.file.clone(),
-                offset,
-                len,
-                size: len,
-            });
+            release_extent(&self.file, offset, len);
         }
         self.pending_bytes = 0;
     }

@@ -32,6 +32,10 @@ const PIECE: usize = 32 * 1024;
 /// deflating 1.2–1.3× as fast.
 const STORE_ABOVE: f64 = 0.98;
 
+/// Bytes a sync flush adds to a deflate stream beyond its blocks' content, about: the
+/// probe ([`incompressible`]) ends each slice with one.
+const SYNC_MARK: f64 = 4.0;
+
 /// Signals shorter than this are stored contiguous even when compression is asked for.
 pub const MIN_COMPRESSED: usize = 64;
 
@@ -443,9 +447,6 @@ fn incompressible(z: &mut flate2::Compress, piece: &[u8], scratch: &mut Vec<u8>)
         (scratch.len() - before) as f64 >= STORE_ABOVE * w as f64 + SYNC_MARK
     })
 }
-
-/// Bytes a sync flush adds to a deflate stream beyond its blocks' content, about.
-const SYNC_MARK: f64 = 4.0;
 
 /// Appends `piece` to a deflate stream as stored blocks, which start on the byte boundary
 /// every piece before ends on; the last block is the stream's final one when `end`.

@@ -46,7 +46,7 @@ impl ResultsFile {
 
     /// Adds one encoded run under the group path `dst`.
     pub fn write_encoded_as(&self, run: &EncodedRun, dst: &str) -> Result<(), ReportError> {
-        either!(self, w => w.write_encoded_as(run, dst))
+        self.write_placed_as(run, None, dst)
     }
 
     /// Adds one encoded run under `dst` whose data a worker may have put in the file
