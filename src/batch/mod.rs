@@ -217,24 +217,18 @@ pub struct BatchSummary {
 }
 
 /// What the workers hand the writer.
+/// Where a worker put a run's data in results.h5: `Ok(None)` where it put none (no placer,
+/// nothing to place), an error where its write failed (the writer then writes them).
+pub(super) type Placement = std::io::Result<Option<crate::report::PlacedData>>;
+
 pub(super) enum Finished {
     /// A run found committed by an earlier invocation, with its stored results (and its
     /// report figures, drawn by the worker, when it may be shown), and where the worker
     /// put its data in results.h5.
-    Skipped(
-        Entry,
-        Stored,
-        Option<DrawnRun>,
-        Option<crate::report::PlacedData>,
-    ),
+    Skipped(Entry, Stored, Option<DrawnRun>, Placement),
     /// A run identified and committed to the journal now, with its report figures and
     /// where the worker put its data in results.h5.
-    Committed(
-        Entry,
-        Prepared,
-        Option<DrawnRun>,
-        Option<crate::report::PlacedData>,
-    ),
+    Committed(Entry, Prepared, Option<DrawnRun>, Placement),
     /// A run identified now whose journal file could not be written.
     Failed(ReportError),
 }

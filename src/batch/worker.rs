@@ -54,7 +54,7 @@ pub(super) fn prepare(
                     }
                     (plots.map(draw), place(placer, run))
                 }
-                Stored::Legacy(_) => (None, None),
+                Stored::Legacy(_) => (None, Ok(None)),
             };
             return Finished::Skipped(e, stored, plots, placed);
         }
@@ -82,10 +82,15 @@ pub(super) fn prepare(
     }
 }
 
-/// Puts `run`'s data into results.h5 through `placer`, timed as writing (`None`: the writer
-/// will write them itself).
-fn place(placer: Option<&Placer>, run: &crate::report::encoded::EncodedRun) -> Option<PlacedData> {
-    let placer = placer?;
+/// Puts `run`'s data into results.h5 through `placer`, timed as writing (`Ok(None)`: the
+/// writer will write them itself; an error: so will it, and it logs why).
+fn place(
+    placer: Option<&Placer>,
+    run: &crate::report::encoded::EncodedRun,
+) -> std::io::Result<Option<PlacedData>> {
+    let Some(placer) = placer else {
+        return Ok(None);
+    };
     profile::time(Stage::Write, || placer.place(run))
 }
 

@@ -43,6 +43,7 @@ pub(super) fn write_finished(
         let t0 = profile::thread_cpu();
         let (e, was_skipped, plots) = match f {
             Finished::Skipped(e, Stored::Encoded(run), plots, placed) => {
+                let placed = placed_or_logged(placed, &e, &mut log);
                 results.write_placed_as(&run, placed.as_ref(), &dst)?;
                 (e, true, plots)
             }
@@ -51,6 +52,7 @@ pub(super) fn write_finished(
                 (e, true, plots)
             }
             Finished::Committed(e, p, plots, placed) => {
+                let placed = placed_or_logged(placed, &e, &mut log);
                 results.write_placed_as(p.encoded(), placed.as_ref(), &dst)?;
                 (e, false, plots)
             }
@@ -97,6 +99,24 @@ pub(super) fn write_finished(
             profile::thread_cpu().saturating_sub(cpu0).as_secs_f64(),
             start.elapsed().as_secs_f64(),
         ),
+    })
+}
+
+/// The data a worker placed, or `None` after logging why its write failed: the writer then
+/// writes them itself, and a disk that is full or failing shows in skelid.log at the run
+/// where it first did, even where the writer's own write succeeds.
+fn placed_or_logged(
+    placed: Placement,
+    e: &Entry,
+    log: &mut Log,
+) -> Option<crate::report::PlacedData> {
+    placed.unwrap_or_else(|err| {
+        log.line(&format!(
+            "warning {}:{} its worker could not write its data into results.h5.tmp ({err}); \
+             the writer writes them",
+            e.source, e.path
+        ));
+        None
     })
 }
 
@@ -353,4 +373,36 @@ pub(super) fn file_name(p: &Path) -> String {
     p.file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| p.display().to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A worker's failed write of a run's data is a warning in skelid.log naming the run
+    /// and the error, and leaves the writer to write the data; a run placed, or with
+    /// nothing to place, logs nothing.
+    #[test]
+    fn a_failed_placement_is_logged_and_left_to_the_writer() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut log = Log::open(dir.path()).unwrap();
+        let entry = Entry {
+            key: "k".into(),
+            path: "/runs/run_007".into(),
+            source: "campaign.h5".into(),
+            failed: false,
+            rows: Vec::new(),
+        };
+        assert!(placed_or_logged(Ok(None), &entry, &mut log).is_none());
+        let err = std::io::Error::from_raw_os_error(libc::ENOSPC);
+        assert!(placed_or_logged(Err(err), &entry, &mut log).is_none());
+        let text = std::fs::read_to_string(dir.path().join("skelid.log")).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines.len(), 1, "{text}");
+        assert!(
+            lines[0].contains("warning campaign.h5:/runs/run_007"),
+            "{text}"
+        );
+        assert!(lines[0].contains("No space left on device"), "{text}");
+    }
 }

@@ -108,10 +108,11 @@ pub struct PlacedData {
 }
 
 impl Placer {
-    /// Writes `run`'s data at a place reserved for it in one system call (or a few); `None`
-    /// when there is nothing to place or the write failed (then the writer writes the data
-    /// itself, as for a run from the journal, and reports what fails).
-    pub fn place(&self, run: &EncodedRun) -> Option<PlacedData> {
+    /// Writes `run`'s data at a place reserved for it in one system call (or a few);
+    /// `Ok(None)` when there is nothing to place. Whatever is not placed (`None`, or an
+    /// error, which the batch logs) the writer writes itself, as for a run from the
+    /// journal, and reports what fails then.
+    pub fn place(&self, run: &EncodedRun) -> std::io::Result<Option<PlacedData>> {
         let mut parts: Vec<&[u8]> = Vec::new();
         let mut addrs = Vec::new();
         let mut len = 0u64;
@@ -135,21 +136,22 @@ impl Placer {
             addrs.push(at);
         }
         if len == 0 {
-            return None;
+            return Ok(None);
         }
         let base = self.space.reserve(len);
-        write_parts_at(&self.file, &parts, base).ok()?;
+        // A failed write leaves its reserved range unused: the file is longer, never wrong.
+        write_parts_at(&self.file, &parts, base)?;
         if let Some(f) = &self.release {
             crate::pagecache::release_extent(f, base, len);
         }
         for (a, _) in addrs.iter_mut().flatten() {
             *a += base;
         }
-        Some(PlacedData {
+        Ok(Some(PlacedData {
             space: self.space.clone(),
             addrs,
             run: (run.path.clone(), run.items.as_ptr() as usize),
-        })
+        }))
     }
 }
 
@@ -970,7 +972,8 @@ mod tests {
                 let (tx, placer, runs) = (tx.clone(), placer.clone(), &runs);
                 scope.spawn(move || {
                     for (i, r) in runs.iter().enumerate().filter(|(i, _)| i % 4 == t) {
-                        tx.send((i, placer.place(r).expect("placed"))).unwrap();
+                        tx.send((i, placer.place(r).unwrap().expect("placed")))
+                            .unwrap();
                     }
                 });
             }
@@ -992,19 +995,19 @@ mod tests {
         // Placed in another file: written here again. Placed for another run (fewer
         // datasets): not used.
         let extra = run("/more/elsewhere", 30.0);
-        let placed = elsewhere.place(&extra).unwrap();
+        let placed = elsewhere.place(&extra).unwrap().unwrap();
         direct
             .write_placed_as(&extra, Some(&placed), &extra.path)
             .unwrap();
         let mut small = EncodedRun::new("/more/small");
         small.signal("", "x", &[1.0, 2.0, 3.0], false);
-        let misfit = placer.place(&small).unwrap();
+        let misfit = placer.place(&small).unwrap().unwrap();
         let last = run("/more/misfit", 40.0);
         direct
             .write_placed_as(&last, Some(&misfit), &last.path)
             .unwrap();
         // Placed from another run of the same shape: not used.
-        let twin = placer.place(&run("/more/twin", 50.0)).unwrap();
+        let twin = placer.place(&run("/more/twin", 50.0)).unwrap().unwrap();
         let unused: u64 = twin.addrs.iter().flatten().map(|&(_, len)| len).sum();
         let alike = run("/more/alike", 51.0);
         direct
@@ -1029,6 +1032,27 @@ mod tests {
         let size = |f: &Path| std::fs::metadata(f).unwrap().len();
         assert!(unused > 0);
         assert_eq!(size(&a), size(&c) + 24 + unused);
+    }
+
+    /// A placement whose write fails (here a descriptor opened for reading) is an error,
+    /// not data: the run is then written whole by the writer and reads back as libhdf5's,
+    /// the range the failed write reserved left unused.
+    #[test]
+    fn a_failed_placement_is_an_error_and_the_writer_writes_the_run() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("direct.h5"), dir.path().join("libhdf5.h5"));
+        let direct = DirectWriter::create_at(&a).unwrap();
+        let mut placer = direct.placer();
+        placer.file = Arc::new(File::open(&direct.tmp).unwrap());
+        let r = run("/runs/run_000", 1.0);
+        let failed = placer.place(&r);
+        assert!(failed.is_err(), "a read-only descriptor placed the run");
+        direct.write_placed_as(&r, None, &r.path).unwrap();
+        direct.finish().unwrap();
+        let library = ResultsWriter::create_at(&b).unwrap();
+        library.write_encoded_as(&r, &r.path).unwrap();
+        library.finish().unwrap();
+        assert_same(&a, &b);
     }
 
     /// Runs moved (into the report's order, through a staging group), and a run whose
