@@ -255,13 +255,20 @@ impl Taps {
         let i = super::exact_floor(x);
         let u = x - i;
         let i = i as isize;
-        let first = (i - 1).rem_euclid(n as isize) as usize;
-        let next = |k: usize| if k + 1 == n { 0 } else { k + 1 };
-        let a1 = next(first);
-        let a2 = next(a1);
-        let a3 = next(a2);
+        // Inside the sequence, as nearly every read is, the taps need no wrapping, and the
+        // remainder (a 64-bit division, tens of cycles) is for the reads near its ends.
+        let at = if i >= 1 && i + 2 < n as isize {
+            let first = (i - 1) as usize;
+            [first, first + 1, first + 2, first + 3]
+        } else {
+            let first = (i - 1).rem_euclid(n as isize) as usize;
+            let next = |k: usize| if k + 1 == n { 0 } else { k + 1 };
+            let a1 = next(first);
+            let a2 = next(a1);
+            [first, a1, a2, next(a2)]
+        };
         Taps {
-            at: [first, a1, a2, a3],
+            at,
             w: [
                 -u * (u - 1.0) * (u - 2.0) / 6.0,
                 (u + 1.0) * (u - 1.0) * (u - 2.0) / 2.0,
