@@ -216,11 +216,11 @@ pub struct BatchSummary {
     pub not_runs: Vec<GroupNotRun>,
 }
 
-/// What the workers hand the writer.
 /// Where a worker put a run's data in results.h5: `Ok(None)` where it put none (no placer,
 /// nothing to place), an error where its write failed (the writer then writes them).
 pub(super) type Placement = std::io::Result<Option<crate::report::PlacedData>>;
 
+/// What the workers hand the writer.
 pub(super) enum Finished {
     /// A run found committed by an earlier invocation, with its stored results (and its
     /// report figures, drawn by the worker, when it may be shown), and where the worker

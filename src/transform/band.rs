@@ -257,11 +257,13 @@ impl Taps {
         let i = i as isize;
         // Inside the sequence, as nearly every read is, the taps need no wrapping, and the
         // remainder (a 64-bit division, tens of cycles) is for the reads near its ends.
-        let at = if i >= 1 && i + 2 < n as isize {
+        // (`i < n − 2` rather than `i + 2 < n`: an x of 2^63 or more saturates `i`.)
+        let at = if i >= 1 && i < n as isize - 2 {
             let first = (i - 1) as usize;
             [first, first + 1, first + 2, first + 3]
         } else {
-            let first = (i - 1).rem_euclid(n as isize) as usize;
+            // Wrapping as a release build always did: an x of −2^63 or less saturates `i`.
+            let first = i.wrapping_sub(1).rem_euclid(n as isize) as usize;
             let next = |k: usize| if k + 1 == n { 0 } else { k + 1 };
             let a1 = next(first);
             let a2 = next(a1);
@@ -294,7 +296,8 @@ mod tests {
 
     /// The taps against the interpolation written out with `floor` and a remainder per
     /// tap, bit for bit: indices on both sides of zero, past the end, sequences shorter
-    /// than the four taps.
+    /// than the four taps; and positions so far out that the index saturates, or not a
+    /// number, which must not panic.
     #[test]
     fn taps_are_the_written_out_interpolation_to_the_bit() {
         let reference = |v: &[Complex64], x: f64| {
@@ -324,6 +327,19 @@ mod tests {
                     );
                 }
                 x += 0.173;
+            }
+            // Far out of range or not a number (the index saturates): no panic, and a NaN
+            // where the fraction is one.
+            for x in [
+                f64::INFINITY,
+                f64::NEG_INFINITY,
+                f64::NAN,
+                1e300,
+                -1e300,
+                9.3e18,
+            ] {
+                let a = interpolate(&v, x);
+                assert_eq!(a.re.is_nan(), !x.is_finite(), "n {n}, x {x}");
             }
         }
     }
