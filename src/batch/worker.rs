@@ -10,7 +10,7 @@ use crate::identify::{identify, IdentifyOptions};
 use crate::journal::{failed_key, run_key, Journal, Prepared, Stored};
 use crate::profile::{self, Stage};
 use crate::report::html::{self, DrawnRun, RunPlots};
-use crate::report::{PlacedData, Placer, RunOutcome};
+use crate::report::{Placer, RunOutcome};
 use crate::track::Method;
 
 use super::*;
@@ -84,10 +84,7 @@ pub(super) fn prepare(
 
 /// Puts `run`'s data into results.h5 through `placer`, timed as writing (`Ok(None)`: the
 /// writer will write them itself; an error: so will it, and it logs why).
-fn place(
-    placer: Option<&Placer>,
-    run: &crate::report::encoded::EncodedRun,
-) -> std::io::Result<Option<PlacedData>> {
+fn place(placer: Option<&Placer>, run: &crate::report::encoded::EncodedRun) -> Placement {
     let Some(placer) = placer else {
         return Ok(None);
     };

@@ -116,19 +116,9 @@ impl Placer {
         let mut parts: Vec<&[u8]> = Vec::new();
         let mut addrs = Vec::new();
         let mut len = 0u64;
-        for d in run.items.iter().filter_map(|i| match i {
-            Item::Dataset(d) => Some(d),
-            _ => None,
-        }) {
-            let bytes: Vec<&[u8]> = match &d.storage {
-                encoded::Storage::Plain(v) if v.is_empty() => Vec::new(),
-                encoded::Storage::Plain(v) => vec![bytemuck::cast_slice(v)],
-                encoded::Storage::Chunked { chunks, .. } => {
-                    chunks.iter().map(|c| c.as_slice()).collect()
-                }
-            };
-            let mut at = Vec::with_capacity(bytes.len());
-            for b in bytes {
+        for d in datasets(run) {
+            let mut at = Vec::new();
+            for b in data_parts(d) {
                 at.push((len, b.len() as u64));
                 len += b.len() as u64;
                 parts.push(b);
@@ -153,6 +143,44 @@ impl Placer {
             run: (run.path.clone(), run.items.as_ptr() as usize),
         }))
     }
+}
+
+impl PlacedData {
+    /// Whether these are `run`'s data, placed in the file whose end is `space`: the very
+    /// run they were placed from (its path and the address of its items) and every
+    /// dataset's every part as long as the run's. Else the writer writes the data itself.
+    fn fits(&self, space: &Arc<Space>, run: &EncodedRun) -> bool {
+        Arc::ptr_eq(&self.space, space)
+            && self.run.0 == run.path
+            && self.run.1 == run.items.as_ptr() as usize
+            && datasets(run).count() == self.addrs.len()
+            && datasets(run).zip(&self.addrs).all(|(d, at)| {
+                data_parts(d)
+                    .map(|b| b.len() as u64)
+                    .eq(at.iter().map(|&(_, len)| len))
+            })
+    }
+}
+
+/// The datasets of `run`, in its order.
+fn datasets(run: &EncodedRun) -> impl Iterator<Item = &encoded::Dataset> {
+    run.items.iter().filter_map(|i| match i {
+        Item::Dataset(d) => Some(d),
+        _ => None,
+    })
+}
+
+/// A dataset's data as the file holds them, in order: its chunks, or its contiguous bytes
+/// (none for an empty dataset).
+fn data_parts(d: &encoded::Dataset) -> impl Iterator<Item = &[u8]> {
+    let (plain, chunks): (&[u8], &[serde_bytes::ByteBuf]) = match &d.storage {
+        encoded::Storage::Plain(v) => (bytemuck::cast_slice(v), &[]),
+        encoded::Storage::Chunked { chunks, .. } => (&[], chunks),
+    };
+    (!plain.is_empty())
+        .then_some(plain)
+        .into_iter()
+        .chain(chunks.iter().map(|c| c.as_slice()))
 }
 
 /// Writes `parts` one after another at `offset`: one `pwritev` for up to 1024 of them, and
@@ -321,11 +349,7 @@ impl DirectWriter {
         dst: &str,
     ) -> Result<(), ReportError> {
         self.apply(&format!("run {}", run.path), |io, root| {
-            let placed = placed.filter(|p| {
-                Arc::ptr_eq(&p.space, &io.space)
-                    && p.run.0 == run.path
-                    && p.run.1 == run.items.as_ptr() as usize
-            });
+            let placed = placed.filter(|p| p.fits(&io.space, run));
             write_run(io, root, run, placed, dst)
         })
     }
@@ -491,7 +515,8 @@ fn open<'g>(
     Ok(g)
 }
 
-/// Writes one encoded run into `root`'s tree at `dst` (see [`DirectWriter::write_encoded_as`]).
+/// Writes one encoded run into `root`'s tree at `dst` (see [`DirectWriter::write_encoded_as`]),
+/// its data where `placed` (which fits it) says a worker put them.
 fn write_run(
     io: &mut Io,
     root: &mut Group,
@@ -499,15 +524,8 @@ fn write_run(
     placed: Option<&PlacedData>,
     dst: &str,
 ) -> Result<(), String> {
-    // The placed addresses of each dataset in turn; trusted only for a run of this many.
-    let datasets = run
-        .items
-        .iter()
-        .filter(|i| matches!(i, Item::Dataset(_)))
-        .count();
-    let mut placed = placed
-        .filter(|p| p.addrs.len() == datasets)
-        .map(|p| p.addrs.iter());
+    // The placed addresses of each dataset in turn (they fit the run: see the caller).
+    let mut placed = placed.map(|p| p.addrs.iter());
     // Every string of the run in one heap collection (or a few), written first: the
     // attributes name their strings by address.
     let texts: Vec<&str> = run
@@ -706,9 +724,9 @@ impl Io {
         Ok(ids)
     }
 
-    /// Writes a dataset's data (unless `placed` gives where a worker put it: an address
-    /// and length a chunk, or one for contiguous bytes, used only where every length is
-    /// the data's) and its chunk index; the messages of its header.
+    /// Writes a dataset's data (unless `placed` gives where a worker put them: an address
+    /// and length a chunk, or one for contiguous bytes, checked by [`PlacedData::fits`])
+    /// and its chunk index; the messages of its header.
     fn dataset(
         &mut self,
         d: &encoded::Dataset,
@@ -729,7 +747,7 @@ impl Io {
             encoded::Storage::Plain(v) => {
                 let bytes: &[u8] = bytemuck::cast_slice(v);
                 let addr = match placed {
-                    Some(&[(at, len)]) if len == bytes.len() as u64 => at,
+                    Some(&[(at, _)]) => at,
                     _ => self.put_data(bytes)?,
                 };
                 h5::Storage::Contiguous {
@@ -739,12 +757,6 @@ impl Io {
             }
             encoded::Storage::Chunked { level, chunks } => {
                 let step = encoded::chunk_len(d.len) as u64;
-                let placed = placed.filter(|p| {
-                    p.len() == chunks.len()
-                        && p.iter()
-                            .zip(chunks)
-                            .all(|(&(_, len), c)| len == c.len() as u64)
-                });
                 let mut index = Vec::with_capacity(chunks.len());
                 for (i, c) in chunks.iter().enumerate() {
                     let len = u32::try_from(c.len()).map_err(|_| {
