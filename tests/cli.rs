@@ -712,6 +712,46 @@ fn demo_archive() -> &'static std::path::Path {
     })
 }
 
+/// The folder `skelid demo` writes holds the campaign and the demo's own results.h5 (and
+/// so does a campaign tree with a night's output inside it): `inspect` and `run` of the
+/// folder pass over the results with a note instead of failing on them, and the results
+/// file named by itself says what it is.
+#[test]
+fn a_folder_with_a_batchs_output_in_it_is_read_without_that_output() {
+    let folder = demo_archive().parent().unwrap();
+    let results = folder.join("results.h5");
+    assert!(results.exists() && folder.join("manifest.json").exists());
+    let o = skelid().arg("inspect").arg(folder).output().unwrap();
+    let (out, err) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert_eq!(o.status.code(), Some(0), "{out}{err}");
+    assert!(out.contains("11 run(s), 11 ok, 0 with problems"), "{out}");
+    assert!(
+        err.contains(&format!("note: passed over {}", results.display())),
+        "{err}"
+    );
+    let d = tmpdir();
+    let o = skelid()
+        .args(["run", "--quiet", "--out"])
+        .arg(d.path().join("out"))
+        .arg(folder)
+        .output()
+        .unwrap();
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(out.contains("11 run(s), 0 failed ("), "{out}");
+    let log = std::fs::read_to_string(d.path().join("out/skelid.log")).unwrap();
+    assert!(!log.contains("_unreadable"), "{log}");
+    let o = skelid().arg("inspect").arg(&results).output().unwrap();
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(o.status.code(), Some(1), "{out}");
+    assert!(
+        out.contains("this is skelid's own output, format skelid-results/1"),
+        "{out}"
+    );
+}
+
 /// No adapter at all: wgpu told to use Vulkan only, with a driver list that does not exist.
 fn without_gpu(c: &mut Command) -> &mut Command {
     c.env("VK_ICD_FILENAMES", "/nonexistent/icd.json")

@@ -620,7 +620,8 @@ fn read_campaign<'py>(
     let archives = py
         .detach(|| -> Result<_, String> {
             let files = skelid::ingest::find_archives(std::slice::from_ref(&arg))
-                .map_err(|e| e.to_string())?;
+                .map_err(|e| e.to_string())?
+                .archives;
             files
                 .iter()
                 .map(|file| {

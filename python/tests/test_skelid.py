@@ -215,3 +215,14 @@ def test_read_campaign_raises_the_command_lines_errors(tmp_path):
     assert str(e.value) in r.stdout, (str(e.value), r.stdout)
     with pytest.raises(ValueError, match="errors"):
         skelid.read_campaign(missing, errors="ignore")
+
+
+def test_read_campaign_of_a_folder_passes_over_skelids_own_results(demo):
+    archive, _ = demo
+    folder = archive.parent  # the demo's folder: its campaign and its results.h5
+    assert (folder / "results.h5").exists() and (folder / "manifest.json").exists()
+    runs = skelid.read_campaign(folder)
+    assert len(runs) == 11
+    assert {r["path"] for r in runs} == {r["path"] for r in skelid.read_campaign(archive)}
+    with pytest.raises(skelid.SkelidError, match="skelid's own output, format skelid-results/1"):
+        skelid.read_campaign(folder / "results.h5")

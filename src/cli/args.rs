@@ -388,3 +388,13 @@ pub(crate) fn report_fallbacks(b: &skelid::backend::Backend) {
 pub(crate) fn self_exe() -> Result<PathBuf> {
     std::env::current_exe().context("cannot locate the skelid executable to isolate HDF5 reads")
 }
+
+/// The archives the command's inputs name, saying on stderr which files a folder search
+/// passed over as skelid's own results.
+pub(crate) fn archives(args: &[String]) -> Result<Vec<PathBuf>> {
+    let inputs = skelid::ingest::find_archives(args)?;
+    if let Some(note) = skelid::ingest::passed_over_note(&inputs.passed_over) {
+        eprintln!("note: {note}");
+    }
+    Ok(inputs.archives)
+}

@@ -2,7 +2,7 @@
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
-use skelid::ingest::{find_archives, Archive};
+use skelid::ingest::Archive;
 use std::path::PathBuf;
 
 use super::args::{report_fallbacks, IngestArgs};
@@ -16,7 +16,7 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
         .and_then(|s| s.first().copied())
         .unwrap_or(128);
     let ingest = a.ingest.options()?;
-    let files = find_archives(&a.archives)?;
+    let files = super::args::archives(&a.archives)?;
     let mut signals = Vec::new();
     let mut runs = 0usize;
     for f in &files {

@@ -2,7 +2,6 @@
 
 use anyhow::Result;
 use clap::Args;
-use skelid::ingest::find_archives;
 use skelid::inspect;
 use std::process::ExitCode;
 
@@ -25,7 +24,7 @@ pub(crate) struct InspectArgs {
 
 pub(crate) fn cmd_inspect(a: InspectArgs) -> Result<ExitCode> {
     let options = a.ingest.options()?;
-    let files = find_archives(&a.archives)?;
+    let files = super::args::archives(&a.archives)?;
     let reports = inspect::inspect_isolated(
         &super::internal::probe_command(&options)?,
         &files,

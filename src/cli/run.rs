@@ -6,7 +6,7 @@ use clap::Args;
 use rayon::prelude::*;
 use skelid::campaign::{write_campaign, Attr, RunData};
 use skelid::demo;
-use skelid::ingest::{find_archives, IngestOptions};
+use skelid::ingest::IngestOptions;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -204,7 +204,7 @@ pub(crate) fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
 
 pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     let ingest = a.ingest.options()?;
-    let files = find_archives(&a.archives)?;
+    let files = super::args::archives(&a.archives)?;
     let options = a
         .identify
         .options("run", a.refine.then_some(a.refine_evaluations))?;

@@ -110,7 +110,12 @@ impl Archive {
         }
         if found.is_empty() {
             let mut hint = String::new();
-            if let Some(pat) = &options.run_glob {
+            if let Some(format) = skelid_output(&root) {
+                hint = format!(
+                    " (this is skelid's own output, format {format}, not a campaign archive: \
+                     pass the archives it was made from)"
+                );
+            } else if let Some(pat) = &options.run_glob {
                 hint = format!(" matching {} {pat}", crate::hint::Hint::RunGlob);
             } else if !stats.dataset_names.is_empty() {
                 let names: Vec<_> = stats.dataset_names.iter().take(8).cloned().collect();
@@ -262,6 +267,17 @@ pub(super) const INHERITED: &[&str] = &[
     "mode_near",
     "zero_tolerance",
 ];
+
+/// The root's `format` when it names one of skelid's own outputs (`skelid-results/1`,
+/// `skelid-track/1`, …) rather than a campaign (`skelid-campaign/1`, or none).
+fn skelid_output(root: &Group) -> Option<String> {
+    match read_attr(&root.attr("format").ok()?).ok()? {
+        AttrValue::Text(f) if f.starts_with("skelid-") && !f.starts_with("skelid-campaign/") => {
+            Some(f)
+        }
+        _ => None,
+    }
+}
 
 impl InheritedAttrs {
     pub(super) fn collect(file: &File, path: &str) -> Self {

@@ -3,37 +3,69 @@
 
 use std::path::{Path, PathBuf};
 
+/// What the inputs name: the archives to read, and the files a folder search passed over
+/// as skelid's own results.
+#[derive(Debug, Default)]
+pub struct Inputs {
+    /// The archives, sorted, each once.
+    pub archives: Vec<PathBuf>,
+    /// `results.h5` files found in folders beside the `manifest.json` of `skelid run`,
+    /// `demo` or `merge` (an output folder inside the campaign's tree, a resumed batch's
+    /// own folder, the demo's): not campaigns, so not read. A file named by itself is
+    /// always read.
+    pub passed_over: Vec<PathBuf>,
+}
+
 /// Expands command-line arguments (files, folders searched recursively for `.h5`, `.hdf5`,
-/// `.mat`, and glob patterns) to a sorted, de-duplicated list of files.
-pub fn expand_inputs(args: &[String]) -> Result<Vec<PathBuf>, String> {
-    let mut out = Vec::new();
+/// `.he5`, `.mat`, and glob patterns) to a sorted, de-duplicated list of files.
+pub fn expand_inputs(args: &[String]) -> Result<Inputs, String> {
+    let mut out = Inputs::default();
     for a in args {
         let p = Path::new(a);
         if p.is_dir() {
             collect_dir(p, &mut out).map_err(|e| format!("{a}: cannot list folder: {e}"))?;
         } else if p.exists() {
-            out.push(p.to_path_buf());
+            out.archives.push(p.to_path_buf());
         } else if a.contains(['*', '?', '[']) {
             let paths = glob::glob(a).map_err(|e| format!("{a}: bad glob pattern: {e}"))?;
-            let before = out.len();
+            let before = out.archives.len() + out.passed_over.len();
             for entry in paths.flatten() {
                 if entry.is_dir() {
                     collect_dir(&entry, &mut out)
                         .map_err(|e| format!("{}: {e}", entry.display()))?;
                 } else {
-                    out.push(entry);
+                    out.archives.push(entry);
                 }
             }
-            if out.len() == before {
+            if out.archives.len() + out.passed_over.len() == before {
                 return Err(format!("{a}: the pattern matches no file"));
             }
         } else {
             return Err(format!("{a}: no such file or folder"));
         }
     }
-    out.sort();
-    out.dedup();
+    for list in [&mut out.archives, &mut out.passed_over] {
+        list.sort();
+        list.dedup();
+    }
+    // A results file named by itself and found in a folder too is read.
+    let named = out.archives.clone();
+    out.passed_over.retain(|p| named.binary_search(p).is_err());
     Ok(out)
+}
+
+/// What to tell the user about the files a folder search passed over (none: `None`).
+pub fn passed_over_note(passed_over: &[PathBuf]) -> Option<String> {
+    let first = passed_over.first()?;
+    let more = match passed_over.len() {
+        1 => String::new(),
+        n => format!(" and {} more", n - 1),
+    };
+    Some(format!(
+        "passed over {}{more}: skelid's own results (beside its manifest.json), not a \
+         campaign archive; name such a file by itself to read it anyway",
+        first.display()
+    ))
 }
 
 /// No archive among the inputs: what was looked at and what was there instead.
@@ -45,12 +77,12 @@ pub fn expand_inputs(args: &[String]) -> Result<Vec<PathBuf>, String> {
 pub struct NothingFound(pub String);
 
 /// [`expand_inputs`], refusing an empty result with what each argument held instead.
-pub fn find_archives(args: &[String]) -> Result<Vec<PathBuf>, FindError> {
-    let files = expand_inputs(args).map_err(FindError::Bad)?;
-    if !files.is_empty() {
-        return Ok(files);
+pub fn find_archives(args: &[String]) -> Result<Inputs, FindError> {
+    let inputs = expand_inputs(args).map_err(FindError::Bad)?;
+    if !inputs.archives.is_empty() {
+        return Ok(inputs);
     }
-    let seen: Vec<String> = args
+    let mut seen: Vec<String> = args
         .iter()
         .map(|a| {
             let mut others = Vec::new();
@@ -72,6 +104,7 @@ pub fn find_archives(args: &[String]) -> Result<Vec<PathBuf>, FindError> {
             }
         })
         .collect();
+    seen.extend(passed_over_note(&inputs.passed_over));
     Err(FindError::Nothing(NothingFound(seen.join("; "))))
 }
 
@@ -99,12 +132,13 @@ fn list_files(dir: &Path, out: &mut Vec<PathBuf>) -> std::io::Result<()> {
     Ok(())
 }
 
-fn collect_dir(dir: &Path, out: &mut Vec<PathBuf>) -> std::io::Result<()> {
+fn collect_dir(dir: &Path, out: &mut Inputs) -> std::io::Result<()> {
     let mut entries: Vec<_> = std::fs::read_dir(dir)?
         .flatten()
         .map(|e| e.path())
         .collect();
     entries.sort();
+    let mut batch_folder = None;
     for p in entries {
         if p.is_dir() {
             collect_dir(&p, out)?;
@@ -115,8 +149,91 @@ fn collect_dir(dir: &Path, out: &mut Vec<PathBuf>) -> std::io::Result<()> {
                 .as_deref(),
             Some("h5" | "hdf5" | "he5" | "mat")
         ) {
-            out.push(p);
+            if p.file_name().is_some_and(|n| n == "results.h5")
+                && *batch_folder.get_or_insert_with(|| is_batch_folder(dir))
+            {
+                out.passed_over.push(p);
+            } else {
+                out.archives.push(p);
+            }
         }
     }
     Ok(())
+}
+
+/// Whether `dir` holds the `manifest.json` a batch writes (`skelid-batch/…`): then its
+/// `results.h5` is that batch's output.
+fn is_batch_folder(dir: &Path) -> bool {
+    #[derive(serde::Deserialize)]
+    struct Manifest {
+        format: String,
+    }
+    std::fs::read(dir.join("manifest.json"))
+        .ok()
+        .and_then(|b| serde_json::from_slice::<Manifest>(&b).ok())
+        .is_some_and(|m| m.format.starts_with("skelid-batch/"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A folder search passes over a `results.h5` beside a batch's manifest and nothing
+    /// else: not a `results.h5` without one, nor one beside another program's
+    /// `manifest.json`, nor other archives beside it, nor a results file named by itself.
+    #[test]
+    fn a_folder_search_passes_over_a_batchs_own_results_only() {
+        let d = tempfile::tempdir().unwrap();
+        let root = d.path();
+        let touch = |rel: &str, text: &str| {
+            let p = root.join(rel);
+            std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+            std::fs::write(&p, text).unwrap();
+            p
+        };
+        let campaign = touch("campaign.h5", "");
+        let night = touch("night1/results.h5", "");
+        touch(
+            "night1/manifest.json",
+            r#"{"format": "skelid-batch/1", "runs": []}"#,
+        );
+        let beside = touch("night1/extra.h5", "");
+        let bare = touch("bare/results.h5", "");
+        let other = touch("other/results.h5", "");
+        touch("other/manifest.json", r#"{"format": "someone-else/3"}"#);
+        let broken = touch("broken/results.h5", "");
+        touch("broken/manifest.json", "{not json");
+        let arg = |p: &Path| p.display().to_string();
+
+        let found = expand_inputs(&[arg(root)]).unwrap();
+        let mut want = vec![campaign, beside, bare, other, broken];
+        want.sort();
+        assert_eq!(found.archives, want);
+        assert_eq!(found.passed_over, vec![night.clone()]);
+        let note = passed_over_note(&found.passed_over).unwrap();
+        assert!(note.contains(&arg(&night)) && note.contains("skelid's own results"));
+
+        // Named by itself, and named and found at once: read.
+        let named = expand_inputs(&[arg(&night)]).unwrap();
+        assert_eq!(
+            (named.archives, named.passed_over.len()),
+            (vec![night.clone()], 0)
+        );
+        let both = expand_inputs(&[arg(root), arg(&night)]).unwrap();
+        assert!(both.archives.contains(&night) && both.passed_over.is_empty());
+
+        // A folder of nothing but a batch's output holds no archive, and says why.
+        std::fs::remove_file(root.join("night1/extra.h5")).unwrap();
+        match find_archives(&[arg(&root.join("night1"))]) {
+            Err(FindError::Nothing(e)) => {
+                let text = e.to_string();
+                assert!(
+                    text.contains("passed over") && text.contains("results.h5"),
+                    "{text}"
+                );
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(passed_over_note(&[]).is_none());
+    }
 }

@@ -20,7 +20,7 @@ mod meta;
 
 pub use archive::Archive;
 use archive::{InheritedAttrs, RunMembers};
-pub use files::{expand_inputs, find_archives, FindError, NothingFound};
+pub use files::{expand_inputs, find_archives, passed_over_note, FindError, Inputs, NothingFound};
 pub use meta::time_sample_rate;
 use meta::{attr_number, channel_axis};
 
