@@ -17,7 +17,8 @@ pub struct Inputs {
 }
 
 /// Expands command-line arguments (files, folders searched recursively for `.h5`, `.hdf5`,
-/// `.he5`, `.mat`, and glob patterns) to a sorted, de-duplicated list of files.
+/// `.he5`, `.mat`, and glob patterns) to the archives they name, sorted and each once, and
+/// the results files the folder searches passed over.
 pub fn expand_inputs(args: &[String]) -> Result<Inputs, String> {
     let mut out = Inputs::default();
     for a in args {
