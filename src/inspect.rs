@@ -250,7 +250,8 @@ fn probe_one(
 /// Why a reading child was stopped after `timeout`.
 pub fn hang_detail(timeout: Duration) -> String {
     format!(
-        "reading it did not finish within {} s; libhdf5 loops on some corrupt files",
+        "reading it did not finish within {} s; libhdf5 loops on some corrupt files (a sound \
+         archive that is large, or on a slow disk, needs a longer --timeout)",
         timeout.as_secs()
     )
 }

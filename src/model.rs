@@ -11,7 +11,9 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, thiserror::Error)]
 pub enum ModelError {
     /// File could not be read.
-    #[error("{file}: cannot read the rig model: {source}")]
+    // The cause is the source, not in the message: anyhow's `{:#}` prints both, and the
+    // CLI said "No such file or directory (os error 2)" twice.
+    #[error("{file}: cannot read the rig model")]
     Io {
         file: String,
         #[source]

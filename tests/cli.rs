@@ -752,6 +752,182 @@ fn a_folder_with_a_batchs_output_in_it_is_read_without_that_output() {
     );
 }
 
+/// Found by a new user's walk through the commands (2026-12-06): an output that is an
+/// input is refused with the input intact, one archive named three ways is read once,
+/// impossible values exit 2 and write nothing, and a refused merge or diagnosis leaves no
+/// folder behind.
+#[test]
+fn outputs_never_replace_inputs_and_refused_commands_leave_nothing() {
+    let d = tmpdir();
+    let at = |name: &str| d.path().join(name);
+    let camp = at("camp.h5");
+    std::fs::copy(demo_archive(), &camp).unwrap();
+    let bytes = std::fs::read(&camp).unwrap();
+    let run = |args: &[&std::ffi::OsStr]| {
+        let o = skelid().current_dir(d.path()).args(args).output().unwrap();
+        let text = format!(
+            "{}{}",
+            String::from_utf8_lossy(&o.stdout),
+            String::from_utf8_lossy(&o.stderr)
+        );
+        (o.status.code(), text)
+    };
+    let os = |s: &'static str| std::ffi::OsStr::new(s);
+    let model = at("rig.toml");
+    std::fs::write(
+        &model,
+        "inertia = 3.16\nstiffness = 15000.0\ndamping = 13.0\nclearance = 0.0262\n",
+    )
+    .unwrap();
+
+    // track and simulate onto their own input, however spelt: refused, the archive intact.
+    let (code, text) = run(&[
+        os("track"),
+        os("camp.h5"),
+        os("--dataset"),
+        os("/demo/paper_rig/output"),
+        os("--out"),
+        os("./camp.h5"),
+    ]);
+    assert_eq!(code, Some(2), "{text}");
+    assert!(text.contains("is the archive being tracked"), "{text}");
+    let (code, text) = run(&[
+        os("simulate"),
+        os("--model"),
+        model.as_os_str(),
+        os("--excitation"),
+        os("measured"),
+        os("--measured"),
+        camp.as_os_str(),
+        os("--measured-run"),
+        os("/demo/paper_rig"),
+        os("--out"),
+        os("camp.h5"),
+    ]);
+    assert_eq!(code, Some(2), "{text}");
+    assert!(text.contains("the archive of the measured input"), "{text}");
+    assert!(
+        std::fs::read(&camp).unwrap() == bytes,
+        "the archive changed"
+    );
+
+    // Impossible drive values: exit 2, nothing written.
+    for (flags, says) in [
+        (["--duration", "0"], "--duration 0: must be a positive"),
+        (["--f1", "900"], "below the Nyquist frequency, 500 Hz"),
+        (["--noise=-1", "--f1=10"], "--noise -1"),
+        (["--sample-rate", "0"], "--sample-rate 0"),
+    ] {
+        let mut args = vec![os("simulate"), os("--model"), model.as_os_str()];
+        args.extend(flags.iter().map(|f| std::ffi::OsStr::new(*f)));
+        args.extend([os("--out"), os("bad.h5")]);
+        let (code, text) = run(&args);
+        assert_eq!(code, Some(2), "{flags:?}: {text}");
+        assert!(text.contains(says), "{flags:?}: {text}");
+        assert!(!at("bad.h5").exists(), "{flags:?} wrote a file");
+    }
+    let (code, text) = run(&[
+        os("run"),
+        os("camp.h5"),
+        os("--timeout"),
+        os("0"),
+        os("--out"),
+        os("t0"),
+    ]);
+    assert_eq!(code, Some(2), "{text}");
+    assert!(!at("t0").exists());
+
+    // One archive named three ways: its 11 runs once, none "done earlier".
+    let abs = camp.as_os_str().to_owned();
+    let (code, text) = run(&[
+        os("run"),
+        os("camp.h5"),
+        os("./camp.h5"),
+        &abs,
+        os("--quiet"),
+        os("--out"),
+        os("thrice"),
+    ]);
+    assert_eq!(code, Some(0), "{text}");
+    assert!(
+        text.contains("11 run(s), 0 failed") && text.contains("0 already done earlier"),
+        "{text}"
+    );
+
+    // merge: into one of its shards, or with a shard's run missing: refused, nothing made.
+    for k in ["1/2", "2/2"] {
+        let out = format!("s{}", &k[..1]);
+        let (code, text) = run(&[
+            os("run"),
+            os("camp.h5"),
+            os("--quiet"),
+            os("--method"),
+            os("hilbert"),
+            os("--shard"),
+            std::ffi::OsStr::new(k),
+            os("--out"),
+            std::ffi::OsStr::new(&out),
+        ]);
+        assert!(matches!(code, Some(0 | 1)), "{text}");
+    }
+    let manifest = std::fs::read(at("s1/manifest.json")).unwrap();
+    let (code, text) = run(&[os("merge"), os("s1"), os("s2"), os("--out"), os("./s1")]);
+    assert_eq!(code, Some(2), "{text}");
+    assert!(text.contains("is one of the folders merged"), "{text}");
+    assert!(std::fs::read(at("s1/manifest.json")).unwrap() == manifest);
+    let one = std::fs::read_dir(at("s2/runs"))
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap();
+    std::fs::remove_file(one.path()).unwrap();
+    let (code, text) = run(&[os("merge"), os("s1"), os("s2"), os("--out"), os("merged")]);
+    assert_eq!(code, Some(2), "{text}");
+    assert!(text.contains("is listed but its file"), "{text}");
+    assert!(!at("merged").exists(), "a refused merge left its folder");
+
+    // gap: a run that is not there, or an unknown effect: no folder; the whole vocabulary
+    // named; a missing model said once.
+    let (code, text) = run(&[
+        os("gap"),
+        os("--model"),
+        model.as_os_str(),
+        os("camp.h5"),
+        os("--run"),
+        os("/demo/nope"),
+        os("--out"),
+        os("g1"),
+    ]);
+    assert_eq!(code, Some(2), "{text}");
+    assert!(text.contains("no run /demo/nope"), "{text}");
+    assert!(!at("g1").exists(), "a refused diagnosis left its folder");
+    let (_, text) = run(&[
+        os("gap"),
+        os("--model"),
+        model.as_os_str(),
+        os("camp.h5"),
+        os("--effects"),
+        os("nonsense"),
+        os("--out"),
+        os("g2"),
+    ]);
+    assert!(text.contains("quantization, microslip"), "{text}");
+    let (code, text) = run(&[
+        os("gap"),
+        os("--model"),
+        os("nope.toml"),
+        os("camp.h5"),
+        os("--out"),
+        os("g3"),
+    ]);
+    assert_eq!(code, Some(2), "{text}");
+    assert_eq!(
+        text.matches("No such file or directory").count(),
+        1,
+        "{text}"
+    );
+}
+
 /// No adapter at all: wgpu told to use Vulkan only, with a driver list that does not exist.
 fn without_gpu(c: &mut Command) -> &mut Command {
     c.env("VK_ICD_FILENAMES", "/nonexistent/icd.json")

@@ -1,7 +1,7 @@
 //! Arguments shared by several subcommands: how archives are read, the report, the wavelet
 //! options, the methods and the backend.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
@@ -397,4 +397,23 @@ pub(crate) fn archives(args: &[String]) -> Result<Vec<PathBuf>> {
         eprintln!("note: {note}");
     }
     Ok(inputs.archives)
+}
+
+/// Refuses an output `out` (named by `flag`) that is the input `input` (`what` it is to the
+/// command), however either is spelt (`./x.h5`, a symbolic link, an absolute path): writing
+/// it would destroy what is read, and a campaign is not written twice.
+pub(crate) fn refuse_overwriting(flag: &str, out: &Path, what: &str, input: &Path) -> Result<()> {
+    let same = match (std::fs::canonicalize(out), std::fs::canonicalize(input)) {
+        (Ok(o), Ok(i)) => o == i,
+        _ => false,
+    };
+    if same {
+        bail!(
+            "{flag} {} is {what} ({}): writing there would replace it; name another path \
+             (nothing was written)",
+            out.display(),
+            input.display()
+        );
+    }
+    Ok(())
 }

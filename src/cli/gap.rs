@@ -224,7 +224,7 @@ fn parse_effects(flag: &str, names: &[String]) -> Result<Vec<skelid::model::Effe
             EffectKind::parse(e).with_context(|| {
                 format!(
                     "{flag}: unknown effect `{e}`; the vocabulary is {}",
-                    EffectKind::ALL.map(|k| k.name()).join(", ")
+                    EffectKind::EVERY.map(|k| k.name()).join(", ")
                 )
             })
         })
@@ -272,7 +272,6 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
     }
     let resonance = options.resonance;
     let engine = super::Engine::new(options, BackendArgs { backend: a.backend }.open()?);
-    create_out(&a.out)?;
     let ingest = a.ingest.options()?;
     let archive = Archive::open(archive_path, &ingest)?;
     let wanted_kind = match model.kind {
@@ -349,6 +348,8 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
             if wanted_kind == RunKind::Force { "force" } else { "base angle" },
         );
     }
+    // Made once the runs are chosen: a wrong --run or archive leaves no empty folder.
+    create_out(&a.out)?;
     let settings = serde_json::json!({
         "model": model_path.display().to_string(),
         "archive": archive_path.display().to_string(),

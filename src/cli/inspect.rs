@@ -16,7 +16,8 @@ pub(crate) struct InspectArgs {
     #[arg(long)]
     pub(crate) json: bool,
     /// Seconds allowed to read one archive before it is reported as unreadable.
-    #[arg(long, default_value_t = 300, value_name = "S")]
+    #[arg(long, default_value_t = 300, value_name = "S",
+          value_parser = clap::value_parser!(u64).range(1..))]
     pub(crate) timeout: u64,
     #[command(flatten)]
     pub(crate) ingest: IngestArgs,

@@ -40,6 +40,9 @@ pub(crate) struct MergeArgs {
 }
 
 pub(crate) fn cmd_merge(a: MergeArgs) -> Result<ExitCode> {
+    for d in &a.dirs {
+        super::args::refuse_overwriting("--out", &a.out, "one of the folders merged", d)?;
+    }
     let summary = skelid::batch::merge(&a.dirs, &a.out, a.report.report_runs)?;
     let strict = a.report.strict;
     println!(
@@ -103,7 +106,8 @@ pub(crate) struct RunArgs {
     #[arg(long)]
     pub(crate) json_progress: bool,
     /// Seconds allowed to open one archive (in a child process) before it is reported failed.
-    #[arg(long, default_value_t = 300, value_name = "S")]
+    #[arg(long, default_value_t = 300, value_name = "S",
+          value_parser = clap::value_parser!(u64).range(1..))]
     pub(crate) timeout: u64,
     /// Runs identified at once (default: one per core; 32 on a GPU backend, whose batches
     /// gather the signals of the runs in flight). Memory grows with N, not with the number

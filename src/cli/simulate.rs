@@ -93,7 +93,85 @@ pub(crate) struct SimulateArgs {
     pub(crate) compress: bool,
 }
 
+/// Refuses drive values no simulation can use, before anything is read or written: a
+/// campaign of 0 samples, or a chirp above the Nyquist frequency, would be written and only
+/// found out by `inspect` or `run`.
+fn check_drive(a: &SimulateArgs) -> Result<()> {
+    let positive = |flag: &str, v: f64, unit: &str| {
+        if v.is_finite() && v > 0.0 {
+            Ok(())
+        } else {
+            bail!("--{flag} {v}: must be a positive number of {unit} (nothing was written)")
+        }
+    };
+    let below_nyquist = |flag: &str, f: f64| {
+        let nyquist = 0.5 * a.sample_rate;
+        if f.is_finite() && f >= 0.0 && f < nyquist {
+            Ok(())
+        } else {
+            bail!(
+                "--{flag} {f} Hz: must be at least 0 and below the Nyquist frequency, {nyquist} Hz \
+                 at --sample-rate {} (raise --sample-rate, or lower the frequency; nothing was \
+                 written)",
+                a.sample_rate
+            )
+        }
+    };
+    if a.substeps == 0 {
+        bail!("--substeps 0: the integrator needs at least 1 step a sample (nothing was written)");
+    }
+    if !(a.noise.is_finite() && a.noise >= 0.0) {
+        bail!(
+            "--noise {}: a standard deviation is 0 or more (nothing was written)",
+            a.noise
+        );
+    }
+    if !matches!(a.excitation, ExcitationKind::Measured) {
+        positive("sample-rate", a.sample_rate, "Hz")?;
+    }
+    match a.excitation {
+        ExcitationKind::Chirp => {
+            positive("duration", a.duration, "seconds")?;
+            positive("amplitude", a.amplitude, "rad (N for a force input)")?;
+            below_nyquist("f0", a.f0)?;
+            below_nyquist("f1", a.f1)?;
+            if !(a.rolloff_hz.is_finite() && a.rolloff_hz >= 0.0) {
+                bail!(
+                    "--rolloff-hz {}: a corner is 0 (none) or more Hz",
+                    a.rolloff_hz
+                );
+            }
+        }
+        ExcitationKind::Stepped => {
+            positive("dwell", a.dwell, "seconds")?;
+            positive("amplitude", a.amplitude, "rad (N for a force input)")?;
+            for &f in &a.steps {
+                below_nyquist("steps", f)?;
+            }
+        }
+        ExcitationKind::Free => {
+            positive("duration", a.duration, "seconds")?;
+            if !a.initial_offset.is_finite() {
+                bail!(
+                    "--initial-offset {}: must be a finite number of rad",
+                    a.initial_offset
+                );
+            }
+        }
+        ExcitationKind::Measured => {
+            if !(a.input_cutoff > 0.0 && a.input_cutoff <= 1.0) {
+                bail!(
+                    "--input-cutoff {}: a fraction of Nyquist in (0, 1] (1 = no low-pass)",
+                    a.input_cutoff
+                );
+            }
+        }
+    }
+    Ok(())
+}
+
 pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<()> {
+    check_drive(&a)?;
     let model = RigModel::load(&a.model)?;
     warn_model(&a.model, &model);
     let mut fs = a.sample_rate;
@@ -123,6 +201,12 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<()> {
             let (Some(file), Some(run)) = (&a.measured, &a.measured_run) else {
                 bail!("--excitation measured needs --measured ARCHIVE and --measured-run PATH");
             };
+            super::args::refuse_overwriting(
+                "--out",
+                &a.out,
+                "the archive of the measured input",
+                file,
+            )?;
             let archive = Archive::open(file, &IngestOptions::default())?;
             let entry = archive
                 .runs

@@ -45,14 +45,22 @@ pub fn expand_inputs(args: &[String]) -> Result<Inputs, String> {
             return Err(format!("{a}: no such file or folder"));
         }
     }
+    // One file named two ways (`camp.h5` and `./camp.h5`, an absolute path, a link) is
+    // read once: twice, its runs were counted twice, skipped as "done earlier" and stored
+    // twice under different names. The first spelling in name order stays.
+    let mut seen = std::collections::HashSet::new();
     for list in [&mut out.archives, &mut out.passed_over] {
         list.sort();
         list.dedup();
+        list.retain(|p| seen.insert(same_file_key(p)));
     }
-    // A results file named by itself and found in a folder too is read.
-    let named = out.archives.clone();
-    out.passed_over.retain(|p| named.binary_search(p).is_err());
     Ok(out)
+}
+
+/// What two names of one file share: its canonical path (the name itself where there is
+/// none, e.g. a file that went away).
+fn same_file_key(p: &Path) -> PathBuf {
+    std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf())
 }
 
 /// What to tell the user about the files a folder search passed over (none: `None`).
@@ -207,12 +215,29 @@ mod tests {
         let arg = |p: &Path| p.display().to_string();
 
         let found = expand_inputs(&[arg(root)]).unwrap();
-        let mut want = vec![campaign, beside, bare, other, broken];
+        let mut want = vec![campaign.clone(), beside, bare, other, broken];
         want.sort();
         assert_eq!(found.archives, want);
         assert_eq!(found.passed_over, vec![night.clone()]);
         let note = passed_over_note(&found.passed_over).unwrap();
         assert!(note.contains(&arg(&night)) && note.contains("skelid's own results"));
+
+        // One file named three ways: read once, under its first name in order.
+        let again = expand_inputs(&[
+            arg(&campaign),
+            arg(&root.join("bare/../campaign.h5")),
+            arg(&root.join("campaign.h5")),
+        ])
+        .unwrap();
+        assert_eq!(again.archives.len(), 1, "{again:?}");
+        #[cfg(unix)]
+        {
+            let link = root.join("link.h5");
+            std::os::unix::fs::symlink(&campaign, &link).unwrap();
+            let linked = expand_inputs(&[arg(&link), arg(&campaign)]).unwrap();
+            assert_eq!(linked.archives, vec![campaign.clone()]);
+            std::fs::remove_file(&link).unwrap();
+        }
 
         // Named by itself, and named and found at once: read.
         let named = expand_inputs(&[arg(&night)]).unwrap();
