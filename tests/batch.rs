@@ -105,6 +105,78 @@ fn assert_same_results(a: &[(String, String, Option<f64>)], b: &[(String, String
     }
 }
 
+/// Ctrl-C (SIGINT) and a scheduler's SIGTERM in the middle of a batch: status 130, the
+/// terminal and the log say how many runs are committed and that the same command resumes,
+/// no `results.h5.tmp` is left, and the same command then skips those runs.
+#[test]
+fn an_interrupted_batch_says_so_and_leaves_no_temporary_file() {
+    let tmp = tempfile::tempdir().unwrap();
+    let inputs = campaign(tmp.path());
+    for (signal, name) in [(libc::SIGINT, "SIGINT"), (libc::SIGTERM, "SIGTERM")] {
+        let out = tmp.path().join(name);
+        let child = skelid()
+            .arg("run")
+            .arg(&inputs)
+            .arg("--out")
+            .arg(&out)
+            .arg("--quiet")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        // Signalled once the first run is committed: the batch is under way, not done
+        // (33 runs, a few seconds here).
+        let log = out.join("skelid.log");
+        let deadline = std::time::Instant::now() + Duration::from_secs(120);
+        while !std::fs::read_to_string(&log).is_ok_and(|t| t.contains(" done ")) {
+            assert!(std::time::Instant::now() < deadline, "no run committed");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        // SAFETY: kill(2) on our own child's pid, which has not been waited for.
+        assert_eq!(unsafe { libc::kill(child.id() as libc::pid_t, signal) }, 0);
+        let o = child.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(130), "{name}: {err}");
+        assert!(
+            err.contains("interrupted (Ctrl-C or SIGTERM): ")
+                && err.contains("the same command resumes"),
+            "{name}: {err}"
+        );
+        assert!(!out.join("results.h5.tmp").exists(), "{name}: .tmp left");
+        let logged = std::fs::read_to_string(&log).unwrap();
+        assert!(
+            logged.contains("interrupted (Ctrl-C or SIGTERM): "),
+            "{logged}"
+        );
+        let committed = std::fs::read_dir(out.join("runs"))
+            .unwrap()
+            .filter(|e| {
+                e.as_ref()
+                    .is_ok_and(|e| e.path().extension().is_some_and(|x| x == "run"))
+            })
+            .count();
+        // Said as counted when the signal came; a worker may finish its commit (a
+        // rename) in the moment before the process ends.
+        let said: usize = err
+            .split("interrupted (Ctrl-C or SIGTERM): ")
+            .nth(1)
+            .and_then(|t| t.split(' ').next())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("{err}"));
+        assert!(
+            said <= committed && committed > 0,
+            "{said} {committed}: {err}"
+        );
+        let o = run(&[], &inputs, &out);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let said = String::from_utf8_lossy(&o.stdout);
+        assert!(
+            said.contains(&format!("{committed} already done earlier")),
+            "{committed}: {said}"
+        );
+    }
+}
+
 #[test]
 fn killed_batches_resume_to_the_uninterrupted_result() {
     let tmp = tempfile::tempdir().unwrap();

@@ -233,6 +233,29 @@ pub(super) enum Finished {
     Failed(ReportError),
 }
 
+/// What a batch into `out` leaves when it is stopped from outside (Ctrl-C, a scheduler's
+/// SIGTERM): its committed runs stay in `out/runs` for the same command to resume, the
+/// unfinished `results.h5.tmp` goes, and `skelid.log` records it. Returns the line said.
+/// Safe at any moment of a batch: every commit is a rename, and the workers' writes into
+/// the removed file go nowhere.
+pub fn record_interruption(out: &Path, why: &str) -> String {
+    let _ = std::fs::remove_file(crate::campaign::tmp_path(&out.join("results.h5")));
+    let committed = std::fs::read_dir(out.join(crate::journal::RUNS_DIR)).map_or(0, |d| {
+        d.flatten()
+            .filter(|e| e.path().extension().is_some_and(|x| x == "run"))
+            .count()
+    });
+    let line = format!(
+        "interrupted ({why}): {committed} run(s) committed in {}; the same command resumes \
+         without redoing them",
+        out.join(crate::journal::RUNS_DIR).display()
+    );
+    if let Ok(mut log) = writer::Log::open(out) {
+        log.line(&line);
+    }
+    line
+}
+
 /// Identifies every run of `files` (this shard's share), skipping runs committed by an
 /// earlier invocation unless `force`, and writes `out/results.h5`, `out/summary.json`,
 /// `out/summary.csv` and `out/manifest.json`. `progress` is called after each run.

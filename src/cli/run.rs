@@ -348,10 +348,27 @@ pub(crate) fn identify_with_progress(
             eprintln!("{v}");
         }
     };
+    stop_cleanly_on_interrupt(out);
     let summary = skelid::batch::run_campaigns(files, ingest, options, out, &progress)
         .with_context(|| format!("batch into {}", out.display()))?;
     bar.finish_and_clear();
     Ok(summary)
+}
+
+/// On Ctrl-C, SIGTERM (a scheduler's time limit) or SIGHUP during a batch: say on the
+/// terminal and in the log how far it got and that the same command resumes, take away
+/// `results.h5.tmp`, and end with status 130. Before, the process died at once: nothing
+/// said, a `.tmp` of up to the whole results left behind.
+fn stop_cleanly_on_interrupt(out: &std::path::Path) {
+    let out = out.to_path_buf();
+    // A second batch in one process keeps the first's handler (none does today).
+    let _ = ctrlc::set_handler(move || {
+        let line = skelid::batch::record_interruption(&out, "Ctrl-C or SIGTERM");
+        eprintln!("\n{line}");
+        // _exit, not exit: libhdf5's exit handlers would wait for a lock another thread
+        // may hold; nothing here needs flushing (stderr is unbuffered, commits are renames).
+        unsafe { libc::_exit(130) };
+    });
 }
 
 /// True clearance, f0 (Hz), c/J and F/J of a run, by its path.
