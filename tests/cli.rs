@@ -1682,6 +1682,17 @@ fn gap_names_the_missing_friction_and_writes_its_report_model_and_page() {
     assert!(page.contains(" kN m/rad"));
     let report = std::fs::read_to_string(out.join("report.html")).unwrap();
     assert_eq!(report.matches("href=\"gap.html\"").count(), 1);
+    // A batch that writes its page into the folder again keeps the link (it dropped it).
+    let o = skelid()
+        .args(["run", "--method", "hilbert", "--quiet", "--out"])
+        .arg(&out)
+        .arg(demo_archive())
+        .output()
+        .unwrap();
+    assert!(matches!(o.status.code(), Some(0 | 1)), "{o:?}");
+    let report = std::fs::read_to_string(out.join("report.html")).unwrap();
+    assert!(report.contains("<h1>skelid report</h1>\n<p class=\"meta\"><a href=\"gap.html\">"));
+    assert_eq!(report.matches("href=\"gap.html\"").count(), 1);
     // --figures pdf: the page's three plots as one-page PDFs with their axes' labels.
     let figures = out.join("figures/demo-effects-coulomb_friction");
     let labels = [

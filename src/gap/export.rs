@@ -489,25 +489,16 @@ pub fn write_gap_page(out: &Path, title: &str, runs: &[&GapRun]) -> Result<PathB
     Ok(path)
 }
 
-/// The link report.html gets, once.
-const LINK: &str = "<p class=\"meta\"><a href=\"gap.html\">sim-to-real gap (skelid gap)</a></p>\n";
-
+/// Links `gap.html` from the folder's report.html, once (the same link the batch puts
+/// there when it writes the page again).
 fn link_from_report(report: &Path) -> Result<(), ReportError> {
     let Ok(text) = std::fs::read_to_string(report) else {
         return Ok(());
     };
-    if text.contains("href=\"gap.html\"") {
-        return Ok(());
+    match crate::report::html::with_gap_link(&text) {
+        Some(linked) => write_atomic(report, linked.as_bytes()),
+        None => Ok(()),
     }
-    let Some(at) = text.find("</h1>").map(|i| i + "</h1>".len()) else {
-        return Ok(());
-    };
-    let mut out = String::with_capacity(text.len() + LINK.len());
-    out.push_str(&text[..at]);
-    out.push('\n');
-    out.push_str(LINK);
-    out.push_str(&text[at..]);
-    write_atomic(report, out.as_bytes())
 }
 
 /// Where the fitted model goes: `<out>/<stem>.fitted.toml` for one run, and

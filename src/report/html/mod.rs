@@ -113,8 +113,33 @@ const MODE_COLUMNS: [(&str, &str); 4] = [
 /// Writes `<out>/report.html` (atomically) and returns its path.
 pub fn write_report(out: &Path, page: &ReportPage) -> Result<PathBuf, ReportError> {
     let path = out.join("report.html");
-    write_atomic(&path, render(page).as_bytes())?;
+    let mut html = render(page);
+    // A diagnosis `skelid gap` wrote into this folder stays linked when the batch writes
+    // its page again (a rerun, even one that skips every run, dropped the link).
+    if out.join("gap.html").is_file() {
+        html = with_gap_link(&html).unwrap_or(html);
+    }
+    write_atomic(&path, html.as_bytes())?;
     Ok(path)
+}
+
+/// The link to the folder's `gap.html` (`skelid gap`'s page), under the report's title.
+const GAP_LINK: &str =
+    "<p class=\"meta\"><a href=\"gap.html\">sim-to-real gap (skelid gap)</a></p>\n";
+
+/// A report page with the link to `gap.html` under its title; `None` when it has the link
+/// already or no title to put it under.
+pub fn with_gap_link(html: &str) -> Option<String> {
+    if html.contains("href=\"gap.html\"") {
+        return None;
+    }
+    let at = html.find("</h1>")? + "</h1>".len();
+    let mut out = String::with_capacity(html.len() + GAP_LINK.len() + 1);
+    out.push_str(&html[..at]);
+    out.push('\n');
+    out.push_str(GAP_LINK);
+    out.push_str(&html[at..]);
+    Some(out)
 }
 
 /// The page's HTML.
