@@ -836,6 +836,28 @@ fn outputs_never_replace_inputs_and_refused_commands_leave_nothing() {
     ]);
     assert_eq!(code, Some(2), "{text}");
     assert!(!at("t0").exists());
+    // An output folder that is a file: said so, for every command that writes a folder.
+    std::fs::write(at("afile"), "x").unwrap();
+    for cmd in [
+        vec![os("run"), os("camp.h5"), os("--out"), os("afile")],
+        vec![os("demo"), os("--out"), os("afile")],
+        vec![os("merge"), os("s1"), os("--out"), os("afile")],
+        vec![
+            os("gap"),
+            os("--model"),
+            model.as_os_str(),
+            os("camp.h5"),
+            os("--out"),
+            os("afile"),
+        ],
+    ] {
+        let (code, text) = run(&cmd);
+        assert_eq!(code, Some(2), "{cmd:?}: {text}");
+        assert!(
+            text.contains("--out afile is a file, not a folder"),
+            "{cmd:?}: {text}"
+        );
+    }
 
     // One archive named three ways: its 11 runs once, none "done earlier".
     let abs = camp.as_os_str().to_owned();

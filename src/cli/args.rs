@@ -417,3 +417,17 @@ pub(crate) fn refuse_overwriting(flag: &str, out: &Path, what: &str, input: &Pat
     }
     Ok(())
 }
+
+/// Refuses an output folder `out` (named by `flag`) that is an existing file, before any
+/// work: the OS's words for it ("File exists", "Not a directory" of `out/runs`) did not
+/// say which argument was wrong.
+pub(crate) fn refuse_file_as_folder(flag: &str, out: &Path) -> Result<()> {
+    if out.exists() && !out.is_dir() {
+        bail!(
+            "{flag} {} is a file, not a folder: name a folder (new or existing) for the outputs \
+             (nothing was done)",
+            out.display()
+        );
+    }
+    Ok(())
+}

@@ -237,6 +237,7 @@ fn parse_effects(flag: &str, names: &[String]) -> Result<Vec<skelid::model::Effe
 const FORCE_RESONANCE: f64 = 0.02;
 
 pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
+    super::args::refuse_file_as_folder("--out", &a.out)?;
     use skelid::run::RunKind;
     let mut opt = gap_search_options(&a)?;
     let mut options = a.identify.options("gap", None)?;

@@ -40,6 +40,7 @@ pub(crate) struct MergeArgs {
 }
 
 pub(crate) fn cmd_merge(a: MergeArgs) -> Result<ExitCode> {
+    super::args::refuse_file_as_folder("--out", &a.out)?;
     for d in &a.dirs {
         super::args::refuse_overwriting("--out", &a.out, "one of the folders merged", d)?;
     }
@@ -142,6 +143,7 @@ pub(crate) fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
         })
         .collect();
     bar.finish_and_clear();
+    super::args::refuse_file_as_folder("--out", &a.out)?;
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create output folder {}", a.out.display()))?;
     let path = a.out.join("demo_campaign.h5");
@@ -207,6 +209,7 @@ pub(crate) fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
 }
 
 pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
+    super::args::refuse_file_as_folder("--out", &a.out)?;
     let ingest = a.ingest.options()?;
     let files = super::args::archives(&a.archives)?;
     let options = a
