@@ -11,14 +11,10 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, thiserror::Error)]
 pub enum ModelError {
     /// File could not be read.
-    // The cause is the source, not in the message: anyhow's `{:#}` prints both, and the
-    // CLI said "No such file or directory (os error 2)" twice.
-    #[error("{file}: cannot read the rig model")]
-    Io {
-        file: String,
-        #[source]
-        source: std::io::Error,
-    },
+    // The cause is in the message and not a `source`: anyhow's `{:#}` printed both ("No
+    // such file or directory" twice), and Python's message is this text alone.
+    #[error("{file}: cannot read the rig model: {cause}")]
+    Io { file: String, cause: std::io::Error },
     /// TOML syntax or an unknown/missing key.
     #[error("{file}: invalid rig model: {detail}")]
     Parse { file: String, detail: String },
@@ -573,9 +569,9 @@ impl RigModel {
     /// Reads a TOML rig model file.
     pub fn load(path: &Path) -> Result<Self, ModelError> {
         let file = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| ModelError::Io {
+        let text = std::fs::read_to_string(path).map_err(|cause| ModelError::Io {
             file: file.clone(),
-            source,
+            cause,
         })?;
         Self::from_toml_str(&text, &file)
     }

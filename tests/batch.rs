@@ -105,14 +105,28 @@ fn assert_same_results(a: &[(String, String, Option<f64>)], b: &[(String, String
     }
 }
 
-/// Ctrl-C (SIGINT) and a scheduler's SIGTERM in the middle of a batch: status 130, the
-/// terminal and the log say how many runs are committed and that the same command resumes,
-/// no `results.h5.tmp` is left, and the same command then skips those runs.
+/// Ctrl-C (SIGINT) and a scheduler's SIGTERM (to a `--force` batch) in the middle of a
+/// batch: status 130, the terminal and the log say how many runs are committed and how to
+/// resume (without `--force` for that one), no `results.h5.tmp` is left, and the command
+/// (without `--force`) then skips those runs.
 #[test]
 fn an_interrupted_batch_says_so_and_leaves_no_temporary_file() {
     let tmp = tempfile::tempdir().unwrap();
     let inputs = campaign(tmp.path());
-    for (signal, name) in [(libc::SIGINT, "SIGINT"), (libc::SIGTERM, "SIGTERM")] {
+    for (signal, name, flags, advice) in [
+        (
+            libc::SIGINT,
+            "SIGINT",
+            &[][..],
+            "the same command resumes without redoing them",
+        ),
+        (
+            libc::SIGTERM,
+            "SIGTERM",
+            &["--force"][..],
+            "the same command without --force resumes from them",
+        ),
+    ] {
         let out = tmp.path().join(name);
         let child = skelid()
             .arg("run")
@@ -120,6 +134,7 @@ fn an_interrupted_batch_says_so_and_leaves_no_temporary_file() {
             .arg("--out")
             .arg(&out)
             .arg("--quiet")
+            .args(flags)
             .stdout(std::process::Stdio::null())
             .stderr(std::process::Stdio::piped())
             .spawn()
@@ -138,14 +153,13 @@ fn an_interrupted_batch_says_so_and_leaves_no_temporary_file() {
         let err = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(130), "{name}: {err}");
         assert!(
-            err.contains("interrupted (Ctrl-C or SIGTERM): ")
-                && err.contains("the same command resumes"),
+            err.contains("interrupted (Ctrl-C, SIGTERM or SIGHUP): ") && err.contains(advice),
             "{name}: {err}"
         );
         assert!(!out.join("results.h5.tmp").exists(), "{name}: .tmp left");
         let logged = std::fs::read_to_string(&log).unwrap();
         assert!(
-            logged.contains("interrupted (Ctrl-C or SIGTERM): "),
+            logged.contains("interrupted (Ctrl-C, SIGTERM or SIGHUP): "),
             "{logged}"
         );
         let committed = std::fs::read_dir(out.join("runs"))
@@ -158,7 +172,7 @@ fn an_interrupted_batch_says_so_and_leaves_no_temporary_file() {
         // Said as counted when the signal came; a worker may finish its commit (a
         // rename) in the moment before the process ends.
         let said: usize = err
-            .split("interrupted (Ctrl-C or SIGTERM): ")
+            .split("interrupted (Ctrl-C, SIGTERM or SIGHUP): ")
             .nth(1)
             .and_then(|t| t.split(' ').next())
             .and_then(|n| n.parse().ok())

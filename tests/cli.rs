@@ -810,6 +810,35 @@ fn outputs_never_replace_inputs_and_refused_commands_leave_nothing() {
         std::fs::read(&camp).unwrap() == bytes,
         "the archive changed"
     );
+    // A link named as the output is replaced by the track, its target untouched.
+    std::os::unix::fs::symlink(&camp, at("link.h5")).unwrap();
+    let (code, text) = run(&[
+        os("track"),
+        os("camp.h5"),
+        os("--dataset"),
+        os("/demo/paper_rig/output"),
+        os("--out"),
+        os("link.h5"),
+    ]);
+    assert_eq!(code, Some(0), "{text}");
+    assert!(!std::fs::symlink_metadata(at("link.h5"))
+        .unwrap()
+        .is_symlink());
+    assert!(
+        std::fs::read(&camp).unwrap() == bytes,
+        "the link's target changed"
+    );
+    // `run` never writes its results.h5 over an archive it reads (a campaign that happens
+    // to be called results.h5, its folder named as --out).
+    std::fs::create_dir_all(at("mine")).unwrap();
+    std::fs::copy(&camp, at("mine/results.h5")).unwrap();
+    let (code, text) = run(&[os("run"), os("mine/results.h5"), os("--out"), os("./mine")]);
+    assert_eq!(code, Some(2), "{text}");
+    assert!(
+        text.contains("would be written over mine/results.h5"),
+        "{text}"
+    );
+    assert!(std::fs::read(at("mine/results.h5")).unwrap() == bytes);
 
     // Impossible drive values: exit 2, nothing written.
     for (flags, says) in [
@@ -923,7 +952,7 @@ fn outputs_never_replace_inputs_and_refused_commands_leave_nothing() {
     assert_eq!(code, Some(2), "{text}");
     assert!(text.contains("no run /demo/nope"), "{text}");
     assert!(!at("g1").exists(), "a refused diagnosis left its folder");
-    let (_, text) = run(&[
+    let (code, text) = run(&[
         os("gap"),
         os("--model"),
         model.as_os_str(),
@@ -933,7 +962,9 @@ fn outputs_never_replace_inputs_and_refused_commands_leave_nothing() {
         os("--out"),
         os("g2"),
     ]);
+    assert_eq!(code, Some(2), "{text}");
     assert!(text.contains("quantization, microslip"), "{text}");
+    assert!(!at("g2").exists(), "a refused diagnosis left its folder");
     let (code, text) = run(&[
         os("gap"),
         os("--model"),

@@ -234,11 +234,13 @@ pub(super) enum Finished {
 }
 
 /// What a batch into `out` leaves when it is stopped from outside (Ctrl-C, a scheduler's
-/// SIGTERM): its committed runs stay in `out/runs` for the same command to resume, the
-/// unfinished `results.h5.tmp` goes, and `skelid.log` records it. Returns the line said.
-/// Safe at any moment of a batch: every commit is a rename, and the workers' writes into
-/// the removed file go nowhere.
-pub fn record_interruption(out: &Path, why: &str) -> String {
+/// SIGTERM): its committed runs stay in `out/runs`, the unfinished `results.h5.tmp` goes,
+/// and `skelid.log` records it with `advice` (how to go on). Returns the line said.
+/// Every commit is a rename, so no run file is left half written; the workers' writes into
+/// the removed file go nowhere. The batch's own threads keep running while this runs, so
+/// in rare moments a `.tmp` made or renamed just then may stay (the next batch removes
+/// it), and the count may miss a run committed in the same instant.
+pub fn record_interruption(out: &Path, why: &str, advice: &str) -> String {
     let _ = std::fs::remove_file(crate::campaign::tmp_path(&out.join("results.h5")));
     let committed = std::fs::read_dir(out.join(crate::journal::RUNS_DIR)).map_or(0, |d| {
         d.flatten()
@@ -246,8 +248,7 @@ pub fn record_interruption(out: &Path, why: &str) -> String {
             .count()
     });
     let line = format!(
-        "interrupted ({why}): {committed} run(s) committed in {}; the same command resumes \
-         without redoing them",
+        "interrupted ({why}): {committed} run(s) committed in {}; {advice}",
         out.join(crate::journal::RUNS_DIR).display()
     );
     if let Ok(mut log) = writer::Log::open(out) {

@@ -399,15 +399,39 @@ pub(crate) fn archives(args: &[String]) -> Result<Vec<PathBuf>> {
     Ok(inputs.archives)
 }
 
-/// Refuses an output `out` (named by `flag`) that is the input `input` (`what` it is to the
-/// command), however either is spelt (`./x.h5`, a symbolic link, an absolute path): writing
-/// it would destroy what is read, and a campaign is not written twice.
-pub(crate) fn refuse_overwriting(flag: &str, out: &Path, what: &str, input: &Path) -> Result<()> {
-    let same = match (std::fs::canonicalize(out), std::fs::canonicalize(input)) {
-        (Ok(o), Ok(i)) => o == i,
-        _ => false,
+/// Whether writing `out` would replace `input`, however either is spelt (`./x.h5`, an
+/// absolute path, folders through links). A file output is written beside and renamed onto
+/// its path, so a link named as the output is replaced, not followed: only its folder is
+/// resolved. A folder output (`is_folder`) is written into, so it is resolved whole.
+pub(crate) fn lands_on(out: &Path, is_folder: bool, input: &Path) -> bool {
+    let landing = if is_folder {
+        std::fs::canonicalize(out).ok()
+    } else {
+        let folder = match out.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p,
+            _ => Path::new("."),
+        };
+        std::fs::canonicalize(folder)
+            .ok()
+            .zip(out.file_name())
+            .map(|(f, n)| f.join(n))
     };
-    if same {
+    match (landing, std::fs::canonicalize(input)) {
+        (Some(o), Ok(i)) => o == i,
+        _ => false,
+    }
+}
+
+/// Refuses an output `out` (named by `flag`) that would replace the input `input` (`what`
+/// it is to the command; see [`lands_on`]): a campaign is not written over.
+pub(crate) fn refuse_overwriting(
+    flag: &str,
+    out: &Path,
+    is_folder: bool,
+    what: &str,
+    input: &Path,
+) -> Result<()> {
+    if lands_on(out, is_folder, input) {
         bail!(
             "{flag} {} is {what} ({}): writing there would replace it; name another path \
              (nothing was written)",

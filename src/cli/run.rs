@@ -1,7 +1,7 @@
 //! `skelid run`, `merge` and `demo`: the batch with its progress, the terminal tables and
 //! the exit status.
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use clap::Args;
 use rayon::prelude::*;
 use skelid::campaign::{write_campaign, Attr, RunData};
@@ -42,7 +42,7 @@ pub(crate) struct MergeArgs {
 pub(crate) fn cmd_merge(a: MergeArgs) -> Result<ExitCode> {
     super::args::refuse_file_as_folder("--out", &a.out)?;
     for d in &a.dirs {
-        super::args::refuse_overwriting("--out", &a.out, "one of the folders merged", d)?;
+        super::args::refuse_overwriting("--out", &a.out, true, "one of the folders merged", d)?;
     }
     let summary = skelid::batch::merge(&a.dirs, &a.out, a.report.report_runs)?;
     let strict = a.report.strict;
@@ -127,6 +127,7 @@ pub(crate) struct RunArgs {
 }
 
 pub(crate) fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
+    super::args::refuse_file_as_folder("--out", &a.out)?;
     let cases = demo::cases();
     let bar = indicatif::ProgressBar::new(cases.len() as u64).with_style(
         indicatif::ProgressStyle::with_template(
@@ -143,7 +144,6 @@ pub(crate) fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
         })
         .collect();
     bar.finish_and_clear();
-    super::args::refuse_file_as_folder("--out", &a.out)?;
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create output folder {}", a.out.display()))?;
     let path = a.out.join("demo_campaign.h5");
@@ -183,6 +183,7 @@ pub(crate) fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
         &options,
         &a.out,
         ProgressMode::Bar,
+        "`skelid demo` simulates and identifies everything afresh when run again",
     )?;
     let truth = |run: &str| -> Option<[f64; 4]> {
         let c = cases.iter().find(|c| c.path == run)?;
@@ -212,6 +213,18 @@ pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     super::args::refuse_file_as_folder("--out", &a.out)?;
     let ingest = a.ingest.options()?;
     let files = super::args::archives(&a.archives)?;
+    let results = a.out.join("results.h5");
+    if let Some(f) = files
+        .iter()
+        .find(|f| super::args::lands_on(&results, false, f))
+    {
+        bail!(
+            "--out {}: its results.h5 would be written over {}, an archive this batch reads; \
+             name another folder (nothing was done)",
+            a.out.display(),
+            f.display()
+        );
+    }
     let options = a
         .identify
         .options("run", a.refine.then_some(a.refine_evaluations))?;
@@ -244,7 +257,12 @@ pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     } else {
         ProgressMode::Bar
     };
-    let summary = identify_with_progress(&files, &ingest, &batch, &a.out, mode)?;
+    let advice = if a.force {
+        "the same command without --force resumes from them"
+    } else {
+        "the same command resumes without redoing them"
+    };
+    let summary = identify_with_progress(&files, &ingest, &batch, &a.out, mode, advice)?;
     report_fallbacks(&backend);
     if !a.quiet && !a.json_progress {
         print!("{}", render_summary(&summary.rows, None));
@@ -319,6 +337,7 @@ pub(crate) fn identify_with_progress(
     options: &skelid::batch::BatchOptions<'_>,
     out: &std::path::Path,
     mode: ProgressMode,
+    advice: &'static str,
 ) -> Result<skelid::batch::BatchSummary> {
     let bar = match mode {
         ProgressMode::Bar => indicatif::ProgressBar::new(0),
@@ -351,7 +370,7 @@ pub(crate) fn identify_with_progress(
             eprintln!("{v}");
         }
     };
-    stop_cleanly_on_interrupt(out);
+    stop_cleanly_on_interrupt(out, advice);
     let summary = skelid::batch::run_campaigns(files, ingest, options, out, &progress)
         .with_context(|| format!("batch into {}", out.display()))?;
     bar.finish_and_clear();
@@ -359,14 +378,30 @@ pub(crate) fn identify_with_progress(
 }
 
 /// On Ctrl-C, SIGTERM (a scheduler's time limit) or SIGHUP during a batch: say on the
-/// terminal and in the log how far it got and that the same command resumes, take away
+/// terminal and in the log how far it got and how to go on (`advice`), take away
 /// `results.h5.tmp`, and end with status 130. Before, the process died at once: nothing
 /// said, a `.tmp` of up to the whole results left behind.
-fn stop_cleanly_on_interrupt(out: &std::path::Path) {
+fn stop_cleanly_on_interrupt(out: &std::path::Path, advice: &'static str) {
     let out = out.to_path_buf();
     // A second batch in one process keeps the first's handler (none does today).
     let _ = ctrlc::set_handler(move || {
-        let line = skelid::batch::record_interruption(&out, "Ctrl-C or SIGTERM");
+        // The clean-up on a thread of its own, given 2 s: on a hung file system (an NFS
+        // mount, a common reason to press Ctrl-C) the process still ends at once.
+        let (tx, rx) = std::sync::mpsc::channel();
+        let folder = out.clone();
+        std::thread::spawn(move || {
+            let why = "Ctrl-C, SIGTERM or SIGHUP";
+            let _ = tx.send(skelid::batch::record_interruption(&folder, why, advice));
+        });
+        let line = rx
+            .recv_timeout(std::time::Duration::from_secs(2))
+            .unwrap_or_else(|_| {
+                format!(
+                    "interrupted; {} did not answer within 2 s, so its runs were not counted \
+                     (every committed run is kept there; {advice})",
+                    out.display()
+                )
+            });
         eprintln!("\n{line}");
         // _exit, not exit: libhdf5's exit handlers would wait for a lock another thread
         // may hold; nothing here needs flushing (stderr is unbuffered, commits are renames).

@@ -117,6 +117,18 @@ fn check_drive(a: &SimulateArgs) -> Result<()> {
             )
         }
     };
+    // 0 is a run of noise alone (with --noise), which a user may want.
+    let non_negative_amplitude = || {
+        if a.amplitude.is_finite() && a.amplitude >= 0.0 {
+            Ok(())
+        } else {
+            bail!(
+                "--amplitude {}: must be 0 or more, rad (N for a force input) (nothing was \
+                 written)",
+                a.amplitude
+            )
+        }
+    };
     if a.substeps == 0 {
         bail!("--substeps 0: the integrator needs at least 1 step a sample (nothing was written)");
     }
@@ -132,19 +144,19 @@ fn check_drive(a: &SimulateArgs) -> Result<()> {
     match a.excitation {
         ExcitationKind::Chirp => {
             positive("duration", a.duration, "seconds")?;
-            positive("amplitude", a.amplitude, "rad (N for a force input)")?;
+            non_negative_amplitude()?;
             below_nyquist("f0", a.f0)?;
             below_nyquist("f1", a.f1)?;
             if !(a.rolloff_hz.is_finite() && a.rolloff_hz >= 0.0) {
                 bail!(
-                    "--rolloff-hz {}: a corner is 0 (none) or more Hz",
+                    "--rolloff-hz {}: a corner is 0 (none) or more Hz (nothing was written)",
                     a.rolloff_hz
                 );
             }
         }
         ExcitationKind::Stepped => {
             positive("dwell", a.dwell, "seconds")?;
-            positive("amplitude", a.amplitude, "rad (N for a force input)")?;
+            non_negative_amplitude()?;
             for &f in &a.steps {
                 below_nyquist("steps", f)?;
             }
@@ -153,7 +165,7 @@ fn check_drive(a: &SimulateArgs) -> Result<()> {
             positive("duration", a.duration, "seconds")?;
             if !a.initial_offset.is_finite() {
                 bail!(
-                    "--initial-offset {}: must be a finite number of rad",
+                    "--initial-offset {}: must be a finite number of rad (nothing was written)",
                     a.initial_offset
                 );
             }
@@ -161,7 +173,8 @@ fn check_drive(a: &SimulateArgs) -> Result<()> {
         ExcitationKind::Measured => {
             if !(a.input_cutoff > 0.0 && a.input_cutoff <= 1.0) {
                 bail!(
-                    "--input-cutoff {}: a fraction of Nyquist in (0, 1] (1 = no low-pass)",
+                    "--input-cutoff {}: a fraction of Nyquist in (0, 1] (1 = no low-pass; nothing \
+                     was written)",
                     a.input_cutoff
                 );
             }
@@ -204,6 +217,7 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<()> {
             super::args::refuse_overwriting(
                 "--out",
                 &a.out,
+                false,
                 "the archive of the measured input",
                 file,
             )?;

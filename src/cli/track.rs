@@ -169,7 +169,13 @@ pub(crate) fn cmd_track(a: TrackArgs) -> Result<()> {
         }
         _ => {}
     }
-    super::args::refuse_overwriting("--out", &a.out, "the archive being tracked", &a.archive)?;
+    super::args::refuse_overwriting(
+        "--out",
+        &a.out,
+        false,
+        "the archive being tracked",
+        &a.archive,
+    )?;
     let options = a.ingest.options()?;
     let opt = a.wavelet.apply(WaveletOptions {
         ridge: if a.argmax {

@@ -9,10 +9,10 @@ use std::path::{Path, PathBuf};
 pub struct Inputs {
     /// The archives, sorted, each once.
     pub archives: Vec<PathBuf>,
-    /// `results.h5` files found in folders beside the `manifest.json` of `skelid run`,
-    /// `demo` or `merge` (an output folder inside the campaign's tree, a resumed batch's
-    /// own folder, the demo's): not campaigns, so not read. A file named by itself is
-    /// always read.
+    /// `results.h5` files found in folders a batch wrote (beside the `manifest.json` of
+    /// `skelid run`, `demo` or `merge`, or its `skelid.log` and `runs/`: an output folder
+    /// inside the campaign's tree, a resumed batch's own folder, the demo's): not
+    /// campaigns, so not read. A file named by itself is always read.
     pub passed_over: Vec<PathBuf>,
 }
 
@@ -71,7 +71,7 @@ pub fn passed_over_note(passed_over: &[PathBuf]) -> Option<String> {
         n => format!(" and {} more", n - 1),
     };
     Some(format!(
-        "passed over {}{more}: skelid's own results (beside its manifest.json), not a \
+        "passed over {}{more}: skelid's own results (in a batch's output folder), not a \
          campaign archive; name such a file by itself to read it anyway",
         first.display()
     ))
@@ -170,9 +170,14 @@ fn collect_dir(dir: &Path, out: &mut Inputs) -> std::io::Result<()> {
     Ok(())
 }
 
-/// Whether `dir` holds the `manifest.json` a batch writes (`skelid-batch/…`): then its
-/// `results.h5` is that batch's output.
+/// Whether `dir` is a batch's output folder, so that its `results.h5` is that batch's: it
+/// holds the `manifest.json` a batch writes last (`skelid-batch/…`), or, where a batch was
+/// stopped after its results.h5 and before its manifest, the log and journal a batch writes
+/// from its start (`skelid.log` and `runs/`).
 fn is_batch_folder(dir: &Path) -> bool {
+    if dir.join("skelid.log").is_file() && dir.join(crate::journal::RUNS_DIR).is_dir() {
+        return true;
+    }
     #[derive(serde::Deserialize)]
     struct Manifest {
         format: String,
@@ -212,13 +217,19 @@ mod tests {
         touch("other/manifest.json", r#"{"format": "someone-else/3"}"#);
         let broken = touch("broken/results.h5", "");
         touch("broken/manifest.json", "{not json");
+        // Stopped before its manifest: the log and the journal say it is a batch's.
+        let stopped = touch("stopped/results.h5", "");
+        touch("stopped/skelid.log", "");
+        touch("stopped/runs/a.run", "");
+        let logged_only = touch("logged/results.h5", "");
+        touch("logged/skelid.log", "");
         let arg = |p: &Path| p.display().to_string();
 
         let found = expand_inputs(&[arg(root)]).unwrap();
-        let mut want = vec![campaign.clone(), beside, bare, other, broken];
+        let mut want = vec![campaign.clone(), beside, bare, other, broken, logged_only];
         want.sort();
         assert_eq!(found.archives, want);
-        assert_eq!(found.passed_over, vec![night.clone()]);
+        assert_eq!(found.passed_over, vec![night.clone(), stopped]);
         let note = passed_over_note(&found.passed_over).unwrap();
         assert!(note.contains(&arg(&night)) && note.contains("skelid's own results"));
 
@@ -246,7 +257,7 @@ mod tests {
             (vec![night.clone()], 0)
         );
         let both = expand_inputs(&[arg(root), arg(&night)]).unwrap();
-        assert!(both.archives.contains(&night) && both.passed_over.is_empty());
+        assert!(both.archives.contains(&night) && !both.passed_over.contains(&night));
 
         // A folder of nothing but a batch's output holds no archive, and says why.
         std::fs::remove_file(root.join("night1/extra.h5")).unwrap();
