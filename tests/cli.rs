@@ -865,6 +865,22 @@ fn outputs_never_replace_inputs_and_refused_commands_leave_nothing() {
     ]);
     assert_eq!(code, Some(2), "{text}");
     assert!(!at("t0").exists());
+    // A negative number after an option is its value, refused for what it is (clap
+    // suggested `-- -5`, which would have made it an archive's name).
+    let (code, text) = run(&[
+        os("run"),
+        os("camp.h5"),
+        os("--sample-rate"),
+        os("-5"),
+        os("--out"),
+        os("neg"),
+    ]);
+    assert_eq!(code, Some(2), "{text}");
+    assert!(
+        text.contains("--sample-rate -5: must be a positive number of Hz"),
+        "{text}"
+    );
+    assert!(!at("neg").exists());
     // An output folder that is a file: said so, for every command that writes a folder.
     std::fs::write(at("afile"), "x").unwrap();
     for cmd in [

@@ -19,7 +19,7 @@ pub(crate) struct IngestArgs {
     #[arg(long, default_value = "output", value_name = "NAME")]
     pub(crate) output_name: String,
     /// Sample rate in Hz for every run, overriding `sample_rate` attributes and `time` datasets.
-    #[arg(long, value_name = "HZ")]
+    #[arg(allow_negative_numbers = true, long, value_name = "HZ")]
     pub(crate) sample_rate: Option<f64>,
     /// Only runs whose group path matches this glob, e.g. '/sine_sweep/level_[1-3]'.
     #[arg(long, value_name = "GLOB")]
@@ -36,7 +36,7 @@ pub(crate) struct IngestArgs {
     pub(crate) kind: Option<skelid::run::RunKind>,
     /// Inertia of every run (kg m² for a rotary rig, kg for a linear one), overriding
     /// `inertia` attributes; gives the absolute stiffness, damping and friction.
-    #[arg(long, value_name = "J")]
+    #[arg(allow_negative_numbers = true, long, value_name = "J")]
     pub(crate) inertia: Option<f64>,
     /// What every run's input measures (displacement, velocity, acceleration, force),
     /// overriding `input_quantity` attributes.
@@ -162,7 +162,12 @@ pub(crate) struct IdentifyArgs {
     #[command(flatten)]
     pub(crate) wavelet: WaveletArgs,
     /// Hilbert: zero-phase low-pass cut-off as a fraction of Nyquist (the paper's 0.005).
-    #[arg(long, default_value_t = 0.005, value_name = "FRACTION")]
+    #[arg(
+        allow_negative_numbers = true,
+        long,
+        default_value_t = 0.005,
+        value_name = "FRACTION"
+    )]
     pub(crate) cutoff: f64,
     /// Amplitude bins of the skeleton curves.
     #[arg(long, default_value_t = 40)]
@@ -175,7 +180,7 @@ pub(crate) struct IdentifyArgs {
     /// wants the narrower band: off resonance ForceVib reads a phase error δ of the record
     /// as a damping ratio of about δ·|1 − r²|/2, r = ω/ω0 (on the F-16, whose ratio is
     /// 0.2–1.7 %, the held-out gap shrank by 47 % at 0.02 against 41 % at 0.1).
-    #[arg(long, value_name = "FRACTION")]
+    #[arg(allow_negative_numbers = true, long, value_name = "FRACTION")]
     pub(crate) resonance: Option<f64>,
     /// Backbone curve fitted to a joint with free play: `orbit` (the exact free periodic
     /// orbit, right for forced runs and lightly damped decays), `describing-function`
@@ -186,7 +191,7 @@ pub(crate) struct IdentifyArgs {
     /// Mode isolation: identify the mode whose peak in the record's frequency response
     /// (force-input and free-decay runs; for base-motion runs this turns isolation on) is
     /// nearest HZ. Both channels are band-passed to that mode's band before tracking.
-    #[arg(long, value_name = "HZ", conflicts_with_all = ["band", "whole_record"])]
+    #[arg(allow_negative_numbers = true, long, value_name = "HZ", conflicts_with_all = ["band", "whole_record"])]
     pub(crate) mode_near: Option<f64>,
     /// Mode isolation: identify what lies in this band, FMIN:FMAX in Hz (e.g. 6:9), in
     /// every run. Without --band or --mode-near, a run is isolated on the band or mode its
@@ -254,19 +259,29 @@ impl IdentifyArgs {
 #[derive(Args, Clone)]
 pub(crate) struct WaveletArgs {
     /// Wavelet: lowest analysis frequency, Hz (default: from the spectrum and the record length).
-    #[arg(long, value_name = "HZ")]
+    #[arg(allow_negative_numbers = true, long, value_name = "HZ")]
     pub(crate) fmin: Option<f64>,
     /// Wavelet: highest analysis frequency, Hz (default: from the spectrum).
-    #[arg(long, value_name = "HZ")]
+    #[arg(allow_negative_numbers = true, long, value_name = "HZ")]
     pub(crate) fmax: Option<f64>,
     /// Wavelet: number of log-spaced scales between --fmin and --fmax.
     #[arg(long, default_value_t = 64)]
     pub(crate) scales: usize,
     /// Wavelet: Morlet bandwidth f_b; larger is longer in time and finer in frequency.
-    #[arg(long, default_value_t = 1.0, value_name = "FB")]
+    #[arg(
+        allow_negative_numbers = true,
+        long,
+        default_value_t = 1.0,
+        value_name = "FB"
+    )]
     pub(crate) bandwidth: f64,
     /// Wavelet: Morlet centre frequency f_c.
-    #[arg(long, default_value_t = 1.0, value_name = "FC")]
+    #[arg(
+        allow_negative_numbers = true,
+        long,
+        default_value_t = 1.0,
+        value_name = "FC"
+    )]
     pub(crate) centre: f64,
 }
 

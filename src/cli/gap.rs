@@ -48,7 +48,12 @@ pub(crate) struct GapArgs {
     pub(crate) out: PathBuf,
     /// Length of the alternate time blocks (s): fits see the even ones, gaps are scored on
     /// the odd ones.
-    #[arg(long, default_value_t = 1.0, value_name = "SECONDS")]
+    #[arg(
+        allow_negative_numbers = true,
+        long,
+        default_value_t = 1.0,
+        value_name = "SECONDS"
+    )]
     pub(crate) holdout_block: f64,
     /// Where the wavelet transforms of the gap's identifications run (the measured run's
     /// and every simulation's): `cpu` (the default: each run's search identifies one
@@ -109,7 +114,7 @@ pub(crate) struct GapArgs {
     /// offset clearance does, so a shift of the motion's centre up to this is not counted
     /// in the gap, and an offset clearance must exceed it to be named. Overrides each
     /// run's `zero_tolerance` attribute (default: the attribute, else 0).
-    #[arg(long, value_name = "RAD")]
+    #[arg(allow_negative_numbers = true, long, value_name = "RAD")]
     pub(crate) zero_tolerance: Option<f64>,
     /// Effects to try, comma-separated (default: the whole vocabulary).
     #[arg(long, value_delimiter = ',', value_name = "EFFECT,...")]

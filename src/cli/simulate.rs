@@ -40,31 +40,41 @@ pub(crate) struct SimulateArgs {
     #[arg(long)]
     pub(crate) force_input: bool,
     /// Chirp start frequency, Hz.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(allow_negative_numbers = true, long, default_value_t = 0.0)]
     pub(crate) f0: f64,
     /// Chirp end frequency, Hz.
-    #[arg(long, default_value_t = 12.0)]
+    #[arg(allow_negative_numbers = true, long, default_value_t = 12.0)]
     pub(crate) f1: f64,
     /// Duration of the run (and of the chirp), s.
-    #[arg(long, default_value_t = 30.0)]
+    #[arg(allow_negative_numbers = true, long, default_value_t = 30.0)]
     pub(crate) duration: f64,
     /// Drive amplitude (rad for base motion, N for force input).
-    #[arg(long, default_value_t = 0.03)]
+    #[arg(allow_negative_numbers = true, long, default_value_t = 0.03)]
     pub(crate) amplitude: f64,
     /// Servo roll-off corner, Hz: the amplitude falls as 1/sqrt(1+(f/fc)^(2n)) (0 = none).
-    #[arg(long, default_value_t = 0.0, value_name = "HZ")]
+    #[arg(
+        allow_negative_numbers = true,
+        long,
+        default_value_t = 0.0,
+        value_name = "HZ"
+    )]
     pub(crate) rolloff_hz: f64,
     /// Servo roll-off order n.
     #[arg(long, default_value_t = 1)]
     pub(crate) rolloff_order: u32,
     /// Stepped-sine frequencies, Hz, comma-separated.
-    #[arg(long, value_delimiter = ',', default_value = "2,4,6,8,10")]
+    #[arg(
+        allow_negative_numbers = true,
+        long,
+        value_delimiter = ',',
+        default_value = "2,4,6,8,10"
+    )]
     pub(crate) steps: Vec<f64>,
     /// Stepped-sine dwell per frequency, s.
-    #[arg(long, default_value_t = 5.0)]
+    #[arg(allow_negative_numbers = true, long, default_value_t = 5.0)]
     pub(crate) dwell: f64,
     /// Free decay: initial link offset, rad.
-    #[arg(long, default_value_t = 0.05)]
+    #[arg(allow_negative_numbers = true, long, default_value_t = 0.05)]
     pub(crate) initial_offset: f64,
     /// Measured input: the archive holding it.
     #[arg(long, value_name = "ARCHIVE")]
@@ -74,16 +84,16 @@ pub(crate) struct SimulateArgs {
     pub(crate) measured_run: Option<String>,
     /// Measured input: zero-phase low-pass cut-off as a fraction of Nyquist (1 = none),
     /// so that encoder noise is not differentiated into the base acceleration.
-    #[arg(long, default_value_t = skelid::simulate::MEASURED_INPUT_CUTOFF, value_name = "FRACTION")]
+    #[arg(allow_negative_numbers = true, long, default_value_t = skelid::simulate::MEASURED_INPUT_CUTOFF, value_name = "FRACTION")]
     pub(crate) input_cutoff: f64,
     /// Output sample rate, Hz (a measured input keeps its own).
-    #[arg(long, default_value_t = 1000.0)]
+    #[arg(allow_negative_numbers = true, long, default_value_t = 1000.0)]
     pub(crate) sample_rate: f64,
     /// RK4 sub-steps per sample (events are located exactly in any case).
     #[arg(long, default_value_t = 4)]
     pub(crate) substeps: usize,
     /// Std of white measurement noise on both channels (rad, or N for a force input).
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(allow_negative_numbers = true, long, default_value_t = 0.0)]
     pub(crate) noise: f64,
     /// Noise seed.
     #[arg(long, default_value_t = 1)]

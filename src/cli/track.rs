@@ -25,7 +25,12 @@ pub(crate) struct TrackArgs {
     #[command(flatten)]
     pub(crate) wavelet: WaveletArgs,
     /// Samples whose ridge is below this multiple of the in-band noise are marked not valid.
-    #[arg(long, default_value_t = 10.0, value_name = "X")]
+    #[arg(
+        allow_negative_numbers = true,
+        long,
+        default_value_t = 10.0,
+        value_name = "X"
+    )]
     pub(crate) min_snr: f64,
     /// Ridge by per-sample argmax instead of the penalised dynamic programme.
     #[arg(long)]
@@ -35,7 +40,7 @@ pub(crate) struct TrackArgs {
     pub(crate) no_correction: bool,
     /// Hilbert only: zero-phase low-pass of A and f, cut-off as a fraction of Nyquist
     /// (the paper uses 0.0005-0.01).
-    #[arg(long, value_name = "FRACTION")]
+    #[arg(allow_negative_numbers = true, long, value_name = "FRACTION")]
     pub(crate) cutoff: Option<f64>,
     /// Wavelet only: a dataset of the same run whose ridge guides this one (e.g. the input).
     #[arg(long, value_name = "PATH")]
