@@ -763,7 +763,9 @@ fn outputs_never_replace_inputs_and_refused_commands_leave_nothing() {
     let camp = at("camp.h5");
     std::fs::copy(demo_archive(), &camp).unwrap();
     let bytes = std::fs::read(&camp).unwrap();
-    let run = |args: &[&std::ffi::OsStr]| {
+    let unchanged = |path: &str| std::fs::read(at(path)).unwrap() == bytes;
+    // Every command runs in the folder, so that its files are named as a user would.
+    let run = |args: &[&str]| {
         let o = skelid().current_dir(d.path()).args(args).output().unwrap();
         let text = format!(
             "{}{}",
@@ -772,148 +774,114 @@ fn outputs_never_replace_inputs_and_refused_commands_leave_nothing() {
         );
         (o.status.code(), text)
     };
-    let os = |s: &'static str| std::ffi::OsStr::new(s);
-    let model = at("rig.toml");
+    // A command refused with exit status 2, saying `says`, leaving no `left`.
+    let refused = |args: &[&str], says: &str, left: &str| {
+        let (code, text) = run(args);
+        assert_eq!(code, Some(2), "{args:?}: {text}");
+        assert!(text.contains(says), "{args:?}: {text}");
+        assert!(!at(left).exists(), "{args:?} left {left}");
+    };
     std::fs::write(
-        &model,
+        at("rig.toml"),
         "inertia = 3.16\nstiffness = 15000.0\ndamping = 13.0\nclearance = 0.0262\n",
     )
     .unwrap();
+    let track = [
+        "track",
+        "camp.h5",
+        "--dataset",
+        "/demo/paper_rig/output",
+        "--out",
+    ];
 
     // track and simulate onto their own input, however spelt: refused, the archive intact.
-    let (code, text) = run(&[
-        os("track"),
-        os("camp.h5"),
-        os("--dataset"),
-        os("/demo/paper_rig/output"),
-        os("--out"),
-        os("./camp.h5"),
-    ]);
-    assert_eq!(code, Some(2), "{text}");
-    assert!(text.contains("is the archive being tracked"), "{text}");
-    let (code, text) = run(&[
-        os("simulate"),
-        os("--model"),
-        model.as_os_str(),
-        os("--excitation"),
-        os("measured"),
-        os("--measured"),
-        camp.as_os_str(),
-        os("--measured-run"),
-        os("/demo/paper_rig"),
-        os("--out"),
-        os("camp.h5"),
-    ]);
-    assert_eq!(code, Some(2), "{text}");
-    assert!(text.contains("the archive of the measured input"), "{text}");
-    assert!(
-        std::fs::read(&camp).unwrap() == bytes,
-        "the archive changed"
+    refused(
+        &[&track[..], &["./camp.h5"]].concat(),
+        "is the archive being tracked",
+        "camp.h5.tmp",
     );
+    refused(
+        &[
+            "simulate",
+            "--model",
+            "rig.toml",
+            "--excitation",
+            "measured",
+            "--measured",
+            camp.to_str().unwrap(),
+            "--measured-run",
+            "/demo/paper_rig",
+            "--out",
+            "camp.h5",
+        ],
+        "the archive of the measured input",
+        "camp.h5.tmp",
+    );
+    assert!(unchanged("camp.h5"), "the archive changed");
     // A link named as the output is replaced by the track, its target untouched.
     std::os::unix::fs::symlink(&camp, at("link.h5")).unwrap();
-    let (code, text) = run(&[
-        os("track"),
-        os("camp.h5"),
-        os("--dataset"),
-        os("/demo/paper_rig/output"),
-        os("--out"),
-        os("link.h5"),
-    ]);
+    let (code, text) = run(&[&track[..], &["link.h5"]].concat());
     assert_eq!(code, Some(0), "{text}");
-    assert!(!std::fs::symlink_metadata(at("link.h5"))
-        .unwrap()
-        .is_symlink());
-    assert!(
-        std::fs::read(&camp).unwrap() == bytes,
-        "the link's target changed"
-    );
+    let link = std::fs::symlink_metadata(at("link.h5")).unwrap();
+    assert!(!link.is_symlink());
+    assert!(unchanged("camp.h5"), "the link's target changed");
     // `run` never writes its results.h5 over an archive it reads (a campaign that happens
     // to be called results.h5, its folder named as --out).
     std::fs::create_dir_all(at("mine")).unwrap();
     std::fs::copy(&camp, at("mine/results.h5")).unwrap();
-    let (code, text) = run(&[os("run"), os("mine/results.h5"), os("--out"), os("./mine")]);
-    assert_eq!(code, Some(2), "{text}");
-    assert!(
-        text.contains("would be written over mine/results.h5"),
-        "{text}"
+    refused(
+        &["run", "mine/results.h5", "--out", "./mine"],
+        "would be written over mine/results.h5",
+        "mine/results.h5.tmp",
     );
-    assert!(std::fs::read(at("mine/results.h5")).unwrap() == bytes);
+    assert!(unchanged("mine/results.h5"));
 
-    // Impossible drive values: exit 2, nothing written.
+    // Impossible values: exit 2, nothing written. A negative number after an option is
+    // its value, refused for what it is (clap suggested `-- -5`, an archive's name).
     for (flags, says) in [
-        (["--duration", "0"], "--duration 0: must be a positive"),
-        (["--f1", "900"], "below the Nyquist frequency, 500 Hz"),
-        (["--noise=-1", "--f1=10"], "--noise -1"),
-        (["--sample-rate", "0"], "--sample-rate 0"),
+        (&["--duration", "0"][..], "--duration 0: must be a positive"),
+        (&["--f1", "900"], "below the Nyquist frequency, 500 Hz"),
+        (&["--noise=-1", "--f1=10"], "--noise -1"),
+        (&["--sample-rate", "0"], "--sample-rate 0"),
     ] {
-        let mut args = vec![os("simulate"), os("--model"), model.as_os_str()];
-        args.extend(flags.iter().map(|f| std::ffi::OsStr::new(*f)));
-        args.extend([os("--out"), os("bad.h5")]);
-        let (code, text) = run(&args);
-        assert_eq!(code, Some(2), "{flags:?}: {text}");
-        assert!(text.contains(says), "{flags:?}: {text}");
-        assert!(!at("bad.h5").exists(), "{flags:?} wrote a file");
+        let args = [
+            &["simulate", "--model", "rig.toml"],
+            flags,
+            &["--out", "bad.h5"],
+        ]
+        .concat();
+        refused(&args, says, "bad.h5");
     }
-    let (code, text) = run(&[
-        os("run"),
-        os("camp.h5"),
-        os("--timeout"),
-        os("0"),
-        os("--out"),
-        os("t0"),
-    ]);
-    assert_eq!(code, Some(2), "{text}");
-    assert!(!at("t0").exists());
-    // A negative number after an option is its value, refused for what it is (clap
-    // suggested `-- -5`, which would have made it an archive's name).
-    let (code, text) = run(&[
-        os("run"),
-        os("camp.h5"),
-        os("--sample-rate"),
-        os("-5"),
-        os("--out"),
-        os("neg"),
-    ]);
-    assert_eq!(code, Some(2), "{text}");
-    assert!(
-        text.contains("--sample-rate -5: must be a positive number of Hz"),
-        "{text}"
+    refused(
+        &["run", "camp.h5", "--timeout", "0", "--out", "t0"],
+        "--timeout",
+        "t0",
     );
-    assert!(!at("neg").exists());
+    refused(
+        &["run", "camp.h5", "--sample-rate", "-5", "--out", "neg"],
+        "--sample-rate -5: must be a positive number of Hz",
+        "neg",
+    );
     // An output folder that is a file: said so, for every command that writes a folder.
     std::fs::write(at("afile"), "x").unwrap();
     for cmd in [
-        vec![os("run"), os("camp.h5"), os("--out"), os("afile")],
-        vec![os("demo"), os("--out"), os("afile")],
-        vec![os("merge"), os("s1"), os("--out"), os("afile")],
-        vec![
-            os("gap"),
-            os("--model"),
-            model.as_os_str(),
-            os("camp.h5"),
-            os("--out"),
-            os("afile"),
-        ],
+        &["run", "camp.h5", "--out", "afile"][..],
+        &["demo", "--out", "afile"],
+        &["merge", "s1", "--out", "afile"],
+        &["gap", "--model", "rig.toml", "camp.h5", "--out", "afile"],
     ] {
-        let (code, text) = run(&cmd);
-        assert_eq!(code, Some(2), "{cmd:?}: {text}");
-        assert!(
-            text.contains("--out afile is a file, not a folder"),
-            "{cmd:?}: {text}"
-        );
+        refused(cmd, "--out afile is a file, not a folder", "afile/runs");
     }
 
     // One archive named three ways: its 11 runs once, none "done earlier".
-    let abs = camp.as_os_str().to_owned();
     let (code, text) = run(&[
-        os("run"),
-        os("camp.h5"),
-        os("./camp.h5"),
-        &abs,
-        os("--quiet"),
-        os("--out"),
-        os("thrice"),
+        "run",
+        "camp.h5",
+        "./camp.h5",
+        camp.to_str().unwrap(),
+        "--quiet",
+        "--out",
+        "thrice",
     ]);
     assert_eq!(code, Some(0), "{text}");
     assert!(
@@ -922,73 +890,40 @@ fn outputs_never_replace_inputs_and_refused_commands_leave_nothing() {
     );
 
     // merge: into one of its shards, or with a shard's run missing: refused, nothing made.
-    for k in ["1/2", "2/2"] {
-        let out = format!("s{}", &k[..1]);
-        let (code, text) = run(&[
-            os("run"),
-            os("camp.h5"),
-            os("--quiet"),
-            os("--method"),
-            os("hilbert"),
-            os("--shard"),
-            std::ffi::OsStr::new(k),
-            os("--out"),
-            std::ffi::OsStr::new(&out),
-        ]);
+    for (k, out) in [("1/2", "s1"), ("2/2", "s2")] {
+        let shard = [
+            "run", "camp.h5", "--quiet", "--method", "hilbert", "--shard", k,
+        ];
+        let (code, text) = run(&[&shard[..], &["--out", out]].concat());
         assert!(matches!(code, Some(0 | 1)), "{text}");
     }
     let manifest = std::fs::read(at("s1/manifest.json")).unwrap();
-    let (code, text) = run(&[os("merge"), os("s1"), os("s2"), os("--out"), os("./s1")]);
+    let (code, text) = run(&["merge", "s1", "s2", "--out", "./s1"]);
     assert_eq!(code, Some(2), "{text}");
     assert!(text.contains("is one of the folders merged"), "{text}");
     assert!(std::fs::read(at("s1/manifest.json")).unwrap() == manifest);
-    let one = std::fs::read_dir(at("s2/runs"))
-        .unwrap()
-        .next()
-        .unwrap()
-        .unwrap();
-    std::fs::remove_file(one.path()).unwrap();
-    let (code, text) = run(&[os("merge"), os("s1"), os("s2"), os("--out"), os("merged")]);
-    assert_eq!(code, Some(2), "{text}");
-    assert!(text.contains("is listed but its file"), "{text}");
-    assert!(!at("merged").exists(), "a refused merge left its folder");
+    let one = std::fs::read_dir(at("s2/runs")).unwrap().next().unwrap();
+    std::fs::remove_file(one.unwrap().path()).unwrap();
+    refused(
+        &["merge", "s1", "s2", "--out", "merged"],
+        "is listed but its file",
+        "merged",
+    );
 
     // gap: a run that is not there, or an unknown effect: no folder; the whole vocabulary
     // named; a missing model said once.
-    let (code, text) = run(&[
-        os("gap"),
-        os("--model"),
-        model.as_os_str(),
-        os("camp.h5"),
-        os("--run"),
-        os("/demo/nope"),
-        os("--out"),
-        os("g1"),
-    ]);
-    assert_eq!(code, Some(2), "{text}");
-    assert!(text.contains("no run /demo/nope"), "{text}");
-    assert!(!at("g1").exists(), "a refused diagnosis left its folder");
-    let (code, text) = run(&[
-        os("gap"),
-        os("--model"),
-        model.as_os_str(),
-        os("camp.h5"),
-        os("--effects"),
-        os("nonsense"),
-        os("--out"),
-        os("g2"),
-    ]);
-    assert_eq!(code, Some(2), "{text}");
-    assert!(text.contains("quantization, microslip"), "{text}");
-    assert!(!at("g2").exists(), "a refused diagnosis left its folder");
-    let (code, text) = run(&[
-        os("gap"),
-        os("--model"),
-        os("nope.toml"),
-        os("camp.h5"),
-        os("--out"),
-        os("g3"),
-    ]);
+    let gap = ["gap", "--model", "rig.toml", "camp.h5"];
+    refused(
+        &[&gap[..], &["--run", "/demo/nope", "--out", "g1"]].concat(),
+        "no run /demo/nope",
+        "g1",
+    );
+    refused(
+        &[&gap[..], &["--effects", "nonsense", "--out", "g2"]].concat(),
+        "quantization, microslip",
+        "g2",
+    );
+    let (code, text) = run(&["gap", "--model", "nope.toml", "camp.h5", "--out", "g3"]);
     assert_eq!(code, Some(2), "{text}");
     assert_eq!(
         text.matches("No such file or directory").count(),

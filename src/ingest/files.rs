@@ -147,7 +147,6 @@ fn collect_dir(dir: &Path, out: &mut Inputs) -> std::io::Result<()> {
         .map(|e| e.path())
         .collect();
     entries.sort();
-    let mut batch_folder = None;
     for p in entries {
         if p.is_dir() {
             collect_dir(&p, out)?;
@@ -158,9 +157,7 @@ fn collect_dir(dir: &Path, out: &mut Inputs) -> std::io::Result<()> {
                 .as_deref(),
             Some("h5" | "hdf5" | "he5" | "mat")
         ) {
-            if p.file_name().is_some_and(|n| n == "results.h5")
-                && *batch_folder.get_or_insert_with(|| is_batch_folder(dir))
-            {
+            if p.file_name().is_some_and(|n| n == "results.h5") && is_batch_folder(dir) {
                 out.passed_over.push(p);
             } else {
                 out.archives.push(p);
