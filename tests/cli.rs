@@ -1226,6 +1226,30 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
         );
         assert!(stages.iter().all(|s| s.1 > 0.0), "{stages:?}");
     }
+    // Both speed-ups come last as well, just before the file named: a script that keeps
+    // the output's tail (the device measurement keeps 8 lines) has the headline, and its
+    // numbers are the JSON's.
+    let end = v["end_to_end_gpu_speedup"].as_f64().unwrap();
+    let (cpu_wall, gpu_wall) = (
+        e[0]["seconds"].as_f64().unwrap(),
+        e[1]["seconds"].as_f64().unwrap(),
+    );
+    assert!((end - cpu_wall / gpu_wall).abs() <= 1e-12 * end, "{end}");
+    let lines: Vec<&str> = text.lines().collect();
+    let last = lines[lines.len() - 2];
+    assert_eq!(
+        last,
+        format!(
+            "in short, GPU speed-up over the CPU: wavelet track {:.2}x (median {:.3} s against \
+             {:.3} s a repetition), skelid run end to end {end:.2}x ({gpu_wall:.2} s against \
+             {cpu_wall:.2} s)",
+            v["gpu_speedup"].as_f64().unwrap(),
+            b[1]["median_s"].as_f64().unwrap(),
+            b[0]["median_s"].as_f64().unwrap(),
+        ),
+        "{text}"
+    );
+    assert_eq!(lines[lines.len() - 1], format!("wrote {}", json.display()));
     let t = &b[1]["traffic"];
     let (signals, batches, syncs) = (
         t["signals"].as_f64().unwrap(),
@@ -1313,6 +1337,10 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
     );
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json32).unwrap()).unwrap();
+    // Without the end-to-end part there is no end-to-end speed-up, and the track's
+    // speed-up line is near the end already.
+    assert_eq!(v["end_to_end_gpu_speedup"], serde_json::Value::Null);
+    assert!(!table.contains("in short"), "{table}");
     let g = &v["agreement"];
     println!("f32 path: {g}");
     assert_eq!(

@@ -241,6 +241,22 @@ pub struct BackendBench {
     /// CPU against GPU results of the end-to-end runs ([`results_agreement`]: the tracks
     /// as `run` guides them), when both ran end to end.
     pub end_to_end_agreement: Option<Agreement>,
+    /// The CPU backend's end-to-end wall time over the GPU backend's, when both ran end to
+    /// end (an added key of `skelid-bench/1`).
+    pub end_to_end_gpu_speedup: Option<f64>,
+}
+
+impl BackendBench {
+    /// The CPU backend's end-to-end wall time over the GPU backend's, when both ran.
+    pub fn end_to_end_speedup(&self) -> Option<f64> {
+        let wall = |n: &str| {
+            self.end_to_end
+                .iter()
+                .find(|e| e.backend == n)
+                .map(|e| e.seconds)
+        };
+        Some(wall("cpu")? / wall("gpu")?)
+    }
 }
 
 /// Signals tracked at a time by both backends for [`compare`]'s agreement: 128 tracks of
@@ -370,6 +386,7 @@ pub fn compare(
         agreement,
         end_to_end: Vec::new(),
         end_to_end_agreement: None,
+        end_to_end_gpu_speedup: None,
     }
 }
 
