@@ -1229,6 +1229,10 @@ fn bench_compares_the_backends_on_the_demo_campaign() {
     // Both speed-ups come last as well, just before the file named: a script that keeps
     // the output's tail (the device measurement keeps 8 lines) has the headline, and its
     // numbers are the JSON's.
+    assert_eq!(
+        (e[0]["backend"].as_str(), e[1]["backend"].as_str()),
+        (Some("cpu"), Some("gpu"))
+    );
     let end = v["end_to_end_gpu_speedup"].as_f64().unwrap();
     let (cpu_wall, gpu_wall) = (
         e[0]["seconds"].as_f64().unwrap(),
