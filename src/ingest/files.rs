@@ -147,6 +147,13 @@ fn collect_dir(dir: &Path, out: &mut Inputs) -> std::io::Result<()> {
         .map(|e| e.path())
         .collect();
     entries.sort();
+    // A batch's journal: its runs are `.run` files, but a batch made before 2026-11-24
+    // committed each run as `runs/<key>.h5`, which a later batch still reads, and a
+    // folder search took each for a campaign archive that holds no run.
+    let journal = dir
+        .file_name()
+        .is_some_and(|n| n == crate::journal::RUNS_DIR)
+        && dir.parent().is_some_and(is_batch_folder);
     for p in entries {
         if p.is_dir() {
             collect_dir(&p, out)?;
@@ -157,7 +164,7 @@ fn collect_dir(dir: &Path, out: &mut Inputs) -> std::io::Result<()> {
                 .as_deref(),
             Some("h5" | "hdf5" | "he5" | "mat")
         ) {
-            if p.file_name().is_some_and(|n| n == "results.h5") && is_batch_folder(dir) {
+            if journal || p.file_name().is_some_and(|n| n == "results.h5") && is_batch_folder(dir) {
                 out.passed_over.push(p);
             } else {
                 out.archives.push(p);
@@ -220,13 +227,28 @@ mod tests {
         touch("stopped/runs/a.run", "");
         let logged_only = touch("logged/results.h5", "");
         touch("logged/skelid.log", "");
+        // A batch's journal of an earlier version: its runs as `runs/<key>.h5`, passed
+        // over; a campaign's own folder that happens to be called `runs`, read.
+        let legacy = touch("night1/runs/0123abcd.h5", "");
+        let stopped_legacy = touch("stopped/runs/4567ef.h5", "");
+        let own_runs = touch("bare/runs/r1.h5", "");
         let arg = |p: &Path| p.display().to_string();
 
         let found = expand_inputs(&[arg(root)]).unwrap();
-        let mut want = vec![campaign.clone(), beside, bare, other, broken, logged_only];
+        let mut want = vec![
+            campaign.clone(),
+            beside,
+            bare,
+            own_runs,
+            other,
+            broken,
+            logged_only,
+        ];
         want.sort();
         assert_eq!(found.archives, want);
-        assert_eq!(found.passed_over, vec![night.clone(), stopped]);
+        let mut over = vec![night.clone(), legacy, stopped, stopped_legacy];
+        over.sort();
+        assert_eq!(found.passed_over, over);
         let note = passed_over_note(&found.passed_over).unwrap();
         assert!(note.contains(&arg(&night)) && note.contains("skelid's own results"));
 
