@@ -147,7 +147,7 @@ fn collect_dir(dir: &Path, out: &mut Inputs) -> std::io::Result<()> {
         .map(|e| e.path())
         .collect();
     entries.sort();
-    // A batch's journal: its runs are `.run` files, but a batch made before 2026-11-24
+    // A batch's journal: its runs are `.run` files, but a batch made before 2026-11-23
     // committed each run as `runs/<key>.h5`, which a later batch still reads, and a
     // folder search took each for a campaign archive that holds no run.
     let journal = dir
