@@ -382,3 +382,79 @@ fn three_shards_merged_equal_one_run() {
     refuse(&[&shards[0], &shards[1], &shards[1]], "given twice");
     refuse(&[&shards[0], &shards[1], &whole], "others are of 3");
 }
+
+/// The batch's reader child ends with the batch, however the batch ends: killed with
+/// SIGKILL while its reader cannot move (stopped here, as one hung in libhdf5 on a stalled
+/// network file system would be, where no broken pipe can end it), the reader does not
+/// stay behind.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_batch_killed_from_outside_takes_its_reader_child_with_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let inputs = campaign(tmp.path());
+    // 660 runs more, as hard links (no space): far more than the pipe to the batch
+    // holds, so that the reader is still at work, waiting on the pipe, when the batch
+    // is killed.
+    for i in 0..60 {
+        std::fs::hard_link(inputs.join("a.h5"), inputs.join(format!("l{i:02}.h5"))).unwrap();
+    }
+    let mut batch = skelid()
+        .arg("run")
+        .arg(&inputs)
+        .arg("--out")
+        .arg(tmp.path().join("out"))
+        .arg("--quiet")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    // The reader child: the process whose parent is the batch and whose command line
+    // names the reader's subcommand.
+    let parent_of = |pid: &str| -> Option<u32> {
+        let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+        // pid (comm) state ppid …: the command may hold spaces, the last ')' ends it.
+        let rest = &stat[stat.rfind(')')? + 2..];
+        rest.split(' ').nth(1)?.parse().ok()
+    };
+    let reader = || -> Option<String> {
+        std::fs::read_dir("/proc").ok()?.flatten().find_map(|e| {
+            let pid = e.file_name().to_string_lossy().into_owned();
+            let cmd = std::fs::read(format!("/proc/{pid}/cmdline")).ok()?;
+            (parent_of(&pid) == Some(batch.id())
+                && String::from_utf8_lossy(&cmd).contains("__read-archives"))
+            .then_some(pid)
+        })
+    };
+    // Once a run is committed, the reader is under way (past its start, where it asks
+    // for its end to follow the batch's), and 692 runs are still to come.
+    let log = tmp.path().join("out/skelid.log");
+    let deadline = std::time::Instant::now() + Duration::from_secs(120);
+    while !std::fs::read_to_string(&log).is_ok_and(|t| t.contains(" done ")) {
+        assert!(std::time::Instant::now() < deadline, "no run committed");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let pid = reader().expect("the reader child, still reading");
+    let pid_t: libc::pid_t = pid.parse().unwrap();
+    // SAFETY: kill(2) with a pid read from /proc and a signal number.
+    assert_eq!(unsafe { libc::kill(pid_t, libc::SIGSTOP) }, 0);
+    batch.kill().unwrap();
+    batch.wait().unwrap();
+    // Gone, or a zombie waiting for whoever adopted it to reap it: not stopped, not running.
+    let alive = || {
+        std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|s| {
+            let state = s[s.rfind(')').unwrap() + 2..].chars().next();
+            state != Some('Z') && state != Some('X')
+        })
+    };
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    while alive() && std::time::Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let left = alive();
+    if left {
+        // Not left behind whatever the outcome.
+        // SAFETY: as above.
+        unsafe { libc::kill(pid_t, libc::SIGKILL) };
+    }
+    assert!(!left, "the reader child {pid} outlived the batch");
+}

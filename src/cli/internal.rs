@@ -57,9 +57,30 @@ pub(crate) fn inspect_one(a: InspectOneArgs) -> Result<ExitCode> {
 
 /// The archives named on stdin, their runs streamed to stdout.
 pub(crate) fn read_archives(a: ReadArchivesArgs) -> Result<ExitCode> {
+    die_with_parent();
     let o = a.ingest.options()?;
     skelid::batch::reader::serve_stdio(&o, a.shard)?;
     Ok(ExitCode::SUCCESS)
+}
+
+/// Asks the kernel to kill this reader child when the batch that started it ends, however it
+/// ends. A batch killed from outside (SIGKILL, or SIGTERM sent to it alone, not its process
+/// group) otherwise left its reader running: one that hung in libhdf5 on an archive whose
+/// file system stopped answering (the batch's `--timeout` watchdog went with the batch)
+/// stayed there for good. The batch's reader thread starts the child and waits for it, so
+/// the thread the signal follows lives as long as the child is wanted.
+fn die_with_parent() {
+    #[cfg(target_os = "linux")]
+    {
+        let parent = std::os::unix::process::parent_id();
+        // SAFETY: prctl(PR_SET_PDEATHSIG, signal) sets a process attribute and touches no
+        // memory of ours.
+        unsafe { libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) };
+        // The batch gone before the request was made: nobody reads what this child sends.
+        if std::os::unix::process::parent_id() != parent {
+            std::process::exit(1);
+        }
+    }
 }
 
 /// The subcommand of the archive probe child (`__inspect-one`).
