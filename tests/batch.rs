@@ -398,16 +398,26 @@ fn a_batch_killed_from_outside_takes_its_reader_child_with_it() {
     for i in 0..60 {
         std::fs::hard_link(inputs.join("a.h5"), inputs.join(format!("l{i:02}.h5"))).unwrap();
     }
-    let mut batch = skelid()
+    // One worker: the batch takes in few runs ahead of its work, whatever the cores.
+    let batch = skelid()
         .arg("run")
         .arg(&inputs)
-        .arg("--out")
+        .args(["--jobs", "1", "--quiet", "--out"])
         .arg(tmp.path().join("out"))
-        .arg("--quiet")
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())
         .spawn()
         .unwrap();
+    // Killed and reaped however the test ends, so that a failure leaves no batch running.
+    struct Reaped(std::process::Child);
+    impl Drop for Reaped {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+    let mut batch = Reaped(batch);
+    let batch_id = batch.0.id();
     // The reader child: the process whose parent is the batch and whose command line
     // names the reader's subcommand.
     let parent_of = |pid: &str| -> Option<u32> {
@@ -420,7 +430,7 @@ fn a_batch_killed_from_outside_takes_its_reader_child_with_it() {
         std::fs::read_dir("/proc").ok()?.flatten().find_map(|e| {
             let pid = e.file_name().to_string_lossy().into_owned();
             let cmd = std::fs::read(format!("/proc/{pid}/cmdline")).ok()?;
-            (parent_of(&pid) == Some(batch.id())
+            (parent_of(&pid) == Some(batch_id)
                 && String::from_utf8_lossy(&cmd).contains("__read-archives"))
             .then_some(pid)
         })
@@ -435,16 +445,25 @@ fn a_batch_killed_from_outside_takes_its_reader_child_with_it() {
     }
     let pid = reader().expect("the reader child, still reading");
     let pid_t: libc::pid_t = pid.parse().unwrap();
+    // Its start time (field 22 of its stat), so that a process given the same pid later is
+    // not taken for it.
+    let started = |pid: &str| -> Option<String> {
+        let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+        let rest = &stat[stat.rfind(')')? + 2..];
+        rest.split(' ').nth(19).map(str::to_string)
+    };
+    let born = started(&pid).expect("the reader's start time");
     // SAFETY: kill(2) with a pid read from /proc and a signal number.
     assert_eq!(unsafe { libc::kill(pid_t, libc::SIGSTOP) }, 0);
-    batch.kill().unwrap();
-    batch.wait().unwrap();
+    batch.0.kill().unwrap();
+    batch.0.wait().unwrap();
     // Gone, or a zombie waiting for whoever adopted it to reap it: not stopped, not running.
     let alive = || {
-        std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|s| {
-            let state = s[s.rfind(')').unwrap() + 2..].chars().next();
-            state != Some('Z') && state != Some('X')
-        })
+        started(&pid).as_ref() == Some(&born)
+            && std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|s| {
+                let state = s[s.rfind(')').unwrap() + 2..].chars().next();
+                state != Some('Z') && state != Some('X')
+            })
     };
     let deadline = std::time::Instant::now() + Duration::from_secs(10);
     while alive() && std::time::Instant::now() < deadline {
@@ -452,7 +471,7 @@ fn a_batch_killed_from_outside_takes_its_reader_child_with_it() {
     }
     let left = alive();
     if left {
-        // Not left behind whatever the outcome.
+        // Not left behind, whatever the outcome.
         // SAFETY: as above.
         unsafe { libc::kill(pid_t, libc::SIGKILL) };
     }

@@ -522,6 +522,9 @@ struct Clock {
     timed_out: bool,
 }
 
+/// The environment variable that gives the reader child the batch's process id.
+pub const BATCH_PID: &str = "SKELID_BATCH_PID";
+
 fn read_in_child(
     command: &ChildCommand,
     files: &[PathBuf],
@@ -532,6 +535,9 @@ fn read_in_child(
 ) -> Result<ChildEnd, Stopped> {
     let mut cmd = Command::new(&command.exe);
     cmd.args(&command.args);
+    // Whom the child is to die with: it checks that its parent is still this process
+    // once it has asked the kernel to kill it when the parent ends.
+    cmd.env(BATCH_PID, std::process::id().to_string());
     let child = cmd
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())

@@ -72,12 +72,17 @@ pub(crate) fn read_archives(a: ReadArchivesArgs) -> Result<ExitCode> {
 fn die_with_parent() {
     #[cfg(target_os = "linux")]
     {
-        let parent = std::os::unix::process::parent_id();
+        // The batch's pid as it gave it, else the parent now (a reader started by hand).
+        let batch = std::env::var(skelid::batch::reader::BATCH_PID)
+            .ok()
+            .and_then(|v| v.parse::<u32>().ok())
+            .unwrap_or_else(std::os::unix::process::parent_id);
         // SAFETY: prctl(PR_SET_PDEATHSIG, signal) sets a process attribute and touches no
         // memory of ours.
         unsafe { libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) };
-        // The batch gone before the request was made: nobody reads what this child sends.
-        if std::os::unix::process::parent_id() != parent {
+        // The batch gone before the request was made, this child adopted: nobody reads
+        // what it would send.
+        if std::os::unix::process::parent_id() != batch {
             std::process::exit(1);
         }
     }

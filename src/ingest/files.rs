@@ -11,8 +11,9 @@ pub struct Inputs {
     pub archives: Vec<PathBuf>,
     /// `results.h5` files found in folders a batch wrote (beside the `manifest.json` of
     /// `skelid run`, `demo` or `merge`, or its `skelid.log` and `runs/`: an output folder
-    /// inside the campaign's tree, a resumed batch's own folder, the demo's): not
-    /// campaigns, so not read. A file named by itself is always read.
+    /// inside the campaign's tree, a resumed batch's own folder, the demo's), and the
+    /// journal files of an earlier version in such a folder's `runs/`: not campaigns, so
+    /// not read. A file named by itself is always read.
     pub passed_over: Vec<PathBuf>,
 }
 
@@ -149,7 +150,8 @@ fn collect_dir(dir: &Path, out: &mut Inputs) -> std::io::Result<()> {
     entries.sort();
     // A batch's journal: its runs are `.run` files, but a batch made before 2026-11-23
     // committed each run as `runs/<key>.h5`, which a later batch still reads, and a
-    // folder search took each for a campaign archive that holds no run.
+    // folder search took each for a campaign archive that holds no run. Only names that
+    // are a run's key: a campaign kept in a folder called `runs` beside a log is read.
     let journal = dir
         .file_name()
         .is_some_and(|n| n == crate::journal::RUNS_DIR)
@@ -164,7 +166,13 @@ fn collect_dir(dir: &Path, out: &mut Inputs) -> std::io::Result<()> {
                 .as_deref(),
             Some("h5" | "hdf5" | "he5" | "mat")
         ) {
-            if journal || p.file_name().is_some_and(|n| n == "results.h5") && is_batch_folder(dir) {
+            let key = p
+                .file_stem()
+                .and_then(|s| s.to_str())
+                .is_some_and(is_run_key);
+            if journal && key
+                || p.file_name().is_some_and(|n| n == "results.h5") && is_batch_folder(dir)
+            {
                 out.passed_over.push(p);
             } else {
                 out.archives.push(p);
@@ -172,6 +180,11 @@ fn collect_dir(dir: &Path, out: &mut Inputs) -> std::io::Result<()> {
         }
     }
     Ok(())
+}
+
+/// Whether `name` is a run's journal key: 32 lowercase hexadecimal digits.
+fn is_run_key(name: &str) -> bool {
+    name.len() == 32 && name.bytes().all(|b| matches!(b, b'0'..=b'9' | b'a'..=b'f'))
 }
 
 /// Whether `dir` is a batch's output folder, so that its `results.h5` is that batch's: it
@@ -196,8 +209,8 @@ fn is_batch_folder(dir: &Path) -> bool {
 mod tests {
     use super::*;
 
-    /// A folder search passes over a `results.h5` beside a batch's manifest and nothing
-    /// else: not a `results.h5` without one, nor one beside another program's
+    /// A folder search passes over a `results.h5` beside a batch's manifest (and an
+    /// earlier version's journal files in its `runs/`) and nothing else: not a `results.h5` without one, nor one beside another program's
     /// `manifest.json`, nor other archives beside it, nor a results file named by itself.
     #[test]
     fn a_folder_search_passes_over_a_batchs_own_results_only() {
@@ -229,9 +242,11 @@ mod tests {
         touch("logged/skelid.log", "");
         // A batch's journal of an earlier version: its runs as `runs/<key>.h5`, passed
         // over; a campaign's own folder that happens to be called `runs`, read.
-        let legacy = touch("night1/runs/0123abcd.h5", "");
-        let stopped_legacy = touch("stopped/runs/4567ef.h5", "");
+        let legacy = touch("night1/runs/0123456789abcdef0123456789abcdef.h5", "");
+        let stopped_legacy = touch("stopped/runs/fedcba9876543210fedcba9876543210.h5", "");
         let own_runs = touch("bare/runs/r1.h5", "");
+        // In a batch's `runs/`, a name that is no run's key: a campaign kept there.
+        let kept = touch("stopped/runs/sweep.h5", "");
         let arg = |p: &Path| p.display().to_string();
 
         let found = expand_inputs(&[arg(root)]).unwrap();
@@ -243,6 +258,7 @@ mod tests {
             other,
             broken,
             logged_only,
+            kept,
         ];
         want.sort();
         assert_eq!(found.archives, want);
