@@ -247,15 +247,21 @@ pub struct BackendBench {
 }
 
 impl BackendBench {
+    /// `backend`'s median repetition (s), when it was timed.
+    pub fn median_s(&self, backend: &str) -> Option<f64> {
+        let t = self.backends.iter().find(|t| t.backend == backend)?;
+        Some(t.median_s)
+    }
+
+    /// `backend`'s end-to-end wall time (s), when it ran end to end.
+    pub fn end_to_end_s(&self, backend: &str) -> Option<f64> {
+        let e = self.end_to_end.iter().find(|e| e.backend == backend)?;
+        Some(e.seconds)
+    }
+
     /// The CPU backend's end-to-end wall time over the GPU backend's, when both ran.
     pub fn end_to_end_speedup(&self) -> Option<f64> {
-        let wall = |n: &str| {
-            self.end_to_end
-                .iter()
-                .find(|e| e.backend == n)
-                .map(|e| e.seconds)
-        };
-        Some(wall("cpu")? / wall("gpu")?)
+        Some(self.end_to_end_s("cpu")? / self.end_to_end_s("gpu")?)
     }
 }
 

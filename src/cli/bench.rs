@@ -228,8 +228,8 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
     result.end_to_end_gpu_speedup = result.end_to_end_speedup();
     // The headline comes last as well: the end-to-end part pushes the speed-up line far up,
     // and a script that keeps the output's tail (the device measurement's `tail -8`) lost it.
-    if let (Some(r), Some(e)) = (result.gpu_speedup, result.end_to_end_gpu_speedup) {
-        println!("{}", in_short(&result, r, e));
+    if let Some(line) = in_short(&result) {
+        println!("{line}");
     }
     std::fs::write(&a.out, serde_json::to_string_pretty(&result)? + "\n")
         .with_context(|| format!("cannot write {}", a.out.display()))?;
@@ -238,30 +238,18 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
 }
 
 /// The closing line of a two-backend `bench` that also ran end to end: both speed-ups, with
-/// the times they are the ratios of.
-fn in_short(result: &skelid::bench::backends::BackendBench, track: f64, end: f64) -> String {
-    let median = |n: &str| {
-        result
-            .backends
-            .iter()
-            .find(|t| t.backend == n)
-            .map_or(f64::NAN, |t| t.median_s)
-    };
-    let wall = |n: &str| {
-        result
-            .end_to_end
-            .iter()
-            .find(|e| e.backend == n)
-            .map_or(f64::NAN, |e| e.seconds)
-    };
-    format!(
-        "in short, GPU speed-up over the CPU: wavelet track {track:.2}x (median {:.3} s against \
-         {:.3} s a repetition), skelid run end to end {end:.2}x ({:.2} s against {:.2} s)",
-        median("gpu"),
-        median("cpu"),
-        wall("gpu"),
-        wall("cpu")
-    )
+/// the times they are the ratios of (`None` unless both backends ran both parts).
+fn in_short(r: &skelid::bench::backends::BackendBench) -> Option<String> {
+    Some(format!(
+        "in short, GPU speed-up over the CPU: wavelet track {:.2}x (median {:.3} s against \
+         {:.3} s a repetition), skelid run end to end {:.2}x ({:.2} s against {:.2} s)",
+        r.gpu_speedup?,
+        r.median_s("gpu")?,
+        r.median_s("cpu")?,
+        r.end_to_end_gpu_speedup?,
+        r.end_to_end_s("gpu")?,
+        r.end_to_end_s("cpu")?
+    ))
 }
 
 /// The GPU backend's floor: what its tracks cost the CPU a repetition, which the device
