@@ -34,6 +34,16 @@ fn campaign(dir: &Path) -> PathBuf {
     c
 }
 
+/// Waits (up to 2 minutes) until the batch into `out` has committed a run.
+fn wait_for_a_commit(out: &Path) {
+    let log = out.join("skelid.log");
+    let deadline = std::time::Instant::now() + Duration::from_secs(120);
+    while !std::fs::read_to_string(&log).is_ok_and(|t| t.contains(" done ")) {
+        assert!(std::time::Instant::now() < deadline, "no run committed");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 fn run(args: &[&str], inputs: &Path, out: &Path) -> std::process::Output {
     skelid()
         .arg("run")
@@ -142,11 +152,7 @@ fn an_interrupted_batch_says_so_and_leaves_no_temporary_file() {
         // Signalled once the first run is committed: the batch is under way, not done
         // (33 runs, a few seconds here).
         let log = out.join("skelid.log");
-        let deadline = std::time::Instant::now() + Duration::from_secs(120);
-        while !std::fs::read_to_string(&log).is_ok_and(|t| t.contains(" done ")) {
-            assert!(std::time::Instant::now() < deadline, "no run committed");
-            std::thread::sleep(Duration::from_millis(20));
-        }
+        wait_for_a_commit(&out);
         // SAFETY: kill(2) on our own child's pid, which has not been waited for.
         assert_eq!(unsafe { libc::kill(child.id() as libc::pid_t, signal) }, 0);
         let o = child.wait_with_output().unwrap();
@@ -417,59 +423,51 @@ fn a_batch_killed_from_outside_takes_its_reader_child_with_it() {
         }
     }
     let mut batch = Reaped(batch);
-    let batch_id = batch.0.id();
+    let batch_id = batch.0.id().to_string();
+    // Field `n` of /proc/PID/stat as proc(5) numbers them (3 the state, 4 the parent, 22
+    // the start time); the command, field 2, may hold spaces, and its last ')' ends it.
+    let stat = |pid: &str, n: usize| -> Option<String> {
+        let text = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+        let rest = &text[text.rfind(')')? + 2..];
+        rest.split(' ').nth(n - 3).map(str::to_string)
+    };
     // The reader child: the process whose parent is the batch and whose command line
     // names the reader's subcommand.
-    let parent_of = |pid: &str| -> Option<u32> {
-        let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
-        // pid (comm) state ppid …: the command may hold spaces, the last ')' ends it.
-        let rest = &stat[stat.rfind(')')? + 2..];
-        rest.split(' ').nth(1)?.parse().ok()
-    };
     let reader = || -> Option<String> {
         std::fs::read_dir("/proc").ok()?.flatten().find_map(|e| {
             let pid = e.file_name().to_string_lossy().into_owned();
             let cmd = std::fs::read(format!("/proc/{pid}/cmdline")).ok()?;
-            (parent_of(&pid) == Some(batch_id)
+            (stat(&pid, 4).as_ref() == Some(&batch_id)
                 && String::from_utf8_lossy(&cmd).contains("__read-archives"))
             .then_some(pid)
         })
     };
     // Once a run is committed, the reader is under way (past its start, where it asks
     // for its end to follow the batch's), and 692 runs are still to come.
-    let log = tmp.path().join("out/skelid.log");
-    let deadline = std::time::Instant::now() + Duration::from_secs(120);
-    while !std::fs::read_to_string(&log).is_ok_and(|t| t.contains(" done ")) {
-        assert!(std::time::Instant::now() < deadline, "no run committed");
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    wait_for_a_commit(&tmp.path().join("out"));
     let pid = reader().expect("the reader child, still reading");
     let pid_t: libc::pid_t = pid.parse().unwrap();
-    // Its start time (field 22 of its stat), so that a process given the same pid later is
-    // not taken for it.
-    let started = |pid: &str| -> Option<String> {
-        let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
-        let rest = &stat[stat.rfind(')')? + 2..];
-        rest.split(' ').nth(19).map(str::to_string)
-    };
-    let born = started(&pid).expect("the reader's start time");
+    // Its start time, so that a process given the same pid later is not taken for it.
+    let born = stat(&pid, 22).expect("the reader's start time");
     // SAFETY: kill(2) with a pid read from /proc and a signal number.
     assert_eq!(unsafe { libc::kill(pid_t, libc::SIGSTOP) }, 0);
     batch.0.kill().unwrap();
     batch.0.wait().unwrap();
+    let killed = std::time::Instant::now();
     // Gone, or a zombie waiting for whoever adopted it to reap it: not stopped, not running.
     let alive = || {
-        started(&pid).as_ref() == Some(&born)
-            && std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|s| {
-                let state = s[s.rfind(')').unwrap() + 2..].chars().next();
-                state != Some('Z') && state != Some('X')
-            })
+        stat(&pid, 22).as_ref() == Some(&born)
+            && stat(&pid, 3).is_some_and(|state| state != "Z" && state != "X")
     };
-    let deadline = std::time::Instant::now() + Duration::from_secs(10);
-    while alive() && std::time::Instant::now() < deadline {
+    while alive() && killed.elapsed() < Duration::from_secs(10) {
         std::thread::sleep(Duration::from_millis(20));
     }
     let left = alive();
+    println!(
+        "reader {pid}: {} {:.3} s after the batch was killed",
+        if left { "still there" } else { "gone" },
+        killed.elapsed().as_secs_f64()
+    );
     if left {
         // Not left behind, whatever the outcome.
         // SAFETY: as above.
