@@ -189,6 +189,16 @@ pub const IWAN_ELEMENTS: usize = 16;
 /// Jenkins elements of a [`MicroslipParam`]'s fine population.
 pub const FINE_ELEMENTS: usize = 8;
 
+/// The slip displacements of an Iwan element's [`IWAN_ELEMENTS`] Jenkins elements: spread
+/// evenly over ((1 − spread)·u, (1 + spread)·u] about their mean `u` = slip force / joint
+/// stiffness, so that their slip forces sum to the joint's (the simulator's elements, and
+/// the describing function the search reads a joint off the skeleton with).
+pub fn iwan_slips(u: f64, spread: f64) -> impl Iterator<Item = f64> {
+    let n = IWAN_ELEMENTS;
+    let w = spread.clamp(1e-6, 1.0);
+    (0..n).map(move |i| u * (1.0 - w + w * (2 * i + 1) as f64 / n as f64))
+}
+
 /// The joint stiffness a microslip effect starts with when it is added to a model without
 /// one, as a share of the model's stiffness.
 pub const JOINT_SHARE: f64 = 0.1;

@@ -497,12 +497,9 @@ impl<'a> Rig<'a> {
             Some(p) if p.slip_force > 0.0 && p.joint_stiffness > 0.0 => {
                 let n = crate::model::IWAN_ELEMENTS;
                 let u = p.slip_force / p.joint_stiffness;
-                let w = p.spread.clamp(1e-6, 1.0);
                 let kj = p.joint_stiffness.min(model.stiffness);
                 let mut jenkins = [kj / n as f64, 0.0];
-                let mut slip: Vec<f64> = (0..n)
-                    .map(|i| u * (1.0 - w + w * (2 * i + 1) as f64 / n as f64))
-                    .collect();
+                let mut slip: Vec<f64> = crate::model::iwan_slips(u, p.spread).collect();
                 let kf = if p.has_fine() {
                     p.fine_stiffness.min(model.stiffness - kj)
                 } else {

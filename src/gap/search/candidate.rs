@@ -41,6 +41,8 @@ pub fn signature(kind: EffectKind) -> &'static str {
 pub(super) enum Side {
     Baseline,
     Nominal,
+    /// The baseline with a joint read off the skeleton ([`super::iwan`]).
+    Skeleton,
 }
 
 /// `base` with its own parameters made ready for `kind` to be added: for dry friction, the

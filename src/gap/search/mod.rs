@@ -23,6 +23,7 @@ use rayon::prelude::*;
 
 mod candidate;
 mod fit;
+mod iwan;
 mod joint;
 
 use candidate::{fitter, ready_for, refit, Side};
@@ -867,6 +868,22 @@ fn scan(
             std::iter::once((side, b, k, v)).chain(traded)
         })
         .collect();
+    // A joint is also started where the skeleton puts it, on the baseline with what the
+    // joint's describing function takes over from its stiffness and damping ([`iwan`]): a
+    // side of its own, so that the simplex refines it beside the ordinary start.
+    let mut grid = grid;
+    if opt.effects.contains(&EffectKind::Microslip)
+        && nominal.kind != ModelKind::BaseMotion
+        && nominal.clearance <= 0.0
+    {
+        if let Some(m) = iwan::start(&baseline.model, fitted) {
+            let v = m
+                .effects
+                .get(EffectKind::Microslip)
+                .expect("set by the start");
+            grid.push((Side::Skeleton, m, EffectKind::Microslip, v));
+        }
+    }
     let scanned: Vec<(Side, EffectKind, f64, Fitted)> = grid
         .par_iter()
         .map(|(side, b, k, v)| {
