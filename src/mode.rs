@@ -89,6 +89,15 @@ pub struct ModeBand {
     pub chosen: Chosen,
 }
 
+impl ModeBand {
+    /// How long [`band_pass`] spreads an impulse on this band (s): the reciprocal of its
+    /// narrower edge's raised-cosine ramp (the lower's, fmin·(1 − 1/[`EDGE`])). A hammer's
+    /// impact leaves the band-passed record this long after it.
+    pub fn spread(&self) -> f64 {
+        1.0 / (self.fmin * (1.0 - 1.0 / EDGE)).min(self.fmax * (EDGE - 1.0))
+    }
+}
+
 /// Why no band could be chosen.
 #[derive(Debug, thiserror::Error)]
 pub enum ModeError {
@@ -285,6 +294,10 @@ fn prominent_peaks(h: &[Point]) -> Vec<usize> {
         .collect()
 }
 
+/// The ratio of each edge frequency of a [`band_pass`] to where its ramp ends outside
+/// the band.
+pub const EDGE: f64 = 1.1;
+
 /// Zero-phase band-pass: the spectrum kept flat between `fmin` and `fmax` and rolled off
 /// by a raised cosine over 10 % of each edge frequency outside the band; the record is
 /// zero-padded by a tenth so that its ends do not wrap into each other.
@@ -300,7 +313,7 @@ pub fn band_pass(x: &[f64], fs: f64, fmin: f64, fmax: f64) -> Vec<f64> {
     let mut spec = fwd.make_output_vec();
     fwd.process(&mut buf, &mut spec)
         .expect("buffer sizes come from the plan");
-    let (lo0, hi1) = (fmin / 1.1, fmax * 1.1);
+    let (lo0, hi1) = (fmin / EDGE, fmax * EDGE);
     let ramp = |u: f64| 0.5 - 0.5 * (PI * u.clamp(0.0, 1.0)).cos();
     for (m, c) in spec.iter_mut().enumerate() {
         let f = m as f64 * fs / len as f64;
@@ -372,6 +385,37 @@ mod tests {
         assert!((a.peak / 4.0 - 1.0).abs() < 0.01, "{a:?}");
         assert!(a.fmax < 11.0 && a.fmax > 4.2, "{a:?}");
         assert_eq!(a.chosen, Chosen::Near);
+    }
+
+    #[test]
+    fn an_impulse_band_passed_has_died_away_one_spread_after_it() {
+        // The Brake–Reuss beam's band at its sample rate: an impact at the middle of 4 s.
+        let (fs, n) = (12_800.0, 51_200);
+        let band = ModeBand {
+            fmin: 70.0,
+            fmax: 92.0,
+            peak: 80.0,
+            chosen: Chosen::Given,
+        };
+        // The lower edge's ramp is 70·(1 − 1/1.1) = 6.36 Hz wide: 0.157 s.
+        assert!(
+            (band.spread() - 1.1 / 7.0).abs() < 1e-12,
+            "{}",
+            band.spread()
+        );
+        let mut x = vec![0.0; n];
+        x[n / 2] = 1.0;
+        let y = band_pass(&x, fs, band.fmin, band.fmax);
+        let peak = y.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
+        // The largest response this far after the impact or further, against the peak.
+        let beyond = |seconds: f64| {
+            let from = n / 2 + (seconds * fs) as usize;
+            y[from..].iter().fold(0.0_f64, |m, v| m.max(v.abs())) / peak
+        };
+        let (half, whole) = (beyond(0.5 * band.spread()), beyond(band.spread()));
+        println!("after half the spread {half:.2e}, after the spread {whole:.2e}");
+        // 1.0 % of the peak left past one spread, 8.4 % past half of it.
+        assert!(whole < 0.015 && half > 0.05);
     }
 
     #[test]
