@@ -94,7 +94,8 @@ pub enum ModelKind {
     /// One mode of a structure: driven by the measured force.
     Force,
     /// One mode of a structure ringing down after an impact: started from the record's
-    /// own state (displacement and velocity of the mode) where its envelope peaks.
+    /// own state (displacement and velocity of the mode) where its envelope peaks, once
+    /// the band-pass has let go of the impact.
     Free,
 }
 
