@@ -178,6 +178,32 @@ impl Identification {
     pub fn resonant(&self, i: usize) -> bool {
         self.used[i] && self.at_resonance(i, self.resonance)
     }
+    /// The skeleton, in `bins` bins, of the samples `mask` keeps (every sample where
+    /// `None`): those at resonance, as [`Identification::resonant_bins`] takes them, or
+    /// every used one where fewer than 100 are. With no mask it is `resonant_bins` (or
+    /// `bins` where that is empty); a fit that sees part of a run reads its start off
+    /// that part alone.
+    pub fn skeleton_within(&self, mask: Option<&[bool]>, bins: usize) -> Vec<Bin> {
+        let n = self.used.len().min(self.response.len());
+        let kept = |i: &usize| mask.is_none_or(|m| m.get(*i).copied().unwrap_or(false));
+        let skeleton = |v: &[Sample]| fit::skeleton(v, bins, min_bin_count(v.len(), bins));
+        let sample = |i: usize| sample_at(&self.response, &self.modal, i);
+        let resonant: Vec<Sample> = (0..n)
+            .filter(kept)
+            .filter(|&i| self.resonant(i))
+            .map(sample)
+            .collect();
+        if resonant.len() >= 100 {
+            return skeleton(&resonant);
+        }
+        let used: Vec<Sample> = (0..n)
+            .filter(kept)
+            .filter(|&i| self.used[i])
+            .map(sample)
+            .collect();
+        skeleton(&used)
+    }
+
     /// Amplitude range covered by the skeleton.
     pub fn amplitude_range(&self) -> Option<(f64, f64)> {
         fit::amplitude_range(&self.bins)

@@ -72,7 +72,7 @@ pub struct SearchOptions {
     /// Simulations for the baseline refit.
     pub baseline_evaluations: usize,
     /// Scan points refined by the simplex (each effect's best on the baseline and on the
-    /// nominal model, best first).
+    /// nominal model, and a joint's start read off the skeleton, best first).
     pub refine: usize,
     /// Simulations per refined candidate (and per pair).
     pub candidate_evaluations: usize,
@@ -594,6 +594,22 @@ impl<'a> Reference<'a> {
             .collect()
     }
 
+    /// The skeletons of what the fits see of each run they see (the first fit run's
+    /// first): a fit run's whole, a run alone on alternate blocks its fitting blocks
+    /// only, so that a start read off them never saw the blocks it is scored on.
+    pub fn fitted_skeletons(&self) -> Vec<Vec<crate::fit::Bin>> {
+        self.runs
+            .iter()
+            .filter_map(|m| {
+                let fit = m.fit.as_ref()?;
+                Some(
+                    m.identified
+                        .skeleton_within(fit.mask.as_deref(), m.options.bins),
+                )
+            })
+            .collect()
+    }
+
     /// The RMS quantisation error of its response, read from the samples as recorded
     /// ([`super::measured_resolution`]; 0 when no channel lies on a lattice).
     pub fn resolution(&self) -> f64 {
@@ -837,7 +853,8 @@ pub fn diagnose(
 }
 
 /// The scan: the best point of each effect's coarse grid on each side (the baseline, and
-/// the nominal model where it differs and can be identified).
+/// the nominal model where it differs and can be identified), and a joint's start read
+/// off the skeleton as a side of its own ([`iwan`]).
 fn scan(
     reference: &Reference,
     nominal: &RigModel,
@@ -899,12 +916,15 @@ fn scan(
     // A joint is also started where the skeleton puts it, on the baseline with what the
     // joint's describing function takes over from its stiffness and damping ([`iwan`]): a
     // side of its own, so that the simplex refines it beside the ordinary start.
+    // Not where the refit already has a joint: the skeleton's joint would be counted on
+    // top of it.
     let mut grid = grid;
     if opt.effects.contains(&EffectKind::Microslip)
         && nominal.kind != ModelKind::BaseMotion
         && nominal.clearance <= 0.0
+        && baseline.model.effects.microslip.is_none()
     {
-        if let Some(m) = iwan::start(&baseline.model, fitted) {
+        if let Some(m) = iwan::start(&baseline.model, &reference.fitted_skeletons()) {
             let v = m
                 .effects
                 .get(EffectKind::Microslip)
