@@ -436,14 +436,16 @@ pub fn estimate_triple(
     }
 }
 
+/// The determinant of a 3×3 matrix.
+pub(crate) fn det3(m: [[f64; 3]; 3]) -> f64 {
+    m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+        + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+}
+
 /// Solves a 3×3 linear system by Cramer's rule; `None` when singular.
-fn solve3(a: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
-    let det = |m: [[f64; 3]; 3]| {
-        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
-    };
-    let d = det(a);
+pub(crate) fn solve3(a: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
+    let d = det3(a);
     if !(d.is_finite() && d.abs() > 1e-300) {
         return None;
     }
@@ -453,7 +455,7 @@ fn solve3(a: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
         for r in 0..3 {
             m[r][c] = b[r];
         }
-        *xc = det(m) / d;
+        *xc = det3(m) / d;
     }
     Some(x)
 }

@@ -901,7 +901,7 @@ fn scan(
     // added on top it only over-damps (on random rigs the simplex then stopped with a fit
     // worse than the baseline's, three times in five).
     let share = contact_share(id);
-    let grid: Vec<(Side, RigModel, EffectKind, f64)> = grid
+    let mut grid: Vec<(Side, RigModel, EffectKind, f64)> = grid
         .into_iter()
         .flat_map(|(side, b, k, v)| {
             let traded = (side == Side::Baseline && k == EffectKind::ContactDamping && share > 0.0)
@@ -918,7 +918,6 @@ fn scan(
     // side of its own, so that the simplex refines it beside the ordinary start.
     // Not where the refit already has a joint: the skeleton's joint would be counted on
     // top of it.
-    let mut grid = grid;
     if opt.effects.contains(&EffectKind::Microslip)
         && nominal.kind != ModelKind::BaseMotion
         && nominal.clearance <= 0.0
