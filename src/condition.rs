@@ -94,6 +94,7 @@ pub fn condition(run: &Run, choice: ModeChoice) -> Result<Conditioned, Condition
             let f = run.input.as_ref().ok_or_else(|| {
                 ConditionError::Unusable("a force run needs an input (force) dataset".into())
             })?;
+            finite(f, "input")?;
             let force = match band_ref {
                 Some(b) => mode::band_pass(f, fs, b.fmin, b.fmax),
                 None => f.clone(),
@@ -102,6 +103,19 @@ pub fn condition(run: &Run, choice: ModeChoice) -> Result<Conditioned, Condition
         }
     };
     Ok(Conditioned { band, channels })
+}
+
+/// Refuses a channel with a sample that is not finite (a simulation that diverged: the
+/// archive's reader refuses them in measured runs), which the spectral filters would
+/// spread over the whole record and the inverse real FFT refuse.
+fn finite(x: &[f64], channel: &'static str) -> Result<(), ConditionError> {
+    match x.iter().position(|v| !v.is_finite()) {
+        None => Ok(()),
+        Some(i) => Err(ConditionError::Unusable(format!(
+            "{channel} channel: sample {i} is {}; remove or interpolate non-finite samples first",
+            x[i]
+        ))),
+    }
 }
 
 fn order(q: Quantity) -> u32 {
@@ -122,6 +136,7 @@ fn displacement(
     channel: &'static str,
     band: Option<&ModeBand>,
 ) -> Result<Vec<f64>, ConditionError> {
+    finite(x, channel)?;
     let x = match band {
         Some(b) => Cow::Owned(mode::band_pass(x, fs, b.fmin, b.fmax)),
         None => Cow::Borrowed(x),
@@ -198,6 +213,28 @@ pub fn integrate(x: &[f64], fs: f64, order: u32, f_cut: f64) -> Vec<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_channel_that_is_not_finite_is_refused_before_any_filter() {
+        let mut run = crate::rig::structure_decay(
+            "/hammer/acc1",
+            &crate::rig::structure_mode(),
+            0.02,
+            0.0,
+            1,
+        )
+        .into_run();
+        run.meta.output_quantity = Quantity::Acceleration;
+        assert!(condition(&run, ModeChoice::Band(6.0, 9.0)).is_ok());
+        for bad in [f64::NAN, f64::INFINITY] {
+            let mut r = run.clone();
+            r.output[100] = bad;
+            for choice in [ModeChoice::Band(6.0, 9.0), ModeChoice::Whole] {
+                let e = condition(&r, choice).err().expect("refused").to_string();
+                assert!(e.contains("output channel: sample 100 is"), "{e}");
+            }
+        }
+    }
 
     #[test]
     fn spectral_integration_of_an_acceleration() {

@@ -574,7 +574,9 @@ impl<'a> Rig<'a> {
 
     /// Moves the microslip's sliders to where relative displacement z has dragged them.
     fn commit(&self, z: f64) {
-        if self.slip.is_empty() {
+        // A state that diverged (NaN) would make the clamp's bounds NaN, which panics: the
+        // sliders stay where they were, and the record carries the NaN.
+        if self.slip.is_empty() || z.is_nan() {
             return;
         }
         for (x, p) in self.sliders.borrow_mut().iter_mut().zip(&self.slip) {
@@ -754,13 +756,17 @@ pub fn simulate(model: &RigModel, drive: &Drive, settings: &SimSettings) -> SimO
     let mut stuck = Vec::with_capacity(n);
 
     let mut t = 0.0;
+    // Once the state is not finite it stays so: the rest of the record is NaN without
+    // integrating it (the identification refuses such a record, and the search scores the
+    // model as unidentified).
+    let mut diverged = false;
     for i in 0..n {
         let ti = i as f64 * dt;
         // Advance from t to ti in sub-steps of at most h, cutting at events. Past
         // MAX_EVENTS_PER_SAMPLE events in one sample interval (chattering of dry friction
         // on a rough input), the rest of the interval is integrated without cutting.
         let mut events_here = 0;
-        while t < ti - 1e-12 * dt {
+        while !diverged && t < ti - 1e-12 * dt {
             let h_now = (ti - t).min(h);
             let cut = events_here < MAX_EVENTS_PER_SAMPLE;
             let (t_new, s_new, mode_new, ev) = step(&rig, t, s, mode, h_now, cut);
@@ -772,6 +778,14 @@ pub fn simulate(model: &RigModel, drive: &Drive, settings: &SimSettings) -> SimO
             if rig.has_microslip() {
                 rig.commit(rig.relative(t, s).0);
             }
+        }
+        let finite = s.th.is_finite() && s.om.is_finite();
+        if !finite && !diverged {
+            diverged = true;
+            s = State {
+                th: f64::NAN,
+                om: f64::NAN,
+            };
         }
         let (phi, f_ext) = rig.inputs(ti);
         let (z, v) = (s.th - phi.v, s.om - phi.d1);
@@ -1016,6 +1030,38 @@ mod tests {
         }
         m.validate().unwrap();
         m
+    }
+
+    #[test]
+    fn a_diverging_joint_leaves_a_record_of_nan_instead_of_a_panic() {
+        // Damping far below zero: the state grows past f64's range within the record. Its
+        // sliders were clamped between NaN bounds, which panicked and took a whole
+        // `skelid gap` down with it (a scan point of the Brake–Reuss beam, band 1.5–92 Hz).
+        let mut m = iwan_model(1000.0, None);
+        m.damping = -3.0e4 * m.inertia;
+        let drive = Drive::Released {
+            displacement: 1e-3,
+            velocity: 0.0,
+        };
+        let settings = SimSettings {
+            sample_rate: 400.0,
+            duration: 2.0,
+            substeps: 4,
+            output_noise: 0.0,
+            input_noise: 0.0,
+            seed: 1,
+        };
+        let out = simulate(&m, &drive, &settings);
+        assert_eq!(out.output.len(), 800);
+        let first = out
+            .output
+            .iter()
+            .position(|v| !v.is_finite())
+            .expect("it diverges");
+        assert!(first > 0 && first < 400, "{first}");
+        // From there on the record says so, sample by sample.
+        assert!(out.output[first..].iter().all(|v| v.is_nan()));
+        assert!(out.output[..first].iter().all(|v| v.is_finite()));
     }
 
     /// [`iwan_model`]'s rig without a fine population, all of its stiffness in the joint.

@@ -92,7 +92,7 @@ pub fn diagnose_runs(
     let ended: Mutex<Ended> = Mutex::default();
     let one = |(i, meta): (usize, &RunMeta)| -> Result<(), RunnerError> {
         exporter.started(meta);
-        let result = (|| -> Result<GapRun, String> {
+        let diagnosed = || -> Result<GapRun, String> {
             let run = archive.load(meta).map_err(|e| chain(&e))?;
             let reference = Reference::new(&run, opt.blocks, identifier)
                 .map_err(|e| chain(&e))?
@@ -100,7 +100,11 @@ pub fn diagnose_runs(
                 .on_score(|n| exporter.simulations(meta, n));
             let d = diagnose(&reference, model, opt).map_err(|e| chain(&e))?;
             GapRun::new(&reference, d).map_err(|e| chain(&e))
-        })();
+        };
+        // A bug met in one run (a panic, here or in a rayon task of its pool) fails that
+        // run alone: the others of an overnight diagnosis still end, and are written.
+        let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(diagnosed))
+            .unwrap_or_else(|payload| Err(panicked(payload.as_ref())));
         // The outputs are written under the lock: one writer at a time, in archive order.
         let mut guard = ended.lock().unwrap_or_else(|p| p.into_inner());
         match result {
@@ -160,6 +164,19 @@ pub fn diagnose_runs(
         runs: done.into_iter().map(|r| r.1).collect(),
         failed,
     })
+}
+
+/// A panic's message as a run's failure: it is skelid's fault, not the run's.
+fn panicked(payload: &(dyn std::any::Any + Send)) -> String {
+    let message = payload
+        .downcast_ref::<&str>()
+        .copied()
+        .or_else(|| payload.downcast_ref::<String>().map(String::as_str))
+        .unwrap_or("no message");
+    format!(
+        "skelid failed inside this run's diagnosis ({message}): a bug, not the run's fault; \
+         please report it with the run and the model"
+    )
 }
 
 /// The thread pools `jobs` threads make for `runs` runs: one per run in flight, as many as
@@ -258,6 +275,78 @@ fn chain(e: &dyn std::error::Error) -> String {
 #[cfg(test)]
 mod tests {
     use super::pool_sizes;
+
+    #[test]
+    fn a_panic_inside_one_run_fails_that_run_alone() {
+        use super::{diagnose_runs, ExportError, Exporter, GapRun, RunMeta};
+        use crate::model::ModelKind;
+        use crate::rig::{structure_decay, structure_mode};
+        // Two free decays of one mode; the progress callback of the first panics, as a
+        // bug deep in its search would.
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("hammer.h5");
+        let mode = structure_mode();
+        let decays = ["/hammer/acc1", "/hammer/acc2"]
+            .map(|p| structure_decay(p, &mode, 0.02, 0.01, 3))
+            .to_vec();
+        crate::campaign::write_campaign(&path, &[], &decays, false).unwrap();
+        let archive =
+            crate::ingest::Archive::open(&path, &crate::ingest::IngestOptions::default()).unwrap();
+        let runs: Vec<RunMeta> = archive
+            .runs
+            .iter()
+            .map(|e| e.meta.as_ref().unwrap().clone())
+            .collect();
+        struct Panicky;
+        impl Exporter for Panicky {
+            fn simulations(&self, run: &RunMeta, _: usize) {
+                assert!(run.path != "/hammer/acc1", "a bug met in acc1's search");
+            }
+            fn finished(
+                &self,
+                _: &RunMeta,
+                _: Result<&GapRun, &str>,
+                _: &[&GapRun],
+                _: &[(String, String)],
+            ) -> Result<(), ExportError> {
+                Ok(())
+            }
+        }
+        let mut model = mode.clone();
+        model.kind = ModelKind::Free;
+        let opt = crate::gap::SearchOptions {
+            effects: vec![crate::model::EffectKind::SensorDelay],
+            baseline_evaluations: 10,
+            candidate_evaluations: 10,
+            ..Default::default()
+        };
+        let (options, backend) = (
+            crate::identify::IdentifyOptions::default(),
+            crate::backend::Backend::cpu(),
+        );
+        let identifier = crate::identify::Identifier {
+            options: &options,
+            backend: &backend,
+        };
+        let diagnosed = diagnose_runs(
+            &archive,
+            &runs,
+            &model,
+            &opt,
+            identifier,
+            2,
+            vec![],
+            &Panicky,
+        )
+        .expect("the runner itself ends");
+        assert_eq!(diagnosed.runs.len(), 1);
+        assert_eq!(diagnosed.runs[0].diagnosis.run, "/hammer/acc2");
+        assert_eq!(diagnosed.failed.len(), 1);
+        let (run, why) = &diagnosed.failed[0];
+        assert_eq!(run, "/hammer/acc1");
+        assert!(why.contains("a bug met in acc1's search"), "{why}");
+        assert!(why.contains("please report it"), "{why}");
+    }
 
     #[test]
     fn pools_share_every_thread_and_never_outnumber_the_runs() {
