@@ -257,6 +257,29 @@ fn skelid_gap_names_the_microslip_of_a_free_decay_started_from_the_record_s_own_
     let r = &doc["runs"][0];
     assert_eq!(r["verdict"], "microslip", "{r}");
     assert!(r["candidates"][0]["shrink"].as_f64().unwrap() >= 0.5);
+    // Where the record was cut, and every region in the record's own seconds from there.
+    let rel = &r["release"];
+    let at = rel["at_s"].as_f64().unwrap();
+    assert_eq!(rel["past_spread"], true, "{rel}");
+    assert!(
+        at >= rel["hit_s"].as_f64().unwrap() + rel["spread_s"].as_f64().unwrap() - 0.01,
+        "{rel}"
+    );
+    let t0 = r["regions"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|g| g["t0"].as_f64().unwrap())
+        .fold(f64::INFINITY, f64::min);
+    assert!(
+        t0 >= at - 1e-9 && t0 < at + 1.0,
+        "regions from {t0} s, released at {at} s"
+    );
+    let page = std::fs::read_to_string(out.join("gap.html")).unwrap();
+    assert!(
+        page.contains(&format!("compared from t = {at:.3} s")),
+        "{page}"
+    );
     // The truth's own decay, softening and damping more at large amplitude, is what the
     // fitted model reproduces: nearer the measurement at its largest amplitude than the
     // linear baseline.

@@ -584,7 +584,17 @@ impl Terminal<'_> {
                 text = line.trim_start_matches('\n').to_string();
             }
         }
+        if let Some(rel) = &r.release {
+            text += &format!(
+                "\n    the decay is compared from t = {:.3} s of its record, {}",
+                rel.at_s,
+                rel.describe()
+            );
+        }
         self.bar.suspend(|| println!("{text}"));
+        if let Some(w) = r.release.and_then(|rel| rel.warning()) {
+            say(&self.bar, format!("warning: {}: {w}", d.run));
+        }
         if first {
             let several = self.several && !together;
             let path = out::fitted_model_path(self.out, self.model_path, &d.run, several);

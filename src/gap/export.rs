@@ -125,6 +125,14 @@ pub fn run_json(r: &GapRun) -> Value {
         entry["whole_run_gap"]["best_candidate"] = num(best.gap.total);
         entry["whole_run_domains"]["best_candidate"] = gap_domains(&best.gap);
     }
+    if let Some(rel) = &r.release {
+        entry["release"] = json!({
+            "at_s": num(rel.at_s),
+            "hit_s": num(rel.hit_s),
+            "spread_s": num(rel.spread_s),
+            "past_spread": rel.past_spread,
+        });
+    }
     if !r.together.0.is_empty() {
         entry["fit_runs"] = json!(r.together.0);
         entry["holdout_runs"] = json!(r.together.1);
@@ -194,10 +202,11 @@ const NOMINAL: RGBColor = RGBColor(200, 60, 40);
 const FITTED: RGBColor = RGBColor(31, 119, 180);
 
 /// The envelope over time, reduced for a plot.
-fn envelope(id: &Identification) -> (Vec<f64>, Vec<f64>) {
+fn envelope(id: &Identification, offset: f64) -> (Vec<f64>, Vec<f64>) {
     let r = &id.response;
     let valid: Vec<u8> = r.valid.iter().map(|&v| v as u8).collect();
-    reduce(&r.time(), &r.amplitude, &valid)
+    let time: Vec<f64> = r.time().into_iter().map(|t| t + offset).collect();
+    reduce(&time, &r.amplitude, &valid)
 }
 
 /// Resonant skeleton: (A, f0 Hz) and (Aω, damping force).
@@ -232,9 +241,10 @@ pub fn gap_figure_set(r: &GapRun, files: bool) -> Vec<(String, String)> {
         r.nominal.as_ref().map(|w| &w.identified),
         Some(&r.fitted().identified),
     ];
+    let offset = r.record_offset();
     let env: Vec<(Vec<f64>, Vec<f64>)> = ids
         .iter()
-        .map(|i| i.map_or_else(Default::default, envelope))
+        .map(|i| i.map_or_else(Default::default, |id| envelope(id, offset)))
         .collect();
     let sk: Vec<[Vec<f64>; 4]> = ids
         .iter()
@@ -382,6 +392,17 @@ pub fn render(title: &str, runs: &[&GapRun], report: bool) -> String {
             r.baseline.gap.domains_label(),
             parts.join(" · ")
         );
+        if let Some(rel) = &r.release {
+            let _ = writeln!(
+                b,
+                "<p>A free decay: compared from t = {:.3} s of its record, {} (times here are \
+                 the record's own).{}</p>",
+                rel.at_s,
+                esc(&rel.describe()),
+                rel.warning()
+                    .map_or(String::new(), |w| format!(" <b>Warning</b>: {}.", esc(&w)))
+            );
+        }
         let model_text = |m: &crate::model::RigModel| {
             [
                 ("inertia", m.inertia),

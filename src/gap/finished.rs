@@ -39,6 +39,10 @@ pub struct GapRun {
     /// The tracked displacement's unit as the run's archive states it (`rad`, `m`, … or
     /// `u`): the page names it as report.html does for the same run.
     pub amplitude_unit: String,
+    /// Of a free decay: where it was cut from its record. Every time in this run's outputs
+    /// (its gaps' regions, the envelope's plot) is the record's own, this much later than
+    /// the cut record's.
+    pub release: Option<super::search::Release>,
 }
 
 impl GapRun {
@@ -95,7 +99,8 @@ impl GapRun {
                 }
             }
         }
-        Ok(GapRun {
+        let release = reference.release(i);
+        let mut r = GapRun {
             role,
             together,
             measured: measured.clone(),
@@ -106,7 +111,29 @@ impl GapRun {
             zero_tolerance: reference.zero_tolerance(),
             amplitude_unit: crate::units::Units::of(&run.meta).displacement,
             diagnosis,
-        })
+            release,
+        };
+        // The regions were found on the cut record; the user reads times off the whole one.
+        let offset = r.record_offset();
+        let wholes = [
+            r.nominal.as_mut(),
+            Some(&mut r.baseline),
+            r.fitted.as_mut(),
+            r.best.as_mut(),
+        ];
+        for w in wholes.into_iter().flatten() {
+            for reg in &mut w.gap.regions {
+                reg.t0 += offset;
+                reg.t1 += offset;
+            }
+        }
+        Ok(r)
+    }
+
+    /// How much later in its record this run's compared samples lie than in the record as
+    /// compared (s): a free decay's release, 0 for every other run.
+    pub fn record_offset(&self) -> f64 {
+        self.release.map_or(0.0, |r| r.at_s)
     }
 
     /// The fitted model over the whole run.

@@ -252,6 +252,8 @@ struct Measured {
     /// Of a free decay: the mode's displacement and velocity at the record's (cut) first
     /// sample, where every simulation starts.
     start: Option<(f64, f64)>,
+    /// Of a free decay: where in its record it was cut.
+    release: Option<Release>,
     fit: Option<Target>,
     holdout: Option<Target>,
     whole: Target,
@@ -350,15 +352,22 @@ impl Measured {
         // A free decay is compared from where its envelope peaks, once the band-pass has
         // let go of the impact: the record is cut there, and every simulation starts from
         // the mode's state at that sample (both then have the same edge at their start).
-        let mut start = None;
+        let (mut start, mut release) = (None, None);
         if free {
             let settled = settled_after_impact(&run, full.mode);
-            let (i0, state) = release_point(&full, settled).ok_or_else(|| {
+            let (i0, state, past_spread) = release_point(&full, settled).ok_or_else(|| {
                 GapError::Unusable(format!(
                     "the measured run {}: no valid sample of the mode to start its decay from",
                     run.meta.path
                 ))
             })?;
+            let fs = run.meta.sample_rate;
+            release = Some(Release {
+                at_s: i0 as f64 / fs,
+                hit_s: impact(&run) as f64 / fs,
+                spread_s: full.mode.map_or(0.0, |b| b.spread()),
+                past_spread,
+            });
             run.output.drain(..i0);
             run.meta.samples = run.output.len();
             start = Some(state);
@@ -388,6 +397,7 @@ impl Measured {
             resolution,
             options,
             start,
+            release,
         })
     }
 
@@ -461,28 +471,80 @@ fn settled_after_impact(run: &Run, band: Option<crate::mode::ModeBand>) -> usize
     let Some(band) = band else {
         return 0;
     };
-    let impact = run
-        .output
+    impact(run) + (band.spread() * run.meta.sample_rate).ceil() as usize
+}
+
+/// The record's largest finite sample: a hammer test's hit.
+fn impact(run: &Run) -> usize {
+    run.output
         .iter()
         .enumerate()
         .filter(|(_, v)| v.is_finite())
         .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()))
-        .map_or(0, |(i, _)| i);
-    impact + (band.spread() * run.meta.sample_rate).ceil() as usize
+        .map_or(0, |(i, _)| i)
+}
+
+/// Where a free decay's comparison starts in its record, for the user: every time the
+/// diagnosis reports (gap regions, the envelope's plot) is the record's own, from its
+/// first sample.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Release {
+    /// The first sample compared, the mode's envelope peak past the impact (s).
+    pub at_s: f64,
+    /// The record's largest sample, taken as the hammer's hit (s).
+    pub hit_s: f64,
+    /// How long after the hit the band-pass still carries the impact (s; 0 where no band
+    /// isolated the mode): [`crate::mode::ModeBand::spread`].
+    pub spread_s: f64,
+    /// Whether a valid sample lay past hit + spread. If none did, the decay is released at
+    /// the record's own envelope peak, where the band-pass may still carry the impact.
+    pub past_spread: bool,
+}
+
+impl Release {
+    /// Where it lies, in words: "the mode's envelope peak past the band-pass's 0.157 s
+    /// spread of the hit at 0.126 s".
+    pub fn describe(&self) -> String {
+        let peak = "the mode's envelope peak";
+        if !self.past_spread {
+            format!(
+                "{peak} within the band-pass's {:.3} s spread of the hit at {:.3} s",
+                self.spread_s, self.hit_s
+            )
+        } else if self.spread_s > 0.0 {
+            format!(
+                "{peak} past the band-pass's {:.3} s spread of the hit at {:.3} s",
+                self.spread_s, self.hit_s
+            )
+        } else {
+            format!("{peak} from the hit at {:.3} s on", self.hit_s)
+        }
+    }
+
+    /// The warning a release inside the impact's spread deserves (`None` past it).
+    pub fn warning(&self) -> Option<String> {
+        (!self.past_spread).then(|| {
+            format!(
+                "no valid sample of the mode {:.3} s after the hit at t = {:.3} s (the \
+                 band-pass's spread of the impact); the decay is compared from its envelope's \
+                 peak at t = {:.3} s, where the impact may still show (a longer record, or a \
+                 band with a higher lower edge, waits less)",
+                self.spread_s, self.hit_s, self.at_s
+            )
+        })
+    }
 }
 
 /// Where a free decay is released from: the valid sample of its mode's largest envelope
 /// from sample `settled` on ([`settled_after_impact`]; from the record's start where no
 /// sample past it is valid), with the mode's displacement A·cos φ and velocity A′·cos φ −
 /// A·ω·sin φ there, from the analytic signal the identification tracked.
-fn release_point(id: &Identification, settled: usize) -> Option<(usize, (f64, f64))> {
+/// The flag is whether it lies past `settled`.
+fn release_point(id: &Identification, settled: usize) -> Option<(usize, (f64, f64), bool)> {
     let t = &id.response;
     let valid = |i: &usize| t.valid[*i] && t.amplitude[*i].is_finite();
-    let from = if (settled..t.len()).any(|i| valid(&i)) {
-        settled
-    } else {
-        0
-    };
+    let past = (settled..t.len()).any(|i| valid(&i));
+    let from = if past { settled } else { 0 };
     let i = (from..t.len())
         .filter(valid)
         .max_by(|&a, &b| t.amplitude[a].total_cmp(&t.amplitude[b]))?;
@@ -494,7 +556,7 @@ fn release_point(id: &Identification, settled: usize) -> Option<(usize, (f64, f6
         .copied()
         .filter(|v| v.is_finite())
         .unwrap_or(0.0);
-    Some((i, (a * phi.cos(), da * phi.cos() - a * w * phi.sin())))
+    Some((i, (a * phi.cos(), da * phi.cos() - a * w * phi.sin()), past))
 }
 
 /// The measured runs, identified once, that models are scored against: one run split into
@@ -630,6 +692,11 @@ impl<'a> Reference<'a> {
     pub fn measured(&self, i: usize) -> (&Run, &Identification, Role) {
         let m = &self.runs[i];
         (&m.run, &m.identified, m.role)
+    }
+
+    /// Where run `i`, a free decay, was cut from its record (`None` for other kinds).
+    pub fn release(&self, i: usize) -> Option<Release> {
+        self.runs[i].release
     }
 
     /// The same reference with its parts exchanged: fits see the odd blocks (the held-out
@@ -1318,6 +1385,90 @@ mod tests {
         assert_eq!(settled_after_impact(&run, Some(band)), hit + 734);
         // Where the mode was not isolated, nothing spread the impact.
         assert_eq!(settled_after_impact(&run, None), 0);
+    }
+
+    #[test]
+    fn a_decay_with_nothing_valid_past_the_spread_is_released_at_its_peak_with_a_warning() {
+        use super::{release_point, Reference, Release};
+        use crate::backend::Backend;
+        use crate::gap::Blocks;
+        use crate::identify::{Identifier, IdentifyOptions};
+        let run = crate::rig::structure_decay(
+            "/hammer/acc1",
+            &crate::rig::structure_mode(),
+            0.02,
+            0.0,
+            1,
+        )
+        .into_run();
+        // The mode isolated on its band, as `--band 6 9` does: 1.833 s of spread.
+        let options = IdentifyOptions {
+            mode: crate::mode::ModeChoice::Band(6.0, 9.0),
+            ..IdentifyOptions::default()
+        };
+        let backend = Backend::cpu();
+        let identifier = Identifier {
+            options: &options,
+            backend: &backend,
+        };
+        let id = identifier
+            .identify(&run, crate::track::Method::Wavelet)
+            .unwrap();
+        let n = id.response.len();
+        let t = &id.response;
+        let peak = (0..n)
+            .filter(|&i| t.valid[i])
+            .max_by(|&a, &b| t.amplitude[a].total_cmp(&t.amplitude[b]))
+            .unwrap();
+        // Past the record's end nothing is valid: released at the whole record's peak,
+        // flagged; from its start, the same sample, unflagged.
+        let (late, _, past_late) = release_point(&id, n + 10).unwrap();
+        let (early, _, past_early) = release_point(&id, 0).unwrap();
+        assert_eq!((late, past_late), (peak, false));
+        assert_eq!((early, past_early), (peak, true));
+        let flagged = Release {
+            at_s: 0.5,
+            hit_s: 0.25,
+            spread_s: 1.8,
+            past_spread: false,
+        };
+        let w = flagged
+            .warning()
+            .expect("a release inside the spread is warned of");
+        assert!(w.contains("1.800 s after the hit at t = 0.250 s"), "{w}");
+        assert!(w.contains("peak at t = 0.500 s"), "{w}");
+        assert!(flagged
+            .describe()
+            .contains("within the band-pass's 1.800 s spread"));
+        let settled = Release {
+            past_spread: true,
+            ..flagged
+        };
+        assert_eq!(settled.warning(), None);
+        assert!(settled
+            .describe()
+            .contains("past the band-pass's 1.800 s spread"));
+        let unbanded = Release {
+            spread_s: 0.0,
+            ..settled
+        };
+        assert!(unbanded.describe().ends_with("from the hit at 0.250 s on"));
+        // The reference keeps where it cut the record, in the record's own seconds: past
+        // the hit (the record's largest sample) by at least the band-pass's spread.
+        let reference = Reference::new(&run, Blocks { seconds: 1.0 }, identifier).unwrap();
+        let rel = reference.release(0).expect("a free decay is released");
+        println!("{rel:?}");
+        let fs = run.meta.sample_rate;
+        assert!(rel.past_spread, "{rel:?}");
+        assert!(rel.at_s >= rel.hit_s + rel.spread_s - 1.0 / fs, "{rel:?}");
+        assert!(
+            (rel.spread_s - 1.0 / (6.0 * (1.0 - 1.0 / 1.1))).abs() < 1e-12,
+            "{rel:?}"
+        );
+        assert_eq!(
+            reference.run().output.len(),
+            run.output.len() - (rel.at_s * fs).round() as usize
+        );
     }
 
     #[test]
