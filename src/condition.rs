@@ -68,6 +68,10 @@ pub enum ConditionError {
 pub fn condition(run: &Run, choice: ModeChoice) -> Result<Conditioned, ConditionError> {
     let meta = &run.meta;
     let fs = meta.sample_rate;
+    finite(&run.output, "output")?;
+    if let Some(input) = &run.input {
+        finite(input, "input")?;
+    }
     let band = mode::choose(run, choice).map_err(|e| ConditionError::Unusable(e.to_string()))?;
     let band_ref = band.as_ref();
     let y = displacement(&run.output, fs, meta.output_quantity, "output", band_ref)?;
@@ -94,7 +98,6 @@ pub fn condition(run: &Run, choice: ModeChoice) -> Result<Conditioned, Condition
             let f = run.input.as_ref().ok_or_else(|| {
                 ConditionError::Unusable("a force run needs an input (force) dataset".into())
             })?;
-            finite(f, "input")?;
             let force = match band_ref {
                 Some(b) => mode::band_pass(f, fs, b.fmin, b.fmax),
                 None => f.clone(),
@@ -136,7 +139,6 @@ fn displacement(
     channel: &'static str,
     band: Option<&ModeBand>,
 ) -> Result<Vec<f64>, ConditionError> {
-    finite(x, channel)?;
     let x = match band {
         Some(b) => Cow::Owned(mode::band_pass(x, fs, b.fmin, b.fmax)),
         None => Cow::Borrowed(x),
@@ -233,6 +235,13 @@ mod tests {
                 let e = condition(&r, choice).err().expect("refused").to_string();
                 assert!(e.contains("output channel: sample 100 is"), "{e}");
             }
+            // A drive (force or base) alike.
+            let mut r = run.clone();
+            let mut drive = vec![0.0; r.output.len()];
+            drive[7] = bad;
+            r.input = Some(drive);
+            let e = condition(&r, ModeChoice::Whole).err().expect("refused");
+            assert!(e.to_string().contains("input channel: sample 7 is"), "{e}");
         }
     }
 

@@ -425,6 +425,10 @@ impl Default for SimSettings {
 }
 
 /// Result of a simulation, sampled at the output rate.
+///
+/// A simulation that diverges (its state no longer finite) has NaN in `output`,
+/// `relative` and `relative_velocity` from the first sample where it is not finite; from
+/// there `stuck` repeats its last mode and `events` stops counting.
 #[derive(Debug, Clone)]
 pub struct SimOutput {
     /// Sample times, s.

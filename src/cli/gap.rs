@@ -362,7 +362,7 @@ pub(crate) fn cmd_gap(a: GapArgs) -> Result<ExitCode> {
         "holdout": if together {
             format!("runs fitted together: {}; held out whole: {}", fit_paths.join(", "), holdout_paths.join(", "))
         } else {
-            format!("alternate {} s blocks: fits on the even ones (from t = 0), gaps scored on the odd ones", a.holdout_block)
+            format!("alternate {} s blocks: fits on the even ones (from t = 0, a free decay's from its release), gaps scored on the odd ones", a.holdout_block)
         },
         "model_kind": model.kind.name(),
         "fit_runs": fit_paths,

@@ -8,7 +8,8 @@ use crate::identify::Identification;
 
 /// A model over the whole run: its gap and its simulation's identification.
 pub struct Whole {
-    /// The gap over the whole run.
+    /// The gap over the whole run (in a [`GapRun`], its regions in the record's own time;
+    /// `identified`'s track starts at a free decay's release).
     pub gap: Gap,
     /// The simulation's identification.
     pub identified: Identification,

@@ -215,7 +215,7 @@ pub fn diagnose_together(
     let first = &fit[0];
     exporter.started(first);
     let all: Vec<&RunMeta> = fit.iter().chain(holdout).collect();
-    let result = (|| -> Result<Vec<Result<GapRun, String>>, String> {
+    let diagnosed = || -> Result<Vec<Result<GapRun, String>>, String> {
         let runs = all
             .iter()
             .map(|m| archive.load(m).map_err(|e| chain(&e)))
@@ -232,7 +232,10 @@ pub fn diagnose_together(
             .into_iter()
             .map(|r| r.map_err(|e| chain(&e)))
             .collect())
-    })();
+    };
+    // As in `diagnose_runs`: a panic fails these runs, and the command goes on to write them.
+    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(diagnosed))
+        .unwrap_or_else(|payload| Err(panicked(payload.as_ref())));
     let per_run: Vec<Result<GapRun, String>> = match result {
         Ok(r) => r,
         Err(e) => all.iter().map(|_| Err(e.clone())).collect(),
@@ -277,7 +280,7 @@ mod tests {
     use super::pool_sizes;
 
     #[test]
-    fn a_panic_inside_one_run_fails_that_run_alone() {
+    fn a_panic_inside_a_diagnosis_fails_its_runs_alone() {
         use super::{diagnose_runs, ExportError, Exporter, GapRun, RunMeta};
         use crate::model::ModelKind;
         use crate::rig::{structure_decay, structure_mode};
@@ -346,6 +349,22 @@ mod tests {
         assert_eq!(run, "/hammer/acc1");
         assert!(why.contains("a bug met in acc1's search"), "{why}");
         assert!(why.contains("please report it"), "{why}");
+        // Fitted together, the one diagnosis fails for every run it covers, and ends.
+        let together = super::diagnose_together(
+            &archive,
+            &runs[..1],
+            &runs[1..],
+            &model,
+            &opt,
+            identifier,
+            vec![],
+            &Panicky,
+        )
+        .expect("the runner itself ends");
+        assert!(together.runs.is_empty());
+        let failed: Vec<&str> = together.failed.iter().map(|f| f.0.as_str()).collect();
+        assert_eq!(failed, ["/hammer/acc1", "/hammer/acc2"]);
+        assert!(together.failed[1].1.contains("a bug met in acc1's search"));
     }
 
     #[test]

@@ -145,7 +145,8 @@ pub fn simulate_given(
 }
 
 /// A free-decay model released from `state` (displacement, velocity of the mode at the
-/// record's first sample) over the length of `measured`, recorded and identified like it.
+/// first sample of `measured`, the record as cut) over its length, recorded and identified
+/// like it.
 pub fn simulate_released(
     measured: &Run,
     identified: Option<&Identification>,

@@ -508,7 +508,8 @@ impl Release {
         let peak = "the mode's envelope peak";
         if !self.past_spread {
             format!(
-                "{peak} within the band-pass's {:.3} s spread of the hit at {:.3} s",
+                "the whole record's envelope peak, not past the band-pass's {:.3} s spread of \
+                 the hit at {:.3} s",
                 self.spread_s, self.hit_s
             )
         } else if self.spread_s > 0.0 {
@@ -794,7 +795,8 @@ impl<'a> Reference<'a> {
     }
 
     /// The gap of `model` over the whole (first) run, with the simulation's identification
-    /// (for the report's regions and plots).
+    /// (for the report's regions and plots). A free decay's are in the time of its record as
+    /// cut: [`super::GapRun`] moves them to the record's own ([`Release::at_s`] later).
     pub fn whole(&self, model: &RigModel) -> Result<super::Whole, GapError> {
         self.whole_of(0, model)
     }
@@ -1439,7 +1441,7 @@ mod tests {
         assert!(w.contains("peak at t = 0.500 s"), "{w}");
         assert!(flagged
             .describe()
-            .contains("within the band-pass's 1.800 s spread"));
+            .contains("not past the band-pass's 1.800 s spread"));
         let settled = Release {
             past_spread: true,
             ..flagged
