@@ -289,6 +289,48 @@ fn targets(
     (fit, holdout, target(None))
 }
 
+/// Refuses alternate blocks of which the fitting or the held-out part holds no valid
+/// sample of `identified` (a block as long as the record, or the valid stretch within one
+/// block): a held-out gap over nothing read 0, a perfect score.
+fn both_parts_seen(
+    identified: &Identification,
+    [fit, holdout]: [&Option<Target>; 2],
+    blocks: Blocks,
+    run: &Run,
+) -> Result<(), GapError> {
+    let valid = &identified.response.valid;
+    let seen = |t: &Option<Target>| {
+        t.as_ref()
+            .and_then(|t| t.mask.as_ref())
+            .is_none_or(|m| m.iter().zip(valid).any(|(&a, &b)| a && b))
+    };
+    let part = match (seen(fit), seen(holdout)) {
+        (true, true) => return Ok(()),
+        (false, _) => "fit on (the even blocks)",
+        (true, false) => "score the gap on (the odd blocks)",
+    };
+    let fs = run.meta.sample_rate;
+    let length = run.output.len() as f64 / fs;
+    let span = |i: Option<usize>| i.map_or(f64::NAN, |i| i as f64 / identified.response.sample_rate);
+    let (first, last) = (
+        span(valid.iter().position(|&v| v)),
+        span(valid.iter().rposition(|&v| v)),
+    );
+    Err(GapError::Unusable(format!(
+        "the measured run {}: alternate {} s blocks leave no valid sample to {part}: the run \
+         is {length:.2} s long as compared{}, valid from {first:.2} to {last:.2} s of that; \
+         give a shorter --holdout-block, at most a third of the valid stretch ({:.2} s)",
+        run.meta.path,
+        blocks.seconds,
+        if run.meta.kind == RunKind::Free {
+            " (from its release)"
+        } else {
+            ""
+        },
+        (last - first) / 3.0
+    )))
+}
+
 /// Base-motion runs of one rig share its clearance: a run is scored with the dead zone
 /// identified on the fitted run that reached furthest into the contact, when that run
 /// reached further than it did. A run that never touches cannot measure the clearance, and
@@ -386,6 +428,9 @@ impl Measured {
         };
         let resolution = measured_resolution(&run);
         let (fit, holdout, whole) = targets(&identified, &run, &compared, role, resolution);
+        if let Role::Blocks(blocks) = role {
+            both_parts_seen(&identified, [&fit, &holdout], blocks, &run)?;
+        }
         Ok(Measured {
             whole,
             fit,
@@ -1471,6 +1516,40 @@ mod tests {
             reference.run().output.len(),
             run.output.len() - (rel.at_s * fs).round() as usize
         );
+    }
+
+    #[test]
+    fn blocks_that_leave_a_part_without_a_valid_sample_are_refused() {
+        use super::Reference;
+        use crate::backend::Backend;
+        use crate::gap::Blocks;
+        use crate::identify::{Identifier, IdentifyOptions};
+        // A 12 s decay (11 s as compared from its release), valid over most of it.
+        let run = crate::rig::structure_decay(
+            "/hammer/acc1",
+            &crate::rig::structure_mode(),
+            0.02,
+            0.0,
+            1,
+        )
+        .into_run();
+        let (options, backend) = (IdentifyOptions::default(), Backend::cpu());
+        let identifier = Identifier {
+            options: &options,
+            backend: &backend,
+        };
+        for seconds in [1.0, 4.0] {
+            assert!(Reference::new(&run, Blocks { seconds }, identifier).is_ok());
+        }
+        // One block longer than the record: nothing held out, whose gap had read 0.
+        for seconds in [20.0, 1000.0] {
+            let e = Reference::new(&run, Blocks { seconds }, identifier)
+                .err()
+                .expect("refused")
+                .to_string();
+            assert!(e.contains("leave no valid sample to score the gap on"), "{e}");
+            assert!(e.contains("give a shorter --holdout-block"), "{e}");
+        }
     }
 
     #[test]
