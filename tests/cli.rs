@@ -487,6 +487,33 @@ fn track_writes_csv_and_hdf5_that_match_the_truth() {
     assert!(!mixed.status.success());
     assert!(String::from_utf8_lossy(&mixed.stderr).contains("--method hilbert"));
     assert!(!d.path().join("y.csv").exists());
+    // Scales far above the 12 Hz mode track nothing: said in words, not as ranges over no
+    // sample (they read "frequency inf-0.0000 Hz").
+    let missed = skelid()
+        .arg("track")
+        .arg(&path)
+        .args([
+            "--dataset",
+            "/runs/hammer/output",
+            "--fmin",
+            "200",
+            "--fmax",
+            "400",
+            "--scales",
+            "8",
+            "--out",
+        ])
+        .arg(d.path().join("z.csv"))
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&missed.stdout);
+    assert!(missed.status.success(), "{text}");
+    assert!(
+        text.contains("valid 0.0 % of samples: none passed the wavelet checks"),
+        "{text}"
+    );
+    assert!(text.contains("try more --scales"), "{text}");
+    assert!(!text.contains("inf"), "{text}");
 }
 
 /// Every number of the demo's outputs carries its unit, the absolute parameters are the

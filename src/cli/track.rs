@@ -263,14 +263,34 @@ pub(crate) fn cmd_track(a: TrackArgs) -> Result<()> {
         track.band.1,
         track.backend.as_str()
     );
-    println!(
-        "valid {:.1} % of samples; over them frequency {:.4}-{:.4} Hz, amplitude {:.4e}-{:.4e}",
-        100.0 * track.valid_fraction(),
-        fmin_v,
-        fmax_v,
-        amin,
-        amax
-    );
+    if valid.is_empty() {
+        // The ranges over no sample would read inf-0.
+        let wavelet = track.method == skelid::track::Method::Wavelet;
+        println!(
+            "valid 0.0 % of samples: none passed the {} checks (a signal below the noise \
+             floor{}); try {}",
+            track.method.as_str(),
+            if wavelet {
+                ", a band that misses the mode, or a mode between too few scales"
+            } else {
+                ""
+            },
+            if wavelet {
+                "more --scales, or --fmin/--fmax around the mode"
+            } else {
+                "--method wavelet"
+            }
+        );
+    } else {
+        println!(
+            "valid {:.1} % of samples; over them frequency {:.4}-{:.4} Hz, amplitude {:.4e}-{:.4e}",
+            100.0 * track.valid_fraction(),
+            fmin_v,
+            fmax_v,
+            amin,
+            amax
+        );
+    }
     println!(
         "offset removed {:.4e}, white-noise estimate {:.3e} per sample; wrote {}",
         track.offset,

@@ -311,7 +311,8 @@ fn both_parts_seen(
     };
     let fs = run.meta.sample_rate;
     let length = run.output.len() as f64 / fs;
-    let span = |i: Option<usize>| i.map_or(f64::NAN, |i| i as f64 / identified.response.sample_rate);
+    let span =
+        |i: Option<usize>| i.map_or(f64::NAN, |i| i as f64 / identified.response.sample_rate);
     let (first, last) = (
         span(valid.iter().position(|&v| v)),
         span(valid.iter().rposition(|&v| v)),
@@ -1547,7 +1548,10 @@ mod tests {
                 .err()
                 .expect("refused")
                 .to_string();
-            assert!(e.contains("leave no valid sample to score the gap on"), "{e}");
+            assert!(
+                e.contains("leave no valid sample to score the gap on"),
+                "{e}"
+            );
             assert!(e.contains("give a shorter --holdout-block"), "{e}");
         }
     }
