@@ -280,6 +280,50 @@ fn a_rig_model_with_a_clearance_in_degrees_is_warned_about_and_a_negative_key_na
 }
 
 #[test]
+fn simulate_refuses_a_response_that_diverges_and_writes_nothing() {
+    // The paper's rig with a softening cubic term that cancels its stiffness at 12 mrad,
+    // under the default chirp of 40 mrad: it runs away about 6 s in. The archive written
+    // before held 23 757 NaN samples, which `skelid run` and `inspect` then refused.
+    let d = tmpdir();
+    let model = d.path().join("rig.toml");
+    std::fs::write(
+        &model,
+        "inertia = 3.16\nstiffness = 15000.0\ndamping = 13.0\nclearance = 0.0262\n\
+         [effects.cubic_stiffness]\nk3 = -1.0e8\n",
+    )
+    .unwrap();
+    let out = d.path().join("sim.h5");
+    let o = skelid()
+        .args(["simulate", "--model"])
+        .arg(&model)
+        .arg("--out")
+        .arg(&out)
+        .args(["--duration", "30"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{err}");
+    assert!(
+        err.contains("the simulated response diverged at t = 6."),
+        "{err}"
+    );
+    assert!(err.contains("sqrt(stiffness/|k3|) = 1.225e-2"), "{err}");
+    assert!(err.contains("nothing was written"), "{err}");
+    assert!(!out.exists());
+    // Within range (a tenth of the amplitude) the same model simulates and is written.
+    let o = skelid()
+        .args(["simulate", "--model"])
+        .arg(&model)
+        .arg("--out")
+        .arg(&out)
+        .args(["--duration", "30", "--amplitude", "0.004"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(out.exists());
+}
+
+#[test]
 fn simulate_from_a_toml_model_writes_an_archive_that_inspect_reads() {
     let d = tmpdir();
     let model = d.path().join("rig.toml");

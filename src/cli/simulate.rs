@@ -193,6 +193,32 @@ fn check_drive(a: &SimulateArgs) -> Result<()> {
     Ok(())
 }
 
+/// Refuses a simulated response that left f64's range: an archive skelid's own reader
+/// refuses (it wrote one, silently, before 2026-12-07).
+fn refuse_diverged(
+    path: &std::path::Path,
+    model: &RigModel,
+    output: &[f64],
+    fs: f64,
+) -> Result<()> {
+    let Some(i) = output.iter().position(|v| !v.is_finite()) else {
+        return Ok(());
+    };
+    let k3 = model
+        .effects
+        .get(skelid::model::EffectKind::CubicStiffness)
+        .filter(|k3| *k3 < 0.0);
+    bail!(
+        "{}: the simulated response diverged at t = {:.3} s (sample {i} and on are not finite): the model is unstable under this drive{}; nothing was written. A smaller --amplitude (or --initial-offset) keeps it in range",
+        path.display(),
+        i as f64 / fs,
+        k3.map_or(String::new(), |k3| format!(
+            " (its softening cubic term, k3 = {k3:e}, cancels the stiffness beyond a displacement of sqrt(stiffness/|k3|) = {:.3e})",
+            (model.stiffness / k3.abs()).sqrt()
+        ))
+    )
+}
+
 pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<()> {
     check_drive(&a)?;
     let model = RigModel::load(&a.model)?;
@@ -268,6 +294,7 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<()> {
         seed: a.seed,
     };
     let sim = simulate(&model, &drive, &settings);
+    refuse_diverged(&a.model, &model, &sim.output, fs)?;
     let events = sim.events;
     let samples = sim.time.len();
     let description = format!("skelid simulate of {}", a.model.display());
