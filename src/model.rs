@@ -255,6 +255,24 @@ impl CubicParam {
             0.25 * self.k3 * d.powi(4)
         }
     }
+
+    /// The smallest deflection d > 0 where a spring of stiffness `k` and this term push
+    /// back no more (k·d + force(d) = 0): where a softening term lets the motion run
+    /// away. `None` where the force never vanishes (a stiffening term, or a limit reached
+    /// while the tangent stiffness k + 3·k3·limit² is still positive).
+    pub fn vanishes_at(&self, k: f64) -> Option<f64> {
+        if self.k3 >= 0.0 || k <= 0.0 {
+            return None;
+        }
+        let free = (k / -self.k3).sqrt();
+        let l = self.limit;
+        if l <= 0.0 || free <= l {
+            return Some(free);
+        }
+        // Beyond the limit: (k + 3·k3·l²)·d − 2·k3·l³ = 0.
+        let tangent = k + 3.0 * self.k3 * l * l;
+        (tangent < 0.0).then(|| 2.0 * self.k3 * l.powi(3) / tangent)
+    }
 }
 /// `{ c_contact = N m s/rad }`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -836,6 +854,75 @@ pub const MAX_PLAUSIBLE_CLEARANCE: f64 = 0.5;
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn a_softening_cubic_term_lets_go_where_its_force_cancels_the_spring() {
+        use super::CubicParam;
+        let k = 15000.0;
+        for (k3, limit) in [
+            (-1.0e8, 0.0),
+            (-1.0e8, 0.02),
+            (-1.0e8, 0.011),
+            (-3.0e7, 0.012),
+        ] {
+            let c = CubicParam { k3, limit };
+            let total = |d: f64| k * d + c.force(d);
+            // Against the force itself: positive below, zero at, negative just past.
+            match c.vanishes_at(k) {
+                Some(d) => {
+                    assert!(total(d).abs() < 1e-9 * k * d, "{k3} {limit}: {}", total(d));
+                    assert!(total(0.999 * d) > 0.0 && total(1.001 * d) < 0.0);
+                    let below = (1..1000).map(|i| total(d * i as f64 / 1000.0));
+                    assert!(below.into_iter().all(|f| f > 0.0), "{k3} {limit}");
+                }
+                None => {
+                    let grid = (1..100_000).map(|i| total(i as f64 * 1e-4));
+                    assert!(grid.into_iter().all(|f| f > 0.0), "{k3} {limit}");
+                }
+            }
+        }
+        // sqrt(15000/1e8) without a limit; past a limit of 11 mrad the tangent is
+        // 15000 − 3e8·1.21e-4 < 0 and the force vanishes at 2e8·1.331e-6/(36300 − 15000);
+        // with 3e7 at 12 mrad the tangent stays positive: it never lets go.
+        assert!(
+            (CubicParam {
+                k3: -1.0e8,
+                limit: 0.0
+            }
+            .vanishes_at(k)
+            .unwrap()
+                - 0.0122474)
+                .abs()
+                < 1e-6
+        );
+        assert!(
+            (CubicParam {
+                k3: -1.0e8,
+                limit: 0.011
+            }
+            .vanishes_at(k)
+            .unwrap()
+                - 2.0e8 * 1.331e-6 / 21300.0)
+                .abs()
+                < 1e-9
+        );
+        assert_eq!(
+            CubicParam {
+                k3: -3.0e7,
+                limit: 0.012
+            }
+            .vanishes_at(k),
+            None
+        );
+        assert_eq!(
+            CubicParam {
+                k3: 1.0e8,
+                limit: 0.0
+            }
+            .vanishes_at(k),
+            None
+        );
+    }
+
     use super::*;
 
     #[test]

@@ -194,28 +194,52 @@ fn check_drive(a: &SimulateArgs) -> Result<()> {
 }
 
 /// Refuses a simulated response that left f64's range: an archive skelid's own reader
-/// refuses (it wrote one, silently, before 2026-12-07).
+/// refuses (it wrote one, silently, before 2026-12-07). Where the model has a softening
+/// cubic term (and no joint, whose slip would move the spring), says where its restoring
+/// force vanishes and how far the motion got.
 fn refuse_diverged(
     path: &std::path::Path,
     model: &RigModel,
-    output: &[f64],
+    sim: &skelid::simulate::SimOutput,
     fs: f64,
+    measured: bool,
 ) -> Result<()> {
-    let Some(i) = output.iter().position(|v| !v.is_finite()) else {
+    let Some(i) = sim.output.iter().position(|v| !v.is_finite()) else {
         return Ok(());
     };
-    let k3 = model
-        .effects
-        .get(skelid::model::EffectKind::CubicStiffness)
-        .filter(|k3| *k3 < 0.0);
+    let e = &model.effects;
+    let unit = skelid::model::key_unit_of("clearance", model.kind).unwrap_or("");
+    let hint = match (e.cubic_stiffness, e.microslip) {
+        (Some(c), None) => c.vanishes_at(model.stiffness).map(|d| {
+            let offset = e
+                .get(skelid::model::EffectKind::AsymmetricClearance)
+                .unwrap_or(0.0);
+            let edge = model.half_gap() + d;
+            let passed = sim
+                .relative
+                .iter()
+                .position(|z| (z - offset).abs() > edge)
+                .map_or(String::new(), |j| {
+                    format!("; the motion passed it at t = {:.3} s", j as f64 / fs)
+                });
+            format!(
+                " (its softening cubic term: the restoring force stiffness·D + k3·D³ on the \
+                 penetration D past the clearance's flank vanishes at D = {d:.4e} {unit}, \
+                 |z − offset| = {edge:.4e} {unit}{passed})"
+            )
+        }),
+        _ => None,
+    };
     bail!(
-        "{}: the simulated response diverged at t = {:.3} s (sample {i} and on are not finite): the model is unstable under this drive{}; nothing was written. A smaller --amplitude (or --initial-offset) keeps it in range",
+        "{}: the simulated response diverged at t = {:.3} s (sample {i} and on are not finite): the model is unstable under this drive{}; nothing was written. {}",
         path.display(),
         i as f64 / fs,
-        k3.map_or(String::new(), |k3| format!(
-            " (its softening cubic term, k3 = {k3:e}, cancels the stiffness beyond a displacement of sqrt(stiffness/|k3|) = {:.3e})",
-            (model.stiffness / k3.abs()).sqrt()
-        ))
+        hint.unwrap_or_default(),
+        if measured {
+            "The measured input drives it: a model that stays stable under it is needed"
+        } else {
+            "A smaller --amplitude (or --initial-offset, for a free decay) keeps it in range"
+        }
     )
 }
 
@@ -294,7 +318,8 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<()> {
         seed: a.seed,
     };
     let sim = simulate(&model, &drive, &settings);
-    refuse_diverged(&a.model, &model, &sim.output, fs)?;
+    let measured = matches!(a.excitation, ExcitationKind::Measured);
+    refuse_diverged(&a.model, &model, &sim, fs, measured)?;
     let events = sim.events;
     let samples = sim.time.len();
     let description = format!("skelid simulate of {}", a.model.display());

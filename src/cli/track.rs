@@ -271,7 +271,8 @@ pub(crate) fn cmd_track(a: TrackArgs) -> Result<()> {
              floor{}); try {}",
             track.method.as_str(),
             if wavelet {
-                ", a band that misses the mode, or a mode between too few scales"
+                ", a band that misses the mode, a mode between too few scales, or a record \
+                 too short for the wavelet's edges"
             } else {
                 ""
             },

@@ -319,8 +319,9 @@ fn both_parts_seen(
     );
     Err(GapError::Unusable(format!(
         "the measured run {}: alternate {} s blocks leave no valid sample to {part}: the run \
-         is {length:.2} s long as compared{}, valid from {first:.2} to {last:.2} s of that; \
-         give a shorter --holdout-block, at most a third of the valid stretch ({:.2} s)",
+         is {length:.2} s long as compared{}, its first valid sample at {first:.2} s and its \
+         last at {last:.2} s; give longer runs, or shorter blocks (skelid gap's \
+         --holdout-block), at most a third of that stretch ({:.2} s)",
         run.meta.path,
         blocks.seconds,
         if run.meta.kind == RunKind::Free {
@@ -1552,7 +1553,10 @@ mod tests {
                 e.contains("leave no valid sample to score the gap on"),
                 "{e}"
             );
-            assert!(e.contains("give a shorter --holdout-block"), "{e}");
+            assert!(
+                e.contains("or shorter blocks (skelid gap's --holdout-block)"),
+                "{e}"
+            );
         }
     }
 
