@@ -464,7 +464,7 @@ fn identify_run(
     let samples: Vec<Sample> = (0..n).filter(|&i| used[i]).map(sample).collect();
     if samples.len() < 100 {
         // On the whole record of a structure, several modes share the ridge: the beam's
-        // hammer records gave 0 valid samples whole, and 97 % on their first mode.
+        // acc2 gave 0 valid samples whole, and is identified with `--mode-near 80`.
         return Err(IdentifyError::NoSkeleton(format!(
             "only {} valid samples of {n}: the response is too weak or too short to identify{}",
             samples.len(),

@@ -269,8 +269,8 @@ fn validation_rigs_are_refined_closer_to_the_truth_than_the_skeleton_reads_them(
 fn a_record_with_nothing_to_track_names_mode_isolation_where_none_was_used() {
     // The demo's free decay cut to its first 0.4 s: too short for any sample to clear the
     // wavelet's edges. On the whole record the error adds that several modes may share it
-    // (the Brake–Reuss beam's hammer records gave 0 valid samples whole, 97 % on their
-    // first mode); within a band it does not.
+    // (the Brake–Reuss beam's acc2 gave 0 valid samples whole, and is identified with
+    // `--mode-near 80`); within a band it does not.
     let c = case("/demo/free_decay");
     let mut run = run_of(&c, Some(c.model.inertia));
     run.output.truncate(400);
