@@ -867,7 +867,9 @@ mod tests {
             let c = CubicParam { k3, limit };
             let total = |d: f64| k * d + c.force(d);
             // Against the force itself: positive below, zero at, negative just past.
-            match c.vanishes_at(k) {
+            let at = c.vanishes_at(k);
+            println!("k3 {k3:e}, limit {limit}: the force vanishes at {at:?}");
+            match at {
                 Some(d) => {
                     assert!(total(d).abs() < 1e-9 * k * d, "{k3} {limit}: {}", total(d));
                     assert!(total(0.999 * d) > 0.0 && total(1.001 * d) < 0.0);

@@ -554,3 +554,10 @@ pub fn structure_decay(
         .push(("units".into(), Attr::Text("output m/s^2".into())));
     data
 }
+
+/// The tests' plain hammer record: the linear [`structure_mode`] ringing down from 20 mm
+/// after a hit 1 s in ([`structure_decay`]), noise-free.
+#[cfg(test)]
+pub(crate) fn plain_decay() -> crate::run::Run {
+    structure_decay("/hammer/acc1", &structure_mode(), 0.02, 0.0, 1).into_run()
+}

@@ -265,22 +265,19 @@ pub(crate) fn cmd_track(a: TrackArgs) -> Result<()> {
     );
     if valid.is_empty() {
         // The ranges over no sample would read inf-0.
-        let wavelet = track.method == skelid::track::Method::Wavelet;
+        let (causes, remedy) = if track.method == skelid::track::Method::Wavelet {
+            (
+                ", a band that misses the mode, a mode between too few scales, or a record \
+                 too short for the wavelet's edges",
+                "more --scales, or --fmin/--fmax around the mode",
+            )
+        } else {
+            ("", "--method wavelet")
+        };
         println!(
             "valid 0.0 % of samples: none passed the {} checks (a signal below the noise \
-             floor{}); try {}",
+             floor{causes}); try {remedy}",
             track.method.as_str(),
-            if wavelet {
-                ", a band that misses the mode, a mode between too few scales, or a record \
-                 too short for the wavelet's edges"
-            } else {
-                ""
-            },
-            if wavelet {
-                "more --scales, or --fmin/--fmax around the mode"
-            } else {
-                "--method wavelet"
-            }
         );
     } else {
         println!(

@@ -126,12 +126,7 @@ pub fn run_json(r: &GapRun) -> Value {
         entry["whole_run_domains"]["best_candidate"] = gap_domains(&best.gap);
     }
     if let Some(rel) = &r.release {
-        entry["release"] = json!({
-            "at_s": num(rel.at_s),
-            "hit_s": num(rel.hit_s),
-            "spread_s": num(rel.spread_s),
-            "past_spread": rel.past_spread,
-        });
+        entry["release"] = json!(rel);
     }
     if !r.together.0.is_empty() {
         entry["fit_runs"] = json!(r.together.0);

@@ -101,10 +101,7 @@ pub fn diagnose_runs(
             let d = diagnose(&reference, model, opt).map_err(|e| chain(&e))?;
             GapRun::new(&reference, d).map_err(|e| chain(&e))
         };
-        // A bug met in one run (a panic, here or in a rayon task of its pool) fails that
-        // run alone: the others of an overnight diagnosis still end, and are written.
-        let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(diagnosed))
-            .unwrap_or_else(|payload| Err(panicked(payload.as_ref())));
+        let result = caught(diagnosed);
         // The outputs are written under the lock: one writer at a time, in archive order.
         let mut guard = ended.lock().unwrap_or_else(|p| p.into_inner());
         match result {
@@ -166,17 +163,21 @@ pub fn diagnose_runs(
     })
 }
 
-/// A panic's message as a run's failure: it is skelid's fault, not the run's.
-fn panicked(payload: &(dyn std::any::Any + Send)) -> String {
-    let message = payload
-        .downcast_ref::<&str>()
-        .copied()
-        .or_else(|| payload.downcast_ref::<String>().map(String::as_str))
-        .unwrap_or("no message");
-    format!(
-        "skelid failed inside this run's diagnosis ({message}): a bug, not the run's fault; \
-         please report it with the run and the model"
-    )
+/// `diagnosed`, with a panic in it (here or in a rayon task of its pool, which rayon
+/// raises again here) turned into its runs' failure: a bug met in one diagnosis fails its
+/// runs alone, and the others of an overnight diagnosis still end and are written.
+fn caught<T>(diagnosed: impl FnOnce() -> Result<T, String>) -> Result<T, String> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(diagnosed)).unwrap_or_else(|payload| {
+        let message = payload
+            .downcast_ref::<&str>()
+            .copied()
+            .or_else(|| payload.downcast_ref::<String>().map(String::as_str))
+            .unwrap_or("no message");
+        Err(format!(
+            "skelid failed inside the diagnosis ({message}): a bug, not the run's fault; \
+             please report it with the run and the model"
+        ))
+    })
 }
 
 /// The thread pools `jobs` threads make for `runs` runs: one per run in flight, as many as
@@ -233,9 +234,7 @@ pub fn diagnose_together(
             .map(|r| r.map_err(|e| chain(&e)))
             .collect())
     };
-    // As in `diagnose_runs`: a panic fails these runs, and the command goes on to write them.
-    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(diagnosed))
-        .unwrap_or_else(|payload| Err(panicked(payload.as_ref())));
+    let result = caught(diagnosed);
     let per_run: Vec<Result<GapRun, String>> = match result {
         Ok(r) => r,
         Err(e) => all.iter().map(|_| Err(e.clone())).collect(),

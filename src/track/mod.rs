@@ -307,13 +307,17 @@ fn check_shape(x: &[f64], fs: f64) -> Result<(), TrackError> {
 
 /// [`check_signal`]'s check that every sample is finite, naming the first that is not.
 fn check_finite(x: &[f64]) -> Result<(), TrackError> {
-    if let Some(i) = x.iter().position(|v| !v.is_finite()) {
-        return Err(TrackError::NoSignal(format!(
-            "sample {i} is {}; remove or interpolate non-finite samples first",
-            x[i]
-        )));
-    }
-    Ok(())
+    non_finite(x).map_or(Ok(()), |why| Err(TrackError::NoSignal(why)))
+}
+
+/// The first sample of `x` that is not finite, in words and with what to do ("sample 7 is
+/// NaN; remove or interpolate non-finite samples first"); `None` where every one is.
+pub(crate) fn non_finite(x: &[f64]) -> Option<String> {
+    let i = x.iter().position(|v| !v.is_finite())?;
+    Some(format!(
+        "sample {i} is {}; remove or interpolate non-finite samples first",
+        x[i]
+    ))
 }
 
 /// The mean of each bin's power and the `w − 1` before it (of all before it in the first

@@ -398,17 +398,18 @@ impl Measured {
         // the mode's state at that sample (both then have the same edge at their start).
         let (mut start, mut release) = (None, None);
         if free {
-            let settled = settled_after_impact(&run, full.mode);
+            let fs = run.meta.sample_rate;
+            let hit = impact(&run);
+            let settled = settled_after(hit, full.mode, fs);
             let (i0, state, past_spread) = release_point(&full, settled).ok_or_else(|| {
                 GapError::Unusable(format!(
                     "the measured run {}: no valid sample of the mode to start its decay from",
                     run.meta.path
                 ))
             })?;
-            let fs = run.meta.sample_rate;
             release = Some(Release {
                 at_s: i0 as f64 / fs,
-                hit_s: impact(&run) as f64 / fs,
+                hit_s: hit as f64 / fs,
                 spread_s: full.mode.map_or(0.0, |b| b.spread()),
                 past_spread,
             });
@@ -509,16 +510,13 @@ impl Measured {
 }
 
 /// The first sample a free decay may be released from: [`ModeBand::spread`] after its
-/// impact (the record's largest sample), where the band-pass has let go of it; the first
-/// sample where the mode was not isolated. Released at its envelope's peak, within that
+/// impact at sample `hit` ([`impact`]) of a record at `fs` Hz, where the band-pass has let
+/// go of it; the first sample where the mode was not isolated. Released at its envelope's peak, within that
 /// spread, the Brake–Reuss beam's weakest sensor read a damping ratio of 1.38 % at its
 /// largest amplitude, against 0.18–0.25 % on every sensor past it (README, "The
 /// Brake–Reuss beam").
-fn settled_after_impact(run: &Run, band: Option<crate::mode::ModeBand>) -> usize {
-    let Some(band) = band else {
-        return 0;
-    };
-    impact(run) + (band.spread() * run.meta.sample_rate).ceil() as usize
+fn settled_after(hit: usize, band: Option<crate::mode::ModeBand>, fs: f64) -> usize {
+    band.map_or(0, |b| hit + (b.spread() * fs).ceil() as usize)
 }
 
 /// The record's largest finite sample: a hammer test's hit.
@@ -534,7 +532,7 @@ fn impact(run: &Run) -> usize {
 /// Where a free decay's comparison starts in its record, for the user: every time the
 /// diagnosis reports (gap regions, the envelope's plot) is the record's own, from its
 /// first sample.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct Release {
     /// The first sample compared, the mode's envelope peak past the impact (s).
     pub at_s: f64,
@@ -584,7 +582,7 @@ impl Release {
 }
 
 /// Where a free decay is released from: the valid sample of its mode's largest envelope
-/// from sample `settled` on ([`settled_after_impact`]; from the record's start where no
+/// from sample `settled` on ([`settled_after`]; from the record's start where no
 /// sample past it is valid), with the mode's displacement A·cos φ and velocity A′·cos φ −
 /// A·ω·sin φ there, from the analytic signal the identification tracked.
 /// The flag is whether it lies past `settled`.
@@ -1410,16 +1408,9 @@ fn verdict(baseline: &Fitted, candidates: &[Candidate]) -> Option<usize> {
 mod tests {
     #[test]
     fn a_free_decay_is_released_one_band_pass_spread_after_its_impact() {
-        use super::settled_after_impact;
+        use super::{impact, settled_after};
         use crate::mode::{Chosen, ModeBand};
-        let mut run = crate::rig::structure_decay(
-            "/hammer/acc1",
-            &crate::rig::structure_mode(),
-            0.02,
-            0.0,
-            1,
-        )
-        .into_run();
+        let mut run = crate::rig::plain_decay();
         // A hammer's hit, the record's largest sample, 5 s in.
         let hit = 2000;
         let largest = run.output.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
@@ -1431,9 +1422,11 @@ mod tests {
             chosen: Chosen::Given,
         };
         // 1/(6 Hz · (1 − 1/1.1)) = 1.833 s at 400 Hz: 734 samples.
-        assert_eq!(settled_after_impact(&run, Some(band)), hit + 734);
+        assert_eq!(impact(&run), hit);
+        let fs = run.meta.sample_rate;
+        assert_eq!(settled_after(hit, Some(band), fs), hit + 734);
         // Where the mode was not isolated, nothing spread the impact.
-        assert_eq!(settled_after_impact(&run, None), 0);
+        assert_eq!(settled_after(hit, None, fs), 0);
     }
 
     #[test]
@@ -1442,14 +1435,7 @@ mod tests {
         use crate::backend::Backend;
         use crate::gap::Blocks;
         use crate::identify::{Identifier, IdentifyOptions};
-        let run = crate::rig::structure_decay(
-            "/hammer/acc1",
-            &crate::rig::structure_mode(),
-            0.02,
-            0.0,
-            1,
-        )
-        .into_run();
+        let run = crate::rig::plain_decay();
         // The mode isolated on its band, as `--band 6 9` does: 1.833 s of spread.
         let options = IdentifyOptions {
             mode: crate::mode::ModeChoice::Band(6.0, 9.0),
@@ -1527,14 +1513,7 @@ mod tests {
         use crate::gap::Blocks;
         use crate::identify::{Identifier, IdentifyOptions};
         // A 12 s decay (11 s as compared from its release), valid over most of it.
-        let run = crate::rig::structure_decay(
-            "/hammer/acc1",
-            &crate::rig::structure_mode(),
-            0.02,
-            0.0,
-            1,
-        )
-        .into_run();
+        let run = crate::rig::plain_decay();
         let (options, backend) = (IdentifyOptions::default(), Backend::cpu());
         let identifier = Identifier {
             options: &options,
