@@ -279,6 +279,65 @@ fn killed_batches_resume_to_the_uninterrupted_result() {
     );
 }
 
+/// One archive of 11 runs: the progress's total is 11 from the first run on (it counted
+/// the open archive as one run, 6, 7, 8, … 11). A disk that cannot hold the runs left is
+/// said once, on the terminal and in skelid.log, with the progress's `disk` figures;
+/// a disk with room says nothing.
+#[test]
+fn progress_counts_an_archives_runs_and_warns_of_a_disk_too_small() {
+    let tmp = tempfile::tempdir().unwrap();
+    let archive = campaign(tmp.path()).join("a.h5");
+    let batch = |out: &Path, free: Option<&str>| {
+        let mut c = skelid();
+        c.arg("run").arg(&archive).arg("--out").arg(out).args([
+            "--method",
+            "wavelet",
+            "--json-progress",
+        ]);
+        if let Some(bytes) = free {
+            // Pretends 1 MB free at the start: a demo run takes about 2 MB.
+            c.env("SKELID_DISK_FREE", bytes);
+        }
+        let o = c.output().expect("run skelid run");
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
+        let progress: Vec<serde_json::Value> = stderr
+            .lines()
+            .filter(|l| l.starts_with('{'))
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect();
+        (stderr, progress)
+    };
+    let short = tmp.path().join("short");
+    let (said, progress) = batch(&short, Some("1000000"));
+    assert_eq!(progress.len(), 11);
+    for p in &progress {
+        assert_eq!(p["total"], 11, "{p}");
+    }
+    let warning = "will be full before the batch ends";
+    let warnings: Vec<&str> = said.lines().filter(|l| l.contains(warning)).collect();
+    println!("{}", warnings.join("\n"));
+    assert_eq!(warnings.len(), 1, "{said}");
+    assert!(
+        warnings[0].starts_with("warning: the disk holding "),
+        "{said}"
+    );
+    let log = std::fs::read_to_string(short.join("skelid.log")).unwrap();
+    assert_eq!(log.matches(warning).count(), 1, "{log}");
+    // The figures from the eighth run on: the rate, and no more than the pretended room.
+    let last = &progress[10]["disk"];
+    println!("last progress's disk: {last}");
+    assert_eq!(last["runs_left"], 0);
+    assert!(last["per_run_bytes"].as_u64().unwrap() > 100_000, "{last}");
+    assert!(last["free_bytes"].as_u64().unwrap() <= 1_000_000, "{last}");
+    assert!(progress[..7].iter().all(|p| p["disk"].is_null()));
+
+    let roomy = tmp.path().join("roomy");
+    let (said, progress) = batch(&roomy, None);
+    assert!(!said.contains(warning), "{said}");
+    assert!(progress[10]["disk"]["free_bytes"].as_u64().unwrap() > 1_000_000);
+}
+
 #[test]
 fn three_shards_merged_equal_one_run() {
     let tmp = tempfile::tempdir().unwrap();

@@ -17,6 +17,7 @@ use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 
+pub mod disk;
 mod manifest;
 mod merge;
 pub mod reader;
@@ -197,6 +198,13 @@ pub struct Progress {
     pub suspect: usize,
     /// Results (run × method) so far whose verdict is `bad`.
     pub bad: usize,
+    /// The output disk's free bytes and what the runs left need at the batch's rate so
+    /// far; `None` for the first few runs, or where the disk cannot be asked.
+    pub disk: Option<disk::Room>,
+    /// True on the one report where the runs left were first found not to fit the disk
+    /// ([`disk::Room::warning`] says it; skelid.log has it too).
+    #[serde(skip)]
+    pub disk_short_now: bool,
 }
 
 /// What a batch produced.
@@ -274,6 +282,7 @@ pub fn run_campaigns(
     progress: &(dyn Fn(Progress) + Sync),
 ) -> Result<BatchSummary, BatchError> {
     let journal = Journal::open(out)?;
+    let disk = disk::DiskWatch::start(out);
     let settings = settings_fingerprint(&opt.methods, &opt.identify);
     let mut log = Log::open(out)?;
     log.line(&format!(
@@ -322,7 +331,7 @@ pub fn run_campaigns(
         })?;
         let drawn = &drawn;
         let writer = serial_thread(scope, "writer", || {
-            write_finished(&results, done_rx, log, counts, progress, drawn)
+            write_finished(&results, done_rx, log, counts, progress, drawn, disk)
         })?;
         // A failed send means the writer stopped on an error, which it returns; the
         // workers then stop, and the reader with them.

@@ -52,6 +52,10 @@ pub enum Frame {
         /// Groups of the archive with datasets that are not runs.
         #[serde(default)]
         not_runs: Vec<crate::ingest::NotARun>,
+        /// This shard's runs in the archive, known once it is open: the progress's total
+        /// counts them before they are read.
+        #[serde(default)]
+        runs: Option<usize>,
     },
     /// One run of this shard; samples follow when `meta` is `Ok` and it is not `placed`.
     Run {
@@ -113,15 +117,33 @@ pub struct Counts {
     pub delivered: AtomicUsize,
     /// Archives not yet finished.
     pub archives_left: AtomicUsize,
+    /// Runs of the archive being read that it announced and has not delivered yet.
+    pub announced: AtomicUsize,
+    /// 1 while an archive that announced its runs is open (it then counts by them, not as
+    /// one among `archives_left`), else 0.
+    pub open: AtomicUsize,
     /// Groups with datasets that are not runs, with their archive (as given).
     pub not_runs: std::sync::Mutex<Vec<(String, crate::ingest::NotARun)>>,
 }
 
 impl Counts {
     /// The best guess of this shard's total while reading (exact once reading is done): what
-    /// was delivered, plus one for each archive not yet read.
+    /// was delivered, the runs the open archive announced and has not delivered yet, and one
+    /// for each archive not yet opened. Before 2026-12-07 the open archive counted one too,
+    /// so a single archive of 1000 runs showed a total one ahead of the runs done all night.
     pub fn estimate(&self) -> usize {
-        self.delivered.load(Ordering::Relaxed) + self.archives_left.load(Ordering::Relaxed)
+        let unopened = self
+            .archives_left
+            .load(Ordering::Relaxed)
+            .saturating_sub(self.open.load(Ordering::Relaxed));
+        self.delivered.load(Ordering::Relaxed) + self.announced.load(Ordering::Relaxed) + unopened
+    }
+
+    /// An archive closed, read to the end or not: what it announced is no longer pending.
+    fn closed(&self) {
+        self.announced.store(0, Ordering::Relaxed);
+        self.open.store(0, Ordering::Relaxed);
+        self.archives_left.fetch_sub(1, Ordering::Relaxed);
     }
 }
 
@@ -222,7 +244,15 @@ impl<'a> Assembler<'a> {
     fn frame(&mut self, frame: Frame, samples: Option<Samples>) -> Option<Delivery> {
         let c = self.counts;
         match frame {
-            Frame::Open { archive, not_runs } => {
+            Frame::Open {
+                archive,
+                not_runs,
+                runs,
+            } => {
+                if let Some(n) = runs {
+                    c.announced.store(n, Ordering::Relaxed);
+                    c.open.store(1, Ordering::Relaxed);
+                }
                 let file = self.files[archive].display().to_string();
                 c.not_runs
                     .lock()
@@ -243,6 +273,9 @@ impl<'a> Assembler<'a> {
             } => {
                 c.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
                 c.delivered.fetch_add(1, Ordering::Relaxed);
+                let _ = c
+                    .announced
+                    .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |n| n.checked_sub(1));
                 let run = meta.and_then(|meta| {
                     let (input, output) = match placed {
                         Some(p) => crate::profile::time(Stage::Read, || {
@@ -268,7 +301,7 @@ impl<'a> Assembler<'a> {
                 match error {
                     Some(error) => Some(unreadable(c, &self.files[archive], error)),
                     None => {
-                        c.archives_left.fetch_sub(1, Ordering::Relaxed);
+                        c.closed();
                         None
                     }
                 }
@@ -307,7 +340,7 @@ impl<'a> Assembler<'a> {
 fn unreadable(counts: &Counts, file: &Path, error: String) -> Delivery {
     counts.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
     counts.delivered.fetch_add(1, Ordering::Relaxed);
-    counts.archives_left.fetch_sub(1, Ordering::Relaxed);
+    counts.closed();
     Delivery::Unreadable {
         file: file.to_path_buf(),
         error,
@@ -339,15 +372,17 @@ pub fn serve(
                 continue;
             }
         };
+        let takes = |path: &str| shard.is_none_or(|s| s.takes(archive.file_name(), path));
         let open = Frame::Open {
             archive: i,
             not_runs: archive.not_runs.clone(),
+            runs: Some(archive.runs.iter().filter(|e| takes(&e.path)).count()),
         };
         if !emit(open, None) {
             return;
         }
         for entry in &archive.runs {
-            if shard.is_some_and(|s| !s.takes(archive.file_name(), &entry.path)) {
+            if !takes(&entry.path) {
                 if !emit(Frame::Skip { archive: i }, None) {
                     return;
                 }
@@ -652,6 +687,76 @@ fn read_in_child(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An archive of `runs` runs of 1000 samples each, named `r1`, `r2`, ….
+    fn archive_of(path: &Path, runs: usize) {
+        let f = hdf5::File::create(path).unwrap();
+        let x: Vec<f64> = (0..1000).map(|i| (i as f64 * 0.03).sin()).collect();
+        for r in 1..=runs {
+            let g = f.create_group(&format!("r{r}")).unwrap();
+            g.new_attr::<f64>()
+                .create("sample_rate")
+                .unwrap()
+                .write_scalar(&1000.0)
+                .unwrap();
+            for name in ["input", "output"] {
+                g.new_dataset_builder().with_data(&x).create(name).unwrap();
+            }
+        }
+    }
+
+    /// The progress's total counts an open archive by the runs it holds, not as one: read
+    /// run by run, a single archive of many runs showed a total one ahead of the runs done.
+    /// Archives not yet opened count one each, an unreadable one included; a shard counts
+    /// only its own runs.
+    #[test]
+    fn the_total_counts_the_open_archives_runs_before_they_are_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("a.h5"), dir.path().join("b.h5"));
+        archive_of(&a, 5);
+        archive_of(&b, 3);
+        let files = [a.clone(), b.clone(), dir.path().join("missing.h5")];
+        let estimates = |shard: Option<Shard>| {
+            let counts = Counts::default();
+            let mut seen = Vec::new();
+            let options = IngestOptions::default();
+            read_all(&files, &options, shard, None, &counts, &mut |d| {
+                let source = match d {
+                    Delivery::Run { source, .. } => source,
+                    Delivery::Unreadable { file, .. } => file.display().to_string(),
+                };
+                seen.push((
+                    crate::journal::base_name(&source).to_string(),
+                    counts.estimate(),
+                ));
+                Ok(())
+            })
+            .unwrap();
+            (seen, counts.estimate())
+        };
+        let (seen, total) = estimates(None);
+        println!("{seen:?}");
+        assert_eq!(total, 9, "5 + 3 runs and the unreadable archive");
+        for (file, estimate) in &seen {
+            let expected = if file == "a.h5" { 5 + 2 } else { 9 };
+            assert_eq!(*estimate, expected, "{file}: {seen:?}");
+        }
+        let shard = Shard { index: 1, count: 2 };
+        let ours = |f: &Path, n: usize| {
+            let name = f.file_name().unwrap().to_str().unwrap();
+            (1..=n)
+                .filter(|r| shard.takes(name, &format!("/r{r}")))
+                .count()
+        };
+        let (seen, total) = estimates(Some(shard));
+        let (in_a, in_b) = (ours(&a, 5), ours(&b, 3));
+        println!("shard {shard}: {in_a} of a.h5, {in_b} of b.h5: {seen:?}");
+        assert_eq!(total, in_a + in_b + 1);
+        for (file, estimate) in &seen {
+            let expected = if file == "a.h5" { in_a + 2 } else { total };
+            assert_eq!(*estimate, expected, "{file}: {seen:?}");
+        }
+    }
 
     /// A placed run whose archive was replaced after the child read it (an export that
     /// writes a new file and renames it over the old one) is refused with the reason,

@@ -12,8 +12,10 @@ use crate::report::{write_summary, ReportError, ResultsFile, RunOutcome, Summary
 
 use super::*;
 
-/// The writer: commits each finished run, logs it and reports progress. Returns the
-/// entries, the skipped and failed counts and the log; stops at the first write error.
+/// The writer: commits each finished run, logs it and reports progress (the output disk's
+/// room included, with a warning in the log the first time the runs left do not fit).
+/// Returns the entries, the skipped and failed counts and the log; stops at the first
+/// write error.
 pub(super) fn write_finished(
     results: &ResultsFile,
     done: std::sync::mpsc::Receiver<Finished>,
@@ -21,6 +23,7 @@ pub(super) fn write_finished(
     counts: &reader::Counts,
     progress: &(dyn Fn(Progress) + Sync),
     drawn: &Drawn,
+    mut disk: disk::DiskWatch,
 ) -> Result<Written, BatchError> {
     let (mut entries, mut skipped, mut failed) = (Vec::new(), 0, 0);
     let (mut suspect, mut bad) = (0, 0);
@@ -81,13 +84,21 @@ pub(super) fn write_finished(
         bad += e.rows.iter().filter(|r| r.quality == "bad").count();
         drawn.offer(&e, plots);
         entries.push((e, dst));
+        let (done, total) = (entries.len(), counts.estimate().max(entries.len()));
+        let room = disk.room(done, total - done);
+        let short = disk.warning(room);
+        if let Some(w) = &short {
+            log.line(&format!("warning: {w}"));
+        }
         progress(Progress {
-            done: entries.len(),
-            total: counts.estimate().max(entries.len()),
+            done,
+            total,
             skipped,
             failed,
             suspect,
             bad,
+            disk: room,
+            disk_short_now: short.is_some(),
         });
     }
     Ok(Written {

@@ -103,7 +103,8 @@ pub(crate) struct RunArgs {
     #[arg(long, short)]
     pub(crate) quiet: bool,
     /// Progress as one JSON object per finished run on stderr (done, total, skipped,
-    /// failed, suspect, bad, elapsed_s), for schedulers and dashboards.
+    /// failed, suspect, bad, elapsed_s, and disk: the output disk's free bytes against
+    /// what the runs left need), for schedulers and dashboards.
     #[arg(long)]
     pub(crate) json_progress: bool,
     /// Seconds allowed to open one archive (in a child process) before it is reported failed.
@@ -364,6 +365,12 @@ pub(crate) fn identify_with_progress(
                 String::new()
             }
         ));
+        if p.disk_short_now {
+            if let Some(room) = p.disk {
+                // Above the bar, not through it; said in every mode, as other warnings are.
+                bar.suspend(|| eprintln!("warning: {}", room.warning(out)));
+            }
+        }
         if mode == ProgressMode::Json {
             let mut v = serde_json::to_value(p).unwrap_or_default();
             v["elapsed_s"] = serde_json::json!(started.elapsed().as_secs_f64());
