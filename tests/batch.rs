@@ -338,6 +338,53 @@ fn progress_counts_an_archives_runs_and_warns_of_a_disk_too_small() {
     assert!(progress[10]["disk"]["free_bytes"].as_u64().unwrap() > 1_000_000);
 }
 
+/// `--timeout` bounds one step of the reading child (opening an archive, reading a run),
+/// not a whole archive: the demo's 11 runs read 0.25 s apiece (2.75 s in all) pass a 1 s
+/// timeout whole; until 2026-12-07 the archive was cut off after about four runs as if
+/// libhdf5 had hung on it. A run that takes longer than the timeout still stops the child,
+/// and the archive is recorded unreadable with the step that hung.
+#[test]
+fn the_reading_timeout_bounds_a_step_not_a_whole_archive() {
+    let tmp = tempfile::tempdir().unwrap();
+    let archive = campaign(tmp.path()).join("a.h5");
+    let batch = |out: &Path, pause_ms: &str| {
+        let o = skelid()
+            .arg("run")
+            .arg(&archive)
+            .arg("--out")
+            .arg(out)
+            .args(["--method", "hilbert", "--quiet", "--timeout", "1"])
+            .env("SKELID_READ_PAUSE_MS", pause_ms)
+            .output()
+            .expect("run skelid run");
+        let manifest: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).unwrap())
+                .unwrap();
+        let log = std::fs::read_to_string(out.join("skelid.log")).unwrap();
+        (o, manifest["runs"].as_array().unwrap().clone(), log)
+    };
+    let slow = tmp.path().join("slow");
+    let (o, runs, log) = batch(&slow, "250");
+    assert!(!log.contains("unreadable"), "{log}");
+    assert_eq!(runs.len(), 11, "{}", String::from_utf8_lossy(&o.stderr));
+
+    let hung = tmp.path().join("hung");
+    let (o, runs, log) = batch(&hung, "3000");
+    assert_eq!(o.status.code(), Some(1), "a failed archive is a failed run");
+    let paths: Vec<&str> = runs.iter().map(|r| r["path"].as_str().unwrap()).collect();
+    assert_eq!(paths, ["/_unreadable/a.h5"], "{log}");
+    let line = log.lines().find(|l| l.contains("unreadable")).unwrap();
+    println!("{line}");
+    assert!(
+        line.contains("reading its first run of 11, the reading child went 1 s without progress"),
+        "{line}"
+    );
+    assert!(
+        !line.contains("[: "),
+        "a failure of no method names none: {line}"
+    );
+}
+
 #[test]
 fn three_shards_merged_equal_one_run() {
     let tmp = tempfile::tempdir().unwrap();

@@ -1,5 +1,5 @@
-//! The room left on the output folder's disk: how fast the batch fills it and whether its
-//! remaining runs fit. A full disk loses no run (each is committed as it finishes, and the
+//! The room left on the output folder's disk: how fast the batch fills it (by its own
+//! count of what it wrote) and whether its remaining runs fit. A full disk loses no run (each is committed as it finishes, and the
 //! same command resumes), but found at 6 am it loses the night; said early it costs a
 //! `rm`. In: the folder and the runs done and left; out: the free and needed bytes, and a
 //! warning to say once.
@@ -82,10 +82,12 @@ const CHECK_EVERY: Duration = Duration::from_secs(1);
 /// Watches the output's disk from the writer thread, run after run.
 pub struct DiskWatch {
     dir: PathBuf,
-    /// Free bytes when the batch started, and this process's pretended ones.
-    start: Option<u64>,
+    /// Bytes this process may pretend are free at most, less what the batch wrote.
     pretend: Option<u64>,
-    last: Option<(Instant, Room)>,
+    /// Bytes the batch has written so far, by its own count (other programs writing to or
+    /// deleting from the same disk do not move the rate).
+    written: u64,
+    last: Option<(Instant, u64)>,
     warned: bool,
 }
 
@@ -99,43 +101,45 @@ impl DiskWatch {
             .and_then(|v| v.trim().parse::<u64>().ok());
         DiskWatch {
             dir: dir.to_path_buf(),
-            start: free_bytes(dir),
             pretend,
+            written: 0,
             last: None,
             warned: false,
         }
     }
 
-    /// Where the disk stands after `done` runs with `left` still to come: measured again at
-    /// most once a second, `None` before the first few runs or where it cannot be read.
+    /// Counts `bytes` the batch has just written (a run's journal file, its data in
+    /// results.h5).
+    pub fn wrote(&mut self, bytes: u64) {
+        self.written = self.written.saturating_add(bytes);
+    }
+
+    /// Where the disk stands after `done` runs with `left` still to come: its free bytes
+    /// read again at most once a second, `None` before the first few runs or where the
+    /// disk cannot be asked.
     pub fn room(&mut self, done: usize, left: usize) -> Option<Room> {
         if done < RUNS_BEFORE_ESTIMATE {
             return None;
         }
-        if let Some((at, room)) = self.last {
-            if at.elapsed() < CHECK_EVERY {
-                return Some(Room {
-                    needed_bytes: room.per_run_bytes.saturating_mul(left as u64),
-                    runs_left: left,
-                    ..room
-                });
+        let free = match self.last {
+            Some((at, free)) if at.elapsed() < CHECK_EVERY => free,
+            _ => {
+                let now = free_bytes(&self.dir)?;
+                let free = match self.pretend {
+                    Some(p) => now.min(p.saturating_sub(self.written)),
+                    None => now,
+                };
+                self.last = Some((Instant::now(), free));
+                free
             }
-        }
-        let (start, now) = (self.start?, free_bytes(&self.dir)?);
-        let used = start.saturating_sub(now);
-        let free = match self.pretend {
-            Some(p) => now.min(p.saturating_sub(used)),
-            None => now,
         };
-        let per_run = used / done as u64;
-        let room = Room {
+        let per_run = self.written / done as u64;
+        Some(Room {
             free_bytes: free,
             needed_bytes: per_run.saturating_mul(left as u64),
             per_run_bytes: per_run,
             runs_left: left,
-        };
-        self.last = Some((Instant::now(), room));
-        Some(room)
+        })
     }
 
     /// The warning to say now: the first time the runs left do not fit, and never again
@@ -151,25 +155,28 @@ impl DiskWatch {
 mod tests {
     use super::*;
 
-    /// The file system's free bytes agree with `df`'s idea of them: a file written takes
-    /// them away.
+    /// The file system's free bytes are `df`'s (an independent reading of the same
+    /// statistics), within what other programs may write or delete meanwhile.
     #[test]
-    fn writing_a_file_takes_its_bytes_from_the_free_ones() {
+    fn free_bytes_are_dfs() {
         let dir = tempfile::tempdir().unwrap();
-        let before = free_bytes(dir.path()).expect("statvfs of a temporary folder");
-        assert!(before > 0);
-        let data = vec![7u8; 8 << 20];
-        std::fs::write(dir.path().join("f"), &data).unwrap();
-        let f = std::fs::File::open(dir.path().join("f")).unwrap();
-        f.sync_all().unwrap();
-        let after = free_bytes(dir.path()).unwrap();
-        println!("free {before} → {after} bytes after writing {}", data.len());
-        // Other processes share the disk: only the sign and a loose size are certain.
-        assert!(
-            before.saturating_sub(after) >= 4 << 20,
-            "{before} → {after}"
-        );
+        let ours = free_bytes(dir.path()).expect("statvfs of a temporary folder");
         assert!(free_bytes(Path::new("/no/such/folder")).is_none());
+        let Ok(out) = std::process::Command::new("df")
+            .args(["-B1", "--output=avail"])
+            .arg(dir.path())
+            .output()
+        else {
+            println!("no df here: compared with nothing");
+            return;
+        };
+        let text = String::from_utf8_lossy(&out.stdout);
+        let theirs: u64 = text.lines().nth(1).unwrap().trim().parse().unwrap();
+        println!("free: ours {ours} bytes, df's {theirs}");
+        assert!(
+            ours.abs_diff(theirs) <= (64 << 20).max(theirs / 20),
+            "{ours} against {theirs}"
+        );
     }
 
     #[test]
@@ -201,26 +208,38 @@ mod tests {
         assert_eq!(size(2_345_000_000), "2.35 GB");
     }
 
-    /// Said once, the first time the runs left do not fit; nothing before the rate is
-    /// known.
+    /// The rate is the batch's own bytes a run, whatever else happens on the disk; the
+    /// warning is said once, the first time the runs left do not fit, and nothing before
+    /// the rate is known.
     #[test]
-    fn the_warning_is_said_once() {
+    fn the_rate_is_the_batchs_own_and_the_warning_is_said_once() {
         let dir = tempfile::tempdir().unwrap();
         let mut watch = DiskWatch::start(dir.path());
-        assert_eq!(watch.room(3, 100), None, "too few runs for a rate");
-        let room = Room {
-            free_bytes: 10,
-            needed_bytes: 20,
-            per_run_bytes: 1,
-            runs_left: 20,
+        watch.pretend = Some(10_000_000);
+        for _ in 0..7 {
+            watch.wrote(1_000_000);
+        }
+        assert_eq!(watch.room(7, 100), None, "too few runs for a rate");
+        watch.wrote(1_000_000);
+        let room = watch.room(8, 5).expect("a rate after 8 runs");
+        println!("{room:?}");
+        assert_eq!(room.per_run_bytes, 1_000_000);
+        assert_eq!(room.needed_bytes, 5_000_000);
+        assert_eq!(room.free_bytes, 2_000_000, "10 MB pretended, 8 MB written");
+        assert!(room.short());
+        let roomy = Room {
+            needed_bytes: 1_000_000,
+            ..room
         };
-        assert!(watch
-            .warning(Some(Room {
-                needed_bytes: 5,
-                ..room
-            }))
-            .is_none());
+        assert!(watch.warning(Some(roomy)).is_none());
         assert!(watch.warning(Some(room)).is_some());
-        assert!(watch.warning(Some(room)).is_none());
+        assert!(watch.warning(Some(room)).is_none(), "said once");
+        // Within the second, the free bytes are not asked again; the need follows `left`.
+        watch.wrote(1_000_000);
+        let later = watch.room(9, 2).unwrap();
+        assert_eq!(
+            (later.free_bytes, later.needed_bytes),
+            (2_000_000, 2_000_000)
+        );
     }
 }

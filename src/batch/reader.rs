@@ -36,7 +36,7 @@ use serde::{Deserialize, Serialize};
 use super::Shard;
 use crate::child::ChildCommand;
 use crate::ingest::{Archive, IngestOptions, PlacedRun, Run, RunMeta};
-use crate::inspect::{crash_detail, hang_detail};
+use crate::inspect::crash_detail;
 use crate::profile::Stage;
 
 /// One message of the reader's stream.
@@ -228,6 +228,8 @@ struct Assembler<'a> {
     options: &'a IngestOptions,
     /// The archive whose placed runs are being read, kept open between its runs.
     open: Option<(usize, std::fs::File)>,
+    /// The archive being read: its runs announced (this shard's), delivered, and the last.
+    reading: Option<(Option<usize>, usize, Option<String>)>,
 }
 
 impl<'a> Assembler<'a> {
@@ -238,7 +240,31 @@ impl<'a> Assembler<'a> {
             done: 0,
             options,
             open: None,
+            reading: None,
         }
+    }
+
+    /// Why the child was stopped after `timeout` without a frame: which step hung.
+    fn hang_detail(&self, timeout: Duration) -> String {
+        let step = match &self.reading {
+            None => "opening it".to_string(),
+            Some((announced, delivered, last)) => {
+                let of = announced.map_or(String::new(), |n| format!(" of {n}"));
+                match last {
+                    None => format!("reading its first run{of}"),
+                    Some(path) => format!(
+                        "reading its run {}{of}, the one after {path}",
+                        delivered + 1
+                    ),
+                }
+            }
+        };
+        format!(
+            "{step}, the reading child went {} s without progress; libhdf5 loops on some \
+             corrupt files (a run that is very large, or a slow disk, needs a longer \
+             --timeout); the runs it had read stand, the rest of this archive is not read",
+            timeout.as_secs()
+        )
     }
 
     fn frame(&mut self, frame: Frame, samples: Option<Samples>) -> Option<Delivery> {
@@ -253,6 +279,7 @@ impl<'a> Assembler<'a> {
                     c.announced.store(n, Ordering::Relaxed);
                     c.open.store(1, Ordering::Relaxed);
                 }
+                self.reading = Some((runs, 0, None));
                 let file = self.files[archive].display().to_string();
                 c.not_runs
                     .lock()
@@ -276,6 +303,10 @@ impl<'a> Assembler<'a> {
                 let _ = c
                     .announced
                     .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |n| n.checked_sub(1));
+                if let Some((_, delivered, last)) = &mut self.reading {
+                    *delivered += 1;
+                    *last = Some(path.clone());
+                }
                 let run = meta.and_then(|meta| {
                     let (input, output) = match placed {
                         Some(p) => crate::profile::time(Stage::Read, || {
@@ -298,6 +329,7 @@ impl<'a> Assembler<'a> {
             Frame::Close { archive, error } => {
                 self.done = archive + 1;
                 self.open = None;
+                self.reading = None;
                 match error {
                     Some(error) => Some(unreadable(c, &self.files[archive], error)),
                     None => {
@@ -450,7 +482,16 @@ pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Re
         .collect();
     let mut out = std::io::BufWriter::with_capacity(FRAME_BUFFER, std::io::stdout().lock());
     let mut failure = None;
+    // `SKELID_READ_PAUSE_MS`: each run read this much slower, to rehearse `--timeout` on a
+    // slow disk (the tests use it).
+    let pause = std::env::var("SKELID_READ_PAUSE_MS")
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .map(Duration::from_millis);
     serve(&files, options, shard, true, &mut |frame, samples| {
+        if let (Some(pause), Frame::Run { .. }) = (pause, &frame) {
+            std::thread::sleep(pause);
+        }
         match write_frame(&mut out, &frame, samples.as_ref()) {
             Ok(()) => true,
             Err(e) => {
@@ -547,12 +588,13 @@ enum ChildEnd {
     Died { done: usize, detail: String },
 }
 
-/// Time the current archive has taken, not counting the time the parent spent on what the
-/// child sent (reading a placed run's samples, handing runs on): the child then waits on a
-/// full pipe through no fault of its own, or is ahead, which costs it nothing either.
+/// Time the child's current step (opening an archive, reading one run) has taken, not
+/// counting the time the parent spent on what the child sent before (reading a placed
+/// run's samples, handing runs on): the child then waits on a full pipe through no fault of
+/// its own, or is ahead, which costs it nothing either.
 struct Clock {
+    /// When the step began; `None` while the parent handles what the child sent.
     since: Option<Instant>,
-    spent: Duration,
     finished: bool,
     timed_out: bool,
 }
@@ -598,7 +640,6 @@ fn read_in_child(
     let child = Arc::new(Mutex::new(child));
     let clock = Arc::new(Mutex::new(Clock {
         since: Some(Instant::now()),
-        spent: Duration::ZERO,
         finished: false,
         timed_out: false,
     }));
@@ -610,7 +651,7 @@ fn read_in_child(
             if c.finished {
                 return;
             }
-            let running = c.spent + c.since.map_or(Duration::ZERO, |s| s.elapsed());
+            let running = c.since.map_or(Duration::ZERO, |s| s.elapsed());
             if running > timeout {
                 c.timed_out = true;
                 c.finished = true;
@@ -626,18 +667,13 @@ fn read_in_child(
     loop {
         match crate::profile::time(Stage::Read, || read_frame(&mut stdout)) {
             Ok(Some((frame, samples))) => {
-                if let Frame::Open { .. } | Frame::Close { .. } = frame {
-                    // A new archive starts its own clock.
-                    set(&|c| {
-                        c.spent = Duration::ZERO;
-                        c.since = Some(Instant::now());
-                    });
-                }
-                // What follows is the parent's own work (a placed run's samples read from
-                // the archive, the hand-over to the workers): the child's clock stands still.
-                set(&|c| {
-                    c.spent += c.since.take().map_or(Duration::ZERO, |s| s.elapsed());
-                });
+                // Every frame is progress: the next step (opening an archive, reading a
+                // run) starts a clock of its own. Until 2026-12-07 only a new archive did,
+                // so `--timeout` bounded a whole archive, and one holding a campaign of
+                // large runs was cut off part-way as if libhdf5 had hung on it. What follows
+                // is the parent's own work (a placed run's samples read from the archive,
+                // the hand-over to the workers): the clock stands still meanwhile.
+                set(&|c| c.since = None);
                 if let Some(d) = assemble.frame(frame, samples) {
                     result = deliver(d);
                 }
@@ -674,7 +710,7 @@ fn read_in_child(
         return Ok(ChildEnd::Finished);
     }
     let detail = if timed_out {
-        hang_detail(timeout)
+        assemble.hang_detail(timeout)
     } else {
         match status {
             Ok(s) => crash_detail(s, &err),

@@ -48,6 +48,7 @@ pub(super) fn write_finished(
             Finished::Skipped(e, Stored::Encoded(run), plots, placed) => {
                 let placed = placed_or_logged(placed, &e, &mut log);
                 results.write_placed_as(&run, placed.as_ref(), &dst)?;
+                disk.wrote(run.data_bytes());
                 (e, true, plots)
             }
             Finished::Skipped(e, Stored::Legacy(file), plots, _) => {
@@ -57,6 +58,8 @@ pub(super) fn write_finished(
             Finished::Committed(e, p, plots, placed) => {
                 let placed = placed_or_logged(placed, &e, &mut log);
                 results.write_placed_as(p.encoded(), placed.as_ref(), &dst)?;
+                // Twice: its journal file, and its data in results.h5.
+                disk.wrote(2 * p.encoded().data_bytes());
                 (e, false, plots)
             }
             Finished::Failed(_) => unreachable!("returned above"),
@@ -75,7 +78,11 @@ pub(super) fn write_finished(
             e.rows
                 .iter()
                 .filter(|r| !r.error.is_empty())
-                .map(|r| format!(" [{}: {}]", r.method, r.error))
+                .map(|r| match r.method.as_str() {
+                    // A whole run's or archive's failure belongs to no method.
+                    "" => format!(" [{}]", r.error),
+                    m => format!(" [{m}: {}]", r.error),
+                })
                 .collect::<String>()
         ));
         skipped += usize::from(was_skipped);

@@ -107,7 +107,9 @@ pub(crate) struct RunArgs {
     /// what the runs left need), for schedulers and dashboards.
     #[arg(long)]
     pub(crate) json_progress: bool,
-    /// Seconds allowed to open one archive (in a child process) before it is reported failed.
+    /// Seconds the reading child (a process of its own, since libhdf5 hangs on some corrupt
+    /// files) may spend on one step, opening an archive or reading one of its runs, before
+    /// the archive is reported failed; the runs it had read stand.
     #[arg(long, default_value_t = 300, value_name = "S",
           value_parser = clap::value_parser!(u64).range(1..))]
     pub(crate) timeout: u64,

@@ -173,6 +173,22 @@ impl EncodedRun {
         }
     }
 
+    /// Bytes of its datasets as stored (compressed chunks, plain values): what one copy of
+    /// the run takes on disk, but for a few kB of names and headers.
+    pub fn data_bytes(&self) -> u64 {
+        let stored = |s: &Storage| match s {
+            Storage::Plain(v) => (v.len() * 8) as u64,
+            Storage::Chunked { chunks, .. } => chunks.iter().map(|c| c.len() as u64).sum(),
+        };
+        self.items
+            .iter()
+            .map(|i| match i {
+                Item::Dataset(d) => stored(&d.storage),
+                _ => 0,
+            })
+            .sum()
+    }
+
     /// Drops the kept copies of the compressed datasets (the run reads its chunks from
     /// then on): for a run that waits in a queue after its plots are drawn.
     pub fn forget_kept(&mut self) {
