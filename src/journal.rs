@@ -174,6 +174,9 @@ pub struct Prepared {
     path: String,
     source: String,
     failed: bool,
+    /// Bytes the journal grew by when the run was committed: its file, less the file of
+    /// the same key it replaced (`--force`).
+    journal_growth: u64,
 }
 
 impl Prepared {
@@ -192,6 +195,11 @@ impl Prepared {
         &self.encoded
     }
 
+    /// Bytes the journal grew by when the run was committed (0 before).
+    pub fn journal_growth(&self) -> u64 {
+        self.journal_growth
+    }
+
     /// Drops the encoded run's kept copies of its datasets (see [`EncodedRun::forget_kept`]).
     pub fn forget_kept(&mut self) {
         self.encoded.forget_kept();
@@ -205,6 +213,7 @@ impl Prepared {
             path: outcome.path.clone(),
             source: outcome.source.clone(),
             failed: outcome.status() == Status::Failed,
+            journal_growth: 0,
         }
     }
 }
@@ -310,7 +319,7 @@ impl Journal {
     /// call (the batch's workers commit in parallel), written beside and renamed, so the
     /// file is whole or absent. Gives the entry back with the prepared run, which the
     /// writer then puts into results.h5.
-    pub fn commit(&self, key: &str, run: Prepared) -> Result<(Entry, Prepared), ReportError> {
+    pub fn commit(&self, key: &str, mut run: Prepared) -> Result<(Entry, Prepared), ReportError> {
         let f = self.dir.join(format!("{key}.run"));
         let err = |detail: String| ReportError {
             file: f.display().to_string(),
@@ -323,7 +332,9 @@ impl Journal {
             summary: serde_json::to_string(&run.rows).map_err(|e| err(e.to_string()))?,
         };
         let bytes = encode(&head, &run.encoded).map_err(err)?;
+        let replaced = std::fs::metadata(&f).map_or(0, |m| m.len());
         crate::report::write_atomic_released(&f, &bytes)?;
+        run.journal_growth = (bytes.len() as u64).saturating_sub(replaced);
         let entry = Entry {
             key: key.to_string(),
             path: run.path.clone(),
@@ -471,6 +482,7 @@ mod tests {
             path: path.into(),
             source: "bench.h5".into(),
             failed: false,
+            journal_growth: 0,
         }
     }
 
@@ -480,8 +492,20 @@ mod tests {
         let journal = Journal::open(dir.path()).unwrap();
         let run = prepared("/runs/r1");
         let want = run.encoded.clone();
-        let (entry, _) = journal.commit("k1", run).unwrap();
+        let (entry, committed) = journal.commit("k1", run).unwrap();
         assert!(journal.file("k1").ends_with("runs/k1.run"));
+        let len = std::fs::metadata(journal.file("k1")).unwrap().len();
+        assert_eq!(
+            committed.journal_growth(),
+            len,
+            "a new file grows it by its length"
+        );
+        let (_, again) = journal.commit("k1", prepared("/runs/r1")).unwrap();
+        assert_eq!(
+            again.journal_growth(),
+            0,
+            "the same file replaced (--force)"
+        );
         let (loaded, stored) = journal.load("k1").expect("committed");
         assert_eq!(
             (loaded.path.as_str(), loaded.source.as_str()),

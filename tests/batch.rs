@@ -289,10 +289,14 @@ fn progress_counts_an_archives_runs_and_warns_of_a_disk_too_small() {
     let archive = campaign(tmp.path()).join("a.h5");
     let batch = |out: &Path, free: Option<&str>| {
         let mut c = skelid();
+        // One worker: the reader is then still in the archive when the first runs end
+        // (with a worker a core, a many-core machine would read all 11 first).
         c.arg("run").arg(&archive).arg("--out").arg(out).args([
             "--method",
             "wavelet",
             "--json-progress",
+            "--jobs",
+            "1",
         ]);
         if let Some(bytes) = free {
             // Pretends 1 MB free at the start: a demo run takes about 2 MB.
@@ -315,7 +319,10 @@ fn progress_counts_an_archives_runs_and_warns_of_a_disk_too_small() {
         assert_eq!(p["total"], 11, "{p}");
     }
     let warning = "will be full before the batch ends";
-    let warnings: Vec<&str> = said.lines().filter(|l| l.contains(warning)).collect();
+    let warnings: Vec<&str> = said
+        .lines()
+        .filter(|l| l.starts_with("warning: ") && l.contains(warning))
+        .collect();
     println!("{}", warnings.join("\n"));
     assert_eq!(warnings.len(), 1, "{said}");
     assert!(
@@ -331,6 +338,16 @@ fn progress_counts_an_archives_runs_and_warns_of_a_disk_too_small() {
     assert!(last["per_run_bytes"].as_u64().unwrap() > 100_000, "{last}");
     assert!(last["free_bytes"].as_u64().unwrap() <= 1_000_000, "{last}");
     assert!(progress[..7].iter().all(|p| p["disk"].is_null()));
+    assert!(!progress[7]["disk"].is_null(), "from the eighth run");
+    let keyed: Vec<&serde_json::Value> = progress
+        .iter()
+        .filter(|p| p.get("disk_warning").is_some())
+        .collect();
+    assert_eq!(keyed.len(), 1, "the warning in the JSON too, once");
+    assert_eq!(
+        keyed[0]["disk_warning"].as_str(),
+        Some(&warnings[0]["warning: ".len()..])
+    );
 
     let roomy = tmp.path().join("roomy");
     let (said, progress) = batch(&roomy, None);
@@ -339,7 +356,7 @@ fn progress_counts_an_archives_runs_and_warns_of_a_disk_too_small() {
 }
 
 /// `--timeout` bounds one step of the reading child (opening an archive, reading a run),
-/// not a whole archive: the demo's 11 runs read 0.25 s apiece (2.75 s in all) pass a 1 s
+/// not a whole archive: the demo's 11 runs read 0.5 s apiece (5.5 s in all) pass a 2 s
 /// timeout whole; until 2026-12-07 the archive was cut off after about four runs as if
 /// libhdf5 had hung on it. A run that takes longer than the timeout still stops the child,
 /// and the archive is recorded unreadable with the step that hung.
@@ -353,7 +370,7 @@ fn the_reading_timeout_bounds_a_step_not_a_whole_archive() {
             .arg(&archive)
             .arg("--out")
             .arg(out)
-            .args(["--method", "hilbert", "--quiet", "--timeout", "1"])
+            .args(["--method", "hilbert", "--quiet", "--timeout", "2"])
             .env("SKELID_READ_PAUSE_MS", pause_ms)
             .output()
             .expect("run skelid run");
@@ -364,24 +381,82 @@ fn the_reading_timeout_bounds_a_step_not_a_whole_archive() {
         (o, manifest["runs"].as_array().unwrap().clone(), log)
     };
     let slow = tmp.path().join("slow");
-    let (o, runs, log) = batch(&slow, "250");
+    let (o, runs, log) = batch(&slow, "500");
     assert!(!log.contains("unreadable"), "{log}");
     assert_eq!(runs.len(), 11, "{}", String::from_utf8_lossy(&o.stderr));
 
     let hung = tmp.path().join("hung");
-    let (o, runs, log) = batch(&hung, "3000");
+    let (o, runs, log) = batch(&hung, "6000");
     assert_eq!(o.status.code(), Some(1), "a failed archive is a failed run");
     let paths: Vec<&str> = runs.iter().map(|r| r["path"].as_str().unwrap()).collect();
     assert_eq!(paths, ["/_unreadable/a.h5"], "{log}");
     let line = log.lines().find(|l| l.contains("unreadable")).unwrap();
     println!("{line}");
     assert!(
-        line.contains("reading its first run of 11, the reading child went 1 s without progress"),
+        line.contains("reading its first run of 11, the reading child went 2 s without progress"),
         "{line}"
     );
     assert!(
         !line.contains("[: "),
         "a failure of no method names none: {line}"
+    );
+}
+
+/// A memory budget smaller than two runs holds the second back: the runs go one at a time
+/// on two workers, the log and the terminal say so, and the results are those of the batch
+/// without a bound. A budget of no bytes, or not a number, is refused before anything runs.
+#[test]
+fn a_memory_budget_holds_runs_back_and_changes_no_result() {
+    let tmp = tempfile::tempdir().unwrap();
+    let archive = campaign(tmp.path()).join("a.h5");
+    let batch = |out: &Path, extra: &[&str]| {
+        skelid()
+            .arg("run")
+            .arg(&archive)
+            .arg("--out")
+            .arg(out)
+            .args(["--method", "hilbert", "--quiet", "--jobs", "2"])
+            .args(extra)
+            .output()
+            .expect("run skelid run")
+    };
+    let free = tmp.path().join("free");
+    let o = batch(&free, &[]);
+    // The demo's run without relative motion fails by Hilbert alone: exit status 1.
+    let status = o.status.code();
+    assert!(
+        matches!(status, Some(0 | 1)),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(!String::from_utf8_lossy(&o.stderr).contains("waited for memory"));
+    // 10 MB: a demo run (30 000 samples) is estimated at about 18 MB, so each runs alone.
+    let held = tmp.path().join("held");
+    let o = batch(&held, &["--memory", "0.01"]);
+    let said = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), status, "{said}");
+    println!("{said}");
+    assert!(
+        // How many waited depends on whether the reader came before the worker was done.
+        said.contains("run(s) waited for memory, so at most 1 were in flight at once"),
+        "{said}"
+    );
+    let log = std::fs::read_to_string(held.join("skelid.log")).unwrap();
+    assert!(
+        log.contains("memory: the runs in flight may take 10.0 MB together (--memory)"),
+        "{log}"
+    );
+    assert!(log.contains("at most 1 were in flight at once"), "{log}");
+    assert_same_rows(&summary_rows(&free), &summary_rows(&held));
+    for bad in ["0", "-1", "lots"] {
+        let o = batch(&tmp.path().join("bad"), &["--memory", bad]);
+        let said = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{said}");
+        assert!(said.contains("--memory takes the gigabytes"), "{said}");
+    }
+    assert!(
+        !tmp.path().join("bad").exists(),
+        "nothing written for a refused option"
     );
 }
 

@@ -182,6 +182,17 @@ pub fn keep_freed_memory() -> Option<String> {
     })
 }
 
+/// Gives the pages of every freed block back to the kernel, in every thread's arena
+/// (glibc's `malloc_trim`): after a run far larger than the next, whose memory the arenas
+/// would otherwise keep. Elsewhere than glibc, nothing.
+pub fn give_freed_memory_back() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only returns free memory; it takes glibc's arena locks itself.
+    unsafe {
+        libc::malloc_trim(0);
+    }
+}
+
 /// The environment variable that leaves glibc's malloc at its defaults.
 const MALLOC_ENV: &str = "SKELID_MALLOC";
 

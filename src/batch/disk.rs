@@ -1,8 +1,8 @@
 //! The room left on the output folder's disk: how fast the batch fills it (by its own
-//! count of what it wrote) and whether its remaining runs fit. A full disk loses no run (each is committed as it finishes, and the
-//! same command resumes), but found at 6 am it loses the night; said early it costs a
-//! `rm`. In: the folder and the runs done and left; out: the free and needed bytes, and a
-//! warning to say once.
+//! count of what it wrote) and whether its remaining runs fit. A full disk loses no run
+//! (each is committed as it finishes, and the same command resumes), but found at 6 am it
+//! loses the night; said early it costs a `rm`. In: the folder and the runs done and left;
+//! out: the free and needed bytes, and a warning to say once.
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -74,7 +74,8 @@ pub fn size(bytes: u64) -> String {
     }
 }
 
-/// Runs to finish before the rate is trusted (the first few include the files' headers).
+/// Runs to finish before the rate is trusted: the first ones may not be typical (a failed
+/// or unreadable run stores little).
 const RUNS_BEFORE_ESTIMATE: usize = 8;
 /// At most one `statvfs` this often (on NFS it is a round trip to the server).
 const CHECK_EVERY: Duration = Duration::from_secs(1);
@@ -82,11 +83,15 @@ const CHECK_EVERY: Duration = Duration::from_secs(1);
 /// Watches the output's disk from the writer thread, run after run.
 pub struct DiskWatch {
     dir: PathBuf,
-    /// Bytes this process may pretend are free at most, less what the batch wrote.
+    /// Bytes this process pretends were free at most at the start (`SKELID_DISK_FREE`).
     pretend: Option<u64>,
-    /// Bytes the batch has written so far, by its own count (other programs writing to or
-    /// deleting from the same disk do not move the rate).
+    /// Bytes the batch has written so far, by its own count, so that other programs
+    /// writing to or deleting from the same disk do not move the rate.
     written: u64,
+    /// What the runs done so far would have cost done now: a run found committed would
+    /// also have written its journal file.
+    cost: u64,
+    /// The last `statvfs` reading and when it was taken.
     last: Option<(Instant, u64)>,
     warned: bool,
 }
@@ -103,37 +108,40 @@ impl DiskWatch {
             dir: dir.to_path_buf(),
             pretend,
             written: 0,
+            cost: 0,
             last: None,
             warned: false,
         }
     }
 
-    /// Counts `bytes` the batch has just written (a run's journal file, its data in
-    /// results.h5).
-    pub fn wrote(&mut self, bytes: u64) {
+    /// Counts a finished run: the `bytes` the batch has just written for it, and the
+    /// bytes it would have cost had it been identified now (`cost`).
+    pub fn wrote(&mut self, bytes: u64, cost: u64) {
         self.written = self.written.saturating_add(bytes);
+        self.cost = self.cost.saturating_add(cost);
     }
 
-    /// Where the disk stands after `done` runs with `left` still to come: its free bytes
-    /// read again at most once a second, `None` before the first few runs or where the
-    /// disk cannot be asked.
+    /// Where the disk stands after `done` runs with `left` still to come, `None` before the
+    /// first few runs or where the disk cannot be asked. The runs still in the workers'
+    /// hands may have written some of their bytes already: those count against the free
+    /// bytes and again in the need, so the need is high by up to about two runs a worker.
     pub fn room(&mut self, done: usize, left: usize) -> Option<Room> {
         if done < RUNS_BEFORE_ESTIMATE {
             return None;
         }
-        let free = match self.last {
+        let now = match self.last {
             Some((at, free)) if at.elapsed() < CHECK_EVERY => free,
             _ => {
-                let now = free_bytes(&self.dir)?;
-                let free = match self.pretend {
-                    Some(p) => now.min(p.saturating_sub(self.written)),
-                    None => now,
-                };
+                let free = free_bytes(&self.dir)?;
                 self.last = Some((Instant::now(), free));
                 free
             }
         };
-        let per_run = self.written / done as u64;
+        let free = match self.pretend {
+            Some(p) => now.min(p.saturating_sub(self.written)),
+            None => now,
+        };
+        let per_run = self.cost / done as u64;
         Some(Room {
             free_bytes: free,
             needed_bytes: per_run.saturating_mul(left as u64),
@@ -162,16 +170,22 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let ours = free_bytes(dir.path()).expect("statvfs of a temporary folder");
         assert!(free_bytes(Path::new("/no/such/folder")).is_none());
-        let Ok(out) = std::process::Command::new("df")
+        let out = std::process::Command::new("df")
             .args(["-B1", "--output=avail"])
             .arg(dir.path())
-            .output()
+            .output();
+        let text = match &out {
+            Ok(o) if o.status.success() => String::from_utf8_lossy(&o.stdout).into_owned(),
+            _ => String::new(),
+        };
+        let Some(theirs) = text
+            .lines()
+            .nth(1)
+            .and_then(|l| l.trim().parse::<u64>().ok())
         else {
-            println!("no df here: compared with nothing");
+            println!("no GNU df here: compared with nothing");
             return;
         };
-        let text = String::from_utf8_lossy(&out.stdout);
-        let theirs: u64 = text.lines().nth(1).unwrap().trim().parse().unwrap();
         println!("free: ours {ours} bytes, df's {theirs}");
         assert!(
             ours.abs_diff(theirs) <= (64 << 20).max(theirs / 20),
@@ -179,6 +193,7 @@ mod tests {
         );
     }
 
+    /// The warning names the folder, the rate, the need and the room, in decimal units.
     #[test]
     fn the_warning_says_the_rate_the_need_and_the_room() {
         let room = Room {
@@ -208,24 +223,29 @@ mod tests {
         assert_eq!(size(2_345_000_000), "2.35 GB");
     }
 
-    /// The rate is the batch's own bytes a run, whatever else happens on the disk; the
-    /// warning is said once, the first time the runs left do not fit, and nothing before
-    /// the rate is known.
+    /// The rate is the batch's own bytes a run, whatever else happens on the disk, with a
+    /// run found committed costed as if done now; the warning is said once, the first time
+    /// the runs left do not fit, and nothing before the rate is known.
     #[test]
     fn the_rate_is_the_batchs_own_and_the_warning_is_said_once() {
         let dir = tempfile::tempdir().unwrap();
         let mut watch = DiskWatch::start(dir.path());
         watch.pretend = Some(10_000_000);
-        for _ in 0..7 {
-            watch.wrote(1_000_000);
+        for _ in 0..6 {
+            watch.wrote(1_000_000, 1_000_000);
         }
+        // A run found committed: half a new one's bytes written, a whole one's cost.
+        watch.wrote(500_000, 1_000_000);
         assert_eq!(watch.room(7, 100), None, "too few runs for a rate");
-        watch.wrote(1_000_000);
+        watch.wrote(1_000_000, 1_000_000);
         let room = watch.room(8, 5).expect("a rate after 8 runs");
         println!("{room:?}");
         assert_eq!(room.per_run_bytes, 1_000_000);
         assert_eq!(room.needed_bytes, 5_000_000);
-        assert_eq!(room.free_bytes, 2_000_000, "10 MB pretended, 8 MB written");
+        assert_eq!(
+            room.free_bytes, 2_500_000,
+            "10 MB pretended, 7.5 MB written"
+        );
         assert!(room.short());
         let roomy = Room {
             needed_bytes: 1_000_000,
@@ -234,12 +254,12 @@ mod tests {
         assert!(watch.warning(Some(roomy)).is_none());
         assert!(watch.warning(Some(room)).is_some());
         assert!(watch.warning(Some(room)).is_none(), "said once");
-        // Within the second, the free bytes are not asked again; the need follows `left`.
-        watch.wrote(1_000_000);
+        // The bytes written since the last reading of the disk count at once.
+        watch.wrote(1_000_000, 1_000_000);
         let later = watch.room(9, 2).unwrap();
         assert_eq!(
             (later.free_bytes, later.needed_bytes),
-            (2_000_000, 2_000_000)
+            (1_500_000, 2_000_000)
         );
     }
 }

@@ -143,5 +143,6 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         runs: entries.len(),
         skipped: 0,
         not_runs: manifest.not_runs.clone(),
+        memory_held_back: None,
     })
 }

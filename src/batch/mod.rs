@@ -19,6 +19,7 @@ use rayon::prelude::*;
 
 pub mod disk;
 mod manifest;
+pub mod memory;
 mod merge;
 pub mod reader;
 mod worker;
@@ -140,7 +141,8 @@ pub enum Isolation<'a> {
         /// The reader child's command (its hidden command with the ingest options and the
         /// shard, built by the front end; the archives go on its stdin).
         command: &'a crate::child::ChildCommand,
-        /// Time allowed per archive.
+        /// Time one step of the reading child may take (opening an archive, reading one
+        /// run) before the archive is recorded unreadable.
         timeout: Duration,
     },
 }
@@ -166,6 +168,9 @@ pub struct BatchOptions<'a> {
     pub backend: &'a Backend,
     /// Each run's figures written as files too (`None`: only report.html draws them).
     pub figures: Option<Figures>,
+    /// Bytes the runs in flight may take together (`None`: three quarters of the memory
+    /// available when the batch starts; see [`memory`]).
+    pub memory: Option<u64>,
 }
 
 /// Where and how a batch writes each run's figures: `DIR/ARCHIVE/RUN/NN-title.EXT`
@@ -222,6 +227,9 @@ pub struct BatchSummary {
     pub skipped: usize,
     /// Groups of the inputs that hold datasets but are not runs (other dataset names).
     pub not_runs: Vec<GroupNotRun>,
+    /// Where the memory budget held runs back, what it did (the batch then ran fewer runs
+    /// at once than `--jobs`).
+    pub memory_held_back: Option<memory::Usage>,
 }
 
 /// Where a worker put a run's data in results.h5: `Ok(None)` where it put none (no placer,
@@ -310,12 +318,36 @@ pub fn run_campaigns(
             detail: e.to_string(),
         })?;
     let counts = reader::Counts::default();
+    let (budget, budget_from) = match opt.memory {
+        Some(m) => (memory::Budget::new(m, jobs), "--memory"),
+        None => match memory::available_bytes() {
+            Some(a) => (
+                memory::Budget::new(a / 4 * 3, jobs),
+                "three quarters of what was available",
+            ),
+            None => (
+                memory::Budget::new(u64::MAX, jobs),
+                "not known here: no bound",
+            ),
+        },
+    };
+    if budget.limit() < u64::MAX {
+        log.line(&format!(
+            "memory: the runs in flight may take {} together ({budget_from}); a run of n \
+             samples takes about {} + n × {} B",
+            disk::size(budget.limit()),
+            disk::size(memory::run_bytes(0, &opt.methods)),
+            memory::run_bytes(1, &opt.methods) - memory::run_bytes(0, &opt.methods),
+        ));
+    }
     let isolate = match opt.isolation {
         Isolation::Child { command, timeout } => Some((command, timeout)),
         Isolation::None => None,
     };
-    // A worker holds one run, the queues one run per worker each: about 3 × jobs runs.
-    let (work_tx, work_rx) = std::sync::mpsc::sync_channel::<reader::Delivery>(jobs);
+    // A worker holds one run, the queues one run per worker each: about 3 × jobs runs,
+    // and those the reader admits within the memory budget.
+    let (work_tx, work_rx) =
+        std::sync::mpsc::sync_channel::<(reader::Delivery, memory::Admission<'_>)>(jobs);
     let (done_tx, done_rx) = std::sync::mpsc::sync_channel::<Finished>(jobs);
     let record = settings_record(&opt.methods, &opt.identify, ingest);
     let results = ResultsFile::create(out, journal.has_legacy_files())?;
@@ -323,10 +355,17 @@ pub fn run_campaigns(
     let placer = results.placer();
     let drawn = Drawn::new(opt.report_runs);
     let written = std::thread::scope(|scope| {
-        let counts = &counts;
+        let (counts, budget) = (&counts, &budget);
         serial_thread(scope, "reader", move || {
             reader::read_all(files, ingest, opt.shard, isolate, counts, &mut |d| {
-                work_tx.send(d).map_err(|_| reader::Stopped)
+                let samples = match &d {
+                    reader::Delivery::Run { run, .. } => {
+                        run.as_ref().as_ref().map_or(0, |r| r.output.len())
+                    }
+                    reader::Delivery::Unreadable { .. } => 0,
+                };
+                let admitted = budget.admit(memory::run_bytes(samples, &opt.methods));
+                work_tx.send((d, admitted)).map_err(|_| reader::Stopped)
             })
         })?;
         let drawn = &drawn;
@@ -336,10 +375,16 @@ pub fn run_campaigns(
         // A failed send means the writer stopped on an error, which it returns; the
         // workers then stop, and the reader with them.
         let _ = pool.install(|| {
-            work_rx.into_iter().par_bridge().try_for_each(|d| {
-                let finished = prepare(d, &journal, &settings, opt, drawn, placer.as_ref());
-                done_tx.send(finished).map_err(|_| ())
-            })
+            work_rx
+                .into_iter()
+                .par_bridge()
+                .try_for_each(|(d, admitted)| {
+                    let finished = prepare(d, &journal, &settings, opt, drawn, placer.as_ref());
+                    // The run's working set is gone; its encoded results (about a sixth of it)
+                    // wait for the writer.
+                    drop(admitted);
+                    done_tx.send(finished).map_err(|_| ())
+                })
         });
         drop(done_tx);
         writer.join().expect("the writer does not panic")
@@ -425,6 +470,11 @@ pub fn run_campaigns(
          of the {ran_s:.2} s it ran ({:.0} %); near 100 % it, not the cores, sets the pace",
         100.0 * busy_s / ran_s.max(1e-9)
     ));
+    let usage = budget.usage();
+    let memory_held_back = (usage.waits > 0).then_some(usage);
+    if let Some(u) = memory_held_back {
+        log.line(&format!("memory: {}", memory::held_back(&u)));
+    }
     log.line(&format!(
         "end: {total} run(s), {failed} failed, {skipped} skipped; wrote {} and the summaries, report and manifest in {:.2} s",
         results.display(),
@@ -437,6 +487,7 @@ pub fn run_campaigns(
         runs: total,
         skipped,
         not_runs,
+        memory_held_back,
     })
 }
 

@@ -115,36 +115,58 @@ pub struct Counts {
     pub runs_in_inputs: AtomicUsize,
     /// Deliveries of this shard so far.
     pub delivered: AtomicUsize,
-    /// Archives not yet finished.
-    pub archives_left: AtomicUsize,
-    /// Runs of the archive being read that it announced and has not delivered yet.
+    /// This shard's runs known so far: an archive not yet opened counts one, an opened one
+    /// the runs it announced, one the reading child died in the runs it delivered and one
+    /// for its failure. Each change is one atomic step, so no reading falls between two
+    /// halves of an update (a total one too high for a moment).
+    pub known: AtomicUsize,
+    /// Archives neither opened nor found unreadable yet.
+    pub unopened: AtomicUsize,
+    /// Archives opened, and the runs of this shard they announced together.
+    pub opened: AtomicUsize,
+    /// See [`opened`](Self::opened).
     pub announced: AtomicUsize,
-    /// 1 while an archive that announced its runs is open (it then counts by them, not as
-    /// one among `archives_left`), else 0.
-    pub open: AtomicUsize,
     /// Groups with datasets that are not runs, with their archive (as given).
     pub not_runs: std::sync::Mutex<Vec<(String, crate::ingest::NotARun)>>,
 }
 
 impl Counts {
-    /// The best guess of this shard's total while reading (exact once reading is done): what
-    /// was delivered, the runs the open archive announced and has not delivered yet, and one
-    /// for each archive not yet opened. Before 2026-12-07 the open archive counted one too,
-    /// so a single archive of 1000 runs showed a total one ahead of the runs done all night.
+    /// The best guess of this shard's total while reading, exact once every archive is
+    /// open: the runs known ([`known`](Self::known)), with each archive not yet opened
+    /// counted at the mean of those opened. Before 2026-12-07 the archive being read counted
+    /// one, so one archive of 1000 runs showed a total one ahead of the runs done all night,
+    /// and ten of 100 runs a total of 109 while the first was read.
     pub fn estimate(&self) -> usize {
-        let unopened = self
-            .archives_left
+        let known = self
+            .known
             .load(Ordering::Relaxed)
-            .saturating_sub(self.open.load(Ordering::Relaxed));
-        self.delivered.load(Ordering::Relaxed) + self.announced.load(Ordering::Relaxed) + unopened
+            .max(self.delivered.load(Ordering::Relaxed));
+        let opened = self.opened.load(Ordering::Relaxed);
+        if opened == 0 {
+            return known;
+        }
+        let mean = self.announced.load(Ordering::Relaxed) as f64 / opened as f64;
+        let unopened = self.unopened.load(Ordering::Relaxed) as f64;
+        known + (unopened * (mean - 1.0)).round().max(0.0) as usize
     }
 
-    /// An archive closed, read to the end or not: what it announced is no longer pending.
-    fn closed(&self) {
-        self.announced.store(0, Ordering::Relaxed);
-        self.open.store(0, Ordering::Relaxed);
-        self.archives_left.fetch_sub(1, Ordering::Relaxed);
+    /// Adds `by` (which may be negative) to the runs known, in one step.
+    fn know(&self, by: i64) {
+        let _ = self
+            .known
+            .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |k| {
+                Some((k as i64 + by).max(0) as usize)
+            });
     }
+}
+
+/// The archive a reading child is in: the runs it announced (this shard's), those it has
+/// delivered, and the last one's path.
+#[derive(Debug, Clone, Default)]
+struct Reading {
+    announced: Option<usize>,
+    delivered: usize,
+    last: Option<String>,
 }
 
 /// Why the reader stopped early: the consumer went away.
@@ -153,8 +175,9 @@ pub struct Stopped;
 
 /// Reads `files` in order and calls `deliver` for each run and each unreadable archive;
 /// stops early when `deliver` says so. `isolate`: the executable to run the reading child
-/// of and the time an archive may take (not counting the parent's own handling of what it
-/// sent: a placed run's read, and the time `deliver` blocks).
+/// of and the time one step of it may take, opening an archive or reading a run (not
+/// counting the parent's own handling of what it sent: a placed run's read, and the time
+/// `deliver` blocks).
 pub fn read_all(
     files: &[PathBuf],
     options: &IngestOptions,
@@ -163,7 +186,8 @@ pub fn read_all(
     counts: &Counts,
     deliver: &mut dyn FnMut(Delivery) -> Result<(), Stopped>,
 ) -> Result<(), Stopped> {
-    counts.archives_left.store(files.len(), Ordering::Relaxed);
+    counts.known.store(files.len(), Ordering::Relaxed);
+    counts.unopened.store(files.len(), Ordering::Relaxed);
     if let Some((command, timeout)) = isolate {
         let mut next = 0;
         while next < files.len() {
@@ -173,7 +197,11 @@ pub fn read_all(
                 ChildEnd::NotStarted => {
                     return read_in_process(&files[next..], options, shard, counts, deliver)
                 }
-                ChildEnd::Died { done, detail } => {
+                ChildEnd::Died {
+                    done,
+                    detail,
+                    reading,
+                } => {
                     next += done;
                     let file = &files[next];
                     let e = crate::ingest::IngestError::Corrupt {
@@ -181,7 +209,7 @@ pub fn read_all(
                         run: None,
                         detail,
                     };
-                    deliver(unreadable(counts, file, e.to_string()))?;
+                    deliver(unreadable(counts, file, e.to_string(), reading.as_ref()))?;
                     next += 1;
                 }
             }
@@ -228,8 +256,8 @@ struct Assembler<'a> {
     options: &'a IngestOptions,
     /// The archive whose placed runs are being read, kept open between its runs.
     open: Option<(usize, std::fs::File)>,
-    /// The archive being read: its runs announced (this shard's), delivered, and the last.
-    reading: Option<(Option<usize>, usize, Option<String>)>,
+    /// The archive being read, once its child has opened it.
+    reading: Option<Reading>,
 }
 
 impl<'a> Assembler<'a> {
@@ -248,13 +276,16 @@ impl<'a> Assembler<'a> {
     fn hang_detail(&self, timeout: Duration) -> String {
         let step = match &self.reading {
             None => "opening it".to_string(),
-            Some((announced, delivered, last)) => {
-                let of = announced.map_or(String::new(), |n| format!(" of {n}"));
-                match last {
+            Some(r) if r.announced == Some(r.delivered) => {
+                format!("closing it after its {} run(s)", r.delivered)
+            }
+            Some(r) => {
+                let of = r.announced.map_or(String::new(), |n| format!(" of {n}"));
+                match &r.last {
                     None => format!("reading its first run{of}"),
                     Some(path) => format!(
                         "reading its run {}{of}, the one after {path}",
-                        delivered + 1
+                        r.delivered + 1
                     ),
                 }
             }
@@ -275,11 +306,18 @@ impl<'a> Assembler<'a> {
                 not_runs,
                 runs,
             } => {
+                // The archive's one among the runs known becomes its runs (the child always
+                // announces them; an archive that did not would count one until read).
+                c.unopened.fetch_sub(1, Ordering::Relaxed);
                 if let Some(n) = runs {
-                    c.announced.store(n, Ordering::Relaxed);
-                    c.open.store(1, Ordering::Relaxed);
+                    c.know(n as i64 - 1);
+                    c.opened.fetch_add(1, Ordering::Relaxed);
+                    c.announced.fetch_add(n, Ordering::Relaxed);
                 }
-                self.reading = Some((runs, 0, None));
+                self.reading = Some(Reading {
+                    announced: runs,
+                    ..Reading::default()
+                });
                 let file = self.files[archive].display().to_string();
                 c.not_runs
                     .lock()
@@ -300,12 +338,9 @@ impl<'a> Assembler<'a> {
             } => {
                 c.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
                 c.delivered.fetch_add(1, Ordering::Relaxed);
-                let _ = c
-                    .announced
-                    .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |n| n.checked_sub(1));
-                if let Some((_, delivered, last)) = &mut self.reading {
-                    *delivered += 1;
-                    *last = Some(path.clone());
+                if let Some(r) = &mut self.reading {
+                    r.delivered += 1;
+                    r.last = Some(path.clone());
                 }
                 let run = meta.and_then(|meta| {
                     let (input, output) = match placed {
@@ -330,13 +365,7 @@ impl<'a> Assembler<'a> {
                 self.done = archive + 1;
                 self.open = None;
                 self.reading = None;
-                match error {
-                    Some(error) => Some(unreadable(c, &self.files[archive], error)),
-                    None => {
-                        c.closed();
-                        None
-                    }
-                }
+                error.map(|error| unreadable(c, &self.files[archive], error, None))
             }
         }
     }
@@ -368,11 +397,21 @@ impl<'a> Assembler<'a> {
 }
 
 /// The delivery of an archive that could not be read (to the end), counted: it stands for
-/// one run of the inputs and is done with.
-fn unreadable(counts: &Counts, file: &Path, error: String) -> Delivery {
+/// one run of the inputs and is done with. `reading`: where its child died in it, when it
+/// had opened it (its runs not delivered are no longer expected; the failure counts one).
+fn unreadable(counts: &Counts, file: &Path, error: String, reading: Option<&Reading>) -> Delivery {
     counts.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
     counts.delivered.fetch_add(1, Ordering::Relaxed);
-    counts.closed();
+    match reading {
+        None => {
+            counts.unopened.fetch_sub(1, Ordering::Relaxed);
+        }
+        Some(r) => {
+            if let Some(n) = r.announced {
+                counts.know(r.delivered as i64 + 1 - n as i64);
+            }
+        }
+    }
     Delivery::Unreadable {
         file: file.to_path_buf(),
         error,
@@ -452,6 +491,9 @@ pub fn serve(
                 return;
             }
         }
+        // Closed before it is said closed: a close that hangs or crashes in libhdf5 is then
+        // this archive's failure, not the next one's.
+        drop(archive);
         if !emit(
             Frame::Close {
                 archive: i,
@@ -584,8 +626,13 @@ enum ChildEnd {
     Finished,
     /// It could not be started.
     NotStarted,
-    /// It died (or was stopped) after finishing `done` archives; `detail` says how.
-    Died { done: usize, detail: String },
+    /// It died (or was stopped) after finishing `done` archives; `detail` says how, and
+    /// `reading` where it was in the next one when it had opened it.
+    Died {
+        done: usize,
+        detail: String,
+        reading: Option<Reading>,
+    },
 }
 
 /// Time the child's current step (opening an archive, reading one run) has taken, not
@@ -717,7 +764,11 @@ fn read_in_child(
             Err(e) => format!("libhdf5 crashed reading it ({e})"),
         }
     };
-    Ok(ChildEnd::Died { done, detail })
+    Ok(ChildEnd::Died {
+        done,
+        detail,
+        reading: assemble.reading,
+    })
 }
 
 #[cfg(test)]
@@ -741,10 +792,18 @@ mod tests {
         }
     }
 
+    /// The total projected while reading: the runs known (an opened archive's runs, one for
+    /// each archive not yet opened), plus, for each archive not yet opened, the mean runs of
+    /// those opened less the one it already counts.
+    fn projected(known: usize, unopened: usize, announced: usize, opened: usize) -> usize {
+        let mean = announced as f64 / opened as f64;
+        known + (unopened as f64 * (mean - 1.0)).round().max(0.0) as usize
+    }
+
     /// The progress's total counts an open archive by the runs it holds, not as one: read
     /// run by run, a single archive of many runs showed a total one ahead of the runs done.
-    /// Archives not yet opened count one each, an unreadable one included; a shard counts
-    /// only its own runs.
+    /// Archives not yet opened count at the mean of those opened, an unreadable one at one;
+    /// a shard counts only its own runs; the total is exact once every archive is open.
     #[test]
     fn the_total_counts_the_open_archives_runs_before_they_are_read() {
         let dir = tempfile::tempdir().unwrap();
@@ -770,13 +829,20 @@ mod tests {
             .unwrap();
             (seen, counts.estimate())
         };
+        let expect = |in_a: usize, in_b: usize, file: &str| match file {
+            // a.h5 open: its runs, b.h5 and missing.h5 one each, projected at a's mean.
+            "a.h5" => projected(in_a + 2, 2, in_a, 1),
+            "b.h5" => projected(in_a + in_b + 1, 1, in_a + in_b, 2),
+            _ => in_a + in_b + 1,
+        };
         let (seen, total) = estimates(None);
         println!("{seen:?}");
         assert_eq!(total, 9, "5 + 3 runs and the unreadable archive");
+        assert_eq!(seen.len(), 9);
         for (file, estimate) in &seen {
-            let expected = if file == "a.h5" { 5 + 2 } else { 9 };
-            assert_eq!(*estimate, expected, "{file}: {seen:?}");
+            assert_eq!(*estimate, expect(5, 3, file), "{file}: {seen:?}");
         }
+        assert_eq!((expect(5, 3, "a.h5"), expect(5, 3, "b.h5")), (15, 12));
         let shard = Shard { index: 1, count: 2 };
         let ours = |f: &Path, n: usize| {
             let name = f.file_name().unwrap().to_str().unwrap();
@@ -789,9 +855,65 @@ mod tests {
         println!("shard {shard}: {in_a} of a.h5, {in_b} of b.h5: {seen:?}");
         assert_eq!(total, in_a + in_b + 1);
         for (file, estimate) in &seen {
-            let expected = if file == "a.h5" { in_a + 2 } else { total };
-            assert_eq!(*estimate, expected, "{file}: {seen:?}");
+            assert_eq!(*estimate, expect(in_a, in_b, file), "{file}: {seen:?}");
         }
+    }
+
+    /// A reading child that dies part-way through an archive leaves its runs delivered and
+    /// one failure: the runs it announced and never sent no longer count, and the total
+    /// ends exact.
+    #[test]
+    fn a_child_dying_in_an_archive_leaves_its_delivered_runs_and_one_failure() {
+        let files = [PathBuf::from("a.h5"), PathBuf::from("b.h5")];
+        let (counts, options) = (Counts::default(), IngestOptions::default());
+        counts.known.store(2, Ordering::Relaxed);
+        counts.unopened.store(2, Ordering::Relaxed);
+        let mut assemble = Assembler::new(&files, &counts, &options);
+        let open = |archive, runs| Frame::Open {
+            archive,
+            not_runs: Vec::new(),
+            runs: Some(runs),
+        };
+        let run = |archive, path: &str| Frame::Run {
+            archive,
+            path: path.into(),
+            meta: Err("not read in this test".into()),
+            has_input: false,
+            placed: None,
+        };
+        assemble.frame(open(0, 5), None);
+        assert_eq!(counts.estimate(), 5 + 5, "b.h5 projected at a.h5's 5 runs");
+        for p in ["/r1", "/r2"] {
+            assert!(assemble.frame(run(0, p), None).is_some());
+        }
+        let hung = assemble.hang_detail(Duration::from_secs(7));
+        println!("{hung}");
+        assert!(
+            hung.starts_with("reading its run 3 of 5, the one after /r2"),
+            "{hung}"
+        );
+        // The child died: a.h5's failure is delivered, a new child opens b.h5.
+        let _ = unreadable(&counts, &files[0], "died".into(), assemble.reading.as_ref());
+        let mut assemble = Assembler::new(&files[1..], &counts, &options);
+        assemble.frame(open(0, 3), None);
+        for p in ["/r1", "/r2", "/r3"] {
+            assemble.frame(run(0, p), None);
+        }
+        assert!(assemble
+            .frame(
+                Frame::Close {
+                    archive: 0,
+                    error: None
+                },
+                None
+            )
+            .is_none());
+        assert_eq!(counts.delivered.load(Ordering::Relaxed), 6);
+        assert_eq!(
+            counts.estimate(),
+            6,
+            "2 runs and a failure of a.h5, 3 runs of b.h5"
+        );
     }
 
     /// A placed run whose archive was replaced after the child read it (an export that

@@ -48,7 +48,8 @@ pub(super) fn write_finished(
             Finished::Skipped(e, Stored::Encoded(run), plots, placed) => {
                 let placed = placed_or_logged(placed, &e, &mut log);
                 results.write_placed_as(&run, placed.as_ref(), &dst)?;
-                disk.wrote(run.data_bytes());
+                // Its data in results.h5; done now, it would take its journal file too.
+                disk.wrote(run.data_bytes(), 2 * run.data_bytes());
                 (e, true, plots)
             }
             Finished::Skipped(e, Stored::Legacy(file), plots, _) => {
@@ -58,8 +59,9 @@ pub(super) fn write_finished(
             Finished::Committed(e, p, plots, placed) => {
                 let placed = placed_or_logged(placed, &e, &mut log);
                 results.write_placed_as(p.encoded(), placed.as_ref(), &dst)?;
-                // Twice: its journal file, and its data in results.h5.
-                disk.wrote(2 * p.encoded().data_bytes());
+                // Its journal file (less one it replaced) and its data in results.h5.
+                let bytes = p.journal_growth() + p.encoded().data_bytes();
+                disk.wrote(bytes, bytes);
                 (e, false, plots)
             }
             Finished::Failed(_) => unreachable!("returned above"),

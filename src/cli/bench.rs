@@ -191,6 +191,7 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
                 report_runs: 100,
                 backend,
                 figures: None,
+                memory: None,
             };
             let e = skelid::bench::backends::end_to_end(
                 name,

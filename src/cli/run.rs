@@ -115,10 +115,17 @@ pub(crate) struct RunArgs {
     pub(crate) timeout: u64,
     /// Runs identified at once (default: one per core; 32 on a GPU backend, whose batches
     /// gather the signals of the runs in flight). Memory grows with N, not with the number
-    /// of runs: each run in flight adds its working set (measured: about 12 MB for 30,000
-    /// samples with both methods, on about 75 MB of base). Lower it for long records.
+    /// of runs: each run in flight adds its working set (about 0.5 kB a sample with both
+    /// methods: 12 MB for 30,000 samples, 2 GB for 4,000,000, on about 70 MB of base),
+    /// within --memory.
     #[arg(long, short, value_name = "N")]
     pub(crate) jobs: Option<usize>,
+    /// Memory the runs in flight may take together, in GB (10^9 bytes; default: three
+    /// quarters of what the system, or the cgroup the batch runs in, has available when it
+    /// starts). A run waits for room rather than start beside runs that would run the
+    /// machine out of memory; one larger than the whole budget runs alone.
+    #[arg(allow_negative_numbers = true, long, value_name = "GB", value_parser = positive_gb)]
+    pub(crate) memory: Option<f64>,
     #[command(flatten)]
     pub(crate) backend: BackendArgs,
     #[command(flatten)]
@@ -179,6 +186,7 @@ pub(crate) fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
         report_runs: usize::MAX,
         backend: &backend,
         figures: a.figures.batch(&a.out),
+        memory: None,
     };
     let summary = identify_with_progress(
         std::slice::from_ref(&path),
@@ -252,6 +260,7 @@ pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         report_runs: a.report.report_runs,
         backend: &backend,
         figures: a.figures.batch(&a.out),
+        memory: a.memory.map(|gb| (gb * 1e9) as u64),
     };
     let mode = if a.json_progress {
         ProgressMode::Json
@@ -272,6 +281,9 @@ pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         print!("{}", render_refined(&summary.rows, None));
     }
     report_not_runs(&summary.not_runs);
+    if let Some(u) = &summary.memory_held_back {
+        eprintln!("note: {}", skelid::batch::memory::held_back(u));
+    }
     println!(
         "\n{} run(s), {} failed{}, {} already done earlier (skipped){}; wrote {}, summary.json, summary.csv, report.html, manifest.json, skelid.log",
         summary.runs,
@@ -285,6 +297,17 @@ pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         summary.results.display()
     );
     Ok(exit_status(&summary, a.report.strict))
+}
+
+/// `--memory`'s value: gigabytes, more than zero.
+fn positive_gb(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(gb) if gb.is_finite() && gb > 0.0 => Ok(gb),
+        _ => Err(format!(
+            "--memory takes the gigabytes the runs in flight may take together, a number \
+             above 0 (e.g. 6 or 0.5), not {s:?}"
+        )),
+    }
 }
 
 /// " (N of M run × method failed; S suspect, B bad)": the results that failed, and those
@@ -367,14 +390,19 @@ pub(crate) fn identify_with_progress(
                 String::new()
             }
         ));
-        if p.disk_short_now {
-            if let Some(room) = p.disk {
-                // Above the bar, not through it; said in every mode, as other warnings are.
-                bar.suspend(|| eprintln!("warning: {}", room.warning(out)));
-            }
+        let disk_warning = p
+            .disk
+            .filter(|_| p.disk_short_now)
+            .map(|room| room.warning(out));
+        if let Some(w) = &disk_warning {
+            // Above the bar, not through it; said in every mode, as other warnings are.
+            bar.suspend(|| eprintln!("warning: {w}"));
         }
         if mode == ProgressMode::Json {
             let mut v = serde_json::to_value(p).unwrap_or_default();
+            if let Some(w) = disk_warning {
+                v["disk_warning"] = serde_json::json!(w);
+            }
             v["elapsed_s"] = serde_json::json!(started.elapsed().as_secs_f64());
             eprintln!("{v}");
         }
