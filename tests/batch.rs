@@ -421,7 +421,8 @@ fn a_memory_budget_holds_runs_back_and_changes_no_result() {
             .expect("run skelid run")
     };
     let free = tmp.path().join("free");
-    let o = batch(&free, &[]);
+    // A bound no run meets, whatever this machine (or its cgroup) has available.
+    let o = batch(&free, &["--memory", "1000"]);
     // The demo's run without relative motion fails by Hilbert alone: exit status 1.
     let status = o.status.code();
     assert!(

@@ -32,7 +32,7 @@ pub struct Room {
     pub free_bytes: u64,
     /// Bytes the runs left need, at the batch's rate so far.
     pub needed_bytes: u64,
-    /// Bytes a run took so far (its journal file and its share of results.h5).
+    /// Bytes a run costs, by the runs so far (its journal file and its share of results.h5).
     pub per_run_bytes: u64,
     /// Runs the estimate is for.
     pub runs_left: usize,
@@ -91,6 +91,9 @@ pub struct DiskWatch {
     /// What the runs done so far would have cost done now: a run found committed would
     /// also have written its journal file.
     cost: u64,
+    /// Runs costed (a run found in an earlier version's journal is not: its size is not
+    /// known).
+    runs: usize,
     /// The last `statvfs` reading and when it was taken.
     last: Option<(Instant, u64)>,
     warned: bool,
@@ -109,6 +112,7 @@ impl DiskWatch {
             pretend,
             written: 0,
             cost: 0,
+            runs: 0,
             last: None,
             warned: false,
         }
@@ -119,14 +123,15 @@ impl DiskWatch {
     pub fn wrote(&mut self, bytes: u64, cost: u64) {
         self.written = self.written.saturating_add(bytes);
         self.cost = self.cost.saturating_add(cost);
+        self.runs += 1;
     }
 
-    /// Where the disk stands after `done` runs with `left` still to come, `None` before the
-    /// first few runs or where the disk cannot be asked. The runs still in the workers'
-    /// hands may have written some of their bytes already: those count against the free
-    /// bytes and again in the need, so the need is high by up to about two runs a worker.
-    pub fn room(&mut self, done: usize, left: usize) -> Option<Room> {
-        if done < RUNS_BEFORE_ESTIMATE {
+    /// Where the disk stands with `left` runs still to come, `None` before the first few
+    /// runs or where the disk cannot be asked. The runs still in the workers' hands may
+    /// have written some of their bytes already: those count against the free bytes and
+    /// again in the need, so the need is high by up to about two runs a worker.
+    pub fn room(&mut self, left: usize) -> Option<Room> {
+        if self.runs < RUNS_BEFORE_ESTIMATE {
             return None;
         }
         let now = match self.last {
@@ -141,7 +146,7 @@ impl DiskWatch {
             Some(p) => now.min(p.saturating_sub(self.written)),
             None => now,
         };
-        let per_run = self.cost / done as u64;
+        let per_run = self.cost / self.runs as u64;
         Some(Room {
             free_bytes: free,
             needed_bytes: per_run.saturating_mul(left as u64),
@@ -236,9 +241,9 @@ mod tests {
         }
         // A run found committed: half a new one's bytes written, a whole one's cost.
         watch.wrote(500_000, 1_000_000);
-        assert_eq!(watch.room(7, 100), None, "too few runs for a rate");
+        assert_eq!(watch.room(100), None, "too few runs for a rate");
         watch.wrote(1_000_000, 1_000_000);
-        let room = watch.room(8, 5).expect("a rate after 8 runs");
+        let room = watch.room(5).expect("a rate after 8 runs");
         println!("{room:?}");
         assert_eq!(room.per_run_bytes, 1_000_000);
         assert_eq!(room.needed_bytes, 5_000_000);
@@ -256,7 +261,7 @@ mod tests {
         assert!(watch.warning(Some(room)).is_none(), "said once");
         // The bytes written since the last reading of the disk count at once.
         watch.wrote(1_000_000, 1_000_000);
-        let later = watch.room(9, 2).unwrap();
+        let later = watch.room(2).unwrap();
         assert_eq!(
             (later.free_bytes, later.needed_bytes),
             (1_500_000, 2_000_000)

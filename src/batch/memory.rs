@@ -62,36 +62,76 @@ fn cgroup_room() -> Option<u64> {
 /// [`cgroup_room`] with the cgroup file systems mounted under `sys` and `own` the
 /// process's `/proc/self/cgroup`.
 fn cgroup_room_in(sys: &Path, own: &str) -> Option<u64> {
-    let read = |p: String| {
+    let number = |p: &Path| {
         std::fs::read_to_string(p)
             .ok()
             .and_then(|v| v.trim().parse::<u64>().ok())
     };
+    let stat = |p: &Path, key: &str| {
+        std::fs::read_to_string(p).ok().and_then(|t| {
+            t.lines().find_map(|l| {
+                let (k, v) = l.split_once(' ')?;
+                (k == key).then(|| v.trim().parse::<u64>().ok()).flatten()
+            })
+        })
+    };
     for line in own.lines() {
-        let mut parts = line.splitn(3, ':');
-        let (_, controllers, path) = (parts.next()?, parts.next()?, parts.next()?);
-        // v2 ("0::/path"), then v1's memory controller. Inside a container the path is the
-        // host's, and the container's own group is mounted as the root: so the path is
-        // tried whole, then without its leading parts, down to the root.
-        let (dir, limit, usage) = match controllers {
-            "" => (sys.to_path_buf(), "memory.max", "memory.current"),
+        let mut fields = line.splitn(3, ':');
+        let (Some(_), Some(controllers), Some(path)) =
+            (fields.next(), fields.next(), fields.next())
+        else {
+            continue;
+        };
+        // v2 ("0::/path"), then v1's memory controller (controllers joined by commas).
+        // The usage counts the page cache, which the kernel drops before it kills: the
+        // inactive part of it is taken off, or a group that has read a few files would
+        // look full.
+        let (mount, limit, usage, inactive) = match controllers {
+            "" => (
+                sys.to_path_buf(),
+                "memory.max",
+                "memory.current",
+                "inactive_file",
+            ),
             c if c.split(',').any(|c| c == "memory") => (
                 sys.join("memory"),
                 "memory.limit_in_bytes",
                 "memory.usage_in_bytes",
+                "total_inactive_file",
             ),
             _ => continue,
         };
-        let dir = dir.display();
-        let parts: Vec<&str> = path.split('/').filter(|p| !p.is_empty()).collect();
-        for d in (0..=parts.len()).map(|i| format!("{dir}/{}", parts[i..].join("/"))) {
-            // "max" (v2) or a page-rounded i64::MAX (v1): no limit.
-            if let (Some(l), Some(u)) = (read(format!("{d}/{limit}")), read(format!("{d}/{usage}")))
-            {
+        let parts: Vec<&str> = path
+            .split('/')
+            .filter(|p| !p.is_empty() && *p != "." && *p != "..")
+            .collect();
+        // The process's own group: its path whole, or, inside a container (whose own group
+        // is mounted as the root while the path is the host's), the path's tail.
+        let Some(group) = (0..=parts.len())
+            .map(|i| parts[i..].iter().fold(mount.clone(), |d, p| d.join(p)))
+            .find(|d| d.join(usage).is_file())
+        else {
+            continue;
+        };
+        // Its limit and every ancestor's up to the mount (a Slurm job's, a systemd slice's,
+        // a pod's): the least room binds. "max" (v2) or v1's page-rounded i64::MAX is none.
+        let mut room: Option<u64> = None;
+        let mut d = group.as_path();
+        loop {
+            if let (Some(l), Some(u)) = (number(&d.join(limit)), number(&d.join(usage))) {
                 if l < 1 << 60 {
-                    return Some(l.saturating_sub(u));
+                    let cache = stat(&d.join("memory.stat"), inactive).unwrap_or(0);
+                    let r = l.saturating_sub(u.saturating_sub(cache));
+                    room = Some(room.map_or(r, |x| x.min(r)));
                 }
             }
+            match d.parent() {
+                Some(p) if d != mount && p.starts_with(&mount) => d = p,
+                _ => break,
+            }
+        }
+        if room.is_some() {
+            return room;
         }
     }
     None
@@ -166,7 +206,11 @@ impl Budget {
         let mut s = self.state.lock().unwrap_or_else(|p| p.into_inner());
         let fits = |s: &State| s.runs == 0 || s.held.saturating_add(bytes) <= self.limit;
         if !fits(&s) {
-            s.waits += 1;
+            // Only a wait with fewer runs held than workers kept a worker idle: with more,
+            // the queues were full anyway.
+            if s.runs < self.jobs {
+                s.waits += 1;
+            }
             while !fits(&s) {
                 s = self.freed.wait(s).unwrap_or_else(|p| p.into_inner());
             }
@@ -199,25 +243,41 @@ pub struct Admission<'a> {
     bytes: u64,
 }
 
+impl Admission<'_> {
+    /// Holds only `bytes` from now on (a run's results, waiting for the writer, once its
+    /// working set is gone). A large run's memory first goes back to the kernel where the
+    /// budget cannot hold a run of its size on every worker: glibc keeps freed blocks in
+    /// the arena of the thread that freed them, so without this the next run, on another
+    /// worker's arena, took fresh memory beside the kept. Four runs of 4 × 10^6 samples one
+    /// at a time on 2 workers (`--memory 3`) peaked at 4.1 GB, two runs' worth, and 2.6 GB
+    /// with it. Where the budget holds every worker's run the arenas keep their memory for
+    /// their next runs: giving it back cost 4 % (the same runs on one worker, 34.5 s
+    /// against 32.5 s, a million more page faults).
+    pub fn shrink(&mut self, bytes: u64) {
+        let b = self.budget;
+        let given = self.bytes.saturating_sub(bytes);
+        if given == 0 {
+            return;
+        }
+        if given >= GIVE_BACK_ABOVE && self.bytes.saturating_mul(b.jobs as u64) > b.limit {
+            crate::backend::give_freed_memory_back();
+        }
+        let mut s = b.state.lock().unwrap_or_else(|p| p.into_inner());
+        s.held -= given;
+        self.bytes -= given;
+        drop(s);
+        b.freed.notify_all();
+    }
+}
+
 /// Runs at least this large give their memory back to the kernel when done, where the
-/// budget binds runs of their size (see [`Admission`]'s drop); smaller ones keep it for the
+/// budget binds runs of their size ([`Admission::shrink`]); smaller ones keep it for the
 /// next run, as the campaign's do.
 const GIVE_BACK_ABOVE: u64 = 256 << 20;
 
 impl Drop for Admission<'_> {
-    /// Gives the run's bytes back to the budget; a large run's memory first goes back to
-    /// the kernel where the budget cannot hold a run of its size on every worker. glibc
-    /// keeps freed blocks in the arena of the thread that freed them, so without this the
-    /// next run, on another worker's arena, took fresh memory beside the kept: four runs of
-    /// 4 × 10^6 samples one at a time on 2 workers (`--memory 3`) peaked at 4.1 GB, two
-    /// runs' worth, and 2.6 GB with it. Where the budget holds every worker's run the
-    /// arenas keep their memory for their next runs: giving it back cost 4 % (the same runs
-    /// on one worker, 34.5 s against 32.5 s, a million more page faults).
+    /// Gives the run's bytes back to the budget.
     fn drop(&mut self) {
-        let b = self.budget;
-        if self.bytes >= GIVE_BACK_ABOVE && self.bytes.saturating_mul(b.jobs as u64) > b.limit {
-            crate::backend::give_freed_memory_back();
-        }
         let mut s = self.budget.state.lock().unwrap_or_else(|p| p.into_inner());
         s.held -= self.bytes;
         s.runs -= 1;
@@ -243,8 +303,9 @@ mod tests {
     }
 
     /// A cgroup's limit is found where a container mounts its own group as the root (the
-    /// host's path in /proc/self/cgroup, only its tail under the mount), for v1 and v2;
-    /// no limit ("max", or v1's page-rounded i64::MAX) is none.
+    /// host's path in /proc/self/cgroup, only its tail under the mount), for v1 and v2; an
+    /// ancestor's limit binds when it leaves less room; the inactive page cache is not
+    /// counted as used; no limit ("max", or v1's page-rounded i64::MAX) is none.
     #[test]
     fn a_cgroup_limit_is_found_under_a_containers_mount() {
         let sys = tempfile::tempdir().unwrap();
@@ -257,19 +318,39 @@ mod tests {
         write("memory/memory.usage_in_bytes", "5000\n");
         write("memory/night/memory.limit_in_bytes", "3000000\n");
         write("memory/night/memory.usage_in_bytes", "1000000\n");
-        let v1 = "5:cpu:/\n4:memory:/process_api/1ec5/night\n0::/\n";
+        let v1 = "5:cpu:/\n4:memory,blkio:/process_api/1ec5/night\n0::/\n";
         assert_eq!(cgroup_room_in(sys.path(), v1), Some(2_000_000));
+        // Most of the usage is cache it can drop.
+        write(
+            "memory/night/memory.stat",
+            "cache 900000\ntotal_inactive_file 800000\n",
+        );
+        assert_eq!(cgroup_room_in(sys.path(), v1), Some(2_800_000));
         assert_eq!(
             cgroup_room_in(sys.path(), "4:memory:/process_api/1ec5\n"),
             None
+        );
+        assert_eq!(
+            cgroup_room_in(sys.path(), "garbled\n4:memory:/night\n"),
+            Some(2_800_000)
         );
         write("memory.max", "max\n");
         write("memory.current", "5000\n");
         write("job/memory.max", "8000000\n");
         write("job/memory.current", "500000\n");
+        write("job/step/task/memory.max", "max\n");
+        write("job/step/task/memory.current", "400000\n");
+        let v2 = "0::/job/step/task\n";
         assert_eq!(
-            cgroup_room_in(sys.path(), "0::/user.slice/job\n"),
-            Some(7_500_000)
+            cgroup_room_in(sys.path(), v2),
+            Some(7_500_000),
+            "the job's limit"
+        );
+        write("job/step/task/memory.max", "9000000\n");
+        assert_eq!(
+            cgroup_room_in(sys.path(), v2),
+            Some(7_500_000),
+            "the least room"
         );
         assert_eq!(cgroup_room_in(sys.path(), "0::/\n"), None);
     }
@@ -285,33 +366,74 @@ mod tests {
     }
 
     /// Runs wait for room and go on when it is given back; a run larger than the budget
-    /// goes alone; the usage counts the most at once and the waits.
+    /// waits until nothing else is held, then goes alone; a wait counts only where a
+    /// worker was left idle; shrinking gives the room back at once.
     #[test]
     fn runs_wait_for_room_and_a_huge_one_goes_alone() {
-        let budget = Budget::new(100, 2);
+        let budget = Budget::new(100, 3);
         let a = budget.admit(60);
-        let b = budget.admit(40);
+        let mut b = budget.admit(40);
         let started = std::time::Instant::now();
         std::thread::scope(|s| {
-            let waiting = s.spawn(|| {
-                let c = budget.admit(30);
-                (started.elapsed(), c.bytes)
-            });
+            let waiting = s.spawn(|| budget.admit(30).bytes);
             std::thread::sleep(Duration::from_millis(200));
             assert!(!waiting.is_finished(), "100 of 100 held: the third waits");
-            drop(a);
-            let (waited, bytes) = waiting.join().unwrap();
-            println!("the third run waited {waited:?}");
-            assert!(waited >= Duration::from_millis(200));
-            assert_eq!(bytes, 30);
+            b.shrink(10);
+            assert_eq!(waiting.join().unwrap(), 30, "70 held: the third fits");
+            println!("the third run waited {:?}", started.elapsed());
         });
-        drop(b);
-        let huge = budget.admit(1_000);
-        assert_eq!(huge.bytes, 1_000, "alone, it goes");
-        drop(huge);
+        std::thread::scope(|s| {
+            let huge = s.spawn(|| budget.admit(1_000).bytes);
+            std::thread::sleep(Duration::from_millis(200));
+            assert!(
+                !huge.is_finished(),
+                "a huge run waits for every other to end"
+            );
+            drop(a);
+            std::thread::sleep(Duration::from_millis(100));
+            assert!(!huge.is_finished(), "b still holds 10");
+            drop(b);
+            assert_eq!(huge.join().unwrap(), 1_000, "alone, it goes");
+        });
         let u = budget.usage();
-        assert_eq!((u.most_at_once, u.waits, u.largest_run), (2, 1, 1_000));
+        assert_eq!((u.most_at_once, u.waits, u.largest_run), (3, 2, 1_000));
+        let budget = Budget::new(100, 2);
+        let (_a, _b) = (budget.admit(60), budget.admit(40));
+        std::thread::scope(|s| {
+            s.spawn(|| budget.admit(30));
+            std::thread::sleep(Duration::from_millis(50));
+            drop(_a);
+        });
+        assert_eq!(
+            budget.usage().waits,
+            0,
+            "two workers busy: the wait idled none"
+        );
+        drop(_b);
         let s = budget.state.lock().unwrap();
         assert_eq!((s.held, s.runs), (0, 0), "everything given back");
+    }
+
+    /// Admissions still in a queue whose consumers are gone are dropped with it, so a
+    /// reader waiting for memory wakes (and then finds the queue closed): a writer that
+    /// stops on an error cannot leave the batch waiting for ever.
+    #[test]
+    fn a_queue_dropped_with_admissions_in_it_wakes_a_waiting_reader() {
+        let budget = Budget::new(100, 2);
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Admission<'_>>(2);
+        tx.send(budget.admit(60)).unwrap();
+        tx.send(budget.admit(40)).unwrap();
+        std::thread::scope(|s| {
+            let reader = s.spawn(|| {
+                let a = budget.admit(50);
+                tx.send(a).is_err()
+            });
+            std::thread::sleep(Duration::from_millis(100));
+            assert!(!reader.is_finished());
+            drop(rx);
+            assert!(reader.join().unwrap(), "woken, it finds the queue closed");
+        });
+        let s = budget.state.lock().unwrap();
+        assert_eq!((s.held, s.runs), (0, 0));
     }
 }

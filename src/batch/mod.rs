@@ -15,8 +15,6 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
-use rayon::prelude::*;
-
 pub mod disk;
 mod manifest;
 pub mod memory;
@@ -249,6 +247,17 @@ pub(super) enum Finished {
     Failed(ReportError),
 }
 
+impl Finished {
+    /// Bytes of the results it holds in memory until the writer is done with it.
+    fn data_bytes(&self) -> u64 {
+        match self {
+            Finished::Skipped(_, Stored::Encoded(run), ..) => run.data_bytes(),
+            Finished::Committed(_, p, ..) => p.encoded().data_bytes(),
+            Finished::Skipped(_, Stored::Legacy(_), ..) | Finished::Failed(_) => 0,
+        }
+    }
+}
+
 /// What a batch into `out` leaves when it is stopped from outside (Ctrl-C, a scheduler's
 /// SIGTERM): its committed runs stay in `out/runs`, the unfinished `results.h5.tmp` goes,
 /// and `skelid.log` records it with `advice` (how to go on). Returns the line said.
@@ -348,7 +357,8 @@ pub fn run_campaigns(
     // and those the reader admits within the memory budget.
     let (work_tx, work_rx) =
         std::sync::mpsc::sync_channel::<(reader::Delivery, memory::Admission<'_>)>(jobs);
-    let (done_tx, done_rx) = std::sync::mpsc::sync_channel::<Finished>(jobs);
+    let (done_tx, done_rx) =
+        std::sync::mpsc::sync_channel::<(Finished, memory::Admission<'_>)>(jobs);
     let record = settings_record(&opt.methods, &opt.identify, ingest);
     let results = ResultsFile::create(out, journal.has_legacy_files())?;
     results.write_settings(&record)?;
@@ -372,21 +382,39 @@ pub fn run_campaigns(
         let writer = serial_thread(scope, "writer", || {
             write_finished(&results, done_rx, log, counts, progress, drawn, disk)
         })?;
-        // A failed send means the writer stopped on an error, which it returns; the
-        // workers then stop, and the reader with them.
-        let _ = pool.install(|| {
-            work_rx
-                .into_iter()
-                .par_bridge()
-                .try_for_each(|(d, admitted)| {
-                    let finished = prepare(d, &journal, &settings, opt, drawn, placer.as_ref());
-                    // The run's working set is gone; its encoded results (about a sixth of it)
-                    // wait for the writer.
-                    drop(admitted);
-                    done_tx.send(finished).map_err(|_| ())
-                })
+        // This thread hands the queued runs to the pool, each as a job of its own, and
+        // keeps at most two a worker handed over, so that a worker done with a run finds
+        // the next one waiting. No pool thread ever waits on the queue: one waiting there
+        // with a piece of another run's nested work on its stack (rayon steals while it
+        // waits) would hold that run's admission while the reader waits for memory, and
+        // the batch would hang. (Runner threads that each handed one run at a time to the
+        // pool left it idle between runs: `--jobs 2` 18 % slower on 200 runs.)
+        let stopped = std::sync::atomic::AtomicBool::new(false);
+        let handed = Slots::new(2 * jobs);
+        let (journal, settings, placer) = (&journal, &settings, placer.as_ref());
+        pool.in_place_scope_fifo(|s| {
+            for (d, mut admitted) in work_rx.iter() {
+                if stopped.load(Ordering::Relaxed) {
+                    break;
+                }
+                let place = handed.take();
+                let (done_tx, stopped) = (done_tx.clone(), &stopped);
+                s.spawn_fifo(move |_| {
+                    let finished = prepare(d, journal, settings, opt, drawn, placer);
+                    // The run's working set is gone; what waits for the writer is its
+                    // results.
+                    admitted.shrink(finished.data_bytes());
+                    // A failed send: the writer stopped on an error, which it returns.
+                    if done_tx.send((finished, admitted)).is_err() {
+                        stopped.store(true, Ordering::Relaxed);
+                    }
+                    drop(place);
+                });
+            }
         });
-        drop(done_tx);
+        // The queue goes, and with it the admissions still in it: a reader waiting for
+        // memory wakes to find the batch gone.
+        drop((work_rx, done_tx));
         writer.join().expect("the writer does not panic")
     });
     // The workers are done: their descriptor of results.h5.tmp closes before the file is
@@ -489,6 +517,42 @@ pub fn run_campaigns(
         not_runs,
         memory_held_back,
     })
+}
+
+/// A count of places, taken and given back across threads: the runs handed to the pool.
+struct Slots {
+    free: std::sync::Mutex<usize>,
+    given: std::sync::Condvar,
+}
+
+impl Slots {
+    fn new(n: usize) -> Slots {
+        Slots {
+            free: std::sync::Mutex::new(n),
+            given: std::sync::Condvar::new(),
+        }
+    }
+
+    /// Waits for a place and takes it, until the returned guard is dropped (a job that
+    /// panics gives it back too, as it unwinds).
+    fn take(&self) -> Place<'_> {
+        let mut free = self.free.lock().unwrap_or_else(|p| p.into_inner());
+        while *free == 0 {
+            free = self.given.wait(free).unwrap_or_else(|p| p.into_inner());
+        }
+        *free -= 1;
+        Place(self)
+    }
+}
+
+/// A place taken from [`Slots`].
+struct Place<'a>(&'a Slots);
+
+impl Drop for Place<'_> {
+    fn drop(&mut self) {
+        *self.0.free.lock().unwrap_or_else(|p| p.into_inner()) += 1;
+        self.0.given.notify_one();
+    }
 }
 
 /// Starts one of the batch's serial threads, named `skelid-ROLE` so that `perf --comm`,

@@ -115,48 +115,55 @@ pub struct Counts {
     pub runs_in_inputs: AtomicUsize,
     /// Deliveries of this shard so far.
     pub delivered: AtomicUsize,
-    /// This shard's runs known so far: an archive not yet opened counts one, an opened one
-    /// the runs it announced, one the reading child died in the runs it delivered and one
-    /// for its failure. Each change is one atomic step, so no reading falls between two
-    /// halves of an update (a total one too high for a moment).
-    pub known: AtomicUsize,
-    /// Archives neither opened nor found unreadable yet.
-    pub unopened: AtomicUsize,
-    /// Archives opened, and the runs of this shard they announced together.
-    pub opened: AtomicUsize,
-    /// See [`opened`](Self::opened).
-    pub announced: AtomicUsize,
+    /// What the total is estimated from, changed together (see [`Tally`]).
+    pub tally: Mutex<Tally>,
     /// Groups with datasets that are not runs, with their archive (as given).
     pub not_runs: std::sync::Mutex<Vec<(String, crate::ingest::NotARun)>>,
 }
 
-impl Counts {
-    /// The best guess of this shard's total while reading, exact once every archive is
-    /// open: the runs known ([`known`](Self::known)), with each archive not yet opened
-    /// counted at the mean of those opened. Before 2026-12-07 the archive being read counted
-    /// one, so one archive of 1000 runs showed a total one ahead of the runs done all night,
-    /// and ten of 100 runs a total of 109 while the first was read.
-    pub fn estimate(&self) -> usize {
-        let known = self
-            .known
-            .load(Ordering::Relaxed)
-            .max(self.delivered.load(Ordering::Relaxed));
-        let opened = self.opened.load(Ordering::Relaxed);
-        if opened == 0 {
-            return known;
+/// This shard's runs as far as the reader knows them, under one lock: an archive's opening
+/// changes several of them, and a total read between two of the changes was one too high.
+#[derive(Debug, Default, Clone, Copy)]
+pub struct Tally {
+    /// Runs known: an archive not yet opened counts one, an opened one the runs it
+    /// announced, one the reading child died in the runs it delivered and one for its
+    /// failure.
+    pub known: usize,
+    /// Archives neither opened nor found unreadable yet.
+    pub unopened: usize,
+    /// Archives opened.
+    pub opened: usize,
+    /// The runs of this shard the opened archives announced together.
+    pub announced: usize,
+}
+
+impl Tally {
+    /// The total projected: each archive not yet opened at the mean of those opened (its
+    /// one in `known` replaced), exact once every archive is open.
+    pub fn projected(&self) -> usize {
+        if self.opened == 0 {
+            return self.known;
         }
-        let mean = self.announced.load(Ordering::Relaxed) as f64 / opened as f64;
-        let unopened = self.unopened.load(Ordering::Relaxed) as f64;
-        known + (unopened * (mean - 1.0)).round().max(0.0) as usize
+        let mean = self.announced as f64 / self.opened as f64;
+        self.known.saturating_sub(self.unopened) + (self.unopened as f64 * mean).round() as usize
+    }
+}
+
+impl Counts {
+    /// The best guess of this shard's total while reading ([`Tally::projected`]), never
+    /// below the runs delivered. Before 2026-12-07 the archive being read counted one, so
+    /// one archive of 1000 runs showed a total one ahead of the runs done all night, and
+    /// ten of 100 runs a total of 109 while the first was read.
+    pub fn estimate(&self) -> usize {
+        let tally = *self.tally.lock().unwrap_or_else(|p| p.into_inner());
+        tally
+            .projected()
+            .max(self.delivered.load(Ordering::Relaxed))
     }
 
-    /// Adds `by` (which may be negative) to the runs known, in one step.
-    fn know(&self, by: i64) {
-        let _ = self
-            .known
-            .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |k| {
-                Some((k as i64 + by).max(0) as usize)
-            });
+    /// Changes the tally, under its lock.
+    fn tally(&self, change: impl FnOnce(&mut Tally)) {
+        change(&mut self.tally.lock().unwrap_or_else(|p| p.into_inner()));
     }
 }
 
@@ -186,8 +193,10 @@ pub fn read_all(
     counts: &Counts,
     deliver: &mut dyn FnMut(Delivery) -> Result<(), Stopped>,
 ) -> Result<(), Stopped> {
-    counts.known.store(files.len(), Ordering::Relaxed);
-    counts.unopened.store(files.len(), Ordering::Relaxed);
+    counts.tally(|t| {
+        t.known = files.len();
+        t.unopened = files.len();
+    });
     if let Some((command, timeout)) = isolate {
         let mut next = 0;
         while next < files.len() {
@@ -308,12 +317,14 @@ impl<'a> Assembler<'a> {
             } => {
                 // The archive's one among the runs known becomes its runs (the child always
                 // announces them; an archive that did not would count one until read).
-                c.unopened.fetch_sub(1, Ordering::Relaxed);
-                if let Some(n) = runs {
-                    c.know(n as i64 - 1);
-                    c.opened.fetch_add(1, Ordering::Relaxed);
-                    c.announced.fetch_add(n, Ordering::Relaxed);
-                }
+                c.tally(|t| {
+                    t.unopened = t.unopened.saturating_sub(1);
+                    if let Some(n) = runs {
+                        t.known = t.known + n - 1;
+                        t.opened += 1;
+                        t.announced += n;
+                    }
+                });
                 self.reading = Some(Reading {
                     announced: runs,
                     ..Reading::default()
@@ -402,16 +413,16 @@ impl<'a> Assembler<'a> {
 fn unreadable(counts: &Counts, file: &Path, error: String, reading: Option<&Reading>) -> Delivery {
     counts.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
     counts.delivered.fetch_add(1, Ordering::Relaxed);
-    match reading {
-        None => {
-            counts.unopened.fetch_sub(1, Ordering::Relaxed);
-        }
-        Some(r) => {
-            if let Some(n) = r.announced {
-                counts.know(r.delivered as i64 + 1 - n as i64);
-            }
-        }
-    }
+    counts.tally(|t| match reading {
+        None => t.unopened = t.unopened.saturating_sub(1),
+        // Its runs not delivered no longer count; its failure does.
+        Some(Reading {
+            announced: Some(n),
+            delivered,
+            ..
+        }) => t.known = (t.known + delivered + 1).saturating_sub(*n),
+        Some(_) => {}
+    });
     Delivery::Unreadable {
         file: file.to_path_buf(),
         error,
@@ -792,12 +803,12 @@ mod tests {
         }
     }
 
-    /// The total projected while reading: the runs known (an opened archive's runs, one for
-    /// each archive not yet opened), plus, for each archive not yet opened, the mean runs of
-    /// those opened less the one it already counts.
-    fn projected(known: usize, unopened: usize, announced: usize, opened: usize) -> usize {
-        let mean = announced as f64 / opened as f64;
-        known + (unopened as f64 * (mean - 1.0)).round().max(0.0) as usize
+    /// The total projected while reading, written out: the opened archives' runs, the
+    /// failures, and the mean of the opened archives for each archive not yet opened.
+    fn projected(opened_runs: usize, failures: usize, unopened: usize, opened: usize) -> usize {
+        opened_runs
+            + failures
+            + (unopened as f64 * opened_runs as f64 / opened as f64).round() as usize
     }
 
     /// The progress's total counts an open archive by the runs it holds, not as one: read
@@ -831,8 +842,8 @@ mod tests {
         };
         let expect = |in_a: usize, in_b: usize, file: &str| match file {
             // a.h5 open: its runs, b.h5 and missing.h5 one each, projected at a's mean.
-            "a.h5" => projected(in_a + 2, 2, in_a, 1),
-            "b.h5" => projected(in_a + in_b + 1, 1, in_a + in_b, 2),
+            "a.h5" => projected(in_a, 0, 2, 1),
+            "b.h5" => projected(in_a + in_b, 0, 1, 2),
             _ => in_a + in_b + 1,
         };
         let (seen, total) = estimates(None);
@@ -866,8 +877,10 @@ mod tests {
     fn a_child_dying_in_an_archive_leaves_its_delivered_runs_and_one_failure() {
         let files = [PathBuf::from("a.h5"), PathBuf::from("b.h5")];
         let (counts, options) = (Counts::default(), IngestOptions::default());
-        counts.known.store(2, Ordering::Relaxed);
-        counts.unopened.store(2, Ordering::Relaxed);
+        counts.tally(|t| {
+            t.known = 2;
+            t.unopened = 2;
+        });
         let mut assemble = Assembler::new(&files, &counts, &options);
         let open = |archive, runs| Frame::Open {
             archive,
@@ -899,6 +912,8 @@ mod tests {
         for p in ["/r1", "/r2", "/r3"] {
             assemble.frame(run(0, p), None);
         }
+        let hung = assemble.hang_detail(Duration::from_secs(7));
+        assert!(hung.starts_with("closing it after its 3 run(s)"), "{hung}");
         assert!(assemble
             .frame(
                 Frame::Close {

@@ -18,7 +18,7 @@ use super::*;
 /// write error.
 pub(super) fn write_finished(
     results: &ResultsFile,
-    done: std::sync::mpsc::Receiver<Finished>,
+    done: std::sync::mpsc::Receiver<(Finished, super::memory::Admission<'_>)>,
     mut log: Log,
     counts: &reader::Counts,
     progress: &(dyn Fn(Progress) + Sync),
@@ -29,7 +29,8 @@ pub(super) fn write_finished(
     let (mut suspect, mut bad) = (0, 0);
     let mut used = std::collections::HashSet::new();
     let (start, cpu0) = (std::time::Instant::now(), profile::thread_cpu());
-    for f in done {
+    // A run's admission (its results' bytes, within the memory budget) ends with its turn.
+    for (f, _admitted) in done {
         // Finishing order is not the final order: a path already used (the same path in
         // two archives) goes aside now and is put in its place at the end.
         let path = match f {
@@ -94,7 +95,7 @@ pub(super) fn write_finished(
         drawn.offer(&e, plots);
         entries.push((e, dst));
         let (done, total) = (entries.len(), counts.estimate().max(entries.len()));
-        let room = disk.room(done, total - done);
+        let room = disk.room(total - done);
         let short = disk.warning(room);
         if let Some(w) = &short {
             log.line(&format!("warning: {w}"));
