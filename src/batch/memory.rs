@@ -7,8 +7,8 @@
 //! exceeds the budget is admitted when nothing else is in flight. The reader is the batch's
 //! own thread, not a worker of the pool, so no rayon thread ever waits for memory (a
 //! worker waiting inside a nested join could hold the very memory it waits for).
-//! In: each delivered run's length; out: admissions that give their bytes back when the
-//! worker is done with the run.
+//! In: each delivered run's length; out: admissions that shrink to the run's results
+//! once it is identified and give those back when the writer is done with them.
 
 use std::path::Path;
 use std::sync::{Condvar, Mutex};
@@ -150,8 +150,10 @@ pub struct Budget {
 struct State {
     /// Bytes admitted and not yet given back.
     held: u64,
-    /// Runs admitted and not yet done.
+    /// Runs admitted and not yet written.
     runs: usize,
+    /// Of those, runs not yet identified (queued for a worker, or in one).
+    working: usize,
     /// The most runs in flight at once, and how often a run waited for room.
     most: usize,
     waits: usize,
@@ -164,7 +166,8 @@ struct State {
 pub struct Usage {
     /// The budget, bytes.
     pub limit: u64,
-    /// The most runs in flight at once (queued for a worker included).
+    /// The most runs admitted at once: queued for a worker, in one, or identified and
+    /// waiting for the writer.
     pub most_at_once: usize,
     /// Runs that waited for room.
     pub waits: usize,
@@ -206,9 +209,9 @@ impl Budget {
         let mut s = self.state.lock().unwrap_or_else(|p| p.into_inner());
         let fits = |s: &State| s.runs == 0 || s.held.saturating_add(bytes) <= self.limit;
         if !fits(&s) {
-            // Only a wait with fewer runs held than workers kept a worker idle: with more,
-            // the queues were full anyway.
-            if s.runs < self.jobs {
+            // Only a wait with fewer runs to identify than workers kept a worker idle: with
+            // more, the queues were full anyway.
+            if s.working < self.jobs {
                 s.waits += 1;
             }
             while !fits(&s) {
@@ -217,11 +220,13 @@ impl Budget {
         }
         s.held += bytes;
         s.runs += 1;
+        s.working += 1;
         s.most = s.most.max(s.runs);
         s.largest = s.largest.max(bytes);
         Admission {
             budget: self,
             bytes,
+            working: true,
         }
     }
 
@@ -241,6 +246,8 @@ impl Budget {
 pub struct Admission<'a> {
     budget: &'a Budget,
     bytes: u64,
+    /// Not yet shrunk to its run's results.
+    working: bool,
 }
 
 impl Admission<'_> {
@@ -256,15 +263,15 @@ impl Admission<'_> {
     pub fn shrink(&mut self, bytes: u64) {
         let b = self.budget;
         let given = self.bytes.saturating_sub(bytes);
-        if given == 0 {
-            return;
-        }
         if given >= GIVE_BACK_ABOVE && self.bytes.saturating_mul(b.jobs as u64) > b.limit {
             crate::backend::give_freed_memory_back();
         }
         let mut s = b.state.lock().unwrap_or_else(|p| p.into_inner());
         s.held -= given;
         self.bytes -= given;
+        if std::mem::take(&mut self.working) {
+            s.working -= 1;
+        }
         drop(s);
         b.freed.notify_all();
     }
@@ -281,6 +288,9 @@ impl Drop for Admission<'_> {
         let mut s = self.budget.state.lock().unwrap_or_else(|p| p.into_inner());
         s.held -= self.bytes;
         s.runs -= 1;
+        if self.working {
+            s.working -= 1;
+        }
         drop(s);
         self.budget.freed.notify_all();
     }
@@ -365,6 +375,15 @@ mod tests {
         assert!(a > 16 << 20, "{a}");
     }
 
+    /// Waits (up to a minute) until `n` admissions have waited for room.
+    fn waits_reach(budget: &Budget, n: usize) {
+        let deadline = std::time::Instant::now() + Duration::from_secs(60);
+        while budget.usage().waits < n {
+            assert!(std::time::Instant::now() < deadline, "no wait counted");
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    }
+
     /// Runs wait for room and go on when it is given back; a run larger than the budget
     /// waits until nothing else is held, then goes alone; a wait counts only where a
     /// worker was left idle; shrinking gives the room back at once.
@@ -376,7 +395,7 @@ mod tests {
         let started = std::time::Instant::now();
         std::thread::scope(|s| {
             let waiting = s.spawn(|| budget.admit(30).bytes);
-            std::thread::sleep(Duration::from_millis(200));
+            waits_reach(&budget, 1);
             assert!(!waiting.is_finished(), "100 of 100 held: the third waits");
             b.shrink(10);
             assert_eq!(waiting.join().unwrap(), 30, "70 held: the third fits");
@@ -384,7 +403,7 @@ mod tests {
         });
         std::thread::scope(|s| {
             let huge = s.spawn(|| budget.admit(1_000).bytes);
-            std::thread::sleep(Duration::from_millis(200));
+            waits_reach(&budget, 2);
             assert!(
                 !huge.is_finished(),
                 "a huge run waits for every other to end"

@@ -7,9 +7,10 @@
 //! libhdf5 is not thread-safe: the hdf5 crate serialises every call behind one global lock.
 //! So only one reader ([`reader`]) and one writer touch HDF5, and the workers do all the
 //! CPU work in between, the compression of the results included (see [`run_campaigns`]).
-//! Memory: a worker holds one run (its samples and tracks) at a time, and the queues hold
-//! one run per worker each, so peak memory is about `3 × jobs × one run`, not the
-//! campaign size.
+//! Memory: a worker holds one run (its samples and tracks) at a time, one more waits for it
+//! in the pool, and the queues hold a run's samples or results per worker each, so peak
+//! memory is about `3 × jobs × one run`, not the campaign size; each run is admitted within
+//! a memory budget ([`memory`]) before it is queued, and counted until it is written.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
@@ -26,7 +27,7 @@ mod writer;
 pub use manifest::{GroupNotRun, Manifest, ManifestRun, MANIFEST};
 pub use merge::merge;
 pub use worker::guarded;
-use worker::prepare;
+use worker::prepare_caught;
 use writer::{
     page_runs, place_runs, unreadable, write_finished, write_manifest, write_outputs, write_pages,
     Drawn, Log, Written,
@@ -353,8 +354,8 @@ pub fn run_campaigns(
         Isolation::Child { command, timeout } => Some((command, timeout)),
         Isolation::None => None,
     };
-    // A worker holds one run, the queues one run per worker each: about 3 × jobs runs,
-    // and those the reader admits within the memory budget.
+    // The queues hold one run per worker each, the reader admitting each within the memory
+    // budget.
     let (work_tx, work_rx) =
         std::sync::mpsc::sync_channel::<(reader::Delivery, memory::Admission<'_>)>(jobs);
     let (done_tx, done_rx) =
@@ -392,15 +393,24 @@ pub fn run_campaigns(
         let stopped = std::sync::atomic::AtomicBool::new(false);
         let handed = Slots::new(2 * jobs);
         let (journal, settings, placer) = (&journal, &settings, placer.as_ref());
+        // The writer ends early only on an error: then no more runs are handed over, and
+        // those handed over but not started are let go.
+        let writer_stopped = || stopped.load(Ordering::Relaxed) || writer.is_finished();
         pool.in_place_scope_fifo(|s| {
             for (d, mut admitted) in work_rx.iter() {
-                if stopped.load(Ordering::Relaxed) {
+                if writer_stopped() {
                     break;
                 }
                 let place = handed.take();
+                if writer_stopped() {
+                    break;
+                }
                 let (done_tx, stopped) = (done_tx.clone(), &stopped);
                 s.spawn_fifo(move |_| {
-                    let finished = prepare(d, journal, settings, opt, drawn, placer);
+                    if stopped.load(Ordering::Relaxed) {
+                        return;
+                    }
+                    let finished = prepare_caught(d, journal, settings, opt, drawn, placer);
                     // The run's working set is gone; what waits for the writer is its
                     // results.
                     admitted.shrink(finished.data_bytes());

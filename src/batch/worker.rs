@@ -17,7 +17,7 @@ use super::*;
 
 /// A worker's part: the key, the skip test, the identification and the encoding, and the
 /// run's data put into results.h5 (through `placer`, where the file's writer has one).
-pub(super) fn prepare(
+fn prepare(
     d: reader::Delivery,
     journal: &Journal,
     settings: &str,
@@ -25,6 +25,10 @@ pub(super) fn prepare(
     drawn: &Drawn,
     placer: Option<&Placer>,
 ) -> Finished {
+    #[cfg(test)]
+    if let reader::Delivery::Run { path, .. } = &d {
+        assert_ne!(path, tests::PANICS, "a bug met in this run");
+    }
     let (key, outcome) = match d {
         reader::Delivery::Unreadable { file, error } => {
             let o = unreadable(&file, &error);
@@ -63,8 +67,58 @@ pub(super) fn prepare(
         Err(recorded) => recorded,
         Ok((source, path, run)) => identify_run(source, path, run, opt),
     };
-    let prepared = profile::time(Stage::Encode, || Prepared::new(&outcome));
-    match profile::time(Stage::Write, || journal.commit(&key, prepared)) {
+    commit(&key, &outcome, journal, opt, drawn, placer)
+}
+
+/// [`prepare`], with a panic anywhere in it (identifying, encoding, committing, drawing)
+/// turned into the run's failure, recorded and committed like any other: a bug met in one
+/// run fails that run alone, at once, and the batch goes on. (A panic left to the pool
+/// surfaced only when every run of the batch was done, and the run was in no file.)
+pub(super) fn prepare_caught(
+    d: reader::Delivery,
+    journal: &Journal,
+    settings: &str,
+    opt: &BatchOptions<'_>,
+    drawn: &Drawn,
+    placer: Option<&Placer>,
+) -> Finished {
+    let (source, path) = match &d {
+        reader::Delivery::Run { source, path, .. } => (source.clone(), path.clone()),
+        reader::Delivery::Unreadable { file, .. } => {
+            let o = unreadable(file, &"");
+            (o.source, o.path)
+        }
+    };
+    let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        prepare(d, journal, settings, opt, drawn, placer)
+    }));
+    caught.unwrap_or_else(|p| {
+        let error = format!(
+            "internal error (panic) while preparing the run: {}; a bug, not the run's \
+             fault: please report it",
+            crate::backend::panic_message(p.as_ref())
+        );
+        let key = failed_key(&source, &path, &error, settings);
+        let outcome = RunOutcome {
+            error: Some(error),
+            ..RunOutcome::new(path, source)
+        };
+        commit(&key, &outcome, journal, opt, drawn, placer)
+    })
+}
+
+/// Encodes `outcome`, commits it to the journal under `key`, draws its figures where they
+/// are shown and puts its data into results.h5.
+fn commit(
+    key: &str,
+    outcome: &RunOutcome,
+    journal: &Journal,
+    opt: &BatchOptions<'_>,
+    drawn: &Drawn,
+    placer: Option<&Placer>,
+) -> Finished {
+    let prepared = profile::time(Stage::Encode, || Prepared::new(outcome));
+    match profile::time(Stage::Write, || journal.commit(key, prepared)) {
         Ok((entry, mut prepared)) => {
             let plots = drawn.wants(&entry).then(|| run_plots(prepared.encoded()));
             match figures(prepared.encoded(), &entry.source, plots.as_ref(), opt) {
@@ -196,5 +250,57 @@ pub fn guarded<T>(f: impl FnOnce() -> Result<T, String>) -> Result<T, String> {
             "internal error (panic) in the identification: {}",
             crate::backend::panic_message(p.as_ref())
         )),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The run path at which [`prepare`] panics, in these tests only.
+    pub(super) const PANICS: &str = "/runs/panics";
+
+    /// A panic met while preparing a run (outside the identification, which has its own
+    /// guard) becomes that run's failure, committed to the journal with the reason, and
+    /// the batch's thread goes on.
+    #[test]
+    fn a_panic_while_preparing_fails_the_run_alone() {
+        let dir = tempfile::tempdir().unwrap();
+        let journal = Journal::open(dir.path()).unwrap();
+        let backend = Backend::cpu();
+        let opt = BatchOptions {
+            methods: vec![Method::Hilbert],
+            identify: IdentifyOptions::default(),
+            isolation: Isolation::None,
+            shard: None,
+            force: false,
+            jobs: Some(1),
+            report_runs: 0,
+            backend: &backend,
+            figures: None,
+            memory: None,
+        };
+        let d = reader::Delivery::Run {
+            source: "a.h5".into(),
+            path: PANICS.into(),
+            run: Box::new(Err("never read".into())),
+        };
+        let finished = prepare_caught(d, &journal, "settings", &opt, &Drawn::new(0), None);
+        let Finished::Committed(entry, ..) = finished else {
+            panic!("committed as a failed run");
+        };
+        println!("{:?}", entry.rows.first().map(|r| &r.error));
+        assert!(entry.failed);
+        assert_eq!(
+            (entry.path.as_str(), entry.source.as_str()),
+            (PANICS, "a.h5")
+        );
+        let error = &entry.rows[0].error;
+        assert!(
+            error.contains("internal error (panic) while preparing the run"),
+            "{error}"
+        );
+        assert!(error.contains("a bug met in this run"), "{error}");
+        assert!(journal.lookup(&entry.key).is_some(), "in the journal");
     }
 }
