@@ -27,7 +27,7 @@ mod writer;
 pub use manifest::{GroupNotRun, Manifest, ManifestRun, MANIFEST};
 pub use merge::merge;
 pub use worker::guarded;
-use worker::prepare_caught;
+use worker::{prepare_caught, Work};
 use writer::{
     page_runs, place_runs, unreadable, write_finished, write_manifest, write_outputs, write_pages,
     Drawn, Log, Written,
@@ -392,7 +392,14 @@ pub fn run_campaigns(
         // pool left it idle between runs: `--jobs 2` 18 % slower on 200 runs.)
         let stopped = std::sync::atomic::AtomicBool::new(false);
         let handed = Slots::new(2 * jobs);
-        let (journal, settings, placer) = (&journal, &settings, placer.as_ref());
+        let work = Work {
+            journal: &journal,
+            settings: &settings,
+            opt,
+            drawn,
+            placer: placer.as_ref(),
+        };
+        let work = &work;
         // The writer ends early only on an error: then no more runs are handed over, and
         // those handed over but not started are let go.
         let writer_stopped = || stopped.load(Ordering::Relaxed) || writer.is_finished();
@@ -410,7 +417,7 @@ pub fn run_campaigns(
                     if stopped.load(Ordering::Relaxed) {
                         return;
                     }
-                    let finished = prepare_caught(d, journal, settings, opt, drawn, placer);
+                    let finished = prepare_caught(d, work);
                     // The run's working set is gone; what waits for the writer is its
                     // results.
                     admitted.shrink(finished.data_bytes());

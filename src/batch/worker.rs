@@ -15,16 +15,24 @@ use crate::track::Method;
 
 use super::*;
 
+/// What every run of a batch is prepared with.
+pub(super) struct Work<'a> {
+    /// The output folder's journal.
+    pub(super) journal: &'a Journal,
+    /// The settings' fingerprint, part of every run's key.
+    pub(super) settings: &'a str,
+    /// The batch's options.
+    pub(super) opt: &'a BatchOptions<'a>,
+    /// The report's runs, drawn by the worker that has them.
+    pub(super) drawn: &'a Drawn,
+    /// Where the workers put runs' data into results.h5 (where the file's writer has one).
+    pub(super) placer: Option<&'a Placer>,
+}
+
 /// A worker's part: the key, the skip test, the identification and the encoding, and the
-/// run's data put into results.h5 (through `placer`, where the file's writer has one).
-fn prepare(
-    d: reader::Delivery,
-    journal: &Journal,
-    settings: &str,
-    opt: &BatchOptions<'_>,
-    drawn: &Drawn,
-    placer: Option<&Placer>,
-) -> Finished {
+/// run's data put into results.h5 (through the placer, where the file's writer has one).
+fn prepare(d: reader::Delivery, w: &Work<'_>) -> Finished {
+    let (opt, settings) = (w.opt, w.settings);
     #[cfg(test)]
     if let reader::Delivery::Run { path, .. } = &d {
         assert_ne!(path, tests::PANICS, "a bug met in this run");
@@ -49,14 +57,14 @@ fn prepare(
         }
     };
     if !opt.force {
-        if let Some((e, stored)) = journal.load(&key) {
+        if let Some((e, stored)) = w.journal.load(&key) {
             let (plots, placed) = match &stored {
                 Stored::Encoded(run) => {
-                    let plots = drawn.wants(&e).then(|| run_plots(run));
+                    let plots = w.drawn.wants(&e).then(|| run_plots(run));
                     if let Err(err) = figures(run, &e.source, plots.as_ref(), opt) {
                         return Finished::Failed(err);
                     }
-                    (plots.map(draw), place(placer, run))
+                    (plots.map(draw), place(w.placer, run))
                 }
                 Stored::Legacy(_) => (None, Ok(None)),
             };
@@ -67,21 +75,15 @@ fn prepare(
         Err(recorded) => recorded,
         Ok((source, path, run)) => identify_run(source, path, run, opt),
     };
-    commit(&key, &outcome, journal, opt, drawn, placer)
+    commit(&key, &outcome, w)
 }
 
 /// [`prepare`], with a panic anywhere in it (identifying, encoding, committing, drawing)
 /// turned into the run's failure, recorded and committed like any other: a bug met in one
 /// run fails that run alone, at once, and the batch goes on. (A panic left to the pool
 /// surfaced only when every run of the batch was done, and the run was in no file.)
-pub(super) fn prepare_caught(
-    d: reader::Delivery,
-    journal: &Journal,
-    settings: &str,
-    opt: &BatchOptions<'_>,
-    drawn: &Drawn,
-    placer: Option<&Placer>,
-) -> Finished {
+pub(super) fn prepare_caught(d: reader::Delivery, w: &Work<'_>) -> Finished {
+    // The names it is recorded under, taken before `prepare` consumes the delivery.
     let (source, path) = match &d {
         reader::Delivery::Run { source, path, .. } => (source.clone(), path.clone()),
         reader::Delivery::Unreadable { file, .. } => {
@@ -89,44 +91,35 @@ pub(super) fn prepare_caught(
             (o.source, o.path)
         }
     };
-    let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        prepare(d, journal, settings, opt, drawn, placer)
-    }));
+    let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| prepare(d, w)));
     caught.unwrap_or_else(|p| {
         let error = format!(
             "internal error (panic) while preparing the run: {}; a bug, not the run's \
              fault: please report it",
             crate::backend::panic_message(p.as_ref())
         );
-        let key = failed_key(&source, &path, &error, settings);
+        let key = failed_key(&source, &path, &error, w.settings);
         let outcome = RunOutcome {
             error: Some(error),
             ..RunOutcome::new(path, source)
         };
-        commit(&key, &outcome, journal, opt, drawn, placer)
+        commit(&key, &outcome, w)
     })
 }
 
 /// Encodes `outcome`, commits it to the journal under `key`, draws its figures where they
 /// are shown and puts its data into results.h5.
-fn commit(
-    key: &str,
-    outcome: &RunOutcome,
-    journal: &Journal,
-    opt: &BatchOptions<'_>,
-    drawn: &Drawn,
-    placer: Option<&Placer>,
-) -> Finished {
+fn commit(key: &str, outcome: &RunOutcome, w: &Work<'_>) -> Finished {
     let prepared = profile::time(Stage::Encode, || Prepared::new(outcome));
-    match profile::time(Stage::Write, || journal.commit(key, prepared)) {
+    match profile::time(Stage::Write, || w.journal.commit(key, prepared)) {
         Ok((entry, mut prepared)) => {
-            let plots = drawn.wants(&entry).then(|| run_plots(prepared.encoded()));
-            match figures(prepared.encoded(), &entry.source, plots.as_ref(), opt) {
+            let plots = w.drawn.wants(&entry).then(|| run_plots(prepared.encoded()));
+            match figures(prepared.encoded(), &entry.source, plots.as_ref(), w.opt) {
                 Ok(()) => {
                     // On to the writer's queue: the chunks alone from here, already in
                     // results.h5 where the writer has a placer.
                     prepared.forget_kept();
-                    let placed = place(placer, prepared.encoded());
+                    let placed = place(w.placer, prepared.encoded());
                     Finished::Committed(entry, prepared, plots.map(draw), placed)
                 }
                 Err(e) => Finished::Failed(e),
@@ -285,7 +278,14 @@ mod tests {
             path: PANICS.into(),
             run: Box::new(Err("never read".into())),
         };
-        let finished = prepare_caught(d, &journal, "settings", &opt, &Drawn::new(0), None);
+        let work = Work {
+            journal: &journal,
+            settings: "settings",
+            opt: &opt,
+            drawn: &Drawn::new(0),
+            placer: None,
+        };
+        let finished = prepare_caught(d, &work);
         let Finished::Committed(entry, ..) = finished else {
             panic!("committed as a failed run");
         };
