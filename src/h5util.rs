@@ -47,24 +47,32 @@ pub fn read_attr(attr: &Attribute) -> Result<AttrValue, String> {
                 Ok(AttrValue::Other(format!("{} numbers", v.len())))
             }
         }
+        // The bytes, never the crate's `as_str`: it trusts them to be UTF-8 unchecked, and a
+        // test bench's Latin-1 unit ("\xb5m") or a corrupt string made an invalid `String`
+        // (undefined behaviour; a debug build aborted on it in `Quantity::parse`).
         TypeDescriptor::VarLenUnicode => {
-            first_string(attr.read_raw::<VarLenUnicode>(), |s| s.as_str().to_string())
+            first_string(attr.read_raw::<VarLenUnicode>(), |s| text(s.as_bytes()))
         }
         TypeDescriptor::VarLenAscii => {
-            first_string(attr.read_raw::<VarLenAscii>(), |s| s.as_str().to_string())
+            first_string(attr.read_raw::<VarLenAscii>(), |s| text(s.as_bytes()))
         }
         TypeDescriptor::FixedAscii(len) if len <= 4096 => {
-            first_string(attr.read_raw::<FixedAscii<4096>>(), |s| {
-                s.as_str().trim_end_matches('\0').to_string()
-            })
+            first_string(attr.read_raw::<FixedAscii<4096>>(), |s| text(s.as_bytes()))
         }
         TypeDescriptor::FixedUnicode(len) if len <= 4096 => {
             first_string(attr.read_raw::<FixedUnicode<4096>>(), |s| {
-                s.as_str().trim_end_matches('\0').to_string()
+                text(s.as_bytes())
             })
         }
         other => Ok(AttrValue::Other(format!("{other}"))),
     }
+}
+
+/// A string attribute's bytes as text: invalid UTF-8 replaced (U+FFFD), padding dropped.
+fn text(bytes: &[u8]) -> String {
+    String::from_utf8_lossy(bytes)
+        .trim_end_matches('\0')
+        .to_string()
 }
 
 fn first_string<T>(r: hdf5::Result<Vec<T>>, f: impl Fn(&T) -> String) -> Result<AttrValue, String> {
@@ -207,5 +215,51 @@ impl AttrMaker {
         } else {
             Ok(())
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// String attributes that are not UTF-8 (a test bench's Latin-1 "µm" and "°C", or a
+    /// corrupt string) read as text with U+FFFD where a byte is not UTF-8, never as an
+    /// invalid `String`; valid ones read unchanged.
+    #[test]
+    fn strings_that_are_not_utf8_read_with_replacement_characters() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = hdf5::File::create(dir.path().join("latin1.h5")).unwrap();
+        // SAFETY: the bytes are only written to the file, never viewed as `str` here.
+        let (micro, degree) = unsafe {
+            (
+                VarLenAscii::from_ascii_unchecked(b"\xb5m"),
+                FixedAscii::<8>::from_ascii_unchecked(b"50 \xb0C"),
+            )
+        };
+        f.new_attr::<VarLenAscii>()
+            .create("units")
+            .unwrap()
+            .write_scalar(&micro)
+            .unwrap();
+        f.new_attr::<FixedAscii<8>>()
+            .create("temperature")
+            .unwrap()
+            .write_scalar(&degree)
+            .unwrap();
+        let fine: VarLenUnicode = "µm".parse().unwrap();
+        f.new_attr::<VarLenUnicode>()
+            .create("utf8")
+            .unwrap()
+            .write_scalar(&fine)
+            .unwrap();
+        let attrs = all_attrs(&f);
+        println!("{attrs:?}");
+        let text = |name: &str| match &attrs.iter().find(|(n, _)| n == name).unwrap().1 {
+            AttrValue::Text(s) => s.clone(),
+            other => panic!("{name}: {other:?}"),
+        };
+        assert_eq!(text("units"), "\u{fffd}m");
+        assert_eq!(text("temperature"), "50 \u{fffd}C");
+        assert_eq!(text("utf8"), "µm");
     }
 }

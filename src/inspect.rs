@@ -273,13 +273,86 @@ pub fn crash_detail(status: std::process::ExitStatus, stderr: &[u8]) -> String {
             }
         }
     };
-    // The end of the child's stderr says where libhdf5 gave up, when it says anything.
+    // The end of the child's stderr says where libhdf5 gave up, when it says anything: its
+    // messages on one line, without the frames of a Rust backtrace (the child inherits
+    // RUST_BACKTRACE), whose last 300 characters were all the log kept of a panic.
     let stderr = String::from_utf8_lossy(stderr);
-    let stderr = stderr.trim();
-    let tail = &stderr[stderr.floor_char_boundary(stderr.len().saturating_sub(300))..];
+    let mut said = String::new();
+    for line in stderr.lines().map(str::trim) {
+        if line.is_empty() || is_backtrace_line(line) {
+            continue;
+        }
+        // A line ending in a colon introduces the next (a panic's place, its message).
+        if !said.is_empty() {
+            said.push_str(if said.ends_with(':') { " " } else { "; " });
+        }
+        said.push_str(line);
+    }
+    let tail = &said[said.floor_char_boundary(said.len().saturating_sub(300))..];
     if tail.is_empty() {
         format!("libhdf5 crashed reading it ({how})")
     } else {
         format!("libhdf5 crashed reading it ({how}): {tail}")
+    }
+}
+
+/// Whether a line of stderr (trimmed) belongs to a Rust backtrace: its header, a frame
+/// (`12: name`), a frame's place (`at src/x.rs:1:2`), or the note about them.
+fn is_backtrace_line(line: &str) -> bool {
+    let frame = line
+        .split_once(": ")
+        .is_some_and(|(n, _)| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()));
+    // `at ./src/main.rs:40:37`: a path ending in a line and a column.
+    let place = line.strip_prefix("at ").is_some_and(|p| {
+        let mut end = p.rsplitn(3, ':');
+        let numeric = |s: Option<&str>| {
+            s.is_some_and(|s| !s.is_empty() && s.bytes().all(|b| b.is_ascii_digit()))
+        };
+        numeric(end.next()) && numeric(end.next()) && end.next().is_some()
+    });
+    frame
+        || place
+        || line == "stack backtrace:"
+        || (line.starts_with("note: ") && line.contains("backtrace"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A child's panic reads as its message on one line, not as the end of a backtrace;
+    /// libhdf5's own error stack is kept.
+    #[test]
+    fn a_crash_says_what_the_child_said_without_its_backtrace() {
+        use std::os::unix::process::ExitStatusExt;
+        let stderr = "\nthread 'main' (20938) panicked at src/h5util.rs:80:25:\n\
+            memory allocation of 8223683306334676351 bytes failed\nstack backtrace:\n   \
+            0: __rustc::rust_begin_unwind\n   27: main\n             at ./src/main.rs:40:37\n\
+            note: Some details are omitted, run with `RUST_BACKTRACE=full` for a verbose \
+            backtrace.\nthread caused non-unwinding panic. aborting.\n";
+        let said = crash_detail(std::process::ExitStatus::from_raw(6), stderr.as_bytes());
+        println!("{said}");
+        assert_eq!(
+            said,
+            "libhdf5 crashed reading it (signal 6): thread 'main' (20938) panicked at \
+             src/h5util.rs:80:25: memory allocation of 8223683306334676351 bytes failed; \
+             thread caused non-unwinding panic. aborting."
+        );
+        // A line of the child's own that starts with "at" stays.
+        let hdf5 = "HDF5-DIAG: Error detected in HDF5 (1.14.5) thread 1:\n  \
+            #000: H5D.c line 1061 in H5Dread(): can't read data\n    major: Dataset\n\
+            at the end\n";
+        let said = crash_detail(std::process::ExitStatus::from_raw(11), hdf5.as_bytes());
+        assert!(
+            said.ends_with(
+                "thread 1: #000: H5D.c line 1061 in H5Dread(): can't read data; major: Dataset; \
+                 at the end"
+            ),
+            "{said}"
+        );
+        assert_eq!(
+            crash_detail(std::process::ExitStatus::from_raw(9), b""),
+            "libhdf5 crashed reading it (signal 9)"
+        );
     }
 }

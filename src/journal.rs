@@ -414,7 +414,7 @@ fn lookup_legacy(f: &Path, key: &str) -> Option<Entry> {
     let text = |name: &str| -> Option<String> {
         let a = file.attr(name).ok()?;
         let s: hdf5::types::VarLenUnicode = a.read_scalar().ok()?;
-        Some(s.as_str().to_string())
+        Some(String::from_utf8_lossy(s.as_bytes()).into_owned())
     };
     let rows: Vec<SummaryRow> = serde_json::from_str(&text("summary")?).ok()?;
     Some(Entry {

@@ -399,3 +399,68 @@ fn real_campaigns_written_by_h5py_are_listed() {
         run.output.len()
     );
 }
+
+/// A run group libhdf5 cannot list (its local heap, which holds its members' names,
+/// pointing past the file) fails alone, with the reason; the archive's other runs read.
+/// Until 2026-12-07 the whole archive was unreadable: 10 of 400 copies of a 20-run archive
+/// with a few bits flipped were lost whole this way. Every local heap of the file is
+/// corrupted in turn; the root's and /runs' make the archive unreadable (or hide the runs),
+/// each run group's fails that run only, the others read.
+#[test]
+fn a_run_group_that_cannot_be_listed_fails_alone() {
+    let d = tmpdir();
+    let good = file_in(d.path(), "good.h5");
+    let runs: Vec<skelid::campaign::RunData> = (0..6)
+        .map(|i| skelid::campaign::RunData {
+            path: format!("/runs/run_{i:03}"),
+            input: Some(sine(2000, 3.0, 1000.0)),
+            output: sine(2000, 3.0 + i as f64, 1000.0),
+            sample_rate: 1000.0,
+            kind: RunKind::BaseMotion,
+            input_quantity: Some(Quantity::Displacement),
+            output_quantity: Quantity::Displacement,
+            attrs: vec![],
+        })
+        .collect();
+    skelid::campaign::write_campaign(&good, &[], &runs, false).unwrap();
+    let bytes = std::fs::read(&good).unwrap();
+    let heaps: Vec<usize> = (0..bytes.len() - 4)
+        .filter(|&i| &bytes[i..i + 4] == b"HEAP")
+        .collect();
+    let mut failed_alone = Vec::new();
+    for at in heaps {
+        let mut data = bytes.clone();
+        // Signature, version, reserved, data size and free-list offset; then the address
+        // of the heap's data (8-byte offsets, libhdf5's default).
+        data[at + 24..at + 32].copy_from_slice(&(1u64 << 40).to_le_bytes());
+        let bad = file_in(d.path(), &format!("heap_{at}.h5"));
+        std::fs::write(&bad, &data).unwrap();
+        match Archive::open(&bad, &IngestOptions::default()) {
+            Ok(a) => {
+                let failed: Vec<(&str, String)> = (a.runs.iter())
+                    .filter_map(|e| {
+                        e.meta
+                            .as_ref()
+                            .err()
+                            .map(|x| (e.path.as_str(), x.to_string()))
+                    })
+                    .collect();
+                println!("heap at {at}: {} runs, failed: {failed:?}", a.runs.len());
+                // The /runs group's own heap: that group fails, with every run under it.
+                if let ([(path, error)], 6) = (failed.as_slice(), a.runs.len()) {
+                    assert!(error.contains(&format!("(run {path})")), "{error}");
+                    failed_alone.push(path.to_string());
+                }
+            }
+            Err(e) => println!("heap at {at}: archive unreadable: {e}"),
+        }
+    }
+    failed_alone.sort();
+    assert_eq!(
+        failed_alone,
+        (0..6)
+            .map(|i| format!("/runs/run_{i:03}"))
+            .collect::<Vec<_>>(),
+        "each run group's heap corrupted fails that run alone"
+    );
+}

@@ -189,6 +189,7 @@ fn the_reading_child_delivers_what_an_in_process_read_does() {
         &IngestOptions::default(),
         None,
         true,
+        0,
         &mut |frame, samples| {
             if let Frame::Run {
                 archive,
@@ -236,6 +237,7 @@ fn a_place_past_the_end_of_the_file_is_refused() {
         &IngestOptions::default(),
         None,
         true,
+        0,
         &mut |frame, _| {
             frames.push(frame);
             true

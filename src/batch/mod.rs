@@ -135,13 +135,15 @@ pub enum Isolation<'a> {
     /// Read in this process (trusted files, tests).
     None,
     /// Read the archives in a child process of this executable ([`reader`]), so that a
-    /// file on which libhdf5 crashes or hangs is reported failed instead of ending the batch.
+    /// file or run on which libhdf5 crashes or hangs is reported failed instead of ending the
+    /// batch.
     Child {
         /// The reader child's command (its hidden command with the ingest options and the
         /// shard, built by the front end; the archives go on its stdin).
         command: &'a crate::child::ChildCommand,
         /// Time one step of the reading child may take (opening an archive, reading one
-        /// run) before the archive is recorded unreadable.
+        /// run) before that archive, or that run, is recorded failed (see
+        /// [`reader::DEATHS_IN_A_ROW`]).
         timeout: Duration,
     },
 }

@@ -8,10 +8,14 @@
 //! One child reads archive after archive, so a campaign of a thousand files costs one
 //! process start, not a thousand, and every sample is read once (the old per-file probe
 //! read them all a second time before the work started). When the child dies or stalls on
-//! an archive, that archive is recorded unreadable with the reason and a new child takes
-//! the remaining ones; runs the dead child had already delivered stand.
+//! a run, that run is recorded failed with the reason and a new child opens the archive
+//! again and reads on after it ([`DEATHS_IN_A_ROW`] bounds the retries); when it dies
+//! opening or closing an archive, that archive is recorded unreadable and a new child takes
+//! the remaining ones. Runs a dead child had already delivered stand.
 //!
-//! Protocol, child to parent, one frame after another: a little-endian `u32` length, a JSON
+//! Protocol: the parent writes to the child's stdin the runs of the first archive to pass
+//! over (this shard's, as a decimal count; 0 but after a death) and the archive paths, one a
+//! line. Child to parent, one frame after another: a little-endian `u32` length, a JSON
 //! [`Frame`], then for a [`Frame::Run`] that was read the samples as little-endian `f64`
 //! (input first when there is one, then output). A run whose channels lie in the archive as
 //! plain float64 bytes ([`Archive::placed`]) is sent without its samples, only where they
@@ -56,6 +60,15 @@ pub enum Frame {
         /// counts them before they are read.
         #[serde(default)]
         runs: Option<usize>,
+        /// Their group paths, in the order they will be read: when the child dies reading
+        /// one, the parent knows which run killed it, records that run failed, and a new
+        /// child goes on after it.
+        #[serde(default)]
+        paths: Vec<String>,
+        /// The archive's runs of every shard (this shard's are sent, the others' skipped):
+        /// those after a run the child died on, as the archive's last, are counted unsent.
+        #[serde(default)]
+        entries: Option<usize>,
     },
     /// One run of this shard; samples follow when `meta` is `Ok` and it is not `placed`.
     Run {
@@ -167,14 +180,41 @@ impl Counts {
     }
 }
 
-/// The archive a reading child is in: the runs it announced (this shard's), those it has
-/// delivered, and the last one's path.
+/// The archive a reading child is in: the runs it announced (this shard's) and their
+/// paths, those delivered (by this child or those before it in the archive, failed ones
+/// included), the last one's path, the archive's entries of every shard and those seen so
+/// far, the runs a child died on (in a row, and in all), and whether the archive was
+/// given up while its child went on.
 #[derive(Debug, Clone, Default)]
 struct Reading {
     announced: Option<usize>,
+    paths: Vec<String>,
     delivered: usize,
     last: Option<String>,
+    entries: Option<usize>,
+    seen: usize,
+    died_in_row: usize,
+    deaths: usize,
+    abandoned: bool,
 }
+
+impl Reading {
+    /// The runs of this shard not dealt with yet.
+    fn rest(&self) -> usize {
+        self.paths.len().saturating_sub(self.delivered)
+    }
+}
+
+/// Runs in a row of one archive that may each stop a reading child (a crash, or a step past
+/// `--timeout`) before the rest of the archive is given up: a run that crashes libhdf5
+/// costs that run alone, an archive corrupt throughout (or a disk that stopped answering)
+/// is not retried run after run all night.
+pub const DEATHS_IN_A_ROW: usize = 3;
+
+/// Runs of one archive that may stop a reading child in all, in a row or not, before the
+/// rest of it is given up: with the default `--timeout` of 300 s, at most 50 minutes of
+/// hangs an archive.
+pub const DEATHS_IN_AN_ARCHIVE: usize = 10;
 
 /// Why the reader stopped early: the consumer went away.
 #[derive(Debug)]
@@ -199,33 +239,191 @@ pub fn read_all(
     });
     if let Some((command, timeout)) = isolate {
         let mut next = 0;
+        // Where a new child takes up the archive a child died in.
+        let mut resume: Option<Reading> = None;
         while next < files.len() {
-            match read_in_child(command, &files[next..], options, timeout, counts, deliver)? {
+            let start = resume.take();
+            let end = read_in_child(
+                command,
+                &files[next..],
+                options,
+                timeout,
+                counts,
+                start.clone(),
+                deliver,
+            )?;
+            match end {
                 ChildEnd::Finished => break,
-                // The child could not be started: read in-process rather than not at all.
+                // The child could not be started: read in-process rather than not at all,
+                // but not the rest of an archive a child just died in (libhdf5 may crash
+                // on it again, and take the batch with it).
                 ChildEnd::NotStarted => {
-                    return read_in_process(&files[next..], options, shard, counts, deliver)
+                    if let Some(r) = start {
+                        let file = &files[next];
+                        let error = corrupt(
+                            file,
+                            format!(
+                                "no new reading child could be started after a run stopped \
+                                 the last, so the archive's {} run(s) after {} are not read",
+                                r.rest(),
+                                r.last.as_deref().unwrap_or("the first")
+                            ),
+                        );
+                        deliver(unreadable(counts, file, error, Some(&r)))?;
+                        next += 1;
+                    }
+                    return read_in_process(&files[next..], options, shard, counts, deliver);
                 }
                 ChildEnd::Died {
                     done,
                     detail,
                     reading,
+                    reopening,
                 } => {
                     next += done;
-                    let file = &files[next];
-                    let e = crate::ingest::IngestError::Corrupt {
-                        file: file.display().to_string(),
-                        run: None,
-                        detail,
-                    };
-                    deliver(unreadable(counts, file, e.to_string(), reading.as_ref()))?;
-                    next += 1;
+                    let (failures, resume_at) =
+                        after_death(counts, &files[next], detail, reading, reopening);
+                    for d in failures {
+                        deliver(d)?;
+                    }
+                    match resume_at {
+                        Some(r) => resume = Some(r),
+                        None => next += 1,
+                    }
                 }
             }
         }
         Ok(())
     } else {
         read_in_process(files, options, shard, counts, deliver)
+    }
+}
+
+/// What a reading child's death in `file` (`detail`: how it died; `reading`: where it was,
+/// once it had opened the archive; `reopening`: where a child before it had died, when this
+/// one died opening the archive again) delivers, counted, and where a new child takes the
+/// archive up (`None`: at the next archive). Dying on a run fails that run alone, until
+/// [`DEATHS_IN_A_ROW`]; dying while opening or closing the archive fails the archive.
+fn after_death(
+    counts: &Counts,
+    file: &Path,
+    detail: String,
+    reading: Option<Reading>,
+    reopening: Option<Reading>,
+) -> (Vec<Delivery>, Option<Reading>) {
+    if let (None, Some(r)) = (&reading, &reopening) {
+        let error = corrupt(file, reopen_failed(&detail, r));
+        return (vec![unreadable(counts, file, error, Some(r))], None);
+    }
+    match reading {
+        // Given up already (it changed between two children): nothing more to say.
+        Some(r) if r.abandoned => (Vec::new(), None),
+        Some(mut r) if r.rest() > 0 => {
+            let path = r.paths[r.delivered].clone();
+            r.died_in_row += 1;
+            r.deaths += 1;
+            let last = r.rest() == 1;
+            let gives_up = r.died_in_row >= DEATHS_IN_A_ROW || r.deaths >= DEATHS_IN_AN_ARCHIVE;
+            let then = if last {
+                "it was the archive's last run"
+            } else if gives_up {
+                "the reading child is not started on this archive again"
+            } else {
+                "the archive's other runs are read by a new reading child"
+            };
+            let failed = died_in_run(counts, file, &path, &format!("{detail}; {then}"), &mut r);
+            if last {
+                // Other shards' runs after it, never sent as skipped, are counted here
+                // rather than by opening the archive again.
+                let unseen = r.entries.map_or(0, |n| n.saturating_sub(r.seen));
+                counts.runs_in_inputs.fetch_add(unseen, Ordering::Relaxed);
+                return (vec![failed], None);
+            }
+            if !gives_up {
+                return (vec![failed], Some(r));
+            }
+            let why = if r.died_in_row >= DEATHS_IN_A_ROW {
+                format!("{} runs in a row", r.died_in_row)
+            } else {
+                format!("{} of its runs", r.deaths)
+            };
+            let error = corrupt(
+                file,
+                format!(
+                    "{why} stopped the reading child, the last {path}, so the archive's {} \
+                     run(s) after it are not read",
+                    r.rest()
+                ),
+            );
+            (
+                vec![failed, unreadable(counts, file, error, Some(&r))],
+                None,
+            )
+        }
+        reading => {
+            let error = match &reading {
+                Some(r) if r.deaths > 0 => format!(
+                    "{detail}; its {} run(s) were read and {} failed before",
+                    r.delivered - r.deaths,
+                    r.deaths
+                ),
+                Some(r) => format!("{detail}; its {} run(s) were read", r.delivered),
+                None => detail,
+            };
+            let error = corrupt(file, error);
+            (
+                vec![unreadable(counts, file, error, reading.as_ref())],
+                None,
+            )
+        }
+    }
+}
+
+/// Why an archive was given up when a child could not open it again after a run stopped
+/// the one before (`detail`: how it failed).
+fn reopen_failed(detail: &str, r: &Reading) -> String {
+    format!(
+        "{detail} (opening it again after a run stopped the reading child), so the \
+         archive's {} run(s) after {} are not read",
+        r.rest(),
+        r.last.as_deref().unwrap_or("the first")
+    )
+}
+
+/// The error of an archive libhdf5 could not read through, as the reader words it.
+fn corrupt(file: &Path, detail: String) -> String {
+    crate::ingest::IngestError::Corrupt {
+        file: file.display().to_string(),
+        run: None,
+        detail,
+    }
+    .to_string()
+}
+
+/// The failure of the run `path` that a reading child died on (`detail`: how, and what
+/// follows), delivered and counted like a run read: it was announced with its archive.
+/// `reading` moves past it.
+fn died_in_run(
+    counts: &Counts,
+    file: &Path,
+    path: &str,
+    detail: &str,
+    reading: &mut Reading,
+) -> Delivery {
+    counts.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
+    counts.delivered.fetch_add(1, Ordering::Relaxed);
+    reading.delivered += 1;
+    reading.seen += 1;
+    reading.last = Some(path.to_string());
+    let error = crate::ingest::IngestError::Corrupt {
+        file: file.display().to_string(),
+        run: Some(path.to_string()),
+        detail: detail.to_string(),
+    };
+    Delivery::Run {
+        source: file.display().to_string(),
+        path: path.to_string(),
+        run: Box::new(Err(error.to_string())),
     }
 }
 
@@ -238,8 +436,8 @@ fn read_in_process(
     deliver: &mut dyn FnMut(Delivery) -> Result<(), Stopped>,
 ) -> Result<(), Stopped> {
     let mut stopped = false;
-    let mut assemble = Assembler::new(files, counts, options);
-    serve(files, options, shard, false, &mut |frame, samples| {
+    let mut assemble = Assembler::new(files, counts, options, None);
+    serve(files, options, shard, false, 0, &mut |frame, samples| {
         if stopped {
             return false;
         }
@@ -267,10 +465,18 @@ struct Assembler<'a> {
     open: Option<(usize, std::fs::File)>,
     /// The archive being read, once its child has opened it.
     reading: Option<Reading>,
+    /// Where a child before this one died in the first archive: its opening is then no news
+    /// (announced and counted already), and reading goes on from there.
+    resumed: Option<Reading>,
 }
 
 impl<'a> Assembler<'a> {
-    fn new(files: &'a [PathBuf], counts: &'a Counts, options: &'a IngestOptions) -> Self {
+    fn new(
+        files: &'a [PathBuf],
+        counts: &'a Counts,
+        options: &'a IngestOptions,
+        resumed: Option<Reading>,
+    ) -> Self {
         Assembler {
             files,
             counts,
@@ -278,6 +484,7 @@ impl<'a> Assembler<'a> {
             options,
             open: None,
             reading: None,
+            resumed,
         }
     }
 
@@ -302,19 +509,28 @@ impl<'a> Assembler<'a> {
         format!(
             "{step}, the reading child went {} s without progress; libhdf5 loops on some \
              corrupt files (a run that is very large, or a slow disk, needs a longer \
-             --timeout); the runs it had read stand, the rest of this archive is not read",
+             --timeout)",
             timeout.as_secs()
         )
     }
 
     fn frame(&mut self, frame: Frame, samples: Option<Samples>) -> Option<Delivery> {
         let c = self.counts;
+        // The frames of an archive given up while its child went on are not news.
+        let abandoned = self.reading.as_ref().is_some_and(|r| r.abandoned);
         match frame {
             Frame::Open {
                 archive,
                 not_runs,
                 runs,
+                paths,
+                entries,
             } => {
+                if archive == 0 {
+                    if let Some(r) = self.resumed.take() {
+                        return self.reopened(r, &paths);
+                    }
+                }
                 // The archive's one among the runs known becomes its runs (the child always
                 // announces them; an archive that did not would count one until read).
                 c.tally(|t| {
@@ -327,6 +543,8 @@ impl<'a> Assembler<'a> {
                 });
                 self.reading = Some(Reading {
                     announced: runs,
+                    paths,
+                    entries,
                     ..Reading::default()
                 });
                 let file = self.files[archive].display().to_string();
@@ -336,8 +554,12 @@ impl<'a> Assembler<'a> {
                     .extend(not_runs.into_iter().map(|g| (file.clone(), g)));
                 None
             }
+            Frame::Skip { .. } | Frame::Run { .. } if abandoned => None,
             Frame::Skip { .. } => {
                 c.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
+                if let Some(r) = &mut self.reading {
+                    r.seen += 1;
+                }
                 None
             }
             Frame::Run {
@@ -351,7 +573,9 @@ impl<'a> Assembler<'a> {
                 c.delivered.fetch_add(1, Ordering::Relaxed);
                 if let Some(r) = &mut self.reading {
                     r.delivered += 1;
+                    r.seen += 1;
                     r.last = Some(path.clone());
+                    r.died_in_row = 0;
                 }
                 let run = meta.and_then(|meta| {
                     let (input, output) = match placed {
@@ -376,9 +600,49 @@ impl<'a> Assembler<'a> {
                 self.done = archive + 1;
                 self.open = None;
                 self.reading = None;
-                error.map(|error| unreadable(c, &self.files[archive], error, None))
+                // An archive that could not be opened again after a run stopped a child:
+                // its runs not dealt with are no longer expected.
+                let resumed = if archive == 0 {
+                    self.resumed.take()
+                } else {
+                    None
+                };
+                let file = &self.files[archive];
+                error.map(|error| match resumed {
+                    Some(r) => {
+                        let error = format!("{error} {}", reopen_failed("", &r).trim_start());
+                        unreadable(c, file, error, Some(&r))
+                    }
+                    None => unreadable(c, file, error, None),
+                })
             }
         }
+    }
+
+    /// Takes up the archive a child before this one died in (`r`), now opened again with
+    /// `paths`: reading goes on after the run it died on, unless the archive changed in
+    /// between (a bench still appending runs, a file replaced), when the runs the count
+    /// passes over are no longer those dealt with, and the rest is given up.
+    fn reopened(&mut self, mut r: Reading, paths: &[String]) -> Option<Delivery> {
+        if r.paths == paths {
+            self.reading = Some(r);
+            return None;
+        }
+        let file = &self.files[0];
+        let error = corrupt(
+            file,
+            format!(
+                "the archive changed while it was read (opened again after a run stopped \
+                 the reading child, it held other runs), so the archive's {} run(s) after {} \
+                 are not read",
+                r.rest(),
+                r.last.as_deref().unwrap_or("the first")
+            ),
+        );
+        let given_up = unreadable(self.counts, file, error, Some(&r));
+        r.abandoned = true;
+        self.reading = Some(r);
+        Some(given_up)
     }
 
     /// A placed run's samples, read from its archive (opened once for all its runs), or
@@ -432,12 +696,15 @@ fn unreadable(counts: &Counts, file: &Path, error: String, reading: Option<&Read
 /// Reads `files` in this process and hands every frame (with the run's samples) to `emit`,
 /// which returns false to stop. The child's side of the protocol, and the in-process reader.
 /// With `place` (the child), a run whose channels lie as plain float64 bytes goes without
-/// its samples, only where they lie ([`Archive::placed`]), for the parent to read.
+/// its samples, only where they lie ([`Archive::placed`]), for the parent to read. `after`:
+/// this shard's runs of the first archive that a child before this one dealt with (the last
+/// of them the one it died on), passed over without a frame.
 pub fn serve(
     files: &[PathBuf],
     options: &IngestOptions,
     shard: Option<Shard>,
     place: bool,
+    after: usize,
     emit: &mut dyn FnMut(Frame, Option<Samples>) -> bool,
 ) {
     for (i, f) in files.iter().enumerate() {
@@ -455,15 +722,28 @@ pub fn serve(
             }
         };
         let takes = |path: &str| shard.is_none_or(|s| s.takes(archive.file_name(), path));
+        let paths: Vec<String> = (archive.runs.iter())
+            .filter(|e| takes(&e.path))
+            .map(|e| e.path.clone())
+            .collect();
         let open = Frame::Open {
             archive: i,
             not_runs: archive.not_runs.clone(),
-            runs: Some(archive.runs.iter().filter(|e| takes(&e.path)).count()),
+            runs: Some(paths.len()),
+            paths,
+            entries: Some(archive.runs.len()),
         };
         if !emit(open, None) {
             return;
         }
+        // The entries up to the `after`-th run of this shard, other shards' included: the
+        // child before this one sent their frames.
+        let mut passed = if i == 0 { after } else { 0 };
         for entry in &archive.runs {
+            if passed > 0 {
+                passed -= usize::from(takes(&entry.path));
+                continue;
+            }
             if !takes(&entry.path) {
                 if !emit(Frame::Skip { archive: i }, None) {
                     return;
@@ -523,16 +803,20 @@ pub fn serve(
 /// them once more on each side, as a 1 MB buffer did.
 const FRAME_BUFFER: usize = 64 << 10;
 
-/// The child's main: archive paths from standard input, frames to standard output.
+/// The child's main: from standard input, the runs of the first archive to pass over (a
+/// decimal count on the first line, see [`serve`]'s `after`), then the archive paths one a
+/// line; frames to standard output.
 pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Result<()> {
-    let files: Vec<PathBuf> = std::io::stdin()
+    let mut lines = std::io::stdin()
         .lock()
         .lines()
         .collect::<std::io::Result<Vec<String>>>()?
-        .into_iter()
-        .filter(|l| !l.is_empty())
-        .map(PathBuf::from)
-        .collect();
+        .into_iter();
+    let after = lines
+        .next()
+        .and_then(|l| l.trim().parse::<usize>().ok())
+        .ok_or_else(|| std::io::Error::other("the first line is not the runs to pass over"))?;
+    let files: Vec<PathBuf> = lines.filter(|l| !l.is_empty()).map(PathBuf::from).collect();
     let mut out = std::io::BufWriter::with_capacity(FRAME_BUFFER, std::io::stdout().lock());
     let mut failure = None;
     // `SKELID_READ_PAUSE_MS`: each run read this much slower, to rehearse `--timeout` on a
@@ -541,22 +825,76 @@ pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Re
         .ok()
         .and_then(|v| v.trim().parse::<u64>().ok())
         .map(Duration::from_millis);
-    serve(&files, options, shard, true, &mut |frame, samples| {
-        if let (Some(pause), Frame::Run { .. }) = (pause, &frame) {
-            std::thread::sleep(pause);
-        }
-        match write_frame(&mut out, &frame, samples.as_ref()) {
-            Ok(()) => true,
-            Err(e) => {
-                // The parent went away (a stopped batch): nothing left to do.
-                failure = Some(e);
-                false
+    let faults = Faults::from_env();
+    serve(
+        &files,
+        options,
+        shard,
+        true,
+        after,
+        &mut |frame, samples| {
+            if let Frame::Run { path, .. } = &frame {
+                if let Some(pause) = pause {
+                    std::thread::sleep(pause);
+                }
+                faults.meet(path);
             }
-        }
-    });
+            match write_frame(&mut out, &frame, samples.as_ref()) {
+                Ok(()) => true,
+                Err(e) => {
+                    // The parent went away (a stopped batch): nothing left to do.
+                    failure = Some(e);
+                    false
+                }
+            }
+        },
+    );
     match failure {
         Some(e) => Err(e),
         None => out.flush(),
+    }
+}
+
+/// `SKELID_READ_FAULT=crash:PATH,hang:PATH,…`: the reading child aborts, or stops answering,
+/// where it would send the run of that group path (in any archive), as when libhdf5 crashes
+/// or loops on that run's corrupt data; to rehearse a campaign with a bad run (the tests
+/// use it).
+#[derive(Default)]
+struct Faults {
+    crash: Vec<String>,
+    hang: Vec<String>,
+}
+
+impl Faults {
+    fn from_env() -> Faults {
+        let mut faults = Faults::default();
+        let spec = std::env::var("SKELID_READ_FAULT").unwrap_or_default();
+        for item in spec.split(',') {
+            match item.split_once(':') {
+                Some(("crash", path)) => faults.crash.push(path.to_string()),
+                Some(("hang", path)) => faults.hang.push(path.to_string()),
+                _ => {}
+            }
+        }
+        faults
+    }
+
+    fn meet(&self, path: &str) {
+        if self.crash.iter().any(|p| p == path) {
+            // No core file left behind where core dumps are on.
+            let none = libc::rlimit {
+                rlim_cur: 0,
+                rlim_max: 0,
+            };
+            // SAFETY: setrlimit reads the struct given and touches no other memory.
+            unsafe { libc::setrlimit(libc::RLIMIT_CORE, &none) };
+            std::process::abort();
+        }
+        if self.hang.iter().any(|p| p == path) {
+            loop {
+                std::thread::sleep(Duration::from_secs(3600));
+            }
+        }
     }
 }
 
@@ -632,17 +970,21 @@ fn read_vector(inp: &mut impl Read) -> std::io::Result<Vec<f64>> {
 }
 
 /// How one reading child ended.
+// One a child, returned once: the two readings inline cost nothing worth a box.
+#[allow(clippy::large_enum_variant)]
 enum ChildEnd {
     /// Every archive given to it was read.
     Finished,
     /// It could not be started.
     NotStarted,
-    /// It died (or was stopped) after finishing `done` archives; `detail` says how, and
-    /// `reading` where it was in the next one when it had opened it.
+    /// It died (or was stopped) after finishing `done` archives; `detail` says how,
+    /// `reading` where it was in the next one when it had opened it, and `reopening` where
+    /// it was to take that archive up when it died before opening it.
     Died {
         done: usize,
         detail: String,
         reading: Option<Reading>,
+        reopening: Option<Reading>,
     },
 }
 
@@ -660,12 +1002,15 @@ struct Clock {
 /// The environment variable that gives the reader child the batch's process id.
 pub const BATCH_PID: &str = "SKELID_BATCH_PID";
 
+/// One reading child over `files`, from where `start` says a child before it died in the
+/// first.
 fn read_in_child(
     command: &ChildCommand,
     files: &[PathBuf],
     options: &IngestOptions,
     timeout: Duration,
     counts: &Counts,
+    start: Option<Reading>,
     deliver: &mut dyn FnMut(Delivery) -> Result<(), Stopped>,
 ) -> Result<ChildEnd, Stopped> {
     let mut cmd = Command::new(&command.exe);
@@ -685,7 +1030,10 @@ fn read_in_child(
     let mut stdout =
         std::io::BufReader::with_capacity(FRAME_BUFFER, child.stdout.take().expect("piped"));
     let mut stderr = child.stderr.take().expect("piped stderr");
-    let list: String = files.iter().map(|f| format!("{}\n", f.display())).collect();
+    let after = start.as_ref().map_or(0, |r| r.delivered);
+    let list: String = std::iter::once(format!("{after}\n"))
+        .chain(files.iter().map(|f| format!("{}\n", f.display())))
+        .collect();
     // The child reads its whole list before it writes anything, so this cannot deadlock.
     let feeder = std::thread::spawn(move || {
         let _ = stdin.write_all(list.as_bytes());
@@ -719,9 +1067,9 @@ fn read_in_child(
         })
     };
     let set = |f: &dyn Fn(&mut Clock)| f(&mut clock.lock().unwrap_or_else(|p| p.into_inner()));
-    let mut assemble = Assembler::new(files, counts, options);
+    let mut assemble = Assembler::new(files, counts, options, start);
     let mut result = Ok(());
-    let mut broken = false;
+    let mut broken: Option<std::io::Error> = None;
     loop {
         match crate::profile::time(Stage::Read, || read_frame(&mut stdout)) {
             Ok(Some((frame, samples))) => {
@@ -741,8 +1089,8 @@ fn read_in_child(
                 }
             }
             Ok(None) => break,
-            Err(_) => {
-                broken = true;
+            Err(e) => {
+                broken = Some(e);
                 break;
             }
         }
@@ -755,7 +1103,7 @@ fn read_in_child(
     let _ = watchdog.join();
     let status = {
         let mut ch = child.lock().unwrap_or_else(|p| p.into_inner());
-        if result.is_err() || broken {
+        if result.is_err() || broken.is_some() {
             let _ = ch.kill();
         }
         ch.wait()
@@ -769,6 +1117,9 @@ fn read_in_child(
     }
     let detail = if timed_out {
         assemble.hang_detail(timeout)
+    } else if let Some(e) = broken {
+        // Not libhdf5's doing: what the child sent could not be read (a bug of skelid's).
+        format!("the reading child's stream broke ({e}); please report it")
     } else {
         match status {
             Ok(s) => crash_detail(s, &err),
@@ -779,6 +1130,7 @@ fn read_in_child(
         done,
         detail,
         reading: assemble.reading,
+        reopening: assemble.resumed,
     })
 }
 
@@ -870,22 +1222,26 @@ mod tests {
         }
     }
 
-    /// A reading child that dies part-way through an archive leaves its runs delivered and
-    /// one failure: the runs it announced and never sent no longer count, and the total
-    /// ends exact.
+    /// A reading child that dies on a run fails that run alone: a new child takes the
+    /// archive up after it, until three runs in a row have stopped a child, when the rest of
+    /// the archive is given up as one failure. A child that dies opening the archive again
+    /// gives it up too. Every run announced is delivered once (read, or failed), and the
+    /// total stays exact throughout.
     #[test]
-    fn a_child_dying_in_an_archive_leaves_its_delivered_runs_and_one_failure() {
+    fn a_child_dying_on_a_run_fails_that_run_and_a_new_child_goes_on_after_it() {
         let files = [PathBuf::from("a.h5"), PathBuf::from("b.h5")];
         let (counts, options) = (Counts::default(), IngestOptions::default());
         counts.tally(|t| {
             t.known = 2;
             t.unopened = 2;
         });
-        let mut assemble = Assembler::new(&files, &counts, &options);
+        let names = |n: usize| (1..=n).map(|r| format!("/r{r}")).collect::<Vec<_>>();
         let open = |archive, runs| Frame::Open {
             archive,
             not_runs: Vec::new(),
             runs: Some(runs),
+            paths: names(runs),
+            entries: Some(runs),
         };
         let run = |archive, path: &str| Frame::Run {
             archive,
@@ -894,41 +1250,292 @@ mod tests {
             has_input: false,
             placed: None,
         };
-        assemble.frame(open(0, 5), None);
-        assert_eq!(counts.estimate(), 5 + 5, "b.h5 projected at a.h5's 5 runs");
+        let mut seen: Vec<(String, String)> = Vec::new();
+        let mut see = |d: Delivery| {
+            seen.push(match d {
+                Delivery::Run { path, run, .. } => (path, run.err().unwrap_or_default()),
+                Delivery::Unreadable { error, .. } => ("unreadable".into(), error),
+            })
+        };
+        // A child reads /r1 and /r2 of a.h5's 8 runs, and dies on /r3.
+        let mut assemble = Assembler::new(&files, &counts, &options, None);
+        assemble.frame(open(0, 8), None);
+        assert_eq!(counts.estimate(), 8 + 8, "b.h5 projected at a.h5's 8 runs");
         for p in ["/r1", "/r2"] {
-            assert!(assemble.frame(run(0, p), None).is_some());
+            see(assemble.frame(run(0, p), None).unwrap());
         }
         let hung = assemble.hang_detail(Duration::from_secs(7));
         println!("{hung}");
         assert!(
-            hung.starts_with("reading its run 3 of 5, the one after /r2"),
+            hung.starts_with("reading its run 3 of 8, the one after /r2"),
             "{hung}"
         );
-        // The child died: a.h5's failure is delivered, a new child opens b.h5.
-        let _ = unreadable(&counts, &files[0], "died".into(), assemble.reading.as_ref());
-        let mut assemble = Assembler::new(&files[1..], &counts, &options);
-        assemble.frame(open(0, 3), None);
-        for p in ["/r1", "/r2", "/r3"] {
-            assemble.frame(run(0, p), None);
-        }
+        let died = |a: Assembler, how: &str| {
+            after_death(&counts, &files[0], how.into(), a.reading, a.resumed)
+        };
+        let (failed, mut resume) = died(assemble, "libhdf5 crashed reading it (signal 11)");
+        failed.into_iter().for_each(&mut see);
+        assert_eq!(counts.estimate(), 16, "the failed run was one of the 8");
+        // The next child passes over /r1-/r3 (its opening no news), reads /r4, dies on /r5;
+        // two more die on /r6 and /r7: three in a row, so /r8 is given up.
+        let mut assemble = Assembler::new(&files, &counts, &options, resume.take());
+        assemble.frame(open(0, 8), None);
+        see(assemble.frame(run(0, "/r4"), None).unwrap());
         let hung = assemble.hang_detail(Duration::from_secs(7));
-        assert!(hung.starts_with("closing it after its 3 run(s)"), "{hung}");
-        assert!(assemble
-            .frame(
-                Frame::Close {
-                    archive: 0,
-                    error: None
-                },
-                None
+        assert!(
+            hung.starts_with("reading its run 5 of 8, the one after /r4"),
+            "{hung}"
+        );
+        let (failed, resumed) = died(assemble, &hung);
+        failed.into_iter().for_each(&mut see);
+        resume = resumed;
+        for _ in 0..2 {
+            let mut assemble = Assembler::new(&files, &counts, &options, resume.take());
+            assemble.frame(open(0, 8), None);
+            let (failed, resumed) = died(assemble, "libhdf5 crashed reading it (signal 6)");
+            failed.into_iter().for_each(&mut see);
+            resume = resumed;
+        }
+        assert!(resume.is_none(), "a.h5 given up");
+        assert_eq!(counts.estimate(), 8 + 8, "7 runs and a failure for /r8");
+        // b.h5: /r1 read, /r2 stops the child, the next dies opening it again.
+        let mut assemble = Assembler::new(&files[1..], &counts, &options, None);
+        assemble.frame(open(0, 3), None);
+        see(assemble.frame(run(0, "/r1"), None).unwrap());
+        let death = |a: Assembler| {
+            after_death(
+                &counts,
+                &files[1],
+                "libhdf5 crashed reading it (signal 11)".into(),
+                a.reading,
+                a.resumed,
             )
-            .is_none());
-        assert_eq!(counts.delivered.load(Ordering::Relaxed), 6);
+        };
+        let (failed, resume) = death(assemble);
+        failed.into_iter().for_each(&mut see);
+        let (failed, resume) = death(Assembler::new(&files[1..], &counts, &options, resume));
+        failed.into_iter().for_each(&mut see);
+        assert!(resume.is_none());
+        for (path, error) in &seen {
+            println!("{path}: {error}");
+        }
+        let paths: Vec<&str> = seen.iter().map(|(p, _)| p.as_str()).collect();
+        assert_eq!(
+            paths,
+            [
+                "/r1",
+                "/r2",
+                "/r3",
+                "/r4",
+                "/r5",
+                "/r6",
+                "/r7",
+                "unreadable"
+            ]
+            .into_iter()
+            .chain(["/r1", "/r2", "unreadable"])
+            .collect::<Vec<_>>()
+        );
+        let error = |i: usize| seen[i].1.as_str();
+        assert!(
+            error(2).starts_with(
+                "a.h5: truncated or corrupt HDF5 file (run /r3): libhdf5 crashed reading it \
+                 (signal 11); the archive's other runs"
+            ) && error(2).ends_with("the archive's other runs are read by a new reading child"),
+            "{}",
+            error(2)
+        );
+        assert!(error(4).contains("reading its run 5 of 8, the one after /r4, the reading child went 7 s without progress"));
+        assert!(
+            error(6)
+                .ends_with("(signal 6); the reading child is not started on this archive again"),
+            "{}",
+            error(6)
+        );
+        assert!(
+            error(7).ends_with("3 runs in a row stopped the reading child, the last /r7, so the archive's 1 run(s) after it are not read"),
+            "{}",
+            error(7)
+        );
+        assert!(
+            error(10).contains("(opening it again after a run stopped the reading child), so the archive's 1 run(s) after /r2 are not read"),
+            "{}",
+            error(10)
+        );
+        assert_eq!(counts.delivered.load(Ordering::Relaxed), 11);
+        assert_eq!(counts.estimate(), 11, "8 of a.h5 and 3 of b.h5, each once");
+    }
+
+    /// The ends of a resumed archive: a child that finds it gone or changed when it opens it
+    /// again gives up the rest of it (once, however its child goes on); a death on the
+    /// archive's last run counts the other shards' runs after it without a new child. The
+    /// counts stay exact throughout.
+    #[test]
+    fn a_resumed_archive_gone_changed_or_at_its_last_run_is_counted_once() {
+        let files = [PathBuf::from("a.h5"), PathBuf::from("b.h5")];
+        let options = IngestOptions::default();
+        let names = |n: usize| (1..=n).map(|r| format!("/r{r}")).collect::<Vec<_>>();
+        let open = |runs: usize, paths: Vec<String>, entries: usize| Frame::Open {
+            archive: 0,
+            not_runs: Vec::new(),
+            runs: Some(runs),
+            paths,
+            entries: Some(entries),
+        };
+        let run = |path: &str| Frame::Run {
+            archive: 0,
+            path: path.into(),
+            meta: Err("not read in this test".into()),
+            has_input: false,
+            placed: None,
+        };
+        // A child read /r1 of a.h5's 4 runs and died on /r2: where a new child starts.
+        let died_on_r2 = |counts: &Counts| {
+            counts.tally(|t| {
+                t.known = 2;
+                t.unopened = 2;
+            });
+            let mut a = Assembler::new(&files, counts, &options, None);
+            a.frame(open(4, names(4), 4), None);
+            a.frame(run("/r1"), None).unwrap();
+            let (failed, resume) =
+                after_death(counts, &files[0], "crashed".into(), a.reading, a.resumed);
+            assert_eq!(failed.len(), 1);
+            resume.expect("a new child goes on")
+        };
+        let error_of = |d: Option<Delivery>| match d {
+            Some(Delivery::Unreadable { error, .. }) => error,
+            _ => panic!("the archive given up"),
+        };
+
+        // Gone: the new child cannot open it. /r3 and /r4 become one failure.
+        let counts = Counts::default();
+        let mut a = Assembler::new(&files, &counts, &options, Some(died_on_r2(&counts)));
+        let close = Frame::Close {
+            archive: 0,
+            error: Some("a.h5: cannot read the file: No such file or directory".into()),
+        };
+        let error = error_of(a.frame(close, None));
+        println!("{error}");
+        assert!(error.ends_with("No such file or directory (opening it again after a run stopped the reading child), so the archive's 2 run(s) after /r2 are not read"), "{error}");
+        assert!(a.resumed.is_none());
+        assert_eq!(counts.delivered.load(Ordering::Relaxed), 3);
+        // b.h5 projected at the 4 runs a.h5 announced.
         assert_eq!(
             counts.estimate(),
-            6,
-            "2 runs and a failure of a.h5, 3 runs of b.h5"
+            3 + 4,
+            "/r1, /r2 and a failure of a.h5, and b.h5"
         );
+
+        // Changed: opened again, it holds other runs. Given up once; the child's frames of
+        // it after that are no news, and its death in it delivers nothing more.
+        let counts = Counts::default();
+        let mut a = Assembler::new(&files, &counts, &options, Some(died_on_r2(&counts)));
+        let other = vec![
+            "/r0".to_string(),
+            "/r1".into(),
+            "/r2".into(),
+            "/r3".into(),
+            "/r4".into(),
+        ];
+        let error = error_of(a.frame(open(5, other, 5), None));
+        println!("{error}");
+        assert!(
+            error.contains("the archive changed while it was read"),
+            "{error}"
+        );
+        assert!(a.frame(run("/r3"), None).is_none());
+        let (more, resume) =
+            after_death(&counts, &files[0], "crashed".into(), a.reading, a.resumed);
+        assert!(more.is_empty() && resume.is_none());
+        assert_eq!(counts.delivered.load(Ordering::Relaxed), 3);
+        assert_eq!(counts.estimate(), 3 + 4);
+
+        // The last run: a shard's 2 runs among 5 entries, the fourth entry the last of them;
+        // the child dies on it. The fifth, another shard's, is counted without a new child.
+        let counts = Counts::default();
+        counts.tally(|t| {
+            t.known = 1;
+            t.unopened = 1;
+        });
+        let mut a = Assembler::new(&files[..1], &counts, &options, None);
+        a.frame(open(2, vec!["/r2".into(), "/r4".into()], 5), None);
+        a.frame(Frame::Skip { archive: 0 }, None);
+        a.frame(run("/r2"), None).unwrap();
+        a.frame(Frame::Skip { archive: 0 }, None);
+        let (failed, resume) =
+            after_death(&counts, &files[0], "crashed".into(), a.reading, a.resumed);
+        let Some(Delivery::Run { path, run, .. }) = failed.into_iter().next() else {
+            panic!("the run failed");
+        };
+        let error = run.err().unwrap();
+        assert_eq!(path, "/r4");
+        assert!(
+            error.ends_with("crashed; it was the archive's last run"),
+            "{error}"
+        );
+        assert!(resume.is_none(), "no new child for it");
+        assert_eq!(counts.runs_in_inputs.load(Ordering::Relaxed), 5);
+        assert_eq!(counts.estimate(), 2);
+    }
+
+    /// A child told to pass over the runs a child before it dealt with sends no frame for
+    /// them (nor for other shards' runs among them), and reads on from the next.
+    #[test]
+    fn a_new_child_passes_over_the_runs_dealt_with() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("a.h5"), dir.path().join("b.h5"));
+        archive_of(&a, 9);
+        archive_of(&b, 2);
+        let files = [a, b];
+        let shard = Shard { index: 1, count: 2 };
+        let frames = |shard: Option<Shard>, after: usize| {
+            let mut frames = Vec::new();
+            serve(
+                &files,
+                &IngestOptions::default(),
+                shard,
+                true,
+                after,
+                &mut |f, _| {
+                    frames.push(match f {
+                        Frame::Open { archive, runs, .. } => format!("open {archive} {runs:?}"),
+                        Frame::Run { archive, path, .. } => format!("{archive}{path}"),
+                        Frame::Skip { archive } => format!("skip {archive}"),
+                        Frame::Close { archive, .. } => format!("close {archive}"),
+                    });
+                    true
+                },
+            );
+            frames
+        };
+        assert_eq!(
+            frames(None, 4),
+            [
+                "open 0 Some(9)",
+                "0/r5",
+                "0/r6",
+                "0/r7",
+                "0/r8",
+                "0/r9",
+                "close 0"
+            ]
+            .into_iter()
+            .chain(["open 1 Some(2)", "1/r1", "1/r2", "close 1"])
+            .collect::<Vec<_>>()
+        );
+        // With a shard: the frames after its second run, as they came when read whole.
+        let whole = frames(Some(shard), 0);
+        let second = whole
+            .iter()
+            .enumerate()
+            .filter(|(_, f)| f.starts_with("0/"))
+            .nth(1);
+        let (at, _) = second.expect("the shard has two runs of a.h5");
+        let mut expected = vec![whole[0].clone()];
+        expected.extend(whole[at + 1..].iter().cloned());
+        println!("shard {shard}: {whole:?}");
+        assert_eq!(frames(Some(shard), 2), expected);
     }
 
     /// A placed run whose archive was replaced after the child read it (an export that
@@ -954,7 +1561,7 @@ mod tests {
         let files = [path.clone()];
         let options = IngestOptions::default();
         let mut sent = Vec::new();
-        serve(&files, &options, None, true, &mut |frame, samples| {
+        serve(&files, &options, None, true, 0, &mut |frame, samples| {
             if let Frame::Run { .. } = frame {
                 assert!(samples.is_none(), "placed, not sent");
                 sent.push(frame);
@@ -963,10 +1570,11 @@ mod tests {
         });
         let frame = sent.pop().expect("one run");
         let counts = Counts::default();
-        let deliver = |frame| match Assembler::new(&files, &counts, &options).frame(frame, None) {
-            Some(Delivery::Run { run, .. }) => run.map(|r| r.output.len()),
-            _ => panic!("a run"),
-        };
+        let deliver =
+            |frame| match Assembler::new(&files, &counts, &options, None).frame(frame, None) {
+                Some(Delivery::Run { run, .. }) => run.map(|r| r.output.len()),
+                _ => panic!("a run"),
+            };
         let resent = |f: &Frame| serde_json::from_slice(&serde_json::to_vec(f).unwrap()).unwrap();
         assert_eq!(deliver(resent(&frame)), Ok(1000));
         let copy = dir.path().join("b.h5");

@@ -150,6 +150,8 @@ impl Archive {
         }
     }
 
+    /// Collects the runs under `group` into `out`; `Err` only when `group` itself cannot be
+    /// listed (a subgroup that cannot is an entry of its own, failed).
     pub(super) fn walk(
         &self,
         group: &Group,
@@ -184,7 +186,19 @@ impl Archive {
             let child = join_path(path, name);
             match group.loc_type_by_name(name) {
                 Ok(hdf5::LocationType::Group) => match group.group(name) {
-                    Ok(g) => self.walk(&g, &child, depth + 1, out, stats)?,
+                    // A group that cannot be listed (a corrupt symbol table or B-tree) is
+                    // that group's failure, not the archive's: one run's damaged index lost
+                    // all of an archive's runs until 2026-12-07.
+                    Ok(g) => {
+                        let listed = self.walk(&g, &child, depth + 1, out, stats);
+                        // MATLAB's own groups (`/#refs#`) hold no runs: not a failure either.
+                        if let (Err(e), false) = (listed, child.contains("/#")) {
+                            out.push(RunEntry {
+                                path: child.clone(),
+                                meta: Err(e),
+                            });
+                        }
+                    }
                     Err(e) => {
                         out.push(RunEntry {
                             path: child.clone(),
