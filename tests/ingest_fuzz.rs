@@ -212,3 +212,84 @@ fn a_batch_over_corrupted_archives_reads_past_every_crash_and_records_each_file(
         "every run seen is accounted for"
     );
 }
+
+/// One bit flipped in one run's attribute header of a 20-run archive makes libhdf5, listing
+/// that run's attributes, ask for 8 EB and abort the reading child. That run fails alone
+/// with what the child said; the other 19 are read and identified as from the sound
+/// archive. Until 2026-12-07 the child read every run's attributes when it opened the
+/// archive, and its death there lost all 20 runs. (The flip was found by the fuzz batch of
+/// the README's "Isolation"; the file's bytes are checked first, since another libhdf5 may
+/// lay the archive out otherwise.)
+#[test]
+fn a_run_whose_attributes_abort_libhdf5_fails_alone() {
+    let d = tmpdir();
+    let runs: Vec<RunData> = (0..20)
+        .map(|i| RunData {
+            path: format!("/runs/run_{i:03}"),
+            input: Some(sine(4000, 3.0, 1000.0)),
+            output: sine(4000, 3.0 + i as f64 * 0.1, 1000.0),
+            sample_rate: 1000.0,
+            kind: RunKind::BaseMotion,
+            input_quantity: Some(Quantity::Displacement),
+            output_quantity: Quantity::Displacement,
+            attrs: vec![],
+        })
+        .collect();
+    let sound = d.path().join("sound");
+    let flipped = d.path().join("flipped");
+    for dir in [&sound, &flipped] {
+        std::fs::create_dir_all(dir).unwrap();
+    }
+    let good = sound.join("a.h5");
+    write_campaign(&good, &[], &runs, true).unwrap();
+    release_locks(&good);
+    let mut bytes = std::fs::read(&good).unwrap();
+    let hash = blake3::hash(&bytes).to_hex().to_string();
+    assert_eq!(
+        (bytes.len(), &hash[..16]),
+        (647_653, "d84ee17bc4be6b39"),
+        "the archive's bytes differ from those the flip was found in (another libhdf5?)"
+    );
+    bytes[164_099] ^= 0x20;
+    let bad = flipped.join("a.h5");
+    std::fs::write(&bad, &bytes).unwrap();
+    let batch = |file: &std::path::Path| {
+        let out = file.parent().unwrap().join("out");
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_skelid"))
+            .args(["run", "--method", "hilbert", "--quiet", "--timeout", "10"])
+            .arg(file)
+            .arg("--out")
+            .arg(&out)
+            .env("RUST_BACKTRACE", "1")
+            .output()
+            .unwrap();
+        assert!(
+            matches!(o.status.code(), Some(0 | 1)),
+            "{}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        summary_rows(&out)
+    };
+    let (sound_rows, rows) = (batch(&good), batch(&bad));
+    assert_eq!(rows.len(), 20, "{rows:?}");
+    let bad_run = "/runs/run_005";
+    let error = rows.iter().find(|r| r["run"] == bad_run).unwrap()["error"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    println!("{error}");
+    assert!(
+        error.contains(
+            "(run /runs/run_005): libhdf5 crashed reading it (signal 6): memory allocation of"
+        ) && error.ends_with("the archive's other runs are read by a new reading child"),
+        "{error}"
+    );
+    assert!(!error.contains("at ./src"), "no backtrace frames: {error}");
+    let others = |rows: &[serde_json::Value]| -> Vec<serde_json::Value> {
+        rows.iter()
+            .filter(|r| r["run"] != bad_run)
+            .cloned()
+            .collect()
+    };
+    assert_eq!(others(&rows), others(&sound_rows));
+}

@@ -708,7 +708,10 @@ pub fn serve(
     emit: &mut dyn FnMut(Frame, Option<Samples>) -> bool,
 ) {
     for (i, f) in files.iter().enumerate() {
-        let archive = match crate::profile::time(Stage::Read, || Archive::open(f, options)) {
+        // Listed only: each run's attributes are read with the run, so that libhdf5 crashing
+        // on one run's corrupt attribute costs that run, not the archive.
+        let opened = crate::profile::time(Stage::Read, || Archive::open_listed(f, options));
+        let archive = match opened {
             Ok(a) => a,
             Err(e) => {
                 let close = Frame::Close {
@@ -722,7 +725,7 @@ pub fn serve(
             }
         };
         let takes = |path: &str| shard.is_none_or(|s| s.takes(archive.file_name(), path));
-        let paths: Vec<String> = (archive.runs.iter())
+        let paths: Vec<String> = (archive.listed.iter())
             .filter(|e| takes(&e.path))
             .map(|e| e.path.clone())
             .collect();
@@ -731,7 +734,7 @@ pub fn serve(
             not_runs: archive.not_runs.clone(),
             runs: Some(paths.len()),
             paths,
-            entries: Some(archive.runs.len()),
+            entries: Some(archive.listed.len()),
         };
         if !emit(open, None) {
             return;
@@ -739,7 +742,7 @@ pub fn serve(
         // The entries up to the `after`-th run of this shard, other shards' included: the
         // child before this one sent their frames.
         let mut passed = if i == 0 { after } else { 0 };
-        for entry in &archive.runs {
+        for entry in &archive.listed {
             if passed > 0 {
                 passed -= usize::from(takes(&entry.path));
                 continue;
@@ -750,11 +753,12 @@ pub fn serve(
                 }
                 continue;
             }
-            let placed = match &entry.meta {
+            let meta = crate::profile::time(Stage::Read, || archive.read_meta(entry));
+            let placed = match &meta {
                 Ok(m) if place => archive.placed(m),
                 _ => None,
             };
-            let (meta, samples) = match (&entry.meta, placed) {
+            let (meta, samples) = match (&meta, placed) {
                 (Ok(m), Some(_)) => (Ok(m.clone()), None),
                 (meta, _) => {
                     let run = meta.as_ref().map_err(|e| e.to_string()).and_then(|m| {

@@ -22,8 +22,11 @@ pub struct Archive {
     pub(super) stamp: super::FileStamp,
     pub(super) file: File,
     pub(super) options: IngestOptions,
-    /// Runs in path order.
+    /// Runs in path order, with their metadata (empty when opened by
+    /// [`Archive::open_listed`]).
     pub runs: Vec<RunEntry>,
+    /// The run groups found, in path order, their metadata not read.
+    pub listed: Vec<Listed>,
     /// Groups with datasets that are not runs (other dataset names), in path order.
     pub not_runs: Vec<NotARun>,
 }
@@ -55,9 +58,33 @@ fn has_hdf5_signature(path: &Path, len: u64) -> std::io::Result<bool> {
     Ok(false)
 }
 
+/// A run group found in an archive, its metadata not read yet: the datasets it holds, or why
+/// it could not be looked into.
+#[derive(Debug, Clone)]
+pub struct Listed {
+    /// Group path.
+    pub path: String,
+    members: Result<RunMembers, IngestError>,
+}
+
 impl Archive {
     /// Opens an archive and finds its runs; per-run problems are kept in [`RunEntry::meta`].
     pub fn open(path: &Path, options: &IngestOptions) -> Result<Archive, IngestError> {
+        let mut archive = Archive::open_listed(path, options)?;
+        archive.runs = (archive.listed.iter())
+            .map(|l| RunEntry {
+                path: l.path.clone(),
+                meta: archive.read_meta(l),
+            })
+            .collect();
+        Ok(archive)
+    }
+
+    /// Opens an archive and lists its run groups without reading their attributes:
+    /// [`Archive::read_meta`] reads one run's. libhdf5 crashes on some corrupt attributes;
+    /// `skelid run`'s reading child reads them one run at a time, so that such a crash costs
+    /// that run, not its whole archive.
+    pub fn open_listed(path: &Path, options: &IngestOptions) -> Result<Archive, IngestError> {
         let file_name = path.display().to_string();
         let md = std::fs::metadata(path).map_err(|e| IngestError::Unreadable {
             file: file_name.clone(),
@@ -99,12 +126,13 @@ impl Archive {
             file,
             options: options.clone(),
             runs: Vec::new(),
+            listed: Vec::new(),
             not_runs: Vec::new(),
         };
         let mut found = Vec::new();
         let mut stats = WalkStats::default();
         archive.walk(&root, "/", 0, &mut found, &mut stats)?;
-        found.sort_by(|a: &RunEntry, b| a.path.cmp(&b.path));
+        found.sort_by(|a: &Listed, b| a.path.cmp(&b.path));
         if let Some(pat) = &options.run_glob {
             found.retain(|r| pat.matches(&r.path));
         }
@@ -128,13 +156,20 @@ impl Archive {
                 hint,
             });
         }
-        archive.runs = found;
+        archive.listed = found;
         stats.not_runs.sort_by(|a, b| a.path.cmp(&b.path));
         if let Some(pat) = &options.run_glob {
             stats.not_runs.retain(|g| pat.matches(&g.path));
         }
         archive.not_runs = stats.not_runs;
         Ok(archive)
+    }
+
+    /// A listed run's metadata ([`Archive::open_listed`]), or why it cannot be used.
+    pub fn read_meta(&self, run: &Listed) -> Result<RunMeta, IngestError> {
+        let members = run.members.clone()?;
+        let group = (self.file.group(&run.path)).map_err(|e| self.corrupt(Some(&run.path), e))?;
+        self.run_meta(&group, &run.path, members)
     }
 
     /// The archive's file name as given.
@@ -157,7 +192,7 @@ impl Archive {
         group: &Group,
         path: &str,
         depth: usize,
-        out: &mut Vec<RunEntry>,
+        out: &mut Vec<Listed>,
         stats: &mut WalkStats,
     ) -> Result<(), IngestError> {
         // Hard-link cycles are legal in HDF5; a depth cap ends them.
@@ -174,10 +209,9 @@ impl Archive {
             time: has("time"),
         };
         if members.output || members.input {
-            let meta = self.run_meta(group, path, members);
-            out.push(RunEntry {
+            out.push(Listed {
                 path: path.to_string(),
-                meta,
+                members: Ok(members),
             });
             return Ok(());
         }
@@ -193,16 +227,16 @@ impl Archive {
                         let listed = self.walk(&g, &child, depth + 1, out, stats);
                         // MATLAB's own groups (`/#refs#`) hold no runs: not a failure either.
                         if let (Err(e), false) = (listed, child.contains("/#")) {
-                            out.push(RunEntry {
+                            out.push(Listed {
                                 path: child.clone(),
-                                meta: Err(e),
+                                members: Err(e),
                             });
                         }
                     }
                     Err(e) => {
-                        out.push(RunEntry {
+                        out.push(Listed {
                             path: child.clone(),
-                            meta: Err(self.corrupt(Some(&child), e)),
+                            members: Err(self.corrupt(Some(&child), e)),
                         });
                     }
                 },
@@ -249,7 +283,7 @@ pub(super) fn join_path(parent: &str, name: &str) -> String {
 }
 
 /// Which of a run group's datasets exist, found once while walking the file.
-#[derive(Clone, Copy)]
+#[derive(Debug, Clone, Copy)]
 pub(super) struct RunMembers {
     pub(super) input: bool,
     pub(super) output: bool,

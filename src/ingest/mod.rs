@@ -18,7 +18,7 @@ mod load;
 pub use load::{read_placed, FileStamp, Placed, PlacedRun};
 mod meta;
 
-pub use archive::Archive;
+pub use archive::{Archive, Listed};
 use archive::{InheritedAttrs, RunMembers};
 pub use files::{expand_inputs, find_archives, passed_over_note, FindError, Inputs, NothingFound};
 pub use meta::time_sample_rate;
