@@ -28,6 +28,9 @@ impl std::fmt::Display for AttrValue {
     }
 }
 
+/// String attributes read as an array at most this long (the first is used).
+const MAX_STRINGS: usize = 1024;
+
 /// Reads one attribute as a number or a string; `Err` carries a human-readable reason.
 pub fn read_attr(attr: &Attribute) -> Result<AttrValue, String> {
     let desc = attr
@@ -35,18 +38,22 @@ pub fn read_attr(attr: &Attribute) -> Result<AttrValue, String> {
         .and_then(|d| d.to_descriptor())
         .map_err(|e| e.to_string())?;
     let n = attr.size();
+    // Only what is used is read: a corrupt dataspace can claim 10^18 elements, and reading
+    // them all would abort the process on the allocation.
     match desc {
         TypeDescriptor::Float(_) | TypeDescriptor::Integer(_) | TypeDescriptor::Unsigned(_) => {
-            if n == 0 {
-                return Err("empty numeric attribute".into());
-            }
-            let v: Vec<f64> = attr.read_raw::<f64>().map_err(|e| e.to_string())?;
-            if v.len() == 1 {
-                Ok(AttrValue::Number(v[0]))
-            } else {
-                Ok(AttrValue::Other(format!("{} numbers", v.len())))
+            match n {
+                0 => Err("empty numeric attribute".into()),
+                1 => {
+                    let v: Vec<f64> = attr.read_raw::<f64>().map_err(|e| e.to_string())?;
+                    v.first()
+                        .map(|&x| AttrValue::Number(x))
+                        .ok_or_else(|| "empty numeric attribute".into())
+                }
+                n => Ok(AttrValue::Other(format!("{n} numbers"))),
             }
         }
+        _ if n > MAX_STRINGS => Ok(AttrValue::Other(format!("{n} values"))),
         // The bytes, never the crate's `as_str`: it trusts them to be UTF-8 unchecked, and a
         // test bench's Latin-1 unit ("\xb5m") or a corrupt string made an invalid `String`
         // (undefined behaviour; a debug build aborted on it in `Quantity::parse`).

@@ -286,7 +286,7 @@ pub fn crash_detail(status: std::process::ExitStatus, stderr: &[u8]) -> String {
         if !said.is_empty() {
             said.push_str(if said.ends_with(':') { " " } else { "; " });
         }
-        said.push_str(line);
+        said.push_str(&without_thread_id(line));
     }
     let tail = &said[said.floor_char_boundary(said.len().saturating_sub(300))..];
     if tail.is_empty() {
@@ -294,6 +294,22 @@ pub fn crash_detail(status: std::process::ExitStatus, stderr: &[u8]) -> String {
     } else {
         format!("libhdf5 crashed reading it ({how}): {tail}")
     }
+}
+
+/// A panic's line without its thread's id (`thread 'main' (20938) panicked` reads
+/// `thread 'main' panicked`): the id differs in every child, and a failed run's journal key
+/// hashes its error, so that a run failing the same way on a rerun is found committed.
+fn without_thread_id(line: &str) -> String {
+    if let Some(rest) = line.strip_prefix("thread '") {
+        if let Some((name, after)) = rest.split_once("' (") {
+            if let Some((id, tail)) = after.split_once(')') {
+                if !id.is_empty() && id.bytes().all(|b| b.is_ascii_digit()) {
+                    return format!("thread '{name}'{tail}");
+                }
+            }
+        }
+    }
+    line.to_string()
 }
 
 /// Whether a line of stderr (trimmed) belongs to a Rust backtrace: its header, a frame
@@ -320,8 +336,9 @@ fn is_backtrace_line(line: &str) -> bool {
 mod tests {
     use super::*;
 
-    /// A child's panic reads as its message on one line, not as the end of a backtrace;
-    /// libhdf5's own error stack is kept.
+    /// A child's panic reads as its message on one line, not as the end of a backtrace,
+    /// and without the thread's id, which differs in every child; libhdf5's own error
+    /// stack is kept.
     #[test]
     fn a_crash_says_what_the_child_said_without_its_backtrace() {
         use std::os::unix::process::ExitStatusExt;
@@ -334,7 +351,7 @@ mod tests {
         println!("{said}");
         assert_eq!(
             said,
-            "libhdf5 crashed reading it (signal 6): thread 'main' (20938) panicked at \
+            "libhdf5 crashed reading it (signal 6): thread 'main' panicked at \
              src/h5util.rs:80:25: memory allocation of 8223683306334676351 bytes failed; \
              thread caused non-unwinding panic. aborting."
         );

@@ -404,8 +404,8 @@ fn real_campaigns_written_by_h5py_are_listed() {
 /// pointing past the file) fails alone, with the reason; the archive's other runs read.
 /// Until 2026-12-07 the whole archive was unreadable: 10 of 400 copies of a 20-run archive
 /// with a few bits flipped were lost whole this way. Every local heap of the file is
-/// corrupted in turn; the root's and /runs' make the archive unreadable (or hide the runs),
-/// each run group's fails that run only, the others read.
+/// corrupted in turn: the root's makes the archive unreadable, /runs' fails that group (and
+/// so every run in it), and each run group's fails that run only, the others read.
 #[test]
 fn a_run_group_that_cannot_be_listed_fails_alone() {
     let d = tmpdir();
@@ -446,7 +446,8 @@ fn a_run_group_that_cannot_be_listed_fails_alone() {
                     })
                     .collect();
                 println!("heap at {at}: {} runs, failed: {failed:?}", a.runs.len());
-                // The /runs group's own heap: that group fails, with every run under it.
+                // A run group's heap: that run fails, the other five read. (The /runs
+                // group's own heap leaves one failed entry, /runs, and no run.)
                 if let ([(path, error)], 6) = (failed.as_slice(), a.runs.len()) {
                     assert!(error.contains(&format!("(run {path})")), "{error}");
                     failed_alone.push(path.to_string());

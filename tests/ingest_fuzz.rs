@@ -213,13 +213,14 @@ fn a_batch_over_corrupted_archives_reads_past_every_crash_and_records_each_file(
     );
 }
 
-/// One bit flipped in one run's attribute header of a 20-run archive makes libhdf5, listing
-/// that run's attributes, ask for 8 EB and abort the reading child. That run fails alone
-/// with what the child said; the other 19 are read and identified as from the sound
-/// archive. Until 2026-12-07 the child read every run's attributes when it opened the
-/// archive, and its death there lost all 20 runs. (The flip was found by the fuzz batch of
-/// the README's "Isolation"; the file's bytes are checked first, since another libhdf5 may
-/// lay the archive out otherwise.)
+/// One bit flipped in one run's attribute header of a 20-run archive makes the HDF5 binding,
+/// listing that run's attributes from what libhdf5 reports, ask for 8 EB and abort the
+/// reading child. That run fails alone; the other 19 are read and identified as from the
+/// sound archive. Until 2026-12-07 the child read every run's attributes when it opened
+/// the archive, and its death there lost all 20 runs. (The flip was found by the fuzz batch
+/// of the README's "Isolation". The file's bytes are checked first: another libhdf5, zlib
+/// or writer lays the archive out otherwise, and the offset must be found again, by
+/// flipping the bits of that batch's f113.h5 one at a time.)
 #[test]
 fn a_run_whose_attributes_abort_libhdf5_fails_alone() {
     let d = tmpdir();
@@ -248,7 +249,8 @@ fn a_run_whose_attributes_abort_libhdf5_fails_alone() {
     assert_eq!(
         (bytes.len(), &hash[..16]),
         (647_653, "d84ee17bc4be6b39"),
-        "the archive's bytes differ from those the flip was found in (another libhdf5?)"
+        "the archive's bytes differ from those the flip was found in (another libhdf5, zlib \
+         or writer?): find the offset again, see this test's comment"
     );
     bytes[164_099] ^= 0x20;
     let bad = flipped.join("a.h5");
@@ -278,12 +280,16 @@ fn a_run_whose_attributes_abort_libhdf5_fails_alone() {
         .unwrap()
         .to_string();
     println!("{error}");
-    assert!(
-        error.contains(
-            "(run /runs/run_005): libhdf5 crashed reading it (signal 6): memory allocation of"
-        ) && error.ends_with("the archive's other runs are read by a new reading child"),
-        "{error}"
-    );
+    // Another binding may refuse the attribute instead of aborting: the run fails alone
+    // either way.
+    assert!(error.contains("(run /runs/run_005)"), "{error}");
+    if error.contains("crashed") {
+        assert!(
+            error.contains("crashed reading it (signal 6): memory allocation of")
+                && error.ends_with("the archive's other runs are read by a new reading child"),
+            "{error}"
+        );
+    }
     assert!(!error.contains("at ./src"), "no backtrace frames: {error}");
     let others = |rows: &[serde_json::Value]| -> Vec<serde_json::Value> {
         rows.iter()

@@ -46,7 +46,8 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         }
         if m.runs_in_inputs != first.runs_in_inputs {
             return Err(bad(format!(
-                "{} saw {} runs in its inputs, {} saw {}: the shards were not given the same archives",
+                "{} saw {} runs in its inputs, {} saw {}: the shards were not given the same \
+                 archives, or one could not read an archive to the end (see its skelid.log)",
                 d.display(),
                 m.runs_in_inputs,
                 manifests[0].0.display(),

@@ -259,17 +259,7 @@ pub fn read_all(
                 // on it again, and take the batch with it).
                 ChildEnd::NotStarted => {
                     if let Some(r) = start {
-                        let file = &files[next];
-                        let error = corrupt(
-                            file,
-                            format!(
-                                "no new reading child could be started after a run stopped \
-                                 the last, so the archive's {} run(s) after {} are not read",
-                                r.rest(),
-                                r.last.as_deref().unwrap_or("the first")
-                            ),
-                        );
-                        deliver(unreadable(counts, file, error, Some(&r)))?;
+                        deliver(not_restarted(counts, &files[next], &r))?;
                         next += 1;
                     }
                     return read_in_process(&files[next..], options, shard, counts, deliver);
@@ -377,6 +367,21 @@ fn after_death(
             )
         }
     }
+}
+
+/// The rest of an archive a child died in, given up because no new child could be started
+/// to read on (`r`: where the last one died).
+fn not_restarted(counts: &Counts, file: &Path, r: &Reading) -> Delivery {
+    let error = crate::ingest::IngestError::Unreadable {
+        file: file.display().to_string(),
+        detail: format!(
+            "no new reading child could be started after a run stopped the last, so the \
+             archive's {} run(s) after {} are not read",
+            r.rest(),
+            r.last.as_deref().unwrap_or("the first")
+        ),
+    };
+    unreadable(counts, file, error.to_string(), Some(r))
 }
 
 /// Why an archive was given up when a child could not open it again after a run stopped
@@ -528,7 +533,7 @@ impl<'a> Assembler<'a> {
             } => {
                 if archive == 0 {
                     if let Some(r) = self.resumed.take() {
-                        return self.reopened(r, &paths);
+                        return self.reopened(r, &paths, entries);
                     }
                 }
                 // The archive's one among the runs known becomes its runs (the child always
@@ -623,8 +628,13 @@ impl<'a> Assembler<'a> {
     /// `paths`: reading goes on after the run it died on, unless the archive changed in
     /// between (a bench still appending runs, a file replaced), when the runs the count
     /// passes over are no longer those dealt with, and the rest is given up.
-    fn reopened(&mut self, mut r: Reading, paths: &[String]) -> Option<Delivery> {
-        if r.paths == paths {
+    fn reopened(
+        &mut self,
+        mut r: Reading,
+        paths: &[String],
+        entries: Option<usize>,
+    ) -> Option<Delivery> {
+        if r.paths == paths && r.entries == entries {
             self.reading = Some(r);
             return None;
         }
@@ -1088,7 +1098,10 @@ fn read_in_child(
                     result = deliver(d);
                 }
                 set(&|c| c.since = Some(Instant::now()));
-                if result.is_err() {
+                // An archive given up while this child reads it: the child is stopped
+                // rather than left to read it to the end for nothing.
+                let abandoned = assemble.reading.as_ref().is_some_and(|r| r.abandoned);
+                if result.is_err() || abandoned {
                     break;
                 }
             }
@@ -1107,7 +1120,8 @@ fn read_in_child(
     let _ = watchdog.join();
     let status = {
         let mut ch = child.lock().unwrap_or_else(|p| p.into_inner());
-        if result.is_err() || broken.is_some() {
+        let abandoned = assemble.reading.as_ref().is_some_and(|r| r.abandoned);
+        if result.is_err() || broken.is_some() || abandoned {
             let _ = ch.kill();
         }
         ch.wait()
@@ -1481,6 +1495,91 @@ mod tests {
         assert!(resume.is_none(), "no new child for it");
         assert_eq!(counts.runs_in_inputs.load(Ordering::Relaxed), 5);
         assert_eq!(counts.estimate(), 2);
+    }
+
+    /// Deaths not in a row still end an archive: the tenth gives up the rest, each read run
+    /// between them resetting only the count in a row. Where no new child can be started,
+    /// the rest of the archive is given up at once, as unreadable, not read in-process.
+    #[test]
+    fn ten_deaths_in_an_archive_give_up_its_rest_and_so_does_no_child() {
+        let files = [PathBuf::from("a.h5")];
+        let (counts, options) = (Counts::default(), IngestOptions::default());
+        counts.tally(|t| {
+            t.known = 1;
+            t.unopened = 1;
+        });
+        let paths: Vec<String> = (1..=30).map(|r| format!("/r{r}")).collect();
+        let run = |path: &str| Frame::Run {
+            archive: 0,
+            path: path.into(),
+            meta: Err("not read in this test".into()),
+            has_input: false,
+            placed: None,
+        };
+        let mut resume = None;
+        let mut failures = Vec::new();
+        // Every other run kills the child: /r2, /r4, … /r20 is the tenth.
+        for k in 0..10 {
+            let mut a = Assembler::new(&files, &counts, &options, resume.take());
+            a.frame(
+                Frame::Open {
+                    archive: 0,
+                    not_runs: Vec::new(),
+                    runs: Some(30),
+                    paths: paths.clone(),
+                    entries: Some(30),
+                },
+                None,
+            );
+            a.frame(run(&format!("/r{}", 2 * k + 1)), None).unwrap();
+            let (died, resumed) =
+                after_death(&counts, &files[0], "crashed".into(), a.reading, a.resumed);
+            failures.extend(died.into_iter().map(|d| match d {
+                Delivery::Run { path, run, .. } => (path, run.err().unwrap()),
+                Delivery::Unreadable { error, .. } => ("unreadable".into(), error),
+            }));
+            resume = resumed;
+            assert_eq!(resume.is_some(), k < 9, "after death {}", k + 1);
+        }
+        let last = failures.last().unwrap();
+        println!("{}", last.1);
+        assert_eq!(failures.len(), 11, "ten runs and the rest");
+        assert!(last.1.ends_with("10 of its runs stopped the reading child, the last /r20, so the archive's 10 run(s) after it are not read"), "{}", last.1);
+        assert_eq!(counts.delivered.load(Ordering::Relaxed), 21);
+        assert_eq!(
+            counts.estimate(),
+            21,
+            "20 runs dealt with and the rest as one"
+        );
+
+        // No child to read on after /r2: the rest (28 runs) as one failure, counted exact.
+        let counts = Counts::default();
+        counts.tally(|t| {
+            t.known = 1;
+            t.unopened = 1;
+        });
+        let mut a = Assembler::new(&files, &counts, &options, None);
+        a.frame(
+            Frame::Open {
+                archive: 0,
+                not_runs: Vec::new(),
+                runs: Some(30),
+                paths: paths.clone(),
+                entries: Some(30),
+            },
+            None,
+        );
+        a.frame(run("/r1"), None).unwrap();
+        let (_, resumed) = after_death(&counts, &files[0], "crashed".into(), a.reading, a.resumed);
+        let Delivery::Unreadable { error, .. } =
+            not_restarted(&counts, &files[0], &resumed.unwrap())
+        else {
+            panic!("the rest given up");
+        };
+        println!("{error}");
+        assert_eq!(error, "a.h5: cannot read the file: no new reading child could be started after a run stopped the last, so the archive's 28 run(s) after /r2 are not read");
+        assert_eq!(counts.estimate(), 3);
+        assert_eq!(counts.delivered.load(Ordering::Relaxed), 3);
     }
 
     /// A child told to pass over the runs a child before it dealt with sends no frame for

@@ -109,8 +109,9 @@ pub(crate) struct RunArgs {
     pub(crate) json_progress: bool,
     /// Seconds the reading child (a process of its own, since libhdf5 hangs on some corrupt
     /// files) may spend on one step, opening an archive or reading one of its runs: a run
-    /// past it fails and a new child reads on from the next (after three in a row, the rest
-    /// of the archive is reported failed); an archive's opening past it fails the archive.
+    /// past it fails and a new child reads on from the next (after three in a row, or ten
+    /// in one archive, the rest of the archive is reported failed); an archive's opening
+    /// past it fails the archive.
     #[arg(long, default_value_t = 300, value_name = "S",
           value_parser = clap::value_parser!(u64).range(1..))]
     pub(crate) timeout: u64,

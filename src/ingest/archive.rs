@@ -1,7 +1,8 @@
 //! An archive opened: the file checked (HDF5 signature, not empty), its groups walked for
 //! runs with the attributes they inherit from their parents, and the groups that hold
 //! datasets but are not runs listed with the reason. In: a path and the ingest options; out:
-//! an [`Archive`] with its runs' metadata.
+//! an [`Archive`] with its runs' metadata ([`Archive::open`]), or its run groups listed,
+//! each run's metadata read when asked ([`Archive::open_listed`]).
 
 use std::collections::BTreeMap;
 use std::fmt;
@@ -36,6 +37,7 @@ impl fmt::Debug for Archive {
         f.debug_struct("Archive")
             .field("file", &self.file_name)
             .field("runs", &self.runs.len())
+            .field("listed", &self.listed.len())
             .finish()
     }
 }
@@ -133,6 +135,10 @@ impl Archive {
         let mut stats = WalkStats::default();
         archive.walk(&root, "/", 0, &mut found, &mut stats)?;
         found.sort_by(|a: &Listed, b| a.path.cmp(&b.path));
+        // Groups that could not be listed, named if no run is left to report them.
+        let unlisted: Vec<String> = (found.iter())
+            .filter_map(|l| l.members.as_ref().err().map(|_| l.path.clone()))
+            .collect();
         if let Some(pat) = &options.run_glob {
             found.retain(|r| pat.matches(&r.path));
         }
@@ -148,6 +154,13 @@ impl Archive {
             } else if !stats.dataset_names.is_empty() {
                 let names: Vec<_> = stats.dataset_names.iter().take(8).cloned().collect();
                 hint = format!(" (datasets seen: {})", names.join(", "));
+            }
+            if !unlisted.is_empty() {
+                let names: Vec<_> = unlisted.iter().take(8).cloned().collect();
+                hint.push_str(&format!(
+                    " (libhdf5 could not list {}: corrupt, their runs not found)",
+                    names.join(", ")
+                ));
             }
             return Err(IngestError::NoRuns {
                 file: archive.file_name.clone(),
@@ -225,8 +238,9 @@ impl Archive {
                     // all of an archive's runs until 2026-12-07.
                     Ok(g) => {
                         let listed = self.walk(&g, &child, depth + 1, out, stats);
-                        // MATLAB's own groups (`/#refs#`) hold no runs: not a failure either.
-                        if let (Err(e), false) = (listed, child.contains("/#")) {
+                        // MATLAB's own groups (`#refs#`) hold no runs: not a failure either.
+                        let matlab = name.starts_with('#') && name.ends_with('#');
+                        if let (Err(e), false) = (listed, matlab) {
                             out.push(Listed {
                                 path: child.clone(),
                                 members: Err(e),

@@ -165,15 +165,12 @@ impl Archive {
         })
     }
 
-    /// Reads every run, each to its own result.
+    /// Reads every run listed, its metadata included, each to its own result.
     pub fn load_all(&self) -> Vec<(String, Result<Run, IngestError>)> {
-        self.runs
+        self.listed
             .iter()
             .map(|entry| {
-                let run = match &entry.meta {
-                    Ok(meta) => self.load(meta),
-                    Err(e) => Err(e.clone()),
-                };
+                let run = self.read_meta(entry).and_then(|meta| self.load(&meta));
                 (entry.path.clone(), run)
             })
             .collect()
