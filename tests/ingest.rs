@@ -410,19 +410,7 @@ fn real_campaigns_written_by_h5py_are_listed() {
 fn a_run_group_that_cannot_be_listed_fails_alone() {
     let d = tmpdir();
     let good = file_in(d.path(), "good.h5");
-    let runs: Vec<skelid::campaign::RunData> = (0..6)
-        .map(|i| skelid::campaign::RunData {
-            path: format!("/runs/run_{i:03}"),
-            input: Some(sine(2000, 3.0, 1000.0)),
-            output: sine(2000, 3.0 + i as f64, 1000.0),
-            sample_rate: 1000.0,
-            kind: RunKind::BaseMotion,
-            input_quantity: Some(Quantity::Displacement),
-            output_quantity: Quantity::Displacement,
-            attrs: vec![],
-        })
-        .collect();
-    skelid::campaign::write_campaign(&good, &[], &runs, false).unwrap();
+    skelid::campaign::write_campaign(&good, &[], &sine_runs(6, 2000, 1.0), false).unwrap();
     let bytes = std::fs::read(&good).unwrap();
     let heaps: Vec<usize> = (0..bytes.len() - 4)
         .filter(|&i| &bytes[i..i + 4] == b"HEAP")

@@ -11,24 +11,11 @@ use common::*;
 
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-use skelid::campaign::{write_campaign, RunData};
-use skelid::ingest::{Quantity, RunKind};
+use skelid::campaign::write_campaign;
 use skelid::inspect::ArchiveReport;
 
 fn valid_archive(path: &std::path::Path) {
-    let runs: Vec<RunData> = (0..3)
-        .map(|i| RunData {
-            path: format!("/runs/run_{i:03}"),
-            input: Some(sine(2000, 3.0, 1000.0)),
-            output: sine(2000, 3.0 + i as f64, 1000.0),
-            sample_rate: 1000.0,
-            kind: RunKind::BaseMotion,
-            input_quantity: Some(Quantity::Displacement),
-            output_quantity: Quantity::Displacement,
-            attrs: vec![],
-        })
-        .collect();
-    write_campaign(path, &[], &runs, true).unwrap();
+    write_campaign(path, &[], &sine_runs(3, 2000, 1.0), true).unwrap();
     // The other test spawns a child at any moment: it must not inherit this file's lock.
     release_locks(path);
 }
@@ -224,18 +211,7 @@ fn a_batch_over_corrupted_archives_reads_past_every_crash_and_records_each_file(
 #[test]
 fn a_run_whose_attributes_abort_libhdf5_fails_alone() {
     let d = tmpdir();
-    let runs: Vec<RunData> = (0..20)
-        .map(|i| RunData {
-            path: format!("/runs/run_{i:03}"),
-            input: Some(sine(4000, 3.0, 1000.0)),
-            output: sine(4000, 3.0 + i as f64 * 0.1, 1000.0),
-            sample_rate: 1000.0,
-            kind: RunKind::BaseMotion,
-            input_quantity: Some(Quantity::Displacement),
-            output_quantity: Quantity::Displacement,
-            attrs: vec![],
-        })
-        .collect();
+    let runs = sine_runs(20, 4000, 0.1);
     let sound = d.path().join("sound");
     let flipped = d.path().join("flipped");
     for dir in [&sound, &flipped] {

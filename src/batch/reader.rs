@@ -1181,6 +1181,44 @@ mod tests {
             + (unopened as f64 * opened_runs as f64 / opened as f64).round() as usize
     }
 
+    /// Counts as `read_all` starts them for `archives` archives.
+    fn counts_for(archives: usize) -> Counts {
+        let counts = Counts::default();
+        counts.tally(|t| {
+            t.known = archives;
+            t.unopened = archives;
+        });
+        counts
+    }
+
+    /// The frame of an archive (index `archive`) opened with this shard's `paths` among
+    /// `entries` runs of every shard.
+    fn opened(archive: usize, paths: Vec<String>, entries: usize) -> Frame {
+        Frame::Open {
+            archive,
+            not_runs: Vec::new(),
+            runs: Some(paths.len()),
+            paths,
+            entries: Some(entries),
+        }
+    }
+
+    /// `/r1` … `/rN`.
+    fn names(n: usize) -> Vec<String> {
+        (1..=n).map(|r| format!("/r{r}")).collect()
+    }
+
+    /// The frame of a run whose metadata is not the test's concern.
+    fn run_frame(archive: usize, path: &str) -> Frame {
+        Frame::Run {
+            archive,
+            path: path.into(),
+            meta: Err("not read in this test".into()),
+            has_input: false,
+            placed: None,
+        }
+    }
+
     /// The progress's total counts an open archive by the runs it holds, not as one: read
     /// run by run, a single archive of many runs showed a total one ahead of the runs done.
     /// Archives not yet opened count at the mean of those opened, an unreadable one at one;
@@ -1248,26 +1286,9 @@ mod tests {
     #[test]
     fn a_child_dying_on_a_run_fails_that_run_and_a_new_child_goes_on_after_it() {
         let files = [PathBuf::from("a.h5"), PathBuf::from("b.h5")];
-        let (counts, options) = (Counts::default(), IngestOptions::default());
-        counts.tally(|t| {
-            t.known = 2;
-            t.unopened = 2;
-        });
-        let names = |n: usize| (1..=n).map(|r| format!("/r{r}")).collect::<Vec<_>>();
-        let open = |archive, runs| Frame::Open {
-            archive,
-            not_runs: Vec::new(),
-            runs: Some(runs),
-            paths: names(runs),
-            entries: Some(runs),
-        };
-        let run = |archive, path: &str| Frame::Run {
-            archive,
-            path: path.into(),
-            meta: Err("not read in this test".into()),
-            has_input: false,
-            placed: None,
-        };
+        let (counts, options) = (counts_for(2), IngestOptions::default());
+        let open = |archive, runs| opened(archive, names(runs), runs);
+        let run = run_frame;
         let mut seen: Vec<(String, String)> = Vec::new();
         let mut see = |d: Delivery| {
             seen.push(match d {
@@ -1392,21 +1413,8 @@ mod tests {
     fn a_resumed_archive_gone_changed_or_at_its_last_run_is_counted_once() {
         let files = [PathBuf::from("a.h5"), PathBuf::from("b.h5")];
         let options = IngestOptions::default();
-        let names = |n: usize| (1..=n).map(|r| format!("/r{r}")).collect::<Vec<_>>();
-        let open = |runs: usize, paths: Vec<String>, entries: usize| Frame::Open {
-            archive: 0,
-            not_runs: Vec::new(),
-            runs: Some(runs),
-            paths,
-            entries: Some(entries),
-        };
-        let run = |path: &str| Frame::Run {
-            archive: 0,
-            path: path.into(),
-            meta: Err("not read in this test".into()),
-            has_input: false,
-            placed: None,
-        };
+        let open = |paths, entries| opened(0, paths, entries);
+        let run = |path: &str| run_frame(0, path);
         // A child read /r1 of a.h5's 4 runs and died on /r2: where a new child starts.
         let died_on_r2 = |counts: &Counts| {
             counts.tally(|t| {
@@ -1414,7 +1422,7 @@ mod tests {
                 t.unopened = 2;
             });
             let mut a = Assembler::new(&files, counts, &options, None);
-            a.frame(open(4, names(4), 4), None);
+            a.frame(open(names(4), 4), None);
             a.frame(run("/r1"), None).unwrap();
             let (failed, resume) =
                 after_death(counts, &files[0], "crashed".into(), a.reading, a.resumed);
@@ -1456,7 +1464,7 @@ mod tests {
             "/r3".into(),
             "/r4".into(),
         ];
-        let error = error_of(a.frame(open(5, other, 5), None));
+        let error = error_of(a.frame(open(other, 5), None));
         println!("{error}");
         assert!(
             error.contains("the archive changed while it was read"),
@@ -1471,13 +1479,9 @@ mod tests {
 
         // The last run: a shard's 2 runs among 5 entries, the fourth entry the last of them;
         // the child dies on it. The fifth, another shard's, is counted without a new child.
-        let counts = Counts::default();
-        counts.tally(|t| {
-            t.known = 1;
-            t.unopened = 1;
-        });
+        let counts = counts_for(1);
         let mut a = Assembler::new(&files[..1], &counts, &options, None);
-        a.frame(open(2, vec!["/r2".into(), "/r4".into()], 5), None);
+        a.frame(open(vec!["/r2".into(), "/r4".into()], 5), None);
         a.frame(Frame::Skip { archive: 0 }, None);
         a.frame(run("/r2"), None).unwrap();
         a.frame(Frame::Skip { archive: 0 }, None);
@@ -1503,34 +1507,14 @@ mod tests {
     #[test]
     fn ten_deaths_in_an_archive_give_up_its_rest_and_so_does_no_child() {
         let files = [PathBuf::from("a.h5")];
-        let (counts, options) = (Counts::default(), IngestOptions::default());
-        counts.tally(|t| {
-            t.known = 1;
-            t.unopened = 1;
-        });
-        let paths: Vec<String> = (1..=30).map(|r| format!("/r{r}")).collect();
-        let run = |path: &str| Frame::Run {
-            archive: 0,
-            path: path.into(),
-            meta: Err("not read in this test".into()),
-            has_input: false,
-            placed: None,
-        };
+        let (counts, options) = (counts_for(1), IngestOptions::default());
+        let run = |path: &str| run_frame(0, path);
         let mut resume = None;
         let mut failures = Vec::new();
         // Every other run kills the child: /r2, /r4, … /r20 is the tenth.
         for k in 0..10 {
             let mut a = Assembler::new(&files, &counts, &options, resume.take());
-            a.frame(
-                Frame::Open {
-                    archive: 0,
-                    not_runs: Vec::new(),
-                    runs: Some(30),
-                    paths: paths.clone(),
-                    entries: Some(30),
-                },
-                None,
-            );
+            a.frame(opened(0, names(30), 30), None);
             a.frame(run(&format!("/r{}", 2 * k + 1)), None).unwrap();
             let (died, resumed) =
                 after_death(&counts, &files[0], "crashed".into(), a.reading, a.resumed);
@@ -1553,22 +1537,9 @@ mod tests {
         );
 
         // No child to read on after /r2: the rest (28 runs) as one failure, counted exact.
-        let counts = Counts::default();
-        counts.tally(|t| {
-            t.known = 1;
-            t.unopened = 1;
-        });
+        let counts = counts_for(1);
         let mut a = Assembler::new(&files, &counts, &options, None);
-        a.frame(
-            Frame::Open {
-                archive: 0,
-                not_runs: Vec::new(),
-                runs: Some(30),
-                paths: paths.clone(),
-                entries: Some(30),
-            },
-            None,
-        );
+        a.frame(opened(0, names(30), 30), None);
         a.frame(run("/r1"), None).unwrap();
         let (_, resumed) = after_death(&counts, &files[0], "crashed".into(), a.reading, a.resumed);
         let Delivery::Unreadable { error, .. } =

@@ -13,6 +13,23 @@ pub fn sine(n: usize, f: f64, fs: f64) -> Vec<f64> {
         .collect()
 }
 
+/// `count` base-motion runs `/runs/run_000`, … of `n` samples at 1 kHz, in displacement:
+/// input a 3 Hz sine, output a sine at 3 + `step` × i Hz.
+pub fn sine_runs(count: usize, n: usize, step: f64) -> Vec<skelid::campaign::RunData> {
+    (0..count)
+        .map(|i| skelid::campaign::RunData {
+            path: format!("/runs/run_{i:03}"),
+            input: Some(sine(n, 3.0, 1000.0)),
+            output: sine(n, 3.0 + i as f64 * step, 1000.0),
+            sample_rate: 1000.0,
+            kind: skelid::ingest::RunKind::BaseMotion,
+            input_quantity: Some(skelid::ingest::Quantity::Displacement),
+            output_quantity: skelid::ingest::Quantity::Displacement,
+            attrs: vec![],
+        })
+        .collect()
+}
+
 /// Sets a string attribute.
 pub fn set_str(loc: &hdf5::Location, name: &str, v: &str) {
     let v: VarLenUnicode = v.parse().unwrap();
