@@ -1,0 +1,214 @@
+//! What follows a reading child's death: the run it died on recorded failed and the archive
+//! taken up after it by a new child, or the rest of the archive given up, every delivery
+//! counted so that the progress total stays exact.
+
+use std::path::Path;
+use std::sync::atomic::Ordering;
+
+use super::{Counts, Delivery};
+
+/// The archive a reading child is in: the runs it announced (this shard's) and their
+/// paths, those delivered (by this child or those before it in the archive, failed ones
+/// included), the last one's path, the archive's entries of every shard and those seen so
+/// far, the runs a child died on (in a row, and in all), and whether the archive was
+/// given up while its child went on.
+#[derive(Debug, Clone, Default)]
+pub(super) struct Reading {
+    pub(super) announced: Option<usize>,
+    pub(super) paths: Vec<String>,
+    pub(super) delivered: usize,
+    pub(super) last: Option<String>,
+    pub(super) entries: Option<usize>,
+    pub(super) seen: usize,
+    pub(super) died_in_row: usize,
+    pub(super) deaths: usize,
+    pub(super) abandoned: bool,
+}
+
+impl Reading {
+    /// The runs of this shard not dealt with yet.
+    pub(super) fn rest(&self) -> usize {
+        self.paths.len().saturating_sub(self.delivered)
+    }
+}
+
+/// Runs in a row of one archive that may each stop a reading child (a crash, or a step past
+/// `--timeout`) before the rest of the archive is given up: a run that crashes libhdf5
+/// costs that run alone, an archive corrupt throughout (or a disk that stopped answering)
+/// is not retried run after run all night.
+pub const DEATHS_IN_A_ROW: usize = 3;
+
+/// Runs of one archive that may stop a reading child in all, in a row or not, before the
+/// rest of it is given up: with the default `--timeout` of 300 s, at most 50 minutes of
+/// hangs an archive.
+pub const DEATHS_IN_AN_ARCHIVE: usize = 10;
+
+/// What a reading child's death in `file` (`detail`: how it died; `reading`: where it was,
+/// once it had opened the archive; `reopening`: where a child before it had died, when this
+/// one died opening the archive again) delivers, counted, and where a new child takes the
+/// archive up (`None`: at the next archive). Dying on a run fails that run alone, until
+/// [`DEATHS_IN_A_ROW`]; dying while opening or closing the archive fails the archive.
+pub(super) fn after_death(
+    counts: &Counts,
+    file: &Path,
+    detail: String,
+    reading: Option<Reading>,
+    reopening: Option<Reading>,
+) -> (Vec<Delivery>, Option<Reading>) {
+    if let (None, Some(r)) = (&reading, &reopening) {
+        let error = corrupt(file, reopen_failed(&detail, r));
+        return (vec![unreadable(counts, file, error, Some(r))], None);
+    }
+    match reading {
+        // Given up already (it changed between two children): nothing more to say.
+        Some(r) if r.abandoned => (Vec::new(), None),
+        Some(mut r) if r.rest() > 0 => {
+            let path = r.paths[r.delivered].clone();
+            r.died_in_row += 1;
+            r.deaths += 1;
+            let last = r.rest() == 1;
+            let gives_up = r.died_in_row >= DEATHS_IN_A_ROW || r.deaths >= DEATHS_IN_AN_ARCHIVE;
+            let then = if last {
+                "it was the archive's last run"
+            } else if gives_up {
+                "the reading child is not started on this archive again"
+            } else {
+                "the archive's other runs are read by a new reading child"
+            };
+            let failed = died_in_run(counts, file, &path, &format!("{detail}; {then}"), &mut r);
+            if last {
+                // Other shards' runs after it, never sent as skipped, are counted here
+                // rather than by opening the archive again.
+                let unseen = r.entries.map_or(0, |n| n.saturating_sub(r.seen));
+                counts.runs_in_inputs.fetch_add(unseen, Ordering::Relaxed);
+                return (vec![failed], None);
+            }
+            if !gives_up {
+                return (vec![failed], Some(r));
+            }
+            let why = if r.died_in_row >= DEATHS_IN_A_ROW {
+                format!("{} runs in a row", r.died_in_row)
+            } else {
+                format!("{} of its runs", r.deaths)
+            };
+            let error = corrupt(
+                file,
+                format!(
+                    "{why} stopped the reading child, the last {path}, so the archive's {} \
+                     run(s) after it are not read",
+                    r.rest()
+                ),
+            );
+            (
+                vec![failed, unreadable(counts, file, error, Some(&r))],
+                None,
+            )
+        }
+        reading => {
+            let error = match &reading {
+                Some(r) if r.deaths > 0 => format!(
+                    "{detail}; its {} run(s) were read and {} failed before",
+                    r.delivered - r.deaths,
+                    r.deaths
+                ),
+                Some(r) => format!("{detail}; its {} run(s) were read", r.delivered),
+                None => detail,
+            };
+            let error = corrupt(file, error);
+            (
+                vec![unreadable(counts, file, error, reading.as_ref())],
+                None,
+            )
+        }
+    }
+}
+
+/// The rest of an archive a child died in, given up because no new child could be started
+/// to read on (`r`: where the last one died).
+pub(super) fn not_restarted(counts: &Counts, file: &Path, r: &Reading) -> Delivery {
+    let error = crate::ingest::IngestError::Unreadable {
+        file: file.display().to_string(),
+        detail: format!(
+            "no new reading child could be started after a run stopped the last, so the \
+             archive's {} run(s) after {} are not read",
+            r.rest(),
+            r.last.as_deref().unwrap_or("the first")
+        ),
+    };
+    unreadable(counts, file, error.to_string(), Some(r))
+}
+
+/// Why an archive was given up when a child could not open it again after a run stopped
+/// the one before (`detail`: how it failed).
+pub(super) fn reopen_failed(detail: &str, r: &Reading) -> String {
+    format!(
+        "{detail} (opening it again after a run stopped the reading child), so the \
+         archive's {} run(s) after {} are not read",
+        r.rest(),
+        r.last.as_deref().unwrap_or("the first")
+    )
+}
+
+/// The error of an archive libhdf5 could not read through, as the reader words it.
+pub(super) fn corrupt(file: &Path, detail: String) -> String {
+    crate::ingest::IngestError::Corrupt {
+        file: file.display().to_string(),
+        run: None,
+        detail,
+    }
+    .to_string()
+}
+
+/// The failure of the run `path` that a reading child died on (`detail`: how, and what
+/// follows), delivered and counted like a run read: it was announced with its archive.
+/// `reading` moves past it.
+pub(super) fn died_in_run(
+    counts: &Counts,
+    file: &Path,
+    path: &str,
+    detail: &str,
+    reading: &mut Reading,
+) -> Delivery {
+    counts.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
+    counts.delivered.fetch_add(1, Ordering::Relaxed);
+    reading.delivered += 1;
+    reading.seen += 1;
+    reading.last = Some(path.to_string());
+    let error = crate::ingest::IngestError::Corrupt {
+        file: file.display().to_string(),
+        run: Some(path.to_string()),
+        detail: detail.to_string(),
+    };
+    Delivery::Run {
+        source: file.display().to_string(),
+        path: path.to_string(),
+        run: Box::new(Err(error.to_string())),
+    }
+}
+
+/// The delivery of an archive that could not be read (to the end), counted: it stands for
+/// one run of the inputs and is done with. `reading`: where its child died in it, when it
+/// had opened it (its runs not delivered are no longer expected; the failure counts one).
+pub(super) fn unreadable(
+    counts: &Counts,
+    file: &Path,
+    error: String,
+    reading: Option<&Reading>,
+) -> Delivery {
+    counts.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
+    counts.delivered.fetch_add(1, Ordering::Relaxed);
+    counts.tally(|t| match reading {
+        None => t.unopened = t.unopened.saturating_sub(1),
+        // Its runs not delivered no longer count; its failure does.
+        Some(Reading {
+            announced: Some(n),
+            delivered,
+            ..
+        }) => t.known = (t.known + delivered + 1).saturating_sub(*n),
+        Some(_) => {}
+    });
+    Delivery::Unreadable {
+        file: file.to_path_buf(),
+        error,
+    }
+}

@@ -1,0 +1,214 @@
+//! The child's side of the stream: archives opened and their runs read one at a time, each
+//! sent as a frame (or as where its samples lie), from where a child before it died.
+
+use std::io::{BufRead, Write};
+use std::path::PathBuf;
+use std::time::Duration;
+
+use super::frame::{write_frame, Frame, Samples, FRAME_BUFFER};
+use crate::batch::Shard;
+use crate::ingest::{Archive, IngestOptions};
+use crate::profile::Stage;
+
+/// Reads `files` in this process and hands every frame (with the run's samples) to `emit`,
+/// which returns false to stop. The child's side of the protocol, and the in-process reader.
+/// With `place` (the child), a run whose channels lie as plain float64 bytes goes without
+/// its samples, only where they lie ([`Archive::placed`]), for the parent to read. `after`:
+/// this shard's runs of the first archive that a child before this one dealt with (the last
+/// of them the one it died on), passed over without a frame.
+pub fn serve(
+    files: &[PathBuf],
+    options: &IngestOptions,
+    shard: Option<Shard>,
+    place: bool,
+    after: usize,
+    emit: &mut dyn FnMut(Frame, Option<Samples>) -> bool,
+) {
+    for (i, f) in files.iter().enumerate() {
+        // Listed only: each run's attributes are read with the run, so that libhdf5 crashing
+        // on one run's corrupt attribute costs that run, not the archive.
+        let opened = crate::profile::time(Stage::Read, || Archive::open_listed(f, options));
+        let archive = match opened {
+            Ok(a) => a,
+            Err(e) => {
+                let close = Frame::Close {
+                    archive: i,
+                    error: Some(e.to_string()),
+                };
+                if !emit(close, None) {
+                    return;
+                }
+                continue;
+            }
+        };
+        let takes = |path: &str| shard.is_none_or(|s| s.takes(archive.file_name(), path));
+        let paths: Vec<String> = (archive.listed.iter())
+            .filter(|e| takes(&e.path))
+            .map(|e| e.path.clone())
+            .collect();
+        let open = Frame::Open {
+            archive: i,
+            not_runs: archive.not_runs.clone(),
+            runs: Some(paths.len()),
+            paths,
+            entries: Some(archive.listed.len()),
+        };
+        if !emit(open, None) {
+            return;
+        }
+        // The entries up to the `after`-th run of this shard, other shards' included: the
+        // child before this one sent their frames.
+        let mut passed = if i == 0 { after } else { 0 };
+        for entry in &archive.listed {
+            if passed > 0 {
+                passed -= usize::from(takes(&entry.path));
+                continue;
+            }
+            if !takes(&entry.path) {
+                if !emit(Frame::Skip { archive: i }, None) {
+                    return;
+                }
+                continue;
+            }
+            let meta = crate::profile::time(Stage::Read, || archive.read_meta(entry));
+            let placed = match &meta {
+                Ok(m) if place => archive.placed(m),
+                _ => None,
+            };
+            let (meta, samples) = match (&meta, placed) {
+                (Ok(m), Some(_)) => (Ok(m.clone()), None),
+                (meta, _) => {
+                    let run = meta.as_ref().map_err(|e| e.to_string()).and_then(|m| {
+                        crate::profile::time(Stage::Read, || archive.load(m))
+                            .map_err(|e| e.to_string())
+                    });
+                    match run {
+                        Ok(run) => (Ok(run.meta), Some((run.input, run.output))),
+                        Err(e) => (Err(e), None),
+                    }
+                }
+            };
+            let has_input = match placed {
+                Some(p) => p.input.is_some(),
+                None => samples.as_ref().is_some_and(|s| s.0.is_some()),
+            };
+            let frame = Frame::Run {
+                archive: i,
+                path: entry.path.clone(),
+                meta,
+                has_input,
+                placed,
+            };
+            if !emit(frame, samples) {
+                return;
+            }
+        }
+        // Closed before it is said closed: a close that hangs or crashes in libhdf5 is then
+        // this archive's failure, not the next one's.
+        drop(archive);
+        if !emit(
+            Frame::Close {
+                archive: i,
+                error: None,
+            },
+            None,
+        ) {
+            return;
+        }
+    }
+}
+
+/// The child's main: from standard input, the runs of the first archive to pass over (a
+/// decimal count on the first line, see [`serve`]'s `after`), then the archive paths one a
+/// line; frames to standard output.
+pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Result<()> {
+    let mut lines = std::io::stdin()
+        .lock()
+        .lines()
+        .collect::<std::io::Result<Vec<String>>>()?
+        .into_iter();
+    let after = lines
+        .next()
+        .and_then(|l| l.trim().parse::<usize>().ok())
+        .ok_or_else(|| std::io::Error::other("the first line is not the runs to pass over"))?;
+    let files: Vec<PathBuf> = lines.filter(|l| !l.is_empty()).map(PathBuf::from).collect();
+    let mut out = std::io::BufWriter::with_capacity(FRAME_BUFFER, std::io::stdout().lock());
+    let mut failure = None;
+    // `SKELID_READ_PAUSE_MS`: each run read this much slower, to rehearse `--timeout` on a
+    // slow disk (the tests use it).
+    let pause = std::env::var("SKELID_READ_PAUSE_MS")
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .map(Duration::from_millis);
+    let faults = Faults::from_env();
+    serve(
+        &files,
+        options,
+        shard,
+        true,
+        after,
+        &mut |frame, samples| {
+            if let Frame::Run { path, .. } = &frame {
+                if let Some(pause) = pause {
+                    std::thread::sleep(pause);
+                }
+                faults.meet(path);
+            }
+            match write_frame(&mut out, &frame, samples.as_ref()) {
+                Ok(()) => true,
+                Err(e) => {
+                    // The parent went away (a stopped batch): nothing left to do.
+                    failure = Some(e);
+                    false
+                }
+            }
+        },
+    );
+    match failure {
+        Some(e) => Err(e),
+        None => out.flush(),
+    }
+}
+
+/// `SKELID_READ_FAULT=crash:PATH,hang:PATH,…`: the reading child aborts, or stops answering,
+/// where it would send the run of that group path (in any archive), as when libhdf5 crashes
+/// or loops on that run's corrupt data; to rehearse a campaign with a bad run (the tests
+/// use it).
+#[derive(Default)]
+pub(super) struct Faults {
+    crash: Vec<String>,
+    hang: Vec<String>,
+}
+
+impl Faults {
+    fn from_env() -> Faults {
+        let mut faults = Faults::default();
+        let spec = std::env::var("SKELID_READ_FAULT").unwrap_or_default();
+        for item in spec.split(',') {
+            match item.split_once(':') {
+                Some(("crash", path)) => faults.crash.push(path.to_string()),
+                Some(("hang", path)) => faults.hang.push(path.to_string()),
+                _ => {}
+            }
+        }
+        faults
+    }
+
+    fn meet(&self, path: &str) {
+        if self.crash.iter().any(|p| p == path) {
+            // No core file left behind where core dumps are on.
+            let none = libc::rlimit {
+                rlim_cur: 0,
+                rlim_max: 0,
+            };
+            // SAFETY: setrlimit reads the struct given and touches no other memory.
+            unsafe { libc::setrlimit(libc::RLIMIT_CORE, &none) };
+            std::process::abort();
+        }
+        if self.hang.iter().any(|p| p == path) {
+            loop {
+                std::thread::sleep(Duration::from_secs(3600));
+            }
+        }
+    }
+}
