@@ -50,15 +50,15 @@ impl<'a> Assembler<'a> {
     pub(super) fn hang_detail(&self, timeout: Duration) -> String {
         let step = match &self.reading {
             None => "opening it".to_string(),
-            Some(r) if r.announced == Some(r.delivered) => {
+            Some(r) if r.rest() == 0 => {
                 format!("closing it after its {} run(s)", r.delivered)
             }
             Some(r) => {
-                let of = r.announced.map_or(String::new(), |n| format!(" of {n}"));
+                let of = r.paths.len();
                 match &r.last {
-                    None => format!("reading its first run{of}"),
+                    None => format!("reading its first run of {of}"),
                     Some(path) => format!(
-                        "reading its run {}{of}, the one after {path}",
+                        "reading its run {} of {of}, the one after {path}",
                         r.delivered + 1
                     ),
                 }
@@ -80,7 +80,6 @@ impl<'a> Assembler<'a> {
             Frame::Open {
                 archive,
                 not_runs,
-                runs,
                 paths,
                 entries,
             } => {
@@ -89,18 +88,14 @@ impl<'a> Assembler<'a> {
                         return self.reopened(r, &paths, entries);
                     }
                 }
-                // The archive's one among the runs known becomes its runs (the child always
-                // announces them; an archive that did not would count one until read).
+                // The archive's one among the runs known becomes its runs.
                 c.tally(|t| {
                     t.unopened = t.unopened.saturating_sub(1);
-                    if let Some(n) = runs {
-                        t.known = t.known + n - 1;
-                        t.opened += 1;
-                        t.announced += n;
-                    }
+                    t.known = t.known + paths.len() - 1;
+                    t.opened += 1;
+                    t.announced += paths.len();
                 });
                 self.reading = Some(Reading {
-                    announced: runs,
                     paths,
                     entries,
                     ..Reading::default()
@@ -185,7 +180,7 @@ impl<'a> Assembler<'a> {
         &mut self,
         mut r: Reading,
         paths: &[String],
-        entries: Option<usize>,
+        entries: usize,
     ) -> Option<Delivery> {
         if r.paths == paths && r.entries == entries {
             self.reading = Some(r);

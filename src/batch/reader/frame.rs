@@ -21,19 +21,14 @@ pub enum Frame {
         /// Groups of the archive with datasets that are not runs.
         #[serde(default)]
         not_runs: Vec<crate::ingest::NotARun>,
-        /// This shard's runs in the archive, known once it is open: the progress's total
-        /// counts them before they are read.
-        #[serde(default)]
-        runs: Option<usize>,
-        /// Their group paths, in the order they will be read: when the child dies reading
-        /// one, the parent knows which run killed it, records that run failed, and a new
-        /// child goes on after it.
-        #[serde(default)]
+        /// This shard's runs in the archive, their group paths in the order they will be
+        /// read: the progress's total counts them before they are read, and when the child
+        /// dies reading one, the parent knows which run killed it, records that run failed,
+        /// and a new child goes on after it.
         paths: Vec<String>,
         /// The archive's runs of every shard (this shard's are sent, the others' skipped):
         /// those after a run the child died on, as the archive's last, are counted unsent.
-        #[serde(default)]
-        entries: Option<usize>,
+        entries: usize,
     },
     /// One run of this shard; samples follow when `meta` is `Ok` and it is not `placed`.
     Run {

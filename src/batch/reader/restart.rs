@@ -7,18 +7,17 @@ use std::sync::atomic::Ordering;
 
 use super::{Counts, Delivery};
 
-/// The archive a reading child is in: the runs it announced (this shard's) and their
-/// paths, those delivered (by this child or those before it in the archive, failed ones
+/// The archive a reading child is in: the paths of the runs it announced (this shard's),
+/// those delivered (by this child or those before it in the archive, failed ones
 /// included), the last one's path, the archive's entries of every shard and those seen so
 /// far, the runs a child died on (in a row, and in all), and whether the archive was
 /// given up while its child went on.
 #[derive(Debug, Clone, Default)]
 pub(super) struct Reading {
-    pub(super) announced: Option<usize>,
     pub(super) paths: Vec<String>,
     pub(super) delivered: usize,
     pub(super) last: Option<String>,
-    pub(super) entries: Option<usize>,
+    pub(super) entries: usize,
     pub(super) seen: usize,
     pub(super) died_in_row: usize,
     pub(super) deaths: usize,
@@ -79,7 +78,7 @@ pub(super) fn after_death(
             if last {
                 // Other shards' runs after it, never sent as skipped, are counted here
                 // rather than by opening the archive again.
-                let unseen = r.entries.map_or(0, |n| n.saturating_sub(r.seen));
+                let unseen = r.entries.saturating_sub(r.seen);
                 counts.runs_in_inputs.fetch_add(unseen, Ordering::Relaxed);
                 return (vec![failed], None);
             }
@@ -200,12 +199,7 @@ pub(super) fn unreadable(
     counts.tally(|t| match reading {
         None => t.unopened = t.unopened.saturating_sub(1),
         // Its runs not delivered no longer count; its failure does.
-        Some(Reading {
-            announced: Some(n),
-            delivered,
-            ..
-        }) => t.known = (t.known + delivered + 1).saturating_sub(*n),
-        Some(_) => {}
+        Some(r) => t.known = (t.known + r.delivered + 1).saturating_sub(r.paths.len()),
     });
     Delivery::Unreadable {
         file: file.to_path_buf(),

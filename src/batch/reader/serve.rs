@@ -49,9 +49,8 @@ pub fn serve(
         let open = Frame::Open {
             archive: i,
             not_runs: archive.not_runs.clone(),
-            runs: Some(paths.len()),
             paths,
-            entries: Some(archive.listed.len()),
+            entries: archive.listed.len(),
         };
         if !emit(open, None) {
             return;
