@@ -20,7 +20,8 @@ pub(crate) fn cmd_bench_backends(a: &BenchArgs) -> Result<()> {
     let mut signals = Vec::new();
     let mut runs = 0usize;
     for f in &files {
-        let archive = Archive::open(f, &ingest)
+        // Listed: `load_all` reads each run's metadata with its samples, once.
+        let archive = Archive::open_listed(f, &ingest)
             .with_context(|| format!("cannot read {} for the benchmark", f.display()))?;
         for (path, run) in archive.load_all() {
             let run = run.with_context(|| format!("{}: run {path}", f.display()))?;
