@@ -162,10 +162,7 @@ impl<'a> Assembler<'a> {
                 };
                 let file = &self.files[archive];
                 error.map(|error| match resumed {
-                    Some(r) => {
-                        let error = format!("{error} {}", reopen_failed("", &r).trim_start());
-                        unreadable(c, file, error, Some(&r))
-                    }
+                    Some(r) => unreadable(c, file, reopen_failed(&error, &r), Some(&r)),
                     None => unreadable(c, file, error, None),
                 })
             }
@@ -191,10 +188,8 @@ impl<'a> Assembler<'a> {
             file,
             format!(
                 "the archive changed while it was read (opened again after a run stopped \
-                 the reading child, it held other runs), so the archive's {} run(s) after {} \
-                 are not read",
-                r.rest(),
-                r.last.as_deref().unwrap_or("the first")
+                 the reading child, it held other runs), so {}",
+                r.rest_not_read()
             ),
         );
         let given_up = unreadable(self.counts, file, error, Some(&r));

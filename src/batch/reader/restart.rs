@@ -29,6 +29,15 @@ impl Reading {
     pub(super) fn rest(&self) -> usize {
         self.paths.len().saturating_sub(self.delivered)
     }
+
+    /// What giving the rest up costs, for the messages that do.
+    pub(super) fn rest_not_read(&self) -> String {
+        format!(
+            "the archive's {} run(s) after {} are not read",
+            self.rest(),
+            self.last.as_deref().unwrap_or("the first")
+        )
+    }
 }
 
 /// Runs in a row of one archive that may each stop a reading child (a crash, or a step past
@@ -128,10 +137,8 @@ pub(super) fn not_restarted(counts: &Counts, file: &Path, r: &Reading) -> Delive
     let error = crate::ingest::IngestError::Unreadable {
         file: file.display().to_string(),
         detail: format!(
-            "no new reading child could be started after a run stopped the last, so the \
-             archive's {} run(s) after {} are not read",
-            r.rest(),
-            r.last.as_deref().unwrap_or("the first")
+            "no new reading child could be started after a run stopped the last, so {}",
+            r.rest_not_read()
         ),
     };
     unreadable(counts, file, error.to_string(), Some(r))
@@ -141,10 +148,8 @@ pub(super) fn not_restarted(counts: &Counts, file: &Path, r: &Reading) -> Delive
 /// the one before (`detail`: how it failed).
 pub(super) fn reopen_failed(detail: &str, r: &Reading) -> String {
     format!(
-        "{detail} (opening it again after a run stopped the reading child), so the \
-         archive's {} run(s) after {} are not read",
-        r.rest(),
-        r.last.as_deref().unwrap_or("the first")
+        "{detail} (opening it again after a run stopped the reading child), so {}",
+        r.rest_not_read()
     )
 }
 
