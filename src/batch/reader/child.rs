@@ -151,13 +151,16 @@ pub(super) fn read_in_child(
         c.timed_out
     };
     let _ = watchdog.join();
-    let status = {
+    let (status, ended_itself) = {
         let mut ch = child.lock().unwrap_or_else(|p| p.into_inner());
+        // Whether it had ended before it was stopped here: a stream broken part-way by a
+        // child that died is that death, one broken by a child still running is ours.
+        let ended_itself = matches!(ch.try_wait(), Ok(Some(_)));
         let abandoned = assemble.reading.as_ref().is_some_and(|r| r.abandoned);
         if result.is_err() || broken.is_some() || abandoned {
             let _ = ch.kill();
         }
-        ch.wait()
+        (ch.wait(), ended_itself)
     };
     let _ = feeder.join();
     let err = err_tail.join().unwrap_or_default();
@@ -168,8 +171,9 @@ pub(super) fn read_in_child(
     }
     let detail = if timed_out {
         assemble.hang_detail(timeout)
-    } else if let Some(e) = broken {
-        // Not libhdf5's doing: what the child sent could not be read (a bug of skelid's).
+    } else if let (Some(e), false) = (&broken, ended_itself) {
+        // Not libhdf5's doing: what a running child sent could not be read (a bug of
+        // skelid's).
         format!("the reading child's stream broke ({e}); please report it")
     } else {
         match status {
