@@ -122,12 +122,9 @@ impl<'a> Assembler<'a> {
                 placed,
                 ..
             } => {
-                c.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
-                c.delivered.fetch_add(1, Ordering::Relaxed);
+                c.delivery();
                 if let Some(r) = &mut self.reading {
-                    r.delivered += 1;
-                    r.seen += 1;
-                    r.last = Some(path.clone());
+                    r.dealt_with(&path);
                     r.died_in_row = 0;
                 }
                 let run = meta.and_then(|meta| {

@@ -129,6 +129,12 @@ impl Counts {
             .max(self.delivered.load(Ordering::Relaxed))
     }
 
+    /// One delivery of this shard, a run of the inputs (read, failed, or an archive as one).
+    pub(super) fn delivery(&self) {
+        self.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
+        self.delivered.fetch_add(1, Ordering::Relaxed);
+    }
+
     /// Changes the tally, under its lock.
     pub(super) fn tally(&self, change: impl FnOnce(&mut Tally)) {
         change(&mut self.tally.lock().unwrap_or_else(|p| p.into_inner()));

@@ -30,6 +30,13 @@ impl Reading {
         self.paths.len().saturating_sub(self.delivered)
     }
 
+    /// One run of this shard dealt with, `path`: read, or failed.
+    pub(super) fn dealt_with(&mut self, path: &str) {
+        self.delivered += 1;
+        self.seen += 1;
+        self.last = Some(path.to_string());
+    }
+
     /// What giving the rest up costs, for the messages that do.
     pub(super) fn rest_not_read(&self) -> String {
         format!(
@@ -173,11 +180,8 @@ pub(super) fn died_in_run(
     detail: &str,
     reading: &mut Reading,
 ) -> Delivery {
-    counts.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
-    counts.delivered.fetch_add(1, Ordering::Relaxed);
-    reading.delivered += 1;
-    reading.seen += 1;
-    reading.last = Some(path.to_string());
+    counts.delivery();
+    reading.dealt_with(path);
     let error = crate::ingest::IngestError::Corrupt {
         file: file.display().to_string(),
         run: Some(path.to_string()),
@@ -199,8 +203,7 @@ pub(super) fn unreadable(
     error: String,
     reading: Option<&Reading>,
 ) -> Delivery {
-    counts.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
-    counts.delivered.fetch_add(1, Ordering::Relaxed);
+    counts.delivery();
     counts.tally(|t| match reading {
         None => t.unopened = t.unopened.saturating_sub(1),
         // Its runs not delivered no longer count; its failure does.
