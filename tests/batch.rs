@@ -517,6 +517,95 @@ fn a_run_that_crashes_the_reading_child_fails_alone() {
     assert_same_rows(&rows, &rows_after);
 }
 
+/// An archive that crashes the reading child as it is closed, after every run of it was
+/// read, loses no run: its runs are identified as in a batch without the fault, nothing is
+/// recorded failed for it, the next archive is read by a new child, and the batch warns of
+/// the damaged file on the terminal, in skelid.log and in manifest.json. Until 2026-12-07
+/// it was a failed `/_unreadable/` entry and exit status 1. Sharded, each shard notes it
+/// and the merge keeps it once.
+#[test]
+fn an_archive_that_crashes_libhdf5_when_closed_loses_no_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    let c = campaign(tmp.path());
+    let files = [c.join("a.h5"), c.join("b.h5")];
+    let batch = |out: &Path, faults: &str, shard: Option<&str>| {
+        let o = skelid()
+            .arg("run")
+            .args(&files)
+            .arg("--out")
+            .arg(out)
+            .args(["--method", "hilbert", "--quiet"])
+            .args(shard.map(|s| ["--shard", s]).into_iter().flatten())
+            .env("SKELID_READ_FAULT", faults)
+            .output()
+            .expect("run skelid run");
+        let manifest: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).unwrap())
+                .unwrap();
+        (o, manifest)
+    };
+    let clean = tmp.path().join("clean");
+    let (o, manifest) = batch(&clean, "", None);
+    let status = o.status.code();
+    assert!(matches!(status, Some(0 | 1)), "{o:?}");
+    assert!(manifest.get("damaged_archives").is_none(), "{manifest}");
+    let faulty = tmp.path().join("faulty");
+    let (o, manifest) = batch(&faulty, "crash-closing:a.h5", None);
+    let said = String::from_utf8_lossy(&o.stderr);
+    println!("{said}");
+    assert_eq!(o.status.code(), status, "{said}");
+    assert_eq!(manifest["runs"].as_array().unwrap().len(), 22, "{manifest}");
+    assert_eq!(manifest["runs_in_inputs"], 22);
+    assert!(!manifest.to_string().contains("_unreadable"), "{manifest}");
+    let damaged = manifest["damaged_archives"].as_array().unwrap();
+    assert_eq!(damaged.len(), 1, "{manifest}");
+    assert!(damaged[0]["archive"].as_str().unwrap().ends_with("a.h5"));
+    let detail = damaged[0]["detail"].as_str().unwrap();
+    assert!(
+        detail.starts_with(
+            "read to the end (its 11 run(s) in this batch read), then the reading child \
+             died closing it: libhdf5 crashed reading it (signal 6). No run is lost"
+        ),
+        "{detail}"
+    );
+    assert!(said.contains("warning: damaged archive ") && said.contains("a.h5: read to the end"));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("1 archive(s) damaged (no run lost"));
+    let log = std::fs::read_to_string(faulty.join("skelid.log")).unwrap();
+    assert!(log.contains("warning: damaged archive "), "{log}");
+    assert_same_rows(&summary_rows(&clean), &summary_rows(&faulty));
+    // Two shards, each reading (and closing) both archives: merged, a.h5 once.
+    let shards: Vec<PathBuf> = ["1/2", "2/2"]
+        .iter()
+        .map(|s| {
+            let out = tmp.path().join(format!("shard{}", &s[..1]));
+            let (o, manifest) = batch(&out, "crash-closing:a.h5", Some(s));
+            assert_eq!(manifest["runs_in_inputs"], 22, "{o:?}");
+            assert_eq!(manifest["damaged_archives"].as_array().unwrap().len(), 1);
+            out
+        })
+        .collect();
+    let merged = tmp.path().join("merged");
+    let o = skelid()
+        .arg("merge")
+        .args(&shards)
+        .arg("--out")
+        .arg(&merged)
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), status, "{said}");
+    assert_eq!(
+        said.matches("warning: damaged archive ").count(),
+        1,
+        "{said}"
+    );
+    let manifest: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(merged.join("manifest.json")).unwrap())
+            .unwrap();
+    assert_eq!(manifest["damaged_archives"].as_array().unwrap().len(), 1);
+    assert_same_rows(&summary_rows(&clean), &summary_rows(&merged));
+}
+
 /// A memory budget smaller than two runs holds the second back: the runs go one at a time
 /// on two workers, the log and the terminal say so, and the results are those of the batch
 /// without a bound. A budget of no bytes, or not a number, is refused before anything runs.

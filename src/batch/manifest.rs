@@ -17,6 +17,17 @@ pub struct GroupNotRun {
     pub group: crate::ingest::NotARun,
 }
 
+/// An archive whose every run (of this shard) was read, but that the reading child died
+/// closing (libhdf5 crashed, or hung past `--timeout`): its runs stand, each read and
+/// checked before, and the file is likely damaged.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct DamagedArchive {
+    /// Archive as given.
+    pub archive: String,
+    /// How the reading child died, and what that means for its runs.
+    pub detail: String,
+}
+
 /// The output folder's record of a batch: what was asked and which runs it holds.
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct Manifest {
@@ -36,6 +47,10 @@ pub struct Manifest {
     /// Groups of the inputs that hold datasets but are not runs, so none goes unseen.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub not_runs: Vec<GroupNotRun>,
+    /// Archives read to the end that the reading child died closing
+    /// ([`DamagedArchive`]): no run is lost, but the files want checking.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub damaged_archives: Vec<DamagedArchive>,
 }
 
 /// One run of a manifest.
@@ -69,6 +84,7 @@ impl Manifest {
             shard,
             runs_in_inputs,
             not_runs,
+            damaged_archives: Vec::new(),
             settings_full,
             runs: entries
                 .iter()

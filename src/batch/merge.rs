@@ -127,7 +127,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
             })?;
         }
     }
-    let manifest = Manifest::new(
+    let mut manifest = Manifest::new(
         settings,
         None,
         first.runs_in_inputs,
@@ -135,6 +135,19 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         first.not_runs.clone(),
         first.settings_full.clone(),
     );
+    // Every shard's child opens and closes every archive, but one may have died closing
+    // it where another did not: every shard's are kept, each archive once.
+    for (_, m) in &manifests {
+        for d in &m.damaged_archives {
+            if !manifest
+                .damaged_archives
+                .iter()
+                .any(|k| k.archive == d.archive)
+            {
+                manifest.damaged_archives.push(d.clone());
+            }
+        }
+    }
     let results = journal.assemble(out, &entries, manifest.settings_full.as_ref())?;
     let (rows, failed_runs) = write_outputs(&results, out, &entries, &manifest, report_runs)?;
     Ok(BatchSummary {
@@ -144,6 +157,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         runs: entries.len(),
         skipped: 0,
         not_runs: manifest.not_runs.clone(),
+        damaged: manifest.damaged_archives.clone(),
         memory_held_back: None,
     })
 }

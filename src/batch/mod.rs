@@ -24,7 +24,7 @@ pub mod reader;
 mod worker;
 mod writer;
 
-pub use manifest::{GroupNotRun, Manifest, ManifestRun, MANIFEST};
+pub use manifest::{DamagedArchive, GroupNotRun, Manifest, ManifestRun, MANIFEST};
 pub use merge::merge;
 pub use worker::guarded;
 use worker::{prepare_caught, Work};
@@ -228,6 +228,9 @@ pub struct BatchSummary {
     pub skipped: usize,
     /// Groups of the inputs that hold datasets but are not runs (other dataset names).
     pub not_runs: Vec<GroupNotRun>,
+    /// Archives read to the end that the reading child died closing: no run lost, the
+    /// files likely damaged ([`DamagedArchive`]).
+    pub damaged: Vec<DamagedArchive>,
     /// Where the memory budget held runs back, what it did (the batch then ran fewer runs
     /// at once than `--jobs`).
     pub memory_held_back: Option<memory::Usage>,
@@ -474,7 +477,18 @@ pub fn run_campaigns(
     for g in &not_runs {
         log.line(&format!("skipped (not a run) {}: {}", g.archive, g.group));
     }
-    let manifest = Manifest::new(
+    let damaged: Vec<DamagedArchive> =
+        std::mem::take(&mut *counts.damaged.lock().unwrap_or_else(|p| p.into_inner()))
+            .into_iter()
+            .map(|(archive, detail)| DamagedArchive { archive, detail })
+            .collect();
+    for d in &damaged {
+        log.line(&format!(
+            "warning: damaged archive {}: {}",
+            d.archive, d.detail
+        ));
+    }
+    let mut manifest = Manifest::new(
         settings,
         opt.shard,
         runs_in_inputs,
@@ -482,6 +496,7 @@ pub fn run_campaigns(
         not_runs.clone(),
         Some(record),
     );
+    manifest.damaged_archives = damaged.clone();
     let held = drawn.take_shown(&entries, opt.report_runs);
     let (results, rows) = if held.iter().all(Option::is_some) {
         // The page reads nothing back: results.h5 is closed (its metadata flushed, a third
@@ -534,6 +549,7 @@ pub fn run_campaigns(
         runs: total,
         skipped,
         not_runs,
+        damaged,
         memory_held_back,
     })
 }

@@ -46,11 +46,13 @@ pub(crate) fn cmd_merge(a: MergeArgs) -> Result<ExitCode> {
     }
     let summary = skelid::batch::merge(&a.dirs, &a.out, a.report.report_runs)?;
     let strict = a.report.strict;
+    report_damaged(&summary.damaged);
     println!(
-        "merged {} folder(s): {} run(s), {} failed; wrote {}, summary.json, summary.csv, report.html, manifest.json",
+        "merged {} folder(s): {} run(s), {} failed{}; wrote {}, summary.json, summary.csv, report.html, manifest.json",
         a.dirs.len(),
         summary.runs,
         summary.failed_runs,
+        damaged_count(&summary.damaged),
         summary.results.display()
     );
     Ok(exit_status(&summary, strict))
@@ -283,11 +285,12 @@ pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         print!("{}", render_refined(&summary.rows, None));
     }
     report_not_runs(&summary.not_runs);
+    report_damaged(&summary.damaged);
     if let Some(u) = &summary.memory_held_back {
         eprintln!("note: {}", skelid::batch::memory::held_back(u));
     }
     println!(
-        "\n{} run(s), {} failed{}, {} already done earlier (skipped){}; wrote {}, summary.json, summary.csv, report.html, manifest.json, skelid.log",
+        "\n{} run(s), {} failed{}, {} already done earlier (skipped){}{}; wrote {}, summary.json, summary.csv, report.html, manifest.json, skelid.log",
         summary.runs,
         summary.failed_runs,
         result_counts(&summary.rows),
@@ -296,6 +299,7 @@ pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
             0 => String::new(),
             n => format!(", {n} group(s) skipped as not runs"),
         },
+        damaged_count(&summary.damaged),
         summary.results.display()
     );
     Ok(exit_status(&summary, a.report.strict))
@@ -345,6 +349,22 @@ pub(crate) fn report_not_runs(groups: &[skelid::batch::GroupNotRun]) {
             "warning: … and {} more group(s) that are not runs (all in manifest.json and skelid.log)",
             groups.len() - 10
         );
+    }
+}
+
+/// Warns of the archives read to the end that the reading child died closing: no run
+/// lost, but each file wants checking ([`skelid::batch::DamagedArchive`]).
+pub(crate) fn report_damaged(archives: &[skelid::batch::DamagedArchive]) {
+    for d in archives {
+        eprintln!("warning: damaged archive {}: {}", d.archive, d.detail);
+    }
+}
+
+/// ", N archive(s) damaged (no run lost)" for the last line, when there are any.
+fn damaged_count(archives: &[skelid::batch::DamagedArchive]) -> String {
+    match archives.len() {
+        0 => String::new(),
+        n => format!(", {n} archive(s) damaged (no run lost; see the warnings)"),
     }
 }
 

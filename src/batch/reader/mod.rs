@@ -10,8 +10,9 @@
 //! read them all a second time before the work started). When the child dies or stalls on
 //! a run, that run is recorded failed with the reason and a new child opens the archive
 //! again and reads on after it ([`DEATHS_IN_A_ROW`] bounds the retries); when it dies
-//! opening or closing an archive, that archive is recorded unreadable and a new child takes
-//! the remaining ones. Runs a dead child had already delivered stand.
+//! opening an archive, that archive is recorded unreadable, and when it dies closing one
+//! whose runs were all dealt with, that archive is noted damaged ([`Counts::damaged`]);
+//! either way a new child takes the remaining ones. Runs a dead child had already delivered stand.
 //!
 //! Protocol: the parent writes to the child's stdin the runs of the first archive to pass
 //! over (this shard's, as a decimal count; 0 but after a death) and the archive paths, one a
@@ -87,6 +88,9 @@ pub struct Counts {
     pub tally: Mutex<Tally>,
     /// Groups with datasets that are not runs, with their archive (as given).
     pub not_runs: std::sync::Mutex<Vec<(String, crate::ingest::NotARun)>>,
+    /// Archives (as given) read to the end that a reading child died closing, with how:
+    /// their runs stand, no failure is recorded, and the batch warns of them.
+    pub damaged: std::sync::Mutex<Vec<(String, String)>>,
 }
 
 /// This shard's runs as far as the reader knows them, under one lock: an archive's opening

@@ -147,11 +147,21 @@ pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Re
         true,
         after,
         &mut |frame, samples| {
-            if let Frame::Run { path, .. } = &frame {
-                if let Some(pause) = pause {
-                    std::thread::sleep(pause);
+            match &frame {
+                Frame::Run { path, .. } => {
+                    if let Some(pause) = pause {
+                        std::thread::sleep(pause);
+                    }
+                    faults.meet(path);
                 }
-                faults.meet(path);
+                // Met after the archive was closed, before the parent hears it: to the
+                // parent, a death while closing.
+                Frame::Close { archive, .. } => {
+                    if let Some(name) = files[*archive].file_name() {
+                        faults.meet_closing(&name.to_string_lossy());
+                    }
+                }
+                _ => {}
             }
             match write_frame(&mut out, &frame, samples.as_ref()) {
                 Ok(()) => true,
@@ -169,14 +179,16 @@ pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Re
     }
 }
 
-/// `SKELID_READ_FAULT=crash:PATH,hang:PATH,…`: the reading child aborts, or stops answering,
-/// where it would send the run of that group path (in any archive), as when libhdf5 crashes
-/// or loops on that run's corrupt data; to rehearse a campaign with a bad run (the tests
-/// use it).
+/// `SKELID_READ_FAULT=crash:PATH,hang:PATH,crash-closing:NAME,…`: the reading child aborts,
+/// or stops answering, where it would send the run of that group path (in any archive), as
+/// when libhdf5 crashes or loops on that run's corrupt data; or aborts once it has closed
+/// the archive of that file name, as when libhdf5 crashes closing a damaged file. To
+/// rehearse a campaign with a bad run or file (the tests use it).
 #[derive(Default)]
 pub(super) struct Faults {
     crash: Vec<String>,
     hang: Vec<String>,
+    crash_closing: Vec<String>,
 }
 
 impl Faults {
@@ -187,6 +199,7 @@ impl Faults {
             match item.split_once(':') {
                 Some(("crash", path)) => faults.crash.push(path.to_string()),
                 Some(("hang", path)) => faults.hang.push(path.to_string()),
+                Some(("crash-closing", name)) => faults.crash_closing.push(name.to_string()),
                 _ => {}
             }
         }
@@ -195,14 +208,7 @@ impl Faults {
 
     fn meet(&self, path: &str) {
         if self.crash.iter().any(|p| p == path) {
-            // No core file left behind where core dumps are on.
-            let none = libc::rlimit {
-                rlim_cur: 0,
-                rlim_max: 0,
-            };
-            // SAFETY: setrlimit reads the struct given and touches no other memory.
-            unsafe { libc::setrlimit(libc::RLIMIT_CORE, &none) };
-            std::process::abort();
+            crash();
         }
         if self.hang.iter().any(|p| p == path) {
             loop {
@@ -210,4 +216,21 @@ impl Faults {
             }
         }
     }
+
+    fn meet_closing(&self, name: &str) {
+        if self.crash_closing.iter().any(|n| n == name) {
+            crash();
+        }
+    }
+}
+
+/// Aborts, as libhdf5 does on corrupt data, leaving no core file where core dumps are on.
+fn crash() -> ! {
+    let none = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: setrlimit reads the struct given and touches no other memory.
+    unsafe { libc::setrlimit(libc::RLIMIT_CORE, &none) };
+    std::process::abort();
 }

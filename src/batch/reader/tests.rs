@@ -345,6 +345,83 @@ fn a_resumed_archive_gone_changed_or_at_its_last_run_is_counted_once() {
     assert_eq!(counts.estimate(), 2);
 }
 
+/// A child that dies closing an archive whose runs of this shard were all dealt with
+/// fails nothing: the archive is noted damaged with how the child died, the other shards'
+/// runs it had not passed yet are counted, and the next archive is read by a new child.
+/// A death on a run of it before is said; an archive without runs of this shard too.
+#[test]
+fn a_child_dying_while_closing_an_archive_read_to_the_end_fails_nothing() {
+    let files = [PathBuf::from("a.h5"), PathBuf::from("b.h5")];
+    let options = IngestOptions::default();
+    let run = |path: &str| run_frame(0, path);
+    let damaged = |counts: &Counts| counts.damaged.lock().unwrap().clone();
+
+    // A shard's /r1 and /r3 of 4 entries: both read, /r2 passed, the child hangs closing it
+    // before /r4's frame (another shard's).
+    let counts = counts_for(2);
+    let mut a = Assembler::new(&files, &counts, &options, None);
+    a.frame(opened(0, vec!["/r1".into(), "/r3".into()], 4), None);
+    a.frame(run("/r1"), None).unwrap();
+    a.frame(Frame::Skip { archive: 0 }, None);
+    a.frame(run("/r3"), None).unwrap();
+    let hung = a.hang_detail(Duration::from_secs(7));
+    assert!(hung.starts_with("closing it after its 2 run(s), the reading child went 7 s"));
+    let (failed, resume) = after_death(&counts, &files[0], hung, a.reading, a.resumed);
+    assert!(failed.is_empty() && resume.is_none());
+    assert_eq!(counts.runs_in_inputs.load(Ordering::Relaxed), 4);
+    assert_eq!(counts.delivered.load(Ordering::Relaxed), 2);
+    assert_eq!(counts.estimate(), 2 + 2, "b.h5 projected at a.h5's 2 runs");
+    let noted = damaged(&counts);
+    println!("{noted:?}");
+    assert_eq!(noted.len(), 1);
+    assert_eq!(noted[0].0, "a.h5");
+    assert!(noted[0].1.starts_with(
+        "read to the end (its 2 run(s) in this batch read), then the reading child died \
+         closing it: closing it after its 2 run(s), the reading child went 7 s without \
+         progress"
+    ));
+    assert!(noted[0].1.contains("No run is lost"));
+
+    // /r2 of 3 killed a child, a new one read /r3 and crashed closing the archive.
+    let counts = counts_for(1);
+    let mut a = Assembler::new(&files[..1], &counts, &options, None);
+    a.frame(opened(0, names(3), 3), None);
+    a.frame(run("/r1"), None).unwrap();
+    let (failed, resume) = after_death(&counts, &files[0], "crashed".into(), a.reading, a.resumed);
+    assert_eq!(failed.len(), 1);
+    let mut a = Assembler::new(&files[..1], &counts, &options, resume);
+    a.frame(opened(0, names(3), 3), None);
+    a.frame(run("/r3"), None).unwrap();
+    let (failed, resume) = after_death(
+        &counts,
+        &files[0],
+        "crashed again".into(),
+        a.reading,
+        a.resumed,
+    );
+    assert!(failed.is_empty() && resume.is_none());
+    assert_eq!(counts.estimate(), 3);
+    assert_eq!(counts.runs_in_inputs.load(Ordering::Relaxed), 3);
+    let noted = damaged(&counts);
+    assert!(noted[0].1.starts_with(
+        "read to the end (its 3 run(s) in this batch dealt with, 1 of them failed on their \
+         own as recorded), then the reading child died closing it: crashed again."
+    ));
+
+    // None of the archive's 2 runs is this shard's.
+    let counts = counts_for(1);
+    let mut a = Assembler::new(&files[..1], &counts, &options, None);
+    a.frame(opened(0, Vec::new(), 2), None);
+    a.frame(Frame::Skip { archive: 0 }, None);
+    let (failed, _) = after_death(&counts, &files[0], "crashed".into(), a.reading, a.resumed);
+    assert!(failed.is_empty());
+    assert_eq!(counts.runs_in_inputs.load(Ordering::Relaxed), 2);
+    assert_eq!(counts.estimate(), 0);
+    assert!(damaged(&counts)[0]
+        .1
+        .starts_with("read to the end (none of its runs is"));
+}
+
 /// Deaths not in a row still end an archive: the tenth gives up the rest, each read run
 /// between them resetting only the count in a row. Where no new child can be started,
 /// the rest of the archive is given up at once, as unreadable, not read in-process.
