@@ -104,11 +104,11 @@ fn archives(dir: &Path) -> [PathBuf; 3] {
 }
 
 /// A delivery, comparable: source, run path, and the run's metadata and samples as bits,
-/// or its error.
+/// or its error and the error's kind.
 type Compared = (
     String,
     String,
-    Result<(String, Option<Vec<u64>>, Vec<u64>), String>,
+    Result<(String, Option<Vec<u64>>, Vec<u64>), (String, String)>,
 );
 
 fn deliveries(
@@ -119,8 +119,14 @@ fn deliveries(
     let o = IngestOptions::default();
     read_all(files, &o, None, isolate, &Counts::default(), &mut |d| {
         got.push(match d {
-            Delivery::Run { source, path, run } => {
-                let run = run.map(|r| {
+            Delivery::Run {
+                source,
+                path,
+                run,
+                error_kind,
+            } => {
+                let kind = error_kind.unwrap_or_default();
+                let run = run.map_err(|e| (e, kind)).map(|r| {
                     let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
                     (
                         serde_json::to_string(&r.meta).unwrap(),
@@ -130,9 +136,15 @@ fn deliveries(
                 });
                 (source, path, run)
             }
-            Delivery::Unreadable { file, error } => {
-                (file.display().to_string(), String::new(), Err(error))
-            }
+            Delivery::Unreadable {
+                file,
+                error,
+                error_kind,
+            } => (
+                file.display().to_string(),
+                String::new(),
+                Err((error, error_kind)),
+            ),
         });
         Ok(())
     })
@@ -174,12 +186,14 @@ fn the_reading_child_delivers_what_an_in_process_read_does() {
             .and_then(|d| d.2.clone().err())
             .unwrap_or_else(|| panic!("{path} fails"))
     };
-    let bad = error("/runs/bad_output");
+    let (bad, kind) = error("/runs/bad_output");
     assert!(bad.contains("output") && bad.contains("2 non-finite") && bad.contains("sample 250"));
+    // Found by the parent in a placed run's samples, named as the child would name it.
+    assert_eq!(kind, "non_finite");
     // The output's error wins when both channels are bad, as in `load`.
     assert_eq!(
         error("/runs/bad_both"),
-        bad.replace("bad_output", "bad_both")
+        (bad.replace("bad_output", "bad_both"), kind)
     );
 
     // Which runs the child sends as placed: its side of the protocol, run here.

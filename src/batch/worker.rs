@@ -38,7 +38,7 @@ fn prepare(d: reader::Delivery, w: &Work<'_>) -> Finished {
         assert_ne!(path, tests::PANICS, "a bug met in this run");
     }
     let (key, outcome) = match d {
-        reader::Delivery::Unreadable { file, error } => {
+        reader::Delivery::Unreadable { file, error, .. } => {
             let o = unreadable(&file, &error);
             let key = failed_key(
                 &o.source,
@@ -48,7 +48,9 @@ fn prepare(d: reader::Delivery, w: &Work<'_>) -> Finished {
             );
             (key, Err(o))
         }
-        reader::Delivery::Run { source, path, run } => {
+        reader::Delivery::Run {
+            source, path, run, ..
+        } => {
             let key = match &*run {
                 Ok(run) => run_key(run, &source, settings),
                 Err(e) => failed_key(&source, &path, e, settings),
@@ -277,6 +279,7 @@ mod tests {
             source: "a.h5".into(),
             path: PANICS.into(),
             run: Box::new(Err("never read".into())),
+            error_kind: Some("corrupt".into()),
         };
         let work = Work {
             journal: &journal,

@@ -6,7 +6,7 @@ use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use super::frame::{Frame, Samples};
-use super::restart::{corrupt, reopen_failed, unreadable, Reading};
+use super::restart::{corrupt, given_up, reopen_failed, unreadable, Reading};
 use super::{Counts, Delivery};
 use crate::ingest::{IngestOptions, PlacedRun, Run, RunMeta};
 use crate::profile::Stage;
@@ -119,6 +119,7 @@ impl<'a> Assembler<'a> {
                 archive,
                 path,
                 meta,
+                error_kind,
                 placed,
                 ..
             } => {
@@ -127,10 +128,15 @@ impl<'a> Assembler<'a> {
                     r.dealt_with(&path);
                     r.died_in_row = 0;
                 }
+                let mut error_kind = error_kind;
                 let run = meta.and_then(|meta| {
                     let (input, output) = match placed {
                         Some(p) => crate::profile::time(Stage::Read, || {
                             self.read_placed_run(archive, &meta, p)
+                        })
+                        .map_err(|e| {
+                            error_kind = Some(e.kind().to_string());
+                            e.to_string()
                         })?,
                         None => samples.unwrap_or_default(),
                     };
@@ -144,9 +150,14 @@ impl<'a> Assembler<'a> {
                     source: self.files[archive].display().to_string(),
                     path,
                     run: Box::new(run),
+                    error_kind,
                 })
             }
-            Frame::Close { archive, error } => {
+            Frame::Close {
+                archive,
+                error,
+                error_kind,
+            } => {
                 self.done = archive + 1;
                 self.open = None;
                 self.reading = None;
@@ -158,9 +169,11 @@ impl<'a> Assembler<'a> {
                     None
                 };
                 let file = &self.files[archive];
+                // The child names a kind with every error; "unreadable" if one did not.
+                let kind = error_kind.unwrap_or_else(|| "unreadable".into());
                 error.map(|error| match resumed {
-                    Some(r) => unreadable(c, file, reopen_failed(&error, &r), Some(&r)),
-                    None => unreadable(c, file, error, None),
+                    Some(r) => unreadable(c, file, reopen_failed(&error, &r), kind, Some(&r)),
+                    None => unreadable(c, file, error, kind, None),
                 })
             }
         }
@@ -189,10 +202,10 @@ impl<'a> Assembler<'a> {
                 r.rest_not_read()
             ),
         );
-        let given_up = unreadable(self.counts, file, error, Some(&r));
+        let gone = given_up(self.counts, file, error, Some(&r));
         r.abandoned = true;
         self.reading = Some(r);
-        Some(given_up)
+        Some(gone)
     }
 
     /// A placed run's samples, read from its archive (opened once for all its runs), or
@@ -202,21 +215,18 @@ impl<'a> Assembler<'a> {
         archive: usize,
         meta: &RunMeta,
         placed: PlacedRun,
-    ) -> Result<Samples, String> {
+    ) -> Result<Samples, crate::ingest::IngestError> {
         let path = &self.files[archive];
         let name = path.display().to_string();
         if self.open.as_ref().is_none_or(|(a, _)| *a != archive) {
-            let file = std::fs::File::open(path).map_err(|e| {
-                crate::ingest::IngestError::Unreadable {
+            let file =
+                std::fs::File::open(path).map_err(|e| crate::ingest::IngestError::Unreadable {
                     file: name.clone(),
                     detail: e.to_string(),
-                }
-                .to_string()
-            })?;
+                })?;
             self.open = Some((archive, file));
         }
         let (_, file) = self.open.as_ref().expect("opened above");
         crate::ingest::read_placed(file, &name, meta, self.options, placed)
-            .map_err(|e| e.to_string())
     }
 }

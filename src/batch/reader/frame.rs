@@ -38,6 +38,10 @@ pub enum Frame {
         path: String,
         /// The run's metadata, or why it cannot be read.
         meta: Result<RunMeta, String>,
+        /// The kind of `meta`'s error ([`crate::ingest::IngestError::kind`]), for
+        /// `skelid inspect --json`.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        error_kind: Option<String>,
         /// Whether the run has input samples (sent before the output's, or placed).
         has_input: bool,
         /// Where the samples lie in the archive, when they are not sent: the parent reads
@@ -55,6 +59,9 @@ pub enum Frame {
         archive: usize,
         /// Why the archive could not be opened.
         error: Option<String>,
+        /// The kind of `error` ([`crate::ingest::IngestError::kind`]).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        error_kind: Option<String>,
     },
 }
 

@@ -67,6 +67,8 @@ pub enum Delivery {
         path: String,
         /// The run (boxed: a run's metadata is far larger than the other variant).
         run: Box<Result<Run, String>>,
+        /// The kind of the run's error ([`crate::ingest::IngestError::kind`]).
+        error_kind: Option<String>,
     },
     /// An archive that could not be read (or not to the end), with the reason.
     Unreadable {
@@ -74,6 +76,8 @@ pub enum Delivery {
         file: PathBuf,
         /// Why.
         error: String,
+        /// The kind of `error` ([`crate::ingest::IngestError::kind`]).
+        error_kind: String,
     },
 }
 

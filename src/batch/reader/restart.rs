@@ -73,7 +73,7 @@ pub(super) fn after_death(
 ) -> (Vec<Delivery>, Option<Reading>) {
     if let (None, Some(r)) = (&reading, &reopening) {
         let error = corrupt(file, reopen_failed(&detail, r));
-        return (vec![unreadable(counts, file, error, Some(r))], None);
+        return (vec![given_up(counts, file, error, Some(r))], None);
     }
     match reading {
         // Given up already (it changed between two children): nothing more to say.
@@ -119,13 +119,10 @@ pub(super) fn after_death(
                     r.rest()
                 ),
             );
-            (
-                vec![failed, unreadable(counts, file, error, Some(&r))],
-                None,
-            )
+            (vec![failed, given_up(counts, file, error, Some(&r))], None)
         }
         None => (
-            vec![unreadable(counts, file, corrupt(file, detail), None)],
+            vec![given_up(counts, file, corrupt(file, detail), None)],
             None,
         ),
     }
@@ -170,7 +167,7 @@ pub(super) fn not_restarted(counts: &Counts, file: &Path, r: &Reading) -> Delive
             r.rest_not_read()
         ),
     };
-    unreadable(counts, file, error.to_string(), Some(r))
+    given_up(counts, file, error, Some(r))
 }
 
 /// Why an archive was given up when a child could not open it again after a run stopped
@@ -183,13 +180,12 @@ pub(super) fn reopen_failed(detail: &str, r: &Reading) -> String {
 }
 
 /// The error of an archive libhdf5 could not read through, as the reader words it.
-pub(super) fn corrupt(file: &Path, detail: String) -> String {
+pub(super) fn corrupt(file: &Path, detail: String) -> crate::ingest::IngestError {
     crate::ingest::IngestError::Corrupt {
         file: file.display().to_string(),
         run: None,
         detail,
     }
-    .to_string()
 }
 
 /// The failure of the run `path` that a reading child died on (`detail`: how, and what
@@ -213,6 +209,7 @@ pub(super) fn died_in_run(
         source: file.display().to_string(),
         path: path.to_string(),
         run: Box::new(Err(error.to_string())),
+        error_kind: Some(error.kind().to_string()),
     }
 }
 
@@ -223,6 +220,7 @@ pub(super) fn unreadable(
     counts: &Counts,
     file: &Path,
     error: String,
+    error_kind: String,
     reading: Option<&Reading>,
 ) -> Delivery {
     counts.delivery();
@@ -234,5 +232,17 @@ pub(super) fn unreadable(
     Delivery::Unreadable {
         file: file.to_path_buf(),
         error,
+        error_kind,
     }
+}
+
+/// [`unreadable`] with the reader's own `error`.
+pub(super) fn given_up(
+    counts: &Counts,
+    file: &Path,
+    error: crate::ingest::IngestError,
+    reading: Option<&Reading>,
+) -> Delivery {
+    let kind = error.kind().to_string();
+    unreadable(counts, file, error.to_string(), kind, reading)
 }

@@ -34,6 +34,7 @@ pub fn serve(
                 let close = Frame::Close {
                     archive: i,
                     error: Some(e.to_string()),
+                    error_kind: Some(e.kind().to_string()),
                 };
                 if !emit(close, None) {
                     return;
@@ -74,19 +75,18 @@ pub fn serve(
                 Ok(m) if place => archive.placed(m),
                 _ => None,
             };
-            let (meta, samples) = match (&meta, placed) {
-                (Ok(m), Some(_)) => (Ok(m.clone()), None),
+            let (meta, samples) = match (meta, placed) {
+                (Ok(m), Some(_)) => (Ok(m), None),
                 (meta, _) => {
-                    let run = meta.as_ref().map_err(|e| e.to_string()).and_then(|m| {
-                        crate::profile::time(Stage::Read, || archive.load(m))
-                            .map_err(|e| e.to_string())
-                    });
+                    let run =
+                        meta.and_then(|m| crate::profile::time(Stage::Read, || archive.load(&m)));
                     match run {
                         Ok(run) => (Ok(run.meta), Some((run.input, run.output))),
                         Err(e) => (Err(e), None),
                     }
                 }
             };
+            let error_kind = meta.as_ref().err().map(|e| e.kind().to_string());
             let has_input = match placed {
                 Some(p) => p.input.is_some(),
                 None => samples.as_ref().is_some_and(|s| s.0.is_some()),
@@ -94,7 +94,8 @@ pub fn serve(
             let frame = Frame::Run {
                 archive: i,
                 path: entry.path.clone(),
-                meta,
+                meta: meta.map_err(|e| e.to_string()),
+                error_kind,
                 has_input,
                 placed,
             };
@@ -109,6 +110,7 @@ pub fn serve(
             Frame::Close {
                 archive: i,
                 error: None,
+                error_kind: None,
             },
             None,
         ) {

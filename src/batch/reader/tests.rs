@@ -60,6 +60,7 @@ fn run_frame(archive: usize, path: &str) -> Frame {
         archive,
         path: path.into(),
         meta: Err("not read in this test".into()),
+        error_kind: Some("corrupt".into()),
         has_input: false,
         placed: None,
     }
@@ -286,6 +287,7 @@ fn a_resumed_archive_gone_changed_or_at_its_last_run_is_counted_once() {
     let close = Frame::Close {
         archive: 0,
         error: Some("a.h5: cannot read the file: No such file or directory".into()),
+        error_kind: Some("unreadable".into()),
     };
     let error = error_of(a.frame(close, None));
     println!("{error}");
