@@ -1,14 +1,13 @@
 //! `skelid inspect`: what is in a set of archives, and what is wrong with it.
 
-use std::path::PathBuf;
-
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
+use crate::batch::reader::{read_all, Counts, Delivery};
 use crate::child::ChildCommand;
-use crate::ingest::{Archive, IngestError, IngestOptions, RunMeta};
+use crate::ingest::{IngestOptions, RunMeta};
 
 /// One run's line in the report.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -44,71 +43,18 @@ pub struct ArchiveReport {
     /// Groups holding datasets that are not runs (other dataset names).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub not_runs: Vec<crate::ingest::NotARun>,
+    /// Read to the end, but the reading child died closing it: how, and what that means.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub damaged: Option<String>,
 }
 
 impl ArchiveReport {
-    /// Number of problems (file-level and per run).
+    /// Number of problems (file-level, per run, and a crash while closing).
     pub fn problems(&self) -> usize {
-        self.error.is_some() as usize + self.runs.iter().filter(|r| r.error.is_some()).count()
+        self.error.is_some() as usize
+            + self.damaged.is_some() as usize
+            + self.runs.iter().filter(|r| r.error.is_some()).count()
     }
-}
-
-fn run_report(path: String, r: Result<RunMeta, IngestError>) -> RunReport {
-    match r {
-        Ok(meta) => RunReport {
-            path,
-            meta: Some(meta),
-            status: "ok".into(),
-            error: None,
-            error_kind: None,
-        },
-        Err(e) => RunReport {
-            path,
-            meta: None,
-            status: "error".into(),
-            error_kind: Some(e.kind().to_string()),
-            error: Some(e.to_string()),
-        },
-    }
-}
-
-/// Inspects one archive, reading every run's samples to check them.
-pub fn inspect_archive(path: &std::path::Path, options: &IngestOptions) -> ArchiveReport {
-    let file = path.display().to_string();
-    match Archive::open(path, options) {
-        Err(e) => ArchiveReport {
-            file,
-            runs: vec![],
-            error_kind: Some(e.kind().to_string()),
-            error: Some(e.to_string()),
-            not_runs: vec![],
-        },
-        Ok(archive) => {
-            let runs = archive
-                .runs
-                .iter()
-                .map(|entry| {
-                    let checked = entry
-                        .meta
-                        .clone()
-                        .and_then(|m| archive.load(&m).map(|run| run.meta));
-                    run_report(entry.path.clone(), checked)
-                })
-                .collect();
-            ArchiveReport {
-                file,
-                runs,
-                error: None,
-                error_kind: None,
-                not_runs: archive.not_runs.clone(),
-            }
-        }
-    }
-}
-
-/// Inspects many archives.
-pub fn inspect(paths: &[PathBuf], options: &IngestOptions) -> Vec<ArchiveReport> {
-    paths.iter().map(|p| inspect_archive(p, options)).collect()
 }
 
 /// The human-readable table.
@@ -119,7 +65,10 @@ pub fn render_table(reports: &[ArchiveReport]) -> String {
         let _ = writeln!(s, "{}", rep.file);
         if let Some(e) = &rep.error {
             let _ = writeln!(s, "  ERROR {e}");
-            continue;
+            // Given up part-way: the runs read before still listed.
+            if rep.runs.is_empty() {
+                continue;
+            }
         }
         let w = rep
             .runs
@@ -180,6 +129,9 @@ pub fn render_table(reports: &[ArchiveReport]) -> String {
         for g in &rep.not_runs {
             let _ = writeln!(s, "  skipped: {g}");
         }
+        if let Some(d) = &rep.damaged {
+            let _ = writeln!(s, "  DAMAGED {d}");
+        }
         let ok = rep.runs.iter().filter(|r| r.error.is_none()).count();
         let _ = writeln!(
             s,
@@ -196,10 +148,15 @@ pub fn render_table(reports: &[ArchiveReport]) -> String {
     s
 }
 
-/// Inspects each archive in a child process (`command`, then the archive's path), so that a
-/// crash or hang inside libhdf5 on a corrupt file becomes an error naming that file
-/// instead of killing the whole batch. libhdf5 segfaults on some corrupted object headers,
-/// which no in-process error handling can catch. Children run in parallel.
+/// Inspects each archive through `skelid run`'s reader (`command`: its reading child, see
+/// [`crate::batch::reader`]), reading every run's samples to check them: libhdf5 crashes
+/// (segfault) or loops on some corrupt files, which no in-process handling catches. A run
+/// that kills the reading child, or takes more than `timeout` (as does opening the
+/// archive), is that run's error and a new child reads on after it; an archive it cannot
+/// open is the archive's. Archives are inspected in parallel, each by a child of its own.
+/// Until 2026-12-07 one child read a whole archive under one `timeout`: a run that
+/// crashed it lost the listing of every run, and a large archive could not be listed in
+/// time at all.
 pub fn inspect_isolated(
     command: &ChildCommand,
     paths: &[PathBuf],
@@ -209,51 +166,71 @@ pub fn inspect_isolated(
     use rayon::prelude::*;
     paths
         .par_iter()
-        .map(|p| probe_one(command, p, options, timeout))
+        .map(|p| inspect_archive(p, options, Some((command, timeout))))
         .collect()
 }
 
-fn failed(file: String, detail: String) -> ArchiveReport {
-    let e = IngestError::Corrupt {
-        file: file.clone(),
-        run: None,
-        detail,
-    };
-    ArchiveReport {
-        file,
-        runs: vec![],
-        error_kind: Some(e.kind().to_string()),
-        error: Some(e.to_string()),
-        not_runs: vec![],
-    }
-}
-
-fn probe_one(
-    command: &ChildCommand,
+/// Inspects one archive, through a reading child when `isolate` gives its command and the
+/// time one step may take, else in this process.
+pub fn inspect_archive(
     path: &Path,
     options: &IngestOptions,
-    timeout: Duration,
+    isolate: Option<(&ChildCommand, Duration)>,
 ) -> ArchiveReport {
-    use crate::child::{run_json, ChildFailure};
-    let file = path.display().to_string();
-    let mut args = command.args.clone();
-    args.push(path.as_os_str().to_owned());
-    match run_json::<ArchiveReport>(&command.exe, &args, Some(timeout)) {
-        Ok(report) => report,
-        // Cannot isolate (e.g. no executable): read in-process rather than not at all.
-        Err(ChildFailure::Spawn(_)) => inspect_archive(path, options),
-        Err(ChildFailure::Hang) => failed(file, hang_detail(timeout)),
-        Err(ChildFailure::Crash { status, stderr }) => failed(file, crash_detail(status, &stderr)),
-    }
+    let counts = Counts::default();
+    let mut report = ArchiveReport {
+        file: path.display().to_string(),
+        runs: Vec::new(),
+        error: None,
+        error_kind: None,
+        not_runs: Vec::new(),
+        damaged: None,
+    };
+    let files = [path.to_path_buf()];
+    // The reader stops early only when told to, and this never tells it.
+    let _ = read_all(&files, options, None, isolate, &counts, &mut |d| {
+        match d {
+            Delivery::Run {
+                path,
+                run,
+                error_kind,
+                ..
+            } => report.runs.push(match *run {
+                Ok(run) => RunReport {
+                    path,
+                    meta: Some(run.meta),
+                    status: "ok".into(),
+                    error: None,
+                    error_kind: None,
+                },
+                Err(error) => RunReport {
+                    path,
+                    meta: None,
+                    status: "error".into(),
+                    error: Some(error),
+                    error_kind,
+                },
+            }),
+            Delivery::Unreadable {
+                error, error_kind, ..
+            } => {
+                report.error = Some(error);
+                report.error_kind = Some(error_kind);
+            }
+        }
+        Ok(())
+    });
+    report.not_runs = taken(&counts.not_runs)
+        .into_iter()
+        .map(|(_, g)| g)
+        .collect();
+    report.damaged = taken(&counts.damaged).into_iter().map(|(_, d)| d).next();
+    report
 }
 
-/// Why a reading child was stopped after `timeout`.
-pub fn hang_detail(timeout: Duration) -> String {
-    format!(
-        "reading it did not finish within {} s; libhdf5 loops on some corrupt files (a sound \
-         archive that is large, or on a slow disk, needs a longer --timeout)",
-        timeout.as_secs()
-    )
+/// What the reader gathered in `held`, taken out.
+fn taken<T>(held: &std::sync::Mutex<Vec<T>>) -> Vec<T> {
+    std::mem::take(&mut *held.lock().unwrap_or_else(|p| p.into_inner()))
 }
 
 /// What a reading child's end says: how it ended (exit status or signal) and the end of

@@ -36,7 +36,6 @@ fn main() -> ExitCode {
         Command::Validate(a) => cli::validate::run(a),
         Command::Bench(a) => ok(cli::bench::cmd_bench(a)),
         Command::BenchOne(a) => internal::bench_one(a),
-        Command::InspectOne(a) => internal::inspect_one(a),
         Command::ReadArchives(a) => internal::read_archives(a),
     };
     result.unwrap_or_else(|e| {

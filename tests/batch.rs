@@ -563,7 +563,7 @@ fn an_archive_that_crashes_libhdf5_when_closed_loses_no_run() {
     let detail = damaged[0]["detail"].as_str().unwrap();
     assert!(
         detail.starts_with(
-            "read to the end (its 11 run(s) in this batch read), then the reading child \
+            "read to the end (its 11 run(s) read), then the reading child \
              died closing it: libhdf5 crashed reading it (signal 6). No run is lost"
         ),
         "{detail}"

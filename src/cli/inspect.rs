@@ -15,7 +15,9 @@ pub(crate) struct InspectArgs {
     /// Print JSON instead of a table (one object per archive, runs and problems inside).
     #[arg(long)]
     pub(crate) json: bool,
-    /// Seconds allowed to read one archive before it is reported as unreadable.
+    /// Seconds one step of reading may take, opening an archive or reading one of its
+    /// runs, before that archive or run is reported as unreadable (libhdf5 loops on some
+    /// corrupt files) and reading goes on after it.
     #[arg(long, default_value_t = 300, value_name = "S",
           value_parser = clap::value_parser!(u64).range(1..))]
     pub(crate) timeout: u64,
@@ -27,7 +29,7 @@ pub(crate) fn cmd_inspect(a: InspectArgs) -> Result<ExitCode> {
     let options = a.ingest.options()?;
     let files = super::args::archives(&a.archives)?;
     let reports = inspect::inspect_isolated(
-        &super::internal::probe_command(&options)?,
+        &super::internal::reader_command(&options, None)?,
         &files,
         &options,
         std::time::Duration::from_secs(a.timeout),

@@ -1,6 +1,6 @@
 //! The hidden commands skelid runs in its own child processes, so that a crash in libhdf5
-//! or a measurement's allocations stay there: one benchmark measurement, one archive's
-//! inspection, and the isolated reader of `skelid run`. Each prints JSON (or the reader's
+//! or a measurement's allocations stay there: one benchmark measurement, and the isolated
+//! reader of `skelid run` and `skelid inspect`. Each prints JSON (or the reader's
 //! stream) on stdout for the parent.
 
 use std::ffi::OsString;
@@ -22,14 +22,6 @@ pub(crate) struct BenchOneArgs {
     scales: usize,
 }
 
-/// `__inspect-one FILE [ingest options]`.
-#[derive(Args)]
-pub(crate) struct InspectOneArgs {
-    file: PathBuf,
-    #[command(flatten)]
-    ingest: IngestArgs,
-}
-
 /// `__read-archives [ingest options] [--shard K/N]`, archives on stdin.
 #[derive(Args)]
 pub(crate) struct ReadArchivesArgs {
@@ -44,14 +36,6 @@ pub(crate) struct ReadArchivesArgs {
 pub(crate) fn bench_one(a: BenchOneArgs) -> Result<ExitCode> {
     let m = skelid::bench::measure(&a.file, a.variant, a.scales)?;
     println!("{}", serde_json::to_string(&m)?);
-    Ok(ExitCode::SUCCESS)
-}
-
-/// One archive's inspection report, printed as JSON.
-pub(crate) fn inspect_one(a: InspectOneArgs) -> Result<ExitCode> {
-    let o = a.ingest.options()?;
-    let report = skelid::inspect::inspect_archive(&a.file, &o);
-    println!("{}", serde_json::to_string(&report)?);
     Ok(ExitCode::SUCCESS)
 }
 
@@ -88,25 +72,10 @@ fn die_with_parent() {
     }
 }
 
-/// The subcommand of the archive probe child (`__inspect-one`).
-const PROBE: &str = "__inspect-one";
 /// The subcommand of `skelid run`'s reader child (`__read-archives`).
 const READ: &str = "__read-archives";
 
-/// The command of an archive probe child with `options` (the archive is appended per
-/// child).
-pub(crate) fn probe_command(
-    options: &skelid::ingest::IngestOptions,
-) -> Result<skelid::child::ChildCommand> {
-    let mut args = vec![OsString::from(PROBE)];
-    args.extend(option_args(options).into_iter().map(OsString::from));
-    Ok(skelid::child::ChildCommand {
-        exe: super::args::self_exe()?,
-        args,
-    })
-}
-
-/// The command of `skelid run`'s reader child with `options` and `shard` (the archives go
+/// The command of the reader child of `skelid run` and `skelid inspect` with `options` and `shard` (the archives go
 /// on its stdin).
 pub(crate) fn reader_command(
     options: &skelid::ingest::IngestOptions,

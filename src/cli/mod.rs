@@ -71,11 +71,8 @@ pub(crate) enum Command {
     /// Internal: one benchmark measurement in this (child) process, printed as JSON.
     #[command(name = "__bench-one", hide = true)]
     BenchOne(internal::BenchOneArgs),
-    /// Internal: inspect one archive in this (child) process and print JSON.
-    #[command(name = "__inspect-one", hide = true)]
-    InspectOne(internal::InspectOneArgs),
     /// Internal: read the archives named on stdin and stream their runs to stdout (the
-    /// isolated reader of `skelid run`).
+    /// isolated reader of `skelid run` and `skelid inspect`).
     #[command(name = "__read-archives", hide = true)]
     ReadArchives(internal::ReadArchivesArgs),
 }

@@ -139,16 +139,13 @@ fn closed_badly(counts: &Counts, file: &Path, detail: &str, r: &Reading) {
     counts.runs_in_inputs.fetch_add(unseen, Ordering::Relaxed);
     let dealt = match (r.delivered, r.deaths) {
         (0, _) => "none of its runs is this shard's".to_string(),
-        (n, 0) => format!("its {n} run(s) in this batch read"),
-        (n, d) => format!(
-            "its {n} run(s) in this batch dealt with, {d} of them failed on their own as \
-             recorded"
-        ),
+        (n, 0) => format!("its {n} run(s) read"),
+        (n, d) => format!("its {n} run(s) dealt with, {d} of them failed on their own"),
     };
     let note = format!(
         "read to the end ({dealt}), then the reading child died closing it: {detail}. No \
          run is lost (each was read and checked before), but the file is likely damaged: \
-         check it (h5check, or `skelid inspect`) and copy it again from the bench"
+         copy it again from the bench, or check it with h5check"
     );
     counts
         .damaged

@@ -378,7 +378,7 @@ fn a_child_dying_while_closing_an_archive_read_to_the_end_fails_nothing() {
     assert_eq!(noted.len(), 1);
     assert_eq!(noted[0].0, "a.h5");
     assert!(noted[0].1.starts_with(
-        "read to the end (its 2 run(s) in this batch read), then the reading child died \
+        "read to the end (its 2 run(s) read), then the reading child died \
          closing it: closing it after its 2 run(s), the reading child went 7 s without \
          progress"
     ));
@@ -406,8 +406,8 @@ fn a_child_dying_while_closing_an_archive_read_to_the_end_fails_nothing() {
     assert_eq!(counts.runs_in_inputs.load(Ordering::Relaxed), 3);
     let noted = damaged(&counts);
     assert!(noted[0].1.starts_with(
-        "read to the end (its 3 run(s) in this batch dealt with, 1 of them failed on their \
-         own as recorded), then the reading child died closing it: crashed again."
+        "read to the end (its 3 run(s) dealt with, 1 of them failed on their own), then \
+         the reading child died closing it: crashed again."
     ));
 
     // None of the archive's 2 runs is this shard's.
