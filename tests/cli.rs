@@ -2890,3 +2890,88 @@ fn a_hilbert_track_opens_no_device() {
     let (cpu, _) = track("cpu");
     assert_eq!(gpu, cpu);
 }
+
+/// `skelid inspect` reads through `skelid run`'s reader: a run that crashes the reading
+/// child and one that hangs it past `--timeout` are those runs' errors (kind `corrupt`),
+/// the other nine are listed as without the faults, and a crash while closing the archive
+/// is listed as damaged; `--timeout` bounds one step, so runs read 0.5 s apiece (5.5 s in
+/// all) pass a 2 s timeout whole. Until 2026-12-07 one child read the archive under one
+/// timeout: a crash anywhere lost the listing of all 11 runs, and so did the slow read.
+#[test]
+fn inspect_lists_every_run_past_a_crash_a_hang_and_a_slow_archive() {
+    let d = tmpdir();
+    let demo = d.path().join("demo");
+    assert!(skelid()
+        .args(["demo", "--out"])
+        .arg(&demo)
+        .output()
+        .unwrap()
+        .status
+        .success());
+    let archive = demo.join("demo_campaign.h5");
+    let inspect = |env: (&str, &str)| {
+        let o = skelid()
+            .args(["inspect", "--json", "--timeout", "2"])
+            .arg(&archive)
+            .env(env.0, env.1)
+            .output()
+            .unwrap();
+        let v: serde_json::Value = serde_json::from_slice(&o.stdout)
+            .unwrap_or_else(|_| panic!("{}", String::from_utf8_lossy(&o.stderr)));
+        (o.status.code(), v[0].clone())
+    };
+    let (code, clean) = inspect(("SKELID_READ_FAULT", ""));
+    assert_eq!(code, Some(0), "{clean}");
+    let runs = clean["runs"].as_array().unwrap();
+    assert_eq!(runs.len(), 11);
+    assert!(clean.get("damaged").is_none() && clean.get("error").is_none());
+
+    let (crash, hang) = ("/demo/linear", "/demo/effects/cubic_stiffness");
+    let faults = format!("crash:{crash},hang:{hang},crash-closing:demo_campaign.h5");
+    let (code, faulty) = inspect(("SKELID_READ_FAULT", &faults));
+    println!("{faulty:#}");
+    assert_eq!(code, Some(1));
+    assert!(faulty.get("error").is_none(), "{faulty}");
+    let listed = faulty["runs"].as_array().unwrap();
+    assert_eq!(listed.len(), 11);
+    for (a, b) in runs.iter().zip(listed) {
+        assert_eq!(a["path"], b["path"]);
+        let path = a["path"].as_str().unwrap();
+        if path == crash || path == hang {
+            assert_eq!(b["error_kind"], "corrupt", "{b}");
+            let error = b["error"].as_str().unwrap();
+            let how = if path == crash {
+                "libhdf5 crashed reading it (signal 6)"
+            } else {
+                "the reading child went 2 s without progress"
+            };
+            assert!(error.contains(how), "{error}");
+        } else {
+            assert_eq!(a, b);
+        }
+    }
+    let damaged = faulty["damaged"].as_str().unwrap();
+    assert!(
+        damaged.starts_with(
+            "read to the end (its 11 run(s) dealt with, 2 of them failed on their own), then \
+             the reading child died closing it"
+        ),
+        "{damaged}"
+    );
+    let o = skelid()
+        .args(["inspect", "--timeout", "2"])
+        .arg(&archive)
+        .env("SKELID_READ_FAULT", &faults)
+        .output()
+        .unwrap();
+    let table = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        table.contains("  DAMAGED read to the end")
+            && table.contains("11 run(s), 9 ok, 2 with problems"),
+        "{table}"
+    );
+
+    let (code, slow) = inspect(("SKELID_READ_PAUSE_MS", "500"));
+    assert_eq!(code, Some(0), "{slow}");
+    assert_eq!(slow, clean);
+}
