@@ -153,20 +153,25 @@ pub fn render_table(reports: &[ArchiveReport]) -> String {
 /// (segfault) or loops on some corrupt files, which no in-process handling catches. A run
 /// that kills the reading child, or takes more than `timeout` (as does opening the
 /// archive), is that run's error and a new child reads on after it; an archive it cannot
-/// open is the archive's. Archives are inspected in parallel, each by a child of its own.
-/// Until 2026-12-07 one child read a whole archive under one `timeout`: a run that
-/// crashed it lost the listing of every run, and a large archive could not be listed in
-/// time at all.
+/// open is the archive's. Archives are inspected in parallel, each by a child of its own;
+/// `done` hears of each as it is finished, in any order. Until 2026-12-07 one child read a
+/// whole archive under one `timeout`: a run that crashed it lost the listing of every run,
+/// and a large archive could not be listed in time at all.
 pub fn inspect_isolated(
     command: &ChildCommand,
     paths: &[PathBuf],
     options: &IngestOptions,
     timeout: Duration,
+    done: &(dyn Fn(&ArchiveReport) + Sync),
 ) -> Vec<ArchiveReport> {
     use rayon::prelude::*;
     paths
         .par_iter()
-        .map(|p| inspect_archive(p, options, Some((command, timeout))))
+        .map(|p| {
+            let report = inspect_archive(p, options, Some((command, timeout)));
+            done(&report);
+            report
+        })
         .collect()
 }
 

@@ -4,6 +4,7 @@ use anyhow::Result;
 use clap::Args;
 use skelid::inspect;
 use std::process::ExitCode;
+use std::sync::atomic::Ordering;
 
 use super::args::IngestArgs;
 
@@ -28,12 +29,26 @@ pub(crate) struct InspectArgs {
 pub(crate) fn cmd_inspect(a: InspectArgs) -> Result<ExitCode> {
     let options = a.ingest.options()?;
     let files = super::args::archives(&a.archives)?;
+    // On a terminal only (indicatif draws nothing elsewhere), and gone before the listing.
+    let bar = indicatif::ProgressBar::new(files.len() as u64).with_style(
+        indicatif::ProgressStyle::with_template(
+            "inspecting {bar:30} {pos}/{len} archives, {elapsed} (eta {eta}) {msg}",
+        )
+        .expect("static template"),
+    );
+    let runs = std::sync::atomic::AtomicUsize::new(0);
     let reports = inspect::inspect_isolated(
         &super::internal::reader_command(&options, None)?,
         &files,
         &options,
         std::time::Duration::from_secs(a.timeout),
+        &|report| {
+            let n = report.runs.len() + runs.fetch_add(report.runs.len(), Ordering::Relaxed);
+            bar.set_message(format!("{n} run(s)"));
+            bar.inc(1);
+        },
     );
+    bar.finish_and_clear();
     if a.json {
         println!("{}", serde_json::to_string_pretty(&reports)?);
     } else {
