@@ -32,7 +32,8 @@ pub struct RunReport {
 pub struct ArchiveReport {
     /// File as given.
     pub file: String,
-    /// Runs found (empty when the file itself failed).
+    /// Runs found: empty when the archive could not be opened, those read before when it
+    /// was given up part-way (`error` says why).
     pub runs: Vec<RunReport>,
     /// File-level problem.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -239,8 +240,9 @@ fn taken<T>(held: &std::sync::Mutex<Vec<T>>) -> Vec<T> {
 }
 
 /// What a reading child's end says: how it ended (exit status or signal) and the end of
-/// its stderr, which says where libhdf5 gave up when it says anything.
-pub fn crash_detail(status: std::process::ExitStatus, stderr: &[u8]) -> String {
+/// its stderr, which says where libhdf5 gave up when it says anything; `step`: what it was
+/// doing to the archive ("reading it", "closing it").
+pub fn crash_detail(status: std::process::ExitStatus, stderr: &[u8], step: &str) -> String {
     let how = match status.code() {
         Some(c) => format!("exit status {c}"),
         None => {
@@ -272,9 +274,9 @@ pub fn crash_detail(status: std::process::ExitStatus, stderr: &[u8]) -> String {
     }
     let tail = &said[said.floor_char_boundary(said.len().saturating_sub(300))..];
     if tail.is_empty() {
-        format!("libhdf5 crashed reading it ({how})")
+        format!("libhdf5 crashed {step} ({how})")
     } else {
-        format!("libhdf5 crashed reading it ({how}): {tail}")
+        format!("libhdf5 crashed {step} ({how}): {tail}")
     }
 }
 
@@ -329,7 +331,11 @@ mod tests {
             0: __rustc::rust_begin_unwind\n   27: main\n             at ./src/main.rs:40:37\n\
             note: Some details are omitted, run with `RUST_BACKTRACE=full` for a verbose \
             backtrace.\nthread caused non-unwinding panic. aborting.\n";
-        let said = crash_detail(std::process::ExitStatus::from_raw(6), stderr.as_bytes());
+        let said = crash_detail(
+            std::process::ExitStatus::from_raw(6),
+            stderr.as_bytes(),
+            "reading it",
+        );
         println!("{said}");
         assert_eq!(
             said,
@@ -341,7 +347,11 @@ mod tests {
         let hdf5 = "HDF5-DIAG: Error detected in HDF5 (1.14.5) thread 1:\n  \
             #000: H5D.c line 1061 in H5Dread(): can't read data\n    major: Dataset\n\
             at the end\n";
-        let said = crash_detail(std::process::ExitStatus::from_raw(11), hdf5.as_bytes());
+        let said = crash_detail(
+            std::process::ExitStatus::from_raw(11),
+            hdf5.as_bytes(),
+            "reading it",
+        );
         assert!(
             said.ends_with(
                 "thread 1: #000: H5D.c line 1061 in H5Dread(): can't read data; major: Dataset; \
@@ -350,7 +360,7 @@ mod tests {
             "{said}"
         );
         assert_eq!(
-            crash_detail(std::process::ExitStatus::from_raw(9), b""),
+            crash_detail(std::process::ExitStatus::from_raw(9), b"", "reading it"),
             "libhdf5 crashed reading it (signal 9)"
         );
     }

@@ -136,7 +136,8 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         first.settings_full.clone(),
     );
     // Every shard's child opens and closes every archive, but one may have died closing
-    // it where another did not: every shard's are kept, each archive once.
+    // it where another did not: every shard's are kept, each archive once, named with the
+    // shard whose note it is (its counts are that shard's runs).
     for (_, m) in &manifests {
         for d in &m.damaged_archives {
             if !manifest
@@ -144,7 +145,11 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
                 .iter()
                 .any(|k| k.archive == d.archive)
             {
-                manifest.damaged_archives.push(d.clone());
+                let shard = m.shard.map(|s| format!("shard {s}: ")).unwrap_or_default();
+                manifest.damaged_archives.push(DamagedArchive {
+                    archive: d.archive.clone(),
+                    detail: format!("{shard}{}", d.detail),
+                });
             }
         }
     }

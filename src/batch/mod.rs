@@ -477,17 +477,12 @@ pub fn run_campaigns(
     for g in &not_runs {
         log.line(&format!("skipped (not a run) {}: {}", g.archive, g.group));
     }
+    // Logged by the writer as they were found.
     let damaged: Vec<DamagedArchive> =
         std::mem::take(&mut *counts.damaged.lock().unwrap_or_else(|p| p.into_inner()))
             .into_iter()
             .map(|(archive, detail)| DamagedArchive { archive, detail })
             .collect();
-    for d in &damaged {
-        log.line(&format!(
-            "warning: damaged archive {}: {}",
-            d.archive, d.detail
-        ));
-    }
     let mut manifest = Manifest::new(
         settings,
         opt.shard,

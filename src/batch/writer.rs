@@ -29,6 +29,9 @@ pub(super) fn write_finished(
     let (mut suspect, mut bad) = (0, 0);
     let mut used = std::collections::HashSet::new();
     let (start, cpu0) = (std::time::Instant::now(), profile::thread_cpu());
+    // Damaged archives logged so far: each is logged after the run the writer has in hand
+    // when it is found, so that a batch stopped later still has it in its log.
+    let mut damaged = 0;
     // A run's admission (its results' bytes, within the memory budget) ends with its turn.
     for (f, _admitted) in done {
         // Finishing order is not the final order: a path already used (the same path in
@@ -100,6 +103,7 @@ pub(super) fn write_finished(
         if let Some(w) = &short {
             log.line(&format!("warning: {w}"));
         }
+        damaged = log_damaged(counts, &mut log, damaged);
         progress(Progress {
             done,
             total,
@@ -111,6 +115,7 @@ pub(super) fn write_finished(
             disk_short_now: short.is_some(),
         });
     }
+    log_damaged(counts, &mut log, damaged);
     Ok(Written {
         entries,
         skipped,
@@ -121,6 +126,16 @@ pub(super) fn write_finished(
             start.elapsed().as_secs_f64(),
         ),
     })
+}
+
+/// Logs the damaged archives ([`reader::Counts::damaged`]) after the first `logged`;
+/// returns how many are logged now.
+fn log_damaged(counts: &reader::Counts, log: &mut Log, logged: usize) -> usize {
+    let damaged = counts.damaged.lock().unwrap_or_else(|p| p.into_inner());
+    for (archive, detail) in damaged.iter().skip(logged) {
+        log.line(&format!("warning: damaged archive {archive}: {detail}"));
+    }
+    damaged.len()
 }
 
 /// The data a worker placed, or `None` after logging why its write failed: the writer then

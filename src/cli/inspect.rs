@@ -16,9 +16,9 @@ pub(crate) struct InspectArgs {
     /// Print JSON instead of a table (one object per archive, runs and problems inside).
     #[arg(long)]
     pub(crate) json: bool,
-    /// Seconds one step of reading may take, opening an archive or reading one of its
-    /// runs, before that archive or run is reported as unreadable (libhdf5 loops on some
-    /// corrupt files) and reading goes on after it.
+    /// Seconds one step of reading may take, opening an archive, reading one of its runs or
+    /// closing it, before that step's archive or run is reported with the step that hung
+    /// (libhdf5 loops on some corrupt files) and reading goes on after it.
     #[arg(long, default_value_t = 300, value_name = "S",
           value_parser = clap::value_parser!(u64).range(1..))]
     pub(crate) timeout: u64,

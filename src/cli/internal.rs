@@ -51,8 +51,9 @@ pub(crate) fn read_archives(a: ReadArchivesArgs) -> Result<ExitCode> {
 /// ends. A batch killed from outside (SIGKILL, or SIGTERM sent to it alone, not its process
 /// group) otherwise left its reader running: one that hung in libhdf5 on an archive whose
 /// file system stopped answering (the batch's `--timeout` watchdog went with the batch)
-/// stayed there for good. The batch's reader thread starts the child and waits for it, so
-/// the thread the signal follows lives as long as the child is wanted.
+/// stayed there for good. The thread that starts the child waits for it (the batch's reader
+/// thread, or the `inspect` worker of one archive), so the thread the signal follows lives
+/// as long as the child is wanted.
 fn die_with_parent() {
     #[cfg(target_os = "linux")]
     {

@@ -51,7 +51,13 @@ impl<'a> Assembler<'a> {
         let step = match &self.reading {
             None => "opening it".to_string(),
             Some(r) if r.rest() == 0 => {
-                format!("closing it after its {} run(s)", r.delivered)
+                return format!(
+                    "closing it after its {} run(s), the reading child went {} s without \
+                     progress and was stopped; libhdf5 loops on some corrupt files (a slow \
+                     disk needs a longer --timeout)",
+                    r.delivered,
+                    timeout.as_secs()
+                );
             }
             Some(r) => {
                 let of = r.paths.len();

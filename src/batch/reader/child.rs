@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use super::assemble::Assembler;
 use super::frame::{read_frame, FRAME_BUFFER};
-use super::restart::Reading;
+use super::restart::{Death, Reading};
 use super::{Counts, Delivery, Stopped};
 use crate::child::ChildCommand;
 use crate::ingest::IngestOptions;
@@ -24,12 +24,12 @@ pub(super) enum ChildEnd {
     Finished,
     /// It could not be started.
     NotStarted,
-    /// It died (or was stopped) after finishing `done` archives; `detail` says how,
+    /// It died (or was stopped) after finishing `done` archives; `death` says how,
     /// `reading` where it was in the next one when it had opened it, and `reopening` where
     /// it was to take that archive up when it died before opening it.
     Died {
         done: usize,
-        detail: String,
+        death: Death,
         reading: Option<Reading>,
         reopening: Option<Reading>,
     },
@@ -178,21 +178,27 @@ pub(super) fn read_in_child(
     if done == files.len() {
         return Ok(ChildEnd::Finished);
     }
-    let detail = if timed_out {
-        assemble.hang_detail(timeout)
+    // Every run dealt with: it died closing the archive.
+    let closing = assemble.reading.as_ref().is_some_and(|r| r.rest() == 0);
+    let step = if closing { "closing it" } else { "reading it" };
+    let death = if timed_out {
+        assemble.hang_detail(timeout).into()
     } else if let (Some(e), false) = (&broken, ended_itself) {
         // Not libhdf5's doing: what a running child sent could not be read (a bug of
         // skelid's).
-        format!("the reading child's stream broke ({e}); please report it")
+        Death {
+            detail: format!("the reading child's stream broke ({e}); please report it"),
+            stream_broke: true,
+        }
     } else {
         match status {
-            Ok(s) => crash_detail(s, &err),
-            Err(e) => format!("libhdf5 crashed reading it ({e})"),
+            Ok(s) => crash_detail(s, &err, step).into(),
+            Err(e) => format!("libhdf5 crashed {step} ({e})").into(),
         }
     };
     Ok(ChildEnd::Died {
         done,
-        detail,
+        death,
         reading: assemble.reading,
         reopening: assemble.resumed,
     })

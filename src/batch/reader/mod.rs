@@ -199,13 +199,13 @@ pub fn read_all(
                 }
                 ChildEnd::Died {
                     done,
-                    detail,
+                    death,
                     reading,
                     reopening,
                 } => {
                     next += done;
                     let (failures, resume_at) =
-                        after_death(counts, &files[next], detail, reading, reopening);
+                        after_death(counts, &files[next], death, reading, reopening);
                     for d in failures {
                         deliver(d)?;
                     }

@@ -47,6 +47,30 @@ impl Reading {
     }
 }
 
+/// How a reading child ended early: `detail` says how (a crash, a step past `--timeout`),
+/// `stream_broke` when what it sent could not be read while it was still running (a bug of
+/// skelid's, not the file's doing).
+#[derive(Debug, Clone)]
+pub(super) struct Death {
+    pub(super) detail: String,
+    pub(super) stream_broke: bool,
+}
+
+impl From<String> for Death {
+    fn from(detail: String) -> Death {
+        Death {
+            detail,
+            stream_broke: false,
+        }
+    }
+}
+
+impl From<&str> for Death {
+    fn from(detail: &str) -> Death {
+        detail.to_string().into()
+    }
+}
+
 /// Runs in a row of one archive that may each stop a reading child (a crash, or a step past
 /// `--timeout`) before the rest of the archive is given up: a run that crashes libhdf5
 /// costs that run alone, an archive corrupt throughout (or a disk that stopped answering)
@@ -58,19 +82,24 @@ pub const DEATHS_IN_A_ROW: usize = 3;
 /// hangs an archive.
 pub const DEATHS_IN_AN_ARCHIVE: usize = 10;
 
-/// What a reading child's death in `file` (`detail`: how it died; `reading`: where it was,
+/// What a reading child's death in `file` (`death`: how it died; `reading`: where it was,
 /// once it had opened the archive; `reopening`: where a child before it had died, when this
 /// one died opening the archive again) delivers, counted, and where a new child takes the
 /// archive up (`None`: at the next archive). Dying on a run fails that run alone, until
 /// [`DEATHS_IN_A_ROW`]; dying while opening the archive fails the archive; dying while
-/// closing it, every run dealt with, fails nothing ([`closed_badly`]).
+/// closing it, every run dealt with, fails nothing ([`closed_badly`]) unless it was
+/// skelid's stream that broke, which fails the archive as before.
 pub(super) fn after_death(
     counts: &Counts,
     file: &Path,
-    detail: String,
+    death: Death,
     reading: Option<Reading>,
     reopening: Option<Reading>,
 ) -> (Vec<Delivery>, Option<Reading>) {
+    let Death {
+        detail,
+        stream_broke,
+    } = death;
     if let (None, Some(r)) = (&reading, &reopening) {
         let error = corrupt(file, reopen_failed(&detail, r));
         return (vec![given_up(counts, file, error, Some(r))], None);
@@ -78,9 +107,18 @@ pub(super) fn after_death(
     match reading {
         // Given up already (it changed between two children): nothing more to say.
         Some(r) if r.abandoned => (Vec::new(), None),
-        Some(r) if r.rest() == 0 => {
+        Some(r) if r.rest() == 0 && !stream_broke => {
             closed_badly(counts, file, &detail, &r);
             (Vec::new(), None)
+        }
+        Some(r) if r.rest() == 0 => {
+            let unseen = r.entries.saturating_sub(r.seen);
+            counts.runs_in_inputs.fetch_add(unseen, Ordering::Relaxed);
+            let detail = format!("{detail}; its {} run(s) were dealt with", r.delivered);
+            (
+                vec![given_up(counts, file, corrupt(file, detail), Some(&r))],
+                None,
+            )
         }
         Some(mut r) => {
             let path = r.paths[r.delivered].clone();
@@ -143,9 +181,9 @@ fn closed_badly(counts: &Counts, file: &Path, detail: &str, r: &Reading) {
         (n, d) => format!("its {n} run(s) dealt with, {d} of them failed on their own"),
     };
     let note = format!(
-        "read to the end ({dealt}), then the reading child died closing it: {detail}. No \
-         run is lost (each was read and checked before), but the file is likely damaged: \
-         copy it again from the bench, or check it with h5check"
+        "read to the end ({dealt}), but not closed: {detail}. That costs no run (each was \
+         dealt with before), but the file is likely damaged: copy it again from the bench, \
+         or check it with h5check"
     );
     counts
         .damaged
