@@ -56,6 +56,17 @@ fn run(args: &[&str], inputs: &Path, out: &Path) -> std::process::Output {
         .expect("run skelid run")
 }
 
+/// `skelid merge DIRS --out OUT`, its output.
+fn merge<P: AsRef<std::ffi::OsStr>>(dirs: &[P], out: &Path) -> std::process::Output {
+    skelid()
+        .arg("merge")
+        .args(dirs)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .expect("run skelid merge")
+}
+
 /// Rows equal field by field; numbers to 1e-12 relative. The same run identified twice can
 /// differ in the last bit (the order of parallel floating-point work), nothing more.
 fn assert_same_rows(a: &[serde_json::Value], b: &[serde_json::Value]) {
@@ -585,13 +596,7 @@ fn an_archive_that_crashes_libhdf5_when_closed_loses_no_run() {
         })
         .collect();
     let merged = tmp.path().join("merged");
-    let o = skelid()
-        .arg("merge")
-        .args(&shards)
-        .arg("--out")
-        .arg(&merged)
-        .output()
-        .unwrap();
+    let o = merge(&shards, &merged);
     let said = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), status, "{said}");
     assert_eq!(
@@ -707,13 +712,7 @@ fn three_shards_merged_equal_one_run() {
     assert!(sizes.iter().all(|&s| s > 0));
 
     let merged = tmp.path().join("merged");
-    let m = skelid()
-        .arg("merge")
-        .args(&shards)
-        .arg("--out")
-        .arg(&merged)
-        .output()
-        .unwrap();
+    let m = merge(&shards, &merged);
     assert!(m.status.success(), "{}", String::from_utf8_lossy(&m.stderr));
     assert_same_rows(&summary_rows(&merged), &summary_rows(&whole));
     assert_same_results(&results(&merged), &results(&whole));
@@ -767,13 +766,7 @@ fn three_shards_merged_equal_one_run() {
 
     // A missing shard, a shard given twice, an unsharded folder among shards: refused.
     let refuse = |dirs: &[&PathBuf], what: &str| {
-        let m = skelid()
-            .arg("merge")
-            .args(dirs)
-            .arg("--out")
-            .arg(tmp.path().join("refused"))
-            .output()
-            .unwrap();
+        let m = merge(dirs, &tmp.path().join("refused"));
         let err = String::from_utf8_lossy(&m.stderr);
         assert!(!m.status.success() && err.contains(what), "{err}");
     };
