@@ -583,6 +583,10 @@ fn an_archive_that_crashes_libhdf5_when_closed_loses_no_run() {
     assert!(String::from_utf8_lossy(&o.stdout).contains("1 archive(s) damaged (no run lost"));
     let log = std::fs::read_to_string(faulty.join("skelid.log")).unwrap();
     assert!(log.contains("warning: damaged archive "), "{log}");
+    let page = |dir: &Path| std::fs::read_to_string(dir.join("report.html")).unwrap();
+    assert!(page(&faulty)
+        .contains("<h2>Inputs to check</h2>\n<ul class=\"error\">\n<li>damaged archive "));
+    assert!(!page(&clean).contains("Inputs to check"));
     assert_same_rows(&summary_rows(&clean), &summary_rows(&faulty));
     // Two shards, each reading (and closing) both archives: merged, a.h5 once.
     let shards: Vec<PathBuf> = ["1/2", "2/2"]
@@ -615,6 +619,7 @@ fn an_archive_that_crashes_libhdf5_when_closed_loses_no_run() {
         detail.starts_with("shard 1/2: read to the end (its "),
         "{detail}"
     );
+    assert!(page(&merged).contains("<li>damaged archive "));
     assert_same_rows(&summary_rows(&clean), &summary_rows(&merged));
 }
 

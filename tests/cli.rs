@@ -2456,6 +2456,16 @@ fn a_group_laid_out_with_other_names_is_listed_not_dropped() {
     );
     let log = std::fs::read_to_string(out.join("skelid.log")).unwrap();
     assert!(log.contains("skipped (not a run)"), "{log}");
+    // And the report lists it above the results.
+    let page = std::fs::read_to_string(out.join("report.html")).unwrap();
+    let inputs = page
+        .find("<h2>Inputs to check</h2>")
+        .expect("the inputs to check");
+    assert!(inputs < page.find("<h2>Campaign</h2>").unwrap());
+    assert!(
+        page.contains("<li>skipped (not a run) ")
+            && page.contains("/runs/r2 (datasets: acc, force)")
+    );
 }
 
 #[test]

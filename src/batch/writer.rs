@@ -335,6 +335,14 @@ pub(super) fn write_pages(
     let rows: Vec<SummaryRow> = entries.iter().flat_map(|e| e.rows.clone()).collect();
     let omitted = entries.len() - runs.len();
     let title = std::fs::canonicalize(out).unwrap_or_else(|_| out.to_path_buf());
+    // Worded as the terminal and the log word them.
+    let inputs_to_check: Vec<String> = (manifest.damaged_archives.iter())
+        .map(|d| format!("damaged archive {}: {}", d.archive, d.detail))
+        .chain(
+            (manifest.not_runs.iter())
+                .map(|g| format!("skipped (not a run) {}: {}", g.archive, g.group)),
+        )
+        .collect();
     let (summary, report) = rayon::join(
         || write_summary(out, &rows),
         || {
@@ -346,6 +354,7 @@ pub(super) fn write_pages(
                     rows: &rows,
                     runs,
                     omitted,
+                    inputs_to_check: &inputs_to_check,
                 },
             )
         },

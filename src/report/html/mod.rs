@@ -46,6 +46,9 @@ pub struct ReportPage<'a> {
     pub runs: Vec<Result<DrawnRun, String>>,
     /// Runs in `rows` not drawn (beyond the `--report-runs` limit).
     pub omitted: usize,
+    /// What in the inputs wants a look, one line each: damaged archives, groups that hold
+    /// datasets but are not runs (the manifest's `damaged_archives` and `not_runs`).
+    pub inputs_to_check: &'a [String],
 }
 
 /// One run as the page shows it: its plots' data and its figures, drawn beforehand. A batch
@@ -180,6 +183,14 @@ pub fn render(page: &ReportPage) -> String {
         esc(page.settings),
         env!("CARGO_PKG_VERSION")
     );
+    // Above the results: the morning's reader sees first what the night could not use.
+    if !page.inputs_to_check.is_empty() {
+        body.push_str("<h2>Inputs to check</h2>\n<ul class=\"error\">\n");
+        for line in page.inputs_to_check {
+            let _ = writeln!(body, "<li>{}</li>", esc(line));
+        }
+        body.push_str("</ul>\n");
+    }
     body.push_str(&legend());
     // Campaign overview: the identified clearance and stiffness of every row.
     body.push_str("<h2>Campaign</h2>\n<div class=\"plots\">\n");
