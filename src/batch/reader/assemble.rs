@@ -26,6 +26,9 @@ pub(super) struct Assembler<'a> {
     /// Where a child before this one died in the first archive: its opening is then no news
     /// (announced and counted already), and reading goes on from there.
     pub(super) resumed: Option<Reading>,
+    /// Runs this child has sent and archives it has closed: none when it dies on its first
+    /// run, which a new child would then read exactly as it did.
+    pub(super) steps: usize,
 }
 
 impl<'a> Assembler<'a> {
@@ -43,6 +46,7 @@ impl<'a> Assembler<'a> {
             open: None,
             reading: None,
             resumed,
+            steps: 0,
         }
     }
 
@@ -118,6 +122,7 @@ impl<'a> Assembler<'a> {
                 c.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
                 if let Some(r) = &mut self.reading {
                     r.seen += 1;
+                    r.skipped_since += 1;
                 }
                 None
             }
@@ -130,6 +135,7 @@ impl<'a> Assembler<'a> {
                 ..
             } => {
                 c.delivery();
+                self.steps += 1;
                 if let Some(r) = &mut self.reading {
                     r.dealt_with(&path);
                     r.died_in_row = 0;
@@ -165,6 +171,7 @@ impl<'a> Assembler<'a> {
                 error_kind,
             } => {
                 self.done = archive + 1;
+                self.steps += 1;
                 self.open = None;
                 self.reading = None;
                 // An archive that could not be opened again after a run stopped a child:

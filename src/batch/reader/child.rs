@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use super::assemble::Assembler;
 use super::frame::{read_frame, FRAME_BUFFER};
-use super::restart::{Death, Reading};
+use super::restart::{Death, How, Reading};
 use super::{Counts, Delivery, Stopped};
 use crate::child::ChildCommand;
 use crate::ingest::IngestOptions;
@@ -181,20 +181,24 @@ pub(super) fn read_in_child(
     // Every run dealt with: it died closing the archive.
     let closing = assemble.reading.as_ref().is_some_and(|r| r.rest() == 0);
     let step = if closing { "closing it" } else { "reading it" };
-    let death = if timed_out {
-        assemble.hang_detail(timeout).into()
+    let (detail, how) = if timed_out {
+        (assemble.hang_detail(timeout), How::Hung)
     } else if let (Some(e), false) = (&broken, ended_itself) {
         // Not libhdf5's doing: what a running child sent could not be read (a bug of
         // skelid's).
-        Death {
-            detail: format!("the reading child's stream broke ({e}); please report it"),
-            stream_broke: true,
-        }
+        let detail = format!("the reading child's stream broke ({e}); please report it");
+        (detail, How::StreamBroke)
     } else {
-        match status {
-            Ok(s) => crash_detail(s, &err, step).into(),
-            Err(e) => format!("libhdf5 crashed {step} ({e})").into(),
-        }
+        let detail = match status {
+            Ok(s) => crash_detail(s, &err, step),
+            Err(e) => format!("libhdf5 crashed {step} ({e})"),
+        };
+        (detail, How::Crashed)
+    };
+    let death = Death {
+        detail,
+        how,
+        first_run: assemble.steps == 0,
     };
     Ok(ChildEnd::Died {
         done,

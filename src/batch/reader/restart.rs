@@ -10,8 +10,9 @@ use super::{Counts, Delivery};
 /// The archive a reading child is in: the paths of the runs it announced (this shard's),
 /// those delivered (by this child or those before it in the archive, failed ones
 /// included), the last one's path, the archive's entries of every shard and those seen so
-/// far, the runs a child died on (in a row, and in all), and whether the archive was
-/// given up while its child went on.
+/// far (and those of other shards since the last of this shard's), the runs a child died on
+/// (in a row, and in all), the run read again by a new child after a crash (its index),
+/// and whether the archive was given up while its child went on.
 #[derive(Debug, Clone, Default)]
 pub(super) struct Reading {
     pub(super) paths: Vec<String>,
@@ -19,8 +20,10 @@ pub(super) struct Reading {
     pub(super) last: Option<String>,
     pub(super) entries: usize,
     pub(super) seen: usize,
+    pub(super) skipped_since: usize,
     pub(super) died_in_row: usize,
     pub(super) deaths: usize,
+    pub(super) retried: Option<usize>,
     pub(super) abandoned: bool,
 }
 
@@ -34,6 +37,7 @@ impl Reading {
     pub(super) fn dealt_with(&mut self, path: &str) {
         self.delivered += 1;
         self.seen += 1;
+        self.skipped_since = 0;
         self.last = Some(path.to_string());
     }
 
@@ -47,20 +51,35 @@ impl Reading {
     }
 }
 
-/// How a reading child ended early: `detail` says how (a crash, a step past `--timeout`),
-/// `stream_broke` when what it sent could not be read while it was still running (a bug of
-/// skelid's, not the file's doing).
+/// How a reading child ended early: `detail` says how, in words.
 #[derive(Debug, Clone)]
 pub(super) struct Death {
     pub(super) detail: String,
-    pub(super) stream_broke: bool,
+    pub(super) how: How,
+    /// Whether it died on the first run it read: a new child starting there repeats its
+    /// steps exactly, so a crash there is the run's own.
+    pub(super) first_run: bool,
 }
 
+/// What ended a reading child.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum How {
+    /// It crashed (libhdf5, the HDF5 binding, the kernel's OOM killer).
+    Crashed,
+    /// One step took longer than `--timeout`; it was stopped.
+    Hung,
+    /// What it sent could not be read while it was still running: a bug of skelid's, not
+    /// the file's doing.
+    StreamBroke,
+}
+
+/// A crash on the first run a child read (what the tests and messages mostly need).
 impl From<String> for Death {
     fn from(detail: String) -> Death {
         Death {
             detail,
-            stream_broke: false,
+            how: How::Crashed,
+            first_run: true,
         }
     }
 }
@@ -96,10 +115,8 @@ pub(super) fn after_death(
     reading: Option<Reading>,
     reopening: Option<Reading>,
 ) -> (Vec<Delivery>, Option<Reading>) {
-    let Death {
-        detail,
-        stream_broke,
-    } = death;
+    let stream_broke = death.how == How::StreamBroke;
+    let detail = death.detail;
     if let (None, Some(r)) = (&reading, &reopening) {
         let error = corrupt(file, reopen_failed(&detail, r));
         return (vec![given_up(counts, file, error, Some(r))], None);
@@ -122,6 +139,27 @@ pub(super) fn after_death(
         }
         Some(mut r) => {
             let path = r.paths[r.delivered].clone();
+            // A crash after other steps of the same child may be theirs (libhdf5's heap
+            // corrupted by an earlier run, and this one innocent): a new child reads the run
+            // again, first thing, once. A hang is not retried: it would cost --timeout again.
+            if death.how == How::Crashed && !death.first_run && r.retried != Some(r.delivered) {
+                r.retried = Some(r.delivered);
+                // Other shards' runs since the last of this shard's are sent again.
+                r.seen -= r.skipped_since;
+                counts
+                    .runs_in_inputs
+                    .fetch_sub(r.skipped_since, Ordering::Relaxed);
+                r.skipped_since = 0;
+                return (Vec::new(), Some(r));
+            }
+            let detail = if r.retried == Some(r.delivered) {
+                format!(
+                    "{detail} (a new reading child, reading it first after another had \
+                     crashed on it, was stopped by it too)"
+                )
+            } else {
+                detail
+            };
             r.died_in_row += 1;
             r.deaths += 1;
             let last = r.rest() == 1;

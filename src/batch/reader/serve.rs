@@ -142,6 +142,7 @@ pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Re
         .and_then(|v| v.trim().parse::<u64>().ok())
         .map(Duration::from_millis);
     let faults = Faults::from_env();
+    let mut runs_sent = 0;
     serve(
         &files,
         options,
@@ -154,7 +155,8 @@ pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Re
                     if let Some(pause) = pause {
                         std::thread::sleep(pause);
                     }
-                    faults.meet(path);
+                    faults.meet(path, runs_sent);
+                    runs_sent += 1;
                 }
                 // Met after the archive was closed, before the parent hears it: to the
                 // parent, a death while closing.
@@ -181,15 +183,18 @@ pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Re
     }
 }
 
-/// `SKELID_READ_FAULT=crash:PATH,hang:PATH,crash-closing:NAME,…`: the reading child aborts,
-/// or stops answering, where it would send the run of that group path (in any archive), as
-/// when libhdf5 crashes or loops on that run's corrupt data; or aborts once it has closed
-/// the archive of that file name, as when libhdf5 crashes closing a damaged file. To
-/// rehearse a campaign with a bad run or file (the tests use it).
+/// `SKELID_READ_FAULT=crash:PATH,hang:PATH,crash-after-others:PATH,crash-closing:NAME,…`:
+/// the reading child aborts, or stops answering, where it would send the run of that group
+/// path (in any archive), as when libhdf5 crashes or loops on that run's corrupt data;
+/// aborts there only when it has sent other runs before, as when an earlier run corrupted
+/// libhdf5's heap and this one is innocent; or aborts once it has closed the archive of
+/// that file name, as when libhdf5 crashes closing a damaged file. To rehearse a campaign
+/// with a bad run or file (the tests use it).
 #[derive(Default)]
 pub(super) struct Faults {
     crash: Vec<String>,
     hang: Vec<String>,
+    crash_after_others: Vec<String>,
     crash_closing: Vec<String>,
 }
 
@@ -202,14 +207,20 @@ impl Faults {
                 Some(("crash", path)) => faults.crash.push(path.to_string()),
                 Some(("hang", path)) => faults.hang.push(path.to_string()),
                 Some(("crash-closing", name)) => faults.crash_closing.push(name.to_string()),
+                Some(("crash-after-others", path)) => {
+                    faults.crash_after_others.push(path.to_string())
+                }
                 _ => {}
             }
         }
         faults
     }
 
-    fn meet(&self, path: &str) {
-        if self.crash.iter().any(|p| p == path) {
+    /// At the run `path`, the child having sent `sent` runs before.
+    fn meet(&self, path: &str, sent: usize) {
+        if self.crash.iter().any(|p| p == path)
+            || (sent > 0 && self.crash_after_others.iter().any(|p| p == path))
+        {
             crash();
         }
         if self.hang.iter().any(|p| p == path) {

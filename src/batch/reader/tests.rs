@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use super::restart::Death;
+use super::restart::{Death, How};
 use super::*;
 
 /// An archive of `runs` runs of 1000 samples each, named `r1`, `r2`, ….
@@ -432,7 +432,8 @@ fn a_child_dying_while_closing_an_archive_read_to_the_end_fails_nothing() {
     a.frame(run("/r2"), None).unwrap();
     let broke = Death {
         detail: "the reading child's stream broke (bad frame); please report it".into(),
-        stream_broke: true,
+        how: How::StreamBroke,
+        first_run: false,
     };
     let (failed, resume) = after_death(&counts, &files[0], broke, a.reading, a.resumed);
     assert!(resume.is_none() && damaged(&counts).is_empty());
@@ -453,6 +454,103 @@ fn a_child_dying_while_closing_an_archive_read_to_the_end_fails_nothing() {
         "the entries, the failure"
     );
     assert_eq!(counts.estimate(), 3, "2 runs and the failure");
+}
+
+/// A crash after other runs of the same child may be theirs (libhdf5's heap corrupted by an
+/// earlier run): the run is read again, first thing, by a new child, once. Read there, it
+/// is delivered like any run; a crash there too fails it, said so; a hang is never
+/// retried (it would cost `--timeout` again). Other shards' runs the dead child had passed
+/// since its last run are sent again and counted once.
+#[test]
+fn a_run_crashed_on_after_others_is_read_again_first_by_a_new_child() {
+    let files = [PathBuf::from("a.h5")];
+    let options = IngestOptions::default();
+    let run = |path: &str| run_frame(0, path);
+    let later = |detail: &str, how: How| Death {
+        detail: detail.into(),
+        how,
+        first_run: false,
+    };
+    // This shard's /r1 and /r3 of 4 entries: /r1 read, /r2 passed (another shard's), the
+    // child crashes on /r3. A new child reads it first, and it is sound.
+    let counts = counts_for(1);
+    let mut a = Assembler::new(&files, &counts, &options, None);
+    a.frame(opened(0, vec!["/r1".into(), "/r3".into()], 4), None);
+    a.frame(run("/r1"), None).unwrap();
+    a.frame(Frame::Skip { archive: 0 }, None);
+    let crash = later("libhdf5 crashed reading it (signal 11)", How::Crashed);
+    let (failed, resume) = after_death(&counts, &files[0], crash, a.reading, a.resumed);
+    assert!(failed.is_empty(), "nothing failed yet");
+    let resume = resume.expect("a new child reads /r3 again");
+    assert_eq!(
+        (resume.delivered, resume.seen, resume.retried),
+        (1, 1, Some(1))
+    );
+    assert_eq!(
+        counts.runs_in_inputs.load(Ordering::Relaxed),
+        1,
+        "/r2 counted again later"
+    );
+    let mut a = Assembler::new(&files, &counts, &options, Some(resume));
+    a.frame(opened(0, vec!["/r1".into(), "/r3".into()], 4), None);
+    a.frame(Frame::Skip { archive: 0 }, None);
+    let Some(Delivery::Run { path, .. }) = a.frame(run("/r3"), None) else {
+        panic!("/r3 delivered");
+    };
+    assert_eq!(path, "/r3");
+    a.frame(Frame::Skip { archive: 0 }, None);
+    assert!(a
+        .frame(
+            Frame::Close {
+                archive: 0,
+                error: None,
+                error_kind: None
+            },
+            None
+        )
+        .is_none());
+    assert_eq!(counts.runs_in_inputs.load(Ordering::Relaxed), 4);
+    assert_eq!(counts.delivered.load(Ordering::Relaxed), 2);
+    assert_eq!(counts.estimate(), 2);
+
+    // Crashed on again by the new child (its first run): failed, and said so.
+    let counts = counts_for(1);
+    let mut a = Assembler::new(&files, &counts, &options, None);
+    a.frame(opened(0, names(3), 3), None);
+    a.frame(run("/r1"), None).unwrap();
+    let crash = later("libhdf5 crashed reading it (signal 11)", How::Crashed);
+    let (failed, resume) = after_death(&counts, &files[0], crash, a.reading, a.resumed);
+    assert!(failed.is_empty());
+    let mut a = Assembler::new(&files, &counts, &options, resume);
+    a.frame(opened(0, names(3), 3), None);
+    let (failed, resume) = after_death(
+        &counts,
+        &files[0],
+        "libhdf5 crashed reading it (signal 11)".into(),
+        a.reading,
+        a.resumed,
+    );
+    let [Delivery::Run {
+        path, run: read, ..
+    }] = &failed[..]
+    else {
+        panic!("/r2 failed");
+    };
+    let error = read.as_ref().as_ref().err().unwrap();
+    println!("{error}");
+    assert_eq!(path, "/r2");
+    assert!(error.contains("(signal 11) (a new reading child, reading it first after another had crashed on it, was stopped by it too); the archive's other runs are read by a new reading child"), "{error}");
+    let resume = resume.expect("/r3 read by a new child");
+    assert_eq!((resume.delivered, resume.died_in_row), (2, 1));
+
+    // A hang after other runs fails the run at once.
+    let counts = counts_for(1);
+    let mut a = Assembler::new(&files, &counts, &options, None);
+    a.frame(opened(0, names(3), 3), None);
+    a.frame(run("/r1"), None).unwrap();
+    let hang = later("reading its run 2 of 3, …", How::Hung);
+    let (failed, _) = after_death(&counts, &files[0], hang, a.reading, a.resumed);
+    assert_eq!(failed.len(), 1, "/r2 failed without a retry");
 }
 
 /// Deaths not in a row still end an archive: the tenth gives up the rest, each read run
