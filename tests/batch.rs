@@ -534,6 +534,11 @@ fn a_run_that_crashes_the_reading_child_fails_alone() {
     assert_eq!(manifest["runs"].as_array().unwrap().len(), 22);
     assert_eq!(manifest["runs_in_inputs"], 22);
     assert_same_rows(&rows, &innocent_rows);
+    // Said in the log: the earlier runs of that child may deserve a look.
+    let log = std::fs::read_to_string(innocent.join("skelid.log")).unwrap();
+    let said = format!("the reading child crashed on {crash} after reading other runs");
+    assert_eq!(log.matches(&said).count(), 2, "once in each archive: {log}");
+    assert!(log.contains(&format!("a new reading child reads {crash} again, first")));
 }
 
 /// An archive that crashes the reading child as it is closed, after every run of it was
@@ -593,7 +598,7 @@ fn an_archive_that_crashes_libhdf5_when_closed_loses_no_run() {
     assert!(log.contains("warning: damaged archive "), "{log}");
     let page = |dir: &Path| std::fs::read_to_string(dir.join("report.html")).unwrap();
     assert!(page(&faulty)
-        .contains("<h2>Inputs to check</h2>\n<ul class=\"error\">\n<li>damaged archive "));
+        .contains("<h2>Inputs to check</h2>\n<ul class=\"warn\">\n<li>damaged archive "));
     assert!(!page(&clean).contains("Inputs to check"));
     assert_same_rows(&summary_rows(&clean), &summary_rows(&faulty));
     // Two shards, each reading (and closing) both archives: merged, a.h5 once.

@@ -29,9 +29,9 @@ pub(super) fn write_finished(
     let (mut suspect, mut bad) = (0, 0);
     let mut used = std::collections::HashSet::new();
     let (start, cpu0) = (std::time::Instant::now(), profile::thread_cpu());
-    // Damaged archives logged so far: each is logged after the run the writer has in hand
-    // when it is found, so that a batch stopped later still has it in its log.
-    let mut damaged = 0;
+    // The reader's news logged so far (damaged archives, its notes): each is logged after
+    // the run the writer has in hand when it comes, so that a batch stopped later has it.
+    let mut logged = (0, 0);
     // A run's admission (its results' bytes, within the memory budget) ends with its turn.
     for (f, _admitted) in done {
         // Finishing order is not the final order: a path already used (the same path in
@@ -103,7 +103,7 @@ pub(super) fn write_finished(
         if let Some(w) = &short {
             log.line(&format!("warning: {w}"));
         }
-        damaged = log_damaged(counts, &mut log, damaged);
+        logged = log_reader_news(counts, &mut log, logged);
         progress(Progress {
             done,
             total,
@@ -115,7 +115,7 @@ pub(super) fn write_finished(
             disk_short_now: short.is_some(),
         });
     }
-    log_damaged(counts, &mut log, damaged);
+    log_reader_news(counts, &mut log, logged);
     Ok(Written {
         entries,
         skipped,
@@ -128,14 +128,23 @@ pub(super) fn write_finished(
     })
 }
 
-/// Logs the damaged archives ([`reader::Counts::damaged`]) after the first `logged`;
-/// returns how many are logged now.
-fn log_damaged(counts: &reader::Counts, log: &mut Log, logged: usize) -> usize {
+/// Logs the damaged archives ([`reader::Counts::damaged`]) and the reader's notes
+/// ([`reader::Counts::notes`]) after the first `logged` of each; returns how many of each
+/// are logged now.
+fn log_reader_news(
+    counts: &reader::Counts,
+    log: &mut Log,
+    logged: (usize, usize),
+) -> (usize, usize) {
     let damaged = counts.damaged.lock().unwrap_or_else(|p| p.into_inner());
-    for (archive, detail) in damaged.iter().skip(logged) {
+    for (archive, detail) in damaged.iter().skip(logged.0) {
         log.line(&format!("warning: damaged archive {archive}: {detail}"));
     }
-    damaged.len()
+    let notes = counts.notes.lock().unwrap_or_else(|p| p.into_inner());
+    for line in notes.iter().skip(logged.1) {
+        log.line(&format!("reader: {line}"));
+    }
+    (damaged.len(), notes.len())
 }
 
 /// The data a worker placed, or `None` after logging why its write failed: the writer then
@@ -335,14 +344,23 @@ pub(super) fn write_pages(
     let rows: Vec<SummaryRow> = entries.iter().flat_map(|e| e.rows.clone()).collect();
     let omitted = entries.len() - runs.len();
     let title = std::fs::canonicalize(out).unwrap_or_else(|_| out.to_path_buf());
-    // Worded as the terminal and the log word them.
-    let inputs_to_check: Vec<String> = (manifest.damaged_archives.iter())
+    // Worded as skelid.log words them; the first few, as on the terminal, so that a campaign
+    // of many groups that are not runs does not push the results down the page.
+    const SHOWN: usize = 20;
+    let mut inputs_to_check: Vec<String> = (manifest.damaged_archives.iter())
         .map(|d| format!("damaged archive {}: {}", d.archive, d.detail))
         .chain(
             (manifest.not_runs.iter())
                 .map(|g| format!("skipped (not a run) {}: {}", g.archive, g.group)),
         )
         .collect();
+    if inputs_to_check.len() > SHOWN {
+        let more = inputs_to_check.len() - SHOWN;
+        inputs_to_check.truncate(SHOWN);
+        inputs_to_check.push(format!(
+            "… and {more} more (all in manifest.json and skelid.log)"
+        ));
+    }
     let (summary, report) = rayon::join(
         || write_summary(out, &rows),
         || {

@@ -119,11 +119,16 @@ impl<'a> Assembler<'a> {
             }
             Frame::Skip { .. } | Frame::Run { .. } if abandoned => None,
             Frame::Skip { .. } => {
-                c.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
                 if let Some(r) = &mut self.reading {
+                    // Sent again by a child reading a run again after a crash: no news.
+                    if r.resent > 0 {
+                        r.resent -= 1;
+                        return None;
+                    }
                     r.seen += 1;
                     r.skipped_since += 1;
                 }
+                c.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
                 None
             }
             Frame::Run {

@@ -15,7 +15,7 @@
 //! either way a new child takes the remaining ones. Runs a dead child had already delivered stand.
 //!
 //! Protocol: the parent writes to the child's stdin the runs of the first archive to pass
-//! over (this shard's, as a decimal count; 0 but after a death) and the archive paths, one a
+//! over (this shard's, as a decimal count; 0 for a fresh start) and the archive paths, one a
 //! line. Child to parent, one frame after another: a little-endian `u32` length, a JSON
 //! [`Frame`], then for a [`Frame::Run`] that was read the samples as little-endian `f64`
 //! (input first when there is one, then output). A run whose channels lie in the archive as
@@ -95,6 +95,9 @@ pub struct Counts {
     /// Archives (as given) read to the end that a reading child died closing, with how:
     /// their runs stand, no failure is recorded, and the batch warns of them.
     pub damaged: std::sync::Mutex<Vec<(String, String)>>,
+    /// What the reader did that the log should say and no delivery does (a run read again
+    /// after a crash), one line each, in order.
+    pub notes: std::sync::Mutex<Vec<String>>,
 }
 
 /// This shard's runs as far as the reader knows them, under one lock: an archive's opening
@@ -141,6 +144,14 @@ impl Counts {
     pub(super) fn delivery(&self) {
         self.runs_in_inputs.fetch_add(1, Ordering::Relaxed);
         self.delivered.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// A line for the log ([`Counts::notes`]).
+    pub(super) fn note(&self, line: String) {
+        self.notes
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .push(line);
     }
 
     /// Changes the tally, under its lock.

@@ -10,9 +10,10 @@ use super::{Counts, Delivery};
 /// The archive a reading child is in: the paths of the runs it announced (this shard's),
 /// those delivered (by this child or those before it in the archive, failed ones
 /// included), the last one's path, the archive's entries of every shard and those seen so
-/// far (and those of other shards since the last of this shard's), the runs a child died on
-/// (in a row, and in all), the run read again by a new child after a crash (its index),
-/// and whether the archive was given up while its child went on.
+/// far (and those of other shards since the last of this shard's, and how many of those a
+/// new child sends again and are no news), the runs a child died on (in a row, and in
+/// all), the run read again by a new child after a crash (its index, and how the child
+/// before crashed on it), and whether the archive was given up while its child went on.
 #[derive(Debug, Clone, Default)]
 pub(super) struct Reading {
     pub(super) paths: Vec<String>,
@@ -21,9 +22,10 @@ pub(super) struct Reading {
     pub(super) entries: usize,
     pub(super) seen: usize,
     pub(super) skipped_since: usize,
+    pub(super) resent: usize,
     pub(super) died_in_row: usize,
     pub(super) deaths: usize,
-    pub(super) retried: Option<usize>,
+    pub(super) retried: Option<(usize, String)>,
     pub(super) abandoned: bool,
 }
 
@@ -41,13 +43,31 @@ impl Reading {
         self.last = Some(path.to_string());
     }
 
+    /// How a child crashed on the run to read next, when a new child is to read it again.
+    pub(super) fn retrying(&self) -> Option<&str> {
+        match &self.retried {
+            Some((at, how)) if *at == self.delivered => Some(how),
+            _ => None,
+        }
+    }
+
     /// What giving the rest up costs, for the messages that do.
     pub(super) fn rest_not_read(&self) -> String {
-        format!(
-            "the archive's {} run(s) after {} are not read",
-            self.rest(),
-            self.last.as_deref().unwrap_or("the first")
-        )
+        let rest = match &self.last {
+            Some(last) => format!(
+                "the archive's {} run(s) after {last} are not read",
+                self.rest()
+            ),
+            None => format!("none of the archive's {} run(s) is read", self.rest()),
+        };
+        match self.retrying() {
+            Some(how) => format!(
+                "{rest} ({} among them, to be read again first by a new child: a child that \
+                 had read other runs crashed on it, {how})",
+                self.paths[self.delivered]
+            ),
+            None => rest,
+        }
     }
 }
 
@@ -56,8 +76,8 @@ impl Reading {
 pub(super) struct Death {
     pub(super) detail: String,
     pub(super) how: How,
-    /// Whether it died on the first run it read: a new child starting there repeats its
-    /// steps exactly, so a crash there is the run's own.
+    /// Whether it died before it had sent a run or closed an archive: a new child starting
+    /// there repeats its steps exactly, so a crash there is the run's own.
     pub(super) first_run: bool,
 }
 
@@ -93,7 +113,8 @@ impl From<&str> for Death {
 /// Runs in a row of one archive that may each stop a reading child (a crash, or a step past
 /// `--timeout`) before the rest of the archive is given up: a run that crashes libhdf5
 /// costs that run alone, an archive corrupt throughout (or a disk that stopped answering)
-/// is not retried run after run all night.
+/// is not retried run after run all night. A run read again after a crash (see
+/// [`after_death`]) counts once, however the second child fares.
 pub const DEATHS_IN_A_ROW: usize = 3;
 
 /// Runs of one archive that may stop a reading child in all, in a row or not, before the
@@ -142,17 +163,19 @@ pub(super) fn after_death(
             // A crash after other steps of the same child may be theirs (libhdf5's heap
             // corrupted by an earlier run, and this one innocent): a new child reads the run
             // again, first thing, once. A hang is not retried: it would cost --timeout again.
-            if death.how == How::Crashed && !death.first_run && r.retried != Some(r.delivered) {
-                r.retried = Some(r.delivered);
-                // Other shards' runs since the last of this shard's are sent again.
-                r.seen -= r.skipped_since;
-                counts
-                    .runs_in_inputs
-                    .fetch_sub(r.skipped_since, Ordering::Relaxed);
-                r.skipped_since = 0;
+            if death.how == How::Crashed && !death.first_run && r.retrying().is_none() {
+                // Other shards' runs since the last of this shard's are sent again: counted
+                // already.
+                r.resent = r.skipped_since;
+                counts.note(format!(
+                    "{}: the reading child crashed on {path} after reading other runs \
+                     ({detail}); a new reading child reads {path} again, first",
+                    file.display()
+                ));
+                r.retried = Some((r.delivered, detail));
                 return (Vec::new(), Some(r));
             }
-            let detail = if r.retried == Some(r.delivered) {
+            let detail = if r.retrying().is_some() {
                 format!(
                     "{detail} (a new reading child, reading it first after another had \
                      crashed on it, was stopped by it too)"

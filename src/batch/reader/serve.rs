@@ -15,7 +15,8 @@ use crate::profile::Stage;
 /// With `place` (the child), a run whose channels lie as plain float64 bytes goes without
 /// its samples, only where they lie ([`Archive::placed`]), for the parent to read. `after`:
 /// this shard's runs of the first archive that a child before this one dealt with (the last
-/// of them the one it died on), passed over without a frame.
+/// of them the one it died on, unless that run is to be read again), passed over without a
+/// frame.
 pub fn serve(
     files: &[PathBuf],
     options: &IngestOptions,

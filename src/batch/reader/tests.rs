@@ -482,15 +482,18 @@ fn a_run_crashed_on_after_others_is_read_again_first_by_a_new_child() {
     let (failed, resume) = after_death(&counts, &files[0], crash, a.reading, a.resumed);
     assert!(failed.is_empty(), "nothing failed yet");
     let resume = resume.expect("a new child reads /r3 again");
+    assert_eq!((resume.delivered, resume.seen, resume.resent), (1, 2, 1));
     assert_eq!(
-        (resume.delivered, resume.seen, resume.retried),
-        (1, 1, Some(1))
+        resume.retrying(),
+        Some("libhdf5 crashed reading it (signal 11)")
     );
     assert_eq!(
         counts.runs_in_inputs.load(Ordering::Relaxed),
-        1,
-        "/r2 counted again later"
+        2,
+        "/r1, and /r2 once"
     );
+    let notes = counts.notes.lock().unwrap().clone();
+    assert_eq!(notes, ["a.h5: the reading child crashed on /r3 after reading other runs (libhdf5 crashed reading it (signal 11)); a new reading child reads /r3 again, first"]);
     let mut a = Assembler::new(&files, &counts, &options, Some(resume));
     a.frame(opened(0, vec!["/r1".into(), "/r3".into()], 4), None);
     a.frame(Frame::Skip { archive: 0 }, None);
@@ -537,7 +540,6 @@ fn a_run_crashed_on_after_others_is_read_again_first_by_a_new_child() {
         panic!("/r2 failed");
     };
     let error = read.as_ref().as_ref().err().unwrap();
-    println!("{error}");
     assert_eq!(path, "/r2");
     assert!(error.contains("(signal 11) (a new reading child, reading it first after another had crashed on it, was stopped by it too); the archive's other runs are read by a new reading child"), "{error}");
     let resume = resume.expect("/r3 read by a new child");
@@ -551,6 +553,22 @@ fn a_run_crashed_on_after_others_is_read_again_first_by_a_new_child() {
     let hang = later("reading its run 2 of 3, …", How::Hung);
     let (failed, _) = after_death(&counts, &files[0], hang, a.reading, a.resumed);
     assert_eq!(failed.len(), 1, "/r2 failed without a retry");
+
+    // A child that had closed an archive before crashes on this one's first run, and no
+    // new child can be started to read it again: the whole archive is given up, and the
+    // message says none of it was read, and why the run was to be read again.
+    let counts = counts_for(1);
+    let mut a = Assembler::new(&files, &counts, &options, None);
+    a.frame(opened(0, names(3), 3), None);
+    let crash = later("crashed", How::Crashed);
+    let (failed, resume) = after_death(&counts, &files[0], crash, a.reading, a.resumed);
+    assert!(failed.is_empty());
+    let Delivery::Unreadable { error, .. } = not_restarted(&counts, &files[0], &resume.unwrap())
+    else {
+        panic!("given up");
+    };
+    assert!(error.ends_with("so none of the archive's 3 run(s) is read (/r1 among them, to be read again first by a new child: a child that had read other runs crashed on it, crashed)"), "{error}");
+    assert_eq!(counts.estimate(), 1, "the archive as one failure");
 }
 
 /// Deaths not in a row still end an archive: the tenth gives up the rest, each read run

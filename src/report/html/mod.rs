@@ -185,7 +185,7 @@ pub fn render(page: &ReportPage) -> String {
     );
     // Above the results: the morning's reader sees first what the night could not use.
     if !page.inputs_to_check.is_empty() {
-        body.push_str("<h2>Inputs to check</h2>\n<ul class=\"error\">\n");
+        body.push_str("<h2>Inputs to check</h2>\n<ul class=\"warn\">\n");
         for line in page.inputs_to_check {
             let _ = writeln!(body, "<li>{}</li>", esc(line));
         }
@@ -478,7 +478,7 @@ td.text,td:first-child,td:nth-child(2),td:nth-child(3){text-align:left}\
 td.text{min-width:24em}\
 th{cursor:pointer;background:#f2f2f2;position:sticky;top:0}\
 tr.failed td{background:#fde8e8}td.q-suspect{background:#fff4d6}td.q-bad{background:#fde8e8;font-weight:bold}\
-.error{color:#b00}.note,.meta{color:#555}\
+.error{color:#b00}.warn{color:#8a5300}.note,.meta{color:#555}\
 .plots{display:flex;flex-wrap:wrap;gap:8px}\
 figure.plot{margin:0}\
 .legend .key span{display:inline-block;width:12px;height:12px;margin:0 4px 0 10px}\
