@@ -1,6 +1,7 @@
-//! What follows a reading child's death: the run it died on recorded failed and the archive
-//! taken up after it by a new child, or the rest of the archive given up, every delivery
-//! counted so that the progress total stays exact.
+//! What follows a reading child's death: the run it died on read again first by a new child
+//! (a crash after other runs), or recorded failed and the archive taken up after it by a
+//! new child, or the rest of the archive given up, or the archive noted damaged (a death
+//! while closing it), every delivery counted so that the progress total stays exact.
 
 use std::path::Path;
 use std::sync::atomic::Ordering;
@@ -93,7 +94,8 @@ pub(super) enum How {
     StreamBroke,
 }
 
-/// A crash on the first run a child read (what the tests and messages mostly need).
+/// For the tests: a crash on the first run a child read.
+#[cfg(test)]
 impl From<String> for Death {
     fn from(detail: String) -> Death {
         Death {
@@ -104,6 +106,7 @@ impl From<String> for Death {
     }
 }
 
+#[cfg(test)]
 impl From<&str> for Death {
     fn from(detail: &str) -> Death {
         detail.to_string().into()
