@@ -226,17 +226,9 @@ pub fn inspect_archive(
         }
         Ok(())
     });
-    report.not_runs = taken(&counts.not_runs)
-        .into_iter()
-        .map(|(_, g)| g)
-        .collect();
-    report.damaged = taken(&counts.damaged).into_iter().map(|(_, d)| d).next();
+    report.not_runs = counts.take_not_runs().into_iter().map(|(_, g)| g).collect();
+    report.damaged = counts.take_damaged().into_iter().map(|(_, d)| d).next();
     report
-}
-
-/// What the reader gathered in `held`, taken out.
-fn taken<T>(held: &std::sync::Mutex<Vec<T>>) -> Vec<T> {
-    std::mem::take(&mut *held.lock().unwrap_or_else(|p| p.into_inner()))
 }
 
 /// What a reading child's end says: how it ended (exit status or signal) and the end of

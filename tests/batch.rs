@@ -56,6 +56,11 @@ fn run(args: &[&str], inputs: &Path, out: &Path) -> std::process::Output {
         .expect("run skelid run")
 }
 
+/// An output folder's `manifest.json`.
+fn manifest_of(out: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).unwrap()).unwrap()
+}
+
 /// `skelid merge DIRS --out OUT`, its output.
 fn merge<P: AsRef<std::ffi::OsStr>>(dirs: &[P], out: &Path) -> std::process::Output {
     skelid()
@@ -385,9 +390,7 @@ fn the_reading_timeout_bounds_a_step_not_a_whole_archive() {
             .env("SKELID_READ_PAUSE_MS", pause_ms)
             .output()
             .expect("run skelid run");
-        let manifest: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).unwrap())
-                .unwrap();
+        let manifest = manifest_of(out);
         let log = std::fs::read_to_string(out.join("skelid.log")).unwrap();
         (o, manifest["runs"].as_array().unwrap().clone(), log)
     };
@@ -471,9 +474,7 @@ fn a_run_that_crashes_the_reading_child_fails_alone() {
             "{}",
             String::from_utf8_lossy(&o.stderr)
         );
-        let manifest: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).unwrap())
-                .unwrap();
+        let manifest = manifest_of(out);
         (manifest, summary_rows(out))
     };
     let clean = tmp.path().join("clean");
@@ -563,9 +564,7 @@ fn an_archive_that_crashes_libhdf5_when_closed_loses_no_run() {
             .env("SKELID_READ_FAULT", faults)
             .output()
             .expect("run skelid run");
-        let manifest: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).unwrap())
-                .unwrap();
+        let manifest = manifest_of(out);
         (o, manifest)
     };
     let clean = tmp.path().join("clean");
@@ -621,9 +620,7 @@ fn an_archive_that_crashes_libhdf5_when_closed_loses_no_run() {
         1,
         "{said}"
     );
-    let manifest: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(merged.join("manifest.json")).unwrap())
-            .unwrap();
+    let manifest = manifest_of(&merged);
     let damaged = manifest["damaged_archives"].as_array().unwrap();
     assert_eq!(damaged.len(), 1);
     // Its run count is one shard's, so the shard is named.

@@ -469,20 +469,16 @@ pub fn run_campaigns(
         results.abandon();
         return Err(stopped(e));
     }
-    let not_runs: Vec<GroupNotRun> =
-        std::mem::take(&mut *counts.not_runs.lock().unwrap_or_else(|p| p.into_inner()))
-            .into_iter()
-            .map(|(archive, group)| GroupNotRun { archive, group })
-            .collect();
+    let not_runs: Vec<GroupNotRun> = (counts.take_not_runs().into_iter())
+        .map(|(archive, group)| GroupNotRun { archive, group })
+        .collect();
     for g in &not_runs {
         log.line(&format!("skipped (not a run) {}: {}", g.archive, g.group));
     }
     // Logged by the writer as they were found.
-    let damaged: Vec<DamagedArchive> =
-        std::mem::take(&mut *counts.damaged.lock().unwrap_or_else(|p| p.into_inner()))
-            .into_iter()
-            .map(|(archive, detail)| DamagedArchive { archive, detail })
-            .collect();
+    let damaged: Vec<DamagedArchive> = (counts.take_damaged().into_iter())
+        .map(|(archive, detail)| DamagedArchive { archive, detail })
+        .collect();
     let mut manifest = Manifest::new(
         settings,
         opt.shard,

@@ -52,32 +52,30 @@ impl<'a> Assembler<'a> {
 
     /// Why the child was stopped after `timeout` without a frame: which step hung.
     pub(super) fn hang_detail(&self, timeout: Duration) -> String {
-        let step = match &self.reading {
-            None => "opening it".to_string(),
-            Some(r) if r.rest() == 0 => {
-                return format!(
-                    "closing it after its {} run(s), the reading child went {} s without \
-                     progress and was stopped; libhdf5 loops on some corrupt files (a slow \
-                     disk needs a longer --timeout)",
-                    r.delivered,
-                    timeout.as_secs()
-                );
-            }
+        // A large run is no reason to hang closing an archive.
+        let slow = "a run that is very large, or a slow disk, needs";
+        let (step, slow, stopped) = match &self.reading {
+            None => ("opening it".to_string(), slow, ""),
+            Some(r) if r.rest() == 0 => (
+                format!("closing it after its {} run(s)", r.delivered),
+                "a slow disk needs",
+                " and was stopped",
+            ),
             Some(r) => {
                 let of = r.paths.len();
-                match &r.last {
+                let step = match &r.last {
                     None => format!("reading its first run of {of}"),
                     Some(path) => format!(
                         "reading its run {} of {of}, the one after {path}",
                         r.delivered + 1
                     ),
-                }
+                };
+                (step, slow, "")
             }
         };
         format!(
-            "{step}, the reading child went {} s without progress; libhdf5 loops on some \
-             corrupt files (a run that is very large, or a slow disk, needs a longer \
-             --timeout)",
+            "{step}, the reading child went {} s without progress{stopped}; libhdf5 loops on \
+             some corrupt files ({slow} a longer --timeout)",
             timeout.as_secs()
         )
     }

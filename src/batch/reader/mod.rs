@@ -146,6 +146,16 @@ impl Counts {
         self.delivered.fetch_add(1, Ordering::Relaxed);
     }
 
+    /// The groups that are not runs gathered so far, taken out, with their archives.
+    pub fn take_not_runs(&self) -> Vec<(String, crate::ingest::NotARun)> {
+        std::mem::take(&mut *self.not_runs.lock().unwrap_or_else(|p| p.into_inner()))
+    }
+
+    /// The damaged archives gathered so far ([`Counts::damaged`]), taken out.
+    pub fn take_damaged(&self) -> Vec<(String, String)> {
+        std::mem::take(&mut *self.damaged.lock().unwrap_or_else(|p| p.into_inner()))
+    }
+
     /// A line for the log ([`Counts::notes`]).
     pub(super) fn note(&self, line: String) {
         self.notes

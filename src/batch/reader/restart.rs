@@ -44,6 +44,13 @@ impl Reading {
         self.last = Some(path.to_string());
     }
 
+    /// Counts the archive's entries of other shards after the last frame seen, when no child
+    /// will send them (the child died at the archive's end).
+    fn count_unseen(&self, counts: &Counts) {
+        let unseen = self.entries.saturating_sub(self.seen);
+        counts.runs_in_inputs.fetch_add(unseen, Ordering::Relaxed);
+    }
+
     /// How a child crashed on the run to read next, when a new child is to read it again.
     pub(super) fn retrying(&self) -> Option<&str> {
         match &self.retried {
@@ -153,8 +160,7 @@ pub(super) fn after_death(
             (Vec::new(), None)
         }
         Some(r) if r.rest() == 0 => {
-            let unseen = r.entries.saturating_sub(r.seen);
-            counts.runs_in_inputs.fetch_add(unseen, Ordering::Relaxed);
+            r.count_unseen(counts);
             let detail = format!("{detail}; its {} run(s) were dealt with", r.delivered);
             (
                 vec![given_up(counts, file, corrupt(file, detail), Some(&r))],
@@ -201,8 +207,7 @@ pub(super) fn after_death(
             if last {
                 // Other shards' runs after it, never sent as skipped, are counted here
                 // rather than by opening the archive again.
-                let unseen = r.entries.saturating_sub(r.seen);
-                counts.runs_in_inputs.fetch_add(unseen, Ordering::Relaxed);
+                r.count_unseen(counts);
                 return (vec![failed], None);
             }
             if !gives_up {
@@ -237,8 +242,7 @@ pub(super) fn after_death(
 /// identified (one archive in 400 of the fuzz batch). The other shards' runs after the last
 /// of this shard's, if their frames had not come, are counted here.
 fn closed_badly(counts: &Counts, file: &Path, detail: &str, r: &Reading) {
-    let unseen = r.entries.saturating_sub(r.seen);
-    counts.runs_in_inputs.fetch_add(unseen, Ordering::Relaxed);
+    r.count_unseen(counts);
     let dealt = match (r.delivered, r.deaths) {
         (0, _) => "none of its runs is this shard's".to_string(),
         (n, 0) => format!("its {n} run(s) read"),
@@ -249,10 +253,7 @@ fn closed_badly(counts: &Counts, file: &Path, detail: &str, r: &Reading) {
          dealt with before), but the file is likely damaged: copy it again from the bench, \
          or check it with h5check"
     );
-    counts
-        .damaged
-        .lock()
-        .unwrap_or_else(|p| p.into_inner())
+    (counts.damaged.lock().unwrap_or_else(|p| p.into_inner()))
         .push((file.display().to_string(), note));
 }
 
