@@ -227,7 +227,7 @@ pub fn inspect_archive(
         Ok(())
     });
     report.not_runs = counts.take_not_runs().into_iter().map(|(_, g)| g).collect();
-    report.damaged = counts.take_damaged().into_iter().map(|(_, d)| d).next();
+    report.damaged = counts.take_damaged().into_iter().map(|d| d.detail).next();
     report
 }
 

@@ -28,6 +28,13 @@ pub struct DamagedArchive {
     pub detail: String,
 }
 
+/// "damaged archive ARCHIVE: DETAIL", as the terminal, the log and the report say it.
+impl std::fmt::Display for DamagedArchive {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "damaged archive {}: {}", self.archive, self.detail)
+    }
+}
+
 /// The output folder's record of a batch: what was asked and which runs it holds.
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct Manifest {

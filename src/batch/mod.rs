@@ -476,9 +476,7 @@ pub fn run_campaigns(
         log.line(&format!("skipped (not a run) {}: {}", g.archive, g.group));
     }
     // Logged by the writer as they were found.
-    let damaged: Vec<DamagedArchive> = (counts.take_damaged().into_iter())
-        .map(|(archive, detail)| DamagedArchive { archive, detail })
-        .collect();
+    let damaged = counts.take_damaged();
     let mut manifest = Manifest::new(
         settings,
         opt.shard,

@@ -137,8 +137,8 @@ fn log_reader_news(
     logged: (usize, usize),
 ) -> (usize, usize) {
     let damaged = counts.damaged.lock().unwrap_or_else(|p| p.into_inner());
-    for (archive, detail) in damaged.iter().skip(logged.0) {
-        log.line(&format!("warning: damaged archive {archive}: {detail}"));
+    for d in damaged.iter().skip(logged.0) {
+        log.line(&format!("warning: {d}"));
     }
     let notes = counts.notes.lock().unwrap_or_else(|p| p.into_inner());
     for line in notes.iter().skip(logged.1) {
@@ -348,7 +348,7 @@ pub(super) fn write_pages(
     // of many groups that are not runs does not push the results down the page.
     const SHOWN: usize = 20;
     let mut inputs_to_check: Vec<String> = (manifest.damaged_archives.iter())
-        .map(|d| format!("damaged archive {}: {}", d.archive, d.detail))
+        .map(ToString::to_string)
         .chain(
             (manifest.not_runs.iter())
                 .map(|g| format!("skipped (not a run) {}: {}", g.archive, g.group)),

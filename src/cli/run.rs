@@ -356,7 +356,7 @@ pub(crate) fn report_not_runs(groups: &[skelid::batch::GroupNotRun]) {
 /// lost, but each file wants checking ([`skelid::batch::DamagedArchive`]).
 pub(crate) fn report_damaged(archives: &[skelid::batch::DamagedArchive]) {
     for d in archives {
-        eprintln!("warning: damaged archive {}: {}", d.archive, d.detail);
+        eprintln!("warning: {d}");
     }
 }
 

@@ -92,9 +92,9 @@ pub struct Counts {
     pub tally: Mutex<Tally>,
     /// Groups with datasets that are not runs, with their archive (as given).
     pub not_runs: std::sync::Mutex<Vec<(String, crate::ingest::NotARun)>>,
-    /// Archives (as given) read to the end that a reading child died closing, with how:
-    /// their runs stand, no failure is recorded, and the batch warns of them.
-    pub damaged: std::sync::Mutex<Vec<(String, String)>>,
+    /// Archives read to the end that a reading child died closing, with how: their runs
+    /// stand, no failure is recorded, and the batch warns of them.
+    pub damaged: std::sync::Mutex<Vec<super::DamagedArchive>>,
     /// What the reader did that the log should say and no delivery does (a run read again
     /// after a crash), one line each, in order.
     pub notes: std::sync::Mutex<Vec<String>>,
@@ -152,7 +152,7 @@ impl Counts {
     }
 
     /// The damaged archives gathered so far ([`Counts::damaged`]), taken out.
-    pub fn take_damaged(&self) -> Vec<(String, String)> {
+    pub fn take_damaged(&self) -> Vec<super::DamagedArchive> {
         std::mem::take(&mut *self.damaged.lock().unwrap_or_else(|p| p.into_inner()))
     }
 

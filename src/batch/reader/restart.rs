@@ -253,8 +253,11 @@ fn closed_badly(counts: &Counts, file: &Path, detail: &str, r: &Reading) {
          dealt with before), but the file is likely damaged: copy it again from the bench, \
          or check it with h5check"
     );
-    (counts.damaged.lock().unwrap_or_else(|p| p.into_inner()))
-        .push((file.display().to_string(), note));
+    let damaged = crate::batch::DamagedArchive {
+        archive: file.display().to_string(),
+        detail: note,
+    };
+    (counts.damaged.lock().unwrap_or_else(|p| p.into_inner())).push(damaged);
 }
 
 /// The rest of an archive a child died in, given up because no new child could be started

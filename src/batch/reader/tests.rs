@@ -377,8 +377,8 @@ fn a_child_dying_while_closing_an_archive_read_to_the_end_fails_nothing() {
     let noted = damaged(&counts);
     println!("{noted:?}");
     assert_eq!(noted.len(), 1);
-    assert_eq!(noted[0].0, "a.h5");
-    assert!(noted[0].1.starts_with(
+    assert_eq!(noted[0].archive, "a.h5");
+    assert!(noted[0].detail.starts_with(
         "read to the end (its 2 run(s) read), but not closed: closing it after its 2 \
          run(s), the reading child went 7 s without progress and was stopped; libhdf5 loops \
          on some corrupt files (a slow disk needs a longer --timeout). That costs no run"
@@ -405,7 +405,7 @@ fn a_child_dying_while_closing_an_archive_read_to_the_end_fails_nothing() {
     assert_eq!(counts.estimate(), 3);
     assert_eq!(counts.runs_in_inputs.load(Ordering::Relaxed), 3);
     let noted = damaged(&counts);
-    assert!(noted[0].1.starts_with(
+    assert!(noted[0].detail.starts_with(
         "read to the end (its 3 run(s) dealt with, 1 of them failed on their own), but not \
          closed: crashed again."
     ));
@@ -420,7 +420,7 @@ fn a_child_dying_while_closing_an_archive_read_to_the_end_fails_nothing() {
     assert_eq!(counts.runs_in_inputs.load(Ordering::Relaxed), 2);
     assert_eq!(counts.estimate(), 0);
     assert!(damaged(&counts)[0]
-        .1
+        .detail
         .starts_with("read to the end (none of its runs is"));
 
     // skelid's own stream broken at the close (the child still running): not the file's
