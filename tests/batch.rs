@@ -633,6 +633,124 @@ fn an_archive_that_crashes_libhdf5_when_closed_loses_no_run() {
     assert_same_rows(&summary_rows(&clean), &summary_rows(&merged));
 }
 
+/// An archive no reading child can open (not HDF5: a bench's copy cut short) is every
+/// shard's failure: merged, it is kept once and the merge equals the unsharded batch. An
+/// archive one shard's children give up part-way (three of its runs in a row crash them)
+/// while the other shard reads it to the end merges too: the runs read by either are kept,
+/// the one shard's runs left unread are counted and named on the terminal, in the manifest
+/// and in the report. Both were refused ("is in both", "saw N runs") until 2026-12-07.
+#[test]
+fn shards_merge_past_an_unreadable_archive_and_one_given_up_part_way() {
+    let tmp = tempfile::tempdir().unwrap();
+    let c = campaign(tmp.path());
+    std::fs::write(c.join("bad.h5"), b"not an HDF5 file: a copy cut short").unwrap();
+    let files = [c.join("a.h5"), c.join("bad.h5")];
+    let batch = |out: &Path, faults: &str, shard: Option<&str>| {
+        skelid()
+            .arg("run")
+            .args(&files)
+            .arg("--out")
+            .arg(out)
+            .args(["--method", "hilbert", "--quiet"])
+            .args(shard.map(|s| ["--shard", s]).into_iter().flatten())
+            .env("SKELID_READ_FAULT", faults)
+            .output()
+            .expect("run skelid run")
+    };
+    let whole = tmp.path().join("whole");
+    let o = batch(&whole, "", None);
+    assert_eq!(o.status.code(), Some(1), "{o:?}");
+    let shards = |tag: &str, faults: &str| -> Vec<(PathBuf, String)> {
+        ["1/2", "2/2"]
+            .iter()
+            .map(|s| {
+                let out = tmp.path().join(format!("{tag}{}", &s[..1]));
+                let o = batch(&out, faults, Some(s));
+                assert_eq!(o.status.code(), Some(1), "{o:?}");
+                (out, String::from_utf8_lossy(&o.stderr).into_owned())
+            })
+            .collect()
+    };
+    let paths_of = |m: &serde_json::Value| -> Vec<String> {
+        (m["runs"].as_array().unwrap().iter())
+            .map(|r| r["path"].as_str().unwrap().to_string())
+            .collect()
+    };
+
+    // bad.h5 alone: merged, it is the unsharded batch.
+    let clean = shards("clean", "");
+    let merged = tmp.path().join("merged-clean");
+    let o = merge(&[&clean[0].0, &clean[1].0], &merged);
+    assert_eq!(o.status.code(), Some(1), "{o:?}");
+    assert_same_rows(&summary_rows(&whole), &summary_rows(&merged));
+    assert_same_results(&results(&whole), &results(&merged));
+    let manifest = manifest_of(&merged);
+    assert_eq!(manifest["runs_in_inputs"], 12);
+    let incomplete = manifest["incomplete_archives"].as_array().unwrap();
+    assert_eq!(incomplete.len(), 1, "{manifest}");
+    assert!(incomplete[0]["archive"]
+        .as_str()
+        .unwrap()
+        .ends_with("bad.h5"));
+    assert!(incomplete[0]["runs_in_archive"].is_null());
+
+    // The shard with at least 4 runs of a.h5: its first three stop three children in a row.
+    let (k, own) = (clean.iter().enumerate())
+        .map(|(k, (d, _))| (k, paths_of(&manifest_of(d))))
+        .find(|(_, p)| p.iter().filter(|p| !p.starts_with("/_unreadable/")).count() >= 4)
+        .expect("a shard with 4 of the 11 runs");
+    let own: Vec<String> = own
+        .into_iter()
+        .filter(|p| !p.starts_with("/_unreadable/"))
+        .collect();
+    let faults: Vec<String> = own[..3].iter().map(|p| format!("crash:{p}")).collect();
+    let faulty = shards("faulty", &faults.join(","));
+    let unread = own.len() - 3;
+    let said = format!(
+        "warning: archive {} was given up part-way by shard {}/2's reading child: {unread} of \
+         that shard's runs of it are neither identified nor failed in these results",
+        files[0].display(),
+        k + 1
+    );
+    assert!(faulty[k].1.contains(&said), "{}", faulty[k].1);
+    assert!(!faulty[1 - k].1.contains("given up part-way"));
+    let manifest = manifest_of(&faulty[k].0);
+    let given_up = &manifest["incomplete_archives"][0];
+    assert!(given_up["archive"].as_str().unwrap().ends_with("a.h5"));
+    assert_eq!(given_up["runs_in_archive"], 11, "{manifest}");
+    assert_eq!(given_up["runs_not_read"], unread, "{manifest}");
+
+    // Merged, the shards given the other way round: every run either shard kept, bad.h5's
+    // failure once, the unread runs counted and named.
+    let merged = tmp.path().join("merged-faulty");
+    let o = merge(&[&faulty[1].0, &faulty[0].0], &merged);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains(&said), "{err}");
+    let mut kept = results(&faulty[0].0);
+    kept.extend(results(&faulty[1].0));
+    kept.sort_by(|a, b| a.0.cmp(&b.0));
+    kept.dedup_by(|a, b| a.0 == b.0 && a.0.starts_with("/_unreadable/"));
+    assert_same_results(&results(&merged), &kept);
+    let mut expected: Vec<String> = (results(&whole).into_iter())
+        .map(|r| r.0)
+        .filter(|p| !own[3..].contains(p))
+        .chain(["/_unreadable/a.h5".to_string()])
+        .collect();
+    expected.sort();
+    let found: Vec<String> = results(&merged).into_iter().map(|r| r.0).collect();
+    assert_eq!(found, expected);
+    let manifest = manifest_of(&merged);
+    assert_eq!(manifest["runs_in_inputs"], found.len());
+    let incomplete = manifest["incomplete_archives"].as_array().unwrap();
+    assert_eq!(incomplete.len(), 2, "{manifest}");
+    let page = std::fs::read_to_string(merged.join("report.html")).unwrap();
+    assert!(
+        page.contains("was given up part-way by shard"),
+        "Inputs to check"
+    );
+}
+
 /// A memory budget smaller than two runs holds the second back: the runs go one at a time
 /// on two workers, the log and the terminal say so, and the results are those of the batch
 /// without a bound. A budget of no bytes, or not a number, is refused before anything runs.

@@ -35,6 +35,54 @@ impl std::fmt::Display for DamagedArchive {
     }
 }
 
+/// An archive the reader gave up before its end, or could not open: recorded failed under
+/// `/_unreadable/<file name>`, with what it counted in the manifest's `runs_in_inputs` and
+/// what of it went unread, so that `skelid merge` can join shards whose reading children
+/// gave it up at different places (or not at all), and say which runs are lost.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct IncompleteArchive {
+    /// Archive as given.
+    pub archive: String,
+    /// The runs it holds, of every shard, as its listing said; `None` where it was never
+    /// opened.
+    pub runs_in_archive: Option<usize>,
+    /// What it added to `runs_in_inputs`: the runs seen before it was given up, and one for
+    /// its failure.
+    pub counted: usize,
+    /// This shard's runs of it that were neither read nor failed on their own (0 where it
+    /// was never opened: its runs are not known).
+    pub runs_not_read: usize,
+    /// The shard whose reading child gave it up: none in an unsharded batch, nor in a
+    /// merged one for an archive that no shard could open.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shard: Option<Shard>,
+}
+
+impl IncompleteArchive {
+    /// Where runs of it went unread, what the terminal and the report say of it: "archive A
+    /// was given up part-way (by shard K/N's reading child): N of its runs …".
+    pub fn unread_note(&self) -> Option<String> {
+        if self.runs_not_read == 0 {
+            return None;
+        }
+        let (by, of, log) = match self.shard {
+            Some(s) => (
+                format!(" by shard {s}'s reading child"),
+                "that shard's runs of it",
+                "that shard's skelid.log",
+            ),
+            None => (String::new(), "its runs", "skelid.log"),
+        };
+        Some(format!(
+            "archive {} was given up part-way{by}: {} of {of} are neither identified nor \
+             failed in these results (why: /_unreadable/{} and {log})",
+            self.archive,
+            self.runs_not_read,
+            crate::journal::base_name(&self.archive).replace('/', "_"),
+        ))
+    }
+}
+
 /// The output folder's record of a batch: what was asked and which runs it holds.
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct Manifest {
@@ -58,6 +106,10 @@ pub struct Manifest {
     /// ([`DamagedArchive`]): no run is lost, but the files want checking.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub damaged_archives: Vec<DamagedArchive>,
+    /// Archives given up before their end or never opened ([`IncompleteArchive`]), each
+    /// also a failed `/_unreadable/` run.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub incomplete_archives: Vec<IncompleteArchive>,
 }
 
 /// One run of a manifest.
@@ -92,6 +144,7 @@ impl Manifest {
             runs_in_inputs,
             not_runs,
             damaged_archives: Vec::new(),
+            incomplete_archives: Vec::new(),
             settings_full,
             runs: entries
                 .iter()

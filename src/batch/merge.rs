@@ -5,7 +5,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use crate::journal::{Journal, RUNS_DIR};
+use crate::journal::{base_name, Journal, RUNS_DIR};
 use crate::report::ReportError;
 
 use super::*;
@@ -44,14 +44,16 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
                 manifests[0].0.display()
             )));
         }
-        if m.runs_in_inputs != first.runs_in_inputs {
+        if runs_listed(m) != runs_listed(first) {
             return Err(bad(format!(
                 "{} saw {} runs in its inputs, {} saw {}: the shards were not given the same \
-                 archives, or one could not read an archive to the end (see its skelid.log)",
+                 archives, an archive changed between them, or one could not open an archive \
+                 that another read (see their skelid.log){}",
                 d.display(),
-                m.runs_in_inputs,
+                runs_listed(m),
                 manifests[0].0.display(),
-                first.runs_in_inputs
+                runs_listed(first),
+                given_up_in_one(m, first)
             )));
         }
         let s = m.shard.unwrap_or(Shard { index: 1, count: 1 });
@@ -79,6 +81,10 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
             missing.join(", ")
         )));
     }
+    // The lowest shard's record of an archive every shard failed is the one kept, in
+    // whatever order the folders were given.
+    manifests.sort_by_key(|(_, m)| m.shard.map_or(1, |s| s.index));
+    let first = &manifests[0].1;
     // Every shard is checked before the output folder is made: a refused merge leaves
     // nothing behind (it left the runs copied so far, 16 MB for nine campaign runs).
     let mut owner: BTreeMap<(String, String), PathBuf> = BTreeMap::new();
@@ -87,7 +93,13 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
     for (d, m) in &manifests {
         let src = Journal::open(d)?;
         for r in &m.runs {
-            if let Some(other) = owner.insert((r.source.clone(), r.path.clone()), d.clone()) {
+            let at = (r.source.clone(), r.path.clone());
+            // An archive no child could open (or read to its end) is every such shard's
+            // failure, one run of the inputs in each: kept once.
+            if r.path.starts_with(UNREADABLE) && owner.contains_key(&at) {
+                continue;
+            }
+            if let Some(other) = owner.insert(at, d.clone()) {
                 return Err(bad(format!(
                     "run {} of {} is in both {} and {}",
                     r.path,
@@ -108,11 +120,12 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
             entries.push(e);
         }
     }
-    if entries.len() != first.runs_in_inputs {
+    let incomplete = incomplete_of(&manifests);
+    let expected = runs_kept(runs_listed(first), &incomplete);
+    if entries.len() != expected {
         return Err(bad(format!(
-            "the shards hold {} runs but their inputs had {}",
+            "the shards hold {} runs but their inputs had {expected}",
             entries.len(),
-            first.runs_in_inputs
         )));
     }
     let journal = Journal::open(out)?;
@@ -130,7 +143,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
     let mut manifest = Manifest::new(
         settings,
         None,
-        first.runs_in_inputs,
+        expected,
         &mut entries,
         first.not_runs.clone(),
         first.settings_full.clone(),
@@ -153,6 +166,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
             }
         }
     }
+    manifest.incomplete_archives = incomplete.clone();
     let results = journal.assemble(out, &entries, manifest.settings_full.as_ref())?;
     let (rows, failed_runs) = write_outputs(&results, out, &entries, &manifest, report_runs)?;
     Ok(BatchSummary {
@@ -163,6 +177,70 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         skipped: 0,
         not_runs: manifest.not_runs.clone(),
         damaged: manifest.damaged_archives.clone(),
+        incomplete,
         memory_held_back: None,
     })
+}
+
+/// The runs a shard's inputs would have counted had its reading child read every archive it
+/// opened to the end: an archive given up counts the runs its listing announced (one where
+/// it was never opened), not what it counted, which depends on where the child gave it up.
+/// Equal in every shard of one batch, whatever each shard's children gave up.
+fn runs_listed(m: &Manifest) -> usize {
+    (m.incomplete_archives.iter()).fold(m.runs_in_inputs, |n, a| {
+        (n + a.runs_in_archive.unwrap_or(1)).saturating_sub(a.counted)
+    })
+}
+
+/// ", given up in one of them only: A, B" where the two shards' archives given up differ,
+/// to say which to look at when their counts do not agree.
+fn given_up_in_one(a: &Manifest, b: &Manifest) -> String {
+    let names = |m: &Manifest| -> std::collections::BTreeSet<String> {
+        (m.incomplete_archives.iter())
+            .map(|i| base_name(&i.archive).to_string())
+            .collect()
+    };
+    let (a, b) = (names(a), names(b));
+    let odd: Vec<String> = a.symmetric_difference(&b).cloned().collect();
+    if odd.is_empty() {
+        String::new()
+    } else {
+        format!("; given up in one of the two only: {}", odd.join(", "))
+    }
+}
+
+/// The archives given up in any shard, each shard's record named with its shard (its runs
+/// not read are that shard's); an archive no shard could open, the same in each, once.
+fn incomplete_of(manifests: &[(PathBuf, Manifest)]) -> Vec<IncompleteArchive> {
+    let mut all: Vec<IncompleteArchive> = Vec::new();
+    for (_, m) in manifests {
+        for a in &m.incomplete_archives {
+            let never_opened = a.runs_in_archive.is_none();
+            let name = base_name(&a.archive);
+            if never_opened
+                && (all.iter())
+                    .any(|k| k.runs_in_archive.is_none() && base_name(&k.archive) == name)
+            {
+                continue;
+            }
+            all.push(IncompleteArchive {
+                shard: m.shard.filter(|_| !never_opened),
+                ..a.clone()
+            });
+        }
+    }
+    all
+}
+
+/// The runs a merge of shards that agree on `listed` ([`runs_listed`]) holds: every run
+/// listed, less the runs each shard's children left unread in the archives they gave up,
+/// plus the one failure kept for each such archive; an archive no shard opened is its
+/// failure alone, one run in `listed` already.
+fn runs_kept(listed: usize, incomplete: &[IncompleteArchive]) -> usize {
+    let unread: usize = incomplete.iter().map(|a| a.runs_not_read).sum();
+    let opened: std::collections::BTreeSet<&str> = (incomplete.iter())
+        .filter(|a| a.runs_in_archive.is_some())
+        .map(|a| base_name(&a.archive))
+        .collect();
+    (listed + opened.len()).saturating_sub(unread)
 }

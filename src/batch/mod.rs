@@ -24,13 +24,15 @@ pub mod reader;
 mod worker;
 mod writer;
 
-pub use manifest::{DamagedArchive, GroupNotRun, Manifest, ManifestRun, MANIFEST};
+pub use manifest::{
+    DamagedArchive, GroupNotRun, IncompleteArchive, Manifest, ManifestRun, MANIFEST,
+};
 pub use merge::merge;
 pub use worker::guarded;
 use worker::{prepare_caught, Work};
 use writer::{
     page_runs, place_runs, unreadable, write_finished, write_manifest, write_outputs, write_pages,
-    Drawn, Log, Written,
+    Drawn, Log, Written, UNREADABLE,
 };
 
 use crate::backend::Backend;
@@ -231,6 +233,8 @@ pub struct BatchSummary {
     /// Archives read to the end that the reading child died closing: no run lost, the
     /// files likely damaged ([`DamagedArchive`]).
     pub damaged: Vec<DamagedArchive>,
+    /// Archives given up before their end or never opened ([`IncompleteArchive`]).
+    pub incomplete: Vec<IncompleteArchive>,
     /// Where the memory budget held runs back, what it did (the batch then ran fewer runs
     /// at once than `--jobs`).
     pub memory_held_back: Option<memory::Usage>,
@@ -486,6 +490,12 @@ pub fn run_campaigns(
         Some(record),
     );
     manifest.damaged_archives = damaged.clone();
+    manifest.incomplete_archives = (counts.take_incomplete().into_iter())
+        .map(|a| IncompleteArchive {
+            shard: opt.shard,
+            ..a
+        })
+        .collect();
     let held = drawn.take_shown(&entries, opt.report_runs);
     let (results, rows) = if held.iter().all(Option::is_some) {
         // The page reads nothing back: results.h5 is closed (its metadata flushed, a third
@@ -539,6 +549,7 @@ pub fn run_campaigns(
         skipped,
         not_runs,
         damaged,
+        incomplete: manifest.incomplete_archives.clone(),
         memory_held_back,
     })
 }

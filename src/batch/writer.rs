@@ -347,8 +347,9 @@ pub(super) fn write_pages(
     // Worded as skelid.log words them; the first few, as on the terminal, so that a campaign
     // of many groups that are not runs does not push the results down the page.
     const SHOWN: usize = 20;
-    let mut inputs_to_check: Vec<String> = (manifest.damaged_archives.iter())
-        .map(ToString::to_string)
+    let mut inputs_to_check: Vec<String> = (manifest.incomplete_archives.iter())
+        .filter_map(IncompleteArchive::unread_note)
+        .chain(manifest.damaged_archives.iter().map(ToString::to_string))
         .chain(
             (manifest.not_runs.iter())
                 .map(|g| format!("skipped (not a run) {}: {}", g.archive, g.group)),
@@ -422,13 +423,17 @@ impl Log {
     }
 }
 
+/// Where the failure of an archive that could not be opened (or read to its end) is
+/// recorded: `/_unreadable/<file name>`.
+pub(super) const UNREADABLE: &str = "/_unreadable/";
+
 /// The record of an archive that could not be opened: one failed entry under
-/// `/_unreadable/<file name>`.
+/// [`UNREADABLE`]`<file name>`.
 pub(super) fn unreadable(file: &Path, error: &dyn std::fmt::Display) -> RunOutcome {
     let name = file_name(file);
     RunOutcome {
         error: Some(format!("archive unreadable: {error}")),
-        ..RunOutcome::new(format!("/_unreadable/{}", name.replace('/', "_")), name)
+        ..RunOutcome::new(format!("{UNREADABLE}{}", name.replace('/', "_")), name)
     }
 }
 

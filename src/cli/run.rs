@@ -47,6 +47,7 @@ pub(crate) fn cmd_merge(a: MergeArgs) -> Result<ExitCode> {
     let summary = skelid::batch::merge(&a.dirs, &a.out, a.report.report_runs)?;
     let strict = a.report.strict;
     report_damaged(&summary.damaged);
+    report_unread(&summary.incomplete);
     println!(
         "merged {} folder(s): {} run(s), {} failed{}; wrote {}, summary.json, summary.csv, report.html, manifest.json",
         a.dirs.len(),
@@ -286,6 +287,7 @@ pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     }
     report_not_runs(&summary.not_runs);
     report_damaged(&summary.damaged);
+    report_unread(&summary.incomplete);
     if let Some(u) = &summary.memory_held_back {
         eprintln!("note: {}", skelid::batch::memory::held_back(u));
     }
@@ -357,6 +359,14 @@ pub(crate) fn report_not_runs(groups: &[skelid::batch::GroupNotRun]) {
 pub(crate) fn report_damaged(archives: &[skelid::batch::DamagedArchive]) {
     for d in archives {
         eprintln!("warning: {d}");
+    }
+}
+
+/// A warning for each archive given up part-way: runs of it neither identified nor failed,
+/// which the count of failed runs does not show.
+pub(crate) fn report_unread(archives: &[skelid::batch::IncompleteArchive]) {
+    for note in archives.iter().filter_map(|a| a.unread_note()) {
+        eprintln!("warning: {note}");
     }
 }
 

@@ -95,6 +95,9 @@ pub struct Counts {
     /// Archives read to the end that a reading child died closing, with how: their runs
     /// stand, no failure is recorded, and the batch warns of them.
     pub damaged: std::sync::Mutex<Vec<super::DamagedArchive>>,
+    /// Archives given up before their end or never opened, each delivered as one
+    /// [`Delivery::Unreadable`], with what they counted and left unread.
+    pub incomplete: std::sync::Mutex<Vec<super::IncompleteArchive>>,
     /// What the reader did that the log should say and no delivery does (a run read again
     /// after a crash), one line each, in order.
     pub notes: std::sync::Mutex<Vec<String>>,
@@ -154,6 +157,11 @@ impl Counts {
     /// The damaged archives gathered so far ([`Counts::damaged`]), taken out.
     pub fn take_damaged(&self) -> Vec<super::DamagedArchive> {
         std::mem::take(&mut *self.damaged.lock().unwrap_or_else(|p| p.into_inner()))
+    }
+
+    /// The archives given up gathered so far ([`Counts::incomplete`]), taken out.
+    pub fn take_incomplete(&self) -> Vec<super::IncompleteArchive> {
+        std::mem::take(&mut *self.incomplete.lock().unwrap_or_else(|p| p.into_inner()))
     }
 
     /// A line for the log ([`Counts::notes`]).

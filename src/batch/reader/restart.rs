@@ -45,10 +45,11 @@ impl Reading {
     }
 
     /// Counts the archive's entries of other shards after the last frame seen, when no child
-    /// will send them (the child died at the archive's end).
-    fn count_unseen(&self, counts: &Counts) {
+    /// will send them (the child died at the archive's end); they are then seen.
+    fn count_unseen(&mut self, counts: &Counts) {
         let unseen = self.entries.saturating_sub(self.seen);
         counts.runs_in_inputs.fetch_add(unseen, Ordering::Relaxed);
+        self.seen += unseen;
     }
 
     /// How a child crashed on the run to read next, when a new child is to read it again.
@@ -155,11 +156,11 @@ pub(super) fn after_death(
     match reading {
         // Given up already (it changed between two children): nothing more to say.
         Some(r) if r.abandoned => (Vec::new(), None),
-        Some(r) if r.rest() == 0 && !stream_broke => {
-            closed_badly(counts, file, &detail, &r);
+        Some(mut r) if r.rest() == 0 && !stream_broke => {
+            closed_badly(counts, file, &detail, &mut r);
             (Vec::new(), None)
         }
-        Some(r) if r.rest() == 0 => {
+        Some(mut r) if r.rest() == 0 => {
             r.count_unseen(counts);
             let detail = format!("{detail}; its {} run(s) were dealt with", r.delivered);
             (
@@ -241,7 +242,7 @@ pub(super) fn after_death(
 /// a failed `/_unreadable/` entry and exit status 1 on a batch whose every run was
 /// identified (one archive in 400 of the fuzz batch). The other shards' runs after the last
 /// of this shard's, if their frames had not come, are counted here.
-fn closed_badly(counts: &Counts, file: &Path, detail: &str, r: &Reading) {
+fn closed_badly(counts: &Counts, file: &Path, detail: &str, r: &mut Reading) {
     r.count_unseen(counts);
     let dealt = match (r.delivered, r.deaths) {
         (0, _) => "none of its runs is this shard's".to_string(),
@@ -332,6 +333,15 @@ pub(super) fn unreadable(
         // Its runs not delivered no longer count; its failure does.
         Some(r) => t.known = (t.known + r.delivered + 1).saturating_sub(r.paths.len()),
     });
+    let incomplete = crate::batch::IncompleteArchive {
+        archive: file.display().to_string(),
+        runs_in_archive: reading.map(|r| r.entries),
+        // Every frame seen counted one run of the inputs, and so did this failure.
+        counted: reading.map_or(1, |r| r.seen + 1),
+        runs_not_read: reading.map_or(0, Reading::rest),
+        shard: None,
+    };
+    (counts.incomplete.lock().unwrap_or_else(|p| p.into_inner())).push(incomplete);
     Delivery::Unreadable {
         file: file.to_path_buf(),
         error,

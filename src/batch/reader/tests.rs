@@ -720,3 +720,89 @@ fn a_placed_run_of_a_replaced_archive_is_refused() {
         "{refused}"
     );
 }
+
+/// Every archive given up is recorded with what it counted in `runs_in_inputs` (exactly
+/// what it added there), the runs its listing announced and this shard's runs left unread,
+/// so that `skelid merge` can count shards that gave it up at different places: part-way
+/// after three deaths in a row (another shard's run seen before), never opened, and at its
+/// close when the child's stream broke.
+#[test]
+fn an_archive_given_up_is_recorded_with_its_counts() {
+    let files = [PathBuf::from("a.h5")];
+    let options = IngestOptions::default();
+    let records = |counts: &Counts| counts.take_incomplete();
+    let added = |counts: &Counts| counts.runs_in_inputs.load(Ordering::Relaxed);
+
+    // This shard's /r1-/r5 among 8 entries: another shard's run, /r1 read, then /r2, /r3
+    // and /r4 each stop a child: /r5 is left unread.
+    let counts = counts_for(1);
+    let mut a = Assembler::new(&files, &counts, &options, None);
+    a.frame(opened(0, names(5), 8), None);
+    a.frame(Frame::Skip { archive: 0 }, None);
+    a.frame(run_frame(0, "/r1"), None).unwrap();
+    let (_, mut resume) = after_death(&counts, &files[0], "crashed".into(), a.reading, None);
+    for _ in 0..2 {
+        let mut a = Assembler::new(&files, &counts, &options, resume.take());
+        a.frame(opened(0, names(5), 8), None);
+        let (_, next) = after_death(&counts, &files[0], "crashed".into(), a.reading, a.resumed);
+        resume = next;
+    }
+    assert!(resume.is_none(), "given up");
+    let [r] = &records(&counts)[..] else {
+        panic!("one record")
+    };
+    assert_eq!(
+        (
+            r.archive.as_str(),
+            r.runs_in_archive,
+            r.counted,
+            r.runs_not_read
+        ),
+        ("a.h5", Some(8), added(&counts), 1)
+    );
+    assert_eq!(r.counted, 1 + 4 + 1, "the skip, /r1-/r4, the failure");
+
+    // Never opened: it counts one, its runs unknown.
+    let counts = counts_for(1);
+    let mut a = Assembler::new(&files, &counts, &options, None);
+    let close = Frame::Close {
+        archive: 0,
+        error: Some("a.h5: not an HDF5 file".into()),
+        error_kind: Some("unreadable".into()),
+    };
+    assert!(matches!(
+        a.frame(close, None),
+        Some(Delivery::Unreadable { .. })
+    ));
+    let [r] = &records(&counts)[..] else {
+        panic!("one record")
+    };
+    assert_eq!(
+        (r.runs_in_archive, r.counted, r.runs_not_read),
+        (None, 1, 0)
+    );
+    assert_eq!(added(&counts), 1);
+
+    // Its 2 runs of 3 entries read, the stream broken at the close: every entry and the
+    // failure counted (the third entry, another shard's, not yet seen), nothing unread.
+    let counts = counts_for(1);
+    let mut a = Assembler::new(&files, &counts, &options, None);
+    a.frame(opened(0, names(2), 3), None);
+    a.frame(run_frame(0, "/r1"), None).unwrap();
+    a.frame(run_frame(0, "/r2"), None).unwrap();
+    let broke = Death {
+        detail: "the reading child's stream broke (bad frame); please report it".into(),
+        how: How::StreamBroke,
+        first_run: false,
+    };
+    let (failed, _) = after_death(&counts, &files[0], broke, a.reading, a.resumed);
+    assert_eq!(failed.len(), 1);
+    let [r] = &records(&counts)[..] else {
+        panic!("one record")
+    };
+    assert_eq!(
+        (r.runs_in_archive, r.counted, r.runs_not_read),
+        (Some(3), added(&counts), 0)
+    );
+    assert_eq!(r.counted, 3 + 1);
+}
