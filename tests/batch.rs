@@ -644,7 +644,10 @@ fn shards_merge_past_an_unreadable_archive_and_one_given_up_part_way() {
     let tmp = tempfile::tempdir().unwrap();
     let c = campaign(tmp.path());
     std::fs::write(c.join("bad.h5"), b"not an HDF5 file: a copy cut short").unwrap();
-    let files = [c.join("a.h5"), c.join("bad.h5")];
+    // Another archive of that file name, in another folder: its own failure, kept too.
+    std::fs::create_dir(c.join("other")).unwrap();
+    std::fs::write(c.join("other/bad.h5"), b"nor is this one").unwrap();
+    let files = [c.join("a.h5"), c.join("bad.h5"), c.join("other/bad.h5")];
     let batch = |out: &Path, faults: &str, shard: Option<&str>| {
         skelid()
             .arg("run")
@@ -677,7 +680,7 @@ fn shards_merge_past_an_unreadable_archive_and_one_given_up_part_way() {
             .collect()
     };
 
-    // bad.h5 alone: merged, it is the unsharded batch.
+    // The two bad.h5 alone: merged, it is the unsharded batch.
     let clean = shards("clean", "");
     let merged = tmp.path().join("merged-clean");
     let o = merge(&[&clean[0].0, &clean[1].0], &merged);
@@ -685,14 +688,24 @@ fn shards_merge_past_an_unreadable_archive_and_one_given_up_part_way() {
     assert_same_rows(&summary_rows(&whole), &summary_rows(&merged));
     assert_same_results(&results(&whole), &results(&merged));
     let manifest = manifest_of(&merged);
-    assert_eq!(manifest["runs_in_inputs"], 12);
+    assert_eq!(manifest["runs_in_inputs"], 13);
     let incomplete = manifest["incomplete_archives"].as_array().unwrap();
-    assert_eq!(incomplete.len(), 1, "{manifest}");
-    assert!(incomplete[0]["archive"]
-        .as_str()
-        .unwrap()
-        .ends_with("bad.h5"));
-    assert!(incomplete[0]["runs_in_archive"].is_null());
+    assert_eq!(incomplete.len(), 2, "{manifest}");
+    for i in incomplete {
+        assert!(i["archive"].as_str().unwrap().ends_with("bad.h5"));
+        assert!(
+            i["runs_in_archive"].is_null() && i["shard"].is_null(),
+            "{i}"
+        );
+    }
+    let failed: Vec<String> = (results(&merged).into_iter())
+        .map(|r| r.0)
+        .filter(|p| p.starts_with("/_unreadable/"))
+        .collect();
+    assert_eq!(
+        failed,
+        ["/_unreadable/bad.h5", "/_unreadable/bad.h5@bad.h5"]
+    );
 
     // The shard with at least 4 runs of a.h5: its first three stop three children in a row.
     let (k, own) = (clean.iter().enumerate())
@@ -730,7 +743,7 @@ fn shards_merge_past_an_unreadable_archive_and_one_given_up_part_way() {
     let mut kept = results(&faulty[0].0);
     kept.extend(results(&faulty[1].0));
     kept.sort_by(|a, b| a.0.cmp(&b.0));
-    kept.dedup_by(|a, b| a.0 == b.0 && a.0.starts_with("/_unreadable/"));
+    kept.dedup_by(|a, b| a.0 == b.0 && a.0.starts_with("/_unreadable/bad.h5"));
     assert_same_results(&results(&merged), &kept);
     let mut expected: Vec<String> = (results(&whole).into_iter())
         .map(|r| r.0)
@@ -743,7 +756,7 @@ fn shards_merge_past_an_unreadable_archive_and_one_given_up_part_way() {
     let manifest = manifest_of(&merged);
     assert_eq!(manifest["runs_in_inputs"], found.len());
     let incomplete = manifest["incomplete_archives"].as_array().unwrap();
-    assert_eq!(incomplete.len(), 2, "{manifest}");
+    assert_eq!(incomplete.len(), 3, "{manifest}");
     let page = std::fs::read_to_string(merged.join("report.html")).unwrap();
     assert!(
         page.contains("was given up part-way by shard"),

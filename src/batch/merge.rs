@@ -88,18 +88,21 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
     // Every shard is checked before the output folder is made: a refused merge leaves
     // nothing behind (it left the runs copied so far, 16 MB for nine campaign runs).
     let mut owner: BTreeMap<(String, String), PathBuf> = BTreeMap::new();
-    let mut entries = Vec::new();
-    let mut copies = Vec::new();
+    let mut failures = std::collections::BTreeSet::new();
+    let (mut entries, mut copies, mut runs) = (Vec::new(), Vec::new(), 0);
     for (d, m) in &manifests {
         let src = Journal::open(d)?;
         for r in &m.runs {
-            let at = (r.source.clone(), r.path.clone());
-            // An archive no child could open (or read to its end) is every such shard's
-            // failure, one run of the inputs in each: kept once.
-            if r.path.starts_with(UNREADABLE) && owner.contains_key(&at) {
-                continue;
-            }
-            if let Some(other) = owner.insert(at, d.clone()) {
+            // An archive no child could open is every shard's failure, the same error (its
+            // journal key hashes it) in each: kept once. Failures that differ (two shards'
+            // children gave it up at different runs, or two archives of one file name in
+            // different folders) are each kept, placed beside one another.
+            if r.path.starts_with(UNREADABLE) {
+                if !failures.insert(r.key.clone()) {
+                    continue;
+                }
+            } else if let Some(other) = owner.insert((r.source.clone(), r.path.clone()), d.clone())
+            {
                 return Err(bad(format!(
                     "run {} of {} is in both {} and {}",
                     r.path,
@@ -107,6 +110,8 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
                     other.display(),
                     d.display()
                 )));
+            } else {
+                runs += 1;
             }
             let e = src.lookup(&r.key).ok_or_else(|| {
                 bad(format!(
@@ -121,11 +126,11 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         }
     }
     let incomplete = incomplete_of(&manifests);
-    let expected = runs_kept(runs_listed(first), &incomplete);
-    if entries.len() != expected {
+    let expected = runs_read(first, &manifests, &incomplete);
+    if runs != expected {
         return Err(bad(format!(
-            "the shards hold {} runs but their inputs had {expected}",
-            entries.len(),
+            "the shards hold {runs} runs but their inputs list {expected} (less the runs \
+             their reading children left unread)"
         )));
     }
     let journal = Journal::open(out)?;
@@ -143,7 +148,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
     let mut manifest = Manifest::new(
         settings,
         None,
-        expected,
+        entries.len(),
         &mut entries,
         first.not_runs.clone(),
         first.settings_full.clone(),
@@ -216,10 +221,8 @@ fn incomplete_of(manifests: &[(PathBuf, Manifest)]) -> Vec<IncompleteArchive> {
     for (_, m) in manifests {
         for a in &m.incomplete_archives {
             let never_opened = a.runs_in_archive.is_none();
-            let name = base_name(&a.archive);
             if never_opened
-                && (all.iter())
-                    .any(|k| k.runs_in_archive.is_none() && base_name(&k.archive) == name)
+                && (all.iter()).any(|k| k.runs_in_archive.is_none() && k.archive == a.archive)
             {
                 continue;
             }
@@ -232,15 +235,24 @@ fn incomplete_of(manifests: &[(PathBuf, Manifest)]) -> Vec<IncompleteArchive> {
     all
 }
 
-/// The runs a merge of shards that agree on `listed` ([`runs_listed`]) holds: every run
-/// listed, less the runs each shard's children left unread in the archives they gave up,
-/// plus the one failure kept for each such archive; an archive no shard opened is its
-/// failure alone, one run in `listed` already.
-fn runs_kept(listed: usize, incomplete: &[IncompleteArchive]) -> usize {
+/// The runs (failures of whole archives aside) a merge of shards that agree on their
+/// [`runs_listed`] holds: every run listed, less those each shard's children left unread
+/// in the archives they gave up and the archives no shard could open (each listed as one).
+/// An archive never opened is in every shard's records; one opened by a shard is not a
+/// failure of them all, so the fewest any shard has is the count.
+fn runs_read(
+    first: &Manifest,
+    manifests: &[(PathBuf, Manifest)],
+    incomplete: &[IncompleteArchive],
+) -> usize {
     let unread: usize = incomplete.iter().map(|a| a.runs_not_read).sum();
-    let opened: std::collections::BTreeSet<&str> = (incomplete.iter())
-        .filter(|a| a.runs_in_archive.is_some())
-        .map(|a| base_name(&a.archive))
-        .collect();
-    (listed + opened.len()).saturating_sub(unread)
+    let never_opened = (manifests.iter())
+        .map(|(_, m)| {
+            (m.incomplete_archives.iter())
+                .filter(|a| a.runs_in_archive.is_none())
+                .count()
+        })
+        .min()
+        .unwrap_or(0);
+    runs_listed(first).saturating_sub(unread + never_opened)
 }
