@@ -740,6 +740,16 @@ fn shards_merge_past_an_unreadable_archive_and_one_given_up_part_way() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains(&said), "{err}");
+    let log = faulty[k].0.join("skelid.log");
+    assert!(
+        err.contains(&format!("entry and {})", log.display())),
+        "the shard's log named: {err}"
+    );
+    let last = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        last.contains(&format!(", {unread} run(s) left unread (see the warnings)")),
+        "{last}"
+    );
     let mut kept = results(&faulty[0].0);
     kept.extend(results(&faulty[1].0));
     kept.sort_by(|a, b| a.0.cmp(&b.0));
@@ -762,6 +772,10 @@ fn shards_merge_past_an_unreadable_archive_and_one_given_up_part_way() {
         page.contains("was given up part-way by shard"),
         "Inputs to check"
     );
+    // A merged folder is not a shard.
+    let o = merge(&[&merged], &tmp.path().join("again"));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("is a merged folder"), "{err}");
 }
 
 /// A memory budget smaller than two runs holds the second back: the runs go one at a time

@@ -1,7 +1,8 @@
 //! The Slurm recipe for real: a single-node Slurm (Debian's slurm-wlm and munge, configured
 //! in a temporary folder by scripts/slurm/local-cluster.sh) runs a 3-task job array of
 //! `skelid run --shard K/3` over the demo campaign and the merge queued after it
-//! (scripts/slurm/submit.sh); the merged results must equal an unsharded run's. Skipped,
+//! (scripts/slurm/submit.sh); the merged results must equal an unsharded run's, and stay
+//! so when one task is run again alone (`SKELID_SHARDS`) and merged again. Skipped,
 //! loudly, only where Slurm cannot start (the daemons' logs are printed).
 
 use std::path::{Path, PathBuf};
@@ -95,24 +96,27 @@ fn a_three_task_job_array_and_its_merge_equal_an_unsharded_run() {
     );
     assert!(said.contains("(3 tasks)"), "{said}");
     // Wait for the queue to empty (the merge is last).
-    let t0 = Instant::now();
-    loop {
-        let q = Command::new("squeue")
-            .arg("-h")
-            .env("SLURM_CONF", &conf)
-            .output()
-            .unwrap();
-        assert!(q.status.success(), "{}", String::from_utf8_lossy(&q.stderr));
-        if q.stdout.is_empty() {
-            break;
+    let drained = || {
+        let t0 = Instant::now();
+        loop {
+            let q = Command::new("squeue")
+                .arg("-h")
+                .env("SLURM_CONF", &conf)
+                .output()
+                .unwrap();
+            assert!(q.status.success(), "{}", String::from_utf8_lossy(&q.stderr));
+            if q.stdout.is_empty() {
+                break;
+            }
+            assert!(
+                t0.elapsed() < Duration::from_secs(600),
+                "the jobs did not finish in 10 minutes: {}",
+                String::from_utf8_lossy(&q.stdout)
+            );
+            std::thread::sleep(Duration::from_millis(500));
         }
-        assert!(
-            t0.elapsed() < Duration::from_secs(600),
-            "the jobs did not finish in 10 minutes: {}",
-            String::from_utf8_lossy(&q.stdout)
-        );
-        std::thread::sleep(Duration::from_millis(500));
-    }
+    };
+    drained();
     let logs = || -> String {
         let mut s = String::new();
         for e in std::fs::read_dir(&sharded).unwrap().flatten() {
@@ -159,5 +163,50 @@ fn a_three_task_job_array_and_its_merge_equal_an_unsharded_run() {
             );
         }
         assert_eq!(m.as_object().unwrap().len(), w.as_object().unwrap().len());
+    }
+
+    // Task 2 of 3 run again alone (as after its archive is copied again), then the merge:
+    // the task is still shard 2/3, and the merged results are unchanged.
+    let sbatch = |args: &[&std::ffi::OsStr]| {
+        let o = Command::new("sbatch")
+            .args(args)
+            .env("SLURM_CONF", &conf)
+            .env("SKELID", env!("CARGO_BIN_EXE_skelid"))
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    };
+    std::fs::remove_file(sharded.join("shard-2/manifest.json")).unwrap();
+    let log = sharded.join("again-%j.log");
+    let array = script("skelid-array.sbatch");
+    sbatch(&[
+        "--array=2".as_ref(),
+        "--export=ALL,SKELID_SHARDS=3".as_ref(),
+        "--output".as_ref(),
+        log.as_os_str(),
+        array.as_os_str(),
+        sharded.as_os_str(),
+        archive.as_os_str(),
+        "--backend".as_ref(),
+        "cpu".as_ref(),
+    ]);
+    drained();
+    let manifest: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(sharded.join("shard-2/manifest.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(manifest["shard"]["count"], 3, "{}", logs());
+    let merge = script("skelid-merge.sbatch");
+    sbatch(&[
+        "--output".as_ref(),
+        log.as_os_str(),
+        merge.as_os_str(),
+        sharded.as_os_str(),
+        "3".as_ref(),
+    ]);
+    drained();
+    assert_eq!(rows(&merged).len(), 22, "{}", logs());
+    for (m, w) in rows(&merged).iter().zip(&merged_rows) {
+        assert!(same(m, w), "{m} against {w}");
     }
 }

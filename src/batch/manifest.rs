@@ -53,9 +53,12 @@ pub struct IncompleteArchive {
     /// was never opened: its runs are not known).
     pub runs_not_read: usize,
     /// The shard whose reading child gave it up: none in an unsharded batch, nor in a
-    /// merged one for an archive that no shard could open.
+    /// merged one for an archive a shard could not open.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub shard: Option<Shard>,
+    /// In a merged manifest, that shard's log (`DIR/skelid.log`), which says why.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shard_log: Option<String>,
 }
 
 impl IncompleteArchive {
@@ -65,20 +68,20 @@ impl IncompleteArchive {
         if self.runs_not_read == 0 {
             return None;
         }
-        let (by, of, log) = match self.shard {
+        let (by, of) = match self.shard {
             Some(s) => (
                 format!(" by shard {s}'s reading child"),
                 "that shard's runs of it",
-                "that shard's skelid.log",
             ),
-            None => (String::new(), "its runs", "skelid.log"),
+            None => (String::new(), "its runs"),
         };
         Some(format!(
             "archive {} was given up part-way{by}: {} of {of} are neither identified nor \
-             failed in these results (why: /_unreadable/{} and {log})",
+             failed in these results (why: its /_unreadable/{} entry and {})",
             self.archive,
             self.runs_not_read,
             crate::journal::base_name(&self.archive).replace('/', "_"),
+            self.shard_log.as_deref().unwrap_or("skelid.log"),
         ))
     }
 }
@@ -92,7 +95,9 @@ pub struct Manifest {
     pub settings: String,
     /// The shard, when the batch was one.
     pub shard: Option<Shard>,
-    /// Runs seen in the inputs before sharding (unreadable archives count one each).
+    /// Runs seen in the inputs before sharding: an archive no child could open counts one,
+    /// one given up part-way the runs seen before and one for its failure. In a merged
+    /// folder, the runs it holds.
     pub runs_in_inputs: usize,
     /// The runs of this folder.
     pub runs: Vec<ManifestRun>,

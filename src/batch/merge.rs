@@ -1,6 +1,9 @@
 //! `skelid merge`: the output folders of a `--shard K/N` batch joined into one, refusing
-//! missing or doubled shards, runs in two shards and folders made with other settings. In:
-//! shard folders; out: one folder as an unsharded run writes it.
+//! missing or doubled shards, runs in two shards, folders made with other settings and
+//! shards whose inputs list other runs. An archive failed in several shards (none could
+//! open it) is kept once; one that a shard's reading children gave up part-way is joined
+//! with what the other shards read of it, the runs left unread counted. In: shard
+//! folders; out: one folder as an unsharded run writes it.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -11,9 +14,9 @@ use crate::report::ReportError;
 use super::*;
 
 /// Joins the output folders of the shards of one batch into `out` (drawing the first
-/// `report_runs` runs in its report.html): refuses folders made
-/// with different settings, a shard given twice or missing, a run present in two shards,
-/// or a shard whose runs are not all committed.
+/// `report_runs` runs in its report.html): refuses folders made with different settings, a
+/// shard given twice or missing, a run present in two shards, shards whose inputs list
+/// different runs ([`runs_listed`]), or a shard whose runs are not all committed.
 pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSummary, BatchError> {
     let bad = |m: String| BatchError::Merge(m);
     let mut manifests = Vec::new();
@@ -44,11 +47,18 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
                 manifests[0].0.display()
             )));
         }
+        if m.shard.is_none() && m.incomplete_archives.iter().any(|a| a.shard.is_some()) {
+            return Err(bad(format!(
+                "{} is a merged folder: merge the shards' own folders",
+                d.display()
+            )));
+        }
         if runs_listed(m) != runs_listed(first) {
             return Err(bad(format!(
-                "{} saw {} runs in its inputs, {} saw {}: the shards were not given the same \
-                 archives, an archive changed between them, or one could not open an archive \
-                 that another read (see their skelid.log){}",
+                "{} lists {} runs in its inputs, {} lists {} (each archive given up counted at \
+                 the runs its listing announced): the shards were not given the same \
+                 archives, an archive's listing differs between them, or one could not open \
+                 an archive that another read (see their skelid.log){}",
                 d.display(),
                 runs_listed(m),
                 manifests[0].0.display(),
@@ -126,11 +136,15 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         }
     }
     let incomplete = incomplete_of(&manifests);
-    let expected = runs_read(first, &manifests, &incomplete);
-    if runs != expected {
+    let (unread, never_opened) = not_read(&manifests, &incomplete);
+    let listed = runs_listed(first);
+    if runs + unread + never_opened != listed {
         return Err(bad(format!(
-            "the shards hold {runs} runs but their inputs list {expected} (less the runs \
-             their reading children left unread)"
+            "the shards hold {runs} runs (archives' failures aside), but their inputs list \
+             {listed}, of which {unread} were left unread by reading children that gave \
+             their archive up and {never_opened} are archives that no shard could open: \
+             one shard could not open an archive that another read? (see their skelid.log, \
+             and run that shard again)"
         )));
     }
     let journal = Journal::open(out)?;
@@ -214,11 +228,12 @@ fn given_up_in_one(a: &Manifest, b: &Manifest) -> String {
     }
 }
 
-/// The archives given up in any shard, each shard's record named with its shard (its runs
-/// not read are that shard's); an archive no shard could open, the same in each, once.
+/// The archives given up in any shard, each shard's record named with its shard and its
+/// log (its runs not read are that shard's); an archive a shard could not open, the same
+/// in each, once.
 fn incomplete_of(manifests: &[(PathBuf, Manifest)]) -> Vec<IncompleteArchive> {
     let mut all: Vec<IncompleteArchive> = Vec::new();
-    for (_, m) in manifests {
+    for (d, m) in manifests {
         for a in &m.incomplete_archives {
             let never_opened = a.runs_in_archive.is_none();
             if never_opened
@@ -226,8 +241,11 @@ fn incomplete_of(manifests: &[(PathBuf, Manifest)]) -> Vec<IncompleteArchive> {
             {
                 continue;
             }
+            let opened = |_: &_| !never_opened;
             all.push(IncompleteArchive {
-                shard: m.shard.filter(|_| !never_opened),
+                shard: m.shard.filter(opened),
+                shard_log: (m.shard.filter(opened))
+                    .map(|_| d.join("skelid.log").display().to_string()),
                 ..a.clone()
             });
         }
@@ -235,17 +253,12 @@ fn incomplete_of(manifests: &[(PathBuf, Manifest)]) -> Vec<IncompleteArchive> {
     all
 }
 
-/// The runs (failures of whole archives aside) a merge of shards that agree on their
-/// [`runs_listed`] holds: every run listed, less those each shard's children left unread
-/// in the archives they gave up and the archives no shard could open (each listed as one).
-/// An archive never opened is in every shard's records; one opened by a shard is not a
-/// failure of them all, so the fewest any shard has is the count.
-fn runs_read(
-    first: &Manifest,
-    manifests: &[(PathBuf, Manifest)],
-    incomplete: &[IncompleteArchive],
-) -> usize {
-    let unread: usize = incomplete.iter().map(|a| a.runs_not_read).sum();
+/// Of the runs the shards list: those left unread by reading children that gave their
+/// archive up, and the archives no shard could open (each listed as one run). An archive
+/// never opened is in every shard's records; one that some shard opened is not, so the
+/// fewest any shard has is the count.
+fn not_read(manifests: &[(PathBuf, Manifest)], incomplete: &[IncompleteArchive]) -> (usize, usize) {
+    let unread = incomplete.iter().map(|a| a.runs_not_read).sum();
     let never_opened = (manifests.iter())
         .map(|(_, m)| {
             (m.incomplete_archives.iter())
@@ -254,5 +267,72 @@ fn runs_read(
         })
         .min()
         .unwrap_or(0);
-    runs_listed(first).saturating_sub(unread + never_opened)
+    (unread, never_opened)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Shard `k` of 2's manifest: `runs_in_inputs`, and its archives given up as
+    /// (archive, runs its listing announced, counted, runs not read).
+    fn shard(
+        k: usize,
+        runs_in_inputs: usize,
+        given_up: &[(&str, Option<usize>, usize, usize)],
+    ) -> (PathBuf, Manifest) {
+        let shard = Some(Shard { index: k, count: 2 });
+        let mut m = Manifest::new("s".into(), shard, runs_in_inputs, &mut [], Vec::new(), None);
+        m.incomplete_archives = (given_up.iter())
+            .map(
+                |&(archive, runs_in_archive, counted, runs_not_read)| IncompleteArchive {
+                    archive: archive.into(),
+                    runs_in_archive,
+                    counted,
+                    runs_not_read,
+                    shard,
+                    shard_log: None,
+                },
+            )
+            .collect();
+        (PathBuf::from(format!("shard-{k}")), m)
+    }
+
+    /// Counted by hand: a.h5 (10 runs, 6 of shard 1) given up by shard 1 after 5 entries
+    /// (3 of its runs unread) and by shard 2 after 8 (1 unread); b.h5 (5 runs) read by
+    /// both; c.h5 (3 runs, 2 of shard 1's) failed at its close by shard 1's stream only;
+    /// bad.h5 opened by neither. Both shards list 19 runs; 4 are unread and 1 an archive,
+    /// so the 3 + 3 runs of a.h5, 5 of b.h5 and 3 of c.h5 read make 14.
+    #[test]
+    fn shards_that_gave_archives_up_at_different_places_list_the_same_runs() {
+        let one = shard(
+            1,
+            6 + 5 + 4 + 1,
+            &[
+                ("a.h5", Some(10), 6, 3),
+                ("c.h5", Some(3), 4, 0),
+                ("bad.h5", None, 1, 0),
+            ],
+        );
+        let two = shard(
+            2,
+            9 + 5 + 3 + 1,
+            &[("a.h5", Some(10), 9, 1), ("bad.h5", None, 1, 0)],
+        );
+        assert_eq!(runs_listed(&one.1), 10 + 5 + 3 + 1);
+        assert_eq!(runs_listed(&two.1), runs_listed(&one.1));
+        let both = [one, two];
+        let incomplete = incomplete_of(&both);
+        assert_eq!(incomplete.len(), 4, "bad.h5 once: {incomplete:?}");
+        assert_eq!(not_read(&both, &incomplete), (4, 1));
+        assert_eq!(runs_listed(&both[0].1) - 4 - 1, 3 + 3 + 5 + 3);
+        // An archive one shard opened and another could not is no archive of them all.
+        let opened = shard(2, 9 + 5 + 3 + 1, &[("a.h5", Some(10), 9, 1)]);
+        let mixed = [both[0].clone(), opened];
+        assert_eq!(not_read(&mixed, &incomplete_of(&mixed)).1, 0);
+        assert_eq!(
+            given_up_in_one(&mixed[0].1, &mixed[1].1),
+            "; given up in one of the two only: bad.h5, c.h5"
+        );
+    }
 }

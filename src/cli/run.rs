@@ -53,7 +53,7 @@ pub(crate) fn cmd_merge(a: MergeArgs) -> Result<ExitCode> {
         a.dirs.len(),
         summary.runs,
         summary.failed_runs,
-        damaged_count(&summary.damaged),
+        damaged_count(&summary.damaged) + &unread_count(&summary.incomplete),
         summary.results.display()
     );
     Ok(exit_status(&summary, strict))
@@ -301,7 +301,7 @@ pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
             0 => String::new(),
             n => format!(", {n} group(s) skipped as not runs"),
         },
-        damaged_count(&summary.damaged),
+        damaged_count(&summary.damaged) + &unread_count(&summary.incomplete),
         summary.results.display()
     );
     Ok(exit_status(&summary, a.report.strict))
@@ -367,6 +367,15 @@ pub(crate) fn report_damaged(archives: &[skelid::batch::DamagedArchive]) {
 pub(crate) fn report_unread(archives: &[skelid::batch::IncompleteArchive]) {
     for note in archives.iter().filter_map(|a| a.unread_note()) {
         eprintln!("warning: {note}");
+    }
+}
+
+/// ", N run(s) left unread (see the warnings)" for the last line, when archives given up
+/// part-way left any.
+fn unread_count(archives: &[skelid::batch::IncompleteArchive]) -> String {
+    match archives.iter().map(|a| a.runs_not_read).sum::<usize>() {
+        0 => String::new(),
+        n => format!(", {n} run(s) left unread (see the warnings)"),
     }
 }
 

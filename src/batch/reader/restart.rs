@@ -41,6 +41,8 @@ impl Reading {
         self.delivered += 1;
         self.seen += 1;
         self.skipped_since = 0;
+        // Whatever a child reading a run again had to send again came before that run.
+        self.resent = 0;
         self.last = Some(path.to_string());
     }
 
@@ -340,6 +342,7 @@ pub(super) fn unreadable(
         counted: reading.map_or(1, |r| r.seen + 1),
         runs_not_read: reading.map_or(0, Reading::rest),
         shard: None,
+        shard_log: None,
     };
     (counts.incomplete.lock().unwrap_or_else(|p| p.into_inner())).push(incomplete);
     Delivery::Unreadable {
