@@ -540,6 +540,37 @@ fn a_run_that_crashes_the_reading_child_fails_alone() {
     let said = format!("the reading child crashed on {crash} after reading other runs");
     assert_eq!(log.matches(&said).count(), 2, "once in each archive: {log}");
     assert!(log.contains(&format!("a new reading child reads {crash} again, first")));
+    // The same at an archive's opening: b.h5, opened by a child that read a.h5 before,
+    // crashes it; a new child opens b.h5 first and reads it, so every run is identified.
+    // Until 2026-12-07 b.h5 was recorded unreadable, its 11 runs lost.
+    let opening = tmp.path().join("opening");
+    let (manifest, opening_rows) = batch(&opening, "crash-opening-after-others:b.h5");
+    assert_eq!(manifest["runs"].as_array().unwrap().len(), 22);
+    assert_same_rows(&rows, &opening_rows);
+    let log = std::fs::read_to_string(opening.join("skelid.log")).unwrap();
+    assert!(
+        log.contains(
+            "b.h5: the reading child crashed opening it after reading other archives \
+             (libhdf5 crashed opening it (signal 6)); a new reading child opens it again, first"
+        ),
+        "{log}"
+    );
+    // An archive that crashes every child opening it is recorded unreadable, once, and
+    // says that a new child was stopped by it too.
+    let bad = tmp.path().join("bad");
+    let (manifest, bad_rows) = batch(&bad, "crash-opening:b.h5");
+    assert_eq!(manifest["runs"].as_array().unwrap().len(), 12);
+    let error = (bad_rows.iter())
+        .find(|r| r["run"] == "/_unreadable/b.h5")
+        .and_then(|r| r["error"].as_str())
+        .expect("b.h5 unreadable");
+    assert!(
+        error.ends_with(
+            "libhdf5 crashed opening it (signal 6) (a new reading child, opening it \
+             first after another had crashed opening it, was stopped by it too)"
+        ),
+        "{error}"
+    );
 }
 
 /// An archive that crashes the reading child as it is closed, after every run of it was

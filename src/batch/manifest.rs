@@ -141,7 +141,7 @@ impl Manifest {
         not_runs: Vec<GroupNotRun>,
         settings_full: Option<serde_json::Value>,
     ) -> Manifest {
-        entries.sort_by(|a, b| (&a.source, &a.path).cmp(&(&b.source, &b.path)));
+        entries.sort_by(order);
         Manifest {
             format: "skelid-batch/1".into(),
             settings,
@@ -162,6 +162,15 @@ impl Manifest {
                 .collect(),
         }
     }
+}
+
+/// The order of a folder's runs in every output: by archive, then path; then by key, so
+/// that two archives of one file name in different folders that could not be read (whose
+/// failures have the same name and path, `/_unreadable/bad.h5`) come in the same order
+/// whichever worker finished first, and take the same places in results.h5
+/// (`/_unreadable/bad.h5@bad.h5` beside the first) in every batch and merge.
+pub(super) fn order(a: &Entry, b: &Entry) -> std::cmp::Ordering {
+    (&a.source, &a.path, &a.key).cmp(&(&b.source, &b.path, &b.key))
 }
 
 /// Manifest file name in an output folder.

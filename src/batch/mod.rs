@@ -467,7 +467,7 @@ pub fn run_campaigns(
     let total = entries.len();
     let runs_in_inputs = counts.runs_in_inputs.load(Ordering::Relaxed);
     let (t0, cpu0) = (Instant::now(), profile::thread_cpu());
-    entries.sort_by(|(a, _), (b, _)| (&a.source, &a.path).cmp(&(&b.source, &b.path)));
+    entries.sort_by(|(a, _), (b, _)| manifest::order(a, b));
     let (mut entries, written_at): (Vec<Entry>, Vec<String>) = entries.into_iter().unzip();
     if let Err(e) = place_runs(&results, &entries, &written_at) {
         results.abandon();

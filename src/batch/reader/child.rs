@@ -178,9 +178,12 @@ pub(super) fn read_in_child(
     if done == files.len() {
         return Ok(ChildEnd::Finished);
     }
-    // Every run dealt with: it died closing the archive.
-    let closing = assemble.reading.as_ref().is_some_and(|r| r.rest() == 0);
-    let step = if closing { "closing it" } else { "reading it" };
+    // Every run dealt with: it died closing the archive; none opened: opening one.
+    let step = match &assemble.reading {
+        Some(r) if r.rest() == 0 => "closing it",
+        Some(_) => "reading it",
+        None => "opening it",
+    };
     let (detail, how) = if timed_out {
         (assemble.hang_detail(timeout), How::Hung)
     } else if let (Some(e), false) = (&broken, ended_itself) {

@@ -53,7 +53,7 @@ use assemble::Assembler;
 pub use child::BATCH_PID;
 use child::{read_in_child, ChildEnd};
 pub use frame::{Frame, Samples};
-use restart::{after_death, not_restarted, Reading};
+use restart::{after_death, not_restarted, How, Reading};
 pub use restart::{DEATHS_IN_AN_ARCHIVE, DEATHS_IN_A_ROW};
 pub use serve::{serve, serve_stdio};
 
@@ -203,6 +203,8 @@ pub fn read_all(
         let mut next = 0;
         // Where a new child takes up the archive a child died in.
         let mut resume: Option<Reading> = None;
+        // The archive a new child opens again, first, after another crashed opening it.
+        let mut reopened: Option<usize> = None;
         while next < files.len() {
             let start = resume.take();
             let end = read_in_child(
@@ -228,11 +230,30 @@ pub fn read_all(
                 }
                 ChildEnd::Died {
                     done,
-                    death,
+                    mut death,
                     reading,
                     reopening,
                 } => {
                     next += done;
+                    if reading.is_none() && reopening.is_none() && death.how == How::Crashed {
+                        // A crash opening an archive after other steps of the same child
+                        // may be theirs (libhdf5's heap corrupted by an earlier archive):
+                        // a new child opens it again, first thing, once.
+                        if !death.first_run && reopened != Some(next) {
+                            counts.note(format!(
+                                "{}: the reading child crashed opening it after reading other \
+                                 archives ({}); a new reading child opens it again, first",
+                                files[next].display(),
+                                death.detail
+                            ));
+                            reopened = Some(next);
+                            continue;
+                        }
+                        if reopened == Some(next) {
+                            death.detail += " (a new reading child, opening it first after \
+                                another had crashed opening it, was stopped by it too)";
+                        }
+                    }
                     let (failures, resume_at) =
                         after_death(counts, &files[next], death, reading, reopening);
                     for d in failures {

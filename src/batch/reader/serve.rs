@@ -143,7 +143,7 @@ pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Re
         .and_then(|v| v.trim().parse::<u64>().ok())
         .map(Duration::from_millis);
     let faults = Faults::from_env();
-    let mut runs_sent = 0;
+    let (mut runs_sent, mut closed) = (0, 0);
     serve(
         &files,
         options,
@@ -165,6 +165,14 @@ pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Re
                     if let Some(name) = files[*archive].file_name() {
                         faults.meet_closing(&name.to_string_lossy());
                     }
+                    closed += 1;
+                }
+                // Met once the archive is open, before the parent hears it: to the parent,
+                // a death while opening it.
+                Frame::Open { archive, .. } => {
+                    if let Some(name) = files[*archive].file_name() {
+                        faults.meet_opening(&name.to_string_lossy(), runs_sent + closed);
+                    }
                 }
                 _ => {}
             }
@@ -184,19 +192,24 @@ pub fn serve_stdio(options: &IngestOptions, shard: Option<Shard>) -> std::io::Re
     }
 }
 
-/// `SKELID_READ_FAULT=crash:PATH,hang:PATH,crash-after-others:PATH,crash-closing:NAME,…`:
-/// the reading child aborts, or stops answering, where it would send the run of that group
-/// path (in any archive), as when libhdf5 crashes or loops on that run's corrupt data;
-/// aborts there only when it has sent other runs before, as when an earlier run corrupted
-/// libhdf5's heap and this one is innocent; or aborts once it has closed the archive of
-/// that file name, as when libhdf5 crashes closing a damaged file. To rehearse a campaign
-/// with a bad run or file (the tests use it).
+/// `SKELID_READ_FAULT=crash:PATH,hang:PATH,crash-after-others:PATH,crash-closing:NAME,
+/// crash-opening:NAME,crash-opening-after-others:NAME`: the reading child aborts, or stops
+/// answering, where it would send the run of that group path (in any archive), as when
+/// libhdf5 crashes or loops on that run's corrupt data; aborts there only when it has sent
+/// other runs before, as when an earlier run corrupted libhdf5's heap and this one is
+/// innocent; aborts once it has closed the archive of that file name, as when libhdf5
+/// crashes closing a damaged file; or aborts once it has opened the archive of that file
+/// name (always, or only after other runs or archives, as when an earlier archive left
+/// libhdf5's heap corrupted). To rehearse a campaign with a bad run or file (the tests use
+/// it).
 #[derive(Default)]
 pub(super) struct Faults {
     crash: Vec<String>,
     hang: Vec<String>,
     crash_after_others: Vec<String>,
     crash_closing: Vec<String>,
+    crash_opening: Vec<String>,
+    crash_opening_after_others: Vec<String>,
 }
 
 impl Faults {
@@ -208,6 +221,10 @@ impl Faults {
                 Some(("crash", path)) => faults.crash.push(path.to_string()),
                 Some(("hang", path)) => faults.hang.push(path.to_string()),
                 Some(("crash-closing", name)) => faults.crash_closing.push(name.to_string()),
+                Some(("crash-opening", name)) => faults.crash_opening.push(name.to_string()),
+                Some(("crash-opening-after-others", name)) => {
+                    faults.crash_opening_after_others.push(name.to_string())
+                }
                 Some(("crash-after-others", path)) => {
                     faults.crash_after_others.push(path.to_string())
                 }
@@ -228,6 +245,16 @@ impl Faults {
             loop {
                 std::thread::sleep(Duration::from_secs(3600));
             }
+        }
+    }
+
+    /// At the opening of the archive `name`, the child having sent `steps` runs and closes
+    /// before.
+    fn meet_opening(&self, name: &str, steps: usize) {
+        if self.crash_opening.iter().any(|n| n == name)
+            || (steps > 0 && self.crash_opening_after_others.iter().any(|n| n == name))
+        {
+            crash();
         }
     }
 
