@@ -233,7 +233,7 @@ pub fn inspect_archive(
 
 /// What a reading child's end says: how it ended (exit status or signal) and the end of
 /// its stderr, which says where libhdf5 gave up when it says anything; `step`: what it was
-/// doing to the archive ("reading it", "closing it").
+/// doing to the archive ("opening it", "reading it", "closing it").
 pub fn crash_detail(status: std::process::ExitStatus, stderr: &[u8], step: &str) -> String {
     let how = match status.code() {
         Some(c) => format!("exit status {c}"),

@@ -25,6 +25,9 @@ done
 }
 mkdir -p "$out"
 out=$(cd "$out" && pwd)
+# sbatch passes this environment on: a SKELID_SHARDS left from running one task again
+# alone must not set N for the whole array.
+unset SKELID_SHARDS
 abs=()
 for a in "${archives[@]}"; do
   case "$a" in /*) abs+=("$a") ;; *) abs+=("$PWD/$a") ;; esac

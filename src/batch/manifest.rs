@@ -77,10 +77,9 @@ impl IncompleteArchive {
         };
         Some(format!(
             "archive {} was given up part-way{by}: {} of {of} are neither identified nor \
-             failed in these results (why: its /_unreadable/{} entry and {})",
+             failed in these results (why: its failure under /_unreadable/ and {})",
             self.archive,
             self.runs_not_read,
-            crate::journal::base_name(&self.archive).replace('/', "_"),
             self.shard_log.as_deref().unwrap_or("skelid.log"),
         ))
     }
@@ -115,6 +114,9 @@ pub struct Manifest {
     /// also a failed `/_unreadable/` run.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub incomplete_archives: Vec<IncompleteArchive>,
+    /// The shards a merged folder joined (`skelid merge`): such a folder is no shard.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub merged_shards: Option<usize>,
 }
 
 /// One run of a manifest.
@@ -150,6 +152,7 @@ impl Manifest {
             not_runs,
             damaged_archives: Vec::new(),
             incomplete_archives: Vec::new(),
+            merged_shards: None,
             settings_full,
             runs: entries
                 .iter()

@@ -47,9 +47,9 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
                 manifests[0].0.display()
             )));
         }
-        if m.shard.is_none() && m.incomplete_archives.iter().any(|a| a.shard.is_some()) {
+        if let Some(n) = m.merged_shards {
             return Err(bad(format!(
-                "{} is a merged folder: merge the shards' own folders",
+                "{} is a merged folder (of {n} shards): merge the shards' own folders",
                 d.display()
             )));
         }
@@ -186,6 +186,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         }
     }
     manifest.incomplete_archives = incomplete.clone();
+    manifest.merged_shards = Some(count);
     let results = journal.assemble(out, &entries, manifest.settings_full.as_ref())?;
     let (rows, failed_runs) = write_outputs(&results, out, &entries, &manifest, report_runs)?;
     Ok(BatchSummary {

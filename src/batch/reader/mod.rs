@@ -53,7 +53,7 @@ use assemble::Assembler;
 pub use child::BATCH_PID;
 use child::{read_in_child, ChildEnd};
 pub use frame::{Frame, Samples};
-use restart::{after_death, not_restarted, How, Reading};
+use restart::{after_death, not_restarted, Death, How, Reading};
 pub use restart::{DEATHS_IN_AN_ARCHIVE, DEATHS_IN_A_ROW};
 pub use serve::{serve, serve_stdio};
 
@@ -186,7 +186,8 @@ pub struct Stopped;
 /// stops early when `deliver` says so. `isolate`: the executable to run the reading child
 /// of and the time one step of it may take, opening an archive or reading a run (not
 /// counting the parent's own handling of what it sent: a placed run's read, and the time
-/// `deliver` blocks).
+/// `deliver` blocks). A child's death is followed as [`after_death`] says, and a crash
+/// opening an archive after other archives is first checked by a new child opening it.
 pub fn read_all(
     files: &[PathBuf],
     options: &IngestOptions,
@@ -203,8 +204,9 @@ pub fn read_all(
         let mut next = 0;
         // Where a new child takes up the archive a child died in.
         let mut resume: Option<Reading> = None;
-        // The archive a new child opens again, first, after another crashed opening it.
-        let mut reopened: Option<usize> = None;
+        // The archive a new child opens again, first, after another crashed opening it, and
+        // how that one crashed.
+        let mut reopened: Option<(usize, String)> = None;
         while next < files.len() {
             let start = resume.take();
             let end = read_in_child(
@@ -225,34 +227,55 @@ pub fn read_all(
                     if let Some(r) = start {
                         deliver(not_restarted(counts, &files[next], &r))?;
                         next += 1;
+                    } else if let Some((at, detail)) = reopened.take().filter(|r| r.0 == next) {
+                        // Nor the archive a child just crashed opening.
+                        counts.note(format!(
+                            "{}: no new reading child could be started to open it again",
+                            files[at].display()
+                        ));
+                        let death = Death {
+                            detail,
+                            how: How::Crashed,
+                            first_run: false,
+                        };
+                        for d in after_death(counts, &files[at], death, None, None).0 {
+                            deliver(d)?;
+                        }
+                        next += 1;
                     }
                     return read_in_process(&files[next..], options, shard, counts, deliver);
                 }
                 ChildEnd::Died {
                     done,
-                    mut death,
+                    death,
                     reading,
                     reopening,
                 } => {
                     next += done;
-                    if reading.is_none() && reopening.is_none() && death.how == How::Crashed {
-                        // A crash opening an archive after other steps of the same child
-                        // may be theirs (libhdf5's heap corrupted by an earlier archive):
-                        // a new child opens it again, first thing, once.
-                        if !death.first_run && reopened != Some(next) {
-                            counts.note(format!(
-                                "{}: the reading child crashed opening it after reading other \
-                                 archives ({}); a new reading child opens it again, first",
-                                files[next].display(),
-                                death.detail
-                            ));
-                            reopened = Some(next);
-                            continue;
-                        }
-                        if reopened == Some(next) {
-                            death.detail += " (a new reading child, opening it first after \
-                                another had crashed opening it, was stopped by it too)";
-                        }
+                    let opening = reading.is_none() && reopening.is_none();
+                    let retried = reopened.as_ref().is_some_and(|r| r.0 == next);
+                    // A crash opening an archive after other steps of the same child may be
+                    // theirs (libhdf5's heap corrupted by an earlier archive): a new child
+                    // opens it again, first thing, once. Its error is then the new child's,
+                    // the same in every shard (a shard's children meet other archives before
+                    // it): what happened before is said in the log only.
+                    if opening && death.how == How::Crashed && !death.first_run && !retried {
+                        counts.note(format!(
+                            "{}: the reading child crashed opening it after reading other \
+                             archives ({}); a new reading child opens it again, first",
+                            files[next].display(),
+                            death.detail
+                        ));
+                        reopened = Some((next, death.detail));
+                        continue;
+                    }
+                    if opening && retried {
+                        counts.note(format!(
+                            "{}: the new reading child, opening it first, was stopped by it \
+                             too ({}): it is recorded unreadable",
+                            files[next].display(),
+                            death.detail
+                        ));
                     }
                     let (failures, resume_at) =
                         after_death(counts, &files[next], death, reading, reopening);

@@ -139,7 +139,8 @@ pub const DEATHS_IN_AN_ARCHIVE: usize = 10;
 /// once it had opened the archive; `reopening`: where a child before it had died, when this
 /// one died opening the archive again) delivers, counted, and where a new child takes the
 /// archive up (`None`: at the next archive). Dying on a run fails that run alone, until
-/// [`DEATHS_IN_A_ROW`]; dying while opening the archive fails the archive; dying while
+/// [`DEATHS_IN_A_ROW`]; dying while opening the archive fails the archive (once `read_all`
+/// has had it opened again by a new child, where the crash followed other steps); dying while
 /// closing it, every run dealt with, fails nothing ([`closed_badly`]) unless it was
 /// skelid's stream that broke, which fails the archive as before.
 pub(super) fn after_death(
