@@ -632,6 +632,31 @@ fn an_archive_that_crashes_libhdf5_when_closed_loses_no_run() {
     let page = |dir: &Path| std::fs::read_to_string(dir.join("report.html")).unwrap();
     assert!(page(&faulty)
         .contains("<h2>Inputs to check</h2>\n<ul class=\"warn\">\n<li>damaged archive "));
+    // With --strict, for pipelines that stop on anything doubtful, a damaged archive gives
+    // status 1, where the same good results without it give 0.
+    let strict = |out: &Path, faults: &str| {
+        skelid()
+            .arg("run")
+            .args(&files)
+            .arg("--out")
+            .arg(out)
+            .args([
+                "--quiet",
+                "--strict",
+                "--run-glob",
+                "/demo/force_oscillator",
+            ])
+            .env("SKELID_READ_FAULT", faults)
+            .output()
+            .expect("run skelid run")
+            .status
+            .code()
+    };
+    assert_eq!(strict(&tmp.path().join("strict-clean"), ""), Some(0));
+    assert_eq!(
+        strict(&tmp.path().join("strict-damaged"), "crash-closing:a.h5"),
+        Some(1)
+    );
     assert!(!page(&clean).contains("Inputs to check"));
     assert_same_rows(&summary_rows(&clean), &summary_rows(&faulty));
     // Two shards, each reading (and closing) both archives: merged, a.h5 once.

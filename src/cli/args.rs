@@ -96,8 +96,9 @@ pub(crate) struct ReportArgs {
     /// the summary table always lists every run.
     #[arg(long, default_value_t = 100, value_name = "N")]
     pub(crate) report_runs: usize,
-    /// Exit with status 1 when any result is `suspect` too, not only when a run failed or
-    /// a result is `bad` (for pipelines that must stop on anything doubtful).
+    /// Exit with status 1 when any result is `suspect`, or an archive is damaged (its runs
+    /// read, but libhdf5 crashed closing it), too, not only when a run failed or a result
+    /// is `bad` (for pipelines that must stop on anything doubtful).
     #[arg(long)]
     pub(crate) strict: bool,
 }

@@ -60,10 +60,14 @@ pub(crate) fn cmd_merge(a: MergeArgs) -> Result<ExitCode> {
 }
 
 /// 1 when a run failed or a result is `bad` (impossible values), so that schedulers see
-/// it, else 0; suspect results are counted in the last line, and with `strict` give 1 too.
+/// it, else 0; suspect results and damaged archives (every run read, the file likely
+/// damaged) are counted in the last line, and with `strict` give 1 too.
 pub(crate) fn exit_status(summary: &skelid::batch::BatchSummary, strict: bool) -> ExitCode {
     let doubtful = |q: &str| q == "bad" || (strict && q == "suspect");
-    if summary.failed_runs > 0 || summary.rows.iter().any(|r| doubtful(&r.quality)) {
+    if summary.failed_runs > 0
+        || summary.rows.iter().any(|r| doubtful(&r.quality))
+        || (strict && !summary.damaged.is_empty())
+    {
         ExitCode::from(1)
     } else {
         ExitCode::SUCCESS
