@@ -61,6 +61,11 @@ fn manifest_of(out: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).unwrap()).unwrap()
 }
 
+/// An output folder's `skelid.log`.
+fn log_of(out: &Path) -> String {
+    std::fs::read_to_string(out.join("skelid.log")).unwrap()
+}
+
 /// `skelid merge DIRS --out OUT`, its output.
 fn merge<P: AsRef<std::ffi::OsStr>>(dirs: &[P], out: &Path) -> std::process::Output {
     skelid()
@@ -225,8 +230,23 @@ fn killed_batches_resume_to_the_uninterrupted_result() {
     assert_eq!(expected.len(), 33, "{expected:?}");
 
     let out = tmp.path().join("killed");
+    let committed_now = || {
+        std::fs::read_dir(out.join("runs"))
+            .map(|d| {
+                d.filter(|e| {
+                    e.as_ref()
+                        .is_ok_and(|e| e.path().extension().is_some_and(|x| x == "run"))
+                })
+                .count()
+            })
+            .unwrap_or(0)
+    };
     let mut committed = Vec::new();
-    for delay_ms in [700u64, 1100, 1500, 1900] {
+    // Each batch is killed once it has committed runs of its own (the first, then 8 more
+    // each time; or after 20 s): mid-batch on a machine of any speed, where fixed delays
+    // landed after the end on a fast one (a release build finished the 33 runs in 1.1 s).
+    for round in 0..4 {
+        let wanted = committed_now() + if round == 0 { 1 } else { 8 };
         let mut child = skelid()
             .arg("run")
             .arg(&inputs)
@@ -237,20 +257,17 @@ fn killed_batches_resume_to_the_uninterrupted_result() {
             .stderr(std::process::Stdio::null())
             .spawn()
             .unwrap();
-        std::thread::sleep(Duration::from_millis(delay_ms));
-        child.kill().unwrap(); // SIGKILL
+        let deadline = std::time::Instant::now() + Duration::from_secs(20);
+        while committed_now() < wanted
+            && child.try_wait().unwrap().is_none()
+            && std::time::Instant::now() < deadline
+        {
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        let _ = child.kill(); // SIGKILL (an error only where it had ended already)
         child.wait().unwrap();
         // Whatever was visible is whole: committed run files and, if present, results.h5.
-        let n = std::fs::read_dir(out.join("runs"))
-            .map(|d| {
-                d.filter(|e| {
-                    e.as_ref()
-                        .is_ok_and(|e| e.path().extension().is_some_and(|x| x == "run"))
-                })
-                .count()
-            })
-            .unwrap_or(0);
-        committed.push(n);
+        committed.push(committed_now());
         if out.join("results.h5").exists() {
             results(&out);
         }
@@ -277,7 +294,7 @@ fn killed_batches_resume_to_the_uninterrupted_result() {
     assert_same_results(&results(&out), &expected);
     // The one writer's load, logged at each batch's end: one thread's CPU time within the
     // wall time it ran.
-    let log = std::fs::read_to_string(out.join("skelid.log")).unwrap();
+    let log = log_of(&out);
     let line = log
         .lines()
         .rev()
@@ -345,7 +362,7 @@ fn progress_counts_an_archives_runs_and_warns_of_a_disk_too_small() {
         warnings[0].starts_with("warning: the disk holding "),
         "{said}"
     );
-    let log = std::fs::read_to_string(short.join("skelid.log")).unwrap();
+    let log = log_of(&short);
     assert_eq!(log.matches(warning).count(), 1, "{log}");
     // The figures from the eighth run on: the rate, and no more than the pretended room.
     let last = &progress[10]["disk"];
@@ -391,7 +408,7 @@ fn the_reading_timeout_bounds_a_step_not_a_whole_archive() {
             .output()
             .expect("run skelid run");
         let manifest = manifest_of(out);
-        let log = std::fs::read_to_string(out.join("skelid.log")).unwrap();
+        let log = log_of(out);
         (o, manifest["runs"].as_array().unwrap().clone(), log)
     };
     let slow = tmp.path().join("slow");
@@ -536,7 +553,7 @@ fn a_run_that_crashes_the_reading_child_fails_alone() {
     assert_eq!(manifest["runs_in_inputs"], 22);
     assert_same_rows(&rows, &innocent_rows);
     // Said in the log: the earlier runs of that child may deserve a look.
-    let log = std::fs::read_to_string(innocent.join("skelid.log")).unwrap();
+    let log = log_of(&innocent);
     let said = format!("the reading child crashed on {crash} after reading other runs");
     assert_eq!(log.matches(&said).count(), 2, "once in each archive: {log}");
     assert!(log.contains(&format!("a new reading child reads {crash} again, first")));
@@ -547,7 +564,7 @@ fn a_run_that_crashes_the_reading_child_fails_alone() {
     let (manifest, opening_rows) = batch(&opening, "crash-opening-after-others:b.h5");
     assert_eq!(manifest["runs"].as_array().unwrap().len(), 22);
     assert_same_rows(&rows, &opening_rows);
-    let log = std::fs::read_to_string(opening.join("skelid.log")).unwrap();
+    let log = log_of(&opening);
     assert!(
         log.contains(
             "b.h5: the reading child crashed opening it after reading other archives \
@@ -569,7 +586,7 @@ fn a_run_that_crashes_the_reading_child_fails_alone() {
         error.ends_with("truncated or corrupt HDF5 file: libhdf5 crashed opening it (signal 6)"),
         "{error}"
     );
-    let log = std::fs::read_to_string(bad.join("skelid.log")).unwrap();
+    let log = log_of(&bad);
     assert!(
         log.contains("b.h5: the new reading child, opening it first, was stopped by it too"),
         "{log}"
@@ -627,7 +644,7 @@ fn an_archive_that_crashes_libhdf5_when_closed_loses_no_run() {
     );
     assert!(said.contains("warning: damaged archive ") && said.contains("a.h5: read to the end"));
     assert!(String::from_utf8_lossy(&o.stdout).contains("1 archive(s) damaged (no run lost"));
-    let log = std::fs::read_to_string(faulty.join("skelid.log")).unwrap();
+    let log = log_of(&faulty);
     assert!(log.contains("warning: damaged archive "), "{log}");
     let page = |dir: &Path| std::fs::read_to_string(dir.join("report.html")).unwrap();
     assert!(page(&faulty)
@@ -877,7 +894,7 @@ fn a_memory_budget_holds_runs_back_and_changes_no_result() {
         said.contains("run(s) waited for memory, so at most 1 were in flight at once"),
         "{said}"
     );
-    let log = std::fs::read_to_string(held.join("skelid.log")).unwrap();
+    let log = log_of(&held);
     assert!(
         log.contains("memory: the runs in flight may take 10.0 MB together (--memory)"),
         "{log}"
