@@ -53,7 +53,7 @@ use assemble::Assembler;
 pub use child::BATCH_PID;
 use child::{read_in_child, ChildEnd};
 pub use frame::{Frame, Samples};
-use restart::{after_death, not_restarted, Death, How, Reading};
+use restart::{after_death, not_reopened, not_restarted, open_again, Reading};
 pub use restart::{DEATHS_IN_AN_ARCHIVE, DEATHS_IN_A_ROW};
 pub use serve::{serve, serve_stdio};
 
@@ -229,18 +229,7 @@ pub fn read_all(
                         next += 1;
                     } else if let Some((at, detail)) = reopened.take().filter(|r| r.0 == next) {
                         // Nor the archive a child just crashed opening.
-                        counts.note(format!(
-                            "{}: no new reading child could be started to open it again",
-                            files[at].display()
-                        ));
-                        let death = Death {
-                            detail,
-                            how: How::Crashed,
-                            first_run: false,
-                        };
-                        for d in after_death(counts, &files[at], death, None, None).0 {
-                            deliver(d)?;
-                        }
+                        deliver(not_reopened(counts, &files[at], detail))?;
                         next += 1;
                     }
                     return read_in_process(&files[next..], options, shard, counts, deliver);
@@ -254,28 +243,9 @@ pub fn read_all(
                     next += done;
                     let opening = reading.is_none() && reopening.is_none();
                     let retried = reopened.as_ref().is_some_and(|r| r.0 == next);
-                    // A crash opening an archive after other steps of the same child may be
-                    // theirs (libhdf5's heap corrupted by an earlier archive): a new child
-                    // opens it again, first thing, once. Its error is then the new child's,
-                    // the same in every shard (a shard's children meet other archives before
-                    // it): what happened before is said in the log only.
-                    if opening && death.how == How::Crashed && !death.first_run && !retried {
-                        counts.note(format!(
-                            "{}: the reading child crashed opening it after reading other \
-                             archives ({}); a new reading child opens it again, first",
-                            files[next].display(),
-                            death.detail
-                        ));
+                    if opening && open_again(counts, &files[next], &death, retried) {
                         reopened = Some((next, death.detail));
                         continue;
-                    }
-                    if opening && retried {
-                        counts.note(format!(
-                            "{}: the new reading child, opening it first, was stopped by it \
-                             too ({}): it is recorded unreadable",
-                            files[next].display(),
-                            death.detail
-                        ));
                     }
                     let (failures, resume_at) =
                         after_death(counts, &files[next], death, reading, reopening);

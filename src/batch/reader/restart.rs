@@ -277,6 +277,44 @@ pub(super) fn not_restarted(counts: &Counts, file: &Path, r: &Reading) -> Delive
     given_up(counts, file, error, Some(r))
 }
 
+/// Whether a new child is to open `file` again, first thing, after a child died opening it
+/// (`death`; `retried`: that child was itself the new one). Once, after a crash that
+/// followed other steps of the same child, which may be theirs (libhdf5's heap corrupted
+/// by an earlier archive); each noted for the log. Otherwise the archive fails as
+/// [`after_death`] says, with the last child's death as its error: after a retry, a fresh
+/// child's, the same in every shard (whose children meet other archives before it).
+pub(super) fn open_again(counts: &Counts, file: &Path, death: &Death, retried: bool) -> bool {
+    if retried {
+        counts.note(format!(
+            "{}: the new reading child, opening it first, was stopped by it too ({}): it is \
+             recorded unreadable",
+            file.display(),
+            death.detail
+        ));
+        return false;
+    }
+    if death.how != How::Crashed || death.first_run {
+        return false;
+    }
+    counts.note(format!(
+        "{}: the reading child crashed opening it after reading other archives ({}); a new \
+         reading child opens it again, first",
+        file.display(),
+        death.detail
+    ));
+    true
+}
+
+/// The archive a child crashed opening (`detail`: how), given up because no new child could
+/// be started to open it again: not read in the batch's own process either.
+pub(super) fn not_reopened(counts: &Counts, file: &Path, detail: String) -> Delivery {
+    counts.note(format!(
+        "{}: no new reading child could be started to open it again",
+        file.display()
+    ));
+    given_up(counts, file, corrupt(file, detail), None)
+}
+
 /// Why an archive was given up when a child could not open it again after a run stopped
 /// the one before (`detail`: how it failed).
 pub(super) fn reopen_failed(detail: &str, r: &Reading) -> String {

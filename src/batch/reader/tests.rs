@@ -806,3 +806,65 @@ fn an_archive_given_up_is_recorded_with_its_counts() {
     );
     assert_eq!(r.counted, 3 + 1);
 }
+
+/// A crash opening an archive is checked by a new child only where it followed other steps
+/// of the same child, and once: not on a child's first step, not after a hang, not after
+/// the retry; each retry and second death noted for the log. An archive whose retry finds
+/// no child to start fails with the first crash, counted as one run of the inputs.
+#[test]
+fn a_crash_opening_an_archive_after_others_is_checked_once() {
+    use super::restart::{not_reopened, open_again};
+    let file = Path::new("b.h5");
+    let death = |how: How, first_run: bool| Death {
+        detail: "libhdf5 crashed opening it (signal 11)".into(),
+        how,
+        first_run,
+    };
+    let counts = counts_for(1);
+    assert!(!open_again(
+        &counts,
+        file,
+        &death(How::Crashed, true),
+        false
+    ));
+    assert!(!open_again(&counts, file, &death(How::Hung, false), false));
+    assert!(counts.notes.lock().unwrap().is_empty());
+    assert!(open_again(
+        &counts,
+        file,
+        &death(How::Crashed, false),
+        false
+    ));
+    assert!(!open_again(&counts, file, &death(How::Crashed, true), true));
+    let notes = counts.notes.lock().unwrap().clone();
+    println!("{notes:#?}");
+    assert_eq!(
+        notes,
+        [
+            "b.h5: the reading child crashed opening it after reading other archives \
+             (libhdf5 crashed opening it (signal 11)); a new reading child opens it again, first",
+            "b.h5: the new reading child, opening it first, was stopped by it too (libhdf5 \
+             crashed opening it (signal 11)): it is recorded unreadable"
+        ]
+    );
+
+    let counts = counts_for(1);
+    let Delivery::Unreadable { error, .. } = not_reopened(
+        &counts,
+        file,
+        "libhdf5 crashed opening it (signal 11)".into(),
+    ) else {
+        panic!("the archive given up");
+    };
+    assert_eq!(
+        error,
+        "b.h5: truncated or corrupt HDF5 file: libhdf5 crashed opening it (signal 11)"
+    );
+    assert_eq!(counts.runs_in_inputs.load(Ordering::Relaxed), 1);
+    assert_eq!(counts.estimate(), 1);
+    let [r] = &counts.take_incomplete()[..] else {
+        panic!("one record")
+    };
+    assert_eq!((r.runs_in_archive, r.counted), (None, 1));
+    assert!(counts.notes.lock().unwrap()[0].contains("no new reading child could be started"));
+}
