@@ -46,8 +46,9 @@ pub struct ReportPage<'a> {
     pub runs: Vec<Result<DrawnRun, String>>,
     /// Runs in `rows` not drawn (beyond the `--report-runs` limit).
     pub omitted: usize,
-    /// What in the inputs wants a look, one line each: damaged archives, groups that hold
-    /// datasets but are not runs (the manifest's `damaged_archives` and `not_runs`).
+    /// What in the inputs wants a look, one line each: archives given up part-way with runs
+    /// left unread, damaged archives, groups that hold datasets but are not runs (the
+    /// manifest's `incomplete_archives`, `damaged_archives` and `not_runs`).
     pub inputs_to_check: &'a [String],
 }
 
