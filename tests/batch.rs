@@ -218,6 +218,96 @@ fn an_interrupted_batch_says_so_and_leaves_no_temporary_file() {
     }
 }
 
+/// One batch a folder: a second `skelid run` into a folder whose batch still runs (a cron
+/// job fired again, the command typed in a second terminal) is refused at once, naming the
+/// first, and changes nothing; the first ends as if alone. Until 2026-12-07 both failed
+/// ("results.h5: cannot write: No such file or directory", "runs/….run: cannot write")
+/// and the folder was left without its results.h5. A merge of that folder, or into it, is
+/// refused while it runs; once it has ended the same command works.
+#[test]
+fn a_second_batch_into_a_folder_in_use_is_refused_and_changes_nothing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let inputs = campaign(tmp.path());
+    let out = tmp.path().join("night1");
+    // 33 runs read 0.2 s apiece: about 7 s, time for the refusals below.
+    let first = skelid()
+        .arg("run")
+        .arg(&inputs)
+        .arg("--out")
+        .arg(&out)
+        .args(["--quiet", "--method", "wavelet"])
+        .env("SKELID_READ_PAUSE_MS", "200")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    wait_for_a_commit(&out);
+    let second = run(&["--method", "wavelet"], &inputs, &out);
+    let err = String::from_utf8_lossy(&second.stderr);
+    println!("{err}");
+    assert_eq!(second.status.code(), Some(2), "{err}");
+    let holder = format!(
+        "is in use by skelid's batch of pid {}, started ",
+        first.id()
+    );
+    assert!(err.contains(&holder), "{err}");
+    assert!(
+        err.contains("wait for it to end (or stop it: the command that started it then resumes its work), or give this batch another folder"),
+        "{err}"
+    );
+    // A merge of the running folder, and one into it (of a finished folder), likewise.
+    let done = tmp.path().join("done");
+    assert!(run(&["--method", "wavelet"], &inputs.join("a.h5"), &done)
+        .status
+        .success());
+    let m = merge(&[&out], &tmp.path().join("merged"));
+    let err = String::from_utf8_lossy(&m.stderr);
+    assert!(
+        m.status.code() == Some(2)
+            && err.contains(&holder)
+            && err.contains("merge once it has ended"),
+        "{err}"
+    );
+    assert!(
+        !tmp.path().join("merged").exists(),
+        "a refused merge makes nothing"
+    );
+    let m = merge(&[&done], &out);
+    let err = String::from_utf8_lossy(&m.stderr);
+    assert!(
+        m.status.code() == Some(2)
+            && err.contains(&holder)
+            && err.contains("give this merge another folder"),
+        "{err}"
+    );
+
+    let o = first.wait_with_output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        String::from_utf8_lossy(&o.stdout).contains("33 run(s), 0 failed"),
+        "{}",
+        String::from_utf8_lossy(&o.stdout)
+    );
+    assert_eq!(results(&out).len(), 33);
+    let log = log_of(&out);
+    assert_eq!(
+        log.matches(" start: ").count(),
+        1,
+        "the refused wrote nothing: {log}"
+    );
+    assert_eq!(log.matches(" merge: ").count(), 0, "{log}");
+    // Ended, the folder is free: the same command resumes (nothing to redo), and merges.
+    let again = run(&["--method", "wavelet"], &inputs, &out);
+    assert!(
+        String::from_utf8_lossy(&again.stdout).contains("33 already done earlier"),
+        "{}",
+        String::from_utf8_lossy(&again.stderr)
+    );
+    let m = merge(&[&out], &tmp.path().join("merged"));
+    assert!(m.status.success(), "{}", String::from_utf8_lossy(&m.stderr));
+    assert!(log_of(&tmp.path().join("merged")).contains(" merge: 1 shard folder(s)"));
+}
+
 #[test]
 fn killed_batches_resume_to_the_uninterrupted_result() {
     let tmp = tempfile::tempdir().unwrap();

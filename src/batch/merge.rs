@@ -21,6 +21,8 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
     let bad = |m: String| BatchError::Merge(m);
     let mut manifests = Vec::new();
     for d in dirs {
+        // A shard still running (or run again) has the last run's manifest or none.
+        lock::finished(d)?;
         let f = d.join(MANIFEST);
         let text = std::fs::read_to_string(&f).map_err(|e| {
             bad(format!(
@@ -147,6 +149,19 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
              and run that shard again)"
         )));
     }
+    let lock = lock::FolderLock::take(out, "merge")?;
+    let mut log = Log::open(out)?;
+    log.line(&format!(
+        "merge: {} shard folder(s) ({}), pid {}",
+        dirs.len(),
+        (dirs.iter().map(|d| d.display().to_string()))
+            .collect::<Vec<_>>()
+            .join(", "),
+        std::process::id()
+    ));
+    if let Some(why) = &lock.unguarded {
+        log.line(&format!("note: {why}"));
+    }
     let journal = Journal::open(out)?;
     for from in copies {
         let dst = out
@@ -189,6 +204,12 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
     manifest.merged_shards = Some(count);
     let results = journal.assemble(out, &entries, manifest.settings_full.as_ref())?;
     let (rows, failed_runs) = write_outputs(&results, out, &entries, &manifest, report_runs)?;
+    log.line(&format!(
+        "end: {} run(s), {failed_runs} failed, merged into {}",
+        entries.len(),
+        results.display()
+    ));
+    drop(lock);
     Ok(BatchSummary {
         rows,
         results,

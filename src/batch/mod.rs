@@ -17,6 +17,7 @@ use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 pub mod disk;
+mod lock;
 mod manifest;
 pub mod memory;
 mod merge;
@@ -75,6 +76,17 @@ pub enum BatchError {
         jobs: usize,
         /// The system's reason.
         detail: String,
+    },
+    /// Another process is writing the folder (a batch or merge into it, still running).
+    #[error("{} is in use by {holder}: {advice}", folder.display())]
+    InUse {
+        /// The output folder, or the shard folder a merge was given.
+        folder: PathBuf,
+        /// Who: the last start its log records ("skelid's batch of pid 4242, started 3 min
+        /// 12 s ago").
+        holder: String,
+        /// What to do.
+        advice: String,
     },
     /// The batch's reader or writer thread could not be started.
     #[error("cannot start the batch's {role} thread: {detail}")]
@@ -276,6 +288,11 @@ impl Finished {
 /// in rare moments a `.tmp` made or renamed just then may stay (the next batch removes
 /// it), and the count may miss a run committed in the same instant.
 pub fn record_interruption(out: &Path, why: &str, advice: &str) -> String {
+    if !lock::holds(out) {
+        // Before this process's batch took the folder (or after it let it go): the folder
+        // may be another batch's, whose results.h5.tmp is not ours to take away.
+        return format!("interrupted ({why}) before the batch began: nothing was changed");
+    }
     let _ = std::fs::remove_file(crate::campaign::tmp_path(&out.join("results.h5")));
     let committed = std::fs::read_dir(out.join(crate::journal::RUNS_DIR)).map_or(0, |d| {
         d.flatten()
@@ -308,20 +325,26 @@ pub fn run_campaigns(
     out: &Path,
     progress: &(dyn Fn(Progress) + Sync),
 ) -> Result<BatchSummary, BatchError> {
+    // Before anything in the folder is touched: a second batch into it is refused whole.
+    let lock = lock::FolderLock::take(out, "batch")?;
     let journal = Journal::open(out)?;
     let disk = disk::DiskWatch::start(out);
     let settings = settings_fingerprint(&opt.methods, &opt.identify);
     let mut log = Log::open(out)?;
     log.line(&format!(
-        "start: {} archive(s){}, settings {settings}{}",
+        "start: {} archive(s){}, settings {settings}{}, pid {}",
         files.len(),
         opt.shard.map_or(String::new(), |s| format!(", shard {s}")),
         if opt.force {
             format!(", {}", crate::hint::Hint::Force)
         } else {
             String::new()
-        }
+        },
+        std::process::id()
     ));
+    if let Some(why) = &lock.unguarded {
+        log.line(&format!("note: {why}"));
+    }
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let jobs = match opt.jobs {
         Some(n) => n.max(1),
