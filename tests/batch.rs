@@ -1077,7 +1077,7 @@ fn three_shards_merged_equal_one_run() {
         page.matches("<tr class=").count(),
         summary_rows(&whole).len()
     );
-    // Its runs, read back from results.h5 and drawn at the end, are drawn as the batch's
+    // Its runs, drawn from the shards' journal files at the end, are drawn as the batch's
     // workers drew them as they finished: the same text and figures, to the byte.
     let sections = |page: &str| -> Vec<String> {
         page.split("<section id=\"run-")
@@ -1096,6 +1096,42 @@ fn three_shards_merged_equal_one_run() {
         let err = String::from_utf8_lossy(&m.stderr);
         assert!(!m.status.success() && err.contains(what), "{err}");
     };
+    // The merged folder's journal files (hard links to the shards' where they can be)
+    // keep what was merged when a shard is run again: a rerun renames new files over the
+    // shard's names, never writes into them.
+    let files = |dir: &Path| -> Vec<(std::ffi::OsString, Vec<u8>)> {
+        let mut f: Vec<_> = std::fs::read_dir(dir.join("runs"))
+            .unwrap()
+            .map(|e| {
+                let e = e.unwrap();
+                (e.file_name(), std::fs::read(e.path()).unwrap())
+            })
+            .collect();
+        f.sort();
+        f
+    };
+    use std::os::unix::fs::MetadataExt;
+    let inodes = |dir: &Path| -> std::collections::BTreeSet<u64> {
+        (std::fs::read_dir(dir.join("runs")).unwrap())
+            .map(|e| e.unwrap().metadata().unwrap().ino())
+            .collect()
+    };
+    let merged_files = files(&merged);
+    assert_eq!(merged_files.len(), 33);
+    let shared = inodes(&shards[0]).intersection(&inodes(&merged)).count();
+    println!("{shared} journal files of shard 1 linked into the merged folder");
+    let rerun = run(
+        &["--method", "wavelet", "--force", "--shard", "1/3"],
+        &inputs,
+        &shards[0],
+    );
+    assert!(rerun.status.success());
+    assert_eq!(files(&merged), merged_files);
+    assert_eq!(
+        inodes(&shards[0]).intersection(&inodes(&merged)).count(),
+        0,
+        "the rerun's files are new ones, not the merged folder's rewritten"
+    );
     refuse(&[&shards[0], &shards[1]], "3/3 missing");
     refuse(&[&shards[0], &shards[1], &shards[1]], "given twice");
     refuse(&[&shards[0], &shards[1], &whole], "others are of 3");

@@ -8,7 +8,8 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use crate::journal::{base_name, Journal, RUNS_DIR};
+use crate::journal::{base_name, placements, Journal, RUNS_DIR};
+use crate::report::html;
 use crate::report::ReportError;
 
 use super::*;
@@ -168,7 +169,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
             .join(RUNS_DIR)
             .join(from.file_name().expect("a journal file has a name"));
         if !dst.exists() {
-            std::fs::copy(&from, &dst).map_err(|e| ReportError {
+            link_or_copy(&from, &dst).map_err(|e| ReportError {
                 file: dst.display().to_string(),
                 detail: e.to_string(),
             })?;
@@ -202,8 +203,22 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
     }
     manifest.incomplete_archives = incomplete.clone();
     manifest.merged_shards = Some(count);
-    let results = journal.assemble(out, &entries, manifest.settings_full.as_ref())?;
-    let (rows, failed_runs) = write_outputs(&results, out, &entries, &manifest, report_runs)?;
+    // The report's runs are drawn from their journal files on every core while results.h5
+    // is assembled: read back from results.h5 they went through libhdf5's lock one at a
+    // time (0.77 s of a 1.3 s merge of 200 campaign runs).
+    let (results, drawn) = std::thread::scope(|s| {
+        let assembling =
+            s.spawn(|| journal.assemble(out, &entries, manifest.settings_full.as_ref()));
+        let drawn = drawn_from(&journal, &entries, report_runs);
+        (assembling.join(), drawn)
+    });
+    let results = match results {
+        Ok(r) => r?,
+        Err(panic) => std::panic::resume_unwind(panic),
+    };
+    let rows = write_pages(out, &entries, &manifest, drawn)?;
+    write_manifest(out, &manifest)?;
+    let failed_runs = entries.iter().filter(|e| e.failed).count();
     log.line(&format!(
         "end: {} run(s), {failed_runs} failed, merged into {}",
         entries.len(),
@@ -221,6 +236,52 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         incomplete,
         memory_held_back: None,
     })
+}
+
+/// The runs report.html draws (the first `report_runs` of `entries`), each drawn from its
+/// journal file as the run at its group of results.h5, in parallel.
+fn drawn_from(
+    journal: &Journal,
+    entries: &[Entry],
+    report_runs: usize,
+) -> Vec<Result<DrawnRun, String>> {
+    use rayon::prelude::*;
+    let shown = &entries[..entries.len().min(report_runs)];
+    placements(shown)
+        .into_par_iter()
+        .zip(shown)
+        .map(|(group, e)| {
+            let mut plots = match journal.load(&e.key) {
+                Some((_, Stored::Encoded(run))) => html::encoded_plots(&run),
+                Some((_, Stored::Legacy(f))) => html::read_run(&f, &e.path)?,
+                None => {
+                    return Err(format!(
+                        "{}: missing or damaged",
+                        journal.file(&e.key).display()
+                    ))
+                }
+            };
+            plots.path = group;
+            Ok(DrawnRun::new(plots))
+        })
+        .collect()
+}
+
+/// A shard's journal file into the merged folder: a hard link where both are on one file
+/// system, else a copy written beside and renamed (whole or absent, as a commit is). A
+/// journal file is never changed in place (a rerun renames a new one over its name), so the
+/// link keeps what was merged whatever the shard's folder does next. The copies were most
+/// of a merge's writing: 384 MB of the 776 MB for 200 campaign runs.
+fn link_or_copy(from: &Path, dst: &Path) -> std::io::Result<()> {
+    if std::fs::hard_link(from, dst).is_ok() {
+        return Ok(());
+    }
+    let tmp = crate::campaign::tmp_path(dst);
+    let copied = std::fs::copy(from, &tmp).and_then(|_| std::fs::rename(&tmp, dst));
+    if copied.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    copied
 }
 
 /// The runs a shard's inputs would have counted had its reading child read every archive it
@@ -295,6 +356,47 @@ fn not_read(manifests: &[(PathBuf, Manifest)], incomplete: &[IncompleteArchive])
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A journal file is linked where it can be, and copied whole where it cannot (another
+    /// file system: /dev/shm's tmpfs against the temporary folder's disk), leaving no
+    /// `.tmp`; a file that cannot be read leaves nothing.
+    #[test]
+    fn journal_files_are_linked_or_copied_whole() {
+        use std::os::unix::fs::MetadataExt;
+        let tmp = tempfile::tempdir().unwrap();
+        let from = tmp.path().join("a.run");
+        std::fs::write(&from, b"skelid-journal/2 and the rest").unwrap();
+        let linked = tmp.path().join("linked.run");
+        link_or_copy(&from, &linked).unwrap();
+        let ino = |p: &Path| std::fs::metadata(p).unwrap().ino();
+        assert_eq!(ino(&linked), ino(&from));
+        let elsewhere = tempfile::tempdir_in("/dev/shm").expect("the test needs /dev/shm, a tmpfs");
+        let dev = |p: &Path| std::fs::metadata(p).unwrap().dev();
+        assert_ne!(
+            dev(elsewhere.path()),
+            dev(tmp.path()),
+            "the test needs /dev/shm on another file system than {}",
+            tmp.path().display()
+        );
+        let copied = elsewhere.path().join("a.run");
+        link_or_copy(&from, &copied).unwrap();
+        assert_eq!(
+            std::fs::read(&copied).unwrap(),
+            std::fs::read(&from).unwrap()
+        );
+        let names = |d: &Path| -> Vec<String> {
+            (std::fs::read_dir(d).unwrap())
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect()
+        };
+        assert_eq!(names(elsewhere.path()), ["a.run"]);
+        let missing = link_or_copy(
+            &tmp.path().join("gone.run"),
+            &elsewhere.path().join("b.run"),
+        );
+        assert!(missing.is_err());
+        assert_eq!(names(elsewhere.path()), ["a.run"]);
+    }
 
     /// Shard `k` of 2's manifest: `runs_in_inputs`, and its archives given up as
     /// (archive, runs its listing announced, counted, runs not read).

@@ -32,8 +32,8 @@ pub use merge::merge;
 pub use worker::guarded;
 use worker::{prepare_caught, Work};
 use writer::{
-    page_runs, place_runs, unreadable, write_finished, write_manifest, write_outputs, write_pages,
-    Drawn, Log, Written, UNREADABLE,
+    page_runs, place_runs, unreadable, write_finished, write_manifest, write_pages, Drawn, Log,
+    Written, UNREADABLE,
 };
 
 use crate::backend::Backend;

@@ -298,21 +298,6 @@ pub(super) fn place_runs(
     Ok(())
 }
 
-/// The summaries, report.html (the first `report_runs` runs read back from results.h5,
-/// which is written by then, and drawn) and the manifest of a merged folder's entries.
-pub(super) fn write_outputs(
-    results: &Path,
-    out: &Path,
-    entries: &[Entry],
-    manifest: &Manifest,
-    report_runs: usize,
-) -> Result<(Vec<SummaryRow>, usize), BatchError> {
-    let runs = page_runs(results, entries, vec![None; entries.len().min(report_runs)]);
-    let rows = write_pages(out, entries, manifest, runs)?;
-    write_manifest(out, manifest)?;
-    Ok((rows, entries.iter().filter(|e| e.failed).count()))
-}
-
 /// The runs report.html draws (the first of `entries`, as many as `held`): each held one
 /// as it is, the others read back from `results` (under libhdf5's lock) and drawn, in
 /// parallel.

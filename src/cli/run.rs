@@ -49,7 +49,7 @@ pub(crate) fn cmd_merge(a: MergeArgs) -> Result<ExitCode> {
     report_damaged(&summary.damaged);
     report_unread(&summary.incomplete);
     println!(
-        "merged {} folder(s): {} run(s), {} failed{}; wrote {}, summary.json, summary.csv, report.html, manifest.json",
+        "merged {} folder(s): {} run(s), {} failed{}; wrote {}, summary.json, summary.csv, report.html, manifest.json, skelid.log",
         a.dirs.len(),
         summary.runs,
         summary.failed_runs,
