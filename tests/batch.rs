@@ -1038,6 +1038,42 @@ fn three_shards_merged_equal_one_run() {
     assert!(sizes.iter().all(|&s| s > 0));
 
     let merged = tmp.path().join("merged");
+    // A merge stopped by a scheduler's SIGTERM part-way (its runs linked, results.h5 not
+    // yet written) says so, status 130, and the same merge then finishes it, below.
+    let stopped = skelid()
+        .arg("merge")
+        .args(&shards)
+        .arg("--out")
+        .arg(&merged)
+        .env("SKELID_MERGE_PAUSE_MS", "20000")
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    while !std::fs::read_to_string(merged.join("skelid.log")).is_ok_and(|t| t.contains(" merge: "))
+    {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the merge did not start"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    // SAFETY: kill(2) on our own child's pid, which has not been waited for.
+    assert_eq!(
+        unsafe { libc::kill(stopped.id() as libc::pid_t, libc::SIGTERM) },
+        0
+    );
+    let o = stopped.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(130), "{err}");
+    let said = "the same `skelid merge` finishes it, keeping the runs linked so far";
+    assert!(
+        err.contains("interrupted (Ctrl-C, SIGTERM or SIGHUP): ") && err.contains(said),
+        "{err}"
+    );
+    assert!(log_of(&merged).contains(said));
+    assert!(!merged.join("results.h5").exists() && !merged.join("results.h5.tmp").exists());
     let m = merge(&shards, &merged);
     assert!(m.status.success(), "{}", String::from_utf8_lossy(&m.stderr));
     assert_same_rows(&summary_rows(&merged), &summary_rows(&whole));

@@ -203,6 +203,14 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
     }
     manifest.incomplete_archives = incomplete.clone();
     manifest.merged_shards = Some(count);
+    // `SKELID_MERGE_PAUSE_MS`: a pause with the runs linked and results.h5 not yet begun,
+    // to rehearse a merge stopped part-way (the tests use it).
+    if let Some(ms) = std::env::var("SKELID_MERGE_PAUSE_MS")
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+    {
+        std::thread::sleep(std::time::Duration::from_millis(ms));
+    }
     // The report's runs are drawn from their journal files on every core while results.h5
     // is assembled: read back from results.h5 they went through libhdf5's lock one at a
     // time (0.77 s of a 1.3 s merge of 200 campaign runs).

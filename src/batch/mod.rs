@@ -280,8 +280,9 @@ impl Finished {
     }
 }
 
-/// What a batch into `out` leaves when it is stopped from outside (Ctrl-C, a scheduler's
-/// SIGTERM): its committed runs stay in `out/runs`, the unfinished `results.h5.tmp` goes,
+/// What a batch (or a merge) into `out` leaves when it is stopped from outside (Ctrl-C, a
+/// scheduler's SIGTERM): its committed runs stay in `out/runs`, the unfinished
+/// `results.h5.tmp` goes,
 /// and `skelid.log` records it with `advice` (how to go on). Returns the line said.
 /// Every commit is a rename, so no run file is left half written; the workers' writes into
 /// the removed file go nowhere. The batch's own threads keep running while this runs, so
@@ -291,7 +292,10 @@ pub fn record_interruption(out: &Path, why: &str, advice: &str) -> String {
     if !lock::holds(out) {
         // Before this process's batch took the folder (or after it let it go): the folder
         // may be another batch's, whose results.h5.tmp is not ours to take away.
-        return format!("interrupted ({why}) before the batch began: nothing was changed");
+        return format!(
+            "interrupted ({why}) before writing into {}: nothing there was changed",
+            out.display()
+        );
     }
     let _ = std::fs::remove_file(crate::campaign::tmp_path(&out.join("results.h5")));
     let committed = std::fs::read_dir(out.join(crate::journal::RUNS_DIR)).map_or(0, |d| {

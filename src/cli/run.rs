@@ -44,6 +44,10 @@ pub(crate) fn cmd_merge(a: MergeArgs) -> Result<ExitCode> {
     for d in &a.dirs {
         super::args::refuse_overwriting("--out", &a.out, true, "one of the folders merged", d)?;
     }
+    stop_cleanly_on_interrupt(
+        &a.out,
+        "the same `skelid merge` finishes it, keeping the runs linked so far",
+    );
     let summary = skelid::batch::merge(&a.dirs, &a.out, a.report.report_runs)?;
     let strict = a.report.strict;
     report_damaged(&summary.damaged);
@@ -459,10 +463,10 @@ pub(crate) fn identify_with_progress(
     Ok(summary)
 }
 
-/// On Ctrl-C, SIGTERM (a scheduler's time limit) or SIGHUP during a batch: say on the
-/// terminal and in the log how far it got and how to go on (`advice`), take away
+/// On Ctrl-C, SIGTERM (a scheduler's time limit) or SIGHUP during a batch or a merge: say
+/// on the terminal and in the log how far it got and how to go on (`advice`), take away
 /// `results.h5.tmp`, and end with status 130. Before, the process died at once: nothing
-/// said, a `.tmp` of up to the whole results left behind.
+/// said, a `.tmp` of up to the whole results left behind (a merge's until 2026-12-07).
 fn stop_cleanly_on_interrupt(out: &std::path::Path, advice: &'static str) {
     let out = out.to_path_buf();
     // A second batch in one process keeps the first's handler (none does today).
