@@ -358,6 +358,14 @@ impl Journal {
         if let Some(s) = settings {
             w.write_settings(s)?;
         }
+        // `SKELID_MERGE_PAUSE_MS`: a pause with results.h5.tmp begun, to rehearse a merge
+        // stopped part-way (the tests use it).
+        if let Some(ms) = std::env::var("SKELID_MERGE_PAUSE_MS")
+            .ok()
+            .and_then(|v| v.trim().parse::<u64>().ok())
+        {
+            std::thread::sleep(std::time::Duration::from_millis(ms));
+        }
         for (e, dst) in entries.iter().zip(placements(entries)) {
             match self.load(&e.key) {
                 Some((_, Stored::Encoded(run))) => w.write_encoded_as(&run, &dst)?,

@@ -229,6 +229,11 @@ fn a_second_batch_into_a_folder_in_use_is_refused_and_changes_nothing() {
     let tmp = tempfile::tempdir().unwrap();
     let inputs = campaign(tmp.path());
     let out = tmp.path().join("night1");
+    // A finished folder, made first: the batch below must outlast every refusal.
+    let done = tmp.path().join("done");
+    assert!(run(&["--method", "wavelet"], &inputs.join("a.h5"), &done)
+        .status
+        .success());
     // 33 runs read 0.2 s apiece: about 7 s, time for the refusals below.
     let first = skelid()
         .arg("run")
@@ -256,10 +261,6 @@ fn a_second_batch_into_a_folder_in_use_is_refused_and_changes_nothing() {
         "{err}"
     );
     // A merge of the running folder, and one into it (of a finished folder), likewise.
-    let done = tmp.path().join("done");
-    assert!(run(&["--method", "wavelet"], &inputs.join("a.h5"), &done)
-        .status
-        .success());
     let m = merge(&[&out], &tmp.path().join("merged"));
     let err = String::from_utf8_lossy(&m.stderr);
     assert!(
@@ -281,6 +282,17 @@ fn a_second_batch_into_a_folder_in_use_is_refused_and_changes_nothing() {
         "{err}"
     );
 
+    // A demo into it is refused before it writes its archive there.
+    let d = skelid().args(["demo", "--out"]).arg(&out).output().unwrap();
+    let err = String::from_utf8_lossy(&d.stderr);
+    assert!(
+        d.status.code() == Some(2)
+            && err.contains(&holder)
+            && err.contains("give this demo another folder"),
+        "{err}"
+    );
+    assert!(!out.join("demo_campaign.h5").exists());
+
     let o = first.wait_with_output().unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(
@@ -295,6 +307,7 @@ fn a_second_batch_into_a_folder_in_use_is_refused_and_changes_nothing() {
         1,
         "the refused wrote nothing: {log}"
     );
+    assert_eq!(log.matches(" lock: taken by pid ").count(), 1, "{log}");
     assert_eq!(log.matches(" merge: ").count(), 0, "{log}");
     // Ended, the folder is free: the same command resumes (nothing to redo), and merges.
     let again = run(&["--method", "wavelet"], &inputs, &out);
@@ -1038,8 +1051,9 @@ fn three_shards_merged_equal_one_run() {
     assert!(sizes.iter().all(|&s| s > 0));
 
     let merged = tmp.path().join("merged");
-    // A merge stopped by a scheduler's SIGTERM part-way (its runs linked, results.h5 not
-    // yet written) says so, status 130, and the same merge then finishes it, below.
+    // A merge stopped by a scheduler's SIGTERM part-way (its runs linked, results.h5.tmp
+    // begun) says so, status 130, removes the .tmp, and the same merge then finishes it,
+    // below.
     let stopped = skelid()
         .arg("merge")
         .args(&shards)
@@ -1050,15 +1064,13 @@ fn three_shards_merged_equal_one_run() {
         .spawn()
         .unwrap();
     let deadline = std::time::Instant::now() + Duration::from_secs(60);
-    while !std::fs::read_to_string(merged.join("skelid.log")).is_ok_and(|t| t.contains(" merge: "))
-    {
+    while !merged.join("results.h5.tmp").exists() {
         assert!(
             std::time::Instant::now() < deadline,
-            "the merge did not start"
+            "the merge did not begin results.h5"
         );
         std::thread::sleep(Duration::from_millis(20));
     }
-    std::thread::sleep(Duration::from_millis(300));
     // SAFETY: kill(2) on our own child's pid, which has not been waited for.
     assert_eq!(
         unsafe { libc::kill(stopped.id() as libc::pid_t, libc::SIGTERM) },
@@ -1156,6 +1168,7 @@ fn three_shards_merged_equal_one_run() {
     assert_eq!(merged_files.len(), 33);
     let shared = inodes(&shards[0]).intersection(&inodes(&merged)).count();
     println!("{shared} journal files of shard 1 linked into the merged folder");
+    assert!(shared > 0, "one file system holds both: linked, not copied");
     let rerun = run(
         &["--method", "wavelet", "--force", "--shard", "1/3"],
         &inputs,

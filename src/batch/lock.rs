@@ -8,7 +8,7 @@
 //! the folder holds no new file.
 
 use std::fs::{File, OpenOptions, TryLockError};
-use std::io::{Read, Seek, SeekFrom};
+use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
@@ -22,25 +22,37 @@ const LOG: &str = "skelid.log";
 static HELD: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
 
 /// The lock of an output folder, held until dropped.
-pub(super) struct FolderLock {
-    _file: File,
+pub struct FolderLock {
+    /// The log, locked; `None` in a lock taken again by the process that holds it.
+    file: Option<File>,
     folder: PathBuf,
-    /// Why the folder could not be locked, where its file system offers no locks (some NFS
-    /// mounts): the work goes on, unguarded, and the log says so.
-    pub(super) unguarded: Option<String>,
+    /// Why the folder could not be locked, where its file system refuses locks (Lustre
+    /// mounted without `flock`, some NFS): the work goes on, unguarded.
+    pub unguarded: Option<String>,
 }
 
 impl FolderLock {
-    /// Takes `out`'s lock, making the folder: refused ([`BatchError::InUse`]) while another
-    /// process holds it. `what` names the work for the refusal ("batch", "merge").
-    pub(super) fn take(out: &Path, what: &str) -> Result<FolderLock, BatchError> {
+    /// Takes `out`'s lock, making the folder, and records in its log who took it: refused
+    /// ([`BatchError::InUse`]) while another process holds it. `what` names the work for
+    /// the log and the refusal ("batch", "merge", "demo"). Taken again by the process that
+    /// holds it (the command line takes it before its own first write, the batch again),
+    /// it is granted at once and lets go of nothing when dropped.
+    pub fn take(out: &Path, what: &str) -> Result<FolderLock, BatchError> {
+        let folder = std::path::absolute(out).unwrap_or_else(|_| out.to_path_buf());
+        if holds(out) {
+            return Ok(FolderLock {
+                file: None,
+                folder,
+                unguarded: None,
+            });
+        }
         let report = |file: &Path, e: std::io::Error| ReportError {
             file: file.display().to_string(),
             detail: e.to_string(),
         };
         std::fs::create_dir_all(out).map_err(|e| report(out, e))?;
         let path = out.join(LOG);
-        let file = OpenOptions::new()
+        let mut file = OpenOptions::new()
             .create(true)
             .append(true)
             .read(true)
@@ -64,10 +76,16 @@ impl FolderLock {
                 path.display()
             )),
         };
-        let folder = std::path::absolute(out).unwrap_or_else(|_| out.to_path_buf());
+        // At once, so that a refusal names this process, not the folder's last batch.
+        let _ = writeln!(
+            file,
+            "{:.3} {TAKEN}{} for a {what}",
+            now_s(),
+            std::process::id()
+        );
         held().push(folder.clone());
         Ok(FolderLock {
-            _file: file,
+            file: Some(file),
             folder,
             unguarded,
         })
@@ -76,12 +94,18 @@ impl FolderLock {
 
 impl Drop for FolderLock {
     fn drop(&mut self) {
+        if self.file.is_none() {
+            return;
+        }
         let mut held = held();
         if let Some(i) = held.iter().position(|f| *f == self.folder) {
             held.swap_remove(i);
         }
     }
 }
+
+/// How the log records a lock taken: "lock: taken by pid 4242 for a batch".
+const TAKEN: &str = "lock: taken by pid ";
 
 fn held() -> std::sync::MutexGuard<'static, Vec<PathBuf>> {
     HELD.lock().unwrap_or_else(|p| p.into_inner())
@@ -111,13 +135,13 @@ pub(super) fn finished(dir: &Path) -> Result<(), BatchError> {
     }
 }
 
-/// Who holds a folder's lock, from the last start its log records: "skelid's batch of pid
-/// 4242, started 3 min 12 s ago", or less where the log says less.
+/// Who holds a folder's lock, from the last lock its log records taken: "skelid's batch of
+/// pid 4242, started 3 min 12 s ago", or "another skelid process" where it says none.
 fn holder(log: &File) -> String {
     let mut tail = String::new();
     let mut log = log;
     let len = log.metadata().map_or(0, |m| m.len());
-    // The last start is near the end: the lines after it are the runs of one batch.
+    // The last lock taken is near the end: the lines after it are one batch's.
     let from = len.saturating_sub(1 << 20);
     if log.seek(SeekFrom::Start(from)).is_ok() {
         let _ = log.take(1 << 20).read_to_string(&mut tail);
@@ -131,29 +155,19 @@ fn now_s() -> f64 {
         .map_or(0.0, |d| d.as_secs_f64())
 }
 
-/// [`holder`]'s words from a log's text and the time now (Unix seconds).
+/// [`holder`]'s words from a log's text and the time now (Unix seconds): the last lock
+/// it records taken.
 fn describe(log: &str, now: f64) -> String {
-    let start = log.lines().rev().find_map(|l| {
+    let taken = log.lines().rev().find_map(|l| {
         let (t, text) = l.split_once(' ')?;
-        let what = if text.starts_with("start: ") {
-            "batch"
-        } else if text.starts_with("merge: ") {
-            "merge"
-        } else {
-            return None;
-        };
-        Some((t.parse::<f64>().ok()?, what, text))
+        let (pid, what) = text.strip_prefix(TAKEN)?.split_once(" for a ")?;
+        Some((t.parse::<f64>().ok()?, pid, what))
     });
-    let Some((t, what, text)) = start else {
+    let Some((t, pid, what)) = taken else {
         return "another skelid process".into();
     };
-    let pid = text
-        .rsplit_once("pid ")
-        .and_then(|(_, p)| p.split(|c: char| !c.is_ascii_digit()).next())
-        .filter(|p| !p.is_empty())
-        .map_or(String::new(), |p| format!(" of pid {p}"));
     format!(
-        "skelid's {what}{pid}, started {} ago",
+        "skelid's {what} of pid {pid}, started {} ago",
         duration((now - t).max(0.0))
     )
 }
@@ -172,25 +186,23 @@ fn duration(s: f64) -> String {
 mod tests {
     use super::*;
 
-    /// A second lock on a held folder is refused with the holder's start, its pid and the
-    /// time since, and granted once the first is dropped; a shard's folder reads as
-    /// finished only then. (flock conflicts between two opens in one process as between
-    /// two processes; tests/batch.rs has two processes.)
+    /// A folder another holder has locked (a second open of its log stands in for another
+    /// process: flock conflicts between two opens as between two processes; tests/batch.rs
+    /// has two processes) is refused, naming that holder from the log, and reads as not
+    /// finished; once let go it is taken, the taker recorded in the log, taken again at once
+    /// by the same process, and held until the first lock is dropped.
     #[test]
     fn a_held_folder_is_refused_naming_its_holder_until_let_go() {
         let tmp = tempfile::tempdir().unwrap();
         let out = tmp.path().join("night1");
-        let first = FolderLock::take(&out, "batch").unwrap();
-        assert!(first.unguarded.is_none(), "{:?}", first.unguarded);
-        assert!(holds(&out));
+        std::fs::create_dir_all(&out).unwrap();
         std::fs::write(
             out.join(LOG),
-            format!(
-                "100.000 start: 1 archive(s), settings x, pid 4242\n{:.3} done /a\n",
-                now_s()
-            ),
+            format!("100.000 {TAKEN}4242 for a batch\n{:.3} done /a\n", now_s()),
         )
         .unwrap();
+        let other = File::open(out.join(LOG)).unwrap();
+        other.try_lock().unwrap();
         let refused = FolderLock::take(&out, "batch").err().expect("refused");
         let said = refused.to_string();
         println!("{said}");
@@ -203,34 +215,51 @@ mod tests {
             said.ends_with("or give this batch another folder"),
             "{said}"
         );
+        assert!(!holds(&out));
         assert!(matches!(finished(&out), Err(BatchError::InUse { .. })));
+        drop(other);
+        finished(&out).unwrap();
+
+        let first = FolderLock::take(&out, "demo").unwrap();
+        assert!(first.unguarded.is_none(), "{:?}", first.unguarded);
+        assert!(holds(&out));
+        let log = std::fs::read_to_string(out.join(LOG)).unwrap();
+        let mine = format!("{TAKEN}{} for a demo", std::process::id());
+        assert!(log.lines().last().unwrap().ends_with(&mine), "{log}");
+        let again = FolderLock::take(&out, "batch").unwrap();
+        assert!(again.file.is_none());
+        drop(again);
+        assert!(holds(&out), "the inner lock lets go of nothing");
+        let blocked = File::open(out.join(LOG)).unwrap();
+        assert!(blocked.try_lock_shared().is_err(), "still locked");
         drop(first);
         assert!(!holds(&out));
         finished(&out).unwrap();
-        let again = FolderLock::take(&out, "merge").unwrap();
-        assert!(holds(&out));
-        drop(again);
         // A folder no batch ever wrote.
         finished(&tmp.path().join("nothing")).unwrap();
     }
 
     #[test]
-    fn the_holder_is_described_from_the_last_start_in_its_log() {
-        let log = "10.000 start: 2 archive(s), settings a, pid 7\n\
-                   20.000 done /r1\n\
-                   30.000 merge: 2 shard folder(s), pid 99\n\
-                   31.500 copied\n";
+    fn the_holder_is_described_from_the_last_lock_taken_in_its_log() {
+        let log = format!(
+            "10.000 {TAKEN}7 for a batch\n\
+             10.100 start: 2 archive(s), settings a\n\
+             20.000 done /r1\n\
+             30.000 {TAKEN}99 for a merge\n\
+             30.010 merge: 2 shard folder(s)\n\
+             31.500 end\n"
+        );
         assert_eq!(
-            describe(log, 30.0 + 192.4),
+            describe(&log, 30.0 + 192.4),
             "skelid's merge of pid 99, started 3 min 12 s ago"
         );
         assert_eq!(
-            describe("10.000 start: 1 archive(s), settings a\n", 55.0),
-            "skelid's batch, started 45 s ago"
+            describe(&format!("10.000 {TAKEN}7 for a batch\n"), 55.0),
+            "skelid's batch of pid 7, started 45 s ago"
         );
         assert_eq!(describe("", 1.0), "another skelid process");
         assert_eq!(
-            describe("garbage\nno time here\n", 1.0),
+            describe("10.000 start: 1 archive(s)\nno time here\n", 1.0),
             "another skelid process"
         );
         assert_eq!(duration(7265.0), "2 h 01 min");

@@ -17,7 +17,8 @@ use super::*;
 /// Joins the output folders of the shards of one batch into `out` (drawing the first
 /// `report_runs` runs in its report.html): refuses folders made with different settings, a
 /// shard given twice or missing, a run present in two shards, shards whose inputs list
-/// different runs ([`runs_listed`]), or a shard whose runs are not all committed.
+/// different runs ([`runs_listed`]), a shard whose runs are not all committed, a shard
+/// whose batch still runs, or an `out` another process is writing ([`FolderLock`]).
 pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSummary, BatchError> {
     let bad = |m: String| BatchError::Merge(m);
     let mut manifests = Vec::new();
@@ -153,12 +154,11 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
     let lock = lock::FolderLock::take(out, "merge")?;
     let mut log = Log::open(out)?;
     log.line(&format!(
-        "merge: {} shard folder(s) ({}), pid {}",
+        "merge: {} shard folder(s) ({})",
         dirs.len(),
         (dirs.iter().map(|d| d.display().to_string()))
             .collect::<Vec<_>>()
-            .join(", "),
-        std::process::id()
+            .join(", ")
     ));
     if let Some(why) = &lock.unguarded {
         log.line(&format!("note: {why}"));
@@ -203,14 +203,6 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
     }
     manifest.incomplete_archives = incomplete.clone();
     manifest.merged_shards = Some(count);
-    // `SKELID_MERGE_PAUSE_MS`: a pause with the runs linked and results.h5 not yet begun,
-    // to rehearse a merge stopped part-way (the tests use it).
-    if let Some(ms) = std::env::var("SKELID_MERGE_PAUSE_MS")
-        .ok()
-        .and_then(|v| v.trim().parse::<u64>().ok())
-    {
-        std::thread::sleep(std::time::Duration::from_millis(ms));
-    }
     // The report's runs are drawn from their journal files on every core while results.h5
     // is assembled: read back from results.h5 they went through libhdf5's lock one at a
     // time (0.77 s of a 1.3 s merge of 200 campaign runs).
@@ -232,8 +224,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         entries.len(),
         results.display()
     ));
-    drop(lock);
-    Ok(BatchSummary {
+    let summary = BatchSummary {
         rows,
         results,
         failed_runs,
@@ -243,7 +234,11 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
         damaged: manifest.damaged_archives.clone(),
         incomplete,
         memory_held_back: None,
-    })
+        unguarded: lock.unguarded.clone(),
+    };
+    // Let go with everything written.
+    drop(lock);
+    Ok(summary)
 }
 
 /// The runs report.html draws (the first `report_runs` of `entries`), each drawn from its

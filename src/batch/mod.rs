@@ -25,6 +25,7 @@ pub mod reader;
 mod worker;
 mod writer;
 
+pub use lock::FolderLock;
 pub use manifest::{
     DamagedArchive, GroupNotRun, IncompleteArchive, Manifest, ManifestRun, MANIFEST,
 };
@@ -250,6 +251,9 @@ pub struct BatchSummary {
     /// Where the memory budget held runs back, what it did (the batch then ran fewer runs
     /// at once than `--jobs`).
     pub memory_held_back: Option<memory::Usage>,
+    /// Why the output folder could not be locked, where its file system refuses locks
+    /// ([`FolderLock::unguarded`]; `None` where the caller had locked it already).
+    pub unguarded: Option<String>,
 }
 
 /// Where a worker put a run's data in results.h5: `Ok(None)` where it put none (no placer,
@@ -281,10 +285,10 @@ impl Finished {
 }
 
 /// What a batch (or a merge) into `out` leaves when it is stopped from outside (Ctrl-C, a
-/// scheduler's SIGTERM): its committed runs stay in `out/runs`, the unfinished
-/// `results.h5.tmp` goes,
-/// and `skelid.log` records it with `advice` (how to go on). Returns the line said.
-/// Every commit is a rename, so no run file is left half written; the workers' writes into
+/// scheduler's SIGTERM): its committed (or, merging, linked) runs stay in `out/runs`, the
+/// unfinished `results.h5.tmp` goes, and `skelid.log` records it with `advice` (how to go
+/// on); nothing, where this process does not hold the folder ([`FolderLock`]). Returns
+/// the line said. Every commit is a rename, so no run file is left half written; the workers' writes into
 /// the removed file go nowhere. The batch's own threads keep running while this runs, so
 /// in rare moments a `.tmp` made or renamed just then may stay (the next batch removes
 /// it), and the count may miss a run committed in the same instant.
@@ -293,7 +297,8 @@ pub fn record_interruption(out: &Path, why: &str, advice: &str) -> String {
         // Before this process's batch took the folder (or after it let it go): the folder
         // may be another batch's, whose results.h5.tmp is not ours to take away.
         return format!(
-            "interrupted ({why}) before writing into {}: nothing there was changed",
+            "interrupted ({why}) while this process was not writing {}: nothing there was \
+             removed",
             out.display()
         );
     }
@@ -336,15 +341,14 @@ pub fn run_campaigns(
     let settings = settings_fingerprint(&opt.methods, &opt.identify);
     let mut log = Log::open(out)?;
     log.line(&format!(
-        "start: {} archive(s){}, settings {settings}{}, pid {}",
+        "start: {} archive(s){}, settings {settings}{}",
         files.len(),
         opt.shard.map_or(String::new(), |s| format!(", shard {s}")),
         if opt.force {
             format!(", {}", crate::hint::Hint::Force)
         } else {
             String::new()
-        },
-        std::process::id()
+        }
     ));
     if let Some(why) = &lock.unguarded {
         log.line(&format!("note: {why}"));
@@ -578,6 +582,7 @@ pub fn run_campaigns(
         damaged,
         incomplete: manifest.incomplete_archives.clone(),
         memory_held_back,
+        unguarded: lock.unguarded.clone(),
     })
 }
 

@@ -49,6 +49,9 @@ pub(crate) fn cmd_merge(a: MergeArgs) -> Result<ExitCode> {
         "the same `skelid merge` finishes it, keeping the runs linked so far",
     );
     let summary = skelid::batch::merge(&a.dirs, &a.out, a.report.report_runs)?;
+    if let Some(why) = &summary.unguarded {
+        eprintln!("note: {why}");
+    }
     let strict = a.report.strict;
     report_damaged(&summary.damaged);
     report_unread(&summary.incomplete);
@@ -61,6 +64,16 @@ pub(crate) fn cmd_merge(a: MergeArgs) -> Result<ExitCode> {
         summary.results.display()
     );
     Ok(exit_status(&summary, strict))
+}
+
+/// Takes `out` for this command (see [`skelid::batch::FolderLock`]), saying on stderr where
+/// its file system cannot lock it.
+fn take_folder(out: &std::path::Path, what: &str) -> Result<skelid::batch::FolderLock> {
+    let lock = skelid::batch::FolderLock::take(out, what)?;
+    if let Some(why) = &lock.unguarded {
+        eprintln!("note: {why}");
+    }
+    Ok(lock)
 }
 
 /// 1 when a run failed or a result is `bad` (impossible values), so that schedulers see
@@ -151,6 +164,9 @@ pub(crate) struct RunArgs {
 
 pub(crate) fn cmd_demo(a: DemoArgs) -> Result<ExitCode> {
     super::args::refuse_file_as_folder("--out", &a.out)?;
+    // Before the archive is written: a second demo into the folder would replace it under
+    // the first one's batch.
+    let _lock = take_folder(&a.out, "demo")?;
     let cases = demo::cases();
     let bar = indicatif::ProgressBar::new(cases.len() as u64).with_style(
         indicatif::ProgressStyle::with_template(
@@ -249,6 +265,8 @@ pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
             f.display()
         );
     }
+    // Before the backend is opened (up to 2 s for a GPU): a batch refused says so at once.
+    let _lock = take_folder(&a.out, "batch")?;
     let options = a
         .identify
         .options("run", a.refine.then_some(a.refine_evaluations))?;
