@@ -265,8 +265,6 @@ pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
             f.display()
         );
     }
-    // Before the backend is opened (up to 2 s for a GPU): a batch refused says so at once.
-    let _lock = take_folder(&a.out, "batch")?;
     let options = a
         .identify
         .options("run", a.refine.then_some(a.refine_evaluations))?;
@@ -277,6 +275,9 @@ pub(crate) fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         .transpose()
         .map_err(anyhow::Error::msg)?;
     let reader = super::internal::reader_command(&ingest, shard)?;
+    // After the arguments are checked (a mistyped option makes no folder), before the
+    // backend is opened (up to 2 s for a GPU): a batch refused says so at once.
+    let _lock = take_folder(&a.out, "batch")?;
     let backend = a.backend.open()?;
     let batch = skelid::batch::BatchOptions {
         methods: a.method.methods(),
