@@ -83,8 +83,8 @@ pub enum BatchError {
     InUse {
         /// The output folder, or the shard folder a merge was given.
         folder: PathBuf,
-        /// Who: the last start its log records ("skelid's batch of pid 4242, started 3 min
-        /// 12 s ago").
+        /// Who: the last lock its log records taken ("skelid's batch of pid 4242, started
+        /// 3 min 12 s ago").
         holder: String,
         /// What to do.
         advice: String,
@@ -288,10 +288,10 @@ impl Finished {
 /// scheduler's SIGTERM): its committed (or, merging, linked) runs stay in `out/runs`, the
 /// unfinished `results.h5.tmp` goes, and `skelid.log` records it with `advice` (how to go
 /// on); nothing, where this process does not hold the folder ([`FolderLock`]). Returns
-/// the line said. Every commit is a rename, so no run file is left half written; the workers' writes into
-/// the removed file go nowhere. The batch's own threads keep running while this runs, so
-/// in rare moments a `.tmp` made or renamed just then may stay (the next batch removes
-/// it), and the count may miss a run committed in the same instant.
+/// the line said. Every commit is a rename, so no run file is left half written; the
+/// workers' writes into the removed file go nowhere. The batch's own threads keep running
+/// while this runs, so in rare moments a `.tmp` made or renamed just then may stay (the
+/// next batch removes it), and the count may miss a run committed in the same instant.
 pub fn record_interruption(out: &Path, why: &str, advice: &str) -> String {
     if !lock::holds(out) {
         // Before this process's batch took the folder (or after it let it go): the folder
