@@ -18,8 +18,10 @@ use crate::report::ReportError;
 /// The file whose lock is the folder's: the batch's log.
 const LOG: &str = "skelid.log";
 
-/// The folders this process holds, so that an interruption changes only its own folder.
-static HELD: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+/// The folders this process holds, each with why it is unguarded (if it is): an
+/// interruption changes only its own folders, and a lock taken again says what the first
+/// said.
+static HELD: Mutex<Vec<(PathBuf, Option<String>)>> = Mutex::new(Vec::new());
 
 /// The lock of an output folder, held until dropped.
 pub struct FolderLock {
@@ -36,14 +38,14 @@ impl FolderLock {
     /// ([`BatchError::InUse`]) while another process holds it. `what` names the work for
     /// the log and the refusal ("batch", "merge", "demo"). Taken again by the process that
     /// holds it (the command line takes it before its own first write, the batch again),
-    /// it is granted at once and lets go of nothing when dropped.
+    /// it is granted at once, unguarded as the first, and lets go of nothing when dropped.
     pub fn take(out: &Path, what: &str) -> Result<FolderLock, BatchError> {
         let folder = std::path::absolute(out).unwrap_or_else(|_| out.to_path_buf());
-        if holds(out) {
+        if let Some((_, unguarded)) = held().iter().find(|(f, _)| *f == folder) {
             return Ok(FolderLock {
                 file: None,
                 folder,
-                unguarded: None,
+                unguarded: unguarded.clone(),
             });
         }
         let report = |file: &Path, e: std::io::Error| ReportError {
@@ -83,7 +85,7 @@ impl FolderLock {
             now_s(),
             std::process::id()
         );
-        held().push(folder.clone());
+        held().push((folder.clone(), unguarded.clone()));
         Ok(FolderLock {
             file: Some(file),
             folder,
@@ -98,7 +100,7 @@ impl Drop for FolderLock {
             return;
         }
         let mut held = held();
-        if let Some(i) = held.iter().position(|f| *f == self.folder) {
+        if let Some(i) = held.iter().position(|(f, _)| *f == self.folder) {
             held.swap_remove(i);
         }
     }
@@ -107,14 +109,14 @@ impl Drop for FolderLock {
 /// How the log records a lock taken: "lock: taken by pid 4242 for a batch".
 const TAKEN: &str = "lock: taken by pid ";
 
-fn held() -> std::sync::MutexGuard<'static, Vec<PathBuf>> {
+fn held() -> std::sync::MutexGuard<'static, Vec<(PathBuf, Option<String>)>> {
     HELD.lock().unwrap_or_else(|p| p.into_inner())
 }
 
 /// Whether this process holds `out`'s lock (a batch or merge of its own is writing it).
 pub(super) fn holds(out: &Path) -> bool {
     let folder = std::path::absolute(out).unwrap_or_else(|_| out.to_path_buf());
-    held().contains(&folder)
+    held().iter().any(|(f, _)| *f == folder)
 }
 
 /// Refuses `dir` as an input while a batch is still writing it (a shard not yet finished,
@@ -237,6 +239,17 @@ mod tests {
         finished(&out).unwrap();
         // A folder no batch ever wrote.
         finished(&tmp.path().join("nothing")).unwrap();
+        // A folder this process holds unguarded (its file system refused the lock): taken
+        // again, for the batch inside the command, it says so again, for the batch's log.
+        let bare = std::path::absolute(tmp.path().join("bare")).unwrap();
+        held().push((bare.clone(), Some("no locks here".into())));
+        let inner = FolderLock::take(&bare, "batch").unwrap();
+        assert_eq!(inner.unguarded.as_deref(), Some("no locks here"));
+        assert!(
+            inner.file.is_none() && !bare.exists(),
+            "nothing made or opened"
+        );
+        held().retain(|(f, _)| *f != bare);
     }
 
     #[test]

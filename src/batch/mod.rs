@@ -252,7 +252,7 @@ pub struct BatchSummary {
     /// at once than `--jobs`).
     pub memory_held_back: Option<memory::Usage>,
     /// Why the output folder could not be locked, where its file system refuses locks
-    /// ([`FolderLock::unguarded`]; `None` where the caller had locked it already).
+    /// ([`FolderLock::unguarded`], the same where the caller had taken the folder first).
     pub unguarded: Option<String>,
 }
 
