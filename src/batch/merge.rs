@@ -8,8 +8,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use crate::journal::{base_name, placements, Journal, RUNS_DIR};
-use crate::report::html;
+use crate::journal::{base_name, Journal, RUNS_DIR};
 use crate::report::ReportError;
 
 use super::*;
@@ -204,13 +203,15 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
     manifest.incomplete_archives = incomplete.clone();
     manifest.merged_shards = Some(count);
     // The report's runs are drawn from their journal files on every core while results.h5
-    // is assembled: read back from results.h5 they went through libhdf5's lock one at a
-    // time (0.77 s of a 1.3 s merge of 200 campaign runs).
+    // is assembled.
     let (results, drawn) = std::thread::scope(|s| {
         let assembling =
             s.spawn(|| journal.assemble(out, &entries, manifest.settings_full.as_ref()));
-        let drawn = drawn_from(&journal, &entries, report_runs);
-        (assembling.join(), drawn)
+        let shown = entries.len().min(report_runs);
+        (
+            assembling.join(),
+            page_runs(&journal, &entries, vec![None; shown]),
+        )
     });
     let results = match results {
         Ok(r) => r?,
@@ -239,35 +240,6 @@ pub fn merge(dirs: &[PathBuf], out: &Path, report_runs: usize) -> Result<BatchSu
     // Let go with everything written.
     drop(lock);
     Ok(summary)
-}
-
-/// The runs report.html draws (the first `report_runs` of `entries`), each drawn from its
-/// journal file as the run at its group of results.h5, in parallel.
-fn drawn_from(
-    journal: &Journal,
-    entries: &[Entry],
-    report_runs: usize,
-) -> Vec<Result<DrawnRun, String>> {
-    use rayon::prelude::*;
-    let shown = &entries[..entries.len().min(report_runs)];
-    placements(shown)
-        .into_par_iter()
-        .zip(shown)
-        .map(|(group, e)| {
-            let mut plots = match journal.load(&e.key) {
-                Some((_, Stored::Encoded(run))) => html::encoded_plots(&run),
-                Some((_, Stored::Legacy(f))) => html::read_run(&f, &e.path)?,
-                None => {
-                    return Err(format!(
-                        "{}: missing or damaged",
-                        journal.file(&e.key).display()
-                    ))
-                }
-            };
-            plots.path = group;
-            Ok(DrawnRun::new(plots))
-        })
-        .collect()
 }
 
 /// A shard's journal file into the merged folder: a hard link where both are on one file

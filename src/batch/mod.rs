@@ -528,28 +528,20 @@ pub fn run_campaigns(
         })
         .collect();
     let held = drawn.take_shown(&entries, opt.report_runs);
-    let (results, rows) = if held.iter().all(Option::is_some) {
-        // The page reads nothing back: results.h5 is closed (its metadata flushed, a third
-        // of this end) while the summaries and the page are written.
-        let runs = held.into_iter().flatten().map(Ok).collect();
-        let (closed, pages) = std::thread::scope(|s| {
-            let closing = s.spawn(|| results.finish());
-            let pages = write_pages(out, &entries, &manifest, runs);
-            (closing.join(), pages)
-        });
-        let results = match closed {
-            Ok(r) => r.map_err(|e| stopped(e.into()))?,
-            Err(panic) => std::panic::resume_unwind(panic),
-        };
-        (results, pages.map_err(stopped)?)
-    } else {
-        let results = results.finish().map_err(|e| stopped(e.into()))?;
-        let runs = page_runs(&results, &entries, held);
-        (
-            results,
-            write_pages(out, &entries, &manifest, runs).map_err(stopped)?,
-        )
+    // The page reads nothing back from results.h5 (runs the workers did not draw are drawn
+    // from their journal files): results.h5 is closed (its metadata flushed, a third of
+    // this end) while the summaries and the page are written.
+    let (closed, pages) = std::thread::scope(|s| {
+        let closing = s.spawn(|| results.finish());
+        let runs = page_runs(&journal, &entries, held);
+        let pages = write_pages(out, &entries, &manifest, runs);
+        (closing.join(), pages)
+    });
+    let results = match closed {
+        Ok(r) => r.map_err(|e| stopped(e.into()))?,
+        Err(panic) => std::panic::resume_unwind(panic),
     };
+    let rows = pages.map_err(stopped)?;
     write_manifest(out, &manifest).map_err(stopped)?;
     let failed_runs = entries.iter().filter(|e| e.failed).count();
     profile::add(Stage::Write, profile::thread_cpu().saturating_sub(cpu0));
@@ -674,7 +666,7 @@ mod tests {
         assert!(drawn.wants(&entry("b.h5")));
         drawn.offer(&entry("b.h5"), Some(plots("b.h5")));
         assert!(!drawn.wants(&entry("c.h5")), "c was pushed out by b");
-        // A second run with a's archive name and path: both are read back from the file.
+        // A second run with a's archive name and path: both are drawn at the end.
         drawn.offer(&entry("a.h5"), Some(plots("a.h5")));
         assert!(drawn.take(&entry("a.h5"), "/runs/r").is_none());
         let b = drawn.take(&entry("b.h5"), "/runs/r@b.h5").expect("kept");
